@@ -1,0 +1,72 @@
+# IBVS window-and-landing stack: the two commands of the README, plus helpers.
+#   make run   - fly the reference scenario, write results/<run>/summary.json
+#   make test  - lint + the whole test suite (unit, node, integration)
+# Both create .venv on first use from requirements*.txt and install the workspace into it.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PKGS := ibvs_control ibvs_perception ibvs_sim ibvs_bringup
+PKG_DIRS := $(addprefix ros2_ws/src/,$(PKGS))
+# A sourced ROS 2 Jazzy (/opt/ros/jazzy) provides rclpy and the messages: use it, skip the wheels.
+ifeq ($(ROS_DISTRO),jazzy)
+VENV_FLAGS := --system-site-packages
+ROS_REQS :=
+else
+VENV_FLAGS :=
+ROS_REQS := -r requirements-ros.txt
+endif
+# Installed package data (config, launch, ament index markers) that needs a reinstall on change.
+PKG_DATA := $(shell find $(PKG_DIRS) -name setup.py -o -name setup.cfg -o -name package.xml \
+	-o -name '*.yaml' -o -name '*.launch.py' -o -path '*/resource/*' 2>/dev/null)
+export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV):$(AMENT_PREFIX_PATH)
+export PYTHONDONTWRITEBYTECODE := 1
+RUN_ARGS ?=
+
+.PHONY: run test lint unit integration bench venv install clean
+
+$(VENV)/.deps: requirements.txt requirements-ros.txt
+	$(PYTHON) -m venv $(VENV_FLAGS) $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip setuptools wheel
+	$(PY) -m pip install --quiet -r requirements.txt $(ROS_REQS)
+	touch $@
+
+# Like `colcon build --symlink-install`: editable Python, share/<pkg> data symlinked into the
+# venv prefix (which is on AMENT_PREFIX_PATH), so ament_index finds config and launch files.
+$(VENV)/.workspace: $(VENV)/.deps $(PKG_DATA) Makefile
+	$(PY) -m pip install --quiet --no-deps --no-build-isolation $(addprefix -e ,$(PKG_DIRS))
+	for p in $(PKGS); do \
+	  mkdir -p $(VENV)/share/$$p $(VENV)/share/ament_index/resource_index/packages && \
+	  touch $(VENV)/share/ament_index/resource_index/packages/$$p && \
+	  ln -sfn $(CURDIR)/ros2_ws/src/$$p/package.xml $(VENV)/share/$$p/package.xml && \
+	  for d in config launch; do \
+	    if [ -d ros2_ws/src/$$p/$$d ]; then ln -sfn $(CURDIR)/ros2_ws/src/$$p/$$d $(VENV)/share/$$p/$$d; fi; \
+	  done; \
+	done
+	touch $@
+
+venv: $(VENV)/.deps
+install: $(VENV)/.workspace
+
+run: install
+	$(PY) -m ibvs_bringup.run_scenario $(RUN_ARGS)
+
+lint: install
+	$(PY) -m flake8 --max-line-length 99 ros2_ws/src tests scripts benchmarks
+	$(PY) -m pydocstyle --convention=pep257 --add-ignore=D100,D101,D102,D103,D104,D105,D107 \
+		ros2_ws/src tests scripts benchmarks
+
+unit: install
+	$(PY) -m pytest -q tests/unit
+
+integration: install
+	$(PY) -m pytest -q tests/integration
+
+test: lint install
+	$(PY) -m pytest -q tests
+
+bench: install
+	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
+
+clean:
+	rm -rf $(VENV) build install log

@@ -1,0 +1,1 @@
+"""Launch files, parameters, runner, bag record/replay, plots and reports of the IBVS window-and-landing stack."""

@@ -1,0 +1,243 @@
+"""Typed views of the shared YAML files: world, pad layout, vehicle and cameras.
+
+These files live in ``ibvs_bringup/config`` (installed to ``share/ibvs_bringup/config``) and are
+the one source of truth for the sim, perception and control. Loaders raise ``ConfigError`` with
+the file and key at fault; they never return partially filled objects.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from ibvs_control.core.camera import CameraModel, CameraModelError
+from ibvs_control.core.frames import is_rotation
+
+CONFIG_PACKAGE = 'ibvs_bringup'
+
+
+class ConfigError(ValueError):
+    """A configuration file is missing, unreadable or holds an invalid value."""
+
+
+def default_config_path(file_name: str) -> str:
+    """Return ``share/ibvs_bringup/config/<file_name>`` of the installed workspace."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        share = get_package_share_directory(CONFIG_PACKAGE)
+    except Exception as exc:  # PackageNotFoundError, or ament_index missing
+        raise ConfigError(f'cannot locate package {CONFIG_PACKAGE!r} to find {file_name}: '
+                          f'{exc} (is AMENT_PREFIX_PATH set, is the workspace installed?)'
+                          ) from exc
+    return os.path.join(share, 'config', file_name)
+
+
+def _load_yaml(path: str | os.PathLike) -> dict:
+    try:
+        with open(path, encoding='utf-8') as f:
+            data = yaml.safe_load(f)
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f'cannot read {path}: {exc}') from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f'{path}: top level must be a mapping')
+    return data
+
+
+def _get(data: dict, key: str, path: str | os.PathLike):
+    node = data
+    for part in key.split('.'):
+        if not isinstance(node, dict) or part not in node:
+            raise ConfigError(f'{path}: missing key {key!r}')
+        node = node[part]
+    return node
+
+
+# --- Pad layout --------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class MarkerGroup:
+    """One group of 4 ArUco markers whose centres form a square around the pad centre."""
+
+    name: str
+    ids: tuple[int, int, int, int]
+    side: float            # m, marker side (black border included)
+    c: float               # m, half-side of the square of marker centres
+
+    def marker_centres_I(self) -> np.ndarray:
+        """Marker centres (4, 3) in {I}, in the order of ``ids``."""
+        c = self.c
+        return np.array([[c, c, 0.0], [c, -c, 0.0], [-c, -c, 0.0], [-c, c, 0.0]])
+
+
+@dataclass(frozen=True)
+class PadLayout:
+    """The landing pad: ArUco dictionary, quiet zone and marker groups (largest first)."""
+
+    dictionary: str
+    quiet_zone: float
+    groups: tuple[MarkerGroup, ...]
+
+    def group_of(self, marker_id: int) -> MarkerGroup | None:
+        """Return the group a marker id belongs to, or None for a foreign id."""
+        for g in self.groups:
+            if marker_id in g.ids:
+                return g
+        return None
+
+
+def load_pad_layout(path: str | os.PathLike | None = None) -> PadLayout:
+    """Load the pad layout YAML (default: the installed ``pad_layout.yaml``)."""
+    path = path or default_config_path('pad_layout.yaml')
+    data = _load_yaml(path)
+    groups = []
+    seen: set[int] = set()
+    for i, g in enumerate(_get(data, 'groups', path)):
+        try:
+            ids = tuple(int(x) for x in g['ids'])
+            group = MarkerGroup(str(g['name']), ids, float(g['side']), float(g['c']))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f'{path}: groups[{i}] invalid: {exc}') from exc
+        if len(ids) != 4 or seen.intersection(ids) or group.side <= 0 or group.c <= 0:
+            raise ConfigError(f'{path}: groups[{i}] needs 4 unique ids, side > 0, c > 0')
+        seen.update(ids)
+        groups.append(group)
+    groups.sort(key=lambda g: -g.side)
+    return PadLayout(str(_get(data, 'dictionary', path)), float(data.get('quiet_zone', 0.25)),
+                     tuple(groups))
+
+
+# --- World -------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class WindowGeometry:
+    """The rectangular window aperture in the wall, paper frame {I}."""
+
+    center_I: np.ndarray    # m
+    width: float            # m, r_w (along y_I)
+    height: float           # m (along z_I)
+    frame_band: float       # m, dark border around the aperture on the wall face
+
+    def corners_I(self) -> np.ndarray:
+        """Aperture corners (4, 3) in {I}: top-left, top-right, bottom-right, bottom-left.
+
+        As seen from the approach side (looking along +x_I): left is -y_I, top is -z_I.
+        """
+        cx, cy, cz = self.center_I
+        hw, hh = self.width / 2.0, self.height / 2.0
+        return np.array([[cx, cy - hw, cz - hh], [cx, cy + hw, cz - hh],
+                         [cx, cy + hw, cz + hh], [cx, cy - hw, cz + hh]])
+
+
+@dataclass(frozen=True)
+class WorldConfig:
+    """Reference scenario of SPEC.md section 2."""
+
+    floor_z: float
+    floor_extent_x: tuple[float, float]
+    floor_extent_y: tuple[float, float]
+    wall_x: float
+    wall_z_range: tuple[float, float]
+    wall_y_range: tuple[float, float]
+    window: WindowGeometry
+    back_wall_x: float
+    texture_seeds: dict
+    initial_position_I: np.ndarray
+    initial_yaw: float
+    random_box: dict
+
+
+def load_world(path: str | os.PathLike | None = None) -> WorldConfig:
+    """Load the world YAML (default: the installed ``world.yaml``)."""
+    path = path or default_config_path('world.yaml')
+    d = _load_yaml(path)
+    try:
+        window = WindowGeometry(np.array(_get(d, 'window.center', path), dtype=float),
+                                float(_get(d, 'window.width', path)),
+                                float(_get(d, 'window.height', path)),
+                                float(_get(d, 'window.frame_band', path)))
+        world = WorldConfig(
+            floor_z=float(_get(d, 'floor.z', path)),
+            floor_extent_x=tuple(_get(d, 'floor.extent_x', path)),
+            floor_extent_y=tuple(_get(d, 'floor.extent_y', path)),
+            wall_x=float(_get(d, 'wall.x', path)),
+            wall_z_range=tuple(_get(d, 'wall.z_range', path)),
+            wall_y_range=tuple(_get(d, 'wall.y_range', path)),
+            window=window,
+            back_wall_x=float(_get(d, 'back_wall.x', path)),
+            texture_seeds={'floor': int(d['floor'].get('texture_seed', 1)),
+                           'wall': int(d['wall'].get('texture_seed', 2)),
+                           'back_wall': int(d['back_wall'].get('texture_seed', 3))},
+            initial_position_I=np.array(_get(d, 'initial_condition.position', path),
+                                        dtype=float),
+            initial_yaw=float(_get(d, 'initial_condition.yaw', path)),
+            random_box={k: tuple(map(float, v))
+                        for k, v in _get(d, 'random_initial_box', path).items()})
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f'{path}: {exc}') from exc
+    if window.width <= 0 or window.height <= 0 or window.center_I.shape != (3,):
+        raise ConfigError(f'{path}: window needs a 3-vector centre and positive size')
+    return world
+
+
+# --- Vehicle and cameras -----------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """One camera: intrinsics (as CameraInfo carries them), mount, rate and frame id."""
+
+    name: str
+    frame_id: str
+    R_BC: np.ndarray        # optical -> body FRD
+    model: CameraModel
+    rate_hz: float
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Pelican-class vehicle: mass, thrust model, collision envelope and cameras."""
+
+    mass: float                  # kg
+    arm_length: float            # m
+    max_thrust_factor: float     # max collective thrust / (m g)
+    hover_thrust: float          # normalised thrust at hover
+    envelope_radius: float       # m
+    envelope_height: float       # m
+    cameras: dict                # name -> CameraConfig
+    raw: dict                    # the whole file, for sim-only keys (inertia, rotors, ...)
+
+
+def load_vehicle(path: str | os.PathLike | None = None) -> VehicleConfig:
+    """Load the vehicle YAML (default: the installed ``vehicle.yaml``)."""
+    path = path or default_config_path('vehicle.yaml')
+    d = _load_yaml(path)
+    cameras = {}
+    for name, c in _get(d, 'cameras', path).items():
+        try:
+            R_BC = np.array(c['R_BC'], dtype=float)
+            model = CameraModel.from_camera_info(int(c['width']), int(c['height']), c['K'],
+                                                 c['D'], str(c['distortion_model']))
+            cam = CameraConfig(name, str(c['frame_id']), R_BC, model, float(c['rate_hz']))
+        except (KeyError, TypeError, ValueError, CameraModelError) as exc:
+            raise ConfigError(f'{path}: cameras.{name} invalid: {exc}') from exc
+        if not is_rotation(R_BC):
+            raise ConfigError(f'{path}: cameras.{name}.R_BC is not a rotation matrix')
+        cameras[name] = cam
+    try:
+        v = VehicleConfig(float(_get(d, 'mass', path)), float(_get(d, 'arm_length', path)),
+                          float(_get(d, 'max_thrust_factor', path)),
+                          float(_get(d, 'hover_thrust', path)),
+                          float(_get(d, 'envelope.radius', path)),
+                          float(_get(d, 'envelope.height', path)), cameras, d)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f'{path}: {exc}') from exc
+    if v.mass <= 0 or not 0.0 < v.hover_thrust < 1.0 or v.max_thrust_factor <= 1.0:
+        raise ConfigError(f'{path}: need mass > 0, 0 < hover_thrust < 1, max_thrust_factor > 1')
+    return v
+
+
+def config_file(path: str | os.PathLike | None, file_name: str) -> Path:
+    """Return ``path`` if given (non-empty), else the installed default for ``file_name``."""
+    return Path(path) if path else Path(default_config_path(file_name))

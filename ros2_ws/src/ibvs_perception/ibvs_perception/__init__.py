@@ -1,0 +1,1 @@
+"""Window detection, pad (ArUco) detection and translational optical flow nodes for IBVS."""
