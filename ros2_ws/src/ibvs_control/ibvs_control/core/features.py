@@ -1,0 +1,195 @@
+"""Spherical image features of the paper, section 3 (landing plane and window plane).
+
+All bearings are unit vectors from the camera centre (= body origin) to a scene point. Unless a
+name says otherwise they are expressed in the paper's inertial frame {I} (derotated with the IMU
+attitude: ``p = R_IB R_BC b_C``, see frames.bearings_C_to_I). Distances are metres, flows 1/s.
+
+Window corners come in a fixed order: top-left, top-right, bottom-right, bottom-left as seen
+from the approach side; edge i joins corner i and corner i+1 (top, right, bottom, left).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_EPS = 1e-9
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(x)
+    if n < _EPS:
+        raise ValueError(f'cannot normalise a (near) zero vector {x!r}')
+    return x / n
+
+
+def centroid_feature(bearings_I: np.ndarray) -> np.ndarray:
+    """Return q = -(1/n) sum p_i, the centroid feature of eq:q_t (landing) and q_w (window).
+
+    Sign: q points from the observed points towards the camera (for a landmark set centred on
+    the origin of {I}, q is parallel to xi / |xi| at long range).
+    """
+    p = np.asarray(bearings_I, dtype=float).reshape(-1, 3)
+    if len(p) == 0:
+        raise ValueError('no bearings')
+    return -p.mean(axis=0)
+
+
+def edge_normals(corner_bearings: np.ndarray) -> np.ndarray:
+    """Return h_i = unit(p_i x p_{i+1}) (4, 3): the normal of the plane through the camera
+    centre and edge i (binormalised Plucker coordinates, paper section 3.2). Any frame."""
+    p = np.asarray(corner_bearings, dtype=float).reshape(4, 3)
+    return np.array([_unit(np.cross(p[i], p[(i + 1) % 4])) for i in range(4)])
+
+
+def window_axes(h: np.ndarray, corner_bearings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return (u_w, rho_w), the window's edge directions from parallel edge pairs.
+
+    The direction of a 3-D line lies in its interpretation plane, so the common direction of
+    the two parallel edges i and i+2 is h_i x h_{i+2}. u_w is the direction of the vertical
+    edges (right, left), oriented from the top corners to the bottom corners; rho_w that of the
+    horizontal edges (top, bottom), oriented from left to right corners. Then
+    (eta_w, rho_w, u_w) is right-handed with rho_w = u_w x eta_w (paper's axes).
+    """
+    p = np.asarray(corner_bearings, dtype=float).reshape(4, 3)
+    rho_w = _unit(np.cross(h[0], h[2]))
+    u_w = _unit(np.cross(h[1], h[3]))
+    if rho_w @ ((p[1] + p[2]) - (p[0] + p[3])) < 0.0:
+        rho_w = -rho_w
+    if u_w @ ((p[2] + p[3]) - (p[0] + p[1])) < 0.0:
+        u_w = -u_w
+    return u_w, rho_w
+
+
+def window_normal(u_w: np.ndarray, rho_w: np.ndarray, q_w: np.ndarray,
+                  eta_ref: np.ndarray | None = None) -> np.ndarray:
+    """Return eta_w = +-unit(u_w x rho_w) (eq:etaw).
+
+    Sign rule of the paper: eta_w^T q_w < 0 (eta_w points from the vehicle's side through the
+    window, the direction of travel). When eta_ref (the previous estimate) is given, continuity
+    with it decides instead, so that the sign cannot flip near the window plane.
+    """
+    eta = _unit(np.cross(u_w, rho_w))
+    if eta_ref is not None:
+        return eta if eta @ eta_ref >= 0.0 else -eta
+    return eta if eta @ q_w < 0.0 else -eta
+
+
+def closest_edge_direction(h: np.ndarray, u_w: np.ndarray, rho_w: np.ndarray,
+                           eta_w: np.ndarray, corner_bearings: np.ndarray) -> np.ndarray:
+    """Return l^e, the unit direction from the camera to the closest point of the closest edge.
+
+    For edge i the direction to its nearest point lies in its plane (normal h_i) and is
+    orthogonal to the edge: l_i = +-(h_i x d_i) with d_i = rho_w (top, bottom) or u_w (right,
+    left), oriented towards the edge (positive dot product with its corner bearings). Every
+    edge lies in the wall plane at distance d_o, so eta_w^T l_i = d_o / |L_i| and the closest
+    edge is the one with the largest |eta_w^T l_i| (paper, after eq:region).
+    """
+    p = np.asarray(corner_bearings, dtype=float).reshape(4, 3)
+    best, best_score = None, -1.0
+    for i in range(4):
+        d = rho_w if i % 2 == 0 else u_w
+        l_i = _unit(np.cross(h[i], d))
+        if l_i @ (p[i] + p[(i + 1) % 4]) < 0.0:
+            l_i = -l_i
+        score = abs(float(eta_w @ l_i))
+        if score > best_score:
+            best, best_score = l_i, score
+    return best
+
+
+def alpha_w(q_w_norm: float, eps: float, delta: float) -> float:
+    """Return the weight alpha_w of eq:alphaw: 0 inside W (|q_w| <= eps), 1 beyond eps+delta."""
+    if q_w_norm <= eps:
+        return 0.0
+    if q_w_norm >= eps + delta:
+        return 1.0
+    return float((q_w_norm - eps) / delta)
+
+
+def window_feature_bar(p_w: np.ndarray, eta_w: np.ndarray, l_e: np.ndarray,
+                       alpha: float) -> np.ndarray:
+    """Return q_bar_w of eq:qw.
+
+    q_bar_w = -(1/n) sum p_i [alpha / (eta^T p_i) + (1 - alpha) (eta^T l_e) / (eta^T p_i)],
+    which equals alpha xi_w / d_o + (1 - alpha) xi_w / d_e (eq d_w), xi_w being the vehicle
+    position relative to the window centre, d_o the distance to the wall plane and d_e that to
+    the closest edge.
+    """
+    p = np.asarray(p_w, dtype=float).reshape(-1, 3)
+    cos_i = p @ eta_w
+    if np.any(cos_i <= _EPS):
+        raise ValueError('a window corner is not in front of the vehicle along eta_w')
+    weight = alpha + (1.0 - alpha) * float(eta_w @ l_e)
+    return -(p / cos_i[:, None]).mean(axis=0) * weight
+
+
+def window_flow(phi_wall: np.ndarray, eta_w: np.ndarray, l_e: np.ndarray,
+                alpha: float) -> np.ndarray:
+    """Return phi_w of eq:phi_w = alpha v/d_o + (1 - alpha) v/d_e.
+
+    Both terms come from the wall's translational flow phi_wall = v/d_o, since
+    v/d_e = (d_o/d_e) v/d_o and d_o/d_e = eta_w^T l^e.
+    """
+    return np.asarray(phi_wall, dtype=float) * (alpha + (1.0 - alpha) * float(eta_w @ l_e))
+
+
+def distance_to_window_plane(corner_bearings_I: np.ndarray, eta_w: np.ndarray,
+                             r_w: float) -> float:
+    """Return d_o (m) from the corner bearings and the known window width r_w.
+
+    Corner i is at P_i = d_o p_i / (eta^T p_i); the top and bottom edges have length r_w, so
+    d_o = r_w / |p_TR/(eta^T p_TR) - p_TL/(eta^T p_TL)| (averaged over both edges). Used only by
+    the mode supervisor (blind-crossing length), never by the control laws.
+    """
+    p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
+    s = p / (p @ eta_w)[:, None]
+    width = 0.5 * (np.linalg.norm(s[1] - s[0]) + np.linalg.norm(s[2] - s[3]))
+    return float(r_w / width)
+
+
+@dataclass(frozen=True)
+class WindowFeatures:
+    """The window features of section 3.2, all in {I}."""
+
+    q_w: np.ndarray
+    eta_w: np.ndarray
+    u_w: np.ndarray
+    rho_w: np.ndarray
+    l_e: np.ndarray
+    alpha_w: float
+    q_w_bar: np.ndarray
+
+
+def compute_window_features(corner_bearings_I: np.ndarray, eps: float, delta: float,
+                            eta_ref: np.ndarray | None = None) -> WindowFeatures:
+    """All window features from the 4 corner bearings in {I} (order TL, TR, BR, BL).
+
+    Raises ValueError for a degenerate view (corners aligned, window edge-on).
+    """
+    p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
+    if not np.all(np.isfinite(p)):
+        raise ValueError('non-finite corner bearing')
+    q_w = centroid_feature(p)
+    h = edge_normals(p)
+    u_w, rho_w = window_axes(h, p)
+    eta_w = window_normal(u_w, rho_w, q_w, eta_ref)
+    l_e = closest_edge_direction(h, u_w, rho_w, eta_w, p)
+    a = alpha_w(float(np.linalg.norm(q_w)), eps, delta)
+    q_w_bar = window_feature_bar(p, eta_w, l_e, a)
+    return WindowFeatures(q_w, eta_w, u_w, rho_w, l_e, a, q_w_bar)
+
+
+def pad_height_estimate(group_bearings_I: np.ndarray, c: float,
+                        eta_t: np.ndarray | None = None) -> float:
+    """Height (m) above the landing plane from one complete marker group (mode 3 -> 4 cue).
+
+    For a group whose marker centres sit at horizontal distance sqrt(2) c from the pad centre,
+    seen from straight above at height h, every bearing makes the angle theta with eta_t where
+    cos theta = -eta_t^T q_t(group) = h / sqrt(h^2 + 2 c^2), so
+    h = sqrt(2) c cos(theta) / sin(theta). Off-centre views bias it slightly (documented).
+    """
+    eta = np.array([0.0, 0.0, 1.0]) if eta_t is None else np.asarray(eta_t, dtype=float)
+    cos_t = float(-eta @ centroid_feature(group_bearings_I))
+    cos_t = min(max(cos_t, _EPS), 1.0 - _EPS)
+    return float(np.sqrt(2.0) * c * cos_t / np.sqrt(1.0 - cos_t * cos_t))
