@@ -1,1 +1,1 @@
-"""Launch files, parameters, runner, bag record/replay, plots and reports of the IBVS window-and-landing stack."""
+"""Launch files, parameters, runner, bag record/replay, plots and reports of the IBVS stack."""

@@ -1,0 +1,171 @@
+"""THE node list of the IBVS graph, defined once for the launch files and the runner.
+
+``sim_graph()`` is the whole graph with the simulator (lockstep, sim time); ``onboard_graph()``
+is what runs on the vehicle's companion computer, against the autopilot's MAVLink URL. Both
+return ``NodeSpec`` records; ``launch/*.launch.py`` turn them into ``launch_ros`` Node actions
+and ``ibvs_bringup.runner`` into processes (``--ros-args`` built by ``NodeSpec.ros_args``).
+Parameters come from ``params.yaml`` (keyed by node name) plus the few per-run overrides here.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import os
+from typing import Sequence
+
+CONFIG_PACKAGE = 'ibvs_bringup'
+PARAMS_FILE_NAME = 'params.yaml'
+DEFAULT_MAVLINK_PORT = 14560
+CROSSING_LAWS = ('closed', 'intended', 'seed')
+ROLES = ('sim', 'onboard', 'tool')
+
+# Names of the per-run parameters (the rest lives in params.yaml). Owned by the node packages;
+# collected here so that a rename is one edit.
+SIM_INITIAL_POSITION = 'initial_position'     # [x, y, z] in the paper frame {I}, m
+SIM_INITIAL_YAW = 'initial_yaw'               # rad, {I}
+SIM_WIND = 'wind_force'                       # [fx, fy, fz] in {I}, N
+MAVLINK_URL = 'mavlink_url'
+CROSSING_LAW = 'crossing_law'
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of the graph: what to run, under which name, with which parameters."""
+
+    package: str
+    executable: str
+    name: str
+    parameters: tuple = ()          # parameter-file paths (str) and override dicts, in order
+    remappings: tuple = ()          # (from, to) pairs
+    role: str = 'onboard'           # 'sim' | 'onboard' | 'tool'
+
+    def __post_init__(self) -> None:
+        if self.role not in ROLES:
+            raise ValueError(f'node {self.name}: role must be one of {ROLES}, not {self.role!r}')
+
+    def param_files(self) -> list[str]:
+        """Return the parameter files, in order."""
+        return [p for p in self.parameters if isinstance(p, str)]
+
+    def overrides(self) -> dict:
+        """Return the merged override dicts (later ones win)."""
+        merged: dict = {}
+        for p in self.parameters:
+            if isinstance(p, dict):
+                merged.update(p)
+        return merged
+
+    def ros_args(self) -> list[str]:
+        """Return the ``--ros-args`` command-line tail that ``ros2 run`` would be given."""
+        args = ['--ros-args', '-r', f'__node:={self.name}']
+        for f in self.param_files():
+            args += ['--params-file', f]
+        for key, value in self.overrides().items():
+            args += ['-p', f'{key}:={format_param_value(value)}']
+        for src, dst in self.remappings:
+            args += ['-r', f'{src}:={dst}']
+        return args
+
+
+@dataclass(frozen=True)
+class GraphOptions:
+    """Per-run options of the graph (everything else is in params.yaml)."""
+
+    params_file: str | None = None                  # None: the installed params.yaml
+    use_sim_time: bool = True
+    mavlink_port: int = DEFAULT_MAVLINK_PORT        # sim graph: UDP port on 127.0.0.1
+    mavlink_url: str | None = None                  # onboard graph: the vehicle's MAVLink URL
+    initial_position: tuple | None = None           # {I}, m; None: world.yaml's
+    initial_yaw: float | None = None                # rad; None: world.yaml's
+    wind: tuple | None = None                       # {I}, N; None: params.yaml's
+    crossing_law: str | None = None                 # None: params.yaml's
+    extra_remappings: tuple = field(default_factory=tuple)
+
+
+def format_param_value(value) -> str:
+    """Format a parameter override for ``-p name:=value`` (YAML, floats kept as doubles)."""
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, (list, tuple)):
+        return '[' + ','.join(format_param_value(v) for v in value) + ']'
+    return str(value)
+
+
+def default_params_file() -> str:
+    """Return the installed ``share/ibvs_bringup/config/params.yaml``."""
+    from ament_index_python.packages import get_package_share_directory
+    return os.path.join(get_package_share_directory(CONFIG_PACKAGE), 'config', PARAMS_FILE_NAME)
+
+
+def sim_mavlink_urls(port: int) -> tuple[str, str]:
+    """Return (sim URL, bridge URL) of the lockstep MAVLink link on 127.0.0.1:port."""
+    if not 0 < int(port) < 65536:
+        raise ValueError(f'MAVLink port {port} out of range')
+    return f'udpin:127.0.0.1:{int(port)}', f'udpout:127.0.0.1:{int(port)}'
+
+
+def _floats(values: Sequence[float], n: int, what: str) -> list[float]:
+    out = [float(v) for v in values]
+    if len(out) != n:
+        raise ValueError(f'{what} needs {n} values, got {len(out)}')
+    return out
+
+
+def _onboard_nodes(params: str, common: dict, opts: GraphOptions, mavlink_url: str) -> list:
+    law = {}
+    if opts.crossing_law is not None:
+        if opts.crossing_law not in CROSSING_LAWS:
+            raise ValueError(f'crossing law must be one of {CROSSING_LAWS}')
+        law = {CROSSING_LAW: opts.crossing_law}
+    remap = tuple(opts.extra_remappings)
+
+    def node(package: str, executable: str, name: str, *overrides: dict) -> NodeSpec:
+        merged = dict(common)
+        for o in overrides:
+            merged.update(o)
+        return NodeSpec(package, executable, name, (params, merged) if merged else (params,),
+                        remap, 'onboard')
+
+    return [
+        node('ibvs_perception', 'window_detector', 'window_detector'),
+        node('ibvs_perception', 'pad_detector', 'pad_detector'),
+        node('ibvs_perception', 'optical_flow', 'front_optical_flow', {'camera': 'front'}),
+        node('ibvs_perception', 'optical_flow', 'down_optical_flow', {'camera': 'down'}),
+        node('ibvs_control', 'mode_supervisor', 'mode_supervisor', law),
+        node('ibvs_control', 'force_controller', 'force_controller', law),
+        node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {MAVLINK_URL: mavlink_url}),
+    ]
+
+
+def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
+    """Return the whole graph with the simulator: sim first, then the onboard nodes."""
+    params = opts.params_file or default_params_file()
+    sim_url, bridge_url = sim_mavlink_urls(opts.mavlink_port)
+    sim_over: dict = {MAVLINK_URL: sim_url}
+    if opts.initial_position is not None:
+        sim_over[SIM_INITIAL_POSITION] = _floats(opts.initial_position, 3, 'initial position')
+    if opts.initial_yaw is not None:
+        sim_over[SIM_INITIAL_YAW] = float(opts.initial_yaw)
+    if opts.wind is not None:
+        sim_over[SIM_WIND] = _floats(opts.wind, 3, 'wind')
+    common = {'use_sim_time': True} if opts.use_sim_time else {}
+    sim = NodeSpec('ibvs_sim', 'sim', 'sim', (params, sim_over), tuple(opts.extra_remappings),
+                   'sim')
+    return [sim] + _onboard_nodes(params, common, opts, bridge_url)
+
+
+def onboard_graph(opts: GraphOptions = GraphOptions(use_sim_time=False)) -> list[NodeSpec]:
+    """Return the onboard nodes only, talking to the vehicle at ``opts.mavlink_url``."""
+    params = opts.params_file or default_params_file()
+    url = opts.mavlink_url or sim_mavlink_urls(opts.mavlink_port)[1]
+    common = {'use_sim_time': True} if opts.use_sim_time else {}
+    return _onboard_nodes(params, common, opts, url)
+
+
+def tool_node(executable: str, name: str, parameters: tuple = (),
+              remappings: tuple = ()) -> NodeSpec:
+    """Return a tool node of this package (recorder, bag player), not part of the flight graph."""
+    return NodeSpec(CONFIG_PACKAGE, executable, name, parameters, remappings, 'tool')

@@ -1,0 +1,215 @@
+"""Start the graph of ``graph.py`` as separate processes, where launch_ros is not available.
+
+Each node runs as ``<resolved executable> --ros-args -r __node:=<name> --params-file ... -p ...
+-r from:=to`` (``NodeSpec.ros_args``), in its own process group, with the caller's environment
+(ROS_DOMAIN_ID, discovery range, AMENT_PREFIX_PATH pass through). ``ProcessRunner`` stops every
+process it started on exit, Ctrl-C or SIGTERM (SIGINT, then SIGTERM, then SIGKILL, each with a
+timeout) and reports a process that died: name, exit code and its last stderr lines.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+from dataclasses import dataclass
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from typing import Iterable
+
+from ibvs_bringup import graph
+from ibvs_bringup.ros2run import command_for
+
+STDERR_TAIL_LINES = 20
+
+
+@dataclass(frozen=True)
+class DeadProcess:
+    """A process that exited on its own while the graph was supposed to run."""
+
+    name: str
+    returncode: int
+    stderr_tail: tuple
+
+    def report(self) -> str:
+        """Return a human-readable report of the death."""
+        tail = '\n'.join('    ' + line for line in self.stderr_tail) or '    (no stderr)'
+        return f'node {self.name!r} died with exit code {self.returncode}; last stderr:\n{tail}'
+
+
+class _Child:
+    """One started process, its stderr tail and optional log file."""
+
+    def __init__(self, name: str, argv: list, env: dict, log_path: str | None) -> None:
+        self.name = name
+        self.argv = argv
+        self.tail: collections.deque = collections.deque(maxlen=STDERR_TAIL_LINES)
+        self._log = open(log_path, 'w', encoding='utf-8') if log_path else None
+        self.proc = subprocess.Popen(
+            argv, env=env, stdin=subprocess.DEVNULL,
+            stdout=self._log if self._log else subprocess.DEVNULL,
+            stderr=subprocess.PIPE, start_new_session=True)
+        self._reader = threading.Thread(target=self._read_stderr, daemon=True)
+        self._reader.start()
+
+    def _read_stderr(self) -> None:
+        for raw in iter(self.proc.stderr.readline, b''):
+            line = raw.decode('utf-8', 'replace').rstrip('\n')
+            self.tail.append(line)
+            if self._log:
+                try:
+                    self._log.write(line + '\n')
+                    self._log.flush()
+                except ValueError:   # closed at stop
+                    return
+
+    def signal(self, sig: int) -> None:
+        if self.proc.poll() is None:
+            try:
+                os.killpg(self.proc.pid, sig)
+            except ProcessLookupError:
+                pass
+
+    def close(self) -> None:
+        self._reader.join(timeout=1.0)
+        if self.proc.stderr:
+            self.proc.stderr.close()
+        if self._log:
+            self._log.close()
+
+
+class ProcessRunner:
+    """Start named processes, watch them, and stop them all (also as a context manager)."""
+
+    def __init__(self, env: dict | None = None, log_dir: str | None = None,
+                 stop_timeouts: tuple = (5.0, 3.0, 2.0)) -> None:
+        self.env = dict(os.environ if env is None else env)
+        self.log_dir = log_dir
+        self.stop_timeouts = stop_timeouts     # after SIGINT, after SIGTERM, after SIGKILL
+        self.children: list[_Child] = []
+        self._reported: set = set()
+        if log_dir:
+            os.makedirs(log_dir, exist_ok=True)
+
+    def start(self, name: str, argv: list) -> None:
+        """Start ``argv`` as process ``name`` in a new process group."""
+        log = os.path.join(self.log_dir, f'{name}.log') if self.log_dir else None
+        self.children.append(_Child(name, list(argv), self.env, log))
+
+    def start_node(self, spec: graph.NodeSpec) -> None:
+        """Start one node of the graph the way ``ros2 run`` would."""
+        self.start(spec.name, command_for(spec.package, spec.executable, spec.ros_args()))
+
+    def start_graph(self, specs: Iterable[graph.NodeSpec]) -> None:
+        """Start every node of ``specs``."""
+        for spec in specs:
+            self.start_node(spec)
+
+    def dead(self) -> list[DeadProcess]:
+        """Return processes that exited since the last call (each reported once)."""
+        out = []
+        for c in self.children:
+            rc = c.proc.poll()
+            if rc is not None and c.name not in self._reported:
+                self._reported.add(c.name)
+                c._reader.join(timeout=0.5)
+                out.append(DeadProcess(c.name, rc, tuple(c.tail)))
+        return out
+
+    def running(self) -> list[str]:
+        """Return the names of the processes still running."""
+        return [c.name for c in self.children if c.proc.poll() is None]
+
+    def stop(self) -> dict:
+        """Stop every process (SIGINT, SIGTERM, SIGKILL with timeouts); return exit codes."""
+        for sig, timeout in zip((signal.SIGINT, signal.SIGTERM, signal.SIGKILL),
+                                self.stop_timeouts):
+            alive = [c for c in self.children if c.proc.poll() is None]
+            if not alive:
+                break
+            for c in alive:
+                c.signal(sig)
+            deadline = time.monotonic() + timeout
+            for c in alive:
+                try:
+                    c.proc.wait(timeout=max(0.0, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    pass
+        for c in self.children:
+            c.close()
+        return {c.name: c.proc.poll() for c in self.children}
+
+    def __enter__(self) -> 'ProcessRunner':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+class Terminated(Exception):
+    """SIGTERM received (raised in the main thread so that finally blocks run)."""
+
+
+def raise_on_sigterm() -> None:
+    """Turn SIGTERM into a ``Terminated`` exception in the main thread."""
+    def handler(signum, frame):
+        raise Terminated()
+    signal.signal(signal.SIGTERM, handler)
+
+
+def options_from_args(args: argparse.Namespace) -> graph.GraphOptions:
+    """Build GraphOptions from the common command-line options."""
+    return graph.GraphOptions(
+        params_file=args.params_file, use_sim_time=args.graph == 'sim',
+        mavlink_port=args.mavlink_port, mavlink_url=args.mavlink_url,
+        initial_position=tuple(args.initial_position) if args.initial_position else None,
+        wind=tuple(args.wind) if args.wind else None, crossing_law=args.crossing_law)
+
+
+def add_graph_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``GraphOptions`` to ``parser``."""
+    parser.add_argument('--params-file', default=None, help='default: installed params.yaml')
+    parser.add_argument('--mavlink-port', type=int, default=graph.DEFAULT_MAVLINK_PORT)
+    parser.add_argument('--mavlink-url', default=None, help='onboard graph: vehicle URL')
+    parser.add_argument('--initial-position', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
+                        help='paper frame {I}, m')
+    parser.add_argument('--wind', type=float, nargs=3, metavar=('FX', 'FY', 'FZ'),
+                        help='{I}, N')
+    parser.add_argument('--crossing-law', choices=graph.CROSSING_LAWS)
+
+
+def main(argv: list | None = None) -> int:
+    """Run the sim or onboard graph until Ctrl-C, SIGTERM or a node dies."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('graph', nargs='?', choices=('sim', 'onboard'), default='sim')
+    add_graph_arguments(parser)
+    parser.add_argument('--log-dir', default=None, help='write <node>.log files here')
+    args = parser.parse_args(argv)
+    opts = options_from_args(args)
+    specs = graph.sim_graph(opts) if args.graph == 'sim' else graph.onboard_graph(opts)
+    raise_on_sigterm()
+    runner = ProcessRunner(log_dir=args.log_dir)
+    rc = 0
+    try:
+        runner.start_graph(specs)
+        print(f'runner: started {", ".join(s.name for s in specs)}', flush=True)
+        while True:
+            dead = runner.dead()
+            if dead:
+                for d in dead:
+                    print(d.report(), file=sys.stderr, flush=True)
+                rc = 1
+                break
+            time.sleep(0.2)
+    except (KeyboardInterrupt, Terminated):
+        pass
+    finally:
+        codes = runner.stop()
+        print(f'runner: stopped ({codes})', flush=True)
+    return rc
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,34 @@
+"""Onboard IBVS nodes only (no sim), against a vehicle's MAVLink URL: nodes from graph.py.
+
+Usage: ros2 launch ibvs_bringup onboard.launch.py mavlink_url:=udpout:192.168.1.10:14540
+"""
+from ibvs_bringup import graph
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration as Lc
+from launch_ros.actions import Node
+
+
+def _nodes(context):
+    get = context.perform_substitution
+    params = get(Lc('params_file')) or None
+    law = get(Lc('crossing_law')) or None
+    use_sim_time = get(Lc('use_sim_time')).lower() in ('1', 'true', 'yes')
+    opts = graph.GraphOptions(params_file=params, use_sim_time=use_sim_time,
+                              mavlink_url=get(Lc('mavlink_url')), crossing_law=law)
+    return [Node(package=s.package, executable=s.executable, name=s.name,
+                 parameters=list(s.parameters), remappings=list(s.remappings), output='screen')
+            for s in graph.onboard_graph(opts)]
+
+
+def generate_launch_description():
+    """Declare the arguments and build the node list of graph.onboard_graph()."""
+    return LaunchDescription([
+        DeclareLaunchArgument('mavlink_url', description="the autopilot's MAVLink URL"),
+        DeclareLaunchArgument('params_file', default_value='',
+                              description='parameter file (empty: installed params.yaml)'),
+        DeclareLaunchArgument('use_sim_time', default_value='false'),
+        DeclareLaunchArgument('crossing_law', default_value='',
+                              description='closed | intended | seed (empty: params.yaml)'),
+        OpaqueFunction(function=_nodes),
+    ])

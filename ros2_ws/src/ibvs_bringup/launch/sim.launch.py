@@ -1,0 +1,34 @@
+"""Whole IBVS graph with the simulator (lockstep MAVLink, sim time): nodes from graph.py.
+
+Usage: ros2 launch ibvs_bringup sim.launch.py [mavlink_port:=14560] [crossing_law:=closed]
+       [params_file:=/path/params.yaml]
+"""
+from ibvs_bringup import graph
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
+from launch.substitutions import LaunchConfiguration as Lc
+from launch_ros.actions import Node
+
+
+def _nodes(context):
+    get = context.perform_substitution
+    params = get(Lc('params_file')) or None
+    law = get(Lc('crossing_law')) or None
+    opts = graph.GraphOptions(params_file=params, use_sim_time=True,
+                              mavlink_port=int(get(Lc('mavlink_port'))), crossing_law=law)
+    return [Node(package=s.package, executable=s.executable, name=s.name,
+                 parameters=list(s.parameters), remappings=list(s.remappings), output='screen')
+            for s in graph.sim_graph(opts)]
+
+
+def generate_launch_description():
+    """Declare the arguments and build the node list of graph.sim_graph()."""
+    return LaunchDescription([
+        DeclareLaunchArgument('params_file', default_value='',
+                              description='parameter file (empty: installed params.yaml)'),
+        DeclareLaunchArgument('mavlink_port', default_value=str(graph.DEFAULT_MAVLINK_PORT),
+                              description='UDP port of the sim <-> bridge MAVLink link'),
+        DeclareLaunchArgument('crossing_law', default_value='',
+                              description='closed | intended | seed (empty: params.yaml)'),
+        OpaqueFunction(function=_nodes),
+    ])

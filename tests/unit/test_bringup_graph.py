@@ -1,0 +1,159 @@
+"""graph.py, the launch files and setup.py agree: one node list, existing executables."""
+import ast
+import importlib.util
+from pathlib import Path
+import re
+import sys
+import types
+
+from ibvs_bringup import graph
+import pytest
+
+SRC = Path(__file__).resolve().parents[2] / 'ros2_ws' / 'src'
+LAUNCH = SRC / 'ibvs_bringup' / 'launch'
+PARAMS = str(SRC / 'ibvs_bringup' / 'config' / 'params.yaml')
+EXPECTED_NODES = {'sim', 'window_detector', 'pad_detector', 'front_optical_flow',
+                  'down_optical_flow', 'mode_supervisor', 'force_controller', 'mavlink_bridge'}
+
+
+def console_scripts(package: str) -> set:
+    """Console-script names declared in a package's setup.py (parsed, not imported)."""
+    text = (SRC / package / 'setup.py').read_text()
+    return set(re.findall(r"'(\w+)\s*=\s*[\w.]+:\w+'", text))
+
+
+def test_sim_graph_is_the_whole_graph_with_unique_names():
+    specs = graph.sim_graph(graph.GraphOptions(params_file=PARAMS))
+    names = [s.name for s in specs]
+    assert set(names) == EXPECTED_NODES and len(names) == len(set(names))
+    assert [s.role for s in specs].count('sim') == 1
+    flows = {s.name: s.overrides()['camera'] for s in specs if s.executable == 'optical_flow'}
+    assert flows == {'front_optical_flow': 'front', 'down_optical_flow': 'down'}
+    for s in specs:
+        assert s.param_files() == [PARAMS]
+        if s.role == 'onboard':
+            assert s.overrides()['use_sim_time'] is True
+
+
+def test_every_executable_is_a_console_script_of_its_package():
+    specs = graph.sim_graph(graph.GraphOptions(params_file=PARAMS)) + [
+        graph.tool_node('recorder', 'recorder'), graph.tool_node('bag_player', 'bag_player')]
+    for s in specs:
+        assert s.executable in console_scripts(s.package), (s.package, s.executable)
+    assert {'runner', 'preflight'} <= console_scripts('ibvs_bringup')
+
+
+def test_params_yaml_has_a_section_per_node():
+    import yaml
+    sections = set(yaml.safe_load(Path(PARAMS).read_text()))
+    assert EXPECTED_NODES <= sections
+
+
+def test_mavlink_port_and_options_reach_the_right_nodes():
+    opts = graph.GraphOptions(params_file=PARAMS, mavlink_port=15001,
+                              initial_position=(-2.2, 0.2, -1.5), wind=(0.0, 0.335, 0.0),
+                              crossing_law='seed')
+    by_name = {s.name: s for s in graph.sim_graph(opts)}
+    assert by_name['sim'].overrides()[graph.MAVLINK_URL] == 'udpin:127.0.0.1:15001'
+    assert by_name['mavlink_bridge'].overrides()[graph.MAVLINK_URL] == 'udpout:127.0.0.1:15001'
+    assert by_name['sim'].overrides()[graph.SIM_INITIAL_POSITION] == [-2.2, 0.2, -1.5]
+    assert by_name['sim'].overrides()[graph.SIM_WIND] == [0.0, 0.335, 0.0]
+    assert by_name['mode_supervisor'].overrides()[graph.CROSSING_LAW] == 'seed'
+    assert graph.SIM_WIND not in by_name['force_controller'].overrides()
+    with pytest.raises(ValueError):
+        graph.sim_graph(graph.GraphOptions(params_file=PARAMS, crossing_law='bogus'))
+    with pytest.raises(ValueError):
+        graph.sim_graph(graph.GraphOptions(params_file=PARAMS, mavlink_port=70000))
+
+
+def test_onboard_graph_has_no_sim_and_uses_the_vehicle_url():
+    specs = graph.onboard_graph(graph.GraphOptions(params_file=PARAMS, use_sim_time=False,
+                                                   mavlink_url='udpout:10.0.0.2:14540'))
+    assert {s.name for s in specs} == EXPECTED_NODES - {'sim'}
+    bridge = next(s for s in specs if s.name == 'mavlink_bridge')
+    assert bridge.overrides()[graph.MAVLINK_URL] == 'udpout:10.0.0.2:14540'
+    assert all('use_sim_time' not in s.overrides() for s in specs)
+
+
+def test_ros_args_are_what_ros2_run_expects():
+    spec = graph.NodeSpec('p', 'e', 'n', ('/a.yaml', {'x': [1.0, -2.0], 'b': True, 'i': 3}),
+                          (('imu/data', 'imu'),), 'onboard')
+    assert spec.ros_args() == ['--ros-args', '-r', '__node:=n', '--params-file', '/a.yaml',
+                               '-p', 'x:=[1.0,-2.0]', '-p', 'b:=true', '-p', 'i:=3',
+                               '-r', 'imu/data:=imu']
+    with pytest.raises(ValueError):
+        graph.NodeSpec('p', 'e', 'n', role='other')
+
+
+# --- launch files -------------------------------------------------------------------------
+
+def _fake_launch_modules():
+    """Minimal stand-ins for launch/launch_ros that record what the launch file builds."""
+    class Recorder:
+        def __init__(self, *args, **kwargs):
+            self.args, self.kwargs = args, kwargs
+
+    mods = {}
+    for name, attrs in {'launch': ['LaunchDescription'],
+                        'launch.actions': ['DeclareLaunchArgument', 'OpaqueFunction'],
+                        'launch.substitutions': ['LaunchConfiguration'],
+                        'launch_ros': [], 'launch_ros.actions': ['Node']}.items():
+        mod = types.ModuleType(name)
+        for a in attrs:
+            setattr(mod, a, type(a, (Recorder,), {}))
+        mods[name] = mod
+    return mods
+
+
+def _load_launch(path: Path, monkeypatch):
+    for name, mod in _fake_launch_modules().items():
+        monkeypatch.setitem(sys.modules, name, mod)
+    spec = importlib.util.spec_from_file_location(path.stem.replace('.', '_'), path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class _Context:
+    def __init__(self, values):
+        self.values = values
+
+    def perform_substitution(self, sub):
+        return self.values[sub.args[0]]
+
+
+@pytest.mark.parametrize('file_name, builder', [('sim.launch.py', 'sim_graph'),
+                                                ('onboard.launch.py', 'onboard_graph')])
+def test_launch_file_takes_its_node_list_from_graph(file_name, builder):
+    tree = ast.parse((LAUNCH / file_name).read_text())
+    calls = {n.func.attr for n in ast.walk(tree)
+             if isinstance(n, ast.Call) and isinstance(n.func, ast.Attribute)}
+    assert builder in calls
+    literals = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)}
+    hard_coded = literals & (EXPECTED_NODES | {'ibvs_sim', 'ibvs_perception', 'ibvs_control'})
+    assert not hard_coded, f'{file_name} must not list nodes itself: {hard_coded}'
+
+
+@pytest.mark.parametrize('file_name, values', [
+    ('sim.launch.py', {'params_file': PARAMS, 'mavlink_port': '14999', 'crossing_law': ''}),
+    ('onboard.launch.py', {'params_file': PARAMS, 'mavlink_url': 'udpout:10.0.0.2:14540',
+                           'use_sim_time': 'false', 'crossing_law': 'intended'})])
+def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
+    module = _load_launch(LAUNCH / file_name, monkeypatch)
+    ld = module.generate_launch_description()
+    declared = {a.args[0] for a in ld.args[0] if type(a).__name__ == 'DeclareLaunchArgument'}
+    assert declared == set(values)
+    opaque = next(a for a in ld.args[0] if type(a).__name__ == 'OpaqueFunction')
+    nodes = opaque.kwargs['function'](_Context(values))
+    names = {n.kwargs['name'] for n in nodes}
+    expected = EXPECTED_NODES if file_name.startswith('sim') else EXPECTED_NODES - {'sim'}
+    assert names == expected
+    for n in nodes:
+        assert n.kwargs['executable'] in console_scripts(n.kwargs['package'])
+        assert n.kwargs['parameters'][0] == PARAMS
+    urls = {n.kwargs['name']: n.kwargs['parameters'][1].get('mavlink_url') for n in nodes
+            if len(n.kwargs['parameters']) > 1}
+    if file_name.startswith('sim'):
+        assert urls['sim'] == 'udpin:127.0.0.1:14999'
+    else:
+        assert urls['mavlink_bridge'] == 'udpout:10.0.0.2:14540'

@@ -1,0 +1,131 @@
+"""The runner starts processes, stops them all (even stubborn ones) and reports a dead one."""
+import os
+import subprocess
+import sys
+import time
+
+from ibvs_bringup import ros2run
+from ibvs_bringup.runner import ProcessRunner
+import pytest
+
+PY = sys.executable
+
+
+def _wait(pred, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:   # a zombie counts as gone
+        with open(f'/proc/{pid}/stat') as f:
+            return f.read().split()[2] != 'Z'
+    except OSError:
+        return False
+
+
+def test_dead_process_is_reported_with_code_and_stderr(tmp_path):
+    with ProcessRunner(log_dir=str(tmp_path)) as runner:
+        runner.start('sleeper', [PY, '-c', 'import time; time.sleep(60)'])
+        runner.start('crasher', [PY, '-c',
+                                 'import sys; print("bad camera_info", file=sys.stderr); '
+                                 'sys.exit(3)'])
+        assert _wait(lambda: runner.dead())
+    # reported once, by name, with the exit code and the last stderr line
+    runner2 = ProcessRunner()
+    runner2.start('crasher', [PY, '-c', 'import sys; sys.stderr.write("boom\\n"); sys.exit(3)'])
+    try:
+        dead = []
+        assert _wait(lambda: dead.extend(runner2.dead()) or dead)
+        assert dead[0].name == 'crasher' and dead[0].returncode == 3
+        assert dead[0].stderr_tail[-1] == 'boom' and 'boom' in dead[0].report()
+        assert runner2.dead() == []
+    finally:
+        runner2.stop()
+    assert 'bad camera_info' in (tmp_path / 'crasher.log').read_text()
+
+
+def test_stop_escalates_to_sigkill_and_kills_grandchildren(tmp_path):
+    pid_file = tmp_path / 'grandchild.pid'
+    stubborn = ('import signal, subprocess, sys, time\n'
+                'signal.signal(signal.SIGINT, signal.SIG_IGN)\n'
+                'signal.signal(signal.SIGTERM, signal.SIG_IGN)\n'
+                f'p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])\n'
+                f'open({str(pid_file)!r}, "w").write(str(p.pid))\n'
+                'time.sleep(60)\n')
+    runner = ProcessRunner(stop_timeouts=(0.5, 0.5, 2.0))
+    runner.start('stubborn', [PY, '-c', stubborn])
+    runner.start('polite', [PY, '-c', 'import time; time.sleep(60)'])
+    try:
+        assert _wait(lambda: pid_file.exists() and pid_file.read_text())
+        assert sorted(runner.running()) == ['polite', 'stubborn']
+    finally:
+        t0 = time.monotonic()
+        codes = runner.stop()
+    assert time.monotonic() - t0 < 5.0
+    assert codes['stubborn'] == -9 and codes['polite'] == -2
+    assert _wait(lambda: not _alive(int(pid_file.read_text())), 3.0)
+
+
+def test_runner_passes_the_environment_through():
+    env = dict(os.environ, ROS_DOMAIN_ID='77')
+    runner = ProcessRunner(env=env)
+    runner.start('env', [PY, '-c', 'import os, sys; sys.exit(int(os.environ["ROS_DOMAIN_ID"]))'])
+    try:
+        assert _wait(lambda: runner.running() == [])
+    finally:
+        codes = runner.stop()
+    assert codes['env'] == 77
+
+
+def test_runner_cli_stops_its_nodes_on_sigterm(tmp_path):
+    """The runner process itself: SIGTERM -> every child stopped, exit code 0."""
+    code = ('import sys, time\n'
+            'from ibvs_bringup import runner\n'
+            'r = runner.ProcessRunner()\n'
+            'runner.raise_on_sigterm()\n'
+            'try:\n'
+            f'    r.start("child", [sys.executable, "-c", "import time; time.sleep(60)"])\n'
+            f'    open({str(tmp_path / "pid")!r}, "w").write(str(r.children[0].proc.pid))\n'
+            '    time.sleep(60)\n'
+            'except runner.Terminated:\n'
+            '    pass\n'
+            'finally:\n'
+            '    r.stop()\n')
+    proc = subprocess.Popen([PY, '-c', code])
+    try:
+        assert _wait(lambda: (tmp_path / 'pid').exists() and (tmp_path / 'pid').read_text())
+        child = int((tmp_path / 'pid').read_text())
+        proc.terminate()
+        assert proc.wait(timeout=10) == 0
+        assert _wait(lambda: not _alive(child), 3.0)
+    finally:
+        proc.kill()
+        proc.wait(timeout=5)
+
+
+def test_resolver_finds_console_scripts_and_reports_unknown_ones():
+    res = ros2run.resolve('ibvs_bringup', 'runner')
+    assert res.module == 'ibvs_bringup.runner'
+    assert ros2run.unavailable_reason('ibvs_bringup', 'runner') is None
+    with pytest.raises(ros2run.ResolveError):
+        ros2run.resolve('ibvs_bringup', 'no_such_executable')
+    assert 'no_such_package' in ros2run.unavailable_reason('no_such_package', 'x')
+
+
+def test_ros2run_script_runs_a_console_script_with_ros_args():
+    script = os.path.join(os.path.dirname(__file__), '..', '..', 'scripts', 'ros2run')
+    out = subprocess.run([script, 'ibvs_bringup', 'runner', '--help'], capture_output=True,
+                         text=True, timeout=60, env=dict(os.environ, PYTHON=PY))
+    assert out.returncode == 0 and 'graph' in out.stdout
+    bad = subprocess.run([script, 'ibvs_bringup', 'nope'], capture_output=True, text=True,
+                         timeout=60, env=dict(os.environ, PYTHON=PY))
+    assert bad.returncode == 1 and 'no executable' in bad.stderr
