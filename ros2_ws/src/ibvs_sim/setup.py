@@ -19,7 +19,8 @@ setup(
     zip_safe=True,
     maintainer='IBVS team',
     maintainer_email='ibvs-team@example.com',
-    description='Simulated AscTec Pelican-class quadrotor with two cameras and a MAVLink autopilot (PX4 offboard-like) for the IBVS stack.',
+    description=('Simulated AscTec Pelican-class quadrotor with two cameras and a MAVLink '
+                 'autopilot (PX4 offboard-like) for the IBVS stack.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

@@ -1,1 +1,4 @@
-"""Simulated AscTec Pelican-class quadrotor with two cameras and a MAVLink autopilot (PX4 offboard-like) for the IBVS stack."""
+"""Simulated AscTec Pelican-class quadrotor with two cameras and a MAVLink autopilot.
+
+PX4 offboard-like autopilot, planar world renderer and rigid-body plant for the IBVS stack.
+"""

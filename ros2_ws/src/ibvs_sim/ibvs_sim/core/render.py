@@ -1,0 +1,445 @@
+"""Renderer of the planar reference world (SPEC.md section 2) for one calibrated camera.
+
+World (paper frame {I}, z down, metres)
+---------------------------------------
+- floor ``z = floor_z`` over ``floor_extent_x`` x ``floor_extent_y``: a non-repeating texture
+  drawn from ``texture_seeds['floor']`` (multi-octave value noise plus random patches, so that
+  optical flow finds corners at every height);
+- the wall ``x = wall_x`` (brick-like, seed ``'wall'``) with the rectangular aperture of
+  ``world.window`` and a dark frame band ``window.frame_band`` wide around it on the wall face;
+- the back wall ``x = back_wall_x`` of the second room (textured, seed ``'back_wall'``); the
+  floor continues behind the window plane;
+- the landing pad: the ArUco markers of ``pad_layout.yaml`` (``cv2.aruco.generateImageMarker``,
+  black border of one cell, white quiet zone of ``quiet_zone`` x side around each marker), lying
+  on the floor with centres ``MarkerGroup.marker_centres_I()``.
+
+Marker orientation: a marker's image columns run along +y_I and its rows along -x_I, i.e. the
+marker's top edge faces +x_I (the direction of travel through the window). A level down camera
+with yaw 0 (default mount) therefore sees each marker upright, as ``generateImageMarker`` drew it.
+The wall and back-wall textures are upright when seen from the approach side (columns along
++y_I, rows along +z_I).
+
+Method
+------
+Every surface is a textured rectangle of a plane. For a camera at ``xi_I`` with attitude
+``R_IC = R_IB R_BC`` a texel (s, t) at ``O + s du + t dv`` ({I}) maps to the pixel of an
+*undistorted* virtual pinhole camera ``K_v`` (same centre and attitude, wider field of view so
+that it covers the whole distorted image) by the homography
+
+    H = K_v [R_CI du, R_CI dv, R_CI (O - xi_I)],
+
+rendered with ``cv2.warpPerspective`` into the bounding box of the plane's visible polygon. The
+polygon is first clipped (Sutherland-Hodgman, in the camera frame) to the virtual view frustum,
+near plane included, so planes partly behind the camera are handled; its projection is a convex
+mask. Surfaces are composited back to front (painter's algorithm on this fixed planar world:
+the order only depends on which side of the window plane the camera is). Textures have
+area-averaged pyramids; each surface uses the level whose texel is no larger than the pixel
+footprint at its nearest visible point (the floor is cut into strips along x_I for this choice).
+Finally one precomputed ``cv2.remap`` per camera applies the lens distortion: output pixel
+(u, v) samples the virtual image at ``K_v [x_n, y_n, 1]`` where ``(x_n, y_n) =
+CameraModel.pixels_to_normalized(u, v)``, the same model the detectors invert, so a 3-D point
+lands where ``CameraModel.bearings_to_pixels`` predicts. Output: mono8 (H, W), noise-free.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ibvs_control.core.config import CameraConfig, PadLayout, WorldConfig
+
+# Virtual undistorted camera: focal length relative to the real one and margin (px).
+VIRTUAL_FOCAL_SCALE = 1.0
+VIRTUAL_MARGIN_PX = 3
+NEAR_PLANE_M = 0.02               # clipping distance in front of the optical centre
+BACKGROUND_GRAY = 70              # what is outside the modelled world (ceiling, side walls)
+FLOOR_TEXEL_M = 9.0 / 2880.0      # ~3.1 mm, floor texture resolution (level 0)
+WALL_TEXEL_M = 0.004              # brick wall texture resolution
+BACK_WALL_TEXEL_M = 0.006
+MARKER_CELL_PX = 16               # texels per ArUco cell in the marker textures (level 0)
+FLOOR_STRIP_M = 1.5               # floor strips along x_I (one pyramid level each)
+PYRAMID_LEVELS = 6
+SUBPIXEL_SHIFT = 8                # fractional bits of polygon vertices (cv2.fillConvexPoly)
+SUBPIXEL_SCALE = float(1 << SUBPIXEL_SHIFT)
+FRAME_BAND_GRAY = 18
+MORTAR_GRAY = 185
+BRICK_SIZE_M = (0.24, 0.07)       # length along y_I, height along z_I
+MORTAR_M = 0.012
+ARUCO_DICTIONARIES = {'DICT_4X4_50': cv2.aruco.DICT_4X4_50,
+                      'DICT_4X4_100': cv2.aruco.DICT_4X4_100,
+                      'DICT_5X5_50': cv2.aruco.DICT_5X5_50,
+                      'DICT_6X6_50': cv2.aruco.DICT_6X6_50}
+QUIET_ZONE_GRAY = 255
+_QUIET_ZONES = object()           # placeholder in the drawing order
+
+
+class RenderError(ValueError):
+    """Unusable pose or world description."""
+
+
+# --- Textures ----------------------------------------------------------------------------
+
+def _value_noise(rng: np.random.Generator, shape: tuple[int, int],
+                 octaves: list[tuple[int, float]]) -> np.ndarray:
+    """Sum of bicubically upsampled white noise, one term per (cell size px, amplitude)."""
+    h, w = shape
+    out = np.zeros(shape, np.float32)
+    for cell, amp in octaves:
+        small = rng.random((max(2, h // cell + 2), max(2, w // cell + 2))).astype(np.float32)
+        big = cv2.resize(small, ((w // cell + 2) * cell, (h // cell + 2) * cell),
+                         interpolation=cv2.INTER_CUBIC)
+        out += amp * big[:h, :w]
+    return out
+
+
+def _normalise(img: np.ndarray, lo: float = 25.0, hi: float = 230.0) -> np.ndarray:
+    a, b = np.percentile(img, [1, 99])
+    out = (img - a) / max(b - a, 1e-6) * (hi - lo) + lo
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def make_floor_texture(seed: int, shape: tuple[int, int], texel_m: float) -> np.ndarray:
+    """Non-repeating floor texture (mono8): value noise + random patches, band-limited.
+
+    Patches of 1.5 to 12 cm with random grey levels give corners for LK tracking; the finest
+    content is about 3 texels so that minified views alias little.
+    """
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    cm = 0.01 / texel_m  # texels per centimetre
+    img = _value_noise(rng, shape, [(int(60 * cm), 0.8), (int(15 * cm), 0.5),
+                                    (max(3, int(3 * cm)), 0.25)])
+    img = _normalise(img, 60, 190).astype(np.float32)
+    n_patches = int(h * w * texel_m ** 2 * 120)   # ~120 patches per square metre
+    for _ in range(n_patches):
+        x, y = rng.integers(0, w), rng.integers(0, h)
+        a, b = rng.uniform(1.5, 12.0, 2) * cm
+        grey = float(rng.choice([rng.uniform(5, 60), rng.uniform(190, 250)]))
+        if rng.random() < 0.6:
+            cv2.rectangle(img, (int(x), int(y)), (int(x + a), int(y + b)), grey, -1)
+        else:
+            cv2.ellipse(img, (int(x), int(y)), (int(a / 2), int(b / 2)),
+                        float(rng.uniform(0, 180)), 0, 360, grey, -1)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def make_brick_texture(seed: int, shape: tuple[int, int], texel_m: float) -> np.ndarray:
+    """Brick-like wall texture (mono8): staggered bricks of random grey, light mortar."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    img = np.full(shape, MORTAR_GRAY, np.float32)
+    bw, bh = BRICK_SIZE_M[0] / texel_m, BRICK_SIZE_M[1] / texel_m
+    gap = MORTAR_M / texel_m
+    row = 0
+    y = 0.0
+    while y < h:
+        x = -bw / 2.0 if row % 2 else 0.0
+        while x < w:
+            grey = float(rng.uniform(70, 150))
+            cv2.rectangle(img, (int(round(x + gap / 2)), int(round(y + gap / 2))),
+                          (int(round(x + bw - gap / 2)), int(round(y + bh - gap / 2))),
+                          grey, -1)
+            x += bw
+        y += bh
+        row += 1
+    img += (_value_noise(rng, shape, [(8, 30.0), (3, 15.0)]) - 22.0)
+    img = cv2.GaussianBlur(img, (0, 0), 0.7)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def make_marker_texture(dictionary: str, marker_id: int, quiet_zone: float) -> np.ndarray:
+    """Draw an ArUco marker (black border included) with a white quiet zone, cell: 16 texels."""
+    if dictionary not in ARUCO_DICTIONARIES:
+        raise RenderError(f'unsupported ArUco dictionary {dictionary!r}')
+    d = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARIES[dictionary])
+    cells = d.markerSize + 2
+    side_px = cells * MARKER_CELL_PX
+    marker = cv2.aruco.generateImageMarker(d, int(marker_id), side_px, borderBits=1)
+    q = int(round(quiet_zone * side_px))
+    return cv2.copyMakeBorder(marker, q, q, q, q, cv2.BORDER_CONSTANT, value=255)
+
+
+def _pyramid(texture: np.ndarray, levels: int = PYRAMID_LEVELS) -> list[np.ndarray]:
+    """Area-averaged pyramid; each level covers exactly the same rectangle as level 0."""
+    out = [texture]
+    for _ in range(levels - 1):
+        h, w = out[-1].shape
+        if h < 8 or w < 8:
+            break
+        out.append(cv2.resize(out[-1], ((w + 1) // 2, (h + 1) // 2),
+                              interpolation=cv2.INTER_AREA))
+    return out
+
+
+# --- Geometry ----------------------------------------------------------------------------
+
+@dataclass
+class TexturedPlane:
+    """A textured rectangle of a plane of the world, paper frame {I}.
+
+    ``corner_I`` is the corner of texel (0, 0); ``edge_u_I`` (texture columns) and
+    ``edge_v_I`` (texture rows) are the full edge vectors, metres.
+
+    ``holes_I``: convex polygons (K, 3) in the same plane that are cut out (the aperture).
+    ``polygons_I``: sub-rectangles (4, 3) drawn separately (floor strips); default the whole.
+    """
+
+    name: str
+    texture: np.ndarray
+    corner_I: np.ndarray
+    edge_u_I: np.ndarray
+    edge_v_I: np.ndarray
+    holes_I: tuple = ()
+    polygons_I: tuple = ()
+
+    def __post_init__(self) -> None:
+        self.pyramid = _pyramid(self.texture)
+        self.corner_I = np.asarray(self.corner_I, float)
+        self.edge_u_I = np.asarray(self.edge_u_I, float)
+        self.edge_v_I = np.asarray(self.edge_v_I, float)
+        if not self.polygons_I:
+            self.polygons_I = (self.outline_I(),)
+        self.texel_m = [max(np.linalg.norm(self.edge_u_I) / lvl.shape[1],
+                            np.linalg.norm(self.edge_v_I) / lvl.shape[0])
+                        for lvl in self.pyramid]
+
+    def outline_I(self) -> np.ndarray:
+        """Return the rectangle's 4 corners (4, 3) in {I}."""
+        c, u, v = self.corner_I, self.edge_u_I, self.edge_v_I
+        return np.array([c, c + u, c + u + v, c + v])
+
+    def texel_frame_I(self, level: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(O, du, dv) with texel (s, t) centre at O + s du + t dv, for a pyramid level.
+
+        OpenCV's convention: integer coordinates are pixel centres, so texel (0, 0) covers
+        [0, du] x [0, dv] of the rectangle and its centre is corner + du/2 + dv/2.
+        """
+        h, w = self.pyramid[level].shape
+        du, dv = self.edge_u_I / w, self.edge_v_I / h
+        return self.corner_I + 0.5 * du + 0.5 * dv, du, dv
+
+
+def clip_polygon(P: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Sutherland-Hodgman clip of a convex polygon (K, 3) to {P : n . P >= d} for all (n, d)."""
+    poly = P
+    for n, d in zip(normals, offsets):
+        if len(poly) == 0:
+            break
+        s = poly @ n - d
+        if np.all(s >= 0):
+            continue
+        if np.all(s < 0):
+            return poly[:0]
+        out = []
+        k = len(poly)
+        for i in range(k):
+            j = (i + 1) % k
+            if s[i] >= 0:
+                out.append(poly[i])
+            if (s[i] >= 0) != (s[j] >= 0):
+                a = s[i] / (s[i] - s[j])
+                out.append(poly[i] + a * (poly[j] - poly[i]))
+        poly = np.array(out) if out else poly[:0]
+    return poly
+
+
+# --- Renderer ----------------------------------------------------------------------------
+
+class SceneRenderer:
+    """Render the reference world as one camera sees it (mono8, distorted as CameraInfo says)."""
+
+    def __init__(self, world: WorldConfig, pad: PadLayout, camera: CameraConfig) -> None:
+        self.world = world
+        self.camera = camera
+        self.R_BC = np.asarray(camera.R_BC, float)
+        model = camera.model
+        self.width, self.height = model.width, model.height
+        self._build_virtual_camera()
+        self._build_planes(world, pad)
+        self.overlay_planes: list[TexturedPlane] = []
+
+    # -- set-up --
+    def _build_virtual_camera(self) -> None:
+        """Choose K_v covering the undistorted image and precompute the distortion map."""
+        model = self.camera.model
+        w, h = self.width, self.height
+        uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        xy = model.pixels_to_normalized(np.column_stack([uu.ravel(), vv.ravel()]))
+        if not np.all(np.isfinite(xy)):
+            raise RenderError(f'camera {self.camera.name}: distortion not invertible')
+        f = VIRTUAL_FOCAL_SCALE * float(model.K[0, 0])
+        x_lo, y_lo = xy.min(axis=0)
+        x_hi, y_hi = xy.max(axis=0)
+        m = VIRTUAL_MARGIN_PX
+        cx, cy = -x_lo * f + m, -y_lo * f + m
+        self.virtual_size = (int(np.ceil(x_hi * f + cx + m)) + 1,
+                             int(np.ceil(y_hi * f + cy + m)) + 1)
+        self.K_v = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        map_x = (xy[:, 0] * f + cx).reshape(h, w).astype(np.float32)
+        map_y = (xy[:, 1] * f + cy).reshape(h, w).astype(np.float32)
+        self._map1, self._map2 = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
+        # View frustum of the virtual image in the optical frame: n . P >= d.
+        W, H = self.virtual_size
+        xl, xr = (-0.5 - cx) / f, (W - 0.5 - cx) / f
+        yt, yb = (-0.5 - cy) / f, (H - 0.5 - cy) / f
+        self._frustum_n = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, -xl], [-1.0, 0.0, xr],
+                                    [0.0, 1.0, -yt], [0.0, -1.0, yb]])
+        self._frustum_d = np.array([NEAR_PLANE_M, 0.0, 0.0, 0.0, 0.0])
+
+    def _build_planes(self, world: WorldConfig, pad: PadLayout) -> None:
+        seeds = world.texture_seeds
+        fz = world.floor_z
+        (x0, x1), (y0, y1) = world.floor_extent_x, world.floor_extent_y
+        nx = int(round((x1 - x0) / FLOOR_TEXEL_M))
+        ny = int(round((y1 - y0) / FLOOR_TEXEL_M))
+        floor_tex = make_floor_texture(seeds['floor'], (nx, ny), FLOOR_TEXEL_M)
+        # Floor: columns along +y_I, rows along -x_I (upright for the level down camera).
+        corner = np.array([x1, y0, fz])
+        eu, ev = np.array([0.0, y1 - y0, 0.0]), np.array([x0 - x1, 0.0, 0.0])
+        wx = world.wall_x
+
+        def strips(xa: float, xb: float) -> tuple:
+            edges = np.arange(xa, xb, FLOOR_STRIP_M).tolist() + [xb]
+            return tuple(np.array([[a, y0, fz], [a, y1, fz], [b, y1, fz], [b, y0, fz]])
+                         for a, b in zip(edges[:-1], edges[1:]) if b - a > 1e-9)
+        self.floor_near = TexturedPlane('floor', floor_tex, corner, eu, ev,
+                                        polygons_I=strips(x0, min(wx, x1)))
+        self.floor_far = TexturedPlane('floor', floor_tex, corner, eu, ev,
+                                       polygons_I=strips(max(wx, x0), x1))
+        self.floor_far.pyramid = self.floor_near.pyramid   # share the texture memory
+
+        # Wall x = wall_x: columns along +y_I, rows along +z_I, with the aperture as a hole.
+        (wy0, wy1), (wz0, wz1) = world.wall_y_range, world.wall_z_range
+        ww = int(round((wy1 - wy0) / WALL_TEXEL_M))
+        wh = int(round((wz1 - wz0) / WALL_TEXEL_M))
+        wall_tex = make_brick_texture(seeds['wall'], (wh, ww), WALL_TEXEL_M)
+        win = world.window
+        band = win.frame_band
+        cy_, cz_ = win.center_I[1], win.center_I[2]
+        ty = (wy1 - wy0) / ww
+        tz = (wz1 - wz0) / wh
+        a = (int(round((cy_ - win.width / 2 - band - wy0) / ty)),
+             int(round((cz_ - win.height / 2 - band - wz0) / tz)))
+        b = (int(round((cy_ + win.width / 2 + band - wy0) / ty)) - 1,
+             int(round((cz_ + win.height / 2 + band - wz0) / tz)) - 1)
+        cv2.rectangle(wall_tex, a, b, FRAME_BAND_GRAY, -1)
+        self.wall = TexturedPlane('wall', wall_tex, np.array([wx, wy0, wz0]),
+                                  np.array([0.0, wy1 - wy0, 0.0]),
+                                  np.array([0.0, 0.0, wz1 - wz0]),
+                                  holes_I=(win.corners_I(),))
+        bw = int(round((wy1 - wy0) / BACK_WALL_TEXEL_M))
+        bh = int(round((wz1 - wz0) / BACK_WALL_TEXEL_M))
+        back_tex = make_floor_texture(seeds['back_wall'], (bh, bw), BACK_WALL_TEXEL_M)
+        self.back_wall = TexturedPlane('back_wall', back_tex,
+                                       np.array([world.back_wall_x, wy0, wz0]),
+                                       np.array([0.0, wy1 - wy0, 0.0]),
+                                       np.array([0.0, 0.0, wz1 - wz0]))
+        # Markers: lying on the floor, columns along +y_I, rows along -x_I.
+        # Quiet zones are filled white first, then all marker bodies are drawn: where the
+        # quiet zone of one group overlaps the black border of another, the border wins.
+        self.markers: list[TexturedPlane] = []
+        self.quiet_zones_I: list[np.ndarray] = []
+        for g in pad.groups:
+            full = g.side * (1.0 + 2.0 * pad.quiet_zone)
+            h = g.side / 2.0
+            for mid, c in zip(g.ids, g.marker_centres_I()):
+                tex = make_marker_texture(pad.dictionary, mid, pad.quiet_zone)
+                corner = np.array([c[0] + full / 2, c[1] - full / 2, fz])
+                body = np.array([[c[0] + h, c[1] - h, fz], [c[0] + h, c[1] + h, fz],
+                                 [c[0] - h, c[1] + h, fz], [c[0] - h, c[1] - h, fz]])
+                plane = TexturedPlane(f'marker_{mid}', tex, corner,
+                                      np.array([0.0, full, 0.0]),
+                                      np.array([-full, 0.0, 0.0]), polygons_I=(body,))
+                self.markers.append(plane)
+                self.quiet_zones_I.append(plane.outline_I())
+
+    # -- rendering --
+    def render(self, R_IB: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
+        """Image (H, W) mono8 of the camera on a body at ``xi_I`` with attitude ``R_IB``.
+
+        The optical centre is the body origin; the camera attitude is ``R_IB @ R_BC``.
+        Raises RenderError on a non-finite pose.
+        """
+        R_IB = np.asarray(R_IB, float)
+        xi_I = np.asarray(xi_I, float).reshape(3)
+        if R_IB.shape != (3, 3) or not (np.all(np.isfinite(R_IB))
+                                        and np.all(np.isfinite(xi_I))):
+            raise RenderError('pose must be a finite 3x3 rotation and a finite 3-vector')
+        R_CI = (R_IB @ self.R_BC).T
+        W, H = self.virtual_size
+        canvas = np.full((H, W), BACKGROUND_GRAY, np.uint8)
+        if xi_I[0] < self.world.wall_x:
+            order = [self.back_wall, self.floor_far, _QUIET_ZONES, *self.markers, self.wall,
+                     self.floor_near]
+        else:
+            order = [self.floor_near, self.wall, self.floor_far, _QUIET_ZONES, *self.markers,
+                     self.back_wall]
+        for item in order + self.overlay_planes:
+            if item is _QUIET_ZONES:
+                for poly_I in self.quiet_zones_I:
+                    self._fill_polygon(canvas, poly_I, QUIET_ZONE_GRAY, R_CI, xi_I)
+            else:
+                self._draw_plane(canvas, item, R_CI, xi_I)
+        return cv2.remap(canvas, self._map1, self._map2, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=BACKGROUND_GRAY)
+
+    def _to_camera(self, P_I: np.ndarray, R_CI: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
+        return (P_I - xi_I) @ R_CI.T
+
+    def _visible(self, poly_I: np.ndarray, R_CI: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
+        return clip_polygon(self._to_camera(poly_I, R_CI, xi_I),
+                            self._frustum_n, self._frustum_d)
+
+    def _project(self, P_C: np.ndarray) -> np.ndarray:
+        p = P_C @ self.K_v.T
+        return p[:, :2] / p[:, 2:3]
+
+    def _fill_polygon(self, canvas: np.ndarray, poly_I: np.ndarray, value: int,
+                      R_CI: np.ndarray, xi_I: np.ndarray) -> None:
+        vis_C = self._visible(poly_I, R_CI, xi_I)
+        if len(vis_C) >= 3:
+            pts = np.round(self._project(vis_C) * SUBPIXEL_SCALE).astype(np.int32)
+            cv2.fillConvexPoly(canvas, pts, int(value), lineType=cv2.LINE_8,
+                               shift=SUBPIXEL_SHIFT)
+
+    def _draw_plane(self, canvas: np.ndarray, plane: TexturedPlane, R_CI: np.ndarray,
+                    xi_I: np.ndarray) -> None:
+        W, H = self.virtual_size
+        f = self.K_v[0, 0]
+        for poly_I in plane.polygons_I:
+            vis_C = self._visible(poly_I, R_CI, xi_I)
+            if len(vis_C) < 3:
+                continue
+            uv = self._project(vis_C)
+            u0 = max(int(np.floor(uv[:, 0].min())), 0)
+            v0 = max(int(np.floor(uv[:, 1].min())), 0)
+            u1 = min(int(np.ceil(uv[:, 0].max())) + 1, W)
+            v1 = min(int(np.ceil(uv[:, 1].max())) + 1, H)
+            if u1 <= u0 or v1 <= v0:
+                continue
+            # Finest pixel footprint on this polygon: at its nearest visible point.
+            footprint = float(np.min(np.linalg.norm(vis_C, axis=1))) / f
+            level = 0
+            while level + 1 < len(plane.pyramid) and plane.texel_m[level + 1] <= footprint:
+                level += 1
+            O, du, dv = plane.texel_frame_I(level)
+            Hmat = self.K_v @ np.column_stack([R_CI @ du, R_CI @ dv, R_CI @ (O - xi_I)])
+            Hroi = np.array([[1.0, 0.0, -u0], [0.0, 1.0, -v0], [0.0, 0.0, 1.0]]) @ Hmat
+            size = (u1 - u0, v1 - v0)
+            warped = cv2.warpPerspective(plane.pyramid[level], Hroi, size,
+                                         flags=cv2.INTER_LINEAR,
+                                         borderMode=cv2.BORDER_REPLICATE)
+            mask = np.zeros((size[1], size[0]), np.uint8)
+            off = np.array([u0, v0], float)
+            cv2.fillConvexPoly(mask, np.round((uv - off) * SUBPIXEL_SCALE).astype(np.int32), 1,
+                               lineType=cv2.LINE_8, shift=SUBPIXEL_SHIFT)
+            for hole_I in plane.holes_I:
+                hole_C = self._visible(hole_I, R_CI, xi_I)
+                if len(hole_C) >= 3:
+                    huv = self._project(hole_C)
+                    pts = np.round((huv - off) * SUBPIXEL_SCALE).astype(np.int32)
+                    cv2.fillConvexPoly(mask, pts, 0, lineType=cv2.LINE_8,
+                                       shift=SUBPIXEL_SHIFT)
+            np.copyto(canvas[v0:v1, u0:u1], warped, where=mask.view(bool))

@@ -1,0 +1,161 @@
+"""Renderer of ibvs_sim: projection accuracy, occlusion and ArUco detectability."""
+import cv2
+import numpy as np
+import pytest
+
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.frames import bearings_I_to_C, rot_from_euler_zyx
+from ibvs_sim.core.render import RenderError, SceneRenderer, TexturedPlane
+
+DOT_SIGMA_M = 0.008
+
+
+@pytest.fixture(scope='module')
+def scene():
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    return {name: SceneRenderer(world, pad, vehicle.cameras[name])
+            for name in ('front', 'down')}, world, pad, vehicle
+
+
+def _predicted_pixel(renderer, R_IB, xi_I, P_I):
+    """Independent prediction: the detectors' camera model applied to the 3-D point."""
+    b_C = bearings_I_to_C((np.asarray(P_I) - xi_I)[None, :], R_IB, renderer.R_BC)
+    uv, valid = renderer.camera.model.bearings_to_pixels(b_C)
+    return uv[0], bool(valid[0])
+
+
+def _dot_plane(P_I, edge_u_I, edge_v_I):
+    """A black square centred on P_I with a Gaussian white dot at its centre."""
+    n = 129
+    half = (n - 1) / 2.0
+    yy, xx = np.mgrid[0:n, 0:n]
+    side = np.linalg.norm(edge_u_I)
+    sigma_px = DOT_SIGMA_M / (side / n)
+    tex = (255 * np.exp(-((xx - half) ** 2 + (yy - half) ** 2) / (2 * sigma_px ** 2)))
+    corner = np.asarray(P_I) - 0.5 * np.asarray(edge_u_I) - 0.5 * np.asarray(edge_v_I)
+    return TexturedPlane('dot', tex.astype(np.uint8), corner, edge_u_I, edge_v_I)
+
+
+def _centroid(img, uv, radius=12):
+    u0, v0 = int(round(uv[0])), int(round(uv[1]))
+    win = img[v0 - radius:v0 + radius + 1, u0 - radius:u0 + radius + 1].astype(float)
+    win = np.where(win > 20, win, 0.0)
+    vv, uu = np.mgrid[v0 - radius:v0 + radius + 1, u0 - radius:u0 + radius + 1]
+    return np.array([(win * uu).sum(), (win * vv).sum()]) / win.sum()
+
+
+@pytest.mark.parametrize('camera, xi, euler, P_I, normal', [
+    # front camera, the paper's start, dot on the wall near a window corner (image edge)
+    ('front', [-2.0, 0.1, -1.82], (0.0, 0.0, 0.0), [-0.51, 0.75, -2.2], 'x'),
+    ('front', [-1.5, -0.3, -1.4], (0.1, -0.15, 0.3), [-0.51, -0.9, -0.9], 'x'),
+    # down camera over the pad, dot on the floor far off-centre (strong distortion)
+    ('down', [0.0, 0.0, -1.8], (0.0, 0.0, 0.0), [0.9, 1.6, -0.001], 'z'),
+    ('down', [0.3, -0.2, -1.0], (-0.2, 0.1, 1.0), [-0.3, -0.4, -0.001], 'z'),
+])
+def test_point_lands_on_predicted_pixel(scene, camera, xi, euler, P_I, normal):
+    renderers = scene[0]
+    r = renderers[camera]
+    R_IB = rot_from_euler_zyx(*euler)
+    xi = np.array(xi)
+    if normal == 'x':
+        eu, ev = np.array([0.0, 0.4, 0.0]), np.array([0.0, 0.0, 0.4])
+    else:
+        eu, ev = np.array([0.0, 0.4, 0.0]), np.array([-0.4, 0.0, 0.0])
+    r.overlay_planes = [_dot_plane(P_I, eu, ev)]
+    try:
+        img = r.render(R_IB, xi)
+    finally:
+        r.overlay_planes = []
+    uv, valid = _predicted_pixel(r, R_IB, xi, P_I)
+    assert valid
+    err = np.linalg.norm(_centroid(img, uv) - uv)
+    assert err < 0.5, f'dot at {_centroid(img, uv)}, predicted {uv}, error {err:.3f} px'
+
+
+def _flat_shaded(renderer, floor_value, wall_value):
+    """Replace the textures: floor (both halves) one grey, walls another (occlusion probe)."""
+    for plane, value in ((renderer.floor_near, floor_value), (renderer.floor_far, floor_value),
+                         (renderer.wall, wall_value), (renderer.back_wall, wall_value)):
+        plane.pyramid = [np.full_like(level, value) for level in plane.pyramid]
+
+
+@pytest.fixture()
+def front_probe(scene):
+    world, pad, vehicle = scene[1:]
+    r = SceneRenderer(world, pad, vehicle.cameras['front'])
+    _flat_shaded(r, 250, 5)
+    r.markers = []
+    return r
+
+
+def test_wall_hides_floor_behind_it(front_probe):
+    xi = np.array([-2.0, 0.0, -0.4])
+    P_I = np.array([1.0, 0.0, 0.0])    # far floor; the line of sight meets the wall at z=-0.2
+    uv, valid = _predicted_pixel(front_probe, np.eye(3), xi, P_I)
+    assert valid
+    img = front_probe.render(np.eye(3), xi)
+    assert img[int(round(uv[1])), int(round(uv[0]))] < 30
+
+
+def test_floor_seen_through_aperture(front_probe):
+    xi = np.array([-2.0, 0.0, -2.0])
+    P_I = np.array([2.0, 0.0, 0.0])    # the line of sight crosses x=-0.5 at z=-1.25 (aperture)
+    uv, valid = _predicted_pixel(front_probe, np.eye(3), xi, P_I)
+    assert valid
+    img = front_probe.render(np.eye(3), xi)
+    assert img[int(round(uv[1])), int(round(uv[0]))] > 220
+    # while the wall beside the aperture is drawn in front of the floor behind it
+    uv2, valid2 = _predicted_pixel(front_probe, np.eye(3), xi, np.array([-0.5, 1.0, -1.2]))
+    assert valid2
+    assert img[int(round(uv2[1])), int(round(uv2[0]))] < 30
+
+
+def _detect(img):
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50),
+                                  params)
+    corners, ids, _ = det.detectMarkers(img)
+    found = {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(),
+                                                                            corners)}
+    return found
+
+
+@pytest.mark.parametrize('height, yaw, groups', [
+    (1.8, 0.0, ('A', 'B')), (1.8, 0.7, ('A', 'B')), (0.2, 0.0, ('C', 'D')),
+    (0.2, 3.0, ('C', 'D'))])
+def test_aruco_finds_pad_markers(scene, height, yaw, groups):
+    renderers, _, pad, _ = scene
+    r = renderers['down']
+    R_IB = rot_from_euler_zyx(0.0, 0.0, yaw)
+    xi = np.array([0.0, 0.0, -height])
+    found = _detect(r.render(R_IB, xi))
+    for g in pad.groups:
+        if g.name in groups:
+            assert set(g.ids) <= set(found), f'group {g.name} incomplete: {sorted(found)}'
+
+
+def test_aruco_corners_match_geometry_and_orientation(scene):
+    """Detected corners (ArUco order TL, TR, BR, BL) = the documented marker orientation."""
+    renderers, _, pad, _ = scene
+    r = renderers['down']
+    R_IB = rot_from_euler_zyx(0.0, 0.0, 0.3)
+    xi = np.array([0.05, -0.05, -1.2])
+    found = _detect(r.render(R_IB, xi))
+    group = pad.groups[0]
+    for mid, c in zip(group.ids, group.marker_centres_I()):
+        h = group.side / 2
+        # top edge faces +x_I, columns run along +y_I
+        corners_I = c + np.array([[h, -h, 0], [h, h, 0], [-h, h, 0], [-h, -h, 0]])
+        uv = np.array([_predicted_pixel(r, R_IB, xi, P)[0] for P in corners_I])
+        assert mid in found
+        assert np.max(np.linalg.norm(found[mid] - uv, axis=1)) < 1.0
+
+
+def test_render_output_and_bad_pose(scene):
+    r = scene[0]['front']
+    img = r.render(np.eye(3), np.array([-2.0, 0.1, -1.82]))
+    assert img.dtype == np.uint8 and img.shape == (r.height, r.width)
+    assert img.std() > 20   # textured, not a blank frame
+    with pytest.raises(RenderError):
+        r.render(np.eye(3), np.array([np.nan, 0.0, -1.0]))
