@@ -1,0 +1,700 @@
+"""Tests of the sim's PX4-like MAVLink autopilot (ibvs_sim.core.autopilot).
+
+The autopilot runs on a real UDP endpoint on 127.0.0.1 (a free port per test); the client is a
+plain pymavlink connection, as a companion computer would open it. The autopilot is driven with
+a fake ground-truth state and a fake wall clock (no plant). Every wait is bounded. Expected
+values are written out independently (PX4's custom_mode numbers, MAV_RESULT codes, physics of a
+point mass), never recomputed with the autopilot's own code.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import os
+import socket
+import time
+
+import numpy as np
+import pytest
+
+os.environ['MAVLINK20'] = '1'
+from ibvs_control.core.frames import GRAVITY, rot_from_euler_zyx  # noqa: E402
+from ibvs_sim.core.autopilot import (Autopilot, AutopilotConfig,  # noqa: E402
+                                     VehicleStateView)
+from pymavlink import mavutil  # noqa: E402
+
+mavlink = mavutil.mavlink
+
+CLIENT_SYS = 255
+CLIENT_COMP = 191                  # MAV_COMP_ID_ONBOARD_COMPUTER
+INITIAL_XI = (-2.0, 0.1, -1.82)    # SPEC.md initial condition, {I} NED, m
+MAX_DRAIN = 20000
+ACK_WAIT_S = 2.0                   # wall bound of every request/answer exchange
+
+
+def free_udp_port() -> int:
+    """Return a UDP port on 127.0.0.1 that was free a moment ago."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+class FakeWallClock:
+    """A wall clock the test advances by hand (s)."""
+
+    def __init__(self, t0: float = 1000.0) -> None:
+        self.now = t0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def hover_state(t: float, xi=INITIAL_XI, v=(0.0, 0.0, 0.0), roll: float = 0.0,
+                pitch: float = 0.0, yaw: float = 0.0,
+                omega=(0.0, 0.0, 0.0)) -> VehicleStateView:
+    """Ground truth of a vehicle at ``xi`` ({I} NED) with the given attitude; IMU at rest."""
+    R = rot_from_euler_zyx(roll, pitch, yaw)
+    return VehicleStateView(t=t, xi_I=np.array(xi, dtype=float), v_I=np.array(v, dtype=float),
+                            R_IB=R, Omega_B=np.array(omega, dtype=float),
+                            accel_B_specific=R.T @ np.array([0.0, 0.0, -GRAVITY]))
+
+
+@dataclass
+class Rig:
+    """An autopilot, its fake wall clock, a client and the sim time of the last poll."""
+
+    ap: Autopilot
+    wall: FakeWallClock
+    client: mavutil.mavfile
+    t: float = 0.0
+    state_fn: object = None
+
+    def state(self, t: float | None = None) -> VehicleStateView:
+        t = self.t if t is None else t
+        return self.state_fn(t) if self.state_fn else hover_state(t)
+
+    def poll(self, dt: float = 0.0, wall_dt: float | None = None) -> None:
+        """Advance sim time by dt (and the wall clock by wall_dt, default dt), then poll."""
+        self.t += dt
+        self.wall.now += dt if wall_dt is None else wall_dt
+        self.ap.poll(self.state())
+
+    def drain(self) -> list:
+        """All messages the client has received so far (non-blocking)."""
+        out = []
+        for _ in range(MAX_DRAIN):
+            m = self.client.recv_msg()
+            if m is None:
+                break
+            out.append(m)
+        return out
+
+    def exchange(self, send, want: str, match=lambda m: True, wait_s: float = ACK_WAIT_S):
+        """Send with ``send()``, poll (sim time frozen) until a ``want`` message arrives.
+
+        Returns (the message or None, every message received meanwhile).
+        """
+        send()
+        seen = []
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            self.poll()
+            for m in self.drain():
+                seen.append(m)
+                if m.get_type() == want and match(m):
+                    return m, seen
+            time.sleep(0.001)
+        return None, seen
+
+    def command(self, command: int, p1=0.0, p2=0.0, p3=0.0, p4=0.0, p5=0.0, p6=0.0, p7=0.0,
+                target_system: int = 1, target_component: int = 1, wait_s: float = ACK_WAIT_S):
+        """Send a COMMAND_LONG and return its COMMAND_ACK (or None)."""
+        ack, _ = self.exchange(
+            lambda: self.client.mav.command_long_send(target_system, target_component, command,
+                                                      0, p1, p2, p3, p4, p5, p6, p7),
+            'COMMAND_ACK', lambda m: m.command == command, wait_s)
+        return ack
+
+    def heartbeat(self):
+        """A fresh HEARTBEAT of the autopilot (asks for one with REQUEST_MESSAGE)."""
+        self.drain()
+        hb, _ = self.exchange(
+            lambda: self.client.mav.command_long_send(
+                1, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, mavlink.MAVLINK_MSG_ID_HEARTBEAT,
+                0, 0, 0, 0, 0, 0),
+            'HEARTBEAT', lambda m: m.get_srcSystem() == 1)
+        return hb
+
+    def send_setpoint(self, time_boot_ms: int, q=(1.0, 0.0, 0.0, 0.0), thrust: float = 0.5,
+                      type_mask: int = 0b111) -> None:
+        self.client.mav.set_attitude_target_send(time_boot_ms, 1, 1, type_mask,
+                                                 [float(x) for x in q], 0.0, 0.0, 0.0,
+                                                 float(thrust))
+
+    def stream_setpoints(self, duration_s: float, period_s: float = 0.02, dt: float = 0.002,
+                         **kw) -> None:
+        """Stream setpoints every period_s of sim time for duration_s, polling every dt."""
+        steps_per_sp = int(round(period_s / dt))
+        for i in range(int(round(duration_s / dt))):
+            if i % steps_per_sp == 0:
+                self.send_setpoint(int(round(self.t * 1000)), **kw)
+            self.poll(dt)
+            if i % 50 == 0:
+                self.drain()
+
+    def close(self) -> None:
+        self.client.close()
+        self.ap.close()
+
+
+def make_rig(signing_key_file: str | None = None, client_key: bytes | None = None,
+             client_link_id: int = 1, state_fn=None, **config) -> Rig:
+    """Autopilot on a free port + a client that has already said hello (HEARTBEAT)."""
+    port = free_udp_port()
+    wall = FakeWallClock()
+    ap = Autopilot(AutopilotConfig(url=f'udpin:127.0.0.1:{port}',
+                                   signing_key_file=signing_key_file, **config),
+                   wall_clock=wall)
+    client = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=CLIENT_SYS,
+                                        source_component=CLIENT_COMP, dialect='common')
+    if client_key is not None:
+        client.setup_signing(client_key, sign_outgoing=True, link_id=client_link_id)
+    rig = Rig(ap, wall, client, state_fn=state_fn)
+    client.mav.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID,
+                              0, 0, mavlink.MAV_STATE_ACTIVE)
+    return rig
+
+
+# --- independent expected values --------------------------------------------------------------
+POSCTL_CUSTOM_MODE = 0x00030000       # PX4: main 3 in bits 16-23
+OFFBOARD_CUSTOM_MODE = 0x00060000     # PX4: main 6
+AUTO_LAND_CUSTOM_MODE = 0x06040000    # PX4: main 4 (AUTO), sub 6 (LAND) in bits 24-31
+RESULT_ACCEPTED = 0
+RESULT_TEMPORARILY_REJECTED = 1
+RESULT_DENIED = 2
+RESULT_UNSUPPORTED = 3
+RESULT_FAILED = 4
+CMD_ARM_DISARM = 400
+CMD_DO_SET_MODE = 176
+CMD_SET_MESSAGE_INTERVAL = 511
+CMD_REQUEST_MESSAGE = 512
+MSG_ID_ATTITUDE_QUATERNION = 31
+MSG_ID_HIGHRES_IMU = 105
+FLAG_CUSTOM = 1
+FLAG_ARMED = 128
+
+
+@pytest.fixture
+def rig():
+    r = make_rig()
+    r.poll()
+    yield r
+    r.close()
+
+
+def go_offboard(r: Rig) -> None:
+    r.stream_setpoints(0.6)
+    ack = r.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 6, 0)
+    assert ack is not None and ack.result == RESULT_ACCEPTED
+
+
+def angle_between(q_a, q_b) -> float:
+    """Rotation angle (rad) between two unit quaternions, sign-insensitive."""
+    d = abs(float(np.dot(np.asarray(q_a, float), np.asarray(q_b, float))))
+    return 2.0 * float(np.arccos(min(1.0, d)))
+
+
+# --- heartbeat ----------------------------------------------------------------------------------
+
+def test_heartbeat_px4_quadrotor_armed_posctl(rig):
+    msgs = rig.drain()
+    hbs = [m for m in msgs if m.get_type() == 'HEARTBEAT']
+    assert hbs, 'a new peer is greeted with a HEARTBEAT at once'
+    hb = hbs[0]
+    assert (hb.get_srcSystem(), hb.get_srcComponent()) == (1, 1)
+    assert hb.type == 2 and hb.autopilot == 12          # QUADROTOR, PX4
+    assert hb.base_mode == FLAG_CUSTOM | FLAG_ARMED
+    assert hb.custom_mode == POSCTL_CUSTOM_MODE
+    assert hb.system_status == 4                         # MAV_STATE_ACTIVE
+    assert hb.get_msgbuf()[0] == 0xFD                    # MAVLink 2 frame
+
+
+def test_heartbeat_is_1hz_wall_clock_whatever_sim_time(rig):
+    rig.drain()
+    count = 0
+    for _ in range(350):          # 3.5 s of wall clock, sim time frozen
+        rig.poll(0.0, wall_dt=0.01)
+        count += sum(m.get_type() == 'HEARTBEAT' for m in rig.drain())
+    assert count in (3, 4)
+
+
+# --- commands -----------------------------------------------------------------------------------
+
+def test_arm_when_already_armed_is_accepted(rig):
+    ack = rig.command(CMD_ARM_DISARM, 1)
+    assert ack.result == RESULT_ACCEPTED
+    assert ack.target_system == CLIENT_SYS and ack.target_component == CLIENT_COMP
+    assert rig.ap.armed
+
+
+def test_offboard_rejected_without_setpoint_stream(rig):
+    ack = rig.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 6, 0)
+    assert ack.result == RESULT_TEMPORARILY_REJECTED
+    assert rig.heartbeat().custom_mode == POSCTL_CUSTOM_MODE
+
+
+def test_offboard_rejected_with_too_short_stream(rig):
+    rig.stream_setpoints(0.2)
+    ack = rig.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 6, 0)
+    assert ack.result == RESULT_TEMPORARILY_REJECTED
+
+
+def test_packed_offboard_mode_is_acked_and_ignored(rig):
+    rig.stream_setpoints(0.6)
+    ack = rig.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 6 << 16, 0)
+    assert ack.result == RESULT_ACCEPTED
+    assert rig.heartbeat().custom_mode == POSCTL_CUSTOM_MODE
+    assert rig.ap.attitude_reference(rig.state()).source == 'hold'
+
+
+def test_offboard_accepted_with_stream_and_setpoint_is_the_reference(rig):
+    go_offboard(rig)
+    hb = rig.heartbeat()
+    assert hb.custom_mode == OFFBOARD_CUSTOM_MODE and hb.base_mode & FLAG_ARMED
+    # roll 0.1 rad, pitch -0.2 rad, yaw 0.5 rad: quaternion written out (ZYX, w x y z)
+    q = np.array([0.96388, 0.06615, -0.08271, 0.24572])
+    q /= np.linalg.norm(q)
+    rig.send_setpoint(12345, q=q, thrust=0.62)
+    rig.poll()
+    for _ in range(100):
+        if rig.ap.last_setpoint_time_boot_ms == 12345:
+            break
+        time.sleep(0.001)
+        rig.poll()
+    assert rig.ap.last_setpoint_time_boot_ms == 12345
+    ref = rig.ap.attitude_reference(rig.state())
+    assert ref.source == 'offboard'
+    assert angle_between(ref.q_IB_wxyz, q) < 1e-5
+    assert ref.thrust_norm == pytest.approx(0.62, abs=1e-6)
+    assert rig.ap.counters.setpoints_applied >= 1
+
+
+def test_setpoints_before_offboard_are_recorded_but_not_flown(rig):
+    rig.send_setpoint(777, q=(0.9, 0.3, 0.0, np.sqrt(1 - 0.81 - 0.09)), thrust=0.9)
+    for _ in range(100):
+        rig.poll()
+        if rig.ap.last_setpoint_time_boot_ms == 777:
+            break
+        time.sleep(0.001)
+    assert rig.ap.last_setpoint_time_boot_ms == 777
+    ref = rig.ap.attitude_reference(rig.state())
+    assert ref.source == 'hold'
+    assert angle_between(ref.q_IB_wxyz, (1, 0, 0, 0)) < 1e-6     # at the hold point: level
+    assert ref.thrust_norm == pytest.approx(0.5, abs=1e-9)        # and hover thrust
+    assert rig.ap.counters.setpoints_applied == 0
+
+
+def test_type_mask_ignored_fields_keep_their_last_value(rig):
+    go_offboard(rig)
+    q1 = np.array([np.cos(0.2), np.sin(0.2), 0.0, 0.0])           # roll 0.4 rad
+    rig.send_setpoint(1, q=q1, thrust=0.55)
+    rig.send_setpoint(2, q=(1, 0, 0, 0), thrust=0.7, type_mask=0b111 | 128)   # attitude ignored
+    rig.send_setpoint(3, q=(0, 1, 0, 0), thrust=0.1, type_mask=0b111 | 64 | 128)  # both ignored
+    for _ in range(100):
+        rig.poll()
+        if rig.ap.last_setpoint_time_boot_ms == 3:
+            break
+        time.sleep(0.001)
+    ref = rig.ap.attitude_reference(rig.state())
+    assert angle_between(ref.q_IB_wxyz, q1) < 1e-6
+    assert ref.thrust_norm == pytest.approx(0.7, abs=1e-6)
+
+
+def test_out_of_range_setpoints_are_counted_and_ignored(rig):
+    go_offboard(rig)
+    rig.send_setpoint(10, q=(1, 0, 0, 0), thrust=0.6)
+    bad = [dict(q=(float('nan'), 0, 0, 0)), dict(q=(2.0, 0, 0, 0)), dict(q=(0, 0, 0, 0)),
+           dict(thrust=1.5), dict(thrust=-0.1), dict(thrust=float('nan'))]
+    for i, kw in enumerate(bad):
+        rig.send_setpoint(100 + i, **kw)
+    for _ in range(200):
+        rig.poll()
+        if rig.ap.counters.setpoints_invalid == len(bad):
+            break
+        time.sleep(0.001)
+    assert rig.ap.counters.setpoints_invalid == len(bad)
+    assert rig.ap.last_setpoint_time_boot_ms == 10
+    ref = rig.ap.attitude_reference(rig.state())
+    assert ref.source == 'offboard' and ref.thrust_norm == pytest.approx(0.6, abs=1e-6)
+    assert np.all(np.isfinite(ref.q_IB_wxyz))
+
+
+def test_disarm_in_air_needs_force(rig):
+    ack = rig.command(CMD_ARM_DISARM, 0)
+    assert ack.result == RESULT_TEMPORARILY_REJECTED and rig.ap.armed
+    ack = rig.command(CMD_ARM_DISARM, 0, 21196)
+    assert ack.result == RESULT_ACCEPTED and not rig.ap.armed
+    ref = rig.ap.attitude_reference(rig.state())
+    assert ref.source == 'disarmed' and ref.thrust_norm == 0.0
+    assert not rig.heartbeat().base_mode & FLAG_ARMED
+
+
+def test_disarm_on_the_ground_is_accepted():
+    r = make_rig(state_fn=lambda t: hover_state(t, xi=(0.0, 0.0, -0.10)))
+    try:
+        assert r.command(CMD_ARM_DISARM, 0).result == RESULT_ACCEPTED
+        assert not r.ap.armed
+        assert r.command(CMD_ARM_DISARM, 1).result == RESULT_ACCEPTED
+        assert r.ap.armed
+    finally:
+        r.close()
+
+
+def test_unsupported_and_foreign_commands(rig):
+    assert rig.command(22).result == RESULT_UNSUPPORTED                  # NAV_TAKEOFF
+    assert rig.command(CMD_SET_MESSAGE_INTERVAL, 30, 10000).result == RESULT_FAILED  # ATTITUDE
+    assert rig.command(CMD_ARM_DISARM, 0.5 + 2).result == RESULT_DENIED
+    assert rig.command(CMD_ARM_DISARM, 0, target_system=42, wait_s=0.2) is None
+    assert rig.ap.counters.foreign_target == 1
+
+
+# --- telemetry ----------------------------------------------------------------------------------
+
+def count_over_sim_time(r: Rig, duration_s: float, dt: float = 0.001) -> dict:
+    counts = {'ATTITUDE_QUATERNION': 0, 'HIGHRES_IMU': 0}
+    stamps = {'ATTITUDE_QUATERNION': [], 'HIGHRES_IMU': []}
+    for i in range(int(round(duration_s / dt))):
+        r.poll(dt)
+        if i % 10 == 0:
+            for m in r.drain():
+                if m.get_type() in counts:
+                    counts[m.get_type()] += 1
+                    stamps[m.get_type()].append(m.time_boot_ms if m.get_type()
+                                                == 'ATTITUDE_QUATERNION' else m.time_usec)
+    for m in r.drain():
+        if m.get_type() in counts:
+            counts[m.get_type()] += 1
+    return counts, stamps
+
+
+def test_default_telemetry_50hz_in_sim_time_and_stamped_with_sim_time(rig):
+    counts, stamps = count_over_sim_time(rig, 1.0)
+    assert counts['ATTITUDE_QUATERNION'] in (50, 51)
+    assert counts['HIGHRES_IMU'] in (50, 51)
+    ms = np.array(stamps['ATTITUDE_QUATERNION'])
+    assert np.all(np.diff(ms) == 20)          # every 20 ms of sim time
+    assert ms[-1] <= 1000
+
+
+def test_set_message_interval_changes_the_rate(rig):
+    ack = rig.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_HIGHRES_IMU, 4000)     # 250 Hz
+    assert ack.result == RESULT_ACCEPTED
+    ack = rig.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_ATTITUDE_QUATERNION, -1)  # off
+    assert ack.result == RESULT_ACCEPTED
+    counts, stamps = count_over_sim_time(rig, 1.0)
+    assert counts['HIGHRES_IMU'] in (250, 251)
+    assert counts['ATTITUDE_QUATERNION'] == 0
+    assert np.all(np.diff(stamps['HIGHRES_IMU']) == 4000)   # us
+    rig.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_HIGHRES_IMU, 0)             # default
+    rig.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_ATTITUDE_QUATERNION, 10000)  # 100 Hz
+    counts, _ = count_over_sim_time(rig, 0.5)
+    assert counts['HIGHRES_IMU'] in (25, 26)
+    assert counts['ATTITUDE_QUATERNION'] in (50, 51)
+
+
+def test_telemetry_waits_for_sim_time(rig):
+    rig.drain()
+    for _ in range(200):              # wall time passes, sim time does not
+        rig.poll(0.0, wall_dt=0.01)
+    msgs = rig.drain()
+    assert sum(m.get_type() == 'HIGHRES_IMU' for m in msgs) <= 1
+
+
+def test_request_message_sends_one_even_when_disabled(rig):
+    rig.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_HIGHRES_IMU, -1)
+    ack, seen = rig.exchange(
+        lambda: rig.client.mav.command_long_send(1, 1, CMD_REQUEST_MESSAGE, 0,
+                                                 MSG_ID_HIGHRES_IMU, 0, 0, 0, 0, 0, 0),
+        'COMMAND_ACK', lambda m: m.command == CMD_REQUEST_MESSAGE)
+    assert ack.result == RESULT_ACCEPTED
+    assert sum(m.get_type() == 'HIGHRES_IMU' for m in seen) == 1
+
+
+def test_telemetry_noise_and_fields():
+    yaw = 0.7
+    r = make_rig(state_fn=lambda t: hover_state(t, yaw=yaw, omega=(0.1, -0.2, 0.3)))
+    try:
+        r.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_HIGHRES_IMU, 4000)
+        r.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_ATTITUDE_QUATERNION, 4000)
+        imu, att = [], []
+        for i in range(2000):
+            r.poll(0.001)
+            if i % 10 == 0:
+                for m in r.drain():
+                    (imu if m.get_type() == 'HIGHRES_IMU' else att).append(m)
+        att = [m for m in att if m.get_type() == 'ATTITUDE_QUATERNION']
+        assert len(imu) > 400 and len(att) > 400
+        assert all(m.fields_updated == 0b111111 for m in imu)
+        gyro = np.array([[m.xgyro, m.ygyro, m.zgyro] for m in imu])
+        acc = np.array([[m.xacc, m.yacc, m.zacc] for m in imu])
+        np.testing.assert_allclose(gyro.mean(axis=0), [0.1, -0.2, 0.3], atol=0.002)
+        np.testing.assert_allclose(gyro.std(axis=0), 0.005, rtol=0.25)
+        np.testing.assert_allclose(acc.mean(axis=0), [0.0, 0.0, -9.80665], atol=0.02)
+        np.testing.assert_allclose(acc.std(axis=0), 0.05, rtol=0.25)
+        rates = np.array([[m.rollspeed, m.pitchspeed, m.yawspeed] for m in att])
+        np.testing.assert_allclose(rates.mean(axis=0), [0.1, -0.2, 0.3], atol=0.002)
+        q_true = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        errs = np.degrees([angle_between([m.q1, m.q2, m.q3, m.q4], q_true) for m in att])
+        # 3 axes of 0.2 deg white noise: rms angle = 0.2 * sqrt(3) deg
+        assert np.sqrt(np.mean(errs ** 2)) == pytest.approx(0.2 * np.sqrt(3), rel=0.2)
+    finally:
+        r.close()
+
+
+# --- parameters ---------------------------------------------------------------------------------
+
+def test_param_request_read_hover_thrust(rig):
+    pv, _ = rig.exchange(
+        lambda: rig.client.mav.param_request_read_send(1, 1, b'MPC_THR_HOVER', -1),
+        'PARAM_VALUE')
+    assert pv.param_id == 'MPC_THR_HOVER'
+    assert pv.param_value == pytest.approx(0.5)
+    assert pv.param_type == 9                           # MAV_PARAM_TYPE_REAL32
+
+
+def test_param_request_read_unknown_name_gets_no_value(rig):
+    st, seen = rig.exchange(
+        lambda: rig.client.mav.param_request_read_send(1, 1, b'NO_SUCH_PARAM', -1),
+        'STATUSTEXT')
+    assert st is not None and 'NO_SUCH_PARAM' in st.text
+    assert not any(m.get_type() == 'PARAM_VALUE' for m in seen)
+    assert rig.ap.counters.param_unknown == 1
+
+
+# --- failsafe -----------------------------------------------------------------------------------
+
+def test_offboard_loss_lands_and_needs_an_explicit_switch_back(rig):
+    go_offboard(rig)
+    rig.send_setpoint(int(rig.t * 1000), q=(np.cos(0.15), 0.0, np.sin(0.15), 0.0), thrust=0.8)
+    for _ in range(200):                 # 0.4 s without setpoints: still offboard
+        rig.poll(0.002)
+    assert rig.ap.mode.name == 'OFFBOARD'
+    for _ in range(60):                  # past 0.5 s
+        rig.poll(0.002)
+    assert rig.ap.mode.name == 'AUTO_LAND'
+    hb = rig.heartbeat()
+    assert hb.custom_mode == AUTO_LAND_CUSTOM_MODE
+    assert hb.system_status == 5                        # MAV_STATE_CRITICAL
+    ref = rig.ap.attitude_reference(rig.state())
+    assert ref.source == 'failsafe'
+    assert angle_between(ref.q_IB_wxyz, (1, 0, 0, 0)) < 1e-6   # level, yaw 0 kept
+    assert ref.thrust_norm < 0.5
+    assert rig.ap.counters.failsafe_events == 1
+    # setpoints come back: the failsafe stays until the companion switches back
+    rig.stream_setpoints(0.1)
+    assert rig.ap.mode.name == 'AUTO_LAND'
+    assert rig.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 6, 0).result == \
+        RESULT_TEMPORARILY_REJECTED
+    rig.stream_setpoints(0.5)
+    assert rig.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 6, 0).result == RESULT_ACCEPTED
+    assert rig.ap.attitude_reference(rig.state()).source == 'offboard'
+
+
+def test_failsafe_keeps_yaw():
+    r = make_rig(state_fn=lambda t: hover_state(t, yaw=1.2, roll=0.3))
+    try:
+        r.poll()
+        go_offboard(r)
+        for _ in range(300):
+            r.poll(0.002)
+        ref = r.ap.attitude_reference(r.state())
+        q_level_yaw = np.array([np.cos(0.6), 0.0, 0.0, np.sin(0.6)])
+        assert ref.source == 'failsafe' and angle_between(ref.q_IB_wxyz, q_level_yaw) < 1e-6
+    finally:
+        r.close()
+
+
+def test_offboard_loss_on_the_wall_clock_when_sim_time_stalls(rig):
+    go_offboard(rig)
+    rig.poll(0.0, wall_dt=1.5)
+    assert rig.ap.mode.name == 'OFFBOARD'
+    rig.poll(0.0, wall_dt=1.0)          # 2.5 s wall > 2.0 s bound, sim time frozen
+    assert rig.ap.mode.name == 'AUTO_LAND' and rig.ap.failsafe
+
+
+def test_failsafe_descent_closed_loop_then_auto_disarm():
+    """Point mass in NED, level attitude: dv_z/dt = g - g * thrust / hover."""
+    box = {'z': -1.5, 'vz': 0.0}
+    r = make_rig(state_fn=lambda t: hover_state(t, xi=(0.0, 0.0, box['z']),
+                                                 v=(0.0, 0.0, box['vz'])))
+    try:
+        r.poll()
+        go_offboard(r)
+        dt = 0.002
+        vz_log = []
+        for i in range(int(8.0 / dt)):
+            r.poll(dt)
+            ref = r.ap.attitude_reference(r.state())
+            acc = 9.80665 - 9.80665 * ref.thrust_norm / 0.5
+            box['vz'] += acc * dt
+            box['z'] += box['vz'] * dt
+            if box['z'] >= -0.10:         # on the floor (body origin 0.10 m above it)
+                box['z'], box['vz'] = -0.10, 0.0
+            vz_log.append(box['vz'])
+            if not r.ap.armed:
+                break
+        assert r.ap.mode.name == 'AUTO_LAND'
+        assert max(vz_log) == pytest.approx(0.4, abs=0.03)     # descent rate 0.4 m/s
+        assert not r.ap.armed                                   # auto-disarmed 2 s after landing
+        assert r.ap.attitude_reference(r.state()).thrust_norm == 0.0
+    finally:
+        r.close()
+
+
+# --- hold ---------------------------------------------------------------------------------------
+
+def test_hold_brings_a_displaced_vehicle_back_to_the_hold_point():
+    """Point mass in NED with perfect attitude tracking: dv/dt = g e3 - g (thrust/hover) R e3."""
+    box = {'xi': np.array(INITIAL_XI), 'v': np.zeros(3), 'R': np.eye(3)}
+
+    def state(t):
+        return VehicleStateView(t, box['xi'].copy(), box['v'].copy(), box['R'].copy(),
+                                np.zeros(3), np.array([0.0, 0.0, -9.80665]))
+
+    r = make_rig(state_fn=state)
+    try:
+        r.poll()                                   # hold point = INITIAL_XI
+        box['xi'] = box['xi'] + np.array([0.5, -0.3, 0.2])
+        box['v'] = np.array([0.2, 0.0, -0.1])
+        dt = 0.005
+        max_tilt = 0.0
+        for _ in range(int(8.0 / dt)):
+            ref = r.ap.attitude_reference(r.state())
+            assert ref.source == 'hold'
+            w, x, y, z = ref.q_IB_wxyz
+            R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                          [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                          [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+            box['R'] = R
+            max_tilt = max(max_tilt, np.degrees(np.arccos(np.clip(R[2, 2], -1, 1))))
+            acc = np.array([0.0, 0.0, 9.80665]) - 9.80665 * ref.thrust_norm / 0.5 * R[:, 2]
+            box['v'] = box['v'] + acc * dt
+            box['xi'] = box['xi'] + box['v'] * dt
+            r.poll(dt)
+        np.testing.assert_allclose(box['xi'], INITIAL_XI, atol=0.02)
+        assert np.linalg.norm(box['v']) < 0.02
+        assert max_tilt <= 35.0 + 1e-6
+    finally:
+        r.close()
+
+
+def test_posctl_switch_holds_where_it_was_entered():
+    box = {'xi': np.array(INITIAL_XI)}
+    r = make_rig(state_fn=lambda t: hover_state(t, xi=box['xi']))
+    try:
+        r.poll()
+        go_offboard(r)
+        box['xi'] = np.array([-1.0, 0.5, -1.6])
+        assert r.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 3, 0).result == RESULT_ACCEPTED
+        assert r.heartbeat().custom_mode == POSCTL_CUSTOM_MODE
+        ref = r.ap.attitude_reference(r.state())
+        assert ref.source == 'hold'
+        assert angle_between(ref.q_IB_wxyz, (1, 0, 0, 0)) < 1e-6 and ref.thrust_norm == 0.5
+    finally:
+        r.close()
+
+
+# --- robustness ---------------------------------------------------------------------------------
+
+def test_garbage_unknown_and_truncated_input_is_survived_and_counted(rig):
+    port = int(rig.ap.config.url.rsplit(':', 1)[1])
+    rng = np.random.default_rng(1)
+    c = rig.ap.counters
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:
+        # a well-formed MAVLink 2 frame with a message id outside the dialect (0x0ABCDE)
+        raw.sendto(bytes([0xFD, 0, 0, 0, 8, 255, 191, 0xDE, 0xBC, 0x0A, 0x12, 0x34]),
+                   ('127.0.0.1', port))
+        for _ in range(100):
+            rig.poll()
+            if c.unknown_messages:
+                break
+            time.sleep(0.001)
+        assert c.unknown_messages == 1 and c.malformed == 0
+        raw.sendto(bytes([0xFD, 0x40, 0, 0, 7, 255, 191, 76, 0]), ('127.0.0.1', port))  # cut
+        for _ in range(20):
+            raw.sendto(rng.integers(0, 256, 300, dtype=np.uint8).tobytes(), ('127.0.0.1', port))
+        rig.poll()
+    ack = rig.command(CMD_ARM_DISARM, 1)           # still answering
+    assert ack is not None and ack.result == RESULT_ACCEPTED
+    assert c.malformed >= 21
+
+
+def test_non_finite_state_does_not_crash(rig):
+    bad = hover_state(rig.t + 0.1)
+    bad.xi_I[0] = np.nan
+    bad.R_IB[0, 0] = np.nan
+    rig.ap.poll(bad)
+    ref = rig.ap.attitude_reference(bad)
+    assert np.all(np.isfinite(ref.q_IB_wxyz)) and 0.0 <= ref.thrust_norm <= 1.0
+    assert rig.ap.counters.state_invalid >= 1
+
+
+# --- signing ------------------------------------------------------------------------------------
+
+KEY = bytes(range(32))
+WRONG_KEY = bytes(range(1, 33))
+
+
+@pytest.fixture
+def key_file(tmp_path):
+    p = tmp_path / 'mavlink.key'
+    p.write_bytes(KEY)
+    return str(p)
+
+
+def test_signing_accepts_the_right_key_and_signs_its_messages(key_file):
+    r = make_rig(signing_key_file=key_file, client_key=KEY, client_link_id=3)
+    try:
+        ack = r.command(CMD_ARM_DISARM, 1)
+        assert ack is not None and ack.result == RESULT_ACCEPTED
+        assert ack.get_signed()
+        assert r.ap.counters.signing_rejected == 0
+    finally:
+        r.close()
+
+
+def test_signing_key_file_may_be_hex(tmp_path):
+    p = tmp_path / 'mavlink.hex'
+    p.write_text(KEY.hex() + '\n')
+    r = make_rig(signing_key_file=str(p), client_key=KEY, client_link_id=4)
+    try:
+        assert r.command(CMD_ARM_DISARM, 1).result == RESULT_ACCEPTED
+    finally:
+        r.close()
+
+
+def test_signing_rejects_unsigned_commands(key_file):
+    r = make_rig(signing_key_file=key_file)
+    try:
+        assert r.command(CMD_ARM_DISARM, 0, 21196, wait_s=0.3) is None
+        assert r.ap.armed
+        assert r.ap.counters.signing_rejected >= 2       # the hello heartbeat and the command
+        assert r.ap.counters.commands == 0
+    finally:
+        r.close()
+
+
+def test_signing_rejects_a_wrong_key(key_file):
+    r = make_rig(signing_key_file=key_file, client_key=WRONG_KEY, client_link_id=5)
+    try:
+        assert r.command(CMD_ARM_DISARM, 0, 21196, wait_s=0.3) is None
+        assert r.ap.armed
+        assert r.ap.counters.signing_rejected >= 2
+    finally:
+        r.close()
+
+
+def test_bad_signing_key_file_is_a_clear_error(tmp_path):
+    p = tmp_path / 'short.key'
+    p.write_bytes(b'too short')
+    with pytest.raises(ValueError, match='32 raw bytes'):
+        make_rig(signing_key_file=str(p))
