@@ -524,8 +524,8 @@ def test_offboard_loss_on_the_wall_clock_when_sim_time_stalls(rig):
 def test_failsafe_descent_closed_loop_then_auto_disarm():
     """Point mass in NED, level attitude: dv_z/dt = g - g * thrust / hover."""
     box = {'z': -1.5, 'vz': 0.0}
-    r = make_rig(state_fn=lambda t: hover_state(t, xi=(0.0, 0.0, box['z']),
-                                                 v=(0.0, 0.0, box['vz'])))
+    r = make_rig(state_fn=lambda t: hover_state(
+        t, xi=(0.0, 0.0, box['z']), v=(0.0, 0.0, box['vz'])))
     try:
         r.poll()
         go_offboard(r)
