@@ -1,0 +1,163 @@
+"""The paper's outer-loop force laws (section 4) and the blind-crossing laws of SPEC.md section 3.
+
+Sign convention (eq:system): ``m v_dot = -F + m g e3 + Delta`` in {I} (NED-type, z down), so a
+force law ``F = m g e3 + m k(.)`` commands the acceleration ``v_dot = -k(.)``. Gains are
+mass-normalised as in SPEC.md section 2: ``F = m (...) + m g e3``. Forces are newtons.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from ibvs_control.core.frames import GRAVITY, e3, proj_orth
+
+
+class GainError(ValueError):
+    """A gain set that breaks the conditions of the paper's theorem/propositions."""
+
+
+class CrossingLaw(str, Enum):
+    """Mode 2 (blind crossing) law, selectable for comparison (SPEC.md section 3)."""
+
+    CLOSED = 'closed'        # intended push + loop closed on the down camera's flow (default)
+    INTENDED = 'intended'    # F = m g e3 - eta_w |eta_w^T (F_w(T2-) - m g e3)|, open loop
+    SEED = 'seed'            # the seed's literal F = eta_w |eta_w^T F_w(T2-)| (defective)
+
+
+@dataclass(frozen=True)
+class LandingGains:
+    """K_p^t = kp_xy pi_eta + kp_z eta eta^T, K_d^t likewise (1/s^2, 1/s); phi*_t (1/s)."""
+
+    kp_xy: float = 4.0
+    kp_z: float = 1.75
+    kd_xy: float = 4.0
+    kd_z: float = 4.0
+    phi_t_star: float = 0.0     # eq:FT2 robust variant when > 0
+
+    def validate(self) -> None:
+        """Raise GainError unless K_p^t, K_d^t are positive definite and phi*_t >= 0."""
+        if min(self.kp_xy, self.kp_z, self.kd_xy, self.kd_z) <= 0.0:
+            raise GainError(f'landing gains must be positive (K_p^t, K_d^t > 0): {self}')
+        if self.phi_t_star < 0.0:
+            raise GainError(f'phi*_t must be >= 0: {self.phi_t_star}')
+
+
+@dataclass(frozen=True)
+class WindowGains:
+    """Gains of eq:Fw (k_p^w 1/s^2, k_d^w 1/s, k_phi^w 1/s, phi*_w 1/s) and eq:alphaw."""
+
+    kp: float = 1.0
+    kd: float = 0.8
+    k_phi: float = 1.0
+    phi_star: float = 0.3
+    eps: float = 0.2
+    delta: float = 0.05
+
+    def validate(self, r_w: float) -> None:
+        """Proposition prop:window: k_d^2/k_p > r_w/2, positive gains, phi*_w > 0."""
+        if min(self.kp, self.kd, self.k_phi) <= 0.0:
+            raise GainError(f'window gains k_p^w, k_d^w, k_phi^w must be positive: {self}')
+        if self.phi_star <= 0.0:
+            raise GainError(f'phi*_w must be > 0 (Proposition prop:window): {self.phi_star}')
+        if self.kd ** 2 / self.kp <= r_w / 2.0:
+            raise GainError(f'k_d^w^2 / k_p^w = {self.kd ** 2 / self.kp:.3f} must exceed '
+                            f'r_w / 2 = {r_w / 2.0:.3f} (Proposition prop:window)')
+        if self.eps <= 0.0 or self.delta <= 0.0:
+            raise GainError(f'alpha_w thresholds eps, delta must be > 0: {self}')
+
+
+@dataclass(frozen=True)
+class CrossingGains:
+    """Mode 2 closed on the down camera's translational flow phi_t = v/d_t.
+
+    Commanded acceleration (orthogonal to eta_w): a_ff - kv pi phi_t - ks pi s, with
+    s = integral of pi phi_t dt (the displacement since T2 over the height); along eta_w:
+    kf (phi_fwd_ref - eta^T phi_t), phi_fwd_ref = max(eta^T phi_t(T2), phi_fwd_min).
+    """
+
+    kv: float = 4.0             # 1/s, flow damping (as K_d^t)
+    ks: float = 2.0             # 1/s^2, flow-integral stiffness
+    kf: float = 2.0             # 1/s, forward flow tracking
+    phi_fwd_min: float = 0.15   # 1/s, minimum forward flow through the window
+
+    def validate(self) -> None:
+        """Raise GainError unless every gain is positive."""
+        if min(self.kv, self.ks, self.kf, self.phi_fwd_min) <= 0.0:
+            raise GainError(f'crossing gains must be positive: {self}')
+
+
+def gain_matrix(k_xy: float, k_z: float, eta: np.ndarray = e3) -> np.ndarray:
+    """K = k_xy pi_eta + k_z eta eta^T (Theorem th:landing's form)."""
+    eta = np.asarray(eta, dtype=float)
+    return k_xy * proj_orth(eta) + k_z * np.outer(eta, eta)
+
+
+def force_landing(q_t: np.ndarray, phi_t: np.ndarray, gains: LandingGains, mass: float,
+                  eta_t: np.ndarray = e3) -> np.ndarray:
+    """Landing force eq:FT (eq:FT2 when phi*_t > 0), newtons in {I}.
+
+    F_t = m (K_p^t q_t + K_d^t (phi_t - eta_t phi*_t)) + m g e3.
+    """
+    Kp = gain_matrix(gains.kp_xy, gains.kp_z, eta_t)
+    Kd = gain_matrix(gains.kd_xy, gains.kd_z, eta_t)
+    phi = np.asarray(phi_t, dtype=float) - np.asarray(eta_t) * gains.phi_t_star
+    return mass * (Kp @ np.asarray(q_t, dtype=float) + Kd @ phi) + mass * GRAVITY * e3
+
+
+def sigma(q_w: np.ndarray, eta_w: np.ndarray) -> float:
+    """eq:sigma: 1 while eta_w^T q_w < 0 (window still ahead), 0 once crossed."""
+    return 1.0 if float(eta_w @ q_w) < 0.0 else 0.0
+
+
+def force_window(q_w: np.ndarray, q_w_bar: np.ndarray, phi_w: np.ndarray, eta_w: np.ndarray,
+                 gains: WindowGains, mass: float) -> np.ndarray:
+    """Window force eq:Fw, newtons in {I}.
+
+    F_w = sigma(q_w) m (k_p pi_eta q_bar_w + k_d pi_eta phi_w + k_phi eta (eta^T phi_w -
+    phi*_w)) + m g e3. Deviation from the literal eq:Fw (documented): sigma multiplies the
+    feedback terms only, so gravity stays compensated once the window is crossed.
+    """
+    pi = proj_orth(eta_w)
+    fb = gains.kp * pi @ q_w_bar + gains.kd * pi @ phi_w \
+        + gains.k_phi * eta_w * (float(eta_w @ phi_w) - gains.phi_star)
+    return sigma(q_w, eta_w) * mass * fb + mass * GRAVITY * e3
+
+
+def force_crossing_seed(F_w_T2: np.ndarray, eta_w: np.ndarray) -> np.ndarray:
+    """The seed's literal mode-2 law F = eta_w |eta_w^T F_w(T2-)| (SPEC.md section 3 defect).
+
+    It drops gravity compensation and, since the dynamics use -F, brakes along eta_w.
+    Kept only for comparison.
+    """
+    return np.asarray(eta_w) * abs(float(eta_w @ F_w_T2))
+
+
+def force_crossing_intended(F_w_T2: np.ndarray, eta_w: np.ndarray, mass: float) -> np.ndarray:
+    """Open-loop mode-2 law as intended: F = m g e3 - eta_w |eta_w^T (F_w(T2-) - m g e3)|.
+
+    Keeps gravity compensation and pushes along eta_w (acceleration +eta_w |.| / m).
+    """
+    g_comp = mass * GRAVITY * e3
+    return g_comp - np.asarray(eta_w) * abs(float(eta_w @ (np.asarray(F_w_T2) - g_comp)))
+
+
+def force_crossing_closed(F_w_T2: np.ndarray, eta_w: np.ndarray, phi_t: np.ndarray,
+                          s_perp: np.ndarray, phi_fwd_ref: float, gains: CrossingGains,
+                          mass: float) -> np.ndarray:
+    """Mode-2 law closed on the down camera's translational flow phi_t = v/d_t.
+
+    Desired acceleration a = a_ff - kv pi phi_t - ks s_perp + kf eta (phi_fwd_ref - eta^T phi_t)
+    where pi = pi_{eta_w}, a_ff = -pi (F_w(T2-) - m g e3) / m holds the lateral/vertical
+    command that balanced the vehicle just before the window was lost (e.g. a steady wind), and
+    s_perp = integral of pi phi_t dt since T2 (the displacement over the height, which stays
+    nearly constant while crossing). F = m g e3 - m a.
+    """
+    pi = proj_orth(eta_w)
+    g_comp = mass * GRAVITY * e3
+    a_ff = -pi @ (np.asarray(F_w_T2) - g_comp) / mass
+    phi_t = np.asarray(phi_t, dtype=float)
+    a = a_ff - gains.kv * pi @ phi_t - gains.ks * np.asarray(s_perp) \
+        + gains.kf * np.asarray(eta_w) * (phi_fwd_ref - float(eta_w @ phi_t))
+    return g_comp - mass * a

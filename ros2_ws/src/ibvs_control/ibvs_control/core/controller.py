@@ -1,0 +1,226 @@
+"""The outer-loop IBVS controller: measurements + mode -> the paper's force F and a yaw.
+
+ROS-free. One ``IbvsController.step`` per camera frame. It never moves the plant: it only turns
+image features, translational flows and the IMU attitude into F (newtons, {I}) and the desired
+yaw that faces the forward camera to the window normal eta_w (paper section 5).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ibvs_control.core.attitude import yaw_facing
+from ibvs_control.core.config import VehicleConfig
+from ibvs_control.core.control_laws import (
+    CrossingGains, CrossingLaw, force_crossing_closed, force_crossing_intended,
+    force_crossing_seed, force_landing, force_window, GainError, LandingGains, WindowGains)
+from ibvs_control.core.features import (
+    centroid_feature, compute_window_features, window_flow, WindowFeatures)
+from ibvs_control.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
+from ibvs_control.core.modes import Mode
+
+MAX_INTEGRATION_STEP_S = 0.1   # a longer gap between frames is not integrated as flow
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Everything the controller needs: vehicle mass, gains, camera mounts, window width."""
+
+    mass: float                           # kg
+    r_w: float                            # m, known window width (gain condition only)
+    R_BC_front: np.ndarray                # forward camera optical -> body FRD
+    R_BC_down: np.ndarray                 # down camera optical -> body FRD
+    landing: LandingGains = field(default_factory=LandingGains)
+    window: WindowGains = field(default_factory=WindowGains)
+    crossing: CrossingGains = field(default_factory=CrossingGains)
+    crossing_law: CrossingLaw = CrossingLaw.CLOSED
+    eta_t: np.ndarray = field(default_factory=lambda: e3.copy())   # landing plane normal
+
+    def validate(self) -> None:
+        """Raise GainError for gains that break the paper's conditions."""
+        if self.mass <= 0.0:
+            raise GainError(f'mass must be positive: {self.mass}')
+        self.landing.validate()
+        self.window.validate(self.r_w)
+        self.crossing.validate()
+
+    @classmethod
+    def from_params(cls, params: dict, vehicle: VehicleConfig, r_w: float) -> 'ControllerConfig':
+        """Build from a flat parameter dict (names as in params.yaml) and validate it.
+
+        Keys (all optional, the paper's values by default): landing.kp_xy, landing.kp_z,
+        landing.kd_xy, landing.kd_z, landing.phi_t_star, window.kp, window.kd, window.k_phi,
+        window.phi_star, window.eps, window.delta, crossing.kv, crossing.ks, crossing.kf,
+        crossing.phi_fwd_min, crossing_law. Raises GainError (a ValueError).
+        """
+        def group(prefix: str, kind):
+            known = {f.name for f in kind.__dataclass_fields__.values()}
+            vals = {k[len(prefix) + 1:]: float(v) for k, v in params.items()
+                    if k.startswith(prefix + '.')}
+            unknown = set(vals) - known
+            if unknown:
+                raise GainError(f'unknown {prefix} parameter(s): {sorted(unknown)}')
+            return kind(**vals)
+
+        try:
+            law = CrossingLaw(params.get('crossing_law', CrossingLaw.CLOSED.value))
+        except ValueError as exc:
+            raise GainError(f'crossing_law must be one of {[x.value for x in CrossingLaw]}'
+                            ) from exc
+        cfg = cls(mass=vehicle.mass, r_w=float(r_w),
+                  R_BC_front=vehicle.cameras['front'].R_BC,
+                  R_BC_down=vehicle.cameras['down'].R_BC,
+                  landing=group('landing', LandingGains), window=group('window', WindowGains),
+                  crossing=group('crossing', CrossingGains), crossing_law=law)
+        cfg.validate()
+        return cfg
+
+
+@dataclass(frozen=True)
+class Measurements:
+    """What one control step sees; bearings in camera optical frames, flows in {I}."""
+
+    t: float                                  # s, the image stamp this step answers
+    R_IB: np.ndarray                          # IMU attitude at t (body FRD -> {I})
+    window_bearings_C: np.ndarray | None      # (4, 3) TL TR BR BL, or None
+    pad_bearings_C: np.ndarray | None         # (N, 3) landmarks of complete groups, or None
+    phi_front_I: np.ndarray | None            # wall flow v/d_o (1/s), or None
+    phi_down_I: np.ndarray | None             # floor flow v/d_t (1/s), or None
+
+
+@dataclass(frozen=True)
+class FeatureSnapshot:
+    """The features used for one step (None = not available), for plots and diagnosis."""
+
+    q_w: np.ndarray | None = None
+    q_w_bar: np.ndarray | None = None
+    q_t: np.ndarray | None = None
+    phi_w: np.ndarray | None = None
+    phi_t: np.ndarray | None = None
+    alpha_w: float | None = None
+    eta_w: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class ControlOutput:
+    """One step's answer: force F (N, {I}), desired NED yaw (rad), features used."""
+
+    F_I: np.ndarray
+    yaw_des: float
+    features: FeatureSnapshot
+    valid: bool = True       # False: inputs missing, F is the last valid (or hover) force
+
+
+class IbvsController:
+    """Mode-dependent force laws with the little state they need.
+
+    State: the latched window normal eta_w (continuity), the last window force F_w(T2-) and the
+    yaw facing the window, and in mode 2 the forward-flow reference and the flow integral.
+    """
+
+    def __init__(self, config: ControllerConfig) -> None:
+        config.validate()
+        self.config = config
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything learnt during a flight."""
+        self._eta_w: np.ndarray | None = None
+        self._F_last = self._hover()
+        self._F_w_T2: np.ndarray | None = None
+        self._yaw_des: float | None = None
+        self._mode: Mode = Mode.IDLE
+        self._t_prev: float | None = None
+        self._phi_fwd_ref = self.config.crossing.phi_fwd_min
+        self._s_perp = np.zeros(3)
+
+    def _hover(self) -> np.ndarray:
+        return self.config.mass * GRAVITY * e3
+
+    def _window_features(self, meas: Measurements, R_IB: np.ndarray) -> WindowFeatures | None:
+        if meas.window_bearings_C is None:
+            return None
+        p_I = bearings_C_to_I(meas.window_bearings_C, R_IB, self.config.R_BC_front)
+        try:
+            return compute_window_features(p_I, self.config.window.eps,
+                                           self.config.window.delta, self._eta_w)
+        except ValueError:
+            return None
+
+    def step(self, mode: Mode, meas: Measurements) -> ControlOutput:
+        """Compute F and the yaw for one frame in the given mode."""
+        cfg = self.config
+        R_IB = np.asarray(meas.R_IB, dtype=float)
+        dt = 0.0 if self._t_prev is None else float(np.clip(meas.t - self._t_prev, 0.0,
+                                                            MAX_INTEGRATION_STEP_S))
+        self._t_prev = meas.t
+        entering = mode != self._mode
+        self._mode = mode
+
+        win = self._window_features(meas, R_IB)
+        q_t = None
+        if meas.pad_bearings_C is not None and len(meas.pad_bearings_C) > 0:
+            q_t = centroid_feature(bearings_C_to_I(meas.pad_bearings_C, R_IB, cfg.R_BC_down))
+        phi_t = meas.phi_down_I
+        phi_w = None
+        if win is not None and meas.phi_front_I is not None:
+            phi_w = window_flow(meas.phi_front_I, win.eta_w, win.l_e, win.alpha_w)
+        feats = FeatureSnapshot(
+            q_w=None if win is None else win.q_w, q_w_bar=None if win is None else win.q_w_bar,
+            q_t=q_t, phi_w=phi_w, phi_t=phi_t, alpha_w=None if win is None else win.alpha_w,
+            eta_w=self._eta_w if win is None else win.eta_w)
+
+        if self._yaw_des is None:
+            self._yaw_des = euler_zyx_from_rot(R_IB)[2]
+        F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t)
+        if valid:
+            self._F_last = F
+        return ControlOutput(F if valid else self._F_last, self._yaw_des, feats, valid)
+
+    def _force(self, mode: Mode, entering: bool, dt: float, win: WindowFeatures | None,
+               q_t: np.ndarray | None, phi_w: np.ndarray | None,
+               phi_t: np.ndarray | None) -> tuple[np.ndarray, bool]:
+        cfg = self.config
+        if mode == Mode.WINDOW:
+            if win is None or phi_w is None:
+                return self._F_last, False
+            self._eta_w = win.eta_w
+            self._yaw_des = yaw_facing(win.eta_w, cfg.R_BC_front)
+            F = force_window(win.q_w, win.q_w_bar, phi_w, win.eta_w, cfg.window, cfg.mass)
+            self._F_w_T2 = F
+            return F, True
+        if mode == Mode.CROSSING:
+            return self._crossing_force(entering, dt, phi_t)
+        if mode == Mode.LANDING:
+            if q_t is None or phi_t is None:
+                return self._F_last, False
+            return force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t), True
+        # IDLE (the autopilot holds), SHUTDOWN (level, the bridge ramps thrust down) and
+        # FAILSAFE (level hover, the bridge/autopilot descend): a level attitude.
+        return self._hover(), True
+
+    def _crossing_force(self, entering: bool, dt: float,
+                        phi_t: np.ndarray | None) -> tuple[np.ndarray, bool]:
+        cfg = self.config
+        if self._eta_w is None or self._F_w_T2 is None:
+            return self._hover(), False       # never saw the window: nothing to push along
+        eta = self._eta_w
+        if cfg.crossing_law == CrossingLaw.SEED:
+            return force_crossing_seed(self._F_w_T2, eta), True
+        if cfg.crossing_law == CrossingLaw.INTENDED:
+            return force_crossing_intended(self._F_w_T2, eta, cfg.mass), True
+        if entering:
+            self._s_perp = np.zeros(3)
+            fwd = float(eta @ phi_t) if phi_t is not None else 0.0
+            self._phi_fwd_ref = max(fwd, cfg.crossing.phi_fwd_min)
+        if phi_t is None:
+            return self._F_last, False
+        self._s_perp = self._s_perp + proj_orth(eta) @ np.asarray(phi_t) * dt
+        return force_crossing_closed(self._F_w_T2, eta, phi_t, self._s_perp,
+                                     self._phi_fwd_ref, cfg.crossing, cfg.mass), True
+
+
+def with_crossing_law(config: ControllerConfig, law: CrossingLaw) -> ControllerConfig:
+    """Return a copy of config using another mode-2 law (for comparisons)."""
+    return replace(config, crossing_law=law)

@@ -1,0 +1,278 @@
+"""The mode supervisor as a pure state machine (paper section 4.3, SPEC.md section 3).
+
+Transitions and their image cues (no position or velocity estimate is used):
+
+- 0 -> 1  ``start``: accepted when the full window is detected and the IMU is fresh.
+- 1 -> 2  the forward camera no longer sees the full window, or the corners jump in a way
+          incompatible with smooth motion, while the window was seen close (its angular height
+          above ``crossing_min_angular_height_rad``). A loss far from the window is not a
+          crossing: it ends in failsafe after ``window_timeout_s``.
+- 2 -> 3  only once, when the down camera sees a complete pad group AFTER the window plane is
+          crossed by ``crossing_margin_m``. The crossing length is measured from images only:
+          d_o(T2) from the last corners and the known width r_w, the height d_t(T2) from the
+          ratio of the wall and floor flows (same v: d_t = d_o |phi_w| / |phi_t|), then the
+          travel d_t * integral(eta_w^T phi_t dt).
+- 3 -> 4  the height estimated from the smallest complete pad group (known size c) is below
+          ``shutdown_height_m`` (SPEC: an image criterion, -eta_t^T q_t of that group).
+- any flying mode -> 5 (failsafe) when an input it needs is stale (timeouts), on ``abort``,
+          or when the crossing does not find the pad within ``crossing_timeout_s``.
+All times are seconds of the node clock (sim time in simulation).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+
+from ibvs_control.core.features import (
+    centroid_feature, distance_to_window_plane, edge_normals, pad_height_estimate,
+    window_axes, window_normal)
+from ibvs_control.core.modes import FLYING_MODES, Mode
+
+__all__ = ['Mode', 'ModeSupervisor', 'SupervisorConfig', 'Transition']
+
+
+@dataclass(frozen=True)
+class SupervisorConfig:
+    """Thresholds and timeouts of the supervisor (seconds, metres, radians)."""
+
+    r_w: float = 1.2                               # m, known window width
+    imu_timeout_s: float = 0.2
+    window_timeout_s: float = 0.5                  # mode 1: window lost far away -> failsafe
+    front_flow_timeout_s: float = 0.5              # mode 1
+    down_flow_timeout_s: float = 0.5               # modes 2, 3
+    pad_timeout_s: float = 1.0                     # mode 3
+    crossing_min_angular_height_rad: float = 0.8   # window lost closer than this -> mode 2
+    window_jump_rad: float = 0.1                   # corner jump between frames = loss
+    crossing_margin_m: float = 0.4                 # travel past the wall plane before mode 3
+    crossing_fallback_travel: float = 1.0          # d-normalised travel if d_t is unknown
+    crossing_timeout_s: float = 10.0               # mode 2 without a pad -> failsafe
+    shutdown_height_m: float = 0.14                # body height of the 3 -> 4 switch
+    group_half_sides: dict = field(default_factory=lambda: {
+        'A': 0.36, 'B': 0.20, 'C': 0.10, 'D': 0.045})   # from pad_layout.yaml (c per group)
+
+    @classmethod
+    def from_params(cls, params: dict) -> 'SupervisorConfig':
+        """Build from a flat dict; unknown keys raise ValueError, missing keys keep defaults."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(params) - known
+        if unknown:
+            raise ValueError(f'unknown supervisor parameter(s): {sorted(unknown)}')
+        cfg = cls(**params)
+        for f in fields(cls):
+            v = getattr(cfg, f.name)
+            if isinstance(v, float) and not (np.isfinite(v) and v > 0.0):
+                raise ValueError(f'supervisor parameter {f.name} must be > 0, got {v}')
+        return cfg
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One mode change, with the reason logged by the node."""
+
+    from_mode: Mode
+    to_mode: Mode
+    t: float
+    reason: str
+
+
+def _angular_height(corners_I: np.ndarray) -> float:
+    """Angle (rad) between the mid-points of the top and bottom edges' bearings."""
+    top = corners_I[0] + corners_I[1]
+    bottom = corners_I[2] + corners_I[3]
+    c = top @ bottom / (np.linalg.norm(top) * np.linalg.norm(bottom))
+    return float(np.arccos(np.clip(c, -1.0, 1.0)))
+
+
+class ModeSupervisor:
+    """Modes and triggers of SPEC.md section 3; feed it with on_* and call update(t)."""
+
+    def __init__(self, config: SupervisorConfig) -> None:
+        self.config = config
+        self.mode = Mode.IDLE
+        self.transitions: list[Transition] = []
+        self._last: dict[str, float] = {}              # input name -> last fresh time
+        self._pending: list[tuple[str, Mode, str]] = []
+        self._corners: np.ndarray | None = None         # last full-window corners, {I}
+        self._window_close = False
+        self._eta_w: np.ndarray | None = None
+        self._d_o_T2: float | None = None
+        self._phi_front: np.ndarray | None = None
+        self._phi_down: np.ndarray | None = None
+        self._travel_norm = 0.0                         # integral of eta_w^T phi_t dt
+        self._travel_needed: float | None = None        # same units
+        self._t_flow_down: float | None = None
+        self._t_mode = 0.0
+        self._pad_seen = False
+        self._landing_entered = False
+        self._height_est: float | None = None
+
+    # --- commands ---------------------------------------------------------------------------
+    def start(self, t: float) -> tuple[bool, str]:
+        """Leave IDLE for WINDOW if the window and the IMU are fresh."""
+        if self.mode != Mode.IDLE:
+            return False, f'cannot start from mode {self.mode.name}'
+        if not self._fresh('imu', t, self.config.imu_timeout_s):
+            return False, 'IMU attitude is stale or missing'
+        if self._corners is None or not self._fresh('window', t, self.config.window_timeout_s):
+            return False, 'the full window is not detected'
+        self._switch(t, Mode.WINDOW, 'start requested, window detected')
+        return True, 'started: window approach (mode 1)'
+
+    def abort(self, t: float, reason: str = 'abort requested') -> tuple[bool, str]:
+        """Go to FAILSAFE from any mode except SHUTDOWN (already landing the motors)."""
+        if self.mode in (Mode.FAILSAFE, Mode.SHUTDOWN):
+            return False, f'already in {self.mode.name}'
+        self._switch(t, Mode.FAILSAFE, reason)
+        return True, 'aborted: failsafe'
+
+    # --- inputs -----------------------------------------------------------------------------
+    def on_imu(self, t: float, R_IB: np.ndarray) -> None:
+        """Note a valid IMU attitude at t."""
+        self._last['imu'] = t
+
+    def on_window(self, t: float, corner_bearings_I: np.ndarray | None) -> None:
+        """Full-window corners in {I} (TL, TR, BR, BL), or None when not fully detected."""
+        cfg = self.config
+        if corner_bearings_I is not None:
+            p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
+            jumped = self._corners is not None and self._fresh('window', t, 0.1) and \
+                float(np.max(np.arccos(np.clip(np.sum(p * self._corners, axis=1), -1, 1)))) \
+                > cfg.window_jump_rad
+            if not jumped:
+                self._corners = p
+                self._last['window'] = t
+                self._window_close = _angular_height(p) >= cfg.crossing_min_angular_height_rad
+                try:
+                    h = edge_normals(p)
+                    u_w, rho_w = window_axes(h, p)
+                    self._eta_w = window_normal(u_w, rho_w, centroid_feature(p), self._eta_w)
+                except ValueError:
+                    pass
+                return
+            reason = 'window corners jumped (incompatible with smooth motion)'
+        else:
+            reason = 'forward camera lost the full window'
+        if self.mode == Mode.WINDOW and self._window_close:
+            self._request(Mode.CROSSING, reason)
+
+    def on_pad(self, t: float, landmark_bearings_I: np.ndarray | None,
+               groups: list[str]) -> None:
+        """Landmarks of complete pad groups in {I} (4 per group, groups in ``groups`` order)."""
+        if landmark_bearings_I is None or len(groups) == 0:
+            return
+        p = np.asarray(landmark_bearings_I, dtype=float).reshape(-1, 3)
+        if len(p) != 4 * len(groups):
+            return
+        self._last['pad'] = t
+        self._pad_seen = True
+        sizes = [(self.config.group_half_sides.get(g), i) for i, g in enumerate(groups)]
+        sizes = [(c, i) for c, i in sizes if c is not None]
+        if sizes:
+            c, i = min(sizes)
+            self._height_est = pad_height_estimate(p[4 * i:4 * i + 4], c)
+        if self.mode == Mode.CROSSING and not self._landing_entered and self._crossed():
+            self._request(Mode.LANDING, 'pad group seen after crossing the window plane')
+        if self.mode == Mode.LANDING and self._height_est is not None \
+                and self._height_est <= self.config.shutdown_height_m:
+            self._request(Mode.SHUTDOWN,
+                          f'pad-image height {self._height_est:.3f} m <= shutdown height')
+
+    def on_flow(self, t: float, camera: str, phi_I: np.ndarray | None) -> None:
+        """Translational flow of 'front' (wall) or 'down' (floor) in {I}, or None."""
+        if phi_I is None:
+            return
+        phi = np.asarray(phi_I, dtype=float)
+        if camera == 'front':
+            self._phi_front = phi
+            self._last['front_flow'] = t
+        elif camera == 'down':
+            if self.mode == Mode.CROSSING and self._eta_w is not None \
+                    and self._t_flow_down is not None:
+                self._travel_norm += float(self._eta_w @ phi) * max(t - self._t_flow_down, 0.0)
+            self._phi_down = phi
+            self._t_flow_down = t
+            self._last['down_flow'] = t
+
+    # --- evaluation -------------------------------------------------------------------------
+    def update(self, t: float) -> list[Transition]:
+        """Apply requested transitions, then the staleness rules; return what changed."""
+        done = []
+        for _, to_mode, reason in self._pending:
+            if self._allowed(to_mode):
+                done.append(self._switch(t, to_mode, reason))
+        self._pending.clear()
+        stale = self._stale_input(t)
+        if stale is not None and self.mode in FLYING_MODES:
+            done.append(self._switch(t, Mode.FAILSAFE, stale))
+        return done
+
+    @property
+    def height_estimate(self) -> float | None:
+        """Last pad-image height estimate (m), for diagnostics."""
+        return self._height_est
+
+    # --- internals --------------------------------------------------------------------------
+    def _fresh(self, name: str, t: float, timeout: float) -> bool:
+        return name in self._last and t - self._last[name] <= timeout
+
+    def _request(self, to_mode: Mode, reason: str) -> None:
+        self._pending.append(('request', to_mode, reason))
+
+    def _allowed(self, to_mode: Mode) -> bool:
+        allowed = {Mode.WINDOW: (Mode.CROSSING,), Mode.CROSSING: (Mode.LANDING,),
+                   Mode.LANDING: (Mode.SHUTDOWN,)}
+        if to_mode == Mode.LANDING and self._landing_entered:
+            return False
+        return to_mode in allowed.get(self.mode, ())
+
+    def _switch(self, t: float, to_mode: Mode, reason: str) -> Transition:
+        tr = Transition(self.mode, to_mode, t, reason)
+        if to_mode == Mode.CROSSING:
+            self._enter_crossing()
+        if to_mode == Mode.LANDING:
+            self._landing_entered = True
+        self.mode = to_mode
+        self._t_mode = t
+        self.transitions.append(tr)
+        return tr
+
+    def _enter_crossing(self) -> None:
+        """Measure the blind-crossing length at T2 from the last corners and the flows."""
+        self._travel_norm = 0.0
+        self._travel_needed = self.config.crossing_fallback_travel
+        if self._corners is None or self._eta_w is None:
+            return
+        try:
+            d_o = distance_to_window_plane(self._corners, self._eta_w, self.config.r_w)
+        except (ValueError, ZeroDivisionError, FloatingPointError):
+            return
+        self._d_o_T2 = d_o
+        if self._phi_front is None or self._phi_down is None:
+            return
+        n_front, n_down = np.linalg.norm(self._phi_front), np.linalg.norm(self._phi_down)
+        if n_front < 1e-3 or n_down < 1e-3:
+            return
+        d_t = d_o * n_front / n_down          # same velocity seen by both cameras
+        self._travel_needed = (d_o + self.config.crossing_margin_m) / d_t
+
+    def _crossed(self) -> bool:
+        return self._travel_needed is not None and self._travel_norm >= self._travel_needed
+
+    def _stale_input(self, t: float) -> str | None:
+        cfg = self.config
+        if not self._fresh('imu', t, cfg.imu_timeout_s):
+            return 'IMU stale'
+        needs = {Mode.WINDOW: (('window', cfg.window_timeout_s),
+                               ('front_flow', cfg.front_flow_timeout_s)),
+                 Mode.CROSSING: (('down_flow', cfg.down_flow_timeout_s),),
+                 Mode.LANDING: (('down_flow', cfg.down_flow_timeout_s),
+                                ('pad', cfg.pad_timeout_s))}.get(self.mode, ())
+        for name, timeout in needs:
+            # an input counts from the mode's start: give it one timeout to appear
+            last = max(self._last.get(name, -np.inf), self._t_mode)
+            if t - last > timeout:
+                return f'{name} stale for more than {timeout} s in {self.mode.name}'
+        if self.mode == Mode.CROSSING and t - self._t_mode > cfg.crossing_timeout_s:
+            return f'no pad after {cfg.crossing_timeout_s} s of blind crossing'
+        return None

@@ -1,0 +1,244 @@
+"""Feature-level closed loop of the reference scenario (no images).
+
+Plant: point mass with eq:system, a first-order attitude lag standing in for the autopilot's
+inner loop and a first-order thrust lag. Sensors: the features the perception would deliver,
+computed from geometry (window corner and pad marker bearings, translational flows v/d), with
+the cameras' fields of view (CameraModel projection with distortion) and the wall's occlusion
+deciding what is seen. Controller and supervisor: the ROS-free IBVS core, exactly as the nodes
+run it. Used by the tests of issue 2 and by ``make run -- --feature-level``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
+from ibvs_control.core.config import CameraConfig, PadLayout, VehicleConfig, WorldConfig
+from ibvs_control.core.control_laws import CrossingLaw
+from ibvs_control.core.controller import ControllerConfig, IbvsController, Measurements
+from ibvs_control.core.frames import bearings_C_to_I, bearings_I_to_C, e3, GRAVITY, rot_z
+from ibvs_control.core.modes import Mode
+from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
+from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
+from ibvs_sim.core.evaluation import evaluate_run, GroundTruthLog
+
+MIN_MARKER_PIXELS = 12.0      # a marker smaller than this (side, px) is not detected
+IMAGE_MARGIN_PX = 2.0         # a point this close to the border counts as outside
+
+
+@dataclass(frozen=True)
+class FeatureSimConfig:
+    """Run options; defaults are the reference scenario."""
+
+    initial_position_I: np.ndarray
+    initial_yaw: float = 0.0
+    wind_accel_I: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m/s^2 (Delta/m)
+    crossing_law: CrossingLaw = CrossingLaw.CLOSED
+    physics_dt: float = 0.004          # s (250 Hz)
+    camera_dt: float = 0.02            # s (50 Hz)
+    attitude_tau: float = 0.05         # s, inner-loop time constant
+    thrust_tau: float = 0.03           # s
+    shutdown_ramp_s: float = 2.0       # s, mode 4 thrust ramp
+    max_time_s: float = 60.0
+    flow_noise: float = 0.0            # 1/s, white noise std on each flow component
+    bearing_noise_rad: float = 0.0     # white noise on each bearing
+    seed: int = 0
+
+
+@dataclass
+class FeatureSimLog:
+    """Time series for plots: ground truth, commands and the features used."""
+
+    truth: GroundTruthLog = field(default_factory=GroundTruthLog)
+    t_ctrl: list = field(default_factory=list)
+    F_I: list = field(default_factory=list)
+    mode: list = field(default_factory=list)
+    q_w_bar: list = field(default_factory=list)
+    q_t: list = field(default_factory=list)
+    phi_t: list = field(default_factory=list)
+    phi_w: list = field(default_factory=list)
+
+
+def _exp_so3(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3)
+    k = w / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+
+
+def _log_so3(R: np.ndarray) -> np.ndarray:
+    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    th = float(np.arccos(c))
+    if th < 1e-9:
+        return np.zeros(3)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * th / (2.0 * np.sin(th))
+
+
+class FeatureSensors:
+    """Geometric stand-in for the perception nodes."""
+
+    def __init__(self, world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
+                 rng: np.random.Generator, bearing_noise: float, flow_noise: float) -> None:
+        self.world, self.pad, self.vehicle = world, pad, vehicle
+        self.rng, self.bearing_noise, self.flow_noise = rng, bearing_noise, flow_noise
+        self.corners_I = world.window.corners_I()
+
+    def _visible_C(self, cam: CameraConfig, R_IB: np.ndarray, points_I: np.ndarray,
+                   xi_I: np.ndarray) -> tuple[np.ndarray, bool]:
+        P = points_I - xi_I
+        P_C = bearings_I_to_C(P, R_IB, cam.R_BC)
+        uv, ok = cam.model.bearings_to_pixels(P_C)
+        m = IMAGE_MARGIN_PX
+        ok &= (uv[:, 0] >= m) & (uv[:, 0] <= cam.model.width - 1 - m) \
+            & (uv[:, 1] >= m) & (uv[:, 1] <= cam.model.height - 1 - m)
+        return P_C / np.linalg.norm(P_C, axis=1, keepdims=True), bool(np.all(ok))
+
+    def _noisy(self, b: np.ndarray) -> np.ndarray:
+        if self.bearing_noise <= 0.0:
+            return b
+        b = b + self.rng.normal(0.0, self.bearing_noise, b.shape)
+        return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+    def window(self, R_IB: np.ndarray, xi_I: np.ndarray) -> np.ndarray | None:
+        """Corner bearings (4, 3) in the front optical frame when all 4 are in view."""
+        if xi_I[0] >= self.world.wall_x:
+            return None
+        b, ok = self._visible_C(self.vehicle.cameras['front'], R_IB, self.corners_I, xi_I)
+        return self._noisy(b) if ok else None
+
+    def _occluded_by_wall(self, xi_I: np.ndarray, s_I: np.ndarray) -> bool:
+        wx = self.world.wall_x
+        if (xi_I[0] - wx) * (s_I[0] - wx) >= 0.0:
+            return False
+        a = (wx - xi_I[0]) / (s_I[0] - xi_I[0])
+        y, z = xi_I[1:] + a * (s_I[1:] - xi_I[1:])
+        win = self.world.window
+        return not (abs(y - win.center_I[1]) < win.width / 2.0
+                    and abs(z - win.center_I[2]) < win.height / 2.0)
+
+    def pad_landmarks(self, R_IB: np.ndarray, xi_I: np.ndarray) -> tuple[np.ndarray | None,
+                                                                         list[str]]:
+        """Marker-centre bearings of complete groups (down optical frame) and group names."""
+        cam = self.vehicle.cameras['down']
+        f = cam.model.K[0, 0]
+        out, names = [], []
+        for g in self.pad.groups:
+            centres = g.marker_centres_I()
+            h = g.side / 2.0
+            corners = np.concatenate([centres + [dx, dy, 0.0] for dx in (-h, h)
+                                      for dy in (-h, h)])
+            dist = np.linalg.norm(centres - xi_I, axis=1)
+            if np.any(g.side * f / dist < MIN_MARKER_PIXELS):
+                continue
+            if any(self._occluded_by_wall(xi_I, c) for c in corners):
+                continue
+            _, ok = self._visible_C(cam, R_IB, corners, xi_I)
+            if not ok:
+                continue
+            b, _ = self._visible_C(cam, R_IB, centres, xi_I)
+            out.append(self._noisy(b))
+            names.append(g.name)
+        return (np.concatenate(out) if out else None), names
+
+    def _flow(self, v_I: np.ndarray, d: float) -> np.ndarray:
+        phi = np.asarray(v_I) / d
+        if self.flow_noise > 0.0:
+            phi = phi + self.rng.normal(0.0, self.flow_noise, 3)
+        return phi
+
+    def flow_down(self, xi_I: np.ndarray, v_I: np.ndarray) -> np.ndarray | None:
+        """v/d_t over the floor (the down camera always sees the textured floor)."""
+        d_t = self.world.floor_z - xi_I[2]
+        return self._flow(v_I, d_t) if d_t > 0.05 else None
+
+    def flow_front(self, xi_I: np.ndarray, v_I: np.ndarray) -> np.ndarray | None:
+        """v/d_o over the wall while it is ahead."""
+        d_o = self.world.wall_x - xi_I[0]
+        return self._flow(v_I, d_o) if d_o > 0.05 else None
+
+
+def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
+                         controller_config: ControllerConfig,
+                         supervisor_config: SupervisorConfig,
+                         config: FeatureSimConfig) -> tuple[dict, FeatureSimLog]:
+    """Fly one run; return (SPEC section 5 summary, time series)."""
+    rng = np.random.default_rng(config.seed)
+    sensors = FeatureSensors(world, pad, vehicle, rng, config.bearing_noise_rad,
+                             config.flow_noise)
+    ctrl_cfg = controller_config
+    if ctrl_cfg.crossing_law != config.crossing_law:
+        from ibvs_control.core.controller import with_crossing_law
+        ctrl_cfg = with_crossing_law(ctrl_cfg, config.crossing_law)
+    controller = IbvsController(ctrl_cfg)
+    supervisor = ModeSupervisor(supervisor_config)
+    m, g = vehicle.mass, GRAVITY
+    xi = np.asarray(config.initial_position_I, dtype=float).copy()
+    v = np.zeros(3)
+    R = rot_z(config.initial_yaw)
+    R_d, thrust_d, thrust = R.copy(), m * g, m * g
+    log = FeatureSimLog()
+    t, next_frame, t_shutdown = 0.0, 0.0, None
+    started = False
+    n_sub = int(round(config.camera_dt / config.physics_dt))
+    R_BC_front, R_BC_down = vehicle.cameras['front'].R_BC, vehicle.cameras['down'].R_BC
+    while t <= config.max_time_s:
+        # --- one camera frame: sense, supervise, control ---------------------------------
+        win_C = sensors.window(R, xi)
+        pad_C, groups = sensors.pad_landmarks(R, xi)
+        phi_down, phi_front = sensors.flow_down(xi, v), sensors.flow_front(xi, v)
+        supervisor.on_imu(t, R)
+        supervisor.on_window(t, None if win_C is None else bearings_C_to_I(win_C, R, R_BC_front))
+        supervisor.on_pad(t, None if pad_C is None else bearings_C_to_I(pad_C, R, R_BC_down),
+                          groups)
+        supervisor.on_flow(t, 'front', phi_front)
+        supervisor.on_flow(t, 'down', phi_down)
+        if not started:
+            started, _ = supervisor.start(t)
+        supervisor.update(t)
+        mode = supervisor.mode
+        out = controller.step(mode, Measurements(t, R, win_C, pad_C, phi_front, phi_down))
+        sp = attitude_from_force(out.F_I, out.yaw_des, m, vehicle.hover_thrust,
+                                 vehicle.max_thrust_factor)
+        R_d, thrust_d = sp.R_IB_des, sp.thrust_N
+        if mode == Mode.SHUTDOWN:
+            t_shutdown = t if t_shutdown is None else t_shutdown
+            thrust_d *= shutdown_thrust_scale(t - t_shutdown, config.shutdown_ramp_s)
+        log.t_ctrl.append(t)
+        log.F_I.append(out.F_I)
+        log.mode.append(int(mode))
+        log.q_w_bar.append(out.features.q_w_bar)
+        log.q_t.append(out.features.q_t)
+        log.phi_t.append(out.features.phi_t)
+        log.phi_w.append(out.features.phi_w)
+        if mode == Mode.FAILSAFE or not started:
+            break
+        # --- physics substeps until the next frame ---------------------------------------
+        done = False
+        for _ in range(n_sub):
+            dt = config.physics_dt
+            R = R @ _exp_so3(_log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
+            thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
+            a = -thrust * (R @ e3) / m + g * e3 + config.wind_accel_I
+            v = v + a * dt
+            xi = xi + v * dt
+            t += dt
+            log.truth.append(t, xi, v)
+            if floor_clearance(xi, world, vehicle.envelope_height) <= 0.0 or \
+                    obstacle_clearance(xi, world, vehicle.envelope_radius,
+                                       vehicle.envelope_height)[0] <= 0.0:
+                done = True
+                break
+        if done:
+            break
+    modes = [(int(tr.to_mode), tr.t) for tr in supervisor.transitions]
+    tt, xx, vv = log.truth.arrays()
+    if len(tt) == 0:
+        log.truth.append(t, xi, v)
+        tt, xx, vv = log.truth.arrays()
+    summary = evaluate_run(tt, xx, vv, world, vehicle.envelope_radius, vehicle.envelope_height,
+                           [(0, 0.0)] + modes)
+    return summary, log
