@@ -1,0 +1,131 @@
+"""rosbag2 bags of a run, ROS-free (rosbags library): MCAP storage, CDR, Jazzy typestore.
+
+The recorder node hands serialized CDR bytes (rclpy ``raw=True``) to ``BagWriter``; the bag
+player and the tests read them back with ``read_messages``. Bags are rosbag2 version 8 with a
+``metadata.yaml`` as rosbags writes it, which both ``ros2 bag info/play`` on Jazzy and rosbags
+read.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Iterator
+
+from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
+                                QosTime)
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
+
+BAG_VERSION = 8          # rosbag2 metadata version understood by Jazzy's rosbag2 (0.26)
+TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+@dataclass(frozen=True)
+class TopicSpec:
+    """One recorded topic: name (as published, relative), ROS 2 type and whether it is an image."""
+
+    topic: str
+    msgtype: str            # 'sensor_msgs/msg/Image'
+    image: bool = False
+
+
+# What a run records: both cameras, IMU, detections, flows, features, setpoints, mode and
+# ground truth (SPEC.md section 4 plus the extra topics of docs/interfaces.md).
+RUN_TOPICS: tuple = tuple(
+    [TopicSpec(f'{c}_camera/image_raw', 'sensor_msgs/msg/Image', True) for c in ('front', 'down')]
+    + [TopicSpec(f'{c}_camera/camera_info', 'sensor_msgs/msg/CameraInfo')
+       for c in ('front', 'down')]
+    + [TopicSpec(f'{c}_camera/translational_flow', 'geometry_msgs/msg/Vector3Stamped')
+       for c in ('front', 'down')]
+    + [TopicSpec(f'{c}_camera/translational_flow_quality', 'std_msgs/msg/Float32')
+       for c in ('front', 'down')]
+    + [TopicSpec('imu/data', 'sensor_msgs/msg/Imu'),
+       TopicSpec('window/corners', 'geometry_msgs/msg/PolygonStamped'),
+       TopicSpec('window/edge_normals', 'geometry_msgs/msg/PolygonStamped'),
+       TopicSpec('pad/landmarks', 'geometry_msgs/msg/PolygonStamped'),
+       TopicSpec('pad/groups', 'std_msgs/msg/String'),
+       TopicSpec('ibvs/features', 'sensor_msgs/msg/JointState'),
+       TopicSpec('ibvs/force_setpoint', 'geometry_msgs/msg/Vector3Stamped'),
+       TopicSpec('ibvs/heading_setpoint', 'geometry_msgs/msg/QuaternionStamped'),
+       TopicSpec('ibvs/mode', 'std_msgs/msg/UInt8'),
+       TopicSpec('sim/ground_truth/odom', 'nav_msgs/msg/Odometry'),
+       TopicSpec('sim/events', 'std_msgs/msg/String')])
+
+
+def qos_profile(reliable: bool, transient_local: bool, depth: int = 10) -> Qos:
+    """Return a rosbag2 QoS record (for metadata ``offered_qos_profiles``)."""
+    zero = QosTime(0, 0)
+    return Qos(QosHistory.KEEP_LAST, depth,
+               QosReliability.RELIABLE if reliable else QosReliability.BEST_EFFORT,
+               QosDurability.TRANSIENT_LOCAL if transient_local else QosDurability.VOLATILE,
+               zero, zero, QosLiveliness.AUTOMATIC, zero, False)
+
+
+def bag_topic_name(topic: str) -> str:
+    """Return the absolute name a relative topic has in a bag (``ros2 bag`` stores FQNs)."""
+    return topic if topic.startswith('/') else '/' + topic
+
+
+class BagWriter:
+    """Write serialized messages into a new MCAP rosbag2 directory (context manager)."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._writer = Writer(self.path, version=BAG_VERSION, storage_plugin=StoragePlugin.MCAP)
+        self._writer.open()
+        self._connections: dict = {}
+
+    def add_topic(self, topic: str, msgtype: str, qos: Iterable[Qos] = ()) -> None:
+        """Register a topic (once); ``qos`` is what its publishers offer."""
+        name = bag_topic_name(topic)
+        if name not in self._connections:
+            self._connections[name] = self._writer.add_connection(
+                name, msgtype, typestore=TYPESTORE, offered_qos_profiles=list(qos))
+
+    def write(self, topic: str, stamp_ns: int, data: bytes) -> None:
+        """Write one CDR-serialized message received at ``stamp_ns``."""
+        self._writer.write(self._connections[bag_topic_name(topic)], int(stamp_ns), data)
+
+    def close(self) -> None:
+        """Finish the MCAP file and write metadata.yaml."""
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None
+
+    def __enter__(self) -> 'BagWriter':
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def read_messages(path: str | Path, topics: Iterable[str] | None = None
+                  ) -> Iterator[tuple[str, str, int, bytes]]:
+    """Yield (topic, msgtype, bag time ns, CDR bytes) in bag-time order."""
+    wanted = None if topics is None else {bag_topic_name(t) for t in topics}
+    with Reader(Path(path)) as reader:
+        conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
+        for conn, t_ns, data in reader.messages(connections=conns):
+            yield conn.topic, conn.msgtype, t_ns, bytes(data)
+
+
+def deserialize(data: bytes, msgtype: str):
+    """Return the rosbags message object of CDR ``data``."""
+    return TYPESTORE.deserialize_cdr(data, msgtype)
+
+
+def serialize(msg, msgtype: str) -> bytes:
+    """Return the CDR bytes of a rosbags message object."""
+    return bytes(TYPESTORE.serialize_cdr(msg, msgtype))
+
+
+def topic_types(path: str | Path) -> dict:
+    """Return {topic: msgtype} of a bag."""
+    with Reader(Path(path)) as reader:
+        return {c.topic: c.msgtype for c in reader.connections}
+
+
+def topic_counts(path: str | Path) -> dict:
+    """Return {topic: message count} of a bag (from its metadata)."""
+    with Reader(Path(path)) as reader:
+        return {c.topic: c.msgcount for c in reader.connections}

@@ -1,0 +1,102 @@
+"""Bag player node: replays recorded sensor topics (rosbags), like ``ros2 bag play``.
+
+Publishes the serialized messages unchanged (original header stamps) on their recorded topic
+names, paced by bag time times ``rate``, and publishes ``/clock`` from bag time if ``clock`` is
+true, so that perception nodes under ``use_sim_time`` see the original time line.
+
+Parameters: ``bag_path`` (required), ``topics`` (default: both cameras' image_raw and
+camera_info, and imu/data), ``rate`` (default 1.0), ``clock`` (default true),
+``start_delay`` (s of wall time before the first message, to let subscribers match; default 1.0).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import time
+
+from builtin_interfaces.msg import Time
+from ibvs_bringup import bag
+from ibvs_bringup.recorder_node import msg_class
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+
+REPLAY_TOPICS = ('front_camera/image_raw', 'down_camera/image_raw', 'front_camera/camera_info',
+                 'down_camera/camera_info', 'imu/data')
+
+
+@dataclass(frozen=True)
+class PlayerConfig:
+    """Typed parameters of the player."""
+
+    bag_path: str
+    topics: tuple
+    rate: float
+    clock: bool
+    start_delay: float
+
+
+class BagPlayerNode(Node):
+    """Publish a bag's messages in bag-time order, then report done."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('bag_player', **kwargs)
+        self.config = self._declare_config()
+        types = bag.topic_types(self.config.bag_path)
+        self.pubs = {topic: self.create_publisher(msg_class(msgtype), topic, _qos(topic))
+                     for topic, msgtype in types.items()
+                     if topic in {bag.bag_topic_name(t) for t in self.config.topics}}
+        self.clock_pub = self.create_publisher(Clock, '/clock', 10)
+        self.stream = bag.read_messages(self.config.bag_path, self.config.topics)
+        self.pending = next(self.stream, None)
+        self.published = 0
+        self.t0_wall = time.monotonic() + self.config.start_delay
+        self.t0_bag = self.pending[2] if self.pending else 0
+        self.timer = self.create_timer(0.002, self._tick)
+        self.get_logger().info(f'playing {sorted(self.pubs)} of {self.config.bag_path}')
+
+    def _declare_config(self) -> PlayerConfig:
+        path = self.declare_parameter('bag_path', '').value
+        if not path:
+            raise ValueError('parameter bag_path is required')
+        topics = self.declare_parameter('topics', list(REPLAY_TOPICS)).value
+        rate = float(self.declare_parameter('rate', 1.0).value)
+        clock = bool(self.declare_parameter('clock', True).value)
+        delay = float(self.declare_parameter('start_delay', 1.0).value)
+        return PlayerConfig(str(path), tuple(topics), rate if rate > 0 else 1.0, clock, delay)
+
+    def _tick(self) -> None:
+        elapsed_ns = (time.monotonic() - self.t0_wall) * 1e9 * self.config.rate
+        while self.pending is not None and self.pending[2] - self.t0_bag <= elapsed_ns:
+            topic, _, t_ns, data = self.pending
+            if self.config.clock:
+                self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 10**9,
+                                                        nanosec=t_ns % 10**9)))
+            self.pubs[topic].publish(data)
+            self.published += 1
+            self.pending = next(self.stream, None)
+        if self.pending is None:
+            self.timer.cancel()
+            self.get_logger().info(f'bag finished: {self.published} messages')
+
+
+def _qos(topic: str) -> QoSProfile:
+    if topic.endswith('image_raw'):
+        return qos_profile_sensor_data
+    return QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def main(args=None) -> None:
+    """Play the bag once, then keep the node alive until Ctrl-C / SIGTERM."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = BagPlayerNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

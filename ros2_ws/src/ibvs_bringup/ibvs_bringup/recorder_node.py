@@ -1,0 +1,118 @@
+"""Recorder node: writes the run's topics, as serialized CDR, into an MCAP rosbag2 bag.
+
+Like ``ros2 bag record``: each topic is subscribed once a publisher appears, with a QoS
+compatible with what the publishers offer (reliable / transient-local only when all offer it),
+and messages are stamped with the receive time on the node's clock (sim time under
+``use_sim_time``). Images can be decimated (``image_every``) to keep bags small.
+
+Parameters: ``bag_path`` (required, must not exist), ``image_every`` (int, default 1),
+``topics`` (list of relative names; default: every topic of ``bag.RUN_TOPICS``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import importlib
+
+from ibvs_bringup import bag
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+
+@dataclass(frozen=True)
+class RecorderConfig:
+    """Typed parameters of the recorder."""
+
+    bag_path: str
+    image_every: int
+    topics: tuple
+
+
+def msg_class(msgtype: str):
+    """Return the rclpy message class of 'pkg/msg/Name'."""
+    pkg, _, name = msgtype.split('/')
+    return getattr(importlib.import_module(f'{pkg}.msg'), name)
+
+
+def subscription_qos(offered: list) -> tuple[QoSProfile, list]:
+    """Return the QoS to subscribe with, and the offered profiles as rosbags records."""
+    reliable = bool(offered) and all(
+        q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+    latched = bool(offered) and all(
+        q.durability == DurabilityPolicy.TRANSIENT_LOCAL for q in offered)
+    qos = QoSProfile(depth=100,
+                     reliability=ReliabilityPolicy.RELIABLE if reliable
+                     else ReliabilityPolicy.BEST_EFFORT,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL if latched
+                     else DurabilityPolicy.VOLATILE)
+    records = [bag.qos_profile(q.reliability == ReliabilityPolicy.RELIABLE,
+                               q.durability == DurabilityPolicy.TRANSIENT_LOCAL,
+                               max(1, q.depth)) for q in offered]
+    return qos, records
+
+
+class RecorderNode(Node):
+    """Subscribe to the run topics as they appear and write their CDR bytes to a bag."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('recorder', **kwargs)
+        self.config = self._declare_config()
+        self.writer = bag.BagWriter(self.config.bag_path)
+        self.specs = {t.topic: t for t in bag.RUN_TOPICS if t.topic in self.config.topics}
+        self.subs: dict = {}
+        self.counts: dict = {}
+        self.discovery_timer = self.create_timer(0.2, self._discover)
+        self.get_logger().info(f'recording {len(self.specs)} topics to {self.config.bag_path}')
+
+    def _declare_config(self) -> RecorderConfig:
+        bag_path = self.declare_parameter('bag_path', '').value
+        if not bag_path:
+            raise ValueError('parameter bag_path is required')
+        every = max(1, int(self.declare_parameter('image_every', 1).value))
+        default = [t.topic for t in bag.RUN_TOPICS]
+        topics = self.declare_parameter('topics', default).value
+        return RecorderConfig(str(bag_path), every, tuple(topics))
+
+    def _discover(self) -> None:
+        for topic, spec in self.specs.items():
+            if topic in self.subs:
+                continue
+            offered = [i.qos_profile for i in self.get_publishers_info_by_topic(topic)]
+            if offered:
+                self._subscribe(spec, offered)
+
+    def _subscribe(self, spec: bag.TopicSpec, offered: list) -> None:
+        qos, records = subscription_qos(offered)
+        self.writer.add_topic(spec.topic, spec.msgtype, records)
+        self.counts[spec.topic] = 0
+        self.subs[spec.topic] = self.create_subscription(
+            msg_class(spec.msgtype), spec.topic,
+            lambda data, s=spec: self._on_message(s, data), qos, raw=True)
+
+    def _on_message(self, spec: bag.TopicSpec, data: bytes) -> None:
+        n = self.counts[spec.topic]
+        self.counts[spec.topic] = n + 1
+        if spec.image and n % self.config.image_every:
+            return
+        self.writer.write(spec.topic, self.get_clock().now().nanoseconds, data)
+
+    def destroy_node(self) -> None:
+        """Close the bag (metadata.yaml) before the node goes."""
+        self.writer.close()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    """Run the recorder until Ctrl-C / SIGTERM; the bag is closed either way."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = RecorderNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
