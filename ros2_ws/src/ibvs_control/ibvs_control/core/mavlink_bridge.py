@@ -1,0 +1,595 @@
+"""The MAVLink bridge without ROS: setpoint shaping, IMU decoding, time mapping, sequencing.
+
+:class:`MavlinkBridge` owns a :class:`~ibvs_control.core.mavlink_link.MavlinkLink` and an
+:class:`~ibvs_control.core.mavlink_sequencer.EngageSequencer`. The node feeds it the force and
+heading setpoints and the supervisor mode, and calls :meth:`MavlinkBridge.poll` (receive),
+:meth:`MavlinkBridge.stream` (>= 50 Hz, repeat the latest setpoint) and
+:meth:`MavlinkBridge.heartbeat` (1 Hz) from timers.
+
+Setpoint (SET_ATTITUDE_TARGET, docs/mavlink.md)
+    q = attitude of body FRD in the autopilot's local NED (= {I}) with R_d e3 = F / |F| and
+    the desired yaw (attitude.attitude_from_force); thrust = |F| / (m g) * hover_thrust in
+    [0, 1]; type_mask = 7 (body rates ignored); time_boot_ms = the setpoint's stamp mapped to
+    the autopilot's boot time. A NEW setpoint is sent at once (the sim's lockstep pacing waits
+    for it), the stream timer repeats the latest one with the same time_boot_ms.
+Mode-dependent content (supervisor mode -> what is sent)
+    IDLE, WINDOW, CROSSING, LANDING: the controller's F and heading. SHUTDOWN: level at the
+    current yaw, thrust ramped linearly from its value at the switch to 0 over
+    ``shutdown_ramp_s``. FAILSAFE: level at the current yaw, thrust = ``failsafe_thrust_ratio``
+    x hover thrust (a slow descent; the autopilot's land detector or an operator ends it).
+Bad input
+    A non-finite or out-of-range force or heading is never sent: the last valid setpoint is
+    kept for at most ``hold_last_s``, then a level hover at the current yaw replaces it.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from enum import Enum
+import time
+from typing import Callable
+
+import numpy as np
+
+from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
+from ibvs_control.core.frames import (
+    euler_zyx_from_rot, GRAVITY, quat_from_rot, quat_ned_frd_to_enu_flu, R_IB_from_rot_map_base,
+    rot_from_quat, rot_z, vec_frd_to_flu)
+from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink, MavMsgId
+from ibvs_control.core.mavlink_sequencer import (
+    Autopilot, EngageSequencer, SequencerConfig, SequencerInputs)
+from ibvs_control.core.modes import Mode
+
+ATTITUDE_TARGET_IGNORE_BODY_RATES = 7   # type_mask bits 0-2: roll, pitch, yaw rate ignored
+NS_PER_MS = 1_000_000
+NS_PER_S = 1_000_000_000
+HOVER_PARAM = {Autopilot.PX4: 'MPC_THR_HOVER', Autopilot.ARDUPILOT: 'MOT_THST_HOVER'}
+GUID_OPTIONS_PARAM = 'GUID_OPTIONS'
+HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover-thrust parameter outside this is refused
+QUAT_NORM_TOLERANCE = 0.1               # |q| in [0.9, 1.1], else the sample is dropped
+STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
+AUTOPILOT_OF_HEARTBEAT = {MavAutopilot.PX4: Autopilot.PX4,
+                          MavAutopilot.ARDUPILOTMEGA: Autopilot.ARDUPILOT}
+
+
+class TimeStrategy(Enum):
+    """How autopilot time_boot_ms and ROS stamps map onto each other."""
+
+    BOOT_TIME = 'boot_time'        # ros_ns = time_boot_ms * 1e6 + offset (sim: offset = 0)
+    RECEIVE_TIME = 'receive_time'  # stamps = ROS time of receipt; offset tracked per message
+
+
+class SetpointSource(Enum):
+    """Where the content of the setpoint being streamed comes from."""
+
+    NONE = 'none'                   # nothing sent yet
+    IBVS = 'ibvs'                   # the force controller's F and heading
+    HOLD_LAST = 'hold_last'         # bad input: the last valid IBVS setpoint, held
+    LEVEL_HOVER = 'level_hover'     # no valid input for hold_last_s
+    FAILSAFE = 'failsafe'           # supervisor FAILSAFE: level, slow descent
+    SHUTDOWN_RAMP = 'shutdown_ramp'  # supervisor SHUTDOWN: thrust ramp to 0
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    """Everything the bridge core needs (node parameters + vehicle.yaml)."""
+
+    link: LinkConfig
+    mass: float                              # kg (vehicle.yaml)
+    max_thrust_factor: float                 # max thrust / (m g) (vehicle.yaml)
+    configured_hover_thrust: float           # normalised (vehicle.yaml or parameter)
+    autopilot: str = 'auto'                  # 'auto' (from HEARTBEAT) | 'px4' | 'ardupilot'
+    hover_thrust_source: str = 'autopilot'   # 'autopilot' (parameter read) | 'config'
+    param_timeout_s: float = 3.0             # parameter reads unanswered: fallback/refuse
+    param_retry_s: float = 0.5
+    attitude_rate_hz: float = 100.0          # ATTITUDE_QUATERNION requested rate
+    imu_rate_hz: float = 100.0               # HIGHRES_IMU requested rate
+    interval_retry_s: float = 2.0            # re-request a message not received for this long
+    time_strategy: TimeStrategy = TimeStrategy.BOOT_TIME
+    boot_time_offset_s: float = 0.0          # BOOT_TIME: ROS time of the autopilot's boot
+    hold_last_s: float = 0.5                 # keep the last valid setpoint this long (s,
+    #                                          monotonic) when input is bad or stops
+    max_force_factor: float = 3.0            # |F| above factor * m g is out of range
+    max_tilt_rad: float = 0.6                # tilt limit of the thrust direction
+    failsafe_thrust_ratio: float = 0.9       # FAILSAFE thrust = ratio * hover thrust
+    shutdown_ramp_s: float = 2.0             # SHUTDOWN: thrust ramp time to 0
+    sequencer: SequencerConfig = field(default_factory=SequencerConfig)
+
+    def __post_init__(self):
+        if self.autopilot not in ('auto', 'px4', 'ardupilot'):
+            raise ValueError(f"autopilot must be 'auto', 'px4' or 'ardupilot', not "
+                             f'{self.autopilot!r}')
+        if self.hover_thrust_source not in ('autopilot', 'config'):
+            raise ValueError("hover_thrust_source must be 'autopilot' or 'config'")
+        lo, hi = HOVER_THRUST_RANGE
+        if not lo <= self.configured_hover_thrust <= hi:
+            raise ValueError(f'configured hover thrust {self.configured_hover_thrust} outside '
+                             f'[{lo}, {hi}]')
+        positive = ('mass', 'max_thrust_factor', 'param_timeout_s', 'param_retry_s',
+                    'attitude_rate_hz', 'imu_rate_hz', 'interval_retry_s', 'hold_last_s',
+                    'max_force_factor', 'max_tilt_rad', 'shutdown_ramp_s')
+        for name in positive:
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0.0):
+                raise ValueError(f'{name} must be finite and > 0, got {v}')
+        if not 0.0 < self.failsafe_thrust_ratio <= 1.0:
+            raise ValueError('failsafe_thrust_ratio must be in (0, 1]')
+
+
+@dataclass(frozen=True)
+class AttitudeTarget:
+    """Content of one SET_ATTITUDE_TARGET."""
+
+    time_boot_ms: int
+    q_wxyz: np.ndarray              # body FRD in local NED, unit, (w, x, y, z)
+    thrust: float                   # normalised [0, 1]
+    source: SetpointSource
+    type_mask: int = ATTITUDE_TARGET_IGNORE_BODY_RATES
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One imu/data message in ROS conventions (ENU/FLU as MAVROS converts them)."""
+
+    stamp_ns: int                   # ROS time
+    q_wxyz: np.ndarray              # base_link (FLU) in map (ENU), (w, x, y, z)
+    angular_velocity_flu: np.ndarray  # rad/s
+    linear_acceleration_flu: np.ndarray | None  # m/s^2 (specific force), None: no HIGHRES_IMU
+
+
+@dataclass(frozen=True)
+class BridgeStatus:
+    """Snapshot for /diagnostics."""
+
+    link_up: bool
+    heartbeat_age_s: float
+    autopilot: str
+    armed: bool
+    custom_mode: int
+    engage_state: str
+    engage_reason: str
+    supervisor_mode: str
+    hover_thrust: float | None
+    hover_thrust_source: str
+    setpoint_source: str
+    setpoint_rate_hz: float
+    rejected_setpoints: int
+    counters: dict
+
+
+def yaw_from_heading_quat(q_wxyz_enu_flu: np.ndarray) -> float:
+    """NED yaw (rad) of a heading quaternion (base_link in map, w x y z).
+
+    Raises ValueError if the quaternion is non-finite or not unit within 10 %.
+    """
+    q = np.asarray(q_wxyz_enu_flu, dtype=float)
+    n = np.linalg.norm(q)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(n - 1.0) > QUAT_NORM_TOLERANCE:
+        raise ValueError(f'heading quaternion {q!r} is not a unit quaternion')
+    return euler_zyx_from_rot(R_IB_from_rot_map_base(rot_from_quat(q)))[2]
+
+
+class HoverThrust:
+    """Hover thrust: the autopilot's parameter if it answers, else the configured value."""
+
+    def __init__(self, configured: float, use_autopilot: bool) -> None:
+        self.configured = configured
+        self.use_autopilot = use_autopilot
+        self.value: float | None = None if use_autopilot else configured
+        self.source = 'pending' if use_autopilot else 'config'
+        self.error = ''
+
+    def on_param(self, name: str, value: float) -> None:
+        """Take the autopilot's answer if it is in range (else keep the configured one)."""
+        lo, hi = HOVER_THRUST_RANGE
+        if not (np.isfinite(value) and lo <= value <= hi):
+            self.error = f'{name} = {value} outside [{lo}, {hi}]: using the configured ' \
+                         f'{self.configured}'
+            self.value, self.source = self.configured, 'config (autopilot value refused)'
+            return
+        self.value, self.source = float(value), f'autopilot {name}'
+
+    def on_timeout(self) -> None:
+        """No answer: fall back to the configured value."""
+        if self.value is None:
+            self.value, self.source = self.configured, 'config (autopilot did not answer)'
+
+
+class SetpointShaper:
+    """Turns (mode, latest valid force/heading, attitude) into the attitude target to send."""
+
+    def __init__(self, config: BridgeConfig) -> None:
+        self.config = config
+        self.rejected = 0
+        self.last_error = ''
+        self._valid: tuple[float, np.ndarray, float | None] | None = None  # (t_rx, F, yaw)
+        self._last_refused = False
+        self._yaw_des: float | None = None
+        self._ramp: tuple[float, float] | None = None    # (t0, thrust at the switch)
+        self._last_thrust: float | None = None
+
+    def on_heading(self, yaw: float) -> None:
+        """Latest desired NED yaw (validated by the caller)."""
+        self._yaw_des = float(yaw)
+
+    def check_force(self, F_I: np.ndarray) -> str:
+        """Return '' for a usable force (N, {I}), else the reason it is refused."""
+        F = np.asarray(F_I, dtype=float)
+        if F.shape != (3,) or not np.all(np.isfinite(F)):
+            return f'non-finite force {F!r}'
+        limit = self.config.max_force_factor * self.config.mass * GRAVITY
+        if np.linalg.norm(F) > limit:
+            return f'|F| = {np.linalg.norm(F):.1f} N above {limit:.1f} N'
+        if F[2] <= 0.0:
+            return f'F = {F} has no downward (thrust-up) component'
+        return ''
+
+    def on_force(self, t: float, F_I: np.ndarray) -> str:
+        """Store a force received at monotonic time t; return '' or the refusal reason."""
+        reason = self.check_force(F_I)
+        self._last_refused = bool(reason)
+        if reason:
+            self.rejected += 1
+            self.last_error = reason
+            return reason
+        self._valid = (t, np.asarray(F_I, dtype=float).copy(), self._yaw_des)
+        return ''
+
+    def ramp_done(self, t: float) -> bool:
+        """Whether the SHUTDOWN ramp has reached zero thrust."""
+        return (self._ramp is not None
+                and shutdown_thrust_scale(t - self._ramp[0], self.config.shutdown_ramp_s) <= 0.0)
+
+    def target(self, t: float, mode: Mode, yaw_now: float, hover: float,
+               time_boot_ms: int) -> AttitudeTarget:
+        """Return the attitude target for supervisor ``mode`` at monotonic time t.
+
+        ``yaw_now``: current NED yaw (level setpoints keep it, and so does a force that came
+        before any heading); ``hover``: hover thrust.
+        """
+        level_q = quat_from_rot(rot_z(yaw_now))
+        if mode == Mode.SHUTDOWN:
+            if self._ramp is None:
+                start = self._last_thrust if self._last_thrust is not None else hover
+                self._ramp = (t, start)
+            scale = shutdown_thrust_scale(t - self._ramp[0], self.config.shutdown_ramp_s)
+            return self._out(time_boot_ms, level_q, self._ramp[1] * scale,
+                             SetpointSource.SHUTDOWN_RAMP)
+        self._ramp = None
+        if mode == Mode.FAILSAFE:
+            return self._out(time_boot_ms, level_q, self.config.failsafe_thrust_ratio * hover,
+                             SetpointSource.FAILSAFE)
+        if self._valid is not None and t - self._valid[0] <= self.config.hold_last_s:
+            _, F, yaw = self._valid
+            sp = attitude_from_force(F, yaw_now if yaw is None else yaw, self.config.mass,
+                                     hover, self.config.max_thrust_factor,
+                                     self.config.max_tilt_rad)
+            return self._out(time_boot_ms, sp.q_IB_wxyz, sp.thrust_norm,
+                             SetpointSource.HOLD_LAST if self._last_refused
+                             else SetpointSource.IBVS)
+        return self._out(time_boot_ms, level_q, hover, SetpointSource.LEVEL_HOVER)
+
+    def _out(self, time_boot_ms: int, q: np.ndarray, thrust: float,
+             source: SetpointSource) -> AttitudeTarget:
+        thrust = float(np.clip(thrust, 0.0, 1.0))
+        self._last_thrust = thrust
+        return AttitudeTarget(int(time_boot_ms), np.asarray(q, dtype=float), thrust, source)
+
+
+class RateMeter:
+    """Events per second over a sliding window (for the setpoint rate diagnostic)."""
+
+    def __init__(self, window_s: float = 1.0) -> None:
+        self.window_s = window_s
+        self._t: deque = deque()
+
+    def tick(self, t: float) -> None:
+        """Record one event at time t."""
+        self._t.append(t)
+        self._trim(t)
+
+    def rate(self, t: float) -> float:
+        """Events per second in the last window."""
+        self._trim(t)
+        return len(self._t) / self.window_s
+
+    def _trim(self, t: float) -> None:
+        while self._t and self._t[0] < t - self.window_s:
+            self._t.popleft()
+
+
+class MavlinkBridge:
+    """ROS-free bridge: call on_* for inputs, poll/stream/heartbeat from timers."""
+
+    def __init__(self, config: BridgeConfig,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.config = config
+        self._clock = clock
+        self.link = MavlinkLink(config.link, clock)
+        self.shaper = SetpointShaper(config)
+        self.hover = HoverThrust(config.configured_hover_thrust,
+                                 config.hover_thrust_source == 'autopilot')
+        self.autopilot: Autopilot | None = (None if config.autopilot == 'auto'
+                                            else Autopilot(config.autopilot))
+        self.sequencer: EngageSequencer | None = None
+        self.supervisor_mode = Mode.IDLE
+        self.guid_options: int | None = None
+        self.rate = RateMeter()
+        self.setpoint_source = SetpointSource.NONE
+        self._current: AttitudeTarget | None = None
+        self._last_time_boot_ms = 0          # autopilot's latest time_boot_ms
+        self._setpoint_time_boot_ms = 0      # time_boot_ms of the latest IBVS setpoint
+        self._stream_start: float | None = None
+        self._last_stream_t: float | None = None
+        self._params_since: float | None = None
+        self._last_param_request = -np.inf
+        self._last_seen: dict[int, float] = {}
+        self._last_interval_request: dict[int, float] = {}
+        self._yaw_now = 0.0
+        self._lin_acc_frd: np.ndarray | None = None
+        self._time_offset_ns: int | None = None
+        self._receive_ns: int | None = None
+        self._events: list[tuple[str, str]] = []
+        self._maybe_build_sequencer()
+
+    # --- inputs from ROS ---------------------------------------------------------------
+    def on_supervisor_mode(self, mode: int) -> None:
+        """ibvs/mode; unknown values are refused (logged) and the mode is kept."""
+        try:
+            new = Mode(int(mode))
+        except ValueError:
+            self._event('error', f'unknown supervisor mode {mode}: kept {self.supervisor_mode}')
+            return
+        if new != self.supervisor_mode:
+            self._event('info', f'supervisor mode {self.supervisor_mode.name} -> {new.name}')
+        self.supervisor_mode = new
+
+    def on_heading(self, q_wxyz_enu_flu: np.ndarray) -> str:
+        """ibvs/heading_setpoint (base_link in map); returns '' or the refusal reason."""
+        try:
+            self.shaper.on_heading(yaw_from_heading_quat(q_wxyz_enu_flu))
+        except ValueError as exc:
+            self.shaper.rejected += 1
+            return str(exc)
+        return ''
+
+    def on_force(self, stamp_ns: int, F_I: np.ndarray) -> str:
+        """ibvs/force_setpoint (already in {I}): send the new setpoint NOW.
+
+        Returns '' or why the force was refused (the held/fallback setpoint is still sent,
+        with the new stamp, so that a lockstep sim keeps advancing).
+        """
+        reason = self.shaper.on_force(self._clock(), F_I)
+        ms = self.stamp_to_boot_ms(stamp_ns)
+        if ms is not None:
+            self._setpoint_time_boot_ms = max(self._setpoint_time_boot_ms, ms)
+        self._send_current(new=True)
+        return reason
+
+    # --- timers ------------------------------------------------------------------------
+    def heartbeat(self) -> None:
+        """1 Hz: our HEARTBEAT."""
+        self.link.send_heartbeat()
+
+    def stream(self) -> None:
+        """>= 50 Hz: repeat the latest setpoint (recomputed for fallbacks and ramps)."""
+        self._send_current(new=False)
+
+    def poll(self, receive_ns: int | None = None) -> list[ImuSample]:
+        """Receive everything pending, run the sequencer, return new IMU samples.
+
+        ``receive_ns``: ROS time now (used by the RECEIVE_TIME strategy).
+        """
+        now = self._clock()
+        self._receive_ns = receive_ns
+        samples = []
+        for msg in self.link.poll():
+            sample = self._handle(msg, now)
+            if sample is not None:
+                samples.append(sample)
+        self._maybe_build_sequencer()
+        self._service_requests(now)
+        self._run_sequencer(now)
+        return samples
+
+    def pop_events(self) -> list[tuple[str, str]]:
+        """(level, text) log events since the last call: 'info', 'warn', 'error'."""
+        events, self._events = self._events, []
+        if self.sequencer is not None:
+            events += [('info', f'engage: {e}') for e in self.sequencer.pop_events()]
+        return events
+
+    def status(self) -> BridgeStatus:
+        """Diagnostics snapshot."""
+        now = self._clock()
+        hb = self.link.heartbeat
+        seq = self.sequencer
+        c = self.link.counters
+        return BridgeStatus(
+            link_up=self.link.link_up, heartbeat_age_s=self.link.heartbeat_age(),
+            autopilot=self.autopilot.value if self.autopilot else 'unknown',
+            armed=bool(hb and hb.armed), custom_mode=hb.custom_mode if hb else 0,
+            engage_state=seq.state.value if seq else 'no_link',
+            engage_reason=seq.last_reason if seq else '',
+            supervisor_mode=self.supervisor_mode.name,
+            hover_thrust=self.hover.value, hover_thrust_source=self.hover.source,
+            setpoint_source=self.setpoint_source.value, setpoint_rate_hz=self.rate.rate(now),
+            rejected_setpoints=self.shaper.rejected,
+            counters={'received': c.received, 'sent': c.sent, 'bad_data': c.bad_data,
+                      'foreign': c.foreign, 'reconnects': c.reconnects,
+                      'link_losses': c.link_losses, 'send_errors': c.send_errors})
+
+    def close(self) -> None:
+        """Close the link."""
+        self.link.close()
+
+    # --- time mapping ------------------------------------------------------------------
+    def stamp_to_boot_ms(self, stamp_ns: int) -> int | None:
+        """ROS stamp -> autopilot time_boot_ms (None while the offset is unknown)."""
+        if self.config.time_strategy == TimeStrategy.BOOT_TIME:
+            offset = int(round(self.config.boot_time_offset_s * NS_PER_S))
+        elif self._time_offset_ns is None:
+            return None
+        else:
+            offset = self._time_offset_ns
+        return max(0, (int(stamp_ns) - offset + NS_PER_MS // 2) // NS_PER_MS)
+
+    def boot_ms_to_stamp(self, time_boot_ms: int, receive_ns: int | None) -> int:
+        """Autopilot time_boot_ms -> ROS stamp (ns) by the configured strategy."""
+        if self.config.time_strategy == TimeStrategy.BOOT_TIME:
+            return (int(time_boot_ms) * NS_PER_MS
+                    + int(round(self.config.boot_time_offset_s * NS_PER_S)))
+        return int(receive_ns) if receive_ns is not None else int(time_boot_ms) * NS_PER_MS
+
+    # --- internals ---------------------------------------------------------------------
+    def _event(self, level: str, text: str) -> None:
+        self._events.append((level, text))
+
+    def _maybe_build_sequencer(self) -> None:
+        if self.sequencer is not None:
+            return
+        hb = self.link.heartbeat
+        if self.autopilot is None and hb is not None:
+            self.autopilot = AUTOPILOT_OF_HEARTBEAT.get(hb.autopilot)
+            if self.autopilot is None:
+                self._event('error', f'autopilot type {hb.autopilot} unsupported: set the '
+                                     "'autopilot' parameter to px4 or ardupilot")
+                return
+        if self.autopilot is None:
+            return
+        cfg = self.config.sequencer
+        self.sequencer = EngageSequencer(SequencerConfig(
+            self.autopilot, cfg.prestream_s, cfg.command_retry_s, cfg.max_attempts,
+            cfg.disarm_force_after_s))
+
+    def _handle(self, msg, now: float) -> ImuSample | None:
+        kind = msg.get_type()
+        if kind == 'ATTITUDE_QUATERNION':
+            self._last_seen[MavMsgId.ATTITUDE_QUATERNION] = now
+            return self._attitude(msg)
+        if kind == 'HIGHRES_IMU':
+            self._last_seen[MavMsgId.HIGHRES_IMU] = now
+            acc = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float)
+            if np.all(np.isfinite(acc)):
+                self._lin_acc_frd = acc
+        elif kind == 'PARAM_VALUE':
+            self._param(msg.param_id, float(msg.param_value))
+        elif kind == 'COMMAND_ACK':
+            if self.sequencer is not None:
+                self.sequencer.on_command_ack(msg.command, msg.result)
+            if msg.result != 0:
+                self._event('warn', f'command {msg.command} answered with result {msg.result}')
+        return None
+
+    def _attitude(self, msg) -> ImuSample | None:
+        q = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=float)
+        w = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
+        if (not np.all(np.isfinite(q)) or not np.all(np.isfinite(w))
+                or abs(np.linalg.norm(q) - 1.0) > QUAT_NORM_TOLERANCE):
+            self._event('error', f'ATTITUDE_QUATERNION out of range (q={q}, rates={w}): '
+                                 'dropped')
+            return None
+        self._last_time_boot_ms = int(msg.time_boot_ms)
+        if self._receive_ns is not None:
+            self._time_offset_ns = self._receive_ns - int(msg.time_boot_ms) * NS_PER_MS
+        self._yaw_now = euler_zyx_from_rot(rot_from_quat(q))[2]
+        acc = None if self._lin_acc_frd is None else vec_frd_to_flu(self._lin_acc_frd)
+        return ImuSample(self.boot_ms_to_stamp(msg.time_boot_ms, self._receive_ns),
+                         quat_ned_frd_to_enu_flu(q), vec_frd_to_flu(w), acc)
+
+    def _param(self, raw_name, value: float) -> None:
+        name = raw_name.decode('ascii', 'replace') if isinstance(raw_name, bytes) else raw_name
+        name = name.rstrip('\x00')
+        if self.autopilot is not None and name == HOVER_PARAM[self.autopilot] \
+                and self.hover.use_autopilot:
+            self.hover.on_param(name, value)
+            if self.hover.error:
+                self._event('error', self.hover.error)
+            else:
+                self._event('info', f'hover thrust {value:.3f} from {name}')
+        elif name == GUID_OPTIONS_PARAM:
+            if np.isfinite(value):
+                self.guid_options = int(value)
+
+    def _params_missing(self) -> list[str]:
+        missing = []
+        if self.autopilot is None:
+            return missing
+        if self.hover.value is None:
+            missing.append(HOVER_PARAM[self.autopilot])
+        if self.autopilot == Autopilot.ARDUPILOT and self.guid_options is None:
+            missing.append(GUID_OPTIONS_PARAM)
+        return missing
+
+    def _service_requests(self, now: float) -> None:
+        """Parameter reads and message-interval requests, retried while unanswered."""
+        if not self.link.link_up:
+            self._params_since = None
+            return
+        if self._params_since is None:
+            self._params_since = now
+        missing = self._params_missing()
+        if missing and now - self._last_param_request >= self.config.param_retry_s:
+            self._last_param_request = now
+            for name in missing:
+                self.link.request_param(name)
+        if missing and now - self._params_since >= self.config.param_timeout_s:
+            self.hover.on_timeout()
+        rates = {MavMsgId.ATTITUDE_QUATERNION: self.config.attitude_rate_hz,
+                 MavMsgId.HIGHRES_IMU: self.config.imu_rate_hz}
+        for msg_id, rate in rates.items():
+            seen = self._last_seen.get(msg_id, -np.inf)
+            asked = self._last_interval_request.get(msg_id, -np.inf)
+            retry = self.config.interval_retry_s
+            if now - seen > retry and now - asked > retry:
+                self._last_interval_request[msg_id] = now
+                self.link.set_message_interval(msg_id, rate)
+
+    def _run_sequencer(self, now: float) -> None:
+        if self.sequencer is None:
+            return
+        hb = self.link.heartbeat
+        timed_out = (self._params_since is not None
+                     and now - self._params_since >= self.config.param_timeout_s)
+        inp = SequencerInputs(
+            t=now, link_up=self.link.link_up, supervisor_mode=self.supervisor_mode,
+            armed=bool(hb and hb.armed), custom_mode=hb.custom_mode if hb else 0,
+            streaming_s=self._streaming_s(now), hover_thrust_ready=self.hover.value is not None,
+            guid_options=self.guid_options, params_timed_out=timed_out,
+            ramp_done=self.shaper.ramp_done(now))
+        for req in self.sequencer.step(inp):
+            self._event('info', f'command {req.command.name} {req.params}: {req.reason}')
+            self.link.send_command_long(req.command, req.params)
+
+    def _streaming_s(self, now: float) -> float:
+        if self._stream_start is None:
+            return 0.0
+        return now - self._stream_start
+
+    def _send_current(self, new: bool) -> None:
+        """Build the target for the current mode and send it (if the link can)."""
+        now = self._clock()
+        hover = self.hover.value if self.hover.value is not None \
+            else self.config.configured_hover_thrust
+        ms = self._setpoint_time_boot_ms if self._setpoint_time_boot_ms else \
+            self._last_time_boot_ms
+        target = self.shaper.target(now, self.supervisor_mode, self._yaw_now, hover, ms)
+        if target.source == SetpointSource.HOLD_LAST and new:
+            self._event('error', f'force setpoint refused ({self.shaper.last_error}): '
+                                 'holding the last valid one')
+        if target.source != self.setpoint_source:
+            self._event('info' if target.source == SetpointSource.IBVS else 'warn',
+                        f'setpoint source {self.setpoint_source.value} -> '
+                        f'{target.source.value}')
+            self.setpoint_source = target.source
+        self._current = target
+        if not self.link.link_up:
+            self._stream_start = None
+            return
+        if self.link.send_attitude_target(target.time_boot_ms, target.q_wxyz, target.thrust,
+                                          target.type_mask):
+            self.rate.tick(now)
+            if self._stream_start is None or (self._last_stream_t is not None
+                                              and now - self._last_stream_t > STREAM_GAP_S):
+                self._stream_start = now
+            self._last_stream_t = now

@@ -1,0 +1,332 @@
+"""MAVLink 2 link of the bridge: connection, signing, heartbeats, sending and receiving.
+
+ROS-free (pymavlink only). The link knows nothing about modes or setpoints: it opens a
+connection by URL (``udpout:host:port``, ``udpin:host:port``, ``tcp:host:port``,
+``/dev/ttyUSB0,921600``), speaks as an onboard computer, signs what it sends when a key is
+configured (and then drops every unsigned or wrongly signed message), learns the autopilot's
+system/component id from its first HEARTBEAT and supervises the link from the autopilot's
+heartbeats. Everything that decides *what* to send lives in :mod:`mavlink_bridge` and
+:mod:`mavlink_sequencer`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+import os
+from pathlib import Path
+import time
+from typing import Callable
+
+import numpy as np
+
+os.environ['MAVLINK20'] = '1'  # before pymavlink.mavutil is imported: MAVLink 2 framing
+from pymavlink import mavutil  # noqa: E402  (must follow the MAVLINK20 switch)
+
+mavlink = mavutil.mavlink
+
+SIGNING_KEY_LEN = 32            # bytes, MAVLink 2 signing secret key
+UINT32_MAX = 2**32 - 1
+
+
+class MavType(IntEnum):
+    """MAV_TYPE values the bridge uses or recognises."""
+
+    GCS = 6
+    ONBOARD_CONTROLLER = 18
+
+
+class MavAutopilot(IntEnum):
+    """MAV_AUTOPILOT values."""
+
+    GENERIC = 0
+    ARDUPILOTMEGA = 3
+    INVALID = 8
+    PX4 = 12
+
+
+class MavComponent(IntEnum):
+    """MAV_COMPONENT ids."""
+
+    AUTOPILOT1 = 1
+    ONBOARD_COMPUTER = 191
+
+
+class MavState(IntEnum):
+    """MAV_STATE values used in our HEARTBEAT."""
+
+    ACTIVE = 4
+
+
+class MavMsgId(IntEnum):
+    """Message ids the bridge requests with MAV_CMD_SET_MESSAGE_INTERVAL."""
+
+    HIGHRES_IMU = 105
+    ATTITUDE_QUATERNION = 31
+
+
+# Message types of the autopilot that mean "someone else", never our peer autopilot.
+_NON_AUTOPILOT_TYPES = frozenset({MavType.GCS, MavType.ONBOARD_CONTROLLER})
+
+
+class SigningError(ValueError):
+    """The signing key file is missing or does not hold a 32-byte key."""
+
+
+def load_signing_key(path: str | os.PathLike) -> bytes:
+    """Read a MAVLink 2 signing key: 32 raw bytes, or 64 hexadecimal characters (text).
+
+    Raises SigningError with the path and the reason when the file is unusable.
+    """
+    try:
+        data = Path(path).read_bytes()
+    except OSError as exc:
+        raise SigningError(f'cannot read signing key file {path}: {exc}') from exc
+    if len(data) == SIGNING_KEY_LEN:
+        return data
+    text = data.strip()
+    if len(text) == 2 * SIGNING_KEY_LEN:
+        try:
+            return bytes.fromhex(text.decode('ascii'))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    raise SigningError(f'signing key file {path} must hold {SIGNING_KEY_LEN} raw bytes or '
+                       f'{2 * SIGNING_KEY_LEN} hex characters (found {len(data)} bytes)')
+
+
+@dataclass(frozen=True)
+class LinkConfig:
+    """Connection and link-supervision settings (see params.yaml, section mavlink_bridge)."""
+
+    url: str = 'udpout:127.0.0.1:14560'
+    source_system: int = 1                   # our system id (same vehicle as the autopilot)
+    source_component: int = MavComponent.ONBOARD_COMPUTER
+    target_system: int = 0                   # 0: learn from the first autopilot HEARTBEAT
+    target_component: int = 0                # 0: learn from the first autopilot HEARTBEAT
+    heartbeat_timeout_s: float = 1.5         # no autopilot HEARTBEAT for this long: link lost
+    reconnect_period_s: float = 1.0          # while lost, reopen the connection this often
+    signing_key: bytes | None = None         # 32 bytes: sign outgoing, reject unsigned input
+    signing_link_id: int = 0
+
+    def __post_init__(self):
+        if not self.url:
+            raise ValueError('mavlink url must not be empty')
+        if self.heartbeat_timeout_s <= 0.0 or self.reconnect_period_s <= 0.0:
+            raise ValueError('heartbeat_timeout_s and reconnect_period_s must be > 0')
+        if self.signing_key is not None and len(self.signing_key) != SIGNING_KEY_LEN:
+            raise ValueError(f'signing key must be {SIGNING_KEY_LEN} bytes')
+
+
+@dataclass
+class LinkCounters:
+    """Counters reported on /diagnostics."""
+
+    received: int = 0
+    sent: int = 0
+    bad_data: int = 0             # unparsable or rejected (bad/missing signature) packets
+    foreign: int = 0              # valid messages from other systems, ignored
+    reconnects: int = 0
+    link_losses: int = 0
+    send_errors: int = 0
+
+
+@dataclass(frozen=True)
+class AutopilotHeartbeat:
+    """The autopilot's last HEARTBEAT, decoded."""
+
+    autopilot: int
+    vehicle_type: int
+    base_mode: int
+    custom_mode: int
+    system_status: int
+
+    @property
+    def armed(self) -> bool:
+        """MAV_MODE_FLAG_SAFETY_ARMED of base_mode."""
+        return bool(self.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+
+
+class MavlinkLink:
+    """One MAVLink 2 connection to one autopilot, polled (non-blocking) by its owner.
+
+    ``clock`` returns monotonic seconds (injected for tests). The owner calls :meth:`poll`
+    often; it returns the autopilot's messages (HEARTBEATs are also decoded into
+    :attr:`heartbeat`) and, while the link is lost, reopens the connection every
+    ``reconnect_period_s``.
+    """
+
+    def __init__(self, config: LinkConfig,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.config = config
+        self._clock = clock
+        self.counters = LinkCounters()
+        self.target_system = config.target_system
+        self.target_component = config.target_component
+        self.heartbeat: AutopilotHeartbeat | None = None
+        self._last_heartbeat_t: float | None = None
+        self._link_up = False
+        self._last_open_t = -np.inf
+        self._conn = None
+        self.open()
+
+    # --- connection --------------------------------------------------------------------
+    def open(self) -> None:
+        """(Re)open the connection; errors are kept for the diagnostics, never raised."""
+        self.close()
+        self._last_open_t = self._clock()
+        self.last_error = ''
+        try:
+            self._conn = mavutil.mavlink_connection(
+                self.config.url, source_system=self.config.source_system,
+                source_component=self.config.source_component, autoreconnect=True)
+        except Exception as exc:  # OSError, serial errors, bad URL: reported, retried
+            self._conn = None
+            self.last_error = f'cannot open {self.config.url}: {exc}'
+            return
+        self._conn.mav.robust_parsing = True
+        if self.config.signing_key is not None:
+            # No allow_unsigned_callback: pymavlink then rejects unsigned and badly signed
+            # input (it arrives as BAD_DATA, counted in bad_data).
+            self._conn.setup_signing(self.config.signing_key, sign_outgoing=True,
+                                     allow_unsigned_callback=None,
+                                     link_id=self.config.signing_link_id)
+
+    def close(self) -> None:
+        """Close the connection if open."""
+        if self._conn is not None:
+            try:
+                self._conn.close()
+            except Exception:  # closing a broken socket/serial port: nothing left to do
+                pass
+            self._conn = None
+
+    @property
+    def is_open(self) -> bool:
+        """Whether a connection object exists (says nothing about the peer)."""
+        return self._conn is not None
+
+    @property
+    def link_up(self) -> bool:
+        """Whether an autopilot HEARTBEAT arrived within heartbeat_timeout_s."""
+        return self._link_up
+
+    def heartbeat_age(self) -> float:
+        """Seconds since the autopilot's last HEARTBEAT (inf if none)."""
+        if self._last_heartbeat_t is None:
+            return float('inf')
+        return self._clock() - self._last_heartbeat_t
+
+    # --- receiving ---------------------------------------------------------------------
+    def poll(self, max_messages: int = 200) -> list:
+        """Read every pending message (at most max_messages) and supervise the link.
+
+        Returns the valid messages of the target autopilot system (after learning it).
+        """
+        messages = []
+        if self._conn is not None:
+            for _ in range(max_messages):
+                try:
+                    msg = self._conn.recv_msg()
+                except Exception as exc:  # socket/serial error: reopen on the next period
+                    self.last_error = f'receive failed: {exc}'
+                    self.close()
+                    break
+                if msg is None:
+                    break
+                if msg.get_type() == 'BAD_DATA':
+                    self.counters.bad_data += 1
+                    continue
+                if self._accept(msg):
+                    self.counters.received += 1
+                    messages.append(msg)
+                else:
+                    self.counters.foreign += 1
+        self._supervise()
+        return messages
+
+    def _accept(self, msg) -> bool:
+        """Filter to the autopilot; learn its ids from its first HEARTBEAT."""
+        sysid, compid = msg.get_srcSystem(), msg.get_srcComponent()
+        is_hb = msg.get_type() == 'HEARTBEAT'
+        if is_hb and (msg.type in _NON_AUTOPILOT_TYPES
+                      or msg.autopilot == MavAutopilot.INVALID):
+            return False
+        if self.target_system == 0:
+            if not is_hb:
+                return False
+            self.target_system = sysid
+        if sysid != self.target_system:
+            return False
+        if is_hb:
+            if self.target_component == 0:
+                self.target_component = compid
+            if compid != self.target_component:
+                return False
+            self.heartbeat = AutopilotHeartbeat(msg.autopilot, msg.type, msg.base_mode,
+                                                msg.custom_mode, msg.system_status)
+            self._last_heartbeat_t = self._clock()
+        return True
+
+    def _supervise(self) -> None:
+        now = self._clock()
+        up = (self._last_heartbeat_t is not None
+              and now - self._last_heartbeat_t <= self.config.heartbeat_timeout_s)
+        if self._link_up and not up:
+            self.counters.link_losses += 1
+        self._link_up = up
+        if not up and now - self._last_open_t >= self.config.reconnect_period_s:
+            if self._last_heartbeat_t is not None or self._conn is None:
+                self.counters.reconnects += 1
+                self.open()
+            else:
+                self._last_open_t = now  # never heard the autopilot: keep the socket
+
+    # --- sending -----------------------------------------------------------------------
+    def _send(self, encode: str, *args) -> bool:
+        """Encode with ``mav.<encode>(*args)`` and send; errors counted, never raised."""
+        if self._conn is None:
+            return False
+        try:
+            self._conn.mav.send(getattr(self._conn.mav, encode)(*args))
+        except Exception as exc:  # socket/serial error: counted, reopened by poll()
+            self.counters.send_errors += 1
+            self.last_error = f'send failed: {exc}'
+            return False
+        self.counters.sent += 1
+        return True
+
+    def send_heartbeat(self) -> bool:
+        """HEARTBEAT as an onboard controller (MAV_TYPE 18, MAV_AUTOPILOT_INVALID 8)."""
+        return self._send('heartbeat_encode', MavType.ONBOARD_CONTROLLER, MavAutopilot.INVALID,
+                          0, 0, MavState.ACTIVE)
+
+    def send_attitude_target(self, time_boot_ms: int, q_wxyz: np.ndarray, thrust: float,
+                             type_mask: int) -> bool:
+        """SET_ATTITUDE_TARGET (82): attitude FRD in NED as (w, x, y, z), thrust in [0, 1]."""
+        if self.target_system == 0:
+            return False
+        q = [float(x) for x in q_wxyz]
+        return self._send('set_attitude_target_encode', int(time_boot_ms) & UINT32_MAX,
+                          self.target_system, self.target_component, int(type_mask), q,
+                          0.0, 0.0, 0.0, float(thrust))
+
+    def send_command_long(self, command: int, params: tuple[float, ...],
+                          confirmation: int = 0) -> bool:
+        """COMMAND_LONG to the autopilot; params padded to 7."""
+        if self.target_system == 0:
+            return False
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        return self._send('command_long_encode', self.target_system, self.target_component,
+                          int(command), confirmation, *p)
+
+    def request_param(self, name: str) -> bool:
+        """PARAM_REQUEST_READ by name (param_index -1)."""
+        if self.target_system == 0:
+            return False
+        return self._send('param_request_read_encode', self.target_system,
+                          self.target_component, name.encode('ascii'), -1)
+
+    def set_message_interval(self, msg_id: int, rate_hz: float) -> bool:
+        """MAV_CMD_SET_MESSAGE_INTERVAL (511): param1 message id, param2 interval in us."""
+        interval_us = 1e6 / rate_hz if rate_hz > 0.0 else -1.0
+        return self.send_command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
+                                      (float(msg_id), interval_us))

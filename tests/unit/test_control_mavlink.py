@@ -1,0 +1,472 @@
+"""The MAVLink bridge core against a pymavlink peer autopilot on 127.0.0.1.
+
+The peer (FakeAutopilot) is written here from the MAVLink message definitions, not from the
+bridge: it runs in a thread, sends HEARTBEAT and ATTITUDE_QUATERNION, answers parameter reads and
+commands, and records every SET_ATTITUDE_TARGET with its arrival time. Expected values come from
+geometry (a pure yaw rotation, the nose-down pitch needed to accelerate forward) and from the
+MAVLink/PX4/ArduPilot documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196).
+"""
+import os
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+os.environ['MAVLINK20'] = '1'
+from pymavlink import mavutil  # noqa: E402
+
+from ibvs_control.core.frames import GRAVITY, quat_multiply  # noqa: E402
+from ibvs_control.core.mavlink_bridge import (  # noqa: E402
+    BridgeConfig, MavlinkBridge, SetpointSource)
+from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
+from ibvs_control.core.mavlink_sequencer import EngageState, SequencerConfig  # noqa: E402
+from ibvs_control.core.modes import Mode  # noqa: E402
+
+MASS = 1.676
+PX4_OFFBOARD = 6 << 16
+PX4_POSCTL = 3 << 16
+KEY = bytes(range(32))
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def rotmat(q):
+    w, x, y, z = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+class FakeAutopilot:
+    """A minimal PX4- or ArduPilot-like autopilot speaking MAVLink 2 on udpin."""
+
+    def __init__(self, port, kind='px4', armed=True, params=None, key=None,
+                 refuse_disarm_unforced=False, yaw_ned=0.0):
+        self.kind = kind
+        self.conn = mavutil.mavlink_connection(f'udpin:127.0.0.1:{port}', source_system=1,
+                                               source_component=1)
+        if key is not None:
+            self.conn.setup_signing(key, sign_outgoing=True)
+        self.armed = armed
+        self.custom_mode = PX4_POSCTL if kind == 'px4' else 0
+        self.params = params or {}
+        self.refuse_disarm_unforced = refuse_disarm_unforced
+        self.yaw_ned = yaw_ned
+        self.heartbeats_on = True
+        self.setpoints = []        # (t_rx, msg)
+        self.commands = []         # (t_rx, msg)
+        self.signed = []           # _signed flag of every message received
+        self.t0 = time.monotonic()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.conn.close()
+
+    def boot_ms(self):
+        return int((time.monotonic() - self.t0) * 1000)
+
+    def _run(self):
+        next_hb = next_att = 0.0
+        kind = {'px4': mavutil.mavlink.MAV_AUTOPILOT_PX4,
+                'ardupilot': mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA}[self.kind]
+        while not self._stop.is_set():
+            now = time.monotonic()
+            if now >= next_hb:
+                next_hb = now + 0.1
+                if self.heartbeats_on and self.conn.clients:
+                    base = 1 | (128 if self.armed else 0)
+                    self.conn.mav.heartbeat_send(2, kind, base, self.custom_mode, 4)
+            if now >= next_att and self.conn.clients:
+                next_att = now + 0.02
+                if self.heartbeats_on:
+                    h = self.yaw_ned / 2.0
+                    self.conn.mav.attitude_quaternion_send(self.boot_ms(), np.cos(h), 0.0, 0.0,
+                                                           np.sin(h), 0.1, 0.2, 0.3)
+            msg = self.conn.recv_msg()
+            if msg is None:
+                time.sleep(0.001)
+                continue
+            self._handle(msg, now)
+
+    def _handle(self, msg, now):
+        kind = msg.get_type()
+        if kind == 'BAD_DATA':
+            return
+        self.signed.append(bool(getattr(msg, '_signed', False)))
+        if kind == 'SET_ATTITUDE_TARGET':
+            self.setpoints.append((now, msg))
+        elif kind == 'PARAM_REQUEST_READ':
+            name = msg.param_id
+            if name in self.params:
+                self.conn.mav.param_value_send(name.encode(), float(self.params[name]), 9,
+                                               len(self.params), 0)
+        elif kind == 'COMMAND_LONG':
+            self.commands.append((now, msg))
+            self.conn.mav.command_ack_send(msg.command, self._command(msg))
+
+    def _command(self, msg):
+        if msg.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
+            if self.kind == 'px4' and int(msg.param2) == 6:
+                self.custom_mode = PX4_OFFBOARD
+            elif self.kind == 'ardupilot':
+                self.custom_mode = int(msg.param2)
+            return 0  # PX4 also ACKs the packed 6 << 16 and ignores it
+        if msg.command == mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+            if msg.param1 == 1.0:
+                self.armed = True
+                return 0
+            if self.refuse_disarm_unforced and int(msg.param2) != 21196:
+                return 2  # MAV_RESULT_DENIED: "in the air"
+            self.armed = False
+            return 0
+        return 0
+
+    def set_mode_commands(self):
+        return [(t, m) for t, m in self.commands
+                if m.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE]
+
+    def arm_commands(self):
+        return [(t, m) for t, m in self.commands
+                if m.command == mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM]
+
+
+def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
+                hold_last_s=5.0, **kw):
+    link = LinkConfig(url=f'udpout:127.0.0.1:{port}', heartbeat_timeout_s=0.5,
+                      reconnect_period_s=0.3, signing_key=key)
+    seq = SequencerConfig(prestream_s=1.0, command_retry_s=0.3, max_attempts=5,
+                          disarm_force_after_s=0.3)
+    cfg = BridgeConfig(link=link, mass=MASS, max_thrust_factor=2.0,
+                       configured_hover_thrust=hover, autopilot=autopilot,
+                       hover_thrust_source=source, param_timeout_s=1.0, param_retry_s=0.2,
+                       hold_last_s=hold_last_s, sequencer=seq, **kw)
+    return MavlinkBridge(cfg)
+
+
+def spin(bridge, seconds, until=None, stream_hz=60.0):
+    """Tick the bridge like the node's timers; stop early when until() is true."""
+    t_end = time.monotonic() + seconds
+    next_stream = next_hb = 0.0
+    samples = []
+    while time.monotonic() < t_end:
+        now = time.monotonic()
+        if now >= next_hb:
+            next_hb = now + 0.2
+            bridge.heartbeat()
+        samples += bridge.poll()
+        if now >= next_stream:
+            next_stream = now + 1.0 / stream_hz
+            bridge.stream()
+        if until is not None and until():
+            return True, samples
+        time.sleep(0.002)
+    return False, samples
+
+
+def heading_msg_quat(yaw_ned):
+    """Heading quaternion (w, x, y, z) of base_link in map for a NED yaw, by hand.
+
+    A NED yaw psi (clockwise from north seen from above) is the ENU yaw pi/2 - psi.
+    """
+    a = (np.pi / 2 - yaw_ned) / 2.0
+    return np.array([np.cos(a), 0.0, 0.0, np.sin(a)])
+
+
+@pytest.fixture
+def peer_bridge(request):
+    made = []
+
+    def factory(peer_kw=None, bridge_kw=None):
+        port = free_udp_port()
+        peer = FakeAutopilot(port, **(peer_kw or {}))
+        bridge = make_bridge(port, **(bridge_kw or {}))
+        made.append((peer, bridge))
+        return peer, bridge
+    yield factory
+    for peer, bridge in made:
+        bridge.close()
+        peer.close()
+
+
+def wait_link(bridge):
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.link.link_up
+                 and bridge.sequencer is not None)
+    assert ok, 'link never came up'
+
+
+def last_setpoint(peer):
+    assert peer.setpoints, 'no SET_ATTITUDE_TARGET received'
+    return peer.setpoints[-1][1]
+
+
+def same_rotation(q_a, q_b, atol=1e-6):
+    return np.allclose(rotmat(q_a), rotmat(q_b), atol=atol)
+
+
+def test_setpoint_up_with_yaw_90_is_a_pure_yaw_rotation(peer_bridge):
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    assert bridge.on_heading(heading_msg_quat(np.pi / 2)) == ''
+    # Heading of NED yaw 90 deg (east) is the ENU identity: checked independently.
+    assert np.allclose(heading_msg_quat(np.pi / 2), [1, 0, 0, 0])
+    assert bridge.on_force(1_234_000_000, np.array([0.0, 0.0, MASS * GRAVITY])) == ''
+    ok, _ = spin(bridge, 1.0,
+                 until=lambda: any(m.time_boot_ms == 1234 for _, m in peer.setpoints))
+    assert ok
+    m = [m for _, m in peer.setpoints if m.time_boot_ms == 1234][0]
+    assert m.type_mask == 7
+    assert m.target_system == 1 and m.target_component == 1
+    c = np.cos(np.pi / 4)
+    assert same_rotation(m.q, [c, 0.0, 0.0, c])
+    assert m.thrust == pytest.approx(0.5, abs=1e-6)
+
+
+def test_forward_tilt_pitches_nose_down(peer_bridge):
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    bridge.on_heading(heading_msg_quat(0.0))
+    a = 2.0  # m/s^2 forward (+x of NED): m v_dot = -F + m g e3  =>  F = m (g e3 - a e1)
+    F = MASS * np.array([-a, 0.0, GRAVITY])
+    bridge.on_force(2_000_000_000, F)
+    spin(bridge, 0.3)
+    m = last_setpoint(peer)
+    R = rotmat(m.q)
+    assert R[2, 0] > 0.1           # body x (nose) points down (NED z > 0): nose down
+    assert R[0, 2] < -0.1          # body z (thrust axis, down) leans back
+    pitch = np.arcsin(-R[2, 0])
+    assert pitch == pytest.approx(-np.arctan2(a, GRAVITY), abs=1e-6)
+    assert abs(R[1, 0]) < 1e-9     # no yaw, no roll
+    assert m.thrust == pytest.approx(np.hypot(a, GRAVITY) / GRAVITY * 0.5, rel=1e-6)
+
+
+def test_thrust_scales_with_configured_and_autopilot_hover(peer_bridge):
+    peer, bridge = peer_bridge(bridge_kw={'hover': 0.4})
+    wait_link(bridge)
+    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_force(3_000_000_000, np.array([0.0, 0.0, 1.5 * MASS * GRAVITY]))
+    spin(bridge, 0.2)
+    assert last_setpoint(peer).thrust == pytest.approx(0.6, abs=1e-6)
+
+    peer2, bridge2 = peer_bridge(peer_kw={'params': {'MPC_THR_HOVER': 0.35}},
+                                 bridge_kw={'source': 'autopilot'})
+    ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.hover.value is not None)
+    assert ok and bridge2.hover.value == pytest.approx(0.35, abs=1e-6)
+    assert 'MPC_THR_HOVER' in bridge2.status().hover_thrust_source
+    bridge2.on_heading(heading_msg_quat(0.0))
+    bridge2.on_force(3_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
+    spin(bridge2, 0.2)
+    assert last_setpoint(peer2).thrust == pytest.approx(0.35, abs=1e-6)
+
+
+def test_setpoint_stream_rate_at_least_50_hz(peer_bridge):
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_force(1_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
+    n0 = len(peer.setpoints)
+    t0 = time.monotonic()
+    spin(bridge, 1.0)
+    time.sleep(0.05)
+    rate = (len(peer.setpoints) - n0) / (time.monotonic() - t0)
+    assert rate >= 50.0, f'measured {rate:.1f} Hz'
+    assert bridge.status().setpoint_rate_hz >= 50.0
+
+
+def test_px4_offboard_after_streaming_then_arm(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'armed': False})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    spin(bridge, 1.3)
+    assert peer.set_mode_commands() == []          # IDLE: stream, do not switch
+    assert bridge.sequencer.state == EngageState.STANDBY
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
+    assert ok, bridge.sequencer.last_reason
+    t_mode, m = peer.set_mode_commands()[0]
+    assert (m.param1, m.param2) == (1.0, 6.0)      # custom mode enabled, OFFBOARD main mode
+    assert t_mode - peer.setpoints[0][0] > 1.0     # > 1 s of setpoint stream first
+    assert peer.custom_mode >> 16 == 6 and peer.armed
+    t_arm, arm = peer.arm_commands()[0]
+    assert arm.param1 == 1.0 and t_arm > t_mode
+
+
+def test_px4_switch_requested_immediately_still_waits_for_stream(peer_bridge):
+    peer, bridge = peer_bridge()
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer is not None
+                 and bridge.sequencer.state == EngageState.ENGAGED)
+    assert ok
+    t_mode, _ = peer.set_mode_commands()[0]
+    assert t_mode - peer.setpoints[0][0] > 1.0
+    assert peer.arm_commands() == []               # already armed: no arm command
+
+
+def test_ardupilot_guided_nogps_with_guid_options_bit3(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
+        'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.3}, 'armed': False},
+        bridge_kw={'source': 'autopilot'})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
+    assert ok, bridge.sequencer.last_reason
+    _, m = peer.set_mode_commands()[0]
+    assert (m.param1, m.param2) == (1.0, 20.0)
+    assert peer.custom_mode == 20 and peer.armed
+    assert bridge.hover.value == pytest.approx(0.3)
+
+
+@pytest.mark.parametrize('guid_options', [0, 7, None])
+def test_ardupilot_refuses_without_guid_options_bit3(peer_bridge, guid_options):
+    params = {'MOT_THST_HOVER': 0.3}
+    if guid_options is not None:
+        params['GUID_OPTIONS'] = guid_options
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': params})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 2.5, until=lambda: bridge.sequencer.state == EngageState.REFUSED)
+    assert ok
+    assert 'GUID_OPTIONS' in bridge.sequencer.last_reason
+    spin(bridge, 0.3)
+    assert peer.set_mode_commands() == [] and peer.arm_commands() == []
+
+
+def test_signing_right_key_accepted(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'key': KEY}, bridge_kw={'key': KEY})
+    wait_link(bridge)
+    spin(bridge, 0.3)
+    assert bridge.link.counters.received > 0
+    assert peer.signed and all(peer.signed)        # everything we send is signed
+
+
+def test_signing_unsigned_or_wrong_key_rejected(peer_bridge):
+    peer, bridge = peer_bridge(bridge_kw={'key': KEY})                 # unsigned peer
+    peer2, bridge2 = peer_bridge(peer_kw={'key': bytes(32)}, bridge_kw={'key': KEY})
+    spin(bridge, 1.0)
+    spin(bridge2, 0.5)
+    for b in (bridge, bridge2):
+        assert not b.link.link_up
+        assert b.link.counters.received == 0 and b.link.counters.bad_data > 0
+        assert b.sequencer is None
+
+
+def test_link_loss_then_reengage_only_when_still_flying(peer_bridge):
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
+    assert ok
+    n_modes = len(peer.set_mode_commands())
+    peer.heartbeats_on = False
+    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up)
+    assert ok and bridge.sequencer.state == EngageState.NO_LINK
+    spin(bridge, 0.7)
+    assert bridge.link.counters.reconnects >= 1 and bridge.link.counters.link_losses == 1
+    peer.custom_mode = PX4_POSCTL                  # the autopilot's failsafe took over
+    peer.heartbeats_on = True
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
+    assert ok, bridge.sequencer.last_reason
+    assert len(peer.set_mode_commands()) > n_modes
+
+    # Same again, but the supervisor went to FAILSAFE meanwhile: no re-engagement.
+    peer.heartbeats_on = False
+    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up)
+    assert ok
+    bridge.on_supervisor_mode(Mode.FAILSAFE)
+    peer.custom_mode = PX4_POSCTL
+    n_modes = len(peer.set_mode_commands())
+    peer.heartbeats_on = True
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.HELD)
+    assert ok
+    spin(bridge, 1.5)
+    assert len(peer.set_mode_commands()) == n_modes
+    assert bridge.sequencer.state == EngageState.HELD
+
+
+def test_shutdown_ramps_thrust_then_forces_disarm(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'refuse_disarm_unforced': True},
+                               bridge_kw={'shutdown_ramp_s': 0.6})
+    wait_link(bridge)
+    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_force(1_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
+    bridge.on_supervisor_mode(Mode.LANDING)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
+    assert ok
+    bridge.on_supervisor_mode(Mode.SHUTDOWN)
+    t_sd = time.monotonic()
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
+    assert ok, bridge.sequencer.last_reason
+    assert not peer.armed
+    ramp = [(t, m.thrust) for t, m in peer.setpoints if t >= t_sd]
+    thrusts = np.array([th for _, th in ramp])
+    assert thrusts[0] == pytest.approx(0.5, abs=0.05)
+    assert np.all(np.diff(thrusts) <= 1e-6)        # monotonic ramp down
+    t_zero = min(t for t, th in ramp if th == 0.0)
+    assert 0.5 <= t_zero - t_sd <= 0.9             # ramp of 0.6 s
+    disarms = [(t, m) for t, m in peer.arm_commands() if m.param1 == 0.0]
+    assert disarms[0][0] >= t_zero - 0.05          # disarm only after the ramp
+    assert int(disarms[0][1].param2) == 0          # first a normal disarm (refused) ...
+    assert int(disarms[-1][1].param2) == 21196     # ... then forced
+    assert bridge.sequencer.disarm_forced
+
+
+def test_bad_force_is_never_sent_held_then_level_hover(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'yaw_ned': 0.5}, bridge_kw={'hold_last_s': 0.3})
+    wait_link(bridge)
+    bridge.on_heading(heading_msg_quat(0.0))
+    F = MASS * np.array([-1.0, 0.0, GRAVITY])
+    assert bridge.on_force(1_000_000_000, F) == ''
+    spin(bridge, 0.1)
+    good_q = np.array(last_setpoint(peer).q)
+    for bad in (np.array([np.nan, 0.0, 9.0]), np.array([0.0, 0.0, 1e4]),
+                np.array([0.0, 0.0, -5.0])):
+        assert bridge.on_force(1_020_000_000, bad) != ''
+    spin(bridge, 0.1)
+    assert bridge.setpoint_source == SetpointSource.HOLD_LAST
+    assert same_rotation(last_setpoint(peer).q, good_q)
+    assert last_setpoint(peer).time_boot_ms == 1020     # answered with the new stamp
+    spin(bridge, 0.4)
+    assert bridge.setpoint_source == SetpointSource.LEVEL_HOVER
+    m = last_setpoint(peer)
+    assert same_rotation(m.q, [np.cos(0.25), 0.0, 0.0, np.sin(0.25)])   # level, yaw 0.5
+    assert m.thrust == pytest.approx(0.5)
+    for _, m in peer.setpoints:
+        assert np.all(np.isfinite(m.q)) and np.isfinite(m.thrust)
+    assert bridge.on_heading(np.array([np.nan, 0, 0, 1.0])) != ''
+    assert bridge.on_heading(np.array([2.0, 0, 0, 0])) != ''
+
+
+def test_failsafe_level_at_current_yaw_below_hover(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'yaw_ned': -1.0})
+    wait_link(bridge)
+    bridge.on_heading(heading_msg_quat(0.7))
+    bridge.on_force(1_000_000_000, MASS * np.array([-2.0, 1.0, GRAVITY]))
+    bridge.on_supervisor_mode(Mode.FAILSAFE)
+    spin(bridge, 0.2)
+    m = last_setpoint(peer)
+    assert same_rotation(m.q, [np.cos(-0.5), 0.0, 0.0, np.sin(-0.5)])
+    assert m.thrust == pytest.approx(0.9 * 0.5)
+    assert bridge.setpoint_source == SetpointSource.FAILSAFE
+
+
+def test_imu_republished_in_enu_flu_with_boot_time_stamp(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'yaw_ned': np.pi / 2})
+    ok, samples = spin(bridge, 2.0, until=lambda: bridge.link.link_up)
+    _, more = spin(bridge, 0.2)
+    samples += more
+    assert samples
+    s = samples[-1]
+    # Facing east: base_link coincides with map (ENU) -> identity quaternion.
+    assert same_rotation(s.q_wxyz, [1.0, 0.0, 0.0, 0.0], atol=1e-6)
+    assert np.allclose(s.angular_velocity_flu, [0.1, -0.2, -0.3])
+    assert s.stamp_ns % 1_000_000 == 0 and 0 < s.stamp_ns < 60e9
+    assert same_rotation(quat_multiply([1, 0, 0, 0], s.q_wxyz), s.q_wxyz)
