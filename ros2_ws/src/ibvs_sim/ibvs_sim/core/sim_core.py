@@ -1,0 +1,242 @@
+"""The simulation loop: plant + inner attitude loop + autopilot + cameras + contacts + wind.
+
+Time is kept in integer nanoseconds since boot (``t_ns``), so that frame times are exact
+multiples of the camera period and a frame's time in milliseconds (what the graph echoes in
+SET_ATTITUDE_TARGET.time_boot_ms) is exact. One :meth:`Simulation.step_frame` advances one
+camera period (20 ms at 50 Hz) in physics substeps (``PlantParams.physics_rate_hz``); at every
+substep the autopilot is polled with the ground truth and its attitude reference is tracked by
+the inner loop; contacts are checked at every substep; then both cameras render the new pose.
+The initial frame (t = 0) shows the initial condition.
+
+Pacing (:meth:`Simulation.tick`, called often by the node):
+
+- ``realtime``: a frame is simulated when the wall clock reaches its due time (frames are
+  dropped rather than bunched when the machine falls behind);
+- ``lockstep``: the next camera period is simulated only after the autopilot received a
+  SET_ATTITUDE_TARGET whose time_boot_ms is at least the last frame's time in ms (the graph's
+  answer to that frame), or after ``lockstep_timeout_s`` of wall clock; meanwhile the autopilot
+  is polled at the same sim time. Two runs of a deterministic graph give the same trajectory.
+
+Events (ground truth, {I}): ``touchdown`` when the envelope bottom reaches the floor (vertical
+speed reported), ``collision`` when the envelope touches the wall, window frame or back wall
+before touchdown: the run ends there (no more frames).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import enum
+import math
+import time
+from typing import Callable, Protocol
+
+import numpy as np
+
+from ibvs_control.core.config import PadLayout, VehicleConfig, WorldConfig
+from ibvs_control.core.frames import rot_z, vec_I_to_map
+from ibvs_sim.core.autopilot import AttitudeReference, VehicleStateView
+from ibvs_sim.core.contacts import FLOOR, min_clearance
+from ibvs_sim.core.dynamics import (AttitudeController, PlantParams, QuadrotorPlant, State,
+                                    Wind, WindConfig, hover_state)
+from ibvs_sim.core.render import SceneRenderer
+
+NS_PER_S = 1_000_000_000
+NS_PER_MS = 1_000_000
+DEFAULT_CAMERA_RATE_HZ = 50.0
+
+
+class Pacing(str, enum.Enum):
+    """How sim time advances against the wall clock."""
+
+    REALTIME = 'realtime'
+    LOCKSTEP = 'lockstep'
+
+
+class EventType(str, enum.Enum):
+    """Kinds of contact events."""
+
+    COLLISION = 'collision'
+    TOUCHDOWN = 'touchdown'
+
+
+class ReferenceSource(Protocol):
+    """What the simulation needs from the autopilot (ibvs_sim.core.autopilot.Autopilot)."""
+
+    last_setpoint_time_boot_ms: int | None
+
+    def poll(self, state: VehicleStateView) -> None: ...
+
+    def attitude_reference(self, state: VehicleStateView) -> AttitudeReference: ...
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Simulation settings (the node builds it from its parameters)."""
+
+    pacing: Pacing = Pacing.LOCKSTEP
+    lockstep_timeout_s: float = 1.0                  # wall clock, s
+    camera_rate_hz: float = DEFAULT_CAMERA_RATE_HZ   # both cameras, Hz
+    initial_position_I: tuple | None = None          # m, {I}; None = world.yaml
+    initial_yaw: float | None = None                 # rad; None = world.yaml
+    wind: WindConfig = field(default_factory=WindConfig)
+    render: bool = True                              # False: physics only (tests)
+    cameras: tuple[str, ...] = ('front', 'down')
+
+
+@dataclass
+class SimEvent:
+    """A contact event: collision (run ends) or touchdown."""
+
+    type: EventType
+    t: float                      # s, sim time
+    surface: str                  # 'floor' | 'wall' | 'window_frame' | 'back_wall'
+    position_I: np.ndarray        # m, body origin in {I}
+    speed_mps: float              # touchdown: vertical speed; collision: speed
+
+    def to_dict(self) -> dict:
+        """Return the JSON object published on ``sim/events`` (position in ``map``, ENU)."""
+        return {'type': self.type.value, 't': round(self.t, 6), 'surface': self.surface,
+                'position_map': [round(float(x), 6) for x in vec_I_to_map(self.position_I)],
+                'speed_mps': round(float(self.speed_mps), 6)}
+
+
+@dataclass
+class FrameOutput:
+    """What one camera period produces: images at capture time t, ground truth, events."""
+
+    t_ns: int
+    images: dict                  # camera name -> (H, W) uint8, empty when rendering is off
+    state: State
+    events: list
+
+    @property
+    def t(self) -> float:
+        """Return the capture time, seconds since boot."""
+        return self.t_ns / NS_PER_S
+
+
+class Simulation:
+    """Compose plant, inner loop, autopilot, renderers, contacts and wind (see module doc)."""
+
+    def __init__(self, world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
+                 autopilot: ReferenceSource, config: SimConfig,
+                 wall_clock: Callable[[], float] = time.monotonic) -> None:
+        self.world, self.vehicle, self.config = world, vehicle, config
+        self.autopilot = autopilot
+        self.wall_clock = wall_clock
+        self.params = PlantParams.from_vehicle(vehicle, floor_z=world.floor_z)
+        self.plant = QuadrotorPlant(self.params)
+        self.controller = AttitudeController(self.params)
+        self.wind = Wind(config.wind)
+        self.period_ns = int(round(NS_PER_S / config.camera_rate_hz))
+        self.dt_ns = int(round(NS_PER_S / self.params.physics_rate_hz))
+        if self.period_ns % self.dt_ns:
+            raise ValueError(f'camera period {self.period_ns} ns is not a multiple of the '
+                             f'physics step {self.dt_ns} ns')
+        self.substeps = self.period_ns // self.dt_ns
+        self.renderers = ({name: SceneRenderer(world, pad, vehicle.cameras[name])
+                           for name in config.cameras} if config.render else {})
+        xi0 = np.asarray(config.initial_position_I if config.initial_position_I is not None
+                         else world.initial_position_I, float)
+        yaw0 = world.initial_yaw if config.initial_yaw is None else float(config.initial_yaw)
+        if xi0.shape != (3,) or not np.all(np.isfinite(xi0)) or not math.isfinite(yaw0):
+            raise ValueError(f'invalid initial condition {xi0}, yaw {yaw0}')
+        self.state = hover_state(self.params, xi0, rot_z(yaw0))
+        self.t_ns = 0
+        self.frame_index = -1                # no frame produced yet
+        self.events: list[SimEvent] = []
+        self.touched_down = False
+        self.ended = False
+        self.lockstep_timeouts = 0
+        self.reference: AttitudeReference | None = None
+        self._next_due_wall: float | None = None
+        self._waiting_since_wall: float | None = None
+
+    # --- state views ---
+    @property
+    def t(self) -> float:
+        """Return the sim time since boot, seconds."""
+        return self.t_ns / NS_PER_S
+
+    def state_view(self) -> VehicleStateView:
+        """Ground truth as the autopilot sees it."""
+        s = self.state
+        return VehicleStateView(self.t, s.xi_I.copy(), s.v_I.copy(), s.R_IB.copy(),
+                                s.Omega_B.copy(), self.plant.last_specific_force_B.copy())
+
+    def last_frame_ms(self) -> int:
+        """Time of the last published frame in whole milliseconds since boot."""
+        return self.t_ns // NS_PER_MS
+
+    # --- pacing ---
+    def tick(self) -> FrameOutput | None:
+        """Produce the next frame if the pacing allows it now, else None (never blocks)."""
+        if self.ended:
+            return None
+        now = self.wall_clock()
+        if self.frame_index < 0:
+            self._next_due_wall = now + self.period_ns / NS_PER_S
+            return self._emit([])
+        if self.config.pacing is Pacing.REALTIME:
+            if now < self._next_due_wall:
+                return None
+            period = self.period_ns / NS_PER_S
+            self._next_due_wall += period
+            if self._next_due_wall <= now:          # fell behind: do not bunch frames
+                self._next_due_wall = now + period
+            return self.step_frame()
+        self.autopilot.poll(self.state_view())
+        answered = self.autopilot.last_setpoint_time_boot_ms
+        if answered is not None and answered >= self.last_frame_ms():
+            return self.step_frame()
+        if now - self._waiting_since_wall >= self.config.lockstep_timeout_s:
+            self.lockstep_timeouts += 1
+            return self.step_frame()
+        return None
+
+    # --- simulation ---
+    def step_frame(self) -> FrameOutput | None:
+        """Simulate one camera period and render (the initial frame first). None once ended."""
+        if self.ended:
+            return None
+        if self.frame_index < 0:
+            return self._emit([])
+        new_events = []
+        for _ in range(self.substeps):
+            view = self.state_view()
+            self.autopilot.poll(view)
+            self.reference = self.autopilot.attitude_reference(view)
+            cmd = self.controller.rotor_commands_q(self.state, self.reference.q_IB_wxyz,
+                                                   self.reference.thrust_norm)
+            self.state = self.plant.step(self.state, cmd, self.wind.force_I(self.t))
+            self.t_ns += self.dt_ns
+            event = self._check_contacts()
+            if event is not None:
+                new_events.append(event)
+                if event.type is EventType.COLLISION:
+                    self.ended = True
+                    break
+        return self._emit(new_events)
+
+    def _emit(self, new_events: list) -> FrameOutput:
+        self.frame_index += 1
+        self._waiting_since_wall = self.wall_clock()
+        images = {name: r.render(self.state.R_IB, self.state.xi_I)
+                  for name, r in self.renderers.items()}
+        self.events.extend(new_events)
+        return FrameOutput(self.t_ns, images, self.state.copy(), new_events)
+
+    def _check_contacts(self) -> SimEvent | None:
+        if self.touched_down:
+            return None
+        s = self.state
+        clearance, surface = min_clearance(s.xi_I, self.world, self.vehicle.envelope_radius,
+                                           self.vehicle.envelope_height)
+        if clearance > 0.0:
+            return None
+        if surface == FLOOR:
+            self.touched_down = True
+            # the plant's floor stops the body within the step: report the speed before it
+            v_z = float(s.v_I[2]) if s.v_I[2] > 0.0 else float(self.plant.last_impact_speed)
+            return SimEvent(EventType.TOUCHDOWN, self.t, surface, s.xi_I.copy(), v_z)
+        return SimEvent(EventType.COLLISION, self.t, surface, s.xi_I.copy(),
+                        float(np.linalg.norm(s.v_I)))

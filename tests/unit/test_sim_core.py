@@ -1,0 +1,137 @@
+"""Simulation loop of ibvs_sim: pacing (lockstep, realtime), determinism and contact events."""
+import numpy as np
+import pytest
+
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.frames import GRAVITY
+from ibvs_sim.core.autopilot import AttitudeReference
+from ibvs_sim.core.dynamics import WindConfig
+from ibvs_sim.core.sim_core import EventType, Pacing, SimConfig, Simulation
+
+
+class FakeAutopilot:
+    """Constant reference; records polls; answers frames when told to."""
+
+    def __init__(self, thrust=0.5, q=(1.0, 0.0, 0.0, 0.0)):
+        self.thrust, self.q = thrust, np.array(q)
+        self.last_setpoint_time_boot_ms = None
+        self.polls = 0
+
+    def poll(self, state):
+        self.polls += 1
+
+    def attitude_reference(self, state):
+        return AttitudeReference(self.q, self.thrust, 'offboard')
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self):
+        return self.now
+
+
+@pytest.fixture(scope='module')
+def configs():
+    return load_world(), load_pad_layout(), load_vehicle()
+
+
+def _sim(configs, ap, clock=None, **kw):
+    world, pad, vehicle = configs
+    cfg = SimConfig(render=kw.pop('render', False), **kw)
+    return Simulation(world, pad, vehicle, ap, cfg, wall_clock=clock or FakeClock())
+
+
+def test_first_frame_is_the_initial_condition_with_images(configs):
+    ap = FakeAutopilot()
+    sim = _sim(configs, ap, render=True)
+    out = sim.tick()
+    assert out.t_ns == 0
+    assert out.state.xi_I == pytest.approx(configs[0].initial_position_I)
+    assert set(out.images) == {'front', 'down'}
+    assert out.images['down'].shape == (480, 752) and out.images['down'].dtype == np.uint8
+
+
+def test_lockstep_waits_for_the_answer_or_the_timeout(configs):
+    ap, clock = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap, clock, pacing=Pacing.LOCKSTEP, lockstep_timeout_s=1.0)
+    assert sim.tick().t_ns == 0
+    assert sim.tick() is None                      # no setpoint yet
+    clock.now += 0.5
+    assert sim.tick() is None
+    ap.last_setpoint_time_boot_ms = 0              # the answer to frame t = 0 ms
+    out = sim.tick()
+    assert out.t_ns == 20_000_000
+    assert sim.tick() is None                      # the answer to 20 ms has not come
+    ap.last_setpoint_time_boot_ms = 19             # stale answer: still waiting
+    assert sim.tick() is None
+    clock.now += 1.0                               # wall-clock timeout
+    assert sim.tick().t_ns == 40_000_000
+    assert sim.lockstep_timeouts == 1
+
+
+def test_realtime_paces_by_the_wall_clock(configs):
+    ap, clock = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap, clock, pacing=Pacing.REALTIME)
+    sim.tick()
+    assert sim.tick() is None
+    clock.now += 0.021
+    assert sim.tick().t_ns == 20_000_000
+    assert sim.tick() is None
+    clock.now += 5.0                               # far behind: one frame, no burst
+    assert sim.tick() is not None and sim.tick() is None
+
+
+def test_hover_reference_keeps_the_initial_condition(configs):
+    sim = _sim(configs, FakeAutopilot(thrust=configs[2].hover_thrust))
+    for _ in range(51):
+        out = sim.step_frame()
+    assert out.t == pytest.approx(1.0)
+    assert out.state.xi_I == pytest.approx(configs[0].initial_position_I, abs=1e-6)
+
+
+def test_two_runs_are_identical(configs):
+    wind = WindConfig(steady_force_I=(0.2, 0.3, 0.0), gust_amplitude_N=0.4, seed=3)
+    finals = []
+    for _ in range(2):
+        sim = _sim(configs, FakeAutopilot(thrust=0.52, q=(0.999, 0.02, -0.03, 0.01)), wind=wind)
+        for _ in range(30):
+            out = sim.step_frame()
+        finals.append(out.state)
+    assert np.array_equal(finals[0].xi_I, finals[1].xi_I)
+    assert np.array_equal(finals[0].R_IB, finals[1].R_IB)
+
+
+def test_touchdown_event_reports_vertical_speed(configs):
+    # thrust 0.4 of a 2 m g maximum: a = g (1 - 0.8) downwards from rest
+    sim = _sim(configs, FakeAutopilot(thrust=0.4), initial_position_I=(0.0, 0.0, -0.6))
+    events = []
+    for _ in range(100):
+        events += sim.step_frame().events
+    assert len(events) == 1 and events[0].type is EventType.TOUCHDOWN
+    drop = 0.6 - configs[2].envelope_height / 2
+    a = 0.2 * GRAVITY      # ignoring the thrust lag: the body starts at hover thrust
+    assert events[0].speed_mps == pytest.approx(np.sqrt(2 * a * drop), rel=0.05)
+    assert events[0].surface == 'floor'
+    assert not sim.ended
+    d = events[0].to_dict()
+    assert d['type'] == 'touchdown' and len(d['position_map']) == 3
+    assert d['position_map'][2] == pytest.approx(configs[2].envelope_height / 2, abs=1e-6)
+
+
+def test_wall_collision_ends_the_run(configs):
+    wind = WindConfig(steady_force_I=(3.0, 0.0, 0.0))
+    sim = _sim(configs, FakeAutopilot(), wind=wind, initial_position_I=(-1.2, 0.0, -0.6))
+    events = []
+    for _ in range(200):
+        out = sim.step_frame()
+        if out is None:
+            break
+        events += out.events
+    assert sim.ended and sim.step_frame() is None and sim.tick() is None
+    assert [e.type for e in events] == [EventType.COLLISION]
+    e = events[0]
+    assert e.surface == 'wall'
+    assert e.position_I[0] == pytest.approx(configs[0].wall_x - configs[2].envelope_radius,
+                                            abs=0.01)

@@ -1,0 +1,167 @@
+"""Plant and inner attitude loop of ibvs_sim against closed forms and measured responses."""
+import math
+
+import numpy as np
+import pytest
+
+from ibvs_control.core.config import load_vehicle
+from ibvs_control.core.frames import (GRAVITY, euler_zyx_from_rot, quat_from_rot,
+                                      rot_from_euler_zyx)
+from ibvs_sim.core.dynamics import (AttitudeController, Mixer, PlantParams, QuadrotorPlant,
+                                    State, Wind, WindConfig, hover_state)
+
+
+@pytest.fixture(scope='module')
+def params():
+    return PlantParams.from_vehicle(load_vehicle())
+
+
+def _run(plant, state, cmd_fn, duration, delta=np.zeros(3)):
+    n = int(round(duration / plant.p.dt))
+    for _ in range(n):
+        state = plant.step(state, cmd_fn(state), delta)
+    return state
+
+
+def test_free_fall_matches_closed_form(params):
+    plant = QuadrotorPlant(params)
+    s = State(np.array([0.0, 0.0, -20.0]), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(4))
+    t = 1.0
+    s = _run(plant, s, lambda _: np.zeros(4), t)
+    assert s.v_I == pytest.approx([0.0, 0.0, GRAVITY * t], abs=1e-9)
+    assert s.xi_I == pytest.approx([0.0, 0.0, -20.0 + 0.5 * GRAVITY * t ** 2], abs=1e-9)
+    assert plant.last_specific_force_B == pytest.approx([0, 0, 0], abs=1e-9)  # weightless
+
+
+def test_hover_is_an_equilibrium(params):
+    plant = QuadrotorPlant(params)
+    R = rot_from_euler_zyx(0.0, 0.0, 0.7)
+    s = hover_state(params, np.array([-2.0, 0.1, -1.82]), R)
+    s = _run(plant, s, lambda _: np.full(4, params.mass * GRAVITY / 4), 2.0)
+    assert s.xi_I == pytest.approx([-2.0, 0.1, -1.82], abs=1e-9)
+    assert np.allclose(s.R_IB, R, atol=1e-9)
+    assert plant.last_specific_force_B == pytest.approx([0, 0, -GRAVITY], abs=1e-9)
+
+
+def test_rotor_lag_first_order(params):
+    plant = QuadrotorPlant(params)
+    s = hover_state(params, np.array([0.0, 0.0, -10.0]), np.eye(3))
+    T0 = s.rotor_thrust[0]
+    cmd = np.full(4, 1.3 * T0)
+    n = 6
+    s = _run(plant, s, lambda _: cmd, n * params.dt)
+    expected = cmd[0] + (T0 - cmd[0]) * math.exp(-n * params.dt / params.tau_up)
+    assert s.rotor_thrust == pytest.approx(np.full(4, expected), rel=1e-9)
+
+
+def test_single_rotor_torque_by_cross_product(params):
+    """Extra thrust on the front-right rotor: Gamma = r x (-dT e3) + k_m dT e3 (CCW)."""
+    mixer = Mixer(params)
+    dT = 1.0
+    T = np.zeros(4)
+    T[0] = dT
+    F, Gamma = mixer.wrench(T)
+    r = params.arm_length / math.sqrt(2) * np.array([1.0, 1.0, 0.0])
+    expected = np.cross(r, [0.0, 0.0, -dT]) + params.moment_constant * dT * np.array([0, 0, 1])
+    assert F == pytest.approx(dT)
+    assert Gamma == pytest.approx(expected)
+    # front-right pushing up: roll left (negative) and pitch up (positive) in FRD
+    assert Gamma[0] < 0 and Gamma[1] > 0
+
+
+def test_angular_acceleration_from_torque(params):
+    plant = QuadrotorPlant(params)
+    hover = params.mass * GRAVITY / 4
+    s = hover_state(params, np.array([0.0, 0.0, -10.0]), np.eye(3))
+    s.rotor_thrust = np.array([hover + 0.2, hover, hover, hover])
+    cmd = s.rotor_thrust.copy()
+    t = 0.01
+    s = _run(plant, s, lambda _: cmd, t)
+    Gamma = Mixer(params).wrench(cmd)[1]
+    assert s.Omega_B == pytest.approx(Gamma / params.inertia_diag * t, rel=1e-3)
+
+
+def test_mixer_respects_rotor_limits(params):
+    mixer = Mixer(params)
+    T = mixer.allocate(params.mass * GRAVITY, np.array([0.3, -0.2, 0.05]))
+    F, Gamma = mixer.wrench(T)
+    assert F == pytest.approx(params.mass * GRAVITY) and Gamma == pytest.approx([0.3, -0.2, 0.05])
+    big = np.array([30.0, 0.0, 0.0])
+    T = mixer.allocate(params.mass * GRAVITY, big)
+    assert np.all(T <= params.rotor_thrust_max + 1e-12) and np.all(T >= params.rotor_thrust_min)
+    F, Gamma = mixer.wrench(T)
+    assert F == pytest.approx(params.mass * GRAVITY)       # thrust priority
+    assert Gamma[0] > 0 and abs(Gamma[1]) < 1e-9           # same direction, scaled down
+    assert mixer.allocate(1e3, np.zeros(3)) == pytest.approx(np.full(4, params.rotor_thrust_max))
+
+
+def test_linear_drag_decay(params):
+    """Level flight at hover thrust: v_x(t) = v0 exp(-k_D t / m) (and no height change)."""
+    plant = QuadrotorPlant(params)
+    s = hover_state(params, np.array([0.0, 0.0, -10.0]), np.eye(3))
+    s.v_I = np.array([2.0, 0.0, 0.0])
+    t = 1.5
+    s = _run(plant, s, lambda _: np.full(4, params.mass * GRAVITY / 4), t)
+    expected = 2.0 * math.exp(-params.drag_coefficient * t / params.mass)
+    assert s.v_I[0] == pytest.approx(expected, rel=2e-3)
+    assert s.xi_I[2] == pytest.approx(-10.0, abs=1e-9)
+
+
+def _step_response(params, roll=0.0, pitch=0.0, yaw=0.0, duration=0.6):
+    plant = QuadrotorPlant(params)
+    ctrl = AttitudeController(params)
+    s = hover_state(params, np.array([0.0, 0.0, -10.0]), np.eye(3))
+    q_d = quat_from_rot(rot_from_euler_zyx(roll, pitch, yaw))
+    t, angles = [], []
+    for k in range(int(duration / params.dt)):
+        s = plant.step(s, ctrl.rotor_commands_q(s, q_d, 0.5), np.zeros(3))
+        t.append((k + 1) * params.dt)
+        angles.append(euler_zyx_from_rot(s.R_IB))
+    return np.array(t), np.array(angles)
+
+
+@pytest.mark.parametrize('axis, step', [(0, 0.2), (1, -0.25)])
+def test_inner_loop_attitude_step_time_constant(params, axis, step):
+    kwargs = {0: 'roll', 1: 'pitch'}
+    t, ang = _step_response(params, **{kwargs[axis]: step})
+    a = ang[:, axis] / step
+    t63 = t[np.argmax(a >= 1.0 - math.exp(-1.0))]
+    print(f'{kwargs[axis]} step {step} rad: 63% at {t63 * 1e3:.0f} ms, '
+          f'overshoot {100 * (a.max() - 1):.1f} %')
+    assert t63 <= 0.1
+    assert abs(a[-1] - 1.0) < 0.02           # settled
+    assert a.max() < 1.25                     # well damped
+
+
+def test_inner_loop_yaw_step(params):
+    t, ang = _step_response(params, yaw=0.3, duration=1.5)
+    assert ang[-1, 2] == pytest.approx(0.3, abs=0.01)
+
+
+def test_floor_stops_a_falling_body(params):
+    plant = QuadrotorPlant(params)
+    s = State(np.array([0.0, 0.0, -0.5]), np.zeros(3), np.eye(3), np.zeros(3), np.zeros(4))
+    s = _run(plant, s, lambda _: np.zeros(4), 1.0)
+    assert s.xi_I[2] == pytest.approx(-params.envelope_height / 2)
+    assert s.v_I == pytest.approx([0, 0, 0])
+    # the impact speed is that of a free fall over 0.4 m (within one step)
+    assert plant.last_impact_speed == pytest.approx(math.sqrt(2 * GRAVITY * 0.4), abs=0.03)
+
+
+def test_wind_default_off_and_gust_mean(params):
+    assert Wind(WindConfig()).force_I(3.0) == pytest.approx([0, 0, 0])
+    w = Wind(WindConfig(steady_force_I=(0.3, -0.2, 0.0), gust_amplitude_N=0.5,
+                        gust_frequency_hz=0.5, seed=4))
+    samples = np.array([w.force_I(t) for t in np.arange(0.0, 200.0, 0.01)])
+    assert samples.mean(axis=0) == pytest.approx([0.3, -0.2, 0.0], abs=0.02)
+    assert np.abs(samples[:, 0] - 0.3).max() == pytest.approx(0.5, abs=0.01)
+
+
+def test_wind_pushes_like_a_force(params):
+    """A steady force on a hovering body: x(t) ~ F t^2 / (2 m) early on (drag negligible)."""
+    plant = QuadrotorPlant(params)
+    s = hover_state(params, np.array([0.0, 0.0, -10.0]), np.eye(3))
+    t = 0.2
+    s = _run(plant, s, lambda _: np.full(4, params.mass * GRAVITY / 4), t,
+             delta=np.array([0.0, 0.5, 0.0]))
+    assert s.xi_I[1] == pytest.approx(0.5 * t ** 2 / (2 * params.mass), rel=0.02)
