@@ -1,0 +1,108 @@
+"""Scenario monitor: the in-process node of ``run_scenario`` that watches one run.
+
+It fills a ``report.RunLog`` ({I}, sim time) from the ground truth, modes, events, force
+setpoint, flows and features, carries the preflight ``GraphHealth`` checks, and calls
+``ibvs/start``. All frame conversions go through ``ibvs_control.core.frames``.
+"""
+from __future__ import annotations
+
+import json
+
+from geometry_msgs.msg import Vector3Stamped
+from ibvs_bringup.preflight import BEST_EFFORT, GraphHealth, LATCHED
+from ibvs_bringup.report import FEATURE_VECTORS, named_vector, RunLog
+from ibvs_control.core import frames
+from nav_msgs.msg import Odometry
+import numpy as np
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import JointState
+from std_msgs.msg import String, UInt8
+from std_srvs.srv import Trigger
+
+FLOW_TOPICS = {'flow_front': 'front_camera/translational_flow',
+               'flow_down': 'down_camera/translational_flow'}
+
+
+def stamp_s(msg) -> float:
+    """Return a header stamp in seconds."""
+    return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
+
+
+def _vec(v) -> np.ndarray:
+    return np.array([v.x, v.y, v.z], dtype=float)
+
+
+def odom_to_I(msg: Odometry) -> tuple:
+    """Return (xi_I, v_I, euler (roll, pitch, yaw of R_IB), omega_FRD) of a ground-truth odom.
+
+    Pose in ``map``; twist in the child frame ``base_link`` (nav_msgs/Odometry convention).
+    """
+    q = msg.pose.pose.orientation
+    R_map_base = frames.rot_from_quat(frames.quat_xyzw_to_wxyz(np.array([q.x, q.y, q.z, q.w])))
+    xi = frames.vec_map_to_I(_vec(msg.pose.pose.position))
+    v_map = R_map_base @ _vec(msg.twist.twist.linear)
+    euler = frames.euler_zyx_from_rot(frames.R_IB_from_rot_map_base(R_map_base))
+    omega = frames.vec_flu_to_frd(_vec(msg.twist.twist.angular))
+    return xi, frames.vec_map_to_I(v_map), np.asarray(euler), omega
+
+
+class ScenarioMonitor(Node):
+    """Subscribe to what a run reports; log it in {I}; expose the health checks."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__('scenario_monitor', parameter_overrides=[
+            Parameter('use_sim_time', value=True)], **kwargs)
+        self.log = RunLog()
+        self.touchdown = None
+        self.collision = None
+        self.disarmed = False
+        self.health = GraphHealth(self)
+        self.create_subscription(Odometry, 'sim/ground_truth/odom', self._on_odom, BEST_EFFORT)
+        self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, LATCHED)
+        self.create_subscription(String, 'sim/events', self._on_event, LATCHED)
+        self.create_subscription(Vector3Stamped, 'ibvs/force_setpoint',
+                                 lambda m: self._on_map_vector('force', m), BEST_EFFORT)
+        for name, topic in FLOW_TOPICS.items():
+            self.create_subscription(Vector3Stamped, topic,
+                                     lambda m, n=name: self._on_map_vector(n, m), BEST_EFFORT)
+        self.create_subscription(JointState, 'ibvs/features', self._on_features, BEST_EFFORT)
+        self.start_client = self.create_client(Trigger, 'ibvs/start')
+
+    def now_s(self) -> float:
+        """Return the node's (sim) time in seconds."""
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _on_odom(self, msg: Odometry) -> None:
+        self.log.add_truth(stamp_s(msg), *odom_to_I(msg))
+
+    def _on_mode(self, msg: UInt8) -> None:
+        if self.log.add_mode(self.now_s(), msg.data):
+            self.get_logger().info(f'mode {msg.data} at t = {self.now_s():.2f} s')
+
+    def _on_event(self, msg: String) -> None:
+        try:
+            event = json.loads(msg.data)
+        except ValueError:
+            self.get_logger().error(f'sim/events: not JSON: {msg.data[:80]!r}')
+            return
+        self.log.events.append(event)
+        if event.get('type') == 'touchdown' and self.touchdown is None:
+            self.touchdown = event
+        elif event.get('type') == 'collision' and self.collision is None:
+            self.collision = event
+
+    def _on_map_vector(self, name: str, msg: Vector3Stamped) -> None:
+        self.log.add_vector(name, stamp_s(msg), frames.vec_map_to_I(_vec(msg.vector)))
+
+    def _on_features(self, msg: JointState) -> None:
+        for name in FEATURE_VECTORS:
+            v = named_vector(list(msg.name), list(msg.position), name)
+            if v is not None:
+                self.log.add_vector(name, stamp_s(msg), v)
+
+    def request_start(self):
+        """Call ibvs/start; return the future (None if the service is not there)."""
+        if not self.start_client.service_is_ready():
+            return None
+        return self.start_client.call_async(Trigger.Request())

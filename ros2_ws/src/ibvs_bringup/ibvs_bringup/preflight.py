@@ -1,0 +1,176 @@
+"""Preflight: wait until the graph is healthy, print a checklist, exit 0 (ready) or 1.
+
+Checks: camera_info valid on both cameras, imu/data flowing, MAVLink link up in /diagnostics
+(a status of the bridge with 'mavlink' in its name at level OK), ibvs/mode present, window
+detected (4 corners on window/corners). ``GraphHealth`` can also be attached to another node
+(``run_scenario`` does) so that the same checks gate a scripted run.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+import sys
+import time
+from typing import Callable
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from geometry_msgs.msg import PolygonStamped
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from sensor_msgs.msg import CameraInfo, Imu
+from std_msgs.msg import UInt8
+
+IMU_MIN_MESSAGES = 10
+IMU_MAX_AGE_S = 1.0
+BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+@dataclass(frozen=True)
+class Check:
+    """One line of the checklist."""
+
+    name: str
+    ok: bool
+    detail: str
+
+
+def camera_info_problem(msg: CameraInfo) -> str | None:
+    """Return what is wrong with a CameraInfo, or None if usable."""
+    if msg.width <= 0 or msg.height <= 0:
+        return f'image size {msg.width}x{msg.height}'
+    k = list(msg.k)
+    if len(k) != 9 or k[0] <= 0 or k[4] <= 0 or not (0 < k[2] < msg.width) \
+            or not (0 < k[5] < msg.height):
+        return f'bad K {k}'
+    if msg.distortion_model not in ('plumb_bob', 'equidistant', 'rational_polynomial', ''):
+        return f'unknown distortion model {msg.distortion_model!r}'
+    return None
+
+
+def armed_state(msg: DiagnosticArray) -> bool | None:
+    """Return the vehicle's armed flag reported by the bridge ('armed' key), None if absent."""
+    for s in msg.status:
+        if 'mavlink' in s.name.lower():
+            for kv in s.values:
+                if kv.key.lower() == 'armed':
+                    return kv.value.strip().lower() in ('true', '1', 'yes')
+    return None
+
+
+def link_up(msg: DiagnosticArray) -> bool | None:
+    """Return the MAVLink link state reported in a DiagnosticArray (None if not reported)."""
+    states = [s.level == DiagnosticStatus.OK for s in msg.status if 'mavlink' in s.name.lower()]
+    return all(states) if states else None
+
+
+class GraphHealth:
+    """Subscriptions that watch the graph's vital signs on a given node."""
+
+    def __init__(self, node: Node, clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self.camera_info: dict = {'front': None, 'down': None}
+        self.imu_count = 0
+        self.imu_last = None
+        self.link: bool | None = None
+        self.armed: bool | None = None
+        self.mode: int | None = None
+        self.window_corners = 0
+        self.subs = [node.create_subscription(CameraInfo, f'{cam}_camera/camera_info',
+                                              lambda m, c=cam: self._on_info(c, m), BEST_EFFORT)
+                     for cam in self.camera_info]
+        self.subs += [
+            node.create_subscription(Imu, 'imu/data', self._on_imu, BEST_EFFORT),
+            node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag,
+                                     BEST_EFFORT),
+            node.create_subscription(UInt8, 'ibvs/mode', self._on_mode, LATCHED),
+            node.create_subscription(PolygonStamped, 'window/corners', self._on_window,
+                                     BEST_EFFORT)]
+
+    def _on_info(self, cam: str, msg: CameraInfo) -> None:
+        self.camera_info[cam] = camera_info_problem(msg) or 'ok'
+
+    def _on_imu(self, msg: Imu) -> None:
+        self.imu_count += 1
+        self.imu_last = self.clock()
+
+    def _on_diag(self, msg: DiagnosticArray) -> None:
+        state, armed = link_up(msg), armed_state(msg)
+        if state is not None:
+            self.link = state
+        if armed is not None:
+            self.armed = armed
+
+    def _on_mode(self, msg: UInt8) -> None:
+        self.mode = int(msg.data)
+
+    def _on_window(self, msg: PolygonStamped) -> None:
+        self.window_corners = len(msg.polygon.points)
+
+    def checklist(self) -> list[Check]:
+        """Return the current checklist."""
+        checks = [Check(f'{cam} camera_info valid', state == 'ok', state or 'not received')
+                  for cam, state in self.camera_info.items()]
+        age = None if self.imu_last is None else self.clock() - self.imu_last
+        imu_ok = self.imu_count >= IMU_MIN_MESSAGES and age is not None and age < IMU_MAX_AGE_S
+        checks.append(Check('imu/data flowing', imu_ok,
+                            f'{self.imu_count} messages' + (f', last {age:.2f} s ago'
+                                                            if age is not None else '')))
+        checks.append(Check('MAVLink link up (/diagnostics)', bool(self.link),
+                            {None: 'not reported', True: 'OK', False: 'DOWN'}[self.link]))
+        checks.append(Check('ibvs/mode present', self.mode is not None,
+                            'not received' if self.mode is None else f'mode {self.mode}'))
+        checks.append(Check('window detected', self.window_corners == 4,
+                            f'{self.window_corners} corners'))
+        return checks
+
+    def healthy(self) -> bool:
+        """Return True if every check passes."""
+        return all(c.ok for c in self.checklist())
+
+
+def format_checklist(checks: list[Check]) -> str:
+    """Return the checklist as text, one '[ OK ]' / '[FAIL]' line per check."""
+    return '\n'.join(f'  [{" OK " if c.ok else "FAIL"}] {c.name}: {c.detail}' for c in checks)
+
+
+def wait_healthy(node: Node, health: GraphHealth, timeout_s: float,
+                 spin_once: Callable[[float], None] | None = None) -> bool:
+    """Spin ``node`` until ``health`` is healthy or ``timeout_s`` (wall) passed."""
+    spin = spin_once or (lambda t: rclpy.spin_once(node, timeout_sec=t))
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if health.healthy():
+            return True
+        spin(0.05)
+    return health.healthy()
+
+
+def main(argv: list | None = None) -> int:
+    """Wait for a healthy graph (``--timeout`` s), print the checklist, return 0 or 1."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--timeout', type=float, default=60.0, help='seconds (wall)')
+    args, ros_args = parser.parse_known_args(argv)
+    rclpy.init(args=ros_args)
+    node = None
+    ok = False
+    try:
+        node = rclpy.create_node('preflight')
+        health = GraphHealth(node)
+        ok = wait_healthy(node, health, args.timeout)
+        print(('PREFLIGHT OK' if ok else f'PREFLIGHT FAILED after {args.timeout:.0f} s') +
+              '\n' + format_checklist(health.checklist()), flush=True)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0 if ok else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,338 @@
+"""Fly the reference scenario through the whole graph and report like the paper (`make run`).
+
+sim (lockstep) <-> MAVLink <-> bridge <-> controller <-> supervisor <-> perception, started
+with the runner (graph.sim_graph), gated by the preflight checks, started with ``ibvs/start``
+and stopped on touchdown + mode 4 (disarm), collision, failsafe, 60 s of sim time or the wall
+timeout. Writes ``results/<run>/``: summary.json (SPEC.md section 5, ibvs_sim's evaluation
+of the ground truth, plus a ``run`` block), the paper's figures (PNG), ``bag/`` (MCAP rosbag2)
+and ``logs/<node>.log``. ``--feature-level`` flies ibvs_sim's feature-level closed loop
+instead (no images, no ROS) and reports the same way.
+
+Exit code: 0 success, 1 the flight failed SPEC.md's criteria, 2 the run could not be flown.
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass, field
+import os
+import re
+import shutil
+import socket
+import sys
+import time
+
+from ibvs_bringup import graph, plots, report
+from ibvs_bringup.runner import ProcessRunner, raise_on_sigterm, Terminated
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+import numpy as np
+
+MAX_SIM_TIME_S = 60.0
+SHUTDOWN_GRACE_S = 3.0        # sim s after touchdown in mode 4 to wait for the disarm
+FAILSAFE_MODE = 5
+SHUTDOWN_MODE = 4
+DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
+
+
+@dataclass
+class RunOptions:
+    """Everything one run needs (from the command line or a test)."""
+
+    run_name: str
+    results_root: str = 'results'
+    initial_position: tuple | None = None
+    wind: tuple | None = None
+    crossing_law: str | None = None
+    bag: bool = True
+    image_every: int = DEFAULT_IMAGE_EVERY
+    feature_level: bool = False
+    timeout_s: float = 900.0            # wall clock, whole run
+    preflight_timeout_s: float = 120.0  # wall clock
+    mavlink_port: int | None = None     # None: a free port
+    params_file: str | None = None
+    plots: bool = True
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def out_dir(self) -> str:
+        return os.path.join(self.results_root, self.run_name)
+
+
+def random_initial_position(seed: int, world=None) -> tuple:
+    """Draw an initial position uniformly from world.yaml's random box (SPEC.md section 2)."""
+    box = (world or load_world()).random_box
+    rng = np.random.default_rng(seed)
+    return tuple(float(rng.uniform(*box[k])) for k in ('x', 'y', 'z'))
+
+
+def free_udp_port() -> int:
+    """Return a UDP port on 127.0.0.1 that is free right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+def prepare_out_dir(opts: RunOptions) -> str:
+    """Create an empty results/<run>/ (a previous run of the same name is replaced)."""
+    if not re.fullmatch(r'[A-Za-z0-9_.+-]+', opts.run_name) or opts.run_name in ('.', '..'):
+        raise ValueError(f'bad run name {opts.run_name!r}: use letters, digits, _ . + -')
+    out = opts.out_dir
+    if os.path.isdir(out):
+        shutil.rmtree(out)
+    os.makedirs(out)
+    return out
+
+
+def _run_block(opts: RunOptions, initial_position, **more) -> dict:
+    return {'name': opts.run_name, 'initial_position_I': list(initial_position),
+            'wind_N': list(opts.wind) if opts.wind else [0.0, 0.0, 0.0],
+            'crossing_law': opts.crossing_law or 'params.yaml',
+            'feature_level': opts.feature_level, **opts.extra, **more}
+
+
+def _finish(opts: RunOptions, summary: dict, data: plots.RunData | None) -> int:
+    report.write_json(os.path.join(opts.out_dir, 'summary.json'), summary)
+    if data is not None and opts.plots:
+        plots.plot_run(data, opts.out_dir)
+    w, ld = summary.get('window', {}), summary.get('landing', {})
+    print(f"run {opts.run_name}: success={summary.get('success')} "
+          f"crossed={w.get('crossed')} clearance={w.get('min_clearance_m')} "
+          f"landed={ld.get('landed')} error={ld.get('error_m')} "
+          f"td_speed={ld.get('touchdown_speed_mps')} duration={summary.get('duration_s')} "
+          f"-> {opts.out_dir}", flush=True)
+    if summary.get('run', {}).get('error'):
+        return 2
+    return 0 if summary.get('success') else 1
+
+
+# --- feature-level run ----------------------------------------------------------------------
+
+def run_feature_level(opts: RunOptions) -> int:
+    """Fly ibvs_sim's feature-level closed loop and report it like a graph run."""
+    try:
+        from ibvs_sim.core import feature_sim
+        from ibvs_control.core.controller import ControllerConfig
+        from ibvs_control.core.supervisor import SupervisorConfig
+        from ibvs_control.core.control_laws import CrossingLaw
+    except ImportError as exc:
+        print(f'--feature-level: the feature-level simulation is not available ({exc})',
+              file=sys.stderr)
+        return 2
+    import yaml
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    with open(opts.params_file or graph.default_params_file(), encoding='utf-8') as f:
+        params = yaml.safe_load(f) or {}
+
+    def section(name: str) -> dict:
+        return (params.get(name) or {}).get('ros__parameters') or {}
+
+    ctrl = ControllerConfig.from_params(section('force_controller'), vehicle, world.window.width)
+    sup = SupervisorConfig.from_params(section('mode_supervisor'))
+    xi0 = opts.initial_position or tuple(world.initial_position_I)
+    law = CrossingLaw(opts.crossing_law) if opts.crossing_law else ctrl.crossing_law
+    wind = np.asarray(opts.wind or (0.0, 0.0, 0.0), dtype=float) / vehicle.mass
+    cfg = feature_sim.FeatureSimConfig(initial_position_I=np.asarray(xi0, dtype=float),
+                                       initial_yaw=world.initial_yaw, wind_accel_I=wind,
+                                       crossing_law=law, max_time_s=MAX_SIM_TIME_S)
+    t0 = time.monotonic()
+    summary, flog = feature_sim.run_feature_scenario(world, pad, vehicle, ctrl, sup, cfg)
+    summary = dict(summary, run=_run_block(opts, xi0, wall_time_s=time.monotonic() - t0,
+                                           stop_reason='feature-level run ended'))
+    return _finish(opts, summary, feature_run_data(flog, world, pad))
+
+
+def feature_run_data(flog, world, pad) -> plots.RunData:
+    """Convert ibvs_sim's FeatureSimLog into the plots' RunData."""
+    log = report.RunLog()
+    t, xi, v = flog.truth.arrays()
+    for i in range(len(t)):
+        log.add_truth(t[i], xi[i], v[i], np.full(3, np.nan), np.full(3, np.nan))
+    for i, tc in enumerate(flog.t_ctrl):
+        log.add_mode(tc, flog.mode[i])
+        for name, seq in (('force', flog.F_I), ('q_w_bar', flog.q_w_bar), ('q_t', flog.q_t),
+                          ('flow_down', flog.phi_t), ('flow_front', flog.phi_w)):
+            value = seq[i]
+            log.add_vector(name, tc, np.full(3, np.nan) if value is None else value)
+    return report.run_data(log, world, pad)
+
+
+# --- whole-graph run ------------------------------------------------------------------------
+
+def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
+    """Return the node specs of a run: the sim graph plus the recorder."""
+    gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
+                               mavlink_port=port, initial_position=initial_position,
+                               wind=opts.wind, crossing_law=opts.crossing_law)
+    specs = graph.sim_graph(gopts)
+    if opts.bag:
+        specs.append(graph.tool_node('recorder', 'recorder', ({
+            'use_sim_time': True, 'bag_path': os.path.abspath(os.path.join(opts.out_dir, 'bag')),
+            'image_every': int(opts.image_every)},)))
+    return specs
+
+
+def missing_executables(specs) -> list[str]:
+    """Return why nodes of ``specs`` cannot start here (empty: all present)."""
+    from ibvs_bringup.ros2run import unavailable_reason
+    return [r for r in (unavailable_reason(s.package, s.executable) for s in specs) if r]
+
+
+class _Stop(Exception):
+    pass
+
+
+def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str:
+    """Preflight, start, watch; return the stop reason (raise _Stop on a run error)."""
+    import rclpy
+    from ibvs_bringup.preflight import format_checklist
+
+    def spin(dt: float) -> None:
+        rclpy.spin_once(monitor, timeout_sec=dt)
+        dead = runner.dead()
+        if dead:
+            raise _Stop('; '.join(d.report() for d in dead))
+        if time.monotonic() - t_wall0 > opts.timeout_s:
+            raise _Stop(f'wall-clock timeout {opts.timeout_s:.0f} s')
+
+    deadline = time.monotonic() + opts.preflight_timeout_s
+    while not monitor.health.healthy() and time.monotonic() < deadline:
+        spin(0.05)
+    print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
+    if not monitor.health.healthy():
+        raise _Stop(f'preflight failed after {opts.preflight_timeout_s:.0f} s')
+    future = None
+    while future is None or not future.done():
+        if future is None:
+            future = monitor.request_start()
+        spin(0.05)
+        if time.monotonic() > deadline + 30.0:
+            raise _Stop('ibvs/start did not answer')
+    result = future.result()
+    if not result.success:
+        raise _Stop(f'ibvs/start refused: {result.message}')
+    t_start = monitor.now_s()
+    print(f'started at sim t = {t_start:.2f} s: {result.message}', flush=True)
+    next_print = time.monotonic()
+    while True:
+        spin(0.02)
+        t_sim = monitor.now_s()
+        mode = monitor.log.mode
+        if time.monotonic() >= next_print:
+            next_print += 1.0
+            xi = monitor.log.xi[-1] if monitor.log.xi else np.full(3, np.nan)
+            print(f'  t = {t_sim:6.2f} s  mode {mode}  xi_I = '
+                  f'({xi[0]:+.2f}, {xi[1]:+.2f}, {xi[2]:+.2f})', flush=True)
+        if monitor.collision is not None:
+            return f"collision with {monitor.collision.get('surface')}"
+        if mode == FAILSAFE_MODE:
+            return 'failsafe'
+        if monitor.touchdown is not None and mode == SHUTDOWN_MODE:
+            if monitor.health.armed is False:
+                return 'touchdown, mode 4, disarmed'
+            td_t = float(monitor.touchdown.get('t', t_sim))
+            if t_sim - td_t > SHUTDOWN_GRACE_S:
+                return 'touchdown, mode 4 (no disarm report)'
+        if t_sim - t_start > MAX_SIM_TIME_S:
+            return f'{MAX_SIM_TIME_S:.0f} s of sim time'
+
+
+def run_graph(opts: RunOptions) -> int:
+    """Fly the whole graph once; write results/<run>/."""
+    import rclpy
+    from ibvs_bringup.monitor_node import ScenarioMonitor
+
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    xi0 = opts.initial_position or tuple(float(x) for x in world.initial_position_I)
+    port = opts.mavlink_port or free_udp_port()
+    specs = graph_specs(opts, port, xi0)
+    missing = missing_executables(specs)
+    if missing:
+        summary = report.summarize(report.RunLog(), world, 0.0, 0.0)
+        summary['run'] = _run_block(opts, xi0, error='nodes missing: ' + '; '.join(missing))
+        print('cannot fly: ' + '; '.join(missing), file=sys.stderr)
+        return _finish(opts, summary, None)
+    t_wall0 = time.monotonic()
+    runner = ProcessRunner(log_dir=os.path.join(opts.out_dir, 'logs'))
+    rclpy.init(args=[])
+    monitor = None
+    stop_reason, error = None, None
+    try:
+        monitor = ScenarioMonitor()
+        runner.start_graph(specs)
+        print(f'run {opts.run_name}: started {len(specs)} nodes (MAVLink port {port}), '
+              f'initial position {xi0}', flush=True)
+        stop_reason = fly(opts, monitor, runner, t_wall0)
+    except _Stop as exc:
+        error = str(exc)
+    except (KeyboardInterrupt, Terminated):
+        error = 'interrupted'
+    finally:
+        codes = runner.stop()
+        if monitor is not None:
+            for _ in range(20):               # drain what arrived meanwhile
+                rclpy.spin_once(monitor, timeout_sec=0.0)
+        log = monitor.log if monitor is not None else report.RunLog()
+        if monitor is not None:
+            monitor.destroy_node()
+        rclpy.try_shutdown()
+    print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
+    summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
+    summary['run'] = _run_block(opts, xi0, stop_reason=stop_reason, error=error,
+                                wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
+                                events=log.events)
+    return _finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
+
+
+def parse_args(argv: list | None = None) -> RunOptions:
+    """Parse the command line into RunOptions."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument('--run-name', default=None, help='results/<run-name>/ (default: derived)')
+    p.add_argument('--results-root', default='results')
+    ic = p.add_mutually_exclusive_group()
+    ic.add_argument('--initial-position', type=float, nargs=3, metavar=('X', 'Y', 'Z'),
+                    help='paper frame {I}, m (default: world.yaml, the paper\'s)')
+    ic.add_argument('--random-ic', type=int, metavar='SEED',
+                    help='draw the initial position from the SPEC box with this seed')
+    p.add_argument('--wind', type=float, nargs=3, metavar=('FX', 'FY', 'FZ'),
+                   help='constant wind force in {I}, N')
+    p.add_argument('--crossing-law', choices=graph.CROSSING_LAWS)
+    p.add_argument('--no-bag', action='store_true', help='do not record a bag')
+    p.add_argument('--bag-image-every', type=int, default=DEFAULT_IMAGE_EVERY,
+                   help='record every N-th camera frame (1: all)')
+    p.add_argument('--no-plots', action='store_true')
+    p.add_argument('--feature-level', action='store_true',
+                   help="fly ibvs_sim's feature-level closed loop (no images, no ROS)")
+    p.add_argument('--timeout', type=float, default=900.0, help='wall-clock limit, s')
+    p.add_argument('--preflight-timeout', type=float, default=120.0)
+    p.add_argument('--mavlink-port', type=int, default=None, help='default: a free UDP port')
+    p.add_argument('--params-file', default=None)
+    a = p.parse_args(argv)
+    xi0 = tuple(a.initial_position) if a.initial_position else None
+    extra = {}
+    if a.random_ic is not None:
+        xi0 = random_initial_position(a.random_ic)
+        extra['random_ic_seed'] = a.random_ic
+    name = a.run_name or ('feature-' if a.feature_level else '') + (
+        f'random-{a.random_ic}' if a.random_ic is not None else
+        'ic_' + '_'.join(f'{x:+.2f}' for x in xi0) if xi0 else 'reference')
+    return RunOptions(run_name=name, results_root=a.results_root, initial_position=xi0,
+                      wind=tuple(a.wind) if a.wind else None, crossing_law=a.crossing_law,
+                      bag=not a.no_bag, image_every=max(1, a.bag_image_every),
+                      feature_level=a.feature_level, timeout_s=a.timeout,
+                      preflight_timeout_s=a.preflight_timeout, mavlink_port=a.mavlink_port,
+                      params_file=a.params_file, plots=not a.no_plots, extra=extra)
+
+
+def main(argv: list | None = None) -> int:
+    """Run one scenario from the command line; return the exit code."""
+    opts = parse_args(argv)
+    try:
+        prepare_out_dir(opts)
+    except (ValueError, OSError) as exc:
+        print(f'run_scenario: {exc}', file=sys.stderr)
+        return 2
+    raise_on_sigterm()
+    return run_feature_level(opts) if opts.feature_level else run_graph(opts)
+
+
+if __name__ == '__main__':
+    sys.exit(main())
