@@ -1,0 +1,262 @@
+"""ROS 2 node ``sim``: the simulated Pelican-class quadrotor, its two cameras and its autopilot.
+
+It IS the clock of the graph (publishes ``/clock``; every other node runs with use_sim_time).
+Its own timer runs on the steady wall clock. Per camera period (20 ms of sim time) it publishes,
+all stamped with the capture time: ``/clock``, ``front_camera/image_raw``,
+``down_camera/image_raw`` (mono8, sensor-data QoS), their ``camera_info``,
+``sim/ground_truth/odom`` (evaluation only) and, when they happen, contact events on
+``sim/events`` (JSON in std_msgs/String, transient local). The autopilot speaks MAVLink on
+``mavlink_url``. Pacing, wind and the initial condition are parameters (docs/interfaces.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import json
+import math
+
+import numpy as np
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+
+from builtin_interfaces.msg import Time
+from nav_msgs.msg import Odometry
+from rosgraph_msgs.msg import Clock as ClockMsg
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from ibvs_control.core.camera import CameraModel
+from ibvs_control.core.config import (ConfigError, load_pad_layout, load_vehicle, load_world)
+from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_base_from_R_IB,
+                                      vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
+from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
+from ibvs_sim.core.dynamics import State, WindConfig
+from ibvs_sim.core.sim_core import FrameOutput, NS_PER_S, Pacing, SimConfig, Simulation
+
+NODE_NAME = 'sim'
+MAP_FRAME = 'map'
+BASE_FRAME = 'base_link'
+MONO8 = 'mono8'
+CAMERAS = ('front', 'down')
+LOG_THROTTLE_S = 2.0
+EVENTS_DEPTH = 20
+RELIABLE_DEPTH = 10
+
+
+@dataclass(frozen=True)
+class SimNodeConfig:
+    """Everything the node reads from its parameters."""
+
+    pacing: Pacing
+    lockstep_timeout_s: float
+    tick_period_s: float
+    initial_position_I: tuple | None
+    initial_yaw: float | None
+    wind_force_map: tuple
+    wind_gust_amplitude_N: float
+    wind_gust_frequency_hz: float
+    mavlink_url: str
+    signing_key_file: str
+    world_file: str
+    pad_layout_file: str
+    vehicle_file: str
+    seed: int
+
+
+def stamp_from_ns(t_ns: int) -> Time:
+    """builtin_interfaces/Time of a sim time in integer nanoseconds."""
+    return Time(sec=int(t_ns // NS_PER_S), nanosec=int(t_ns % NS_PER_S))
+
+
+def image_msg(img: np.ndarray, stamp: Time, frame_id: str) -> Image:
+    """Mono8 sensor_msgs/Image from an (H, W) uint8 array."""
+    msg = Image()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = int(img.shape[0]), int(img.shape[1])
+    msg.encoding = MONO8
+    msg.is_bigendian = 0
+    msg.step = int(img.shape[1])
+    msg.data = np.ascontiguousarray(img).tobytes()
+    return msg
+
+
+def camera_info_msg(model: CameraModel, stamp: Time, frame_id: str) -> CameraInfo:
+    """Build the CameraInfo of a calibrated camera: K, D, R = I, P = [K | 0]."""
+    msg = CameraInfo()
+    msg.header.stamp = stamp
+    msg.header.frame_id = frame_id
+    msg.width, msg.height = model.width, model.height
+    msg.distortion_model = model.distortion_model
+    msg.d = [float(x) for x in model.D]
+    msg.k = [float(x) for x in model.K.ravel()]
+    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+    P = np.hstack([model.K, np.zeros((3, 1))])
+    msg.p = [float(x) for x in P.ravel()]
+    return msg
+
+
+def odometry_msg(state: State, stamp: Time) -> Odometry:
+    """Build the ground truth as nav_msgs/Odometry (map ENU / base_link FLU).
+
+    Pose of base_link in map; twist in base_link (Odometry's convention: child frame).
+    """
+    R_map_base = rot_map_base_from_R_IB(state.R_IB)
+    msg = Odometry()
+    msg.header.stamp = stamp
+    msg.header.frame_id = MAP_FRAME
+    msg.child_frame_id = BASE_FRAME
+    p = vec_I_to_map(state.xi_I)
+    msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = map(float, p)
+    q = quat_wxyz_to_xyzw(quat_from_rot(R_map_base))
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = map(float, q)
+    v_base = R_map_base.T @ vec_I_to_map(state.v_I)
+    w_base = vec_frd_to_flu(state.Omega_B)
+    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+    lin.x, lin.y, lin.z = map(float, v_base)
+    ang.x, ang.y, ang.z = map(float, w_base)
+    return msg
+
+
+class SimNode(Node):
+    """Publish camera frames, camera info, ground truth and /clock from :class:`Simulation`."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        cfg = self._read_parameters()
+        world = load_world(cfg.world_file or None)
+        pad = load_pad_layout(cfg.pad_layout_file or None)
+        vehicle = load_vehicle(cfg.vehicle_file or None)
+        self.cameras = {name: vehicle.cameras[name] for name in CAMERAS}
+        self.autopilot = Autopilot(AutopilotConfig(
+            url=cfg.mavlink_url, hover_thrust=vehicle.hover_thrust,
+            signing_key_file=cfg.signing_key_file or None, noise_seed=cfg.seed,
+            mass=vehicle.mass, floor_z=world.floor_z))
+        wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
+                          gust_amplitude_N=cfg.wind_gust_amplitude_N,
+                          gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
+        self.sim = Simulation(world, pad, vehicle, self.autopilot, SimConfig(
+            pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
+            camera_rate_hz=self.cameras['down'].rate_hz,
+            initial_position_I=cfg.initial_position_I, initial_yaw=cfg.initial_yaw,
+            wind=wind, cameras=CAMERAS))
+        reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=EVENTS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.image_pubs = {n: self.create_publisher(Image, f'{n}_camera/image_raw',
+                                                    qos_profile_sensor_data) for n in CAMERAS}
+        self.info_pubs = {n: self.create_publisher(CameraInfo, f'{n}_camera/camera_info',
+                                                   reliable) for n in CAMERAS}
+        self.odom_pub = self.create_publisher(Odometry, 'sim/ground_truth/odom', reliable)
+        self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
+        self.events_pub = self.create_publisher(String, 'sim/events', latched)
+        self._ended_logged = False
+        self.timer = self.create_timer(cfg.tick_period_s, self._on_tick,
+                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(
+            f'sim: {cfg.pacing.value} pacing, MAVLink {cfg.mavlink_url}, start at '
+            f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {cfg.wind_force_map} N (map)')
+
+    def _read_parameters(self) -> SimNodeConfig:
+        p = {
+            'pacing': Pacing.LOCKSTEP.value,
+            'lockstep_timeout_s': 1.0,
+            'tick_period_s': 0.002,
+            'initial_override': False,
+            'initial_position_I': [-2.0, 0.1, -1.82],
+            'initial_yaw': 0.0,
+            'wind_force_map': [0.0, 0.0, 0.0],
+            'wind_gust_amplitude_N': 0.0,
+            'wind_gust_frequency_hz': 0.5,
+            'mavlink_url': 'udpin:127.0.0.1:14560',
+            'signing_key_file': '',
+            'world_file': '',
+            'pad_layout_file': '',
+            'vehicle_file': '',
+            'seed': 0,
+        }
+        v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
+        try:
+            pacing = Pacing(v['pacing'])
+        except ValueError as exc:
+            raise ValueError(f"parameter pacing must be 'lockstep' or 'realtime', "
+                             f"got {v['pacing']!r}") from exc
+        pos = [float(x) for x in v['initial_position_I']]
+        yaw = float(v['initial_yaw'])
+        if len(pos) != 3 or not all(math.isfinite(x) for x in pos + [yaw]):
+            raise ValueError(f'initial_position_I needs 3 finite numbers and initial_yaw a '
+                             f'finite one, got {pos}, {yaw}')
+        override = bool(v['initial_override'])
+        wind = [float(x) for x in v['wind_force_map']]
+        if len(wind) != 3 or not all(math.isfinite(x) for x in wind):
+            raise ValueError(f'parameter wind_force_map needs 3 finite numbers, got {wind}')
+        if v['lockstep_timeout_s'] <= 0 or v['tick_period_s'] <= 0:
+            raise ValueError('lockstep_timeout_s and tick_period_s must be positive')
+        return SimNodeConfig(
+            pacing=pacing, lockstep_timeout_s=float(v['lockstep_timeout_s']),
+            tick_period_s=float(v['tick_period_s']),
+            initial_position_I=tuple(pos) if override else None,
+            initial_yaw=yaw if override else None,
+            wind_force_map=tuple(wind),
+            wind_gust_amplitude_N=float(v['wind_gust_amplitude_N']),
+            wind_gust_frequency_hz=float(v['wind_gust_frequency_hz']),
+            mavlink_url=str(v['mavlink_url']), signing_key_file=str(v['signing_key_file']),
+            world_file=str(v['world_file']), pad_layout_file=str(v['pad_layout_file']),
+            vehicle_file=str(v['vehicle_file']), seed=int(v['seed']))
+
+    def _on_tick(self) -> None:
+        try:
+            out = self.sim.tick()
+        except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
+            self.sim.ended = True
+            self.get_logger().error(f'simulation stopped: {exc}',
+                                    throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        if out is not None:
+            self._publish(out)
+        elif self.sim.ended and not self._ended_logged:
+            self._ended_logged = True
+            self.get_logger().error(f'run ended by a collision at t={self.sim.t:.3f} s: '
+                                    f'{self.sim.events[-1].to_dict()}')
+
+    def _publish(self, out: FrameOutput) -> None:
+        stamp = stamp_from_ns(out.t_ns)
+        self.clock_pub.publish(ClockMsg(clock=stamp))
+        for name, img in out.images.items():
+            cam = self.cameras[name]
+            self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
+            self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))
+        self.odom_pub.publish(odometry_msg(out.state, stamp))
+        for event in out.events:
+            self.events_pub.publish(String(data=json.dumps(event.to_dict())))
+            self.get_logger().info(f'event: {event.to_dict()}')
+
+    def destroy_node(self) -> None:
+        """Close the MAVLink endpoint, then destroy the node."""
+        self.autopilot.close()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    """Run the sim node until Ctrl-C (demo_nodes_py pattern)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = SimNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ConfigError, ValueError) as exc:
+        rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
