@@ -1,0 +1,86 @@
+"""Buffer of recent IMU attitudes, interpolated or propagated to an image stamp.
+
+Attitudes are the paper's R_IB (body FRD -> {I}); rates Omega are body FRD (rad/s), so that
+``R_dot = R S(Omega)`` (paper eq:R). Between two samples the attitude is interpolated on SO(3)
+(geodesic: ``R_a exp(s log(R_a^T R_b))``); after the newest sample it is propagated with its
+rate for at most ``max_extrapolation_s``. Stamps are seconds (any clock, as long as images and
+IMU share it).
+"""
+from __future__ import annotations
+
+import bisect
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ibvs_control.core.frames import is_rotation
+
+
+@dataclass(frozen=True)
+class AttitudeBufferConfig:
+    """Sizes and tolerances of :class:`AttitudeBuffer`."""
+
+    history_s: float = 1.0              # samples older than newest - history_s are dropped
+    max_extrapolation_s: float = 0.05   # propagation beyond the newest sample, at most
+    max_interpolation_gap_s: float = 0.2  # two samples farther apart are not interpolated
+
+
+def _exp_so3(rotvec: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(rotvec, dtype=np.float64).reshape(3, 1))[0]
+
+
+def _log_so3(R: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].reshape(3)
+
+
+class AttitudeBuffer:
+    """Time-ordered IMU attitudes with interpolation to arbitrary stamps."""
+
+    def __init__(self, config: AttitudeBufferConfig) -> None:
+        self.config = config
+        self._stamps: list[float] = []
+        self._R: list[np.ndarray] = []
+        self._omega: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def add(self, stamp_s: float, R_IB: np.ndarray, omega_B: np.ndarray) -> None:
+        """Insert a sample; raises ValueError for non-finite values or a non-rotation."""
+        R_IB = np.asarray(R_IB, dtype=float)
+        omega_B = np.asarray(omega_B, dtype=float).reshape(3)
+        if not np.isfinite(stamp_s) or not np.all(np.isfinite(omega_B)) \
+                or not is_rotation(R_IB, tol=1e-4):
+            raise ValueError('IMU sample with a non-finite stamp/rate or an invalid attitude')
+        i = bisect.bisect_right(self._stamps, stamp_s)
+        if i > 0 and self._stamps[i - 1] == stamp_s:
+            self._R[i - 1], self._omega[i - 1] = R_IB, omega_B
+            return
+        self._stamps.insert(i, float(stamp_s))
+        self._R.insert(i, R_IB)
+        self._omega.insert(i, omega_B)
+        cutoff = self._stamps[-1] - self.config.history_s
+        drop = bisect.bisect_left(self._stamps, cutoff)
+        if drop > 0:
+            del self._stamps[:drop], self._R[:drop], self._omega[:drop]
+
+    def attitude_at(self, stamp_s: float) -> np.ndarray | None:
+        """R_IB at ``stamp_s`` or None when the buffer does not cover it."""
+        if not self._stamps or not np.isfinite(stamp_s):
+            return None
+        cfg = self.config
+        i = bisect.bisect_right(self._stamps, stamp_s)
+        if i == len(self._stamps):
+            dt = stamp_s - self._stamps[-1]
+            if dt > cfg.max_extrapolation_s:
+                return None
+            return self._R[-1] @ _exp_so3(self._omega[-1] * dt)
+        if i == 0:
+            return None
+        t0, t1 = self._stamps[i - 1], self._stamps[i]
+        if t1 - t0 > cfg.max_interpolation_gap_s:
+            return None
+        s = (stamp_s - t0) / (t1 - t0)
+        R0 = self._R[i - 1]
+        return R0 @ _exp_so3(s * _log_so3(R0.T @ self._R[i]))

@@ -1,0 +1,251 @@
+"""Translational optical flow phi = v / d of a plane of known normal, from one camera.
+
+Paper eq:p_t (floor) and its wall analogue: a static point of a plane with unit normal eta
+(from the camera towards the plane, in {I}) at distance d has the derotated bearing rate
+
+    p_dot = -(eta^T p) pi_p phi,       phi = v / d   (1/s, in {I}),
+
+where p is the unit bearing in {I} (p = R_IB R_BC b_C, frames.bearings_C_to_I) and
+pi_p = I - p p^T (eq:pi). Derotation uses the IMU attitude at each image stamp, so the rotation
+between frames cancels exactly (up to the attitude error).
+
+Pipeline per image: pyramidal Lucas-Kanade (cv2.calcOpticalFlowPyrLK) of the tracked features
+from the previous image; each track gives p(t0), p(t1) in {I} (undistorted, derotated);
+p_dot ~ (p1 - p0) / dt at the mid bearing; phi by least squares over all tracks with an
+iterated Huber re-weighting and a final inlier gate (in pixels). Features are replenished
+cheaply: goodFeaturesToTrack only inside grid cells that have too few tracks, and only every
+``replenish_every_n_frames`` frames (or at once when the tracks run short).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ibvs_control.core.camera import CameraModel
+from ibvs_control.core.features import (centroid_feature, edge_normals, window_axes,
+                                        window_normal)
+from ibvs_control.core.frames import bearings_C_to_I
+
+#: largest condition number of the normal equations accepted (a degenerate point spread)
+_MAX_CONDITION = 1e8
+
+
+@dataclass(frozen=True)
+class FlowConfig:
+    """Tuning of :class:`FlowEstimator` (pixels are distorted image pixels)."""
+
+    grid_cols: int = 8                      # replenishment grid
+    grid_rows: int = 6
+    min_tracks_per_cell: int = 3            # a cell with fewer tracks gets new features
+    features_per_cell: int = 6              # goodFeaturesToTrack budget per replenished cell
+    replenish_every_n_frames: int = 5       # replenish period (frames)
+    min_tracks: int = 60                    # fewer tracks: replenish at once
+    quality_level: float = 0.02             # goodFeaturesToTrack quality (fraction of best)
+    min_distance_px: float = 10.0           # between features
+    lk_window_px: int = 15                  # LK window side
+    lk_pyramid_levels: int = 3              # LK pyramid levels above the base image
+    lk_max_error: float = 25.0              # LK mean absolute patch error, grey levels
+    border_px: float = 8.0                  # tracks closer to the border are dropped
+    inlier_threshold_px: float = 0.5        # residual of an inlier track, px over one frame
+    huber_iterations: int = 4               # IRLS iterations before the inlier gate
+    min_inliers: int = 20                   # fewer inliers: no flow published
+    min_inlier_ratio: float = 0.3           # inliers / tracks below this: no flow
+    min_cos_plane: float = 0.05             # eta^T p below this (grazing, or off-plane): dropped
+    exclusion_margin_rad: float = 0.02      # widening of the excluded window aperture
+    min_frame_gap_s: float = 1e-4           # consecutive image stamps: accepted gap
+    max_frame_gap_s: float = 0.1
+
+
+@dataclass(frozen=True)
+class FlowResult:
+    """One flow estimate between two images."""
+
+    phi_I: np.ndarray | None    # (3,) v/d in {I}, 1/s; None when not enough inliers
+    inlier_ratio: float         # inliers / usable tracks, [0, 1]
+    n_inliers: int
+    n_tracks: int
+
+
+def wall_normal_from_corners(corner_bearings_C: np.ndarray, R_IB: np.ndarray,
+                             R_BC: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """eta_w (eq:etaw, sign eta_w^T q_w < 0: from the camera towards the wall) and the corner
+    bearings in {I}, from the window corners (4, 3) in the front optical frame."""
+    p_I = bearings_C_to_I(corner_bearings_C, R_IB, R_BC)
+    u_w, rho_w = window_axes(edge_normals(p_I), p_I)
+    return window_normal(u_w, rho_w, centroid_feature(p_I)), p_I
+
+
+def inside_spherical_polygon(p: np.ndarray, corners: np.ndarray, margin_rad: float) -> np.ndarray:
+    """Whether unit bearings p (N, 3) fall inside the convex spherical polygon of ``corners``
+    (K, 3), widened by ``margin_rad`` (all in one frame)."""
+    h = np.cross(corners, np.roll(corners, -1, axis=0))
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    centre = corners.mean(axis=0)
+    h *= np.sign(h @ centre)[:, None]     # inward normals of the great-circle edges
+    return np.all(p @ h.T > -np.sin(margin_rad), axis=1)
+
+
+def solve_translational_flow(p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: np.ndarray,
+                             weights: np.ndarray) -> np.ndarray | None:
+    """Weighted least squares phi of p_dot = -(eta^T p) pi_p phi over tracks (eq:p_t).
+
+    p0, p1: unit bearings (N, 3) in {I} at t0 and t0 + dt; the model is evaluated at the mid
+    bearing. Returns phi (3,) in 1/s or None for a degenerate set.
+    """
+    p_mid = p0 + p1
+    p_mid /= np.linalg.norm(p_mid, axis=1, keepdims=True)
+    p_dot = (p1 - p0) / dt
+    c = p_mid @ eta_I
+    # A_i = -c_i pi_i: A_i^T A_i = c_i^2 pi_i, A_i^T y_i = -c_i pi_i y_i
+    pi_y = p_dot - p_mid * np.sum(p_mid * p_dot, axis=1, keepdims=True)
+    wc2 = weights * c * c
+    M = wc2.sum() * np.eye(3) - (p_mid * wc2[:, None]).T @ p_mid
+    b = -((weights * c)[:, None] * pi_y).sum(axis=0)
+    if not np.all(np.isfinite(M)) or np.linalg.cond(M) > _MAX_CONDITION:
+        return None
+    return np.linalg.solve(M, b)
+
+
+def flow_residuals(p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: np.ndarray,
+                   phi: np.ndarray) -> np.ndarray:
+    """|p1 - p0 - dt p_dot_model| per track (rad over one frame)."""
+    p_mid = p0 + p1
+    p_mid /= np.linalg.norm(p_mid, axis=1, keepdims=True)
+    c = p_mid @ eta_I
+    pi_phi = phi[None, :] - p_mid * (p_mid @ phi)[:, None]
+    model = -c[:, None] * pi_phi
+    return np.linalg.norm(p1 - p0 - dt * model, axis=1)
+
+
+class FlowEstimator:
+    """Feature tracker and translational-flow estimator of one camera (stateful)."""
+
+    def __init__(self, config: FlowConfig, camera: CameraModel, R_BC: np.ndarray) -> None:
+        self.config = config
+        self.camera = camera
+        self.R_BC = np.asarray(R_BC, dtype=float)
+        self._win = (config.lk_window_px, config.lk_window_px)
+        self._criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.001)
+        self.reset()
+
+    def reset(self) -> None:
+        """Drop the tracks and the previous image."""
+        self._previous: np.ndarray | None = None
+        self._points = np.zeros((0, 2), np.float32)
+        self._stamp: float | None = None
+        self._R_IB: np.ndarray | None = None
+        self._frame_count = 0
+
+    @property
+    def n_points(self) -> int:
+        """Number of features currently tracked."""
+        return len(self._points)
+
+    def process(self, gray: np.ndarray, stamp_s: float, R_IB: np.ndarray | None,
+                eta_I: np.ndarray | None, exclude_I: np.ndarray | None = None
+                ) -> FlowResult | None:
+        """Track into ``gray`` and estimate phi between the previous image and this one.
+
+        R_IB: attitude at ``stamp_s`` (None: unknown, no estimate). eta_I: unit plane normal in
+        {I} from the camera towards the plane (None: no estimate, tracking continues).
+        exclude_I: corner bearings (K, 3) in {I} of a region whose points are not on the plane
+        (the window aperture). Returns None when no estimate was attempted.
+        """
+        cfg = self.config
+        result = None
+        dt = None if self._stamp is None else stamp_s - self._stamp
+        if dt is None or not cfg.min_frame_gap_s <= dt <= cfg.max_frame_gap_s \
+                or self._previous is None or gray.shape != self._previous.shape:
+            self._points = np.zeros((0, 2), np.float32)
+        elif len(self._points):
+            prev_pts, cur_pts = self._track(gray)
+            if R_IB is not None and self._R_IB is not None and eta_I is not None \
+                    and len(cur_pts):
+                result = self._estimate(prev_pts, cur_pts, self._R_IB, R_IB, dt,
+                                        np.asarray(eta_I, dtype=float), exclude_I)
+            self._points = cur_pts
+        self._frame_count += 1
+        if len(self._points) < cfg.min_tracks \
+                or self._frame_count % cfg.replenish_every_n_frames == 0:
+            self._replenish(gray)
+        self._previous, self._stamp, self._R_IB = gray, stamp_s, R_IB
+        return result
+
+    def _track(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """LK-track the features from the previous image; returns (prev, cur) of the good."""
+        cfg = self.config
+        prev = self._points.reshape(-1, 1, 2)
+        cur, status, err = cv2.calcOpticalFlowPyrLK(
+            self._previous, gray, prev, None, winSize=self._win,
+            maxLevel=cfg.lk_pyramid_levels, criteria=self._criteria)
+        cur = cur.reshape(-1, 2)
+        h, w = gray.shape[:2]
+        b = cfg.border_px
+        ok = (status.reshape(-1) == 1) & (err.reshape(-1) < cfg.lk_max_error) \
+            & np.all(np.isfinite(cur), axis=1) \
+            & (cur[:, 0] >= b) & (cur[:, 0] <= w - 1 - b) \
+            & (cur[:, 1] >= b) & (cur[:, 1] <= h - 1 - b)
+        return self._points[ok], cur[ok].astype(np.float32)
+
+    def _estimate(self, prev_px: np.ndarray, cur_px: np.ndarray, R0: np.ndarray,
+                  R1: np.ndarray, dt: float, eta_I: np.ndarray,
+                  exclude_I: np.ndarray | None) -> FlowResult:
+        cfg = self.config
+        p0 = bearings_C_to_I(self.camera.pixels_to_bearings(prev_px), R0, self.R_BC)
+        p1 = bearings_C_to_I(self.camera.pixels_to_bearings(cur_px), R1, self.R_BC)
+        usable = (p0 @ eta_I > cfg.min_cos_plane) & (p1 @ eta_I > cfg.min_cos_plane)
+        if exclude_I is not None:
+            usable &= ~inside_spherical_polygon(p1, exclude_I, cfg.exclusion_margin_rad)
+        p0, p1 = p0[usable], p1[usable]
+        n = len(p0)
+        if n < cfg.min_inliers:
+            return FlowResult(None, 0.0, 0, n)
+        threshold = cfg.inlier_threshold_px / float(self.camera.K[0, 0])   # rad
+        weights = np.ones(n)
+        phi = None
+        for _ in range(cfg.huber_iterations):
+            phi = solve_translational_flow(p0, p1, dt, eta_I, weights)
+            if phi is None:
+                return FlowResult(None, 0.0, 0, n)
+            r = flow_residuals(p0, p1, dt, eta_I, phi)
+            weights = np.minimum(1.0, threshold / np.maximum(r, 1e-15))
+        inliers = flow_residuals(p0, p1, dt, eta_I, phi) <= threshold
+        n_in = int(inliers.sum())
+        ratio = n_in / n
+        if n_in < cfg.min_inliers or ratio < cfg.min_inlier_ratio:
+            return FlowResult(None, ratio, n_in, n)
+        phi = solve_translational_flow(p0[inliers], p1[inliers], dt, eta_I, np.ones(n_in))
+        if phi is None or not np.all(np.isfinite(phi)):
+            return FlowResult(None, ratio, n_in, n)
+        return FlowResult(phi, ratio, n_in, n)
+
+    def _replenish(self, gray: np.ndarray) -> None:
+        """goodFeaturesToTrack only in the grid cells that hold too few tracks."""
+        cfg = self.config
+        h, w = gray.shape[:2]
+        cell_w, cell_h = w / cfg.grid_cols, h / cfg.grid_rows
+        pts = self._points
+        col = np.clip((pts[:, 0] / cell_w).astype(int), 0, cfg.grid_cols - 1)
+        row = np.clip((pts[:, 1] / cell_h).astype(int), 0, cfg.grid_rows - 1)
+        counts = np.bincount(row * cfg.grid_cols + col, minlength=cfg.grid_cols * cfg.grid_rows)
+        new = []
+        for cell in np.flatnonzero(counts < cfg.min_tracks_per_cell):
+            r, c = divmod(int(cell), cfg.grid_cols)
+            x0, y0 = int(c * cell_w), int(r * cell_h)
+            x1, y1 = int((c + 1) * cell_w), int((r + 1) * cell_h)
+            corners = cv2.goodFeaturesToTrack(gray[y0:y1, x0:x1], cfg.features_per_cell,
+                                              cfg.quality_level, cfg.min_distance_px)
+            if corners is not None:
+                new.append(corners.reshape(-1, 2) + np.array([x0, y0], np.float32))
+        if not new:
+            return
+        cand = np.concatenate(new).astype(np.float32)
+        b = cfg.border_px
+        cand = cand[(cand[:, 0] >= b) & (cand[:, 0] <= w - 1 - b)
+                    & (cand[:, 1] >= b) & (cand[:, 1] <= h - 1 - b)]
+        if len(pts) and len(cand):
+            d2 = ((cand[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2)
+            cand = cand[d2.min(axis=1) >= cfg.min_distance_px ** 2]
+        self._points = np.concatenate([pts, cand]).astype(np.float32)

@@ -1,0 +1,448 @@
+"""Window detection in the forward image: the four aperture corners as unit bearings.
+
+Algorithm (paper section Experiments: "ArUco border detection", made sub-pixel):
+
+1. Candidates. Adaptive threshold (dark = foreground) of a down-scaled image, then
+   ``findContours`` with a two-level hierarchy. The window is a dark *ring* (the frame band on
+   the wall face): an outer contour (band/wall border) with one large hole (the aperture).
+   Both are approximated by convex quadrilaterals (``approxPolyDP``); area, aspect-ratio and
+   hole/outer area-ratio checks reject markers, door-like shapes and texture.
+2. Sub-pixel refinement. A straight 3-D edge is straight only in *undistorted* coordinates,
+   so each aperture side is parametrised in undistorted pixels (the ideal pinhole image
+   ``K [x/z, y/z, 1]``), sampled, projected into the distorted image, and searched for the
+   dark-to-light step along the local image normal (centroid of the intensity gradient).
+   The edge points are undistorted again, a line is fitted to each side (Huber, then
+   residual gating) and adjacent lines are intersected. Two passes.
+3. Tracking. The same window is followed frame to frame: a corner displacement above
+   ``max_corner_jump_px`` is reported as a loss (``JUMP``), not followed. After
+   ``reacquire_after_frames`` frames without a consistent window the tracker searches again.
+
+Outputs are in the camera optical frame (x right, y down, z along the optical axis); corners
+are ordered top-left, top-right, bottom-right, bottom-left as seen in the image (clockwise in
+the image); edge i joins corner i and i+1 and h_i = unit(p_i x p_(i+1)) (paper, Fig. window).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import enum
+
+import cv2
+import numpy as np
+
+from ibvs_control.core.camera import CameraModel
+from ibvs_control.core.features import edge_normals
+
+N_CORNERS = 4
+#: binary value of "dark" pixels after the inverted adaptive threshold
+_DARK = 255
+#: the step of the intensity profiles along the edge normal, px
+_PROFILE_STEP_PX = 0.5
+#: half-width of the gradient window whose centroid gives the sub-pixel edge, in profile steps
+_CENTROID_HALF_WIDTH = 3
+#: small pixel offset used to map an undistorted normal into the distorted image, px
+_NORMAL_PROBE_PX = 1.0
+#: fraction of each side left out at both ends (near the corners the other band interferes)
+_SIDE_MARGIN = 0.1
+#: points per side checked to lie inside the image (edges are curved there)
+_OUTLINE_SAMPLES = 9
+#: where the band's dark level is read, inwards of the outer edge, px
+_BAND_PROBE_PX = 1.5
+#: polarity of a step along the inward normal
+_RISING = 1
+_FALLING = -1
+#: |sin| of the angle between two edges below which their intersection is refused
+_MIN_SIN_EDGE_ANGLE = 0.2
+
+
+class WindowStatus(enum.Enum):
+    """Outcome of one frame."""
+
+    DETECTED = 'detected'        # the tracked window, fully visible
+    NOT_FOUND = 'not_found'      # no (fully visible) window in the image
+    JUMP = 'jump'                # a window, but too far from the tracked one: reported as lost
+
+
+@dataclass(frozen=True)
+class WindowDetectorConfig:
+    """Tuning of :class:`WindowDetector` (pixels are full-resolution pixels unless noted)."""
+
+    detection_scale: float = 0.5            # image scale of the contour search, (0, 1]
+    threshold_block_px: int = 31            # adaptive threshold window at detection scale, odd
+    threshold_offset: float = 30.0          # grey levels below the local mean counted as dark
+    min_area_fraction: float = 0.01         # outer quad area / image area, lower bound
+    max_area_fraction: float = 0.98         # outer quad area / image area, upper bound
+    min_aspect_ratio: float = 0.35          # aperture width / height (image), lower bound
+    max_aspect_ratio: float = 3.0           # aperture width / height (image), upper bound
+    min_hole_area_ratio: float = 0.5        # aperture area / outer area (thin dark band)
+    max_hole_area_ratio: float = 0.93
+    min_holes_fraction: float = 0.25        # light area inside the ring / outer area (search)
+    max_band_fraction: float = 0.25         # band width / shortest outer side, upper bound
+    approx_tolerance: float = 0.04          # approxPolyDP tolerance / contour perimeter
+    border_margin_px: float = 4.0           # the band must stay this far from the image border
+    samples_per_side: int = 40              # edge points searched per aperture side
+    search_half_width_px: float = 8.0       # first-pass search range along the edge normal
+    refine_half_width_px: float = 3.0       # second-pass search range
+    min_edge_contrast: float = 25.0         # grey-level step of a valid edge point
+    min_edge_inlier_fraction: float = 0.5   # valid points per side, fraction of samples
+    line_inlier_px: float = 1.0             # residual gate of the line fit, undistorted px
+    max_corner_jump_px: float = 30.0        # largest corner displacement between frames
+    reacquire_after_frames: int = 10        # frames without the tracked window before a search
+
+
+@dataclass(frozen=True)
+class WindowDetection:
+    """One detected window in the optical frame of the camera."""
+
+    corners_px: np.ndarray      # (4, 2) distorted pixels, TL, TR, BR, BL
+    bearings_C: np.ndarray      # (4, 3) undistorted unit bearings, same order
+    edge_normals_C: np.ndarray  # (4, 3) h_i = unit(p_i x p_(i+1)), edge i joins i and i+1
+
+
+@dataclass(frozen=True)
+class WindowResult:
+    """What one frame gives: a status and, when DETECTED, the detection."""
+
+    status: WindowStatus
+    detection: WindowDetection | None = None
+
+
+def order_corners_clockwise(quad_px: np.ndarray) -> np.ndarray:
+    """Order 4 image points TL, TR, BR, BL (clockwise in the image, y down).
+
+    The start is the corner whose direction from the centroid is closest to the image's
+    up-left diagonal, which holds for camera rolls below 45 degrees.
+    """
+    quad = np.asarray(quad_px, dtype=float).reshape(N_CORNERS, 2)
+    d = quad - quad.mean(axis=0)
+    angle = np.arctan2(d[:, 1], d[:, 0])          # clockwise on screen with y down
+    quad = quad[np.argsort(angle)]
+    d = quad - quad.mean(axis=0)
+    start = int(np.argmax(-(d[:, 0] + d[:, 1])))  # farthest along (-1, -1)
+    return np.roll(quad, -start, axis=0)
+
+
+class WindowDetector:
+    """Detect and track the window aperture (stateful: one instance per camera stream)."""
+
+    def __init__(self, config: WindowDetectorConfig) -> None:
+        self.config = config
+        self._last_px: np.ndarray | None = None
+        self._frames_since_seen = 0
+
+    def reset(self) -> None:
+        """Forget the tracked window."""
+        self._last_px = None
+        self._frames_since_seen = 0
+
+    # --- public ---------------------------------------------------------------------------
+
+    def process(self, gray: np.ndarray, camera: CameraModel) -> WindowResult:
+        """Detect the window in a grey image (uint8, camera.height x camera.width)."""
+        detections = [d for d in (self._refine(gray, camera, quad)
+                                  for quad in self.find_candidates(gray, camera))
+                      if d is not None]
+        return self._track(detections)
+
+    def find_candidates(self, gray: np.ndarray, camera: CameraModel) -> list[np.ndarray]:
+        """Outer quads (4, 2) of dark rings in undistorted pixels, TL, TR, BR, BL.
+
+        A candidate is the outer boundary of a dark connected component that is a convex
+        quadrilateral of plausible size and aspect ratio, and
+        whose holes (the aperture, possibly cut by dark texture seen through it) cover at
+        least ``min_holes_fraction`` of it: a filled dark square is not a ring.
+        """
+        cfg = self.config
+        scale = cfg.detection_scale
+        small = gray if scale >= 1.0 else cv2.resize(gray, None, fx=scale, fy=scale,
+                                                     interpolation=cv2.INTER_AREA)
+        binary = cv2.adaptiveThreshold(small, _DARK, cv2.ADAPTIVE_THRESH_MEAN_C,
+                                       cv2.THRESH_BINARY_INV, cfg.threshold_block_px,
+                                       cfg.threshold_offset)
+        contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+        if hierarchy is None:
+            return []
+        hierarchy = hierarchy[0]
+        image_area = float(small.shape[0] * small.shape[1])
+        quads = []
+        for i, (_, _, child, parent) in enumerate(hierarchy):
+            if parent != -1 or child == -1:
+                continue
+            outer = contours[i]
+            outer_area = cv2.contourArea(outer)
+            if not cfg.min_area_fraction * image_area <= outer_area \
+                    <= cfg.max_area_fraction * image_area:
+                continue
+            if _children_area(contours, hierarchy, child) < cfg.min_holes_fraction * outer_area:
+                continue
+            quad = self._outer_quad_u(outer, camera, scale)
+            if quad is None:
+                continue
+            width = 0.5 * (np.linalg.norm(quad[1] - quad[0]) + np.linalg.norm(quad[2] - quad[3]))
+            height = 0.5 * (np.linalg.norm(quad[3] - quad[0]) + np.linalg.norm(quad[2] - quad[1]))
+            if height <= 0 or not cfg.min_aspect_ratio <= width / height <= cfg.max_aspect_ratio:
+                continue
+            quads.append(quad)
+        return quads
+
+    # --- helpers --------------------------------------------------------------------------
+
+    def _track(self, detections: list[WindowDetection]) -> WindowResult:
+        """Follow the same window; a jump above max_corner_jump_px is a loss, not followed."""
+        cfg = self.config
+        if self._last_px is not None and self._frames_since_seen >= cfg.reacquire_after_frames:
+            self.reset()
+        if not detections:
+            self._frames_since_seen += 1
+            return WindowResult(WindowStatus.NOT_FOUND)
+        if self._last_px is None:
+            best = max(detections, key=lambda d: cv2.contourArea(
+                d.corners_px.astype(np.float32)))
+        else:
+            jumps = [float(np.max(np.linalg.norm(d.corners_px - self._last_px, axis=1)))
+                     for d in detections]
+            best = detections[int(np.argmin(jumps))]
+            if min(jumps) > cfg.max_corner_jump_px:
+                self._frames_since_seen += 1
+                return WindowResult(WindowStatus.JUMP)
+        self._last_px = best.corners_px
+        self._frames_since_seen = 0
+        return WindowResult(WindowStatus.DETECTED, best)
+
+    def _outer_quad_u(self, contour: np.ndarray, camera: CameraModel,
+                      scale: float) -> np.ndarray | None:
+        """Initial outer quad in undistorted px: robust lines through the contour's 4 sides.
+
+        approxPolyDP splits the contour into 4 convex sides; each side's points (ends left
+        out) are undistorted and fitted with a Huber line, so that texture blobs touching the
+        band do not drag the corners. Returns the 4 intersections, TL, TR, BR, BL, or None.
+        """
+        perimeter = cv2.arcLength(contour, True)
+        approx = cv2.approxPolyDP(contour, self.config.approx_tolerance * perimeter, True)
+        if len(approx) != N_CORNERS or not cv2.isContourConvex(approx):
+            return None
+        points = contour.reshape(-1, 2)
+        vertex_idx = sorted(int(np.flatnonzero(np.all(points == v, axis=1))[0])
+                            for v in approx.reshape(N_CORNERS, 2))
+        points_u = _undistorted_px(camera, (points + 0.5) / scale - 0.5)
+        lines = []
+        for k in range(N_CORNERS):
+            a, b = vertex_idx[k], vertex_idx[(k + 1) % N_CORNERS]
+            seg = np.arange(a, b if b > a else b + len(points)) % len(points)
+            cut = int(_SIDE_MARGIN * len(seg))
+            seg = seg[cut:len(seg) - cut]
+            if len(seg) < 2:
+                return None
+            vx, vy, x0, y0 = cv2.fitLine(points_u[seg].astype(np.float32), cv2.DIST_HUBER,
+                                         0, 0.01, 0.01).reshape(-1)
+            lines.append(np.array([-vy, vx, vy * x0 - vx * y0], dtype=float))
+        corners = _intersect_consecutive(lines)
+        if corners is None or not cv2.isContourConvex(corners.astype(np.float32)):
+            return None
+        return order_corners_clockwise(corners)
+
+    def _refine(self, gray: np.ndarray, camera: CameraModel,
+                outer_u: np.ndarray) -> WindowDetection | None:
+        """Sub-pixel aperture corners of a candidate ring, or None when it is not a window.
+
+        Outer edges (light wall -> dark band, inwards) are fitted first; the aperture edges
+        are the first dark -> light step inwards of them, then fitted again in a narrow band.
+        All fits are straight lines in undistorted pixels.
+        """
+        cfg = self.config
+        for half_width in (cfg.search_half_width_px, cfg.refine_half_width_px):
+            outer_u = self._fit_quad(gray, camera, outer_u, half_width, _FALLING)
+            if outer_u is None:
+                return None
+        if not self._inside_image(camera, outer_u):
+            return None
+        inner_u = self._find_inner_quad(gray, camera, outer_u)
+        if inner_u is None:
+            return None
+        inner_u = self._fit_quad(gray, camera, inner_u, cfg.refine_half_width_px, _RISING)
+        if inner_u is None or not cv2.isContourConvex(inner_u.astype(np.float32)):
+            return None
+        ratio = _quad_area(inner_u) / _quad_area(outer_u)
+        if not cfg.min_hole_area_ratio <= ratio <= cfg.max_hole_area_ratio:
+            return None
+        K = camera.K
+        normalized = (inner_u - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+        bearings = np.column_stack([normalized, np.ones(N_CORNERS)])
+        bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
+        corners_px = _distort_px(camera, inner_u)
+        return WindowDetection(corners_px, bearings, edge_normals(bearings))
+
+    def _inside_image(self, camera: CameraModel, quad_u: np.ndarray) -> bool:
+        """Whether the whole (curved) outline of a quad lies border_margin_px inside."""
+        t = np.linspace(0.0, 1.0, _OUTLINE_SAMPLES)[:, None]
+        outline = np.concatenate([a + t * (b - a)
+                                  for a, b in zip(quad_u, np.roll(quad_u, -1, axis=0))])
+        uv = _distort_px(camera, outline)
+        m = self.config.border_margin_px
+        return bool(np.all(np.isfinite(uv)) and np.all(uv >= m)
+                    and np.all(uv <= np.array([camera.width, camera.height]) - 1 - m))
+
+    def _side_geometry(self, corners_u: np.ndarray, side: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sample points (n, 2) along a side and its unit inward normal, undistorted px."""
+        a, b = corners_u[side], corners_u[(side + 1) % N_CORNERS]
+        t = np.linspace(_SIDE_MARGIN, 1.0 - _SIDE_MARGIN, self.config.samples_per_side)[:, None]
+        direction = (b - a) / np.linalg.norm(b - a)
+        inward = np.array([-direction[1], direction[0]])
+        if np.dot(inward, corners_u.mean(axis=0) - a) < 0.0:
+            inward = -inward
+        return a + t * (b - a), inward
+
+    def _fit_quad(self, gray: np.ndarray, camera: CameraModel, corners_u: np.ndarray,
+                  half_width: float, polarity: int) -> np.ndarray | None:
+        """Refit the 4 sides of a quad (undistorted px) to the strongest step of ``polarity``.
+
+        polarity +1: intensity rises inwards (band -> aperture); -1: falls (wall -> band).
+        """
+        offsets = np.arange(-half_width, half_width + 1e-9, _PROFILE_STEP_PX)
+        lines = []
+        for side in range(N_CORNERS):
+            samples_u, inward = self._side_geometry(corners_u, side)
+            profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
+            grad = polarity * np.diff(profile, axis=1)
+            pos, ok = self._step_positions(grad, offsets, np.argmax(grad, axis=1))
+            line = self._fit_side(camera, base, normal_d, pos, ok, inward)
+            if line is None:
+                return None
+            lines.append(line)
+        return _intersect_consecutive(lines)
+
+    def _find_inner_quad(self, gray: np.ndarray, camera: CameraModel,
+                         outer_u: np.ndarray) -> np.ndarray | None:
+        """Aperture quad: per side, the first dark -> light step inwards of the outer edge."""
+        cfg = self.config
+        sides = np.linalg.norm(outer_u - np.roll(outer_u, -1, axis=0), axis=1)
+        depth = cfg.max_band_fraction * float(sides.min())
+        offsets = np.arange(0.0, depth + 1e-9, _PROFILE_STEP_PX)
+        first = int(round(_BAND_PROBE_PX / _PROFILE_STEP_PX))
+        if len(offsets) < first + 2 * _CENTROID_HALF_WIDTH:
+            return None
+        lines = []
+        for side in range(N_CORNERS):
+            samples_u, inward = self._side_geometry(outer_u, side)
+            profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
+            dark = profile[:, first:first + _CENTROID_HALF_WIDTH].mean(axis=1)
+            above = profile > (dark + 0.5 * cfg.min_edge_contrast)[:, None]
+            above[:, :first] = False
+            crossing = np.argmax(above, axis=1) - 1
+            grad = np.diff(profile, axis=1)
+            pos, ok = self._step_positions(grad, offsets, crossing)
+            ok &= above.any(axis=1)
+            line = self._fit_side(camera, base, normal_d, pos, ok, inward)
+            if line is None:
+                return None
+            lines.append(line)
+        return _intersect_consecutive(lines)
+
+    def _step_positions(self, grad: np.ndarray, offsets: np.ndarray,
+                        peak: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel step offsets: centroid of the positive gradient around ``peak``.
+
+        Gradient sample j sits between profile samples j and j+1. Returns (offset, valid).
+        """
+        window = np.arange(-_CENTROID_HALF_WIDTH, _CENTROID_HALF_WIDTH + 1)
+        idx = np.clip(peak[:, None] + window[None, :], 0, grad.shape[1] - 1)
+        g = np.clip(np.take_along_axis(grad, idx, axis=1), 0.0, None)
+        step = g.sum(axis=1)
+        pos = (g * (offsets[idx] + 0.5 * _PROFILE_STEP_PX)).sum(axis=1) / np.maximum(step, 1e-9)
+        ok = (step >= self.config.min_edge_contrast) & (peak > 0) \
+            & (peak < grad.shape[1] - 1)
+        return pos, ok
+
+    def _fit_side(self, camera: CameraModel, base: np.ndarray, normal_d: np.ndarray,
+                  pos: np.ndarray, ok: np.ndarray, inward: np.ndarray) -> np.ndarray | None:
+        """Line (nx, ny, c), n.x + c = 0, n inward, through the valid edge points, or None."""
+        cfg = self.config
+        if ok.sum() < cfg.min_edge_inlier_fraction * cfg.samples_per_side:
+            return None
+        edge_u = _undistorted_px(camera, base[ok] + pos[ok, None] * normal_d[ok])
+        line = _fit_line(edge_u, cfg.line_inlier_px,
+                         int(np.ceil(cfg.min_edge_inlier_fraction * cfg.samples_per_side)))
+        if line is None:
+            return None
+        return line if np.dot(line[:2], inward) >= 0.0 else -line
+
+
+def _children_area(contours, hierarchy, child: int) -> float:
+    """Total area of a contour's holes (its children in a RETR_CCOMP hierarchy)."""
+    total = 0.0
+    while child != -1:
+        total += cv2.contourArea(contours[child])
+        child = hierarchy[child][0]
+    return total
+
+
+def _quad_area(quad: np.ndarray) -> float:
+    """Area of a simple polygon (shoelace)."""
+    x, y = quad[:, 0], quad[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def _profiles(gray: np.ndarray, camera: CameraModel, samples_u: np.ndarray,
+              inward_u: np.ndarray, offsets: np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Intensity profiles along the image normal of a straight undistorted edge.
+
+    The samples and the normal are mapped into the distorted image (where the edge is
+    curved); returns (profiles (n, m) bilinear, base points (n, 2) and unit normals (n, 2)
+    in distorted pixels).
+    """
+    base = _distort_px(camera, samples_u)
+    probe = _distort_px(camera, samples_u + _NORMAL_PROBE_PX * inward_u)
+    normal_d = probe - base
+    normal_d /= np.linalg.norm(normal_d, axis=1, keepdims=True)
+    grid = base[:, None, :] + offsets[None, :, None] * normal_d[:, None, :]
+    profile = cv2.remap(gray, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),
+                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    return profile.astype(float), base, normal_d
+
+
+def _undistorted_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
+    """Distorted pixels -> ideal pinhole pixels K [x/z, y/z, 1] (same K, no distortion)."""
+    xy = camera.pixels_to_normalized(uv)
+    return xy * np.array([camera.K[0, 0], camera.K[1, 1]]) + camera.K[:2, 2]
+
+
+def _distort_px(camera: CameraModel, uv_u: np.ndarray) -> np.ndarray:
+    """Ideal pinhole pixels -> distorted pixels."""
+    xy = (np.asarray(uv_u, dtype=float) - camera.K[:2, 2]) / np.array([camera.K[0, 0],
+                                                                        camera.K[1, 1]])
+    uv, _ = camera.bearings_to_pixels(np.column_stack([xy, np.ones(len(xy))]))
+    return uv
+
+
+def _fit_line(points: np.ndarray, inlier_px: float, min_inliers: int) -> np.ndarray | None:
+    """Robust total-least-squares line (nx, ny, c) with n.x + c = 0, |n| = 1, or None.
+
+    Huber fit (cv2.fitLine), then points farther than ``inlier_px`` are dropped and the line
+    is refitted by orthogonal least squares (SVD).
+    """
+    if len(points) < max(2, min_inliers):
+        return None
+    pts = points.astype(np.float32).reshape(-1, 1, 2)
+    vx, vy, x0, y0 = cv2.fitLine(pts, cv2.DIST_HUBER, 0, 0.01, 0.01).reshape(-1)
+    n = np.array([-vy, vx], dtype=float)
+    c = -float(n @ np.array([x0, y0]))
+    inliers = np.abs(points @ n + c) <= inlier_px
+    if inliers.sum() < max(2, min_inliers):
+        return None
+    sel = points[inliers]
+    centre = sel.mean(axis=0)
+    _, _, vt = np.linalg.svd(sel - centre)
+    n = vt[-1]
+    return np.array([n[0], n[1], -float(n @ centre)])
+
+
+def _intersect_consecutive(lines: list[np.ndarray]) -> np.ndarray | None:
+    """Corner i = intersection of line i-1 and line i (homogeneous cross product)."""
+    corners = []
+    for i in range(N_CORNERS):
+        l1, l2 = lines[i - 1], lines[i]
+        if abs(l1[0] * l2[1] - l1[1] * l2[0]) < _MIN_SIN_EDGE_ANGLE:
+            return None
+        x = np.cross(l1, l2)
+        corners.append(x[:2] / x[2])
+    return np.array(corners)
