@@ -21,6 +21,7 @@ from ibvs_control.core.frames import vec_I_to_map
 from ibvs_sim.sim_node import SimNode
 
 CAMERAS = ('front', 'down')
+BODY_RATES_IGNORED = 0b00000111   # SET_ATTITUDE_TARGET type_mask bits 0-2
 
 
 def _free_udp_port():
@@ -135,3 +136,48 @@ def test_event_json_schema():
     d = json.loads(json.dumps(e.to_dict()))
     assert d == {'type': 'collision', 't': 3.5, 'surface': 'window_frame',
                  'position_map': [0.1, -0.8, 1.0], 'speed_mps': 1.2}
+
+
+def test_sim_node_lockstep_advances_on_answers_only(ros_context):
+    os.environ['MAVLINK20'] = '1'
+    from pymavlink import mavutil
+    tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
+    port = _free_udp_port()
+    sim = SimNode(node_name=f'sim_lock_{tag}', context=ros_context, parameter_overrides=[
+        Parameter('pacing', value='lockstep'), Parameter('lockstep_timeout_s', value=60.0),
+        Parameter('mavlink_url', value=f'udpin:127.0.0.1:{port}')])
+    probe = rclpy.create_node(f'sim_lock_probe_{tag}', context=ros_context)
+    gcs = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=255,
+                                     source_component=190)
+    stamps = []
+    answer = {'on': False}
+
+    def answer_frame(t_ns):
+        # level attitude, hover thrust, body rates ignored; time_boot_ms echoes the frame
+        gcs.mav.set_attitude_target_send(t_ns // 1_000_000, 1, 1, BODY_RATES_IGNORED,
+                                         [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0.5)
+
+    def on_image(msg):
+        stamps.append(_stamp_ns(msg.header))
+        if answer['on']:
+            answer_frame(stamps[-1])
+
+    probe.create_subscription(Image, 'down_camera/image_raw', on_image, qos_profile_sensor_data)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(sim)
+    executor.add_node(probe)
+    try:
+        assert _spin_until(executor, lambda: len(stamps) >= 1, 20.0)
+        _spin_until(executor, lambda: False, 0.5)
+        assert stamps == [0]                      # unanswered: sim time stands still
+        answer['on'] = True
+        answer_frame(0)
+        assert _spin_until(executor, lambda: len(stamps) >= 12, 30.0), stamps
+    finally:
+        executor.shutdown()
+        probe.destroy_node()
+        sim.destroy_node()
+        gcs.close()
+    frames = sorted(set(stamps))
+    assert np.array_equal(np.diff(frames), np.full(len(frames) - 1, 20_000_000))
+    assert sim.sim.lockstep_timeouts == 0
