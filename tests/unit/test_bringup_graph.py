@@ -57,7 +57,11 @@ def test_mavlink_port_and_options_reach_the_right_nodes():
     assert by_name['sim'].overrides()[graph.MAVLINK_URL] == 'udpin:127.0.0.1:15001'
     assert by_name['mavlink_bridge'].overrides()[graph.MAVLINK_URL] == 'udpout:127.0.0.1:15001'
     assert by_name['sim'].overrides()[graph.SIM_INITIAL_POSITION] == [-2.2, 0.2, -1.5]
-    assert by_name['sim'].overrides()[graph.SIM_WIND] == [0.0, 0.335, 0.0]
+    assert by_name['sim'].overrides()[graph.SIM_INITIAL_OVERRIDE] is True
+    # wind given in {I} (y_I = side), sent in map ENU: x_ENU = y_I
+    assert by_name['sim'].overrides()[graph.SIM_WIND] == [0.335, 0.0, 0.0]
+    plain = {s.name: s for s in graph.sim_graph(graph.GraphOptions(params_file=PARAMS))}
+    assert graph.SIM_INITIAL_OVERRIDE not in plain['sim'].overrides()
     assert by_name['mode_supervisor'].overrides()[graph.CROSSING_LAW] == 'seed'
     assert graph.SIM_WIND not in by_name['force_controller'].overrides()
     with pytest.raises(ValueError):

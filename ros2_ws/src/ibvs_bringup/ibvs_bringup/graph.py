@@ -12,6 +12,9 @@ from dataclasses import dataclass, field
 import os
 from typing import Sequence
 
+from ibvs_control.core import frames
+import numpy as np
+
 CONFIG_PACKAGE = 'ibvs_bringup'
 PARAMS_FILE_NAME = 'params.yaml'
 DEFAULT_MAVLINK_PORT = 14560
@@ -20,9 +23,10 @@ ROLES = ('sim', 'onboard', 'tool')
 
 # Names of the per-run parameters (the rest lives in params.yaml). Owned by the node packages;
 # collected here so that a rename is one edit.
-SIM_INITIAL_POSITION = 'initial_position'     # [x, y, z] in the paper frame {I}, m
+SIM_INITIAL_OVERRIDE = 'initial_override'    # true: use the two below, not world.yaml's
+SIM_INITIAL_POSITION = 'initial_position_I'   # [x, y, z] in the paper frame {I}, m
 SIM_INITIAL_YAW = 'initial_yaw'               # rad, {I}
-SIM_WIND = 'wind_force'                       # [fx, fy, fz] in {I}, N
+SIM_WIND = 'wind_force_map'                   # [fx, fy, fz] in map (ENU), N
 MAVLINK_URL = 'mavlink_url'
 CROSSING_LAW = 'crossing_law'
 
@@ -76,7 +80,7 @@ class GraphOptions:
     mavlink_url: str | None = None                  # onboard graph: the vehicle's MAVLink URL
     initial_position: tuple | None = None           # {I}, m; None: world.yaml's
     initial_yaw: float | None = None                # rad; None: world.yaml's
-    wind: tuple | None = None                       # {I}, N; None: params.yaml's
+    wind: tuple | None = None                       # {I}, N (sent in map); None: params'
     crossing_law: str | None = None                 # None: params.yaml's
     extra_remappings: tuple = field(default_factory=tuple)
 
@@ -145,12 +149,15 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
     params = opts.params_file or default_params_file()
     sim_url, bridge_url = sim_mavlink_urls(opts.mavlink_port)
     sim_over: dict = {MAVLINK_URL: sim_url}
+    if opts.initial_position is not None or opts.initial_yaw is not None:
+        sim_over[SIM_INITIAL_OVERRIDE] = True
     if opts.initial_position is not None:
         sim_over[SIM_INITIAL_POSITION] = _floats(opts.initial_position, 3, 'initial position')
     if opts.initial_yaw is not None:
         sim_over[SIM_INITIAL_YAW] = float(opts.initial_yaw)
     if opts.wind is not None:
-        sim_over[SIM_WIND] = _floats(opts.wind, 3, 'wind')
+        wind_map = frames.vec_I_to_map(np.array(_floats(opts.wind, 3, 'wind')))
+        sim_over[SIM_WIND] = [float(x) + 0.0 for x in wind_map]
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     sim = NodeSpec('ibvs_sim', 'sim', 'sim', (params, sim_over), tuple(opts.extra_remappings),
                    'sim')

@@ -50,7 +50,7 @@ class _Child:
         self.proc = subprocess.Popen(
             argv, env=env, stdin=subprocess.DEVNULL,
             stdout=self._log if self._log else subprocess.DEVNULL,
-            stderr=subprocess.PIPE, start_new_session=True)
+            stderr=subprocess.PIPE, process_group=0)
         self._reader = threading.Thread(target=self._read_stderr, daemon=True)
         self._reader.start()
 

@@ -1,0 +1,215 @@
+"""The whole graph in lockstep: reference and random initial conditions, repeatability, replay.
+
+Each run is ``python -m ibvs_bringup.run_scenario`` in its own session (so that every process
+it starts can be found and killed), with a wall-clock limit; SPEC.md section 5's success is
+read from its summary.json. Skipped, with the reason, while a node of the graph is missing.
+"""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+from ibvs_bringup import bag, graph
+from ibvs_bringup.ros2run import unavailable_reason
+from ibvs_bringup.run_scenario import random_initial_position
+import numpy as np
+import pytest
+
+pytestmark = pytest.mark.slow
+RUN_TIMEOUT_S = 420          # wall clock per run (2 shared cores)
+RANDOM_SEEDS = (1, 2, 3)
+REPLAY_TOLERANCE_PX = 0.1
+
+
+def _missing() -> list:
+    specs = graph.sim_graph(graph.GraphOptions()) + [graph.tool_node('recorder', 'recorder'),
+                                                     graph.tool_node('bag_player', 'bag_player')]
+    return sorted({r for r in (unavailable_reason(s.package, s.executable) for s in specs) if r})
+
+
+@pytest.fixture(scope='module', autouse=True)
+def graph_available():
+    missing = _missing()
+    if missing:
+        pytest.skip('graph incomplete: ' + '; '.join(missing))
+
+
+def _session_pids(sid: int) -> list:
+    pids = []
+    for entry in os.listdir('/proc'):
+        if entry.isdigit():
+            try:
+                with open(f'/proc/{entry}/stat') as f:
+                    fields = f.read().rsplit(')', 1)[1].split()
+                if int(fields[3]) == sid:        # field 6 of stat: session id
+                    pids.append(int(entry))
+            except (OSError, IndexError, ValueError):
+                pass
+    return pids
+
+
+def _kill_session(sid: int) -> None:
+    for pid in _session_pids(sid):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def run_scenario(root, name: str, *args, timeout: float = RUN_TIMEOUT_S) -> dict:
+    """Run one scenario; return its summary (with the wall time); never leaves a process."""
+    cmd = [sys.executable, '-m', 'ibvs_bringup.run_scenario', '--results-root', str(root),
+           '--run-name', name, '--timeout', str(timeout - 30), *args]
+    t0 = time.monotonic()
+    proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGTERM)            # run_scenario stops its graph on SIGTERM
+        try:
+            out, _ = proc.communicate(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, _ = proc.communicate()
+        pytest.fail(f'run {name} timed out after {timeout} s:\n{out[-3000:]}')
+    finally:
+        _kill_session(proc.pid)
+    path = root / name / 'summary.json'
+    assert path.exists(), f'run {name} wrote no summary (exit {proc.returncode}):\n{out[-3000:]}'
+    summary = json.loads(path.read_text())
+    summary['_wall_s'] = time.monotonic() - t0
+    summary['_output'] = out
+    print(f"{name}: {summary['_wall_s']:.0f} s wall, success={summary['success']}")
+    return summary
+
+
+def assert_success(summary: dict) -> None:
+    """SPEC.md section 5's success, checked field by field for a readable failure."""
+    w, ld = summary['window'], summary['landing']
+    info = json.dumps({k: summary[k] for k in ('window', 'landing', 'modes', 'run')},
+                      indent=1)[:3000]
+    assert w['crossed'] and w['crossing_speed_mps'] > 0, info
+    assert w['min_clearance_m'] > 0, info
+    assert ld['landed'] and ld['error_m'] <= 0.10 and ld['touchdown_speed_mps'] <= 0.5, info
+    assert summary['duration_s'] <= 60.0, info
+    assert [m['mode'] for m in summary['modes']][-3:] == [2, 3, 4], info
+    assert summary['success'] is True, info
+
+
+@pytest.fixture(scope='module')
+def reference(tmp_path_factory):
+    root = tmp_path_factory.mktemp('runs')
+    return root, run_scenario(root, 'reference')
+
+
+def test_reference_run_succeeds_and_reports(reference):
+    root, summary = reference
+    assert_success(summary)
+    assert summary['run']['initial_position_I'] == [-2.0, 0.1, -1.82]
+    out = root / 'reference'
+    for png in ('position_mode.png', 'velocity.png', 'force.png', 'trajectory_3d.png',
+                'q_w_bar.png', 'q_t.png', 'flow_front.png', 'flow_down.png'):
+        assert (out / png).stat().st_size > 5000, png
+    counts = bag.topic_counts(out / 'bag')
+    for topic in ('/front_camera/image_raw', '/down_camera/image_raw', '/imu/data',
+                  '/window/corners', '/pad/landmarks', '/ibvs/mode', '/sim/ground_truth/odom',
+                  '/down_camera/translational_flow', '/ibvs/force_setpoint'):
+        assert counts.get(topic, 0) > 0, (topic, counts)
+
+
+@pytest.mark.parametrize('seed', RANDOM_SEEDS)
+def test_random_initial_condition_succeeds(tmp_path, seed):
+    summary = run_scenario(tmp_path, f'random-{seed}', '--random-ic', str(seed), '--no-bag',
+                           '--no-plots')
+    assert summary['run']['initial_position_I'] == pytest.approx(
+        list(random_initial_position(seed)))
+    assert_success(summary)
+
+
+def test_second_run_gives_the_same_summary_within_1cm(reference, tmp_path):
+    _, first = reference
+    second = run_scenario(tmp_path, 'reference-again', '--no-bag', '--no-plots')
+    assert second['success'] == first['success']
+    a, b = first, second
+    pairs = [(a['window']['min_clearance_m'], b['window']['min_clearance_m']),
+             (a['landing']['error_m'], b['landing']['error_m'])]
+    pairs += list(zip(a['window']['crossing_offset_m'], b['window']['crossing_offset_m']))
+    for x, y in pairs:
+        assert abs(x - y) <= 0.01, (pairs, a['run'], b['run'])
+
+
+# --- replay --------------------------------------------------------------------------------
+
+def _recorded(bag_path, topic: str) -> dict:
+    out = {}
+    for _, msgtype, _, data in bag.read_messages(bag_path, [topic]):
+        m = bag.deserialize(data, msgtype)
+        pts = np.array([[p.x, p.y, p.z] for p in m.polygon.points]).reshape(-1, 3)
+        out[m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = pts
+    return out
+
+
+def _max_pixel_error(a: np.ndarray, b: np.ndarray, camera) -> float:
+    ua, _ = camera.model.bearings_to_pixels(a)
+    ub, _ = camera.model.bearings_to_pixels(b)
+    return float(np.max(np.linalg.norm(np.asarray(ua) - np.asarray(ub), axis=1)))
+
+
+def test_replaying_the_bag_reproduces_the_detections(reference, tmp_path):
+    import rclpy
+    from geometry_msgs.msg import PolygonStamped
+    from ibvs_bringup.runner import ProcessRunner
+    from ibvs_control.core.config import load_vehicle
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+
+    root, _ = reference
+    bag_path = root / 'reference' / 'bag'
+    recorded = {'window/corners': _recorded(bag_path, 'window/corners'),
+                'pad/landmarks': _recorded(bag_path, 'pad/landmarks')}
+    n_frames = {t: bag.topic_counts(bag_path).get(f'/{c}_camera/image_raw', 0)
+                for t, c in (('window/corners', 'front'), ('pad/landmarks', 'down'))}
+    cams = load_vehicle().cameras
+    camera = {'window/corners': cams['front'], 'pad/landmarks': cams['down']}
+    specs = [s for s in graph.sim_graph(graph.GraphOptions())
+             if s.executable in ('window_detector', 'pad_detector')]
+    specs.append(graph.tool_node('bag_player', 'bag_player', (
+        {'use_sim_time': False, 'bag_path': str(bag_path), 'rate': 0.5,
+         'start_delay': 3.0},)))
+    replayed = {t: {} for t in recorded}
+    rclpy.init()
+    runner = ProcessRunner(log_dir=str(tmp_path / 'logs'))
+    node = None
+    try:
+        node = rclpy.create_node('replay_check')
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+        for topic in recorded:
+            node.create_subscription(
+                PolygonStamped, topic,
+                lambda m, t=topic: replayed[t].__setitem__(
+                    m.header.stamp.sec * 10**9 + m.header.stamp.nanosec,
+                    np.array([[p.x, p.y, p.z] for p in m.polygon.points]).reshape(-1, 3)), qos)
+        runner.start_graph(specs)
+        deadline = time.monotonic() + 240.0
+        while time.monotonic() < deadline and runner.running() and not all(
+                len(replayed[t]) >= n_frames[t] for t in replayed):
+            rclpy.spin_once(node, timeout_sec=0.1)
+            assert not [d for d in runner.dead() if d.name != 'bag_player'], runner.dead()
+    finally:
+        runner.stop()
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    for topic in recorded:
+        common = sorted(set(recorded[topic]) & set(replayed[topic]))
+        assert len(common) >= 0.8 * n_frames[topic] and len(common) > 5, \
+            (topic, len(common), n_frames[topic])
+        worst = 0.0
+        for stamp in common:
+            a, b = recorded[topic][stamp], replayed[topic][stamp]
+            assert a.shape == b.shape, (topic, stamp, a.shape, b.shape)
+            if len(a):
+                worst = max(worst, _max_pixel_error(a, b, camera[topic]))
+        assert worst <= REPLAY_TOLERANCE_PX, (topic, worst)
