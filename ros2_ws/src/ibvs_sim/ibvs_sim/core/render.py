@@ -223,8 +223,14 @@ class TexturedPlane:
 
 def clip_polygon(P: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Sutherland-Hodgman clip of a convex polygon (K, 3) to {P : n . P >= d} for all (n, d)."""
+    S = P @ normals.T - offsets              # (K, planes) signed distances
+    inside = S >= 0
+    if inside.all():
+        return P
+    if not inside.any(axis=0).all():         # wholly outside one plane
+        return P[:0]
     poly = P
-    for n, d in zip(normals, offsets):
+    for n, d in zip(normals[~inside.all(axis=0)], offsets[~inside.all(axis=0)]):
         if len(poly) == 0:
             break
         s = poly @ n - d
