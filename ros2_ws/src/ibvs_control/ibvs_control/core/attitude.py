@@ -45,21 +45,22 @@ def limit_tilt(F_I: np.ndarray, max_tilt_rad: float = DEFAULT_MAX_TILT_RAD) -> n
 
 
 def rotation_from_thrust_direction(z_B_I: np.ndarray, yaw: float) -> np.ndarray:
-    """Return R_IB whose third column is the unit vector z_B_I and whose heading is ``yaw``.
+    """Return R_IB whose third column is the unit vector z_B_I and whose ZYX yaw is ``yaw``.
 
-    ``yaw`` is the NED yaw (rad, about +z down, 0 = body x along x_I). Construction: the
-    heading vector x_c = (cos yaw, sin yaw, 0); y_B = z_B x x_c / |.|; x_B = y_B x z_B.
+    ``yaw`` is the NED yaw (rad, about +z down, 0 = body x along x_I). Construction (as PX4's
+    attitude setpoint generation): y_c = (-sin yaw, cos yaw, 0); x_B = unit(y_c x z_B);
+    y_B = z_B x x_B. x_B is orthogonal to y_c, so its horizontal heading is exactly ``yaw``.
     """
     z_B = np.asarray(z_B_I, dtype=float)
     z_B = z_B / np.linalg.norm(z_B)
-    x_c = np.array([np.cos(yaw), np.sin(yaw), 0.0])
-    y_B = np.cross(z_B, x_c)
-    n = np.linalg.norm(y_B)
-    if n < 1e-6:  # thrust axis horizontal along the heading: degenerate, pick any y
-        y_B = np.cross(z_B, np.array([-np.sin(yaw), np.cos(yaw), 0.0]))
-        n = np.linalg.norm(y_B)
-    y_B /= n
-    x_B = np.cross(y_B, z_B)
+    y_c = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
+    x_B = np.cross(y_c, z_B)
+    n = np.linalg.norm(x_B)
+    if n < 1e-6:  # thrust axis horizontal along y_c: degenerate, keep the heading axis
+        x_B = np.cross(np.cross(z_B, np.array([np.cos(yaw), np.sin(yaw), 0.0])), z_B)
+        n = np.linalg.norm(x_B)
+    x_B /= n
+    y_B = np.cross(z_B, x_B)
     return np.column_stack([x_B, y_B, z_B])
 
 

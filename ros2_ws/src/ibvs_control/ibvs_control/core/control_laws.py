@@ -126,9 +126,10 @@ def force_window(q_w: np.ndarray, q_w_bar: np.ndarray, phi_w: np.ndarray, eta_w:
 
 
 def force_crossing_seed(F_w_T2: np.ndarray, eta_w: np.ndarray) -> np.ndarray:
-    """The seed's literal mode-2 law F = eta_w |eta_w^T F_w(T2-)| (SPEC.md section 3 defect).
+    """Return the seed's literal mode-2 force F = eta_w |eta_w^T F_w(T2-)| (defective).
 
-    It drops gravity compensation and, since the dynamics use -F, brakes along eta_w.
+    SPEC.md section 3: it drops gravity compensation and, since the dynamics use -F, brakes
+    along eta_w.
     Kept only for comparison.
     """
     return np.asarray(eta_w) * abs(float(eta_w @ F_w_T2))

@@ -36,8 +36,11 @@ def centroid_feature(bearings_I: np.ndarray) -> np.ndarray:
 
 
 def edge_normals(corner_bearings: np.ndarray) -> np.ndarray:
-    """Return h_i = unit(p_i x p_{i+1}) (4, 3): the normal of the plane through the camera
-    centre and edge i (binormalised Plucker coordinates, paper section 3.2). Any frame."""
+    """Return the edge normals h_i = unit(p_i x p_{i+1}), shape (4, 3), in the bearings' frame.
+
+    h_i is the normal of the plane through the camera centre and edge i (binormalised Plucker
+    coordinates, paper section 3.2).
+    """
     p = np.asarray(corner_bearings, dtype=float).reshape(4, 3)
     return np.array([_unit(np.cross(p[i], p[(i + 1) % 4])) for i in range(4)])
 

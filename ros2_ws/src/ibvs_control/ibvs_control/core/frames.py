@@ -184,7 +184,7 @@ def R_IB_from_rot_map_base(R_map_base: np.ndarray) -> np.ndarray:
 
 
 def quat_ned_frd_to_enu_flu(q_wxyz: np.ndarray) -> np.ndarray:
-    """MAVLink attitude (FRD in NED, w x y z) -> ROS attitude (FLU in ENU, w x y z).
+    """Convert an autopilot attitude (FRD in NED, w x y z) to ROS (FLU in ENU, w x y z).
 
     The same conversion MAVROS applies to ATTITUDE_QUATERNION.
     """

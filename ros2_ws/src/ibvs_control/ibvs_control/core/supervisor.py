@@ -179,7 +179,7 @@ class ModeSupervisor:
                           f'pad-image height {self._height_est:.3f} m <= shutdown height')
 
     def on_flow(self, t: float, camera: str, phi_I: np.ndarray | None) -> None:
-        """Translational flow of 'front' (wall) or 'down' (floor) in {I}, or None."""
+        """Note the translational flow of 'front' (wall) or 'down' (floor) in {I}, or None."""
         if phi_I is None:
             return
         phi = np.asarray(phi_I, dtype=float)

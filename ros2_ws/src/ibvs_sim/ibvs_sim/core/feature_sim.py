@@ -181,7 +181,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     R = rot_z(config.initial_yaw)
     R_d, thrust_d, thrust = R.copy(), m * g, m * g
     log = FeatureSimLog()
-    t, next_frame, t_shutdown = 0.0, 0.0, None
+    t, t_shutdown = 0.0, None
     started = False
     n_sub = int(round(config.camera_dt / config.physics_dt))
     R_BC_front, R_BC_down = vehicle.cameras['front'].R_BC, vehicle.cameras['down'].R_BC

@@ -1,0 +1,235 @@
+"""Per-image-stamp synchronisation of the force controller's inputs (ROS-free).
+
+Every camera frame produces, with the frame's capture stamp, one ``window/corners`` (front
+image), one ``pad/landmarks`` (down image) and, when valid, the two translational flows. The
+force controller must answer EVERY stamp exactly once (the sim's lockstep waits for the answer),
+so :class:`StampSynchronizer` gathers the inputs of one stamp and releases the bundle
+
+- as soon as the window and pad detections are there, plus each flow that is *expected*
+  (a flow is expected when it came for the previously released stamp: flows are only
+  published when valid, so a camera whose flow stopped does not cost a timeout every frame);
+- or when ``timeout_s`` (wall clock) has passed since the first input of that stamp arrived.
+
+Bundles leave in stamp order: releasing stamp S first releases every older pending stamp.
+An input for a stamp already released (out of order, late) or a second input of the same kind
+for a pending stamp (duplicate) is dropped and reported.
+
+:class:`AttitudeHistory` keeps the recent IMU attitudes and returns the one at, or just
+before, a stamp.
+"""
+from __future__ import annotations
+
+from bisect import bisect_right
+from collections import deque
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+
+from ibvs_control.core.controller import (
+    ControlOutput, FeatureSnapshot, IbvsController, Measurements)
+from ibvs_control.core.frames import e3, GRAVITY, quat_from_rot, quat_ned_frd_to_enu_flu, rot_z
+from ibvs_control.core.modes import Mode
+
+NS_PER_S = 1_000_000_000
+
+
+class InputKind(Enum):
+    """The inputs of one frame."""
+
+    WINDOW = 'window'
+    PAD = 'pad'
+    FLOW_FRONT = 'flow_front'
+    FLOW_DOWN = 'flow_down'
+
+
+REQUIRED = (InputKind.WINDOW, InputKind.PAD)
+FLOWS = (InputKind.FLOW_FRONT, InputKind.FLOW_DOWN)
+
+
+@dataclass
+class FrameBundle:
+    """Inputs gathered for one image stamp (a missing input is absent from ``values``)."""
+
+    stamp_ns: int
+    first_arrival: float                 # monotonic s
+    values: dict = field(default_factory=dict)   # InputKind -> value (None = "empty")
+    timed_out: bool = False
+
+    def get(self, kind: InputKind):
+        """Return the value of an input, or None if it did not come (or was empty)."""
+        return self.values.get(kind)
+
+
+class StampSynchronizer:
+    """Gather per-stamp inputs; see the module docstring for the release rules."""
+
+    def __init__(self, timeout_s: float, max_pending: int = 20) -> None:
+        if not timeout_s > 0.0:
+            raise ValueError(f'timeout_s must be > 0, got {timeout_s}')
+        self.timeout_s = timeout_s
+        self.max_pending = max_pending
+        self.last_released_ns: int | None = None
+        self.dropped = 0
+        self._pending: dict[int, FrameBundle] = {}
+        self._expect_flow = {k: False for k in FLOWS}
+
+    def add(self, kind: InputKind, stamp_ns: int, value, now: float
+            ) -> tuple[list[FrameBundle], str]:
+        """Add one input; return (bundles released now, '' or why the input was dropped)."""
+        stamp_ns = int(stamp_ns)
+        if self.last_released_ns is not None and stamp_ns <= self.last_released_ns:
+            self.dropped += 1
+            return [], (f'{kind.value} for stamp {stamp_ns} ns arrived after stamp '
+                        f'{self.last_released_ns} ns was answered (out of order or late)')
+        bundle = self._pending.get(stamp_ns)
+        if bundle is None:
+            bundle = self._pending[stamp_ns] = FrameBundle(stamp_ns, now)
+        elif kind in bundle.values:
+            self.dropped += 1
+            return [], f'duplicate {kind.value} for stamp {stamp_ns} ns'
+        bundle.values[kind] = value
+        released = []
+        if len(self._pending) > self.max_pending:   # a stuck stamp never blocks the rest
+            released += self._release_up_to(min(self._pending), timed_out=True)
+        if self._complete(bundle):
+            released += self._release_up_to(stamp_ns, timed_out=False)
+        return released, ''
+
+    def poll(self, now: float) -> list[FrameBundle]:
+        """Release the bundles whose timeout has expired (call from a wall-clock timer)."""
+        expired = [s for s, b in self._pending.items()
+                   if now - b.first_arrival >= self.timeout_s]
+        if not expired:
+            return []
+        return self._release_up_to(max(expired), timed_out=True)
+
+    def _complete(self, b: FrameBundle) -> bool:
+        return (all(k in b.values for k in REQUIRED)
+                and all(k in b.values for k in FLOWS if self._expect_flow[k]))
+
+    def _release_up_to(self, stamp_ns: int, timed_out: bool) -> list[FrameBundle]:
+        out = []
+        for s in sorted(x for x in self._pending if x <= stamp_ns):
+            b = self._pending.pop(s)
+            b.timed_out = timed_out or not self._complete(b)
+            out.append(b)
+        if out:
+            self.last_released_ns = out[-1].stamp_ns
+            for k in FLOWS:
+                self._expect_flow[k] = k in out[-1].values
+        return out
+
+
+class AttitudeHistory:
+    """Recent IMU attitudes R_IB by stamp (ns); :meth:`at` picks the one at or before."""
+
+    def __init__(self, horizon_ns: int) -> None:
+        self.horizon_ns = int(horizon_ns)
+        self._stamps: deque = deque()
+        self._rots: deque = deque()
+
+    def add(self, stamp_ns: int, R_IB: np.ndarray) -> bool:
+        """Store an attitude; an older stamp than the newest is ignored (returns False)."""
+        stamp_ns = int(stamp_ns)
+        if self._stamps and stamp_ns < self._stamps[-1]:
+            return False
+        self._stamps.append(stamp_ns)
+        self._rots.append(np.asarray(R_IB, dtype=float))
+        while self._stamps and self._stamps[0] < stamp_ns - self.horizon_ns:
+            self._stamps.popleft()
+            self._rots.popleft()
+        return True
+
+    def at(self, stamp_ns: int) -> np.ndarray | None:
+        """R_IB at or just before stamp_ns; the oldest if all are newer; None if empty."""
+        if not self._stamps:
+            return None
+        i = bisect_right(self._stamps, int(stamp_ns)) - 1
+        return self._rots[max(i, 0)]
+
+    def latest(self) -> np.ndarray | None:
+        """Return the newest attitude, or None."""
+        return self._rots[-1] if self._rots else None
+
+
+BEARING_NORM_TOLERANCE = 0.05   # |b| of a unit bearing must be within 5 % of 1
+
+
+def check_bearings(points: np.ndarray, expected: int | None = None
+                   ) -> tuple[np.ndarray | None, str]:
+    """Validate bearings (rows) from a polygon: return (unit bearings or None, error).
+
+    An empty set is "not detected": (None, ''). A wrong count (``expected``), a non-finite
+    value or a vector that is not unit within 5 % returns (None, reason).
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(p) == 0:
+        return None, ''
+    if expected is not None and len(p) != expected:
+        return None, f'{len(p)} bearings where {expected} were expected'
+    if not np.all(np.isfinite(p)):
+        return None, 'non-finite bearing'
+    n = np.linalg.norm(p, axis=1)
+    if np.any(np.abs(n - 1.0) > BEARING_NORM_TOLERANCE):
+        return None, f'bearings are not unit vectors (norms {np.round(n, 3).tolist()})'
+    return p / n[:, None], ''
+
+
+def check_vector(v: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """Validate a 3-vector (a flow, a force): (vector or None, error)."""
+    x = np.asarray(v, dtype=float)
+    if x.shape != (3,) or not np.all(np.isfinite(x)):
+        return None, f'non-finite vector {x.tolist()}'
+    return x, ''
+
+
+def heading_quat_enu_flu(yaw_ned: float) -> np.ndarray:
+    """Return the ibvs/heading_setpoint quaternion (w, x, y, z) for a NED yaw (rad).
+
+    The yaw-only rotation R_Z(yaw) (body FRD in NED) expressed as the attitude of base_link
+    in map (frames.quat_ned_frd_to_enu_flu).
+    """
+    return quat_ned_frd_to_enu_flu(quat_from_rot(rot_z(float(yaw_ned))))
+
+
+def step_controller(controller: IbvsController, mode: Mode, bundle: FrameBundle,
+                    R_IB: np.ndarray | None) -> tuple[ControlOutput | None, np.ndarray]:
+    """Answer one frame: (controller output or None, force F in {I} (N)).
+
+    Without any IMU attitude yet the controller cannot derotate the bearings: the answer is
+    the hover force m g e3 (level) and no output (no heading, no features). A non-finite
+    controller force (a bug) is replaced by the hover force as well.
+    """
+    hover = controller.config.mass * GRAVITY * e3
+    if R_IB is None:
+        return None, hover
+    meas = Measurements(
+        t=bundle.stamp_ns / NS_PER_S, R_IB=R_IB,
+        window_bearings_C=bundle.get(InputKind.WINDOW), pad_bearings_C=bundle.get(InputKind.PAD),
+        phi_front_I=bundle.get(InputKind.FLOW_FRONT), phi_down_I=bundle.get(InputKind.FLOW_DOWN))
+    out = controller.step(mode, meas)
+    F = np.asarray(out.F_I, dtype=float)
+    if F.shape != (3,) or not np.all(np.isfinite(F)) or not np.isfinite(out.yaw_des):
+        return None, hover
+    return out, F
+
+
+FEATURE_NAMES = ('q_w', 'q_w_bar', 'q_t', 'phi_w', 'phi_t', 'eta_w')
+
+
+def feature_vector(features: FeatureSnapshot) -> tuple[list[str], list[float]]:
+    """Flatten a FeatureSnapshot for ibvs/features: names 'q_w.x', ..., 'alpha_w' (in {I}).
+
+    Features that are not available (None) or not finite are left out of the message.
+    """
+    names, values = [], []
+    for name in FEATURE_NAMES:
+        v = getattr(features, name)
+        if v is not None and np.all(np.isfinite(v)):
+            names += [f'{name}.x', f'{name}.y', f'{name}.z']
+            values += [float(x) for x in np.asarray(v, dtype=float).reshape(3)]
+    if features.alpha_w is not None and np.isfinite(features.alpha_w):
+        names.append('alpha_w')
+        values.append(float(features.alpha_w))
+    return names, values

@@ -1,0 +1,140 @@
+"""Mode supervisor as a pure state machine: triggers, once-only switch, staleness, abort."""
+import numpy as np
+
+from ibvs_control.core.config import load_pad_layout, load_world
+from ibvs_control.core.modes import Mode
+from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
+
+WORLD = load_world()
+CORNERS = WORLD.window.corners_I()
+PAD = load_pad_layout()
+R = np.eye(3)
+
+
+def bearings(points, xi):
+    P = np.asarray(points) - xi
+    return P / np.linalg.norm(P, axis=1, keepdims=True)
+
+
+def pad_groups(xi, names=('A', 'B')):
+    groups = [g for g in PAD.groups if g.name in names]
+    return np.concatenate([bearings(g.marker_centres_I(), xi) for g in groups]), \
+        [g.name for g in groups]
+
+
+def feed(sup, t, xi, v, window=True, pad=None, imu=True):
+    if imu:
+        sup.on_imu(t, R)
+    sup.on_window(t, bearings(CORNERS, xi) if window else None)
+    if pad is not None:
+        sup.on_pad(t, *pad)
+    if xi[0] < WORLD.wall_x:
+        sup.on_flow(t, 'front', v / (WORLD.wall_x - xi[0]))
+    sup.on_flow(t, 'down', v / -xi[2])
+    return sup.update(t)
+
+
+def started(xi=np.array([-2.0, 0.0, -1.6])):
+    sup = ModeSupervisor(SupervisorConfig(r_w=WORLD.window.width))
+    feed(sup, 0.0, xi, np.zeros(3))
+    ok, _ = sup.start(0.0)
+    assert ok and sup.mode == Mode.WINDOW
+    return sup
+
+
+def test_start_needs_window_and_imu():
+    sup = ModeSupervisor(SupervisorConfig())
+    ok, msg = sup.start(0.0)
+    assert not ok and 'IMU' in msg and sup.mode == Mode.IDLE
+    sup.on_imu(0.0, R)
+    ok, msg = sup.start(0.0)
+    assert not ok and 'window' in msg
+
+
+def test_window_lost_far_away_is_failsafe_not_crossing():
+    sup = started()
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    for k in range(1, 40):
+        feed(sup, 0.02 * k, xi, v, window=False)
+    assert sup.mode == Mode.FAILSAFE
+    assert 'window stale' in sup.transitions[-1].reason
+
+
+def test_whole_sequence_with_crossing_length_from_images():
+    sup = started()
+    v = np.array([0.25, 0.0, 0.0])
+    xi = np.array([-1.5, 0.0, -1.6])
+    t = 0.0
+    while sup.mode == Mode.WINDOW:            # approach until the window is lost up close
+        t += 0.02
+        xi = xi + v * 0.02
+        feed(sup, t, xi, v, window=xi[0] < -1.2)
+    assert sup.mode == Mode.CROSSING and xi[0] < -1.19
+    t_cross = t
+    # the pad is visible through the window long before the vehicle is through: no switch
+    while xi[0] < WORLD.wall_x + 0.3:
+        t += 0.02
+        xi = xi + v * 0.02
+        feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
+        assert sup.mode == Mode.CROSSING
+    # d_o(T2) = 0.7 m, margin 0.4 m: the switch comes 1.1 m after T2 (+- one frame)
+    while sup.mode == Mode.CROSSING:
+        t += 0.02
+        xi = xi + v * 0.02
+        feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
+    travelled = v[0] * (t - t_cross)
+    assert sup.mode == Mode.LANDING
+    assert abs(travelled - 1.1) < 0.02
+    # descend over the pad: mode 4 below 0.14 m from the smallest complete group
+    xi = np.array([0.0, 0.0, -0.5])
+    v = np.array([0.0, 0.0, 0.2])
+    while sup.mode == Mode.LANDING and xi[2] < -0.05:
+        t += 0.02
+        xi = xi + v * 0.02
+        feed(sup, t, xi, v, window=False, pad=pad_groups(xi, ('C', 'D')))
+    assert sup.mode == Mode.SHUTDOWN and abs(-xi[2] - 0.14) < 0.01
+    assert [tr.to_mode for tr in sup.transitions] == [Mode.WINDOW, Mode.CROSSING,
+                                                      Mode.LANDING, Mode.SHUTDOWN]
+
+
+def test_landing_switch_happens_only_once_and_stale_flow_is_failsafe():
+    sup = started()
+    sup._landing_entered = True       # as if mode 3 had already been entered once
+    sup.mode = Mode.CROSSING
+    sup._travel_needed = 0.0
+    xi = np.array([0.0, 0.0, -1.5])
+    feed(sup, 1.0, xi, np.zeros(3), window=False, pad=pad_groups(xi))
+    assert sup.mode == Mode.CROSSING
+    # the down flow stops: failsafe after its timeout
+    for k in range(1, 40):
+        sup.on_imu(1.0 + 0.02 * k, R)
+        sup.update(1.0 + 0.02 * k)
+    assert sup.mode == Mode.FAILSAFE and 'down_flow' in sup.transitions[-1].reason
+
+
+def test_imu_stale_and_abort():
+    sup = started()
+    feed(sup, 0.02, np.array([-2.0, 0, -1.6]), np.zeros(3), imu=False)
+    sup.update(0.5)
+    assert sup.mode == Mode.FAILSAFE and 'IMU' in sup.transitions[-1].reason
+    sup = started()
+    ok, _ = sup.abort(0.1)
+    assert ok and sup.mode == Mode.FAILSAFE
+    assert not sup.abort(0.2)[0]
+
+
+def test_corner_jump_counts_as_loss():
+    sup = started(np.array([-1.25, 0.0, -1.6]))   # close: angular height above threshold
+    xi = np.array([-1.25, 0.0, -1.6])
+    feed(sup, 0.02, xi, np.array([0.2, 0, 0]))
+    sup.on_window(0.04, bearings(CORNERS + [0, 0.8, 0], xi))   # another rectangle, 0.8 m away
+    sup.update(0.04)
+    assert sup.mode == Mode.CROSSING and 'jumped' in sup.transitions[-1].reason
+
+
+def test_bad_parameters_refused():
+    import pytest
+    with pytest.raises(ValueError):
+        SupervisorConfig.from_params({'imu_timeout_s': -1.0})
+    with pytest.raises(ValueError):
+        SupervisorConfig.from_params({'no_such_thing': 1.0})
