@@ -6,8 +6,9 @@ force controller must answer EVERY stamp exactly once (the sim's lockstep waits 
 so :class:`StampSynchronizer` gathers the inputs of one stamp and releases the bundle
 
 - as soon as the window and pad detections are there, plus each flow that is *expected*
-  (a flow is expected when it came for the previously released stamp: flows are only
-  published when valid, so a camera whose flow stopped does not cost a timeout every frame);
+  (a flow is expected when it came for the previously released stamp, in time or late:
+  flows are only published when valid, so a camera whose flow stopped does not cost a
+  timeout every frame, and one that comes after the detections is waited for);
 - or when ``timeout_s`` (wall clock) has passed since the first input of that stamp arrived.
 
 Bundles leave in stamp order: releasing stamp S first releases every older pending stamp.
@@ -79,6 +80,8 @@ class StampSynchronizer:
         """Add one input; return (bundles released now, '' or why the input was dropped)."""
         stamp_ns = int(stamp_ns)
         if self.last_released_ns is not None and stamp_ns <= self.last_released_ns:
+            if kind in FLOWS and stamp_ns == self.last_released_ns:
+                self._expect_flow[kind] = True   # it comes, just later: wait for it next time
             self.dropped += 1
             return [], (f'{kind.value} for stamp {stamp_ns} ns arrived after stamp '
                         f'{self.last_released_ns} ns was answered (out of order or late)')

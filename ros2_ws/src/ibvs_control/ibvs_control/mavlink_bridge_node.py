@@ -1,0 +1,247 @@
+"""mavlink_bridge: ibvs/force_setpoint + ibvs/heading_setpoint -> SET_ATTITUDE_TARGET; IMU back.
+
+Thin ROS wrapper of :class:`ibvs_control.core.mavlink_bridge.MavlinkBridge` (docs/mavlink.md,
+docs/interfaces.md). Subscribes ibvs/force_setpoint (Vector3Stamped, map, N),
+ibvs/heading_setpoint (QuaternionStamped, map) and ibvs/mode (UInt8, transient local);
+publishes imu/data (sensor_msgs/Imu, base_link in map) and /diagnostics. The link timers
+(receive, setpoint stream, heartbeat) run on the steady clock: the autopilot's offboard timeout
+counts in its own time, and a lockstep sim's /clock waits for our setpoints.
+"""
+from __future__ import annotations
+
+import numpy as np
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
+from sensor_msgs.msg import Imu
+from std_msgs.msg import UInt8
+
+from ibvs_control.core.config import ConfigError, load_vehicle
+from ibvs_control.core.frames import vec_map_to_I
+from ibvs_control.core.mavlink_bridge import (
+    BridgeConfig, BridgeStatus, ImuSample, MavlinkBridge, TimeStrategy)
+from ibvs_control.core.mavlink_link import LinkConfig, load_signing_key, SigningError
+from ibvs_control.core.mavlink_sequencer import SequencerConfig
+from ibvs_control.node_common import (
+    COMMAND_QOS, MODE_QOS, ns_to_stamp, quat_wxyz, set_quat, set_vector3, stamp_to_ns,
+    vector3)
+
+DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
+UNKNOWN_COVARIANCE = [-1.0] + [0.0] * 8     # sensor_msgs/Imu: element 0 = -1 "not provided"
+LOG_THROTTLE_S = 2.0
+PARAMETERS = {
+    'url': 'udpout:127.0.0.1:14560',
+    'source_system': 1,
+    'target_system': 0,
+    'target_component': 0,
+    'heartbeat_timeout_s': 1.5,
+    'reconnect_period_s': 1.0,
+    'signing_key_file': '',
+    'signing_link_id': 0,
+    'autopilot': 'auto',
+    'hover_thrust_source': 'autopilot',
+    'hover_thrust': -1.0,
+    'vehicle_file': '',
+    'param_timeout_s': 3.0,
+    'attitude_rate_hz': 100.0,
+    'imu_rate_hz': 100.0,
+    'time_strategy': 'boot_time',
+    'boot_time_offset_s': 0.0,
+    'stream_rate_hz': 60.0,
+    'poll_rate_hz': 250.0,
+    'heartbeat_rate_hz': 1.0,
+    'diagnostics_rate_hz': 1.0,
+    'hold_last_s': 0.5,
+    'max_force_factor': 3.0,
+    'max_tilt_rad': 0.6,
+    'failsafe_thrust_ratio': 0.9,
+    'shutdown_ramp_s': 2.0,
+    'prestream_s': 1.2,
+    'command_retry_s': 1.0,
+    'max_attempts': 5,
+    'disarm_force_after_s': 1.0,
+    'frame_id': 'base_link',
+    'orientation_covariance': DEFAULT_COVARIANCE,
+    'angular_velocity_covariance': DEFAULT_COVARIANCE,
+    'linear_acceleration_covariance': DEFAULT_COVARIANCE,
+}
+
+
+class MavlinkBridgeNode(Node):
+    """ROS side of the MAVLink bridge."""
+
+    def __init__(self, node_name: str = 'mavlink_bridge', **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        for name, default in PARAMETERS.items():
+            self.declare_parameter(name, default)
+        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        self._config = self._build_config(p)
+        self._frame_id = p['frame_id']
+        self._cov = {k: [float(x) for x in p[k]] for k in (
+            'orientation_covariance', 'angular_velocity_covariance',
+            'linear_acceleration_covariance')}
+        self._bridge = MavlinkBridge(self._config)
+
+        self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
+        self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(Vector3Stamped, 'ibvs/force_setpoint', self._on_force,
+                                 COMMAND_QOS)
+        self.create_subscription(QuaternionStamped, 'ibvs/heading_setpoint', self._on_heading,
+                                 COMMAND_QOS)
+        self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(1.0 / p['poll_rate_hz'], self._on_poll, clock=steady)
+        self.create_timer(1.0 / p['stream_rate_hz'], self._bridge.stream, clock=steady)
+        self.create_timer(1.0 / p['heartbeat_rate_hz'], self._bridge.heartbeat, clock=steady)
+        self.create_timer(1.0 / p['diagnostics_rate_hz'], self._on_diagnostics, clock=steady)
+        self.get_logger().info(
+            f'MAVLink bridge on {self._config.link.url} (autopilot {p["autopilot"]}, '
+            f'signing {"on" if self._config.link.signing_key else "off"}, hover thrust '
+            f'source {p["hover_thrust_source"]}, time {p["time_strategy"]})')
+
+    def _build_config(self, p: dict) -> BridgeConfig:
+        """Typed configuration from the parameters; raises ValueError with the reason."""
+        try:
+            vehicle = load_vehicle(p['vehicle_file'] or None)
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from exc
+        key = None
+        if p['signing_key_file']:
+            key = load_signing_key(p['signing_key_file'])
+        hover = p['hover_thrust'] if p['hover_thrust'] > 0.0 else vehicle.hover_thrust
+        link = LinkConfig(url=p['url'], source_system=p['source_system'],
+                          target_system=p['target_system'],
+                          target_component=p['target_component'],
+                          heartbeat_timeout_s=p['heartbeat_timeout_s'],
+                          reconnect_period_s=p['reconnect_period_s'], signing_key=key,
+                          signing_link_id=p['signing_link_id'])
+        seq = SequencerConfig(prestream_s=p['prestream_s'],
+                              command_retry_s=p['command_retry_s'],
+                              max_attempts=p['max_attempts'],
+                              disarm_force_after_s=p['disarm_force_after_s'])
+        for k in ('stream_rate_hz', 'poll_rate_hz', 'heartbeat_rate_hz', 'diagnostics_rate_hz'):
+            if not p[k] > 0.0:
+                raise ValueError(f'{k} must be > 0')
+        return BridgeConfig(
+            link=link, mass=vehicle.mass, max_thrust_factor=vehicle.max_thrust_factor,
+            configured_hover_thrust=hover, autopilot=p['autopilot'],
+            hover_thrust_source=p['hover_thrust_source'], param_timeout_s=p['param_timeout_s'],
+            attitude_rate_hz=p['attitude_rate_hz'], imu_rate_hz=p['imu_rate_hz'],
+            time_strategy=TimeStrategy(p['time_strategy']),
+            boot_time_offset_s=p['boot_time_offset_s'], hold_last_s=p['hold_last_s'],
+            max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
+            failsafe_thrust_ratio=p['failsafe_thrust_ratio'],
+            shutdown_ramp_s=p['shutdown_ramp_s'], sequencer=seq)
+
+    # --- callbacks -------------------------------------------------------------------------
+    def _on_force(self, msg: Vector3Stamped) -> None:
+        frame_ok = msg.header.frame_id in ('map', '')
+        F_I = vec_map_to_I(vector3(msg.vector)) if frame_ok else np.full(3, np.nan)
+        reason = self._bridge.on_force(stamp_to_ns(msg.header.stamp), F_I)
+        if reason or not frame_ok:
+            self.get_logger().error(
+                f'force setpoint refused (frame {msg.header.frame_id!r}): {reason}',
+                throttle_duration_sec=LOG_THROTTLE_S)
+        self._log_events()
+
+    def _on_heading(self, msg: QuaternionStamped) -> None:
+        reason = self._bridge.on_heading(quat_wxyz(msg.quaternion))
+        if reason:
+            self.get_logger().error(f'heading setpoint refused: {reason}',
+                                    throttle_duration_sec=LOG_THROTTLE_S)
+
+    def _on_mode(self, msg: UInt8) -> None:
+        self._bridge.on_supervisor_mode(msg.data)
+        self._log_events()
+
+    def _on_poll(self) -> None:
+        for sample in self._bridge.poll(self.get_clock().now().nanoseconds):
+            self._imu_pub.publish(self._imu_msg(sample))
+        self._log_events()
+
+    def _on_diagnostics(self) -> None:
+        self._diag_pub.publish(self._diagnostics(self._bridge.status()))
+
+    # --- message building ------------------------------------------------------------------
+    def _imu_msg(self, s: ImuSample) -> Imu:
+        msg = Imu()
+        ns_to_stamp(s.stamp_ns, msg.header.stamp)
+        msg.header.frame_id = self._frame_id
+        set_quat(msg.orientation, s.q_wxyz)
+        set_vector3(msg.angular_velocity, s.angular_velocity_flu)
+        msg.orientation_covariance = self._cov['orientation_covariance']
+        msg.angular_velocity_covariance = self._cov['angular_velocity_covariance']
+        if s.linear_acceleration_flu is None:
+            msg.linear_acceleration_covariance = UNKNOWN_COVARIANCE
+        else:
+            set_vector3(msg.linear_acceleration, s.linear_acceleration_flu)
+            msg.linear_acceleration_covariance = self._cov['linear_acceleration_covariance']
+        return msg
+
+    def _diagnostics(self, st: BridgeStatus) -> DiagnosticArray:
+        status = DiagnosticStatus()
+        status.name = f'{self.get_name()}: MAVLink link'
+        status.hardware_id = self._config.link.url
+        if not st.link_up or st.engage_state in ('refused', 'failed'):
+            status.level = DiagnosticStatus.ERROR
+        elif st.setpoint_source not in ('ibvs', 'none'):
+            status.level = DiagnosticStatus.WARN
+        else:
+            status.level = DiagnosticStatus.OK
+        status.message = (f'link {"up" if st.link_up else "LOST"}, {st.engage_state}'
+                          + (f' ({st.engage_reason})' if st.engage_reason else ''))
+        values = {'link': 'up' if st.link_up else 'lost',
+                  'heartbeat_age_s': f'{st.heartbeat_age_s:.2f}',
+                  'autopilot': st.autopilot, 'armed': str(st.armed),
+                  'custom_mode': str(st.custom_mode), 'engage_state': st.engage_state,
+                  'supervisor_mode': st.supervisor_mode,
+                  'hover_thrust': 'unknown' if st.hover_thrust is None
+                  else f'{st.hover_thrust:.3f}',
+                  'hover_thrust_source': st.hover_thrust_source,
+                  'setpoint_source': st.setpoint_source,
+                  'setpoint_rate_hz': f'{st.setpoint_rate_hz:.1f}',
+                  'rejected_setpoints': str(st.rejected_setpoints)}
+        values.update({k: str(v) for k, v in st.counters.items()})
+        status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [status]
+        return msg
+
+    def _log_events(self) -> None:
+        log = self.get_logger()
+        for level, text in self._bridge.pop_events():
+            if level == 'error':
+                log.error(text, throttle_duration_sec=LOG_THROTTLE_S)
+            elif level == 'warn':
+                log.warning(text, throttle_duration_sec=LOG_THROTTLE_S)
+            else:
+                log.info(text)
+
+    def destroy_node(self) -> None:
+        """Close the MAVLink connection with the node."""
+        self._bridge.close()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    """Run the node (``ros2 run ibvs_control mavlink_bridge``)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = MavlinkBridgeNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ValueError, SigningError) as exc:
+        # Bad parameters (signing key, vehicle file, rates): refuse to start.
+        rclpy.logging.get_logger('mavlink_bridge').fatal(f'refusing to start: {exc}')
+        raise SystemExit(1)
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()

@@ -1,0 +1,56 @@
+"""Message <-> numpy helpers and QoS profiles shared by the ibvs_control nodes.
+
+Only conversions of message fields (no frames: frames.py does those, no maths).
+"""
+from __future__ import annotations
+
+import numpy as np
+from rclpy.qos import (
+    DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
+
+NS_PER_S = 1_000_000_000
+
+# ibvs/mode: latched state (the last mode reaches late joiners).
+MODE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                      history=HistoryPolicy.KEEP_LAST)
+# Detections, flows, IMU: keep only the latest, best effort (accepts any publisher).
+SENSOR_QOS = qos_profile_sensor_data
+# Setpoints and features: every message matters (lockstep), reliable.
+COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                         history=HistoryPolicy.KEEP_LAST)
+
+
+def stamp_to_ns(stamp) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
+
+
+def ns_to_stamp(ns: int, stamp) -> None:
+    """Write integer nanoseconds into a builtin_interfaces/Time (in place)."""
+    stamp.sec, stamp.nanosec = divmod(int(ns), NS_PER_S)
+
+
+def polygon_points(msg) -> np.ndarray:
+    """geometry_msgs/PolygonStamped -> (N, 3) array."""
+    return np.array([[p.x, p.y, p.z] for p in msg.polygon.points], dtype=float).reshape(-1, 3)
+
+
+def vector3(v) -> np.ndarray:
+    """geometry_msgs/Vector3 -> (3,) array."""
+    return np.array([v.x, v.y, v.z], dtype=float)
+
+
+def quat_wxyz(q) -> np.ndarray:
+    """geometry_msgs/Quaternion (x, y, z, w fields) -> (w, x, y, z) array."""
+    return np.array([q.w, q.x, q.y, q.z], dtype=float)
+
+
+def set_quat(q_msg, q_wxyz: np.ndarray) -> None:
+    """Write a (w, x, y, z) quaternion into a geometry_msgs/Quaternion (in place)."""
+    q_msg.w, q_msg.x, q_msg.y, q_msg.z = (float(x) for x in q_wxyz)
+
+
+def set_vector3(v_msg, v: np.ndarray) -> None:
+    """Write a 3-vector into a geometry_msgs/Vector3 (in place)."""
+    v_msg.x, v_msg.y, v_msg.z = (float(x) for x in v)

@@ -1,0 +1,428 @@
+"""The ibvs_control nodes in-process with real rclpy and fake publishers.
+
+Detections are synthesised from the reference scenario's geometry (window corners of
+world.yaml, pad marker centres of pad_layout.yaml) along a straight-line trajectory, rotated
+into the camera optical frames with the mounts of vehicle.yaml.
+"""
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+
+from geometry_msgs.msg import Point32, PolygonStamped, QuaternionStamped, Vector3Stamped
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import String, UInt8
+from std_srvs.srv import Trigger
+
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.control_laws import GainError
+from ibvs_control.core.frames import (
+    bearings_I_to_C, GRAVITY, quat_ned_frd_to_enu_flu, vec_I_to_map)
+from ibvs_control.force_controller_node import ForceControllerNode
+from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
+from ibvs_control.mode_supervisor_node import ModeSupervisorNode
+from ibvs_control.node_common import COMMAND_QOS, MODE_QOS, SENSOR_QOS
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'unit'))
+from test_control_mavlink import FakeAutopilot, free_udp_port  # noqa: E402
+
+VEHICLE = load_vehicle()
+WORLD = load_world()
+PAD = load_pad_layout()
+WINDOW_I = WORLD.window.corners_I()
+TAG = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
+
+
+@pytest.fixture()
+def ctx():
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    nodes = []
+    executor = SingleThreadedExecutor(context=context)
+    yield context, executor, nodes
+    executor.shutdown()
+    for n in nodes:
+        n.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def spin_until(executor, done, timeout_s):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not done():
+        executor.spin_once(timeout_sec=0.01)
+    return done()
+
+
+def spin_for(executor, seconds):
+    spin_until(executor, lambda: False, seconds)
+
+
+def stamp(t):
+    from builtin_interfaces.msg import Time
+    ns = int(round(t * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def polygon(t, bearings, frame):
+    msg = PolygonStamped()
+    msg.header.stamp = stamp(t)
+    msg.header.frame_id = frame
+    msg.polygon.points = [Point32(x=float(b[0]), y=float(b[1]), z=float(b[2]))
+                          for b in np.asarray(bearings, dtype=float).reshape(-1, 3)]
+    return msg
+
+
+def unit_rows(v):
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def corners_C(xi, R_IB=np.eye(3)):
+    return bearings_I_to_C(unit_rows(WINDOW_I - xi), R_IB, VEHICLE.cameras['front'].R_BC)
+
+
+def landmarks_C(xi, names, R_IB=np.eye(3)):
+    groups = [g for g in PAD.groups if g.name in names]
+    pts = np.vstack([g.marker_centres_I() for g in groups])
+    return (bearings_I_to_C(unit_rows(pts - xi), R_IB, VEHICLE.cameras['down'].R_BC),
+            ','.join(g.name for g in groups))
+
+
+def imu_msg(t, yaw=0.0):
+    msg = Imu()
+    msg.header.stamp = stamp(t)
+    msg.header.frame_id = 'base_link'
+    w, x, y, z = quat_ned_frd_to_enu_flu(np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
+    msg.orientation.w, msg.orientation.x, msg.orientation.y, msg.orientation.z = w, x, y, z
+    return msg
+
+
+def flow_msg(t, phi_I, frame='map'):
+    msg = Vector3Stamped()
+    msg.header.stamp = stamp(t)
+    msg.header.frame_id = frame
+    msg.vector.x, msg.vector.y, msg.vector.z = (float(v) for v in vec_I_to_map(phi_I))
+    return msg
+
+
+class Feeder:
+    """Fake perception + IMU (+ /clock) publishers on one test node."""
+
+    def __init__(self, context, name):
+        self.node = rclpy.create_node(name, context=context)
+        n = self.node
+        self.clock = n.create_publisher(Clock, '/clock', 10)
+        self.imu = n.create_publisher(Imu, 'imu/data', SENSOR_QOS)
+        self.corners = n.create_publisher(PolygonStamped, 'window/corners', SENSOR_QOS)
+        self.landmarks = n.create_publisher(PolygonStamped, 'pad/landmarks', SENSOR_QOS)
+        self.groups = n.create_publisher(String, 'pad/groups', SENSOR_QOS)
+        self.front = n.create_publisher(Vector3Stamped, 'front_camera/translational_flow',
+                                        SENSOR_QOS)
+        self.down = n.create_publisher(Vector3Stamped, 'down_camera/translational_flow',
+                                       SENSOR_QOS)
+        self.mode = n.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
+        self.modes = []
+        n.create_subscription(UInt8, 'ibvs/mode', lambda m: self.modes.append(m.data),
+                              MODE_QOS)
+        self.forces, self.headings, self.features = [], [], []
+        n.create_subscription(Vector3Stamped, 'ibvs/force_setpoint', self.forces.append,
+                              COMMAND_QOS)
+        n.create_subscription(QuaternionStamped, 'ibvs/heading_setpoint', self.headings.append,
+                              COMMAND_QOS)
+        n.create_subscription(JointState, 'ibvs/features', self.features.append, COMMAND_QOS)
+
+    def frame(self, t, xi, window=True, pad=None, front_flow=None, down_flow=None):
+        """Publish everything one camera frame at time t would produce at position xi."""
+        self.clock.publish(Clock(clock=stamp(t)))
+        self.imu.publish(imu_msg(t))
+        self.corners.publish(polygon(t, corners_C(xi) if window else [],
+                                     'front_camera_optical_frame'))
+        lm, names = landmarks_C(xi, pad) if pad else ([], '')
+        self.landmarks.publish(polygon(t, lm, 'down_camera_optical_frame'))
+        self.groups.publish(String(data=names))
+        if front_flow is not None:
+            self.front.publish(flow_msg(t, front_flow))
+        if down_flow is not None:
+            self.down.publish(flow_msg(t, down_flow))
+
+
+def call(executor, node, srv_name):
+    client = node.create_client(Trigger, srv_name)
+    assert client.wait_for_service(timeout_sec=5.0)
+    future = client.call_async(Trigger.Request())
+    assert spin_until(executor, future.done, 5.0)
+    return future.result()
+
+
+# --- mode supervisor ---------------------------------------------------------------------
+
+def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
+    context, executor, nodes = ctx
+    sup = ModeSupervisorNode(node_name=f'sup_{TAG}', context=context,
+                             parameter_overrides=[Parameter('use_sim_time', value=True)])
+    feed = Feeder(context, f'feed_{TAG}')
+    nodes += [sup, feed.node]
+    executor.add_node(sup)
+    executor.add_node(feed.node)
+    assert spin_until(executor, lambda: feed.modes == [0], 5.0)
+
+    dt, v = 0.02, 1.0
+    t, xi = 1.0, np.array([-2.0, 0.0, -1.6])
+
+    def step(**kw):
+        nonlocal t
+        feed.frame(t, xi, **kw)
+        spin_for(executor, 0.005)
+        t += dt
+
+    def d_wall():   # the front camera sees the wall, then (past it) the back wall
+        return WORLD.wall_x - xi[0] if xi[0] < WORLD.wall_x else WORLD.back_wall_x - xi[0]
+
+    for _ in range(10):
+        step(front_flow=np.zeros(3))
+    assert call(executor, feed.node, 'ibvs/start').success
+    assert spin_until(executor, lambda: feed.modes[-1:] == [1], 2.0)
+    while d_wall() > 0.75:                 # mode 1: approach, the window fully visible
+        xi = xi + [v * dt, 0, 0]
+        step(front_flow=np.array([v / d_wall(), 0, 0]))
+    while feed.modes[-1] != 3 and xi[0] < 1.0:   # window lost close: blind crossing
+        xi = xi + [v * dt, 0, 0]
+        step(window=False, pad=('A', 'B') if xi[0] > -0.3 else None,
+             front_flow=np.array([v / d_wall(), 0, 0]),
+             down_flow=np.array([v / -xi[2], 0, 0]))
+    assert feed.modes[-1] == 3 and xi[0] > -0.2   # landing only after the crossing length
+    xi = np.array([0.0, 0.0, xi[2]])
+    while feed.modes[-1] != 4 and xi[2] < -0.05:  # mode 3: descend over the pad
+        xi = xi + [0, 0, 0.75 * dt]
+        step(window=False, pad=('A', 'B', 'C', 'D'), down_flow=np.array([0, 0, 0.75 / -xi[2]]))
+    spin_for(executor, 0.1)
+    assert feed.modes == [0, 1, 2, 3, 4]
+    assert -xi[2] < 0.2
+    assert not call(executor, feed.node, 'ibvs/start').success
+
+
+def test_supervisor_stale_input_failsafe_and_abort(ctx):
+    context, executor, nodes = ctx
+    sup = ModeSupervisorNode(node_name=f'sup2_{TAG}', context=context)
+    feed = Feeder(context, f'feed2_{TAG}')
+    nodes += [sup, feed.node]
+    executor.add_node(sup)
+    executor.add_node(feed.node)
+    assert spin_until(executor, lambda: feed.modes == [0], 5.0)
+    res = call(executor, feed.node, 'ibvs/start')
+    assert not res.success and res.message           # nothing detected yet
+    xi = np.array([-2.0, 0.0, -1.6])
+    for _ in range(5):
+        feed.frame(sup.get_clock().now().nanoseconds * 1e-9, xi, front_flow=np.zeros(3))
+        spin_for(executor, 0.02)
+    assert call(executor, feed.node, 'ibvs/start').success
+    # inputs stop: the IMU goes stale after 0.2 s -> FAILSAFE (5), logged with its reason
+    assert spin_until(executor, lambda: feed.modes[-1:] == [5], 3.0)
+    assert feed.modes == [0, 1, 5]
+    res = call(executor, feed.node, 'ibvs/abort')
+    assert not res.success and 'FAILSAFE' in res.message
+
+
+def test_supervisor_bad_messages_no_output_no_exception(ctx, capfd):
+    context, executor, nodes = ctx
+    sup = ModeSupervisorNode(node_name=f'sup3_{TAG}', context=context)
+    feed = Feeder(context, f'feed3_{TAG}')
+    nodes += [sup, feed.node]
+    executor.add_node(sup)
+    executor.add_node(feed.node)
+    assert spin_until(executor, lambda: feed.modes == [0], 5.0)
+    now = sup.get_clock().now().nanoseconds * 1e-9
+    bad = corners_C(np.array([-2.0, 0.0, -1.6]))
+    bad[1, 0] = np.nan
+    feed.imu.publish(imu_msg(now))
+    feed.corners.publish(polygon(now, bad, 'front_camera_optical_frame'))
+    feed.corners.publish(polygon(now, bad[:3], 'front_camera_optical_frame'))
+    feed.landmarks.publish(polygon(now, 2.0 * np.ones((4, 3)), 'down_camera_optical_frame'))
+    feed.front.publish(flow_msg(now, np.array([np.nan, 0, 0])))
+    bad_imu = imu_msg(now)
+    bad_imu.orientation.w = bad_imu.orientation.x = bad_imu.orientation.y = 0.0
+    bad_imu.orientation.z = 0.0
+    feed.imu.publish(bad_imu)
+    spin_for(executor, 0.5)
+    assert feed.modes == [0]
+    assert not call(executor, feed.node, 'ibvs/start').success   # NaN window != detected
+    err = capfd.readouterr().err
+    assert 'refused' in err
+
+
+# --- force controller --------------------------------------------------------------------
+
+def make_controller(context, name, **params):
+    overrides = [Parameter(k, value=v) for k, v in params.items()]
+    return ForceControllerNode(node_name=name, context=context, parameter_overrides=overrides)
+
+
+def stamps_of(msgs):
+    return [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs]
+
+
+def test_controller_answers_every_stamp_once_in_idle(ctx):
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fc_{TAG}', sync_timeout_s=0.03)
+    feed = Feeder(context, f'feedfc_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    spin_for(executor, 0.3)
+    xi = np.array([-2.0, 0.1, -1.82])
+    sent = []
+    for i in range(12):
+        t = 10.0 + 0.02 * i
+        feed.imu.publish(imu_msg(t - 0.001))
+        feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+        if i % 3:   # every third frame the pad detector says nothing: timeout path
+            feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
+        sent.append(int(round(t * 1e9)))
+        spin_for(executor, 0.01)
+    assert spin_until(executor, lambda: len(feed.forces) >= 12, 3.0)
+    spin_for(executor, 0.2)
+    assert stamps_of(feed.forces) == sent
+    hover_map = vec_I_to_map(np.array([0, 0, VEHICLE.mass * GRAVITY]))
+    for f in feed.forces:
+        assert f.header.frame_id == 'map'
+        assert np.allclose([f.vector.x, f.vector.y, f.vector.z], hover_map)
+    assert stamps_of(feed.headings) == sent
+    # heading: the yaw of the IMU (0, north) as base_link in map = ENU yaw +90 deg
+    q = feed.headings[0].quaternion
+    assert np.allclose([q.w, q.z], [np.cos(np.pi / 4), np.sin(np.pi / 4)], atol=1e-9)
+
+    # out of order and duplicates: dropped, no extra answer
+    n = len(feed.forces)
+    feed.corners.publish(polygon(10.0, corners_C(xi), 'front_camera_optical_frame'))
+    t = 11.0
+    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+    spin_for(executor, 0.3)
+    assert stamps_of(feed.forces[n:]) == [int(t * 1e9)]
+
+
+def test_controller_bad_inputs_still_answered_without_nan(ctx):
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fc2_{TAG}')
+    feed = Feeder(context, f'feedfc2_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    spin_for(executor, 0.3)
+    feed.mode.publish(UInt8(data=1))
+    spin_for(executor, 0.2)
+    xi = np.array([-2.0, 0.1, -1.82])
+    bad = corners_C(xi)
+    bad[0, 2] = np.nan
+    cases = [bad, corners_C(xi)[:3], np.zeros((4, 3))]
+    for i, corners in enumerate(cases):
+        t = 20.0 + 0.02 * i
+        feed.imu.publish(imu_msg(t))
+        feed.corners.publish(polygon(t, corners, 'front_camera_optical_frame'))
+        feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
+        feed.front.publish(flow_msg(t, np.array([np.nan, 0.0, 0.0])))
+        spin_for(executor, 0.05)
+    assert spin_until(executor, lambda: len(feed.forces) >= 3, 2.0)
+    for f in feed.forces:
+        assert np.all(np.isfinite([f.vector.x, f.vector.y, f.vector.z]))
+
+
+def test_controller_window_mode_force_heading_features(ctx):
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fc3_{TAG}')
+    feed = Feeder(context, f'feedfc3_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    spin_for(executor, 0.3)
+    feed.mode.publish(UInt8(data=1))
+    spin_for(executor, 0.2)
+    xi = np.array([-2.0, 0.3, -1.82])
+    for i in range(6):
+        t = 30.0 + 0.02 * i
+        feed.imu.publish(imu_msg(t))
+        spin_for(executor, 0.01)
+        feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+        feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
+        feed.front.publish(flow_msg(t, np.zeros(3)))
+        spin_for(executor, 0.05)
+    assert spin_until(executor, lambda: len(feed.features) >= 6, 2.0)
+    f = feed.forces[-1]
+    F_map = np.array([f.vector.x, f.vector.y, f.vector.z])
+    hover_map = vec_I_to_map(np.array([0, 0, VEHICLE.mass * GRAVITY]))
+    assert np.all(np.isfinite(F_map)) and not np.allclose(F_map, hover_map)
+    names = feed.features[-1].name
+    assert 'alpha_w' in names and 'q_w.x' in names and 'q_w_bar.z' in names
+    assert len(names) == len(feed.features[-1].position)
+    assert stamps_of(feed.features[-1:]) == stamps_of(feed.forces[-1:])
+    # the window is centred at y = 0 and the vehicle sits at y = +0.3: push towards -y_I,
+    # i.e. (m v_dot = -F + m g e3) F_y_I > 0, which is +x in map
+    assert F_map[0] > 0.0
+
+
+def test_controller_refuses_bad_gains(ctx):
+    context, _, _ = ctx
+    with pytest.raises(GainError):
+        make_controller(context, f'fc4_{TAG}', **{'window.kd': 0.5})   # 0.25 < r_w/2
+    env = dict(os.environ)
+    proc = subprocess.run(
+        [sys.executable, '-c', 'from ibvs_control.force_controller_node import main; main()',
+         '--ros-args', '-r', f'__node:=fc5_{TAG}', '-p', 'window.kd:=0.5'],
+        env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert 'Proposition' in proc.stderr + proc.stdout
+
+
+# --- MAVLink bridge ----------------------------------------------------------------------
+
+def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
+    from diagnostic_msgs.msg import DiagnosticArray
+    context, executor, nodes = ctx
+    port = free_udp_port()
+    peer = FakeAutopilot(port, yaw_ned=np.pi / 2)
+    try:
+        bridge = MavlinkBridgeNode(
+            node_name=f'bridge_{TAG}', context=context, parameter_overrides=[
+                Parameter('url', value=f'udpout:127.0.0.1:{port}'),
+                Parameter('hover_thrust_source', value='config'),
+                Parameter('diagnostics_rate_hz', value=5.0)])
+        feed = Feeder(context, f'feedbr_{TAG}')
+        nodes += [bridge, feed.node]
+        imus, diags = [], []
+        feed.node.create_subscription(Imu, 'imu/data', imus.append, SENSOR_QOS)
+        feed.node.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
+        heading = feed.node.create_publisher(QuaternionStamped, 'ibvs/heading_setpoint',
+                                             COMMAND_QOS)
+        force = feed.node.create_publisher(Vector3Stamped, 'ibvs/force_setpoint', COMMAND_QOS)
+        executor.add_node(bridge)
+        executor.add_node(feed.node)
+        assert spin_until(executor, lambda: len(imus) >= 3 and diags, 5.0)
+        q = imus[-1].orientation
+        assert np.allclose([abs(q.w), q.x, q.y, q.z], [1, 0, 0, 0], atol=1e-6)  # east = ENU
+        assert imus[-1].header.frame_id == 'base_link'
+        assert imus[-1].header.stamp.nanosec % 1_000_000 == 0
+        h = QuaternionStamped()
+        h.header.stamp = stamp(4.321)
+        h.header.frame_id = 'map'
+        w, x, y, z = quat_ned_frd_to_enu_flu(np.array([1.0, 0, 0, 0]))
+        h.quaternion.w, h.quaternion.x, h.quaternion.y, h.quaternion.z = w, x, y, z
+        heading.publish(h)
+        spin_for(executor, 0.1)
+        force.publish(flow_msg(4.321, np.array([0.0, 0.0, VEHICLE.mass * GRAVITY])))
+        assert spin_until(executor, lambda: any(m.time_boot_ms == 4321
+                                                for _, m in peer.setpoints), 3.0)
+        m = [m for _, m in peer.setpoints if m.time_boot_ms == 4321][-1]
+        assert m.thrust == pytest.approx(VEHICLE.hover_thrust)
+        assert np.allclose(np.abs(m.q), [1, 0, 0, 0], atol=1e-6)    # level, yaw 0 (north)
+        keys = {kv.key: kv.value for kv in diags[-1].status[0].values}
+        assert keys['link'] == 'up' and keys['autopilot'] == 'px4'
+        assert 'setpoint_rate_hz' in keys and 'hover_thrust_source' in keys
+    finally:
+        peer.close()
