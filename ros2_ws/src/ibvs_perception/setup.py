@@ -19,7 +19,8 @@ setup(
     zip_safe=True,
     maintainer='IBVS team',
     maintainer_email='ibvs-team@example.com',
-    description='Window detection, pad (ArUco) detection and translational optical flow nodes for IBVS.',
+    description=('Window detection, pad (ArUco) detection and translational optical flow '
+                 'nodes for IBVS.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [

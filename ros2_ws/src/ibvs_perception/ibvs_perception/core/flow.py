@@ -70,16 +70,20 @@ class FlowResult:
 
 def wall_normal_from_corners(corner_bearings_C: np.ndarray, R_IB: np.ndarray,
                              R_BC: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """eta_w (eq:etaw, sign eta_w^T q_w < 0: from the camera towards the wall) and the corner
-    bearings in {I}, from the window corners (4, 3) in the front optical frame."""
+    """Return (eta_w, corner bearings in {I}) from the window corners (4, 3), optical frame.
+
+    eta_w of eq:etaw with the paper's sign eta_w^T q_w < 0: from the camera towards the wall.
+    """
     p_I = bearings_C_to_I(corner_bearings_C, R_IB, R_BC)
     u_w, rho_w = window_axes(edge_normals(p_I), p_I)
     return window_normal(u_w, rho_w, centroid_feature(p_I)), p_I
 
 
 def inside_spherical_polygon(p: np.ndarray, corners: np.ndarray, margin_rad: float) -> np.ndarray:
-    """Whether unit bearings p (N, 3) fall inside the convex spherical polygon of ``corners``
-    (K, 3), widened by ``margin_rad`` (all in one frame)."""
+    """Tell which unit bearings p (N, 3) fall inside a convex spherical polygon.
+
+    The polygon's corners (K, 3) are in the same frame; it is widened by ``margin_rad``.
+    """
     h = np.cross(corners, np.roll(corners, -1, axis=0))
     h /= np.linalg.norm(h, axis=1, keepdims=True)
     centre = corners.mean(axis=0)
@@ -222,7 +226,7 @@ class FlowEstimator:
         return FlowResult(phi, ratio, n_in, n)
 
     def _replenish(self, gray: np.ndarray) -> None:
-        """goodFeaturesToTrack only in the grid cells that hold too few tracks."""
+        """Add features (goodFeaturesToTrack) only in grid cells that hold too few tracks."""
         cfg = self.config
         h, w = gray.shape[:2]
         cell_w, cell_h = w / cfg.grid_cols, h / cfg.grid_rows

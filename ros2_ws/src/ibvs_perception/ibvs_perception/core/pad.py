@@ -50,7 +50,7 @@ class PadDetection:
 
 
 def aruco_dictionary(name: str) -> 'cv2.aruco.Dictionary':
-    """The predefined OpenCV dictionary of a layout name such as 'DICT_4X4_50'."""
+    """Return the predefined OpenCV dictionary of a layout name such as 'DICT_4X4_50'."""
     code = getattr(cv2.aruco, name, None) if name.startswith('DICT_') else None
     if not isinstance(code, int):
         raise PadConfigError(f'unknown ArUco dictionary {name!r}')

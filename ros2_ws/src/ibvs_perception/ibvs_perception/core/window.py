@@ -210,7 +210,7 @@ class WindowDetector:
 
     def _outer_quad_u(self, contour: np.ndarray, camera: CameraModel,
                       scale: float) -> np.ndarray | None:
-        """Initial outer quad in undistorted px: robust lines through the contour's 4 sides.
+        """Return the initial outer quad in undistorted px from robust lines along 4 sides.
 
         approxPolyDP splits the contour into 4 convex sides; each side's points (ends left
         out) are undistorted and fitted with a Huber line, so that texture blobs touching the
@@ -408,8 +408,8 @@ def _undistorted_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
 
 def _distort_px(camera: CameraModel, uv_u: np.ndarray) -> np.ndarray:
     """Ideal pinhole pixels -> distorted pixels."""
-    xy = (np.asarray(uv_u, dtype=float) - camera.K[:2, 2]) / np.array([camera.K[0, 0],
-                                                                        camera.K[1, 1]])
+    focal = np.array([camera.K[0, 0], camera.K[1, 1]])
+    xy = (np.asarray(uv_u, dtype=float) - camera.K[:2, 2]) / focal
     uv, _ = camera.bearings_to_pixels(np.column_stack([xy, np.ones(len(xy))]))
     return uv
 

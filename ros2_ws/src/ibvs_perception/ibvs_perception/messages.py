@@ -1,0 +1,68 @@
+"""Message <-> core conversions shared by the perception nodes (no maths beyond frames.py).
+
+Each function either returns a core value or raises ValueError (ImageFormatError,
+CameraModelError) with a readable reason that the node logs, throttled.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from geometry_msgs.msg import Point32, PolygonStamped
+from ibvs_control.core.camera import CameraModel
+from ibvs_control.core.frames import (R_IB_from_rot_map_base, quat_xyzw_to_wxyz, rot_from_quat,
+                                      vec_flu_to_frd)
+from sensor_msgs.msg import CameraInfo, Image, Imu
+
+from ibvs_perception.core.image import image_to_mono8
+
+
+def stamp_to_s(stamp) -> float:
+    """builtin_interfaces/Time -> seconds (float)."""
+    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+
+
+def mono8_from_image(msg: Image) -> np.ndarray:
+    """sensor_msgs/Image (mono8, bgr8, rgb8) -> (H, W) uint8; raises ImageFormatError."""
+    return image_to_mono8(msg.data, msg.width, msg.height, msg.encoding, msg.step)
+
+
+def camera_from_info(msg: CameraInfo | None, image: Image) -> CameraModel:
+    """Build the CameraModel of a CameraInfo that matches the image; raises ValueError."""
+    if msg is None:
+        raise ValueError('no CameraInfo received yet')
+    model = CameraModel.from_camera_info(msg.width, msg.height, msg.k, msg.d,
+                                         msg.distortion_model)
+    if (model.width, model.height) != (image.width, image.height):
+        raise ValueError(f'CameraInfo size {model.width}x{model.height} != image size '
+                         f'{image.width}x{image.height}')
+    return model
+
+
+def attitude_from_imu(msg: Imu) -> tuple[float, np.ndarray, np.ndarray]:
+    """(stamp s, R_IB, Omega_B FRD) of sensor_msgs/Imu (base_link FLU in map ENU)."""
+    q = quat_xyzw_to_wxyz([msg.orientation.x, msg.orientation.y, msg.orientation.z,
+                           msg.orientation.w])
+    w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(w)):
+        raise ValueError('IMU message holds NaN or Inf')
+    R_IB = R_IB_from_rot_map_base(rot_from_quat(q))
+    return stamp_to_s(msg.header.stamp), R_IB, vec_flu_to_frd(w)
+
+
+def polygon_from_vectors(header, frame_id: str, vectors: np.ndarray | None) -> PolygonStamped:
+    """Build a PolygonStamped whose points are the rows of ``vectors`` (empty for None)."""
+    msg = PolygonStamped()
+    msg.header.stamp = header.stamp
+    msg.header.frame_id = frame_id
+    if vectors is not None:
+        msg.polygon.points = [Point32(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+                              for v in vectors]
+    return msg
+
+
+def vectors_from_polygon(msg: PolygonStamped) -> np.ndarray:
+    """(N, 3) array of a PolygonStamped's points; raises ValueError on non-finite values."""
+    v = np.array([[p.x, p.y, p.z] for p in msg.polygon.points], dtype=float).reshape(-1, 3)
+    if not np.all(np.isfinite(v)):
+        raise ValueError('polygon holds NaN or Inf')
+    return v

@@ -1,0 +1,166 @@
+"""optical_flow: one camera's images + IMU -> translational optical flow phi = v/d (1/s).
+
+One executable, one instance per camera (node names front_optical_flow, down_optical_flow);
+parameter `camera` ('front' | 'down') selects the mount R_BC (vehicle.yaml) and the plane:
+the floor (eta_t = e3) for the down camera, the window wall (eta_w from `window/corners`,
+aperture excluded) for the front camera. Publishes `<camera>_camera/translational_flow`
+(Vector3Stamped, frame `map`, stamp of the later image) when enough inliers, and
+`<camera>_camera/translational_flow_quality` (Float32 inlier ratio) for every estimate tried.
+"""
+from __future__ import annotations
+
+from dataclasses import fields
+
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+
+from geometry_msgs.msg import PolygonStamped, Vector3Stamped
+from ibvs_control.core.config import ConfigError, load_vehicle
+from ibvs_control.core.frames import e3, vec_I_to_map
+from sensor_msgs.msg import CameraInfo, Image, Imu
+from std_msgs.msg import Float32
+
+from ibvs_perception.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
+from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
+                                      stamp_to_s, vectors_from_polygon)
+
+THROTTLE_S = 2.0
+FRONT, DOWN = 'front', 'down'
+N_WINDOW_CORNERS = 4
+MAP_FRAME = 'map'
+
+
+class OpticalFlowNode(Node):
+    """Thin ROS wrapper of :class:`FlowEstimator` for one camera."""
+
+    def __init__(self) -> None:
+        super().__init__('optical_flow')
+        self.camera_name = self.declare_parameter('camera', DOWN).value
+        if self.camera_name not in (FRONT, DOWN):
+            raise ValueError(f"parameter camera must be 'front' or 'down', "
+                             f'got {self.camera_name!r}')
+        vehicle_file = self.declare_parameter('vehicle_file', '').value
+        self.max_window_age_s = float(self.declare_parameter('max_window_age_s', 0.1).value)
+        flow_defaults, buffer_defaults = FlowConfig(), AttitudeBufferConfig()
+        flow_values = {f.name: self.declare_parameter(f.name, getattr(flow_defaults, f.name)).value
+                       for f in fields(FlowConfig)}
+        buffer_values = {f.name: self.declare_parameter(f'imu_{f.name}',
+                                                        getattr(buffer_defaults, f.name)).value
+                         for f in fields(AttitudeBufferConfig)}
+        try:
+            self.R_BC = load_vehicle(vehicle_file or None).cameras[self.camera_name].R_BC
+        except (ConfigError, KeyError) as exc:
+            self.get_logger().fatal(f'optical_flow: cannot load the camera mount: {exc}')
+            raise
+        self.flow_config = FlowConfig(**flow_values)
+        self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
+        self.estimator: FlowEstimator | None = None
+        self.camera_key: tuple | None = None
+        self.camera_info: CameraInfo | None = None
+        self.window_msg: PolygonStamped | None = None
+        prefix = f'{self.camera_name}_camera'
+        self.pub_flow = self.create_publisher(Vector3Stamped, f'{prefix}/translational_flow', 10)
+        self.pub_quality = self.create_publisher(
+            Float32, f'{prefix}/translational_flow_quality', 10)
+        self.create_subscription(CameraInfo, f'{prefix}/camera_info', self.on_info,
+                                 qos_profile_sensor_data)
+        self.create_subscription(Imu, 'imu/data', self.on_imu, qos_profile_sensor_data)
+        if self.camera_name == FRONT:
+            self.create_subscription(PolygonStamped, 'window/corners', self.on_window,
+                                     qos_profile_sensor_data)
+        self.create_subscription(Image, f'{prefix}/image_raw', self.on_image,
+                                 qos_profile_sensor_data)
+
+    def on_info(self, msg: CameraInfo) -> None:
+        self.camera_info = msg
+
+    def on_window(self, msg: PolygonStamped) -> None:
+        self.window_msg = msg
+
+    def on_imu(self, msg: Imu) -> None:
+        try:
+            self.attitudes.add(*attitude_from_imu(msg))
+        except ValueError as exc:
+            self.get_logger().error(f'optical_flow: IMU message dropped: {exc}',
+                                    throttle_duration_sec=THROTTLE_S)
+
+    def on_image(self, msg: Image) -> None:
+        try:
+            camera = camera_from_info(self.camera_info, msg)
+            gray = mono8_from_image(msg)
+        except ValueError as exc:
+            self.get_logger().error(f'optical_flow: image dropped: {exc}',
+                                    throttle_duration_sec=THROTTLE_S)
+            return
+        key = (camera.width, camera.height, camera.distortion_model, tuple(camera.K.ravel()),
+               tuple(camera.D.ravel()))
+        if self.estimator is None or key != self.camera_key:
+            self.estimator = FlowEstimator(self.flow_config, camera, self.R_BC)
+            self.camera_key = key
+        stamp = stamp_to_s(msg.header.stamp)
+        R_IB = self.attitudes.attitude_at(stamp)
+        if R_IB is None:
+            self.get_logger().warn('optical_flow: no IMU attitude at the image stamp',
+                                   throttle_duration_sec=THROTTLE_S)
+        eta_I, exclude_I = self.plane(stamp)
+        result = self.estimator.process(gray, stamp, R_IB, eta_I, exclude_I)
+        if result is None:
+            return
+        self.pub_quality.publish(Float32(data=float(result.inlier_ratio)))
+        if result.phi_I is not None:
+            out = Vector3Stamped()
+            out.header.stamp = msg.header.stamp
+            out.header.frame_id = MAP_FRAME
+            out.vector.x, out.vector.y, out.vector.z = (float(x) for x in
+                                                        vec_I_to_map(result.phi_I))
+            self.pub_flow.publish(out)
+
+    def plane(self, stamp: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """(eta in {I}, excluded corner bearings in {I}) of the observed plane at ``stamp``.
+
+        Down: the floor, eta_t = e3. Front: the window wall from the latest window corners
+        (at most max_window_age_s old), rotated with the IMU attitude at their stamp.
+        """
+        if self.camera_name == DOWN:
+            return e3, None
+        msg = self.window_msg
+        reason = None
+        if msg is None or len(msg.polygon.points) != N_WINDOW_CORNERS:
+            reason = 'no window detection'
+        elif abs(stamp - stamp_to_s(msg.header.stamp)) > self.max_window_age_s:
+            reason = 'window detection too old'
+        else:
+            R_IB = self.attitudes.attitude_at(stamp_to_s(msg.header.stamp))
+            if R_IB is None:
+                reason = 'no IMU attitude at the window stamp'
+            else:
+                try:
+                    return wall_normal_from_corners(vectors_from_polygon(msg), R_IB, self.R_BC)
+                except ValueError as exc:
+                    reason = f'degenerate window corners ({exc})'
+        self.get_logger().info(f'optical_flow: front flow not published: {reason}',
+                               throttle_duration_sec=THROTTLE_S)
+        return None, None
+
+
+def main(args=None) -> None:
+    """Run the node (console script `optical_flow`)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = OpticalFlowNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

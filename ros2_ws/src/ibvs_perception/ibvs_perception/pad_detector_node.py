@@ -1,0 +1,85 @@
+"""pad_detector: down image + CameraInfo -> marker centres of complete pad groups (bearings).
+
+Publishes one `pad/landmarks` (PolygonStamped, down optical frame, image stamp: unit bearings
+of the marker centres of every complete group, largest group first, layout id order; empty
+when no group is complete) and one `pad/groups` (std_msgs/String, e.g. "A,B") per image.
+"""
+from __future__ import annotations
+
+from dataclasses import fields
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+
+from geometry_msgs.msg import PolygonStamped
+from ibvs_control.core.config import ConfigError, load_pad_layout
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from ibvs_perception.core.pad import PadConfigError, PadDetector, PadDetectorConfig
+from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
+
+THROTTLE_S = 2.0
+GROUP_SEPARATOR = ','
+
+
+class PadDetectorNode(Node):
+    """Thin ROS wrapper of :class:`PadDetector`."""
+
+    def __init__(self) -> None:
+        super().__init__('pad_detector')
+        defaults = PadDetectorConfig()
+        values = {f.name: self.declare_parameter(f.name, getattr(defaults, f.name)).value
+                  for f in fields(PadDetectorConfig)}
+        layout_file = self.declare_parameter('pad_layout_file', '').value
+        self.frame_id = self.declare_parameter('frame_id', 'down_camera_optical_frame').value
+        try:
+            self.detector = PadDetector(load_pad_layout(layout_file or None),
+                                        PadDetectorConfig(**values))
+        except (ConfigError, PadConfigError) as exc:
+            self.get_logger().fatal(f'pad_detector: cannot load the pad layout: {exc}')
+            raise
+        self.camera_info: CameraInfo | None = None
+        self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
+        self.pub_groups = self.create_publisher(String, 'pad/groups', 10)
+        self.create_subscription(CameraInfo, 'down_camera/camera_info', self.on_info,
+                                 qos_profile_sensor_data)
+        self.create_subscription(Image, 'down_camera/image_raw', self.on_image,
+                                 qos_profile_sensor_data)
+
+    def on_info(self, msg: CameraInfo) -> None:
+        self.camera_info = msg
+
+    def on_image(self, msg: Image) -> None:
+        bearings, names = None, ()
+        try:
+            camera = camera_from_info(self.camera_info, msg)
+            detection = self.detector.process(mono8_from_image(msg), camera)
+            if len(detection.bearings_C):
+                bearings, names = detection.bearings_C, detection.group_names
+        except ValueError as exc:
+            self.get_logger().error(f'pad_detector: image dropped: {exc}',
+                                    throttle_duration_sec=THROTTLE_S)
+        self.pub_landmarks.publish(polygon_from_vectors(msg.header, self.frame_id, bearings))
+        self.pub_groups.publish(String(data=GROUP_SEPARATOR.join(names)))
+
+
+def main(args=None) -> None:
+    """Run the node (console script `pad_detector`)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = PadDetectorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,107 @@
+"""window_detector: front image + CameraInfo -> window corners and edge normals (bearings).
+
+Publishes one `window/corners` and one `window/edge_normals` (PolygonStamped, optical frame,
+stamp of the image) for EVERY image: 4 unit bearings TL, TR, BR, BL / 4 unit normals h_i, or
+empty polygons when the window is not (fully) detected or its track was lost.
+"""
+from __future__ import annotations
+
+from dataclasses import fields
+
+import cv2
+import numpy as np
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+
+from geometry_msgs.msg import PolygonStamped
+from sensor_msgs.msg import CameraInfo, Image
+
+from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
+from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
+
+THROTTLE_S = 2.0
+DEBUG_AXIS_PX = 40      # length of the drawn image axes, px
+DEBUG_COLOUR = (0, 255, 0)
+
+
+class WindowDetectorNode(Node):
+    """Thin ROS wrapper of :class:`WindowDetector`."""
+
+    def __init__(self) -> None:
+        super().__init__('window_detector')
+        defaults = WindowDetectorConfig()
+        values = {f.name: self.declare_parameter(f.name, getattr(defaults, f.name)).value
+                  for f in fields(WindowDetectorConfig)}
+        self.frame_id = self.declare_parameter('frame_id', 'front_camera_optical_frame').value
+        self.publish_debug = bool(self.declare_parameter('publish_debug_image', False).value)
+        self.detector = WindowDetector(WindowDetectorConfig(**values))
+        self.camera_info: CameraInfo | None = None
+        self.pub_corners = self.create_publisher(PolygonStamped, 'window/corners', 10)
+        self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)
+        self.pub_debug = self.create_publisher(Image, 'window/debug_image', 1) \
+            if self.publish_debug else None
+        self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
+                                 qos_profile_sensor_data)
+        self.create_subscription(Image, 'front_camera/image_raw', self.on_image,
+                                 qos_profile_sensor_data)
+
+    def on_info(self, msg: CameraInfo) -> None:
+        self.camera_info = msg
+
+    def on_image(self, msg: Image) -> None:
+        corners = normals = gray = detection = None
+        try:
+            camera = camera_from_info(self.camera_info, msg)
+            gray = mono8_from_image(msg)
+            detection = self.detector.process(gray, camera).detection
+            if detection is not None:
+                corners, normals = detection.bearings_C, detection.edge_normals_C
+        except ValueError as exc:
+            self.get_logger().error(f'window_detector: image dropped: {exc}',
+                                    throttle_duration_sec=THROTTLE_S)
+        self.pub_corners.publish(polygon_from_vectors(msg.header, self.frame_id, corners))
+        self.pub_normals.publish(polygon_from_vectors(msg.header, self.frame_id, normals))
+        if self.pub_debug is not None and gray is not None:
+            self.pub_debug.publish(self._debug_image(msg, gray, detection))
+
+    def _debug_image(self, msg: Image, gray: np.ndarray, detection) -> Image:
+        """bgr8 image with the detected aperture and its image axes drawn."""
+        img = cv2.cvtColor(gray, cv2.COLOR_GRAY2BGR)
+        if detection is not None:
+            quad = np.round(detection.corners_px).astype(np.int32)
+            cv2.polylines(img, [quad], True, DEBUG_COLOUR, 2)
+            centre = quad.mean(axis=0)
+            right = (quad[1] + quad[2]) / 2.0 - centre
+            down = (quad[2] + quad[3]) / 2.0 - centre
+            for axis, colour in ((right, (0, 0, 255)), (down, (255, 0, 0))):
+                tip = centre + DEBUG_AXIS_PX * axis / max(np.linalg.norm(axis), 1e-9)
+                cv2.arrowedLine(img, tuple(int(x) for x in centre),
+                                tuple(int(x) for x in tip), colour, 2)
+        out = Image()
+        out.header = msg.header
+        out.height, out.width = img.shape[:2]
+        out.encoding = 'bgr8'
+        out.step = img.shape[1] * 3
+        out.data = img.tobytes()
+        return out
+
+
+def main(args=None) -> None:
+    """Run the node (console script `window_detector`)."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = WindowDetectorNode()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,78 @@
+"""Pad detector (ibvs_perception.core.pad) on rendered frames of the landing descent.
+
+Ground truth: MarkerGroup.marker_centres_I() seen from the known pose.
+"""
+import numpy as np
+import pytest
+
+from ibvs_control.core import frames
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
+                                      aruco_dictionary, marker_centre_normalized)
+from ibvs_sim.core.render import SceneRenderer
+
+
+@pytest.fixture(scope='module')
+def setup():
+    layout = load_pad_layout()
+    cam = load_vehicle().cameras['down']
+    return layout, cam, SceneRenderer(load_world(), layout, cam)
+
+
+def angle_deg(a, b):
+    a, b = a / np.linalg.norm(a), b / np.linalg.norm(b)
+    return float(np.degrees(np.arccos(np.clip(a @ b, -1.0, 1.0))))
+
+
+def test_marker_centre_is_the_projective_centre_not_the_corner_mean():
+    # a square seen obliquely: the image of its centre, by projecting the 3-D centre
+    square = np.array([[-1.0, -1.0, 0.0], [1.0, -1.0, 0.0], [1.0, 1.0, 0.0], [-1.0, 1.0, 0.0]])
+    R = frames.rot_x(0.7)
+    P = square @ R.T + np.array([0.3, -0.2, 4.0])
+    xy = P[:, :2] / P[:, 2:]
+    centre = np.array([0.3, -0.2, 4.0])
+    np.testing.assert_allclose(marker_centre_normalized(xy), centre[:2] / centre[2],
+                               atol=1e-12)
+    assert np.linalg.norm(xy.mean(axis=0) - centre[:2] / centre[2]) > 1e-3
+
+
+def test_unknown_dictionary_is_refused():
+    with pytest.raises(PadConfigError):
+        aruco_dictionary('DICT_NOPE')
+
+
+def test_descent_centroid_direction_and_group_switches(setup):
+    """Centroid direction within 0.5 deg from 1.8 m to 0.15 m; no jump > 1 deg at a switch."""
+    layout, cam, renderer = setup
+    detector = PadDetector(layout, PadDetectorConfig())
+    previous, switches = None, 0
+    for k, h in enumerate(np.linspace(1.8, 0.15, 60)):
+        xi = np.array([0.01, -0.02, -h])
+        R_IB = frames.rot_from_euler_zyx(0.04 * np.sin(k / 5), 0.03 * np.cos(k / 7),
+                                         0.1 * np.sin(k / 11))
+        det = detector.process(renderer.render(R_IB, xi), cam.model)
+        assert len(det.bearings_C) == 4 * len(det.group_names) > 0, f'no group at {h:.2f} m'
+        assert list(det.group_names) == [g.name for g in layout.groups
+                                         if g.name in det.group_names]   # largest first
+        p_I = frames.bearings_C_to_I(det.bearings_C, R_IB, cam.R_BC)
+        truth = np.concatenate([g.marker_centres_I() for g in layout.groups
+                                if g.name in det.group_names]) - xi
+        truth /= np.linalg.norm(truth, axis=1, keepdims=True)
+        assert angle_deg(p_I.mean(axis=0), truth.mean(axis=0)) <= 0.5
+        assert np.max(np.degrees(np.arccos(np.clip(np.sum(p_I * truth, axis=1), -1, 1)))) < 1.0
+        if previous is not None and previous != det.group_names:
+            # the switch alone, at this pose: new measured set vs the previous set's truth
+            switches += 1
+            old = np.concatenate([g.marker_centres_I() for g in layout.groups
+                                  if g.name in previous]) - xi
+            old /= np.linalg.norm(old, axis=1, keepdims=True)
+            assert angle_deg(p_I.mean(axis=0), old.mean(axis=0)) <= 1.0
+        previous = det.group_names
+    assert switches >= 2
+
+
+def test_no_pad_gives_empty_detection(setup):
+    layout, cam, renderer = setup
+    det = PadDetector(layout, PadDetectorConfig()).process(
+        renderer.render(np.eye(3), np.array([-3.0, 1.5, -1.0])), cam.model)
+    assert det.bearings_C.shape == (0, 3) and det.group_names == ()

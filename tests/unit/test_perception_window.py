@@ -1,0 +1,181 @@
+"""Window detector (ibvs_perception.core.window) on rendered and exact synthetic frames.
+
+Ground truth comes from geometry: WindowGeometry.corners_I() projected with the camera model
+(frames.bearings_I_to_C + CameraModel.bearings_to_pixels), and eta_w = e1 (SPEC.md).
+"""
+import cv2
+import numpy as np
+import pytest
+
+from ibvs_control.core import features, frames
+from ibvs_control.core.camera import CameraModel
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_perception.core.window import (WindowDetector, WindowDetectorConfig, WindowStatus,
+                                         order_corners_clockwise)
+from ibvs_sim.core.render import SceneRenderer
+
+START = np.array([-2.0, 0.1, -1.82])
+WINDOW_CENTRE = np.array([-0.5, 0.0, -1.6])
+SUPERSAMPLE = 8
+
+
+@pytest.fixture(scope='module')
+def world():
+    return load_world()
+
+
+@pytest.fixture(scope='module')
+def front(world):
+    cam = load_vehicle().cameras['front']
+    return cam, SceneRenderer(world, load_pad_layout(), cam)
+
+
+def smooth_attitude(s: float) -> np.ndarray:
+    """Small attitude perturbation (< 5 deg) varying smoothly along the path parameter s."""
+    return frames.rot_from_euler_zyx(0.06 * np.sin(7 * s), 0.05 * np.sin(5 * s + 1),
+                                     0.07 * np.sin(4 * s + 2))
+
+
+def true_corners_px(world, cam, R_IB, xi):
+    b = frames.bearings_I_to_C(world.window.corners_I() - xi, R_IB, cam.R_BC)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    return cam.model.bearings_to_pixels(b)
+
+
+def band_visibility(world, cam, R_IB, xi, margin_px=6.0):
+    """Smallest distance (px) of the dark band's outer outline to the image border (< 0: cut)."""
+    win = world.window
+    hw, hh = win.width / 2 + win.frame_band, win.height / 2 + win.frame_band
+    t = np.linspace(-1.0, 1.0, 25)
+    y, z = win.center_I[1], win.center_I[2]
+    pts = np.concatenate([np.column_stack([np.full_like(t, win.center_I[0]), y + a, z + b])
+                          for a, b in ((t * hw, -hh + 0 * t), (hw + 0 * t, t * hh),
+                                       (t * hw, hh + 0 * t), (-hw + 0 * t, t * hh))])
+    uv, valid = cam.model.bearings_to_pixels(frames.bearings_I_to_C(pts - xi, R_IB, cam.R_BC))
+    if not np.all(valid):
+        return -1.0
+    size = np.array([cam.model.width - 1, cam.model.height - 1])
+    return float(min(uv.min(), (size - uv).min()))
+
+
+def draw_supersampled(polygons, background, width=752, height=480):
+    """Exact area-averaged rendering of filled polygons (pixel centres at integers)."""
+    big = np.full((height * SUPERSAMPLE, width * SUPERSAMPLE), background, np.uint8)
+    for quad, value in polygons:
+        q = (np.asarray(quad) + 0.5) * SUPERSAMPLE - 0.5
+        cv2.fillPoly(big, [np.round(q * 16).astype(np.int32)], int(value), shift=4)
+    return cv2.resize(big, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def test_order_corners_clockwise():
+    quad = np.array([[300.0, 50.0], [10.0, 40.0], [20.0, 200.0], [310.0, 220.0]])
+    np.testing.assert_array_equal(order_corners_clockwise(quad),
+                                  [[10, 40], [300, 50], [310, 220], [20, 200]])
+
+
+def test_exact_synthetic_ring_subpixel():
+    cam = CameraModel.from_camera_info(752, 480, [366.667, 0, 375.5, 0, 366.667, 239.5, 0, 0,
+                                                  1], [0.0] * 5, 'plumb_bob')
+    outer = np.array([[200.3, 120.7], [560.2, 130.1], [550.6, 400.4], [210.1, 390.2]])
+    inner = outer.mean(axis=0) + 0.85 * (outer - outer.mean(axis=0))
+    img = draw_supersampled([(outer, 20), (inner, 150)], 120)
+    result = WindowDetector(WindowDetectorConfig()).process(img, cam)
+    assert result.status == WindowStatus.DETECTED
+    assert np.max(np.linalg.norm(result.detection.corners_px - inner, axis=1)) < 0.2
+    # h_i is orthogonal to both bearings of its edge
+    b, h = result.detection.bearings_C, result.detection.edge_normals_C
+    assert np.allclose(np.sum(h * b, axis=1), 0.0, atol=1e-9)
+    assert np.allclose(np.sum(h * np.roll(b, -1, axis=0), axis=1), 0.0, atol=1e-9)
+
+
+def test_rendered_approach_accuracy(world, front):
+    """Corners <= 0.5 px median, <= 1.5 px p95; eta_w within 2 deg; detected when visible."""
+    cam, renderer = front
+    detector = WindowDetector(WindowDetectorConfig())
+    errors, eta_errors, missed, visible = [], [], 0, 0
+    for s in np.linspace(0.0, 0.45, 40):
+        xi = START + s * (WINDOW_CENTRE - START)
+        R_IB = smooth_attitude(s)
+        result = detector.process(renderer.render(R_IB, xi), cam.model)
+        uv, _ = true_corners_px(world, cam, R_IB, xi)
+        clearance = band_visibility(world, cam, R_IB, xi)
+        if clearance < 0.0:          # band cut by the image border: never reported
+            assert result.detection is None
+            continue
+        if clearance < 8.0:          # borderline (border margin of the detector)
+            continue
+        visible += 1
+        if result.detection is None:
+            missed += 1
+            continue
+        errors.extend(np.linalg.norm(result.detection.corners_px - uv, axis=1))
+        p_I = frames.bearings_C_to_I(result.detection.bearings_C, R_IB, cam.R_BC)
+        u_w, rho_w = features.window_axes(features.edge_normals(p_I), p_I)
+        eta = features.window_normal(u_w, rho_w, features.centroid_feature(p_I))
+        eta_errors.append(np.degrees(np.arccos(np.clip(eta @ frames.e1, -1.0, 1.0))))
+    errors = np.array(errors)
+    assert visible >= 15 and missed <= 1
+    assert np.median(errors) <= 0.5
+    assert np.percentile(errors, 95) <= 1.5
+    assert max(eta_errors) <= 2.0
+
+
+def test_jump_is_reported_as_loss_and_not_followed(world, front):
+    cam, renderer = front
+    detector = WindowDetector(WindowDetectorConfig(max_corner_jump_px=10.0))
+    xi = START.copy()
+    assert detector.process(renderer.render(np.eye(3), xi), cam.model).status \
+        == WindowStatus.DETECTED
+    jumped = detector.process(renderer.render(frames.rot_z(0.15), xi), cam.model)
+    assert jumped.status == WindowStatus.JUMP and jumped.detection is None
+    # back where it was: the tracked window is found again
+    assert detector.process(renderer.render(np.eye(3), xi), cam.model).status \
+        == WindowStatus.DETECTED
+
+
+def test_partly_visible_window_is_not_reported(front):
+    cam, renderer = front
+    detector = WindowDetector(WindowDetectorConfig())
+    for yaw in (0.55, -0.6):     # the window cut by the left / right image border
+        assert detector.process(renderer.render(frames.rot_z(yaw), START),
+                                cam.model).detection is None
+        detector.reset()
+
+
+def test_no_window_in_500_frames_without_one(world):
+    """No window reported in frames that hold no fully visible one.
+
+    Down-camera frames (floor, pad), the wall with the window out of view or cut by the image
+    border, the room beyond.
+    """
+    vehicle, pad = load_vehicle(), load_pad_layout()
+    down = SceneRenderer(world, pad, vehicle.cameras['down'])
+    front = SceneRenderer(world, pad, vehicle.cameras['front'])
+    rng = np.random.default_rng(7)
+    false_positives = 0
+    for k in range(500):
+        detector = WindowDetector(WindowDetectorConfig())
+        kind = k % 3
+        if kind == 0:     # down camera over the floor and the pad
+            cam, renderer = vehicle.cameras['down'], down
+            xi = np.array([rng.uniform(-2.5, 2.0), rng.uniform(-1.5, 1.5),
+                           -rng.uniform(0.15, 2.0)])
+            R_IB = frames.rot_from_euler_zyx(*rng.uniform(-0.2, 0.2, 2), rng.uniform(-3, 3))
+        elif kind == 1:   # front camera at the wall: window out of view or cut by the border
+            cam, renderer = vehicle.cameras['front'], front
+            clearance = 0.0
+            while clearance >= 0.0:
+                xi = np.array([rng.uniform(-1.8, -0.9), rng.uniform(-2.0, 2.0),
+                               -rng.uniform(1.0, 2.2)])
+                R_IB = frames.rot_from_euler_zyx(0.0, rng.uniform(-0.3, 0.3),
+                                                 rng.uniform(-1.5, 1.5))
+                clearance = band_visibility(world, cam, R_IB, xi)
+        else:             # front camera in the second room: back wall and floor
+            cam, renderer = vehicle.cameras['front'], front
+            xi = np.array([rng.uniform(-0.3, 1.5), rng.uniform(-1.0, 1.0),
+                           -rng.uniform(0.3, 1.8)])
+            R_IB = frames.rot_from_euler_zyx(0.0, rng.uniform(-0.6, 0.1),
+                                             rng.uniform(-0.8, 0.8))
+        if detector.process(renderer.render(R_IB, xi), cam.model).detection is not None:
+            false_positives += 1
+    assert false_positives == 0
