@@ -1,0 +1,53 @@
+"""StampSynchronizer and AttitudeHistory of the force controller (pure, no ROS)."""
+import numpy as np
+
+from ibvs_control.core.frames import rot_z
+from ibvs_control.core.stamp_sync import AttitudeHistory, InputKind, StampSynchronizer
+
+W, P, FF = InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT
+
+
+def test_release_rules_order_timeout_and_drops():
+    s = StampSynchronizer(timeout_s=0.03)
+    assert s.add(W, 100, 'w1', 0.0) == ([], '')
+    out, _ = s.add(P, 100, 'p1', 0.001)                 # both detections: released at once
+    assert [b.stamp_ns for b in out] == [100] and not out[0].timed_out
+    assert s.add(W, 200, 'w2', 0.02) == ([], '')        # pad never comes for 200
+    out, _ = s.add(W, 300, 'w3', 0.025)
+    out2, _ = s.add(P, 300, 'p3', 0.026)                # 300 complete: 200 released first
+    assert [b.stamp_ns for b in out + out2] == [200, 300]
+    assert out2[0].timed_out and out2[0].get(P) is None and not out2[1].timed_out
+    assert s.add(W, 200, 'late', 0.03)[1] != ''         # answered stamp: dropped
+    s.add(W, 400, 'w4', 0.04)
+    assert 'duplicate' in s.add(W, 400, 'again', 0.041)[1]
+    assert s.poll(0.05) == []
+    out = s.poll(0.071)                                 # 30 ms after the first input
+    assert [b.stamp_ns for b in out] == [400] and out[0].timed_out
+    assert s.dropped == 2
+
+
+def test_flow_expected_after_it_came_late_and_forgotten_after_a_timeout():
+    s = StampSynchronizer(timeout_s=0.03)
+    s.add(W, 1, 'w', 0.0)
+    assert len(s.add(P, 1, 'p', 0.0)[0]) == 1           # flow not expected yet
+    assert s.add(FF, 1, 'f', 0.001)[1] != ''            # late: dropped, but now expected
+    s.add(W, 2, 'w', 0.02)
+    assert s.add(P, 2, 'p', 0.02)[0] == []              # waits for the flow
+    out, _ = s.add(FF, 2, 'f', 0.021)
+    assert len(out) == 1 and out[0].get(FF) == 'f'
+    s.add(W, 3, 'w', 0.04)
+    s.add(P, 3, 'p', 0.04)
+    assert len(s.poll(0.071)) == 1                      # flow stopped: one timeout ...
+    s.add(W, 4, 'w', 0.08)
+    assert len(s.add(P, 4, 'p', 0.08)[0]) == 1          # ... then no more waiting
+
+
+def test_attitude_history_picks_at_or_before():
+    h = AttitudeHistory(horizon_ns=1000)
+    assert h.at(5) is None
+    for k in range(5):
+        h.add(100 * k, rot_z(0.1 * k))
+    assert np.allclose(h.at(250), rot_z(0.2))
+    assert np.allclose(h.at(300), rot_z(0.3))
+    assert np.allclose(h.at(-10), rot_z(0.0))           # all newer: the oldest
+    assert not h.add(50, np.eye(3))                     # older than the newest: ignored
