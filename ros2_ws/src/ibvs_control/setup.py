@@ -19,7 +19,11 @@ setup(
     zip_safe=True,
     maintainer='IBVS team',
     maintainer_email='ibvs-team@example.com',
-    description='IBVS core (frames, camera model, paper features and control laws, mode state machine) and the control nodes: mode supervisor, outer-loop force controller, MAVLink bridge.',
+    description=(
+        'IBVS core (frames, camera model, paper features and control laws, mode state '
+        'machine) and the control nodes: mode supervisor, outer-loop force controller, '
+        'MAVLink bridge.'
+    ),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
