@@ -37,8 +37,8 @@ MAP_FRAME = 'map'
 class OpticalFlowNode(Node):
     """Thin ROS wrapper of :class:`FlowEstimator` for one camera."""
 
-    def __init__(self) -> None:
-        super().__init__('optical_flow')
+    def __init__(self, node_name: str = 'optical_flow', **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
         self.camera_name = self.declare_parameter('camera', DOWN).value
         if self.camera_name not in (FRONT, DOWN):
             raise ValueError(f"parameter camera must be 'front' or 'down', "

@@ -28,8 +28,8 @@ GROUP_SEPARATOR = ','
 class PadDetectorNode(Node):
     """Thin ROS wrapper of :class:`PadDetector`."""
 
-    def __init__(self) -> None:
-        super().__init__('pad_detector')
+    def __init__(self, node_name: str = 'pad_detector', **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
         defaults = PadDetectorConfig()
         values = {f.name: self.declare_parameter(f.name, getattr(defaults, f.name)).value
                   for f in fields(PadDetectorConfig)}

@@ -29,8 +29,8 @@ DEBUG_COLOUR = (0, 255, 0)
 class WindowDetectorNode(Node):
     """Thin ROS wrapper of :class:`WindowDetector`."""
 
-    def __init__(self) -> None:
-        super().__init__('window_detector')
+    def __init__(self, node_name: str = 'window_detector', **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
         defaults = WindowDetectorConfig()
         values = {f.name: self.declare_parameter(f.name, getattr(defaults, f.name)).value
                   for f in fields(WindowDetectorConfig)}

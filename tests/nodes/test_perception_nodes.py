@@ -1,0 +1,249 @@
+"""The ibvs_perception nodes in-process with real rclpy: rendered images in, messages out.
+
+Each test owns an rclpy context, fake publishers/subscribers with unique names, and spins a
+SingleThreadedExecutor with a deadline.
+"""
+import os
+import time
+
+import cv2
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+
+from builtin_interfaces.msg import Time
+from geometry_msgs.msg import PolygonStamped, Vector3Stamped
+from sensor_msgs.msg import CameraInfo, Image, Imu
+from std_msgs.msg import Float32, String
+
+from ibvs_control.core import frames
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_perception.optical_flow_node import OpticalFlowNode
+from ibvs_perception.pad_detector_node import PadDetectorNode
+from ibvs_perception.window_detector_node import WindowDetectorNode
+from ibvs_sim.core.render import SceneRenderer
+
+VEHICLE = load_vehicle()
+WORLD = load_world()
+PAD = load_pad_layout()
+TAG = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
+START = np.array([-2.0, 0.1, -1.82])
+DT = 0.02
+
+
+@pytest.fixture(scope='module')
+def renderers():
+    return {n: SceneRenderer(WORLD, PAD, VEHICLE.cameras[n]) for n in ('front', 'down')}
+
+
+@pytest.fixture()
+def ctx():
+    context = rclpy.context.Context()
+    rclpy.init(context=context)
+    executor = SingleThreadedExecutor(context=context)
+    nodes = []
+    yield context, executor, nodes
+    executor.shutdown()
+    for n in nodes:
+        n.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def spin_until(executor, done, timeout_s=5.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not done():
+        executor.spin_once(timeout_sec=0.01)
+    return done()
+
+
+def stamp(t):
+    ns = int(round(t * 1e9))
+    return Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+
+
+def image_msg(gray, t, encoding='mono8', step=None):
+    msg = Image()
+    msg.header.stamp = stamp(t)
+    msg.height, msg.width = gray.shape
+    msg.encoding = encoding
+    data = gray if encoding == 'mono8' else cv2.cvtColor(
+        gray, cv2.COLOR_GRAY2BGR if encoding == 'bgr8' else cv2.COLOR_GRAY2RGB)
+    msg.step = step if step is not None else data.shape[1] * (1 if data.ndim == 2 else 3)
+    msg.data = data.tobytes()
+    return msg
+
+
+def info_msg(name):
+    model = VEHICLE.cameras[name].model
+    msg = CameraInfo()
+    msg.width, msg.height = model.width, model.height
+    msg.k = model.K.reshape(-1).tolist()
+    msg.d = model.D.tolist()
+    msg.distortion_model = model.distortion_model
+    return msg
+
+
+def imu_msg(t, R_IB, omega_B=np.zeros(3)):
+    q = frames.quat_wxyz_to_xyzw(frames.quat_from_rot(frames.rot_map_base_from_R_IB(R_IB)))
+    w = frames.vec_frd_to_flu(omega_B)
+    msg = Imu()
+    msg.header.stamp = stamp(t)
+    msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w = map(float, q)
+    msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z = map(float, w)
+    return msg
+
+
+def harness(context, nodes, inputs, outputs):
+    """A helper node with publishers {topic: type} and collecting subscribers {topic: type}."""
+    node = rclpy.create_node(f'perception_test_{TAG}_{len(nodes)}', context=context)
+    nodes.append(node)
+    pubs = {t: node.create_publisher(m, t, qos_profile_sensor_data if 'image' in t else 10)
+            for t, m in inputs.items()}
+    got = {t: [] for t in outputs}
+    for t, m in outputs.items():
+        node.create_subscription(m, t, got[t].append, 10)
+    return node, pubs, got
+
+
+def test_window_detector_node(ctx, renderers):
+    context, executor, nodes = ctx
+    node = WindowDetectorNode(f'window_detector_{TAG}', context=context)
+    nodes.append(node)
+    helper, pubs, got = harness(context, nodes,
+                                {'front_camera/image_raw': Image,
+                                 'front_camera/camera_info': CameraInfo},
+                                {'window/corners': PolygonStamped,
+                                 'window/edge_normals': PolygonStamped})
+    for n in (node, helper):
+        executor.add_node(n)
+    img = renderers['front'].render(np.eye(3), START)
+    # no CameraInfo yet: an empty polygon, no exception
+    pubs['front_camera/image_raw'].publish(image_msg(img, 1.0))
+    assert spin_until(executor, lambda: len(got['window/corners']) >= 1)
+    assert len(got['window/corners'][-1].polygon.points) == 0
+    pubs['front_camera/camera_info'].publish(info_msg('front'))
+    spin_until(executor, lambda: node.camera_info is not None)
+    pubs['front_camera/image_raw'].publish(image_msg(img, 2.5, 'bgr8'))
+    assert spin_until(executor, lambda: len(got['window/edge_normals']) >= 2)
+    corners = got['window/corners'][-1]
+    assert (corners.header.stamp.sec, corners.header.stamp.nanosec) == (2, 500_000_000)
+    assert corners.header.frame_id == 'front_camera_optical_frame'
+    b = np.array([[p.x, p.y, p.z] for p in corners.polygon.points])
+    truth = frames.bearings_I_to_C(WORLD.window.corners_I() - START, np.eye(3),
+                                   VEHICLE.cameras['front'].R_BC)
+    truth /= np.linalg.norm(truth, axis=1, keepdims=True)
+    assert b.shape == (4, 3) and np.max(np.linalg.norm(b - truth, axis=1)) < 3e-3
+    assert len(got['window/edge_normals'][-1].polygon.points) == 4
+    # wrong step and wrong encoding: empty polygons, never an exception
+    pubs['front_camera/image_raw'].publish(image_msg(img, 3.0, step=100))
+    bad = image_msg(img, 3.1)
+    bad.encoding = '16UC1'
+    pubs['front_camera/image_raw'].publish(bad)
+    assert spin_until(executor, lambda: len(got['window/corners']) >= 4)
+    assert all(len(m.polygon.points) == 0 for m in got['window/corners'][2:])
+
+
+def test_pad_detector_node(ctx, renderers):
+    context, executor, nodes = ctx
+    node = PadDetectorNode(f'pad_detector_{TAG}', context=context)
+    nodes.append(node)
+    helper, pubs, got = harness(context, nodes,
+                                {'down_camera/image_raw': Image,
+                                 'down_camera/camera_info': CameraInfo},
+                                {'pad/landmarks': PolygonStamped, 'pad/groups': String})
+    for n in (node, helper):
+        executor.add_node(n)
+    pubs['down_camera/camera_info'].publish(info_msg('down'))
+    spin_until(executor, lambda: node.camera_info is not None)
+    img = renderers['down'].render(np.eye(3), np.array([0.0, 0.0, -1.0]))
+    pubs['down_camera/image_raw'].publish(image_msg(img, 7.25, 'rgb8'))
+    assert spin_until(executor, lambda: len(got['pad/groups']) >= 1
+                      and len(got['pad/landmarks']) >= 1)
+    msg = got['pad/landmarks'][-1]
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (7, 250_000_000)
+    names = got['pad/groups'][-1].data.split(',')
+    assert names[0] == 'A' and len(msg.polygon.points) == 4 * len(names)
+    # a wrong-size CameraInfo: empty landmarks, empty group list
+    wrong = info_msg('down')
+    wrong.width = 640
+    pubs['down_camera/camera_info'].publish(wrong)
+    spin_until(executor, lambda: node.camera_info.width == 640)
+    pubs['down_camera/image_raw'].publish(image_msg(img, 8.0))
+    assert spin_until(executor, lambda: len(got['pad/groups']) >= 2)
+    assert len(got['pad/landmarks'][-1].polygon.points) == 0
+    assert got['pad/groups'][-1].data == ''
+
+
+def flow_node(context, nodes, camera):
+    node = OpticalFlowNode(f'{camera}_optical_flow_{TAG}', context=context,
+                           parameter_overrides=[Parameter('camera', value=camera)])
+    nodes.append(node)
+    prefix = f'{camera}_camera'
+    inputs = {f'{prefix}/image_raw': Image, f'{prefix}/camera_info': CameraInfo,
+              'imu/data': Imu}
+    outputs = {f'{prefix}/translational_flow': Vector3Stamped,
+               f'{prefix}/translational_flow_quality': Float32}
+    return node, *harness(context, nodes, inputs, outputs)
+
+
+def send_imu(executor, node, pubs, samples):
+    """Publish IMU samples one by one (sensor-data QoS keeps only a few)."""
+    for t, R in samples:
+        n = len(node.attitudes)
+        pubs['imu/data'].publish(imu_msg(t, R))
+        assert spin_until(executor, lambda: len(node.attitudes) > n)
+    assert spin_until(executor, lambda: node.camera_info is not None)
+
+
+def test_down_optical_flow_node(ctx, renderers):
+    context, executor, nodes = ctx
+    node, helper, pubs, got = flow_node(context, nodes, 'down')
+    for n in (node, helper):
+        executor.add_node(n)
+    pubs['down_camera/camera_info'].publish(info_msg('down'))
+    v = np.array([0.3, -0.2, 0.1])
+    xi0 = np.array([0.0, 0.1, -1.2])
+    R = frames.rot_from_euler_zyx(0.05, -0.03, 0.4)
+    send_imu(executor, node, pubs, [(9.99 + 0.01 * k, R) for k in range(6)])
+    for k in range(2):
+        img = renderers['down'].render(R, xi0 + v * DT * k)
+        pubs['down_camera/image_raw'].publish(image_msg(img, 10.0 + DT * k))
+        spin_until(executor, lambda: node.estimator is not None
+                   and node.estimator.n_points > 0, 2.0)
+    assert spin_until(executor, lambda: len(got['down_camera/translational_flow']) >= 1
+                      and len(got['down_camera/translational_flow_quality']) >= 1)
+    msg = got['down_camera/translational_flow'][-1]
+    assert msg.header.frame_id == 'map'
+    assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (10, 20_000_000)
+    phi_map = np.array([msg.vector.x, msg.vector.y, msg.vector.z])
+    truth = frames.vec_I_to_map(v / (-(xi0[2] + v[2] * DT / 2)))
+    assert np.linalg.norm(phi_map - truth) <= 0.1 * np.linalg.norm(truth)
+    assert 0.0 < got['down_camera/translational_flow_quality'][-1].data <= 1.0
+    # NaN IMU: dropped with a log; images after the buffer runs out: no flow, no exception
+    nan = imu_msg(10.05, R)
+    nan.orientation.w = float('nan')
+    pubs['imu/data'].publish(nan)
+    n_before = len(got['down_camera/translational_flow'])
+    for k in range(2, 4):
+        img = renderers['down'].render(R, xi0 + v * DT * k)
+        pubs['down_camera/image_raw'].publish(image_msg(img, 12.0 + DT * k))
+    time.sleep(0.05)
+    spin_until(executor, lambda: False, 1.0)
+    assert len(got['down_camera/translational_flow']) == n_before
+
+
+def test_front_optical_flow_node_needs_a_window(ctx, renderers):
+    context, executor, nodes = ctx
+    node, helper, pubs, got = flow_node(context, nodes, 'front')
+    for n in (node, helper):
+        executor.add_node(n)
+    pubs['front_camera/camera_info'].publish(info_msg('front'))
+    send_imu(executor, node, pubs, [(19.99 + 0.01 * k, np.eye(3)) for k in range(6)])
+    for k in range(3):
+        img = renderers['front'].render(np.eye(3), START + np.array([0.3, 0.0, 0.0]) * DT * k)
+        pubs['front_camera/image_raw'].publish(image_msg(img, 20.0 + DT * k))
+    spin_until(executor, lambda: False, 1.0)
+    assert got['front_camera/translational_flow'] == []
