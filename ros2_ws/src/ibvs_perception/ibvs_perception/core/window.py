@@ -127,21 +127,28 @@ class WindowDetector:
     def __init__(self, config: WindowDetectorConfig) -> None:
         self.config = config
         self._last_px: np.ndarray | None = None
+        self._last_outer_u: np.ndarray | None = None
         self._frames_since_seen = 0
 
     def reset(self) -> None:
         """Forget the tracked window."""
         self._last_px = None
+        self._last_outer_u = None
         self._frames_since_seen = 0
 
     # --- public ---------------------------------------------------------------------------
 
     def process(self, gray: np.ndarray, camera: CameraModel) -> WindowResult:
         """Detect the window in a grey image (uint8, camera.height x camera.width)."""
-        detections = [d for d in (self._refine(gray, camera, quad)
-                                  for quad in self.find_candidates(gray, camera))
-                      if d is not None]
-        return self._track(detections)
+        if self._last_outer_u is not None:
+            # fast path: refine the tracked window from its last outline, no contour search
+            refined = self._refine(gray, camera, self._last_outer_u)
+            if refined is not None:
+                return self._track([refined])
+        refined = [r for r in (self._refine(gray, camera, quad)
+                               for quad in self.find_candidates(gray, camera))
+                   if r is not None]
+        return self._track(refined)
 
     def find_candidates(self, gray: np.ndarray, camera: CameraModel) -> list[np.ndarray]:
         """Outer quads (4, 2) of dark rings in undistorted pixels, TL, TR, BR, BL.
@@ -186,25 +193,29 @@ class WindowDetector:
 
     # --- helpers --------------------------------------------------------------------------
 
-    def _track(self, detections: list[WindowDetection]) -> WindowResult:
-        """Follow the same window; a jump above max_corner_jump_px is a loss, not followed."""
+    def _track(self, refined: list[tuple[WindowDetection, np.ndarray]]) -> WindowResult:
+        """Follow the same window; a jump above max_corner_jump_px is a loss, not followed.
+
+        ``refined``: (detection, outer band quad in undistorted px) of each candidate.
+        """
         cfg = self.config
         if self._last_px is not None and self._frames_since_seen >= cfg.reacquire_after_frames:
             self.reset()
-        if not detections:
+        if not refined:
             self._frames_since_seen += 1
+            self._last_outer_u = None       # search the whole image next time
             return WindowResult(WindowStatus.NOT_FOUND)
         if self._last_px is None:
-            best = max(detections, key=lambda d: cv2.contourArea(
-                d.corners_px.astype(np.float32)))
+            best, outer_u = max(refined, key=lambda r: _quad_area(r[1]))
         else:
             jumps = [float(np.max(np.linalg.norm(d.corners_px - self._last_px, axis=1)))
-                     for d in detections]
-            best = detections[int(np.argmin(jumps))]
+                     for d, _ in refined]
+            best, outer_u = refined[int(np.argmin(jumps))]
             if min(jumps) > cfg.max_corner_jump_px:
                 self._frames_since_seen += 1
+                self._last_outer_u = None
                 return WindowResult(WindowStatus.JUMP)
-        self._last_px = best.corners_px
+        self._last_px, self._last_outer_u = best.corners_px, outer_u
         self._frames_since_seen = 0
         return WindowResult(WindowStatus.DETECTED, best)
 
@@ -241,8 +252,8 @@ class WindowDetector:
         return order_corners_clockwise(corners)
 
     def _refine(self, gray: np.ndarray, camera: CameraModel,
-                outer_u: np.ndarray) -> WindowDetection | None:
-        """Sub-pixel aperture corners of a candidate ring, or None when it is not a window.
+                outer_u: np.ndarray) -> tuple[WindowDetection, np.ndarray] | None:
+        """Sub-pixel aperture corners of a candidate ring and its refined outer quad, or None.
 
         Outer edges (light wall -> dark band, inwards) are fitted first; the aperture edges
         are the first dark -> light step inwards of them, then fitted again in a narrow band.
@@ -269,7 +280,7 @@ class WindowDetector:
         bearings = np.column_stack([normalized, np.ones(N_CORNERS)])
         bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
         corners_px = _distort_px(camera, inner_u)
-        return WindowDetection(corners_px, bearings, edge_normals(bearings))
+        return WindowDetection(corners_px, bearings, edge_normals(bearings)), outer_u
 
     def _inside_image(self, camera: CameraModel, quad_u: np.ndarray) -> bool:
         """Whether the whole (curved) outline of a quad lies border_margin_px inside."""
@@ -281,15 +292,42 @@ class WindowDetector:
         return bool(np.all(np.isfinite(uv)) and np.all(uv >= m)
                     and np.all(uv <= np.array([camera.width, camera.height]) - 1 - m))
 
-    def _side_geometry(self, corners_u: np.ndarray, side: int) -> tuple[np.ndarray, np.ndarray]:
-        """Sample points (n, 2) along a side and its unit inward normal, undistorted px."""
-        a, b = corners_u[side], corners_u[(side + 1) % N_CORNERS]
-        t = np.linspace(_SIDE_MARGIN, 1.0 - _SIDE_MARGIN, self.config.samples_per_side)[:, None]
-        direction = (b - a) / np.linalg.norm(b - a)
-        inward = np.array([-direction[1], direction[0]])
-        if np.dot(inward, corners_u.mean(axis=0) - a) < 0.0:
-            inward = -inward
-        return a + t * (b - a), inward
+    def _quad_samples(self, corners_u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return sample points (4 n, 2) along the 4 sides and their inward unit normals.
+
+        Sides follow each other (n samples each); undistorted px.
+        """
+        n = self.config.samples_per_side
+        t = np.linspace(_SIDE_MARGIN, 1.0 - _SIDE_MARGIN, n)[:, None]
+        centre = corners_u.mean(axis=0)
+        samples, normals = [], []
+        for side in range(N_CORNERS):
+            a, b = corners_u[side], corners_u[(side + 1) % N_CORNERS]
+            direction = (b - a) / np.linalg.norm(b - a)
+            inward = np.array([-direction[1], direction[0]])
+            if np.dot(inward, centre - a) < 0.0:
+                inward = -inward
+            samples.append(a + t * (b - a))
+            normals.append(np.repeat(inward[None, :], n, axis=0))
+        return np.concatenate(samples), np.concatenate(normals)
+
+    def _fit_sides(self, camera: CameraModel, base: np.ndarray, normal_d: np.ndarray,
+                   pos: np.ndarray, ok: np.ndarray, inward: np.ndarray) -> np.ndarray | None:
+        """Fit the 4 sides' lines to their edge points and intersect them (undistorted px)."""
+        cfg = self.config
+        n = cfg.samples_per_side
+        if np.any(ok.reshape(N_CORNERS, n).sum(axis=1) < cfg.min_edge_inlier_fraction * n):
+            return None
+        edge_u = np.full((len(ok), 2), np.nan)
+        edge_u[ok] = _undistorted_px(camera, base[ok] + pos[ok, None] * normal_d[ok])
+        lines = []
+        for side in range(N_CORNERS):
+            sel = slice(side * n, (side + 1) * n)
+            line = self._fit_side(edge_u[sel][ok[sel]], inward[side * n])
+            if line is None:
+                return None
+            lines.append(line)
+        return _intersect_consecutive(lines)
 
     def _fit_quad(self, gray: np.ndarray, camera: CameraModel, corners_u: np.ndarray,
                   half_width: float, polarity: int) -> np.ndarray | None:
@@ -298,17 +336,11 @@ class WindowDetector:
         polarity +1: intensity rises inwards (band -> aperture); -1: falls (wall -> band).
         """
         offsets = np.arange(-half_width, half_width + 1e-9, _PROFILE_STEP_PX)
-        lines = []
-        for side in range(N_CORNERS):
-            samples_u, inward = self._side_geometry(corners_u, side)
-            profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
-            grad = polarity * np.diff(profile, axis=1)
-            pos, ok = self._step_positions(grad, offsets, np.argmax(grad, axis=1))
-            line = self._fit_side(camera, base, normal_d, pos, ok, inward)
-            if line is None:
-                return None
-            lines.append(line)
-        return _intersect_consecutive(lines)
+        samples_u, inward = self._quad_samples(corners_u)
+        profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
+        grad = polarity * np.diff(profile, axis=1)
+        pos, ok = self._step_positions(grad, offsets, np.argmax(grad, axis=1))
+        return self._fit_sides(camera, base, normal_d, pos, ok, inward)
 
     def _find_inner_quad(self, gray: np.ndarray, camera: CameraModel,
                          outer_u: np.ndarray) -> np.ndarray | None:
@@ -320,22 +352,16 @@ class WindowDetector:
         first = int(round(_BAND_PROBE_PX / _PROFILE_STEP_PX))
         if len(offsets) < first + 2 * _CENTROID_HALF_WIDTH:
             return None
-        lines = []
-        for side in range(N_CORNERS):
-            samples_u, inward = self._side_geometry(outer_u, side)
-            profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
-            dark = profile[:, first:first + _CENTROID_HALF_WIDTH].mean(axis=1)
-            above = profile > (dark + 0.5 * cfg.min_edge_contrast)[:, None]
-            above[:, :first] = False
-            crossing = np.argmax(above, axis=1) - 1
-            grad = np.diff(profile, axis=1)
-            pos, ok = self._step_positions(grad, offsets, crossing)
-            ok &= above.any(axis=1)
-            line = self._fit_side(camera, base, normal_d, pos, ok, inward)
-            if line is None:
-                return None
-            lines.append(line)
-        return _intersect_consecutive(lines)
+        samples_u, inward = self._quad_samples(outer_u)
+        profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
+        dark = profile[:, first:first + _CENTROID_HALF_WIDTH].mean(axis=1)
+        above = profile > (dark + 0.5 * cfg.min_edge_contrast)[:, None]
+        above[:, :first] = False
+        crossing = np.argmax(above, axis=1) - 1
+        grad = np.diff(profile, axis=1)
+        pos, ok = self._step_positions(grad, offsets, crossing)
+        ok &= above.any(axis=1)
+        return self._fit_sides(camera, base, normal_d, pos, ok, inward)
 
     def _step_positions(self, grad: np.ndarray, offsets: np.ndarray,
                         peak: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -352,13 +378,9 @@ class WindowDetector:
             & (peak < grad.shape[1] - 1)
         return pos, ok
 
-    def _fit_side(self, camera: CameraModel, base: np.ndarray, normal_d: np.ndarray,
-                  pos: np.ndarray, ok: np.ndarray, inward: np.ndarray) -> np.ndarray | None:
-        """Line (nx, ny, c), n.x + c = 0, n inward, through the valid edge points, or None."""
+    def _fit_side(self, edge_u: np.ndarray, inward: np.ndarray) -> np.ndarray | None:
+        """Line (nx, ny, c), n.x + c = 0, n inward, through edge points (undistorted px)."""
         cfg = self.config
-        if ok.sum() < cfg.min_edge_inlier_fraction * cfg.samples_per_side:
-            return None
-        edge_u = _undistorted_px(camera, base[ok] + pos[ok, None] * normal_d[ok])
         line = _fit_line(edge_u, cfg.line_inlier_px,
                          int(np.ceil(cfg.min_edge_inlier_fraction * cfg.samples_per_side)))
         if line is None:

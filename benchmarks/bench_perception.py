@@ -1,0 +1,73 @@
+"""Per-frame cost of the perception cores at 752x480 on rendered frames of the reference run.
+
+Prints median and p99 (ms) of: window detection (front camera, approach), pad detection (down
+camera, descent from 1.8 m to 0.15 m) and translational flow (down camera, tracking + solve,
+frames 20 ms apart with |v| = 0.5 m/s and |Omega| = 1 rad/s). Rendering is not timed.
+Run: AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python benchmarks/bench_perception.py
+"""
+import time
+
+import cv2
+import numpy as np
+
+from ibvs_control.core import frames
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_perception.core.flow import FlowConfig, FlowEstimator
+from ibvs_perception.core.pad import PadDetector, PadDetectorConfig
+from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
+from ibvs_sim.core.render import SceneRenderer
+
+N_FRAMES = 150
+DT = 0.02
+START = np.array([-2.0, 0.1, -1.82])
+WINDOW_CENTRE = np.array([-0.5, 0.0, -1.6])
+
+
+def report(name: str, seconds: list) -> None:
+    ms = 1e3 * np.asarray(seconds)
+    print(f'{name:8s} median {np.median(ms):6.2f} ms   p99 {np.percentile(ms, 99):6.2f} ms   '
+          f'({len(ms)} frames)')
+
+
+def timed(fn, frames_):
+    out = []
+    for args in frames_:
+        t0 = time.perf_counter()
+        fn(*args)
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def main() -> None:
+    world, vehicle, pad = load_world(), load_vehicle(), load_pad_layout()
+    front, down = vehicle.cameras['front'], vehicle.cameras['down']
+    r_front = SceneRenderer(world, pad, front)
+    r_down = SceneRenderer(world, pad, down)
+
+    window = WindowDetector(WindowDetectorConfig())
+    imgs = [r_front.render(frames.rot_from_euler_zyx(0.03 * np.sin(s * 9), 0.02,
+                                                     0.04 * np.sin(s * 5)),
+                           START + s * (WINDOW_CENTRE - START))
+            for s in np.linspace(0.0, 0.22, N_FRAMES)]
+    report('window', timed(lambda im: window.process(im, front.model), [(im,) for im in imgs]))
+
+    pad_detector = PadDetector(pad, PadDetectorConfig())
+    imgs = [r_down.render(frames.rot_from_euler_zyx(0.04 * np.sin(k / 5), 0.03, 0.1),
+                          np.array([0.01, -0.02, -h]))
+            for k, h in enumerate(np.linspace(1.8, 0.15, N_FRAMES))]
+    report('pad', timed(lambda im: pad_detector.process(im, down.model), [(im,) for im in imgs]))
+
+    flow = FlowEstimator(FlowConfig(), down.model, down.R_BC)
+    v = np.array([0.4, 0.2, 0.2])
+    omega = np.array([0.6, -0.6, 0.5])
+    omega /= np.linalg.norm(omega)
+    R, xi, args = np.eye(3), np.array([0.0, 0.0, -1.2]), []
+    for k in range(N_FRAMES):
+        args.append((r_down.render(R, xi), k * DT, R.copy(), frames.e3))
+        R = R @ cv2.Rodrigues(omega * DT * np.sin(k / 10.0))[0]
+        xi = xi + v * DT
+    report('flow', timed(flow.process, args))
+
+
+if __name__ == '__main__':
+    main()
