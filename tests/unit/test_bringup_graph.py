@@ -55,14 +55,15 @@ def test_mavlink_port_and_options_reach_the_right_nodes():
                               crossing_law='seed')
     by_name = {s.name: s for s in graph.sim_graph(opts)}
     assert by_name['sim'].overrides()[graph.MAVLINK_URL] == 'udpin:127.0.0.1:15001'
-    assert by_name['mavlink_bridge'].overrides()[graph.MAVLINK_URL] == 'udpout:127.0.0.1:15001'
+    assert by_name['mavlink_bridge'].overrides()[graph.BRIDGE_URL] == 'udpout:127.0.0.1:15001'
     assert by_name['sim'].overrides()[graph.SIM_INITIAL_POSITION] == [-2.2, 0.2, -1.5]
     assert by_name['sim'].overrides()[graph.SIM_INITIAL_OVERRIDE] is True
     # wind given in {I} (y_I = side), sent in map ENU: x_ENU = y_I
     assert by_name['sim'].overrides()[graph.SIM_WIND] == [0.335, 0.0, 0.0]
     plain = {s.name: s for s in graph.sim_graph(graph.GraphOptions(params_file=PARAMS))}
     assert graph.SIM_INITIAL_OVERRIDE not in plain['sim'].overrides()
-    assert by_name['mode_supervisor'].overrides()[graph.CROSSING_LAW] == 'seed'
+    assert by_name['force_controller'].overrides()[graph.CROSSING_LAW] == 'seed'
+    assert graph.CROSSING_LAW not in by_name['mode_supervisor'].overrides()
     assert graph.SIM_WIND not in by_name['force_controller'].overrides()
     with pytest.raises(ValueError):
         graph.sim_graph(graph.GraphOptions(params_file=PARAMS, crossing_law='bogus'))
@@ -75,7 +76,7 @@ def test_onboard_graph_has_no_sim_and_uses_the_vehicle_url():
                                                    mavlink_url='udpout:10.0.0.2:14540'))
     assert {s.name for s in specs} == EXPECTED_NODES - {'sim'}
     bridge = next(s for s in specs if s.name == 'mavlink_bridge')
-    assert bridge.overrides()[graph.MAVLINK_URL] == 'udpout:10.0.0.2:14540'
+    assert bridge.overrides()[graph.BRIDGE_URL] == 'udpout:10.0.0.2:14540'
     assert all('use_sim_time' not in s.overrides() for s in specs)
 
 
@@ -155,8 +156,9 @@ def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
     for n in nodes:
         assert n.kwargs['executable'] in console_scripts(n.kwargs['package'])
         assert n.kwargs['parameters'][0] == PARAMS
-    urls = {n.kwargs['name']: n.kwargs['parameters'][1].get('mavlink_url') for n in nodes
-            if len(n.kwargs['parameters']) > 1}
+    urls = {n.kwargs['name']: n.kwargs['parameters'][1].get(
+        graph.BRIDGE_URL if n.kwargs['name'] == 'mavlink_bridge' else graph.MAVLINK_URL)
+        for n in nodes if len(n.kwargs['parameters']) > 1}
     if file_name.startswith('sim'):
         assert urls['sim'] == 'udpin:127.0.0.1:14999'
     else:

@@ -27,8 +27,9 @@ SIM_INITIAL_OVERRIDE = 'initial_override'    # true: use the two below, not worl
 SIM_INITIAL_POSITION = 'initial_position_I'   # [x, y, z] in the paper frame {I}, m
 SIM_INITIAL_YAW = 'initial_yaw'               # rad, {I}
 SIM_WIND = 'wind_force_map'                   # [fx, fy, fz] in map (ENU), N
-MAVLINK_URL = 'mavlink_url'
-CROSSING_LAW = 'crossing_law'
+MAVLINK_URL = 'mavlink_url'                   # sim: its MAVLink endpoint
+BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's URL
+CROSSING_LAW = 'crossing_law'                 # force_controller: mode-2 law
 
 
 @dataclass(frozen=True)
@@ -138,9 +139,9 @@ def _onboard_nodes(params: str, common: dict, opts: GraphOptions, mavlink_url: s
         node('ibvs_perception', 'pad_detector', 'pad_detector'),
         node('ibvs_perception', 'optical_flow', 'front_optical_flow', {'camera': 'front'}),
         node('ibvs_perception', 'optical_flow', 'down_optical_flow', {'camera': 'down'}),
-        node('ibvs_control', 'mode_supervisor', 'mode_supervisor', law),
+        node('ibvs_control', 'mode_supervisor', 'mode_supervisor'),
         node('ibvs_control', 'force_controller', 'force_controller', law),
-        node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {MAVLINK_URL: mavlink_url}),
+        node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {BRIDGE_URL: mavlink_url}),
     ]
 
 

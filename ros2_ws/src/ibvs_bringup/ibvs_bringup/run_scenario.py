@@ -239,6 +239,8 @@ def run_graph(opts: RunOptions) -> int:
     """Fly the whole graph once; write results/<run>/."""
     import rclpy
     from ibvs_bringup.monitor_node import ScenarioMonitor
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
 
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
     xi0 = opts.initial_position or tuple(float(x) for x in world.initial_position_I)
@@ -252,7 +254,9 @@ def run_graph(opts: RunOptions) -> int:
         return _finish(opts, summary, None)
     t_wall0 = time.monotonic()
     runner = ProcessRunner(log_dir=os.path.join(opts.out_dir, 'logs'))
-    rclpy.init(args=[])
+    # our own SIGINT/SIGTERM handling (KeyboardInterrupt / Terminated): rclpy must not shut
+    # its context down under us before the graph is stopped and the log drained
+    rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     monitor = None
     stop_reason, error = None, None
     try:
@@ -263,11 +267,11 @@ def run_graph(opts: RunOptions) -> int:
         stop_reason = fly(opts, monitor, runner, t_wall0)
     except _Stop as exc:
         error = str(exc)
-    except (KeyboardInterrupt, Terminated):
+    except (KeyboardInterrupt, Terminated, ExternalShutdownException):
         error = 'interrupted'
     finally:
         codes = runner.stop()
-        if monitor is not None:
+        if monitor is not None and rclpy.ok():
             for _ in range(20):               # drain what arrived meanwhile
                 rclpy.spin_once(monitor, timeout_sec=0.0)
         log = monitor.log if monitor is not None else report.RunLog()
