@@ -159,3 +159,56 @@ def test_render_output_and_bad_pose(scene):
     assert img.std() > 20   # textured, not a blank frame
     with pytest.raises(RenderError):
         r.render(np.eye(3), np.array([np.nan, 0.0, -1.0]))
+
+
+def _profile_edge(img, uv, normal, half=4.0, step=0.05):
+    """Edge position (px along ``normal`` from ``uv``) of a dark -> light step, by area.
+
+    The image is sampled bilinearly along the normal from -half (dark side) to +half; with
+    the profile normalised to [0, 1] between its ends, the step lies at half - integral.
+    """
+    t = np.arange(-half, half + step / 2, step)
+    pts = uv + t[:, None] * normal
+    x0, y0 = np.floor(pts[:, 0]).astype(int), np.floor(pts[:, 1]).astype(int)
+    fx, fy = pts[:, 0] - x0, pts[:, 1] - y0
+    im = img.astype(float)
+    prof = ((1 - fx) * (1 - fy) * im[y0, x0] + fx * (1 - fy) * im[y0, x0 + 1]
+            + (1 - fx) * fy * im[y0 + 1, x0] + fx * fy * im[y0 + 1, x0 + 1])
+    lo, hi = prof[:10].mean(), prof[-10:].mean()
+    p = np.clip((prof - lo) / (hi - lo), 0.0, 1.0)
+    return half - np.sum((p[1:] + p[:-1]) / 2) * step
+
+
+@pytest.mark.parametrize('xi, euler', [
+    ([-2.0, 0.1, -1.82], (0.0, 0.0, 0.0)),
+    ([-1.7, -0.15, -1.5], (0.06, -0.05, 0.1)),
+])
+def test_aperture_edge_on_projected_true_edge(front_probe, scene, xi, euler):
+    """The rendered aperture's edges lie on the projected true edges (sub-pixel, no bias)."""
+    world = scene[1]
+    r = front_probe                  # flat: wall 5, floor 250; light back wall, no pad
+    r.back_wall.pyramid = [np.full_like(level, 250) for level in r.back_wall.pyramid]
+    r.quiet_zones_I = []
+    R_IB = rot_from_euler_zyx(*euler)
+    xi = np.array(xi)
+    img = r.render(R_IB, xi)
+    corners = world.window.corners_I()
+    centre = corners.mean(axis=0)
+    errors = []
+    for i in range(4):
+        a, b = corners[i], corners[(i + 1) % 4]
+        for s in np.linspace(0.15, 0.85, 8):
+            P = a + s * (b - a)
+            uv, ok = _predicted_pixel(r, R_IB, xi, P)
+            # image normal of the edge: from two nearby points on it, towards the aperture
+            uv2, ok2 = _predicted_pixel(r, R_IB, xi, P + 1e-3 * (b - a))
+            inward, ok3 = _predicted_pixel(r, R_IB, xi, P + 1e-3 * (centre - P))
+            assert ok and ok2 and ok3
+            tangent = (uv2 - uv) / np.linalg.norm(uv2 - uv)
+            normal = np.array([-tangent[1], tangent[0]])
+            if normal @ (inward - uv) < 0:
+                normal = -normal
+            errors.append(_profile_edge(img, uv, normal))
+    errors = np.array(errors)
+    assert abs(np.mean(errors)) < 0.05, f'aperture edge bias {np.mean(errors):+.3f} px'
+    assert np.max(np.abs(errors)) < 0.15, f'aperture edge error {np.max(np.abs(errors)):.3f} px'

@@ -30,9 +30,22 @@ that it covers the whole distorted image) by the homography
 
 rendered with ``cv2.warpPerspective`` into the bounding box of the plane's visible polygon. The
 polygon is first clipped (Sutherland-Hodgman, in the camera frame) to the virtual view frustum,
-near plane included, so planes partly behind the camera are handled; its projection is a convex
-mask. Surfaces are composited back to front (painter's algorithm on this fixed planar world:
-the order only depends on which side of the window plane the camera is). Textures have
+near plane included, so planes partly behind the camera are handled. Surfaces are composited
+back to front (painter's algorithm on this fixed planar world: the order only depends on which
+side of the window plane the camera is). Surfaces across the wall from the camera are seen only
+through the aperture when the camera is within the wall's extent; they are then also clipped to
+the aperture's view cone (widened by a few pixels), which saves most of their warping.
+
+Polygon edges are anti-aliased with their exact coverage: a pixel's weight is the product over
+the polygon's edges of ``clip(0.5 + d, 0, 1)``, ``d`` the signed distance (virtual pixels,
+positive inside) of its centre to the projected edge line, and ``1 - `` the same for a hole. The
+weight is evaluated only in a band of pixels along each visible edge; inside the band the
+surface is blended over what is below, elsewhere the binary mask of ``cv2.fillConvexPoly``
+(which is exact away from the edges) selects it. The projected edge line is the plane through
+the optical centre and the 3-D edge, so it is exact even for polygons clipped by the frustum.
+Edges shared by two polygons of one surface (floor strips) are not anti-aliased (no seam), and
+marker bodies take their edges from their texture (the mask is widened by a pixel over the
+texture's white quiet zone). Textures have
 area-averaged pyramids; each surface uses the level whose texel is no larger than the pixel
 footprint at its nearest visible point (the floor is cut into strips along x_I for this choice).
 Finally one precomputed ``cv2.remap`` per camera applies the lens distortion: output pixel
@@ -62,6 +75,15 @@ FLOOR_STRIP_M = 1.5               # floor strips along x_I (one pyramid level ea
 PYRAMID_LEVELS = 6
 SUBPIXEL_SHIFT = 8                # fractional bits of polygon vertices (cv2.fillConvexPoly)
 SUBPIXEL_SCALE = float(1 << SUBPIXEL_SHIFT)
+# Anti-aliased edges: pixels within EDGE_BAND_HALF_PX (along the edge's minor image axis, so at
+# least EDGE_BAND_HALF_PX / sqrt(2) across it) of a visible edge, and up to EDGE_BAND_EXTEND_PX
+# past its ends, get their exact coverage. cv2.fillConvexPoly's mask errs by at most ~1 px.
+EDGE_BAND_HALF_PX = 2
+EDGE_BAND_EXTEND_PX = 2
+TEXTURE_EDGE_MARGIN_PX = 1        # mask widening of surfaces whose texture draws their edge
+APERTURE_CLIP_MARGIN_PX = 6       # widening of the aperture's view cone (px at its far corner)
+MIN_WALL_DISTANCE_M = 0.01        # nearer to the wall plane: no aperture clip
+ON_LINE_TOLERANCE_PX = 1e-3       # a clipped polygon's vertex this near an edge line is on it
 FRAME_BAND_GRAY = 18
 MORTAR_GRAY = 185
 BRICK_SIZE_M = (0.24, 0.07)       # length along y_I, height along z_I
@@ -184,6 +206,10 @@ class TexturedPlane:
 
     ``holes_I``: convex polygons (K, 3) in the same plane that are cut out (the aperture).
     ``polygons_I``: sub-rectangles (4, 3) drawn separately (floor strips); default the whole.
+    Edges shared by two of them are inner edges: drawn without anti-aliasing (no seam).
+    ``texture_edges``: the texture itself draws the polygons' edges (it continues beyond them
+    with content that may be drawn there, e.g. a marker's white quiet zone): the mask is widened
+    by TEXTURE_EDGE_MARGIN_PX instead of being anti-aliased.
     """
 
     name: str
@@ -193,6 +219,7 @@ class TexturedPlane:
     edge_v_I: np.ndarray
     holes_I: tuple = ()
     polygons_I: tuple = ()
+    texture_edges: bool = False
 
     def __post_init__(self) -> None:
         self.pyramid = _pyramid(self.texture)
@@ -201,6 +228,9 @@ class TexturedPlane:
         self.edge_v_I = np.asarray(self.edge_v_I, float)
         if not self.polygons_I:
             self.polygons_I = (self.outline_I(),)
+        self.polygons_I = tuple(np.asarray(p, float) for p in self.polygons_I)
+        self.holes_I = tuple(np.asarray(p, float) for p in self.holes_I)
+        self.outer_edges = _outer_edges(self.polygons_I)
         self.texel_m = [max(np.linalg.norm(self.edge_u_I) / lvl.shape[1],
                             np.linalg.norm(self.edge_v_I) / lvl.shape[0])
                         for lvl in self.pyramid]
@@ -219,6 +249,18 @@ class TexturedPlane:
         h, w = self.pyramid[level].shape
         du, dv = self.edge_u_I / w, self.edge_v_I / h
         return self.corner_I + 0.5 * du + 0.5 * dv, du, dv
+
+
+def _outer_edges(polygons: tuple) -> list[np.ndarray]:
+    """Per polygon, a bool per edge (i, i+1): True unless another polygon has the same edge."""
+    def key(a: np.ndarray, b: np.ndarray) -> frozenset:
+        return frozenset((tuple(np.round(a, 9)), tuple(np.round(b, 9))))
+    keys = [[key(p[i], p[(i + 1) % len(p)]) for i in range(len(p))] for p in polygons]
+    out = []
+    for k, own in enumerate(keys):
+        others = {e for j, ks in enumerate(keys) if j != k for e in ks}
+        out.append(np.array([e not in others for e in own]))
+    return out
 
 
 def clip_polygon(P: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -249,6 +291,68 @@ def clip_polygon(P: np.ndarray, normals: np.ndarray, offsets: np.ndarray) -> np.
                 out.append(poly[i] + a * (poly[j] - poly[i]))
         poly = np.array(out) if out else poly[:0]
     return poly
+
+
+def edge_band(uv0: np.ndarray, uv1: np.ndarray, regions: list, size: tuple[int, int]
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels along the image segments uv0[k] -> uv1[k] (K, 2) and their coverage.
+
+    Band: along each segment's major axis, every integer coordinate from EDGE_BAND_EXTEND_PX
+    before its start to as far past its end; across, the 2 EDGE_BAND_HALF_PX + 1 pixels around
+    it; only pixels inside the image ``size`` (W, H). Pixels near two segments appear twice.
+
+    Coverage: the product over ``regions``, (lines, hole) pairs, of a pixel's area inside the
+    convex region {l . (u, v, 1) >= 0 for all lines} (1 minus it for a hole), that area being
+    the product over the lines of ``clip(0.5 + l . (u, v, 1), 0, 1)`` (lines scaled to give
+    signed distances in pixels). ``lines``: (L, 3), or (K, L, 3) with one set per segment.
+
+    Returns x, y (int32), the segment index and the coverage (float32) of each pixel.
+    """
+    d = uv1 - uv0
+    steep = np.abs(d[:, 1]) > np.abs(d[:, 0])            # major axis: y
+    major = steep.astype(np.intp)
+    k = np.arange(len(d))
+    a0, a1, b0 = uv0[k, major], uv1[k, major], uv0[k, 1 - major]
+    da = d[k, major]
+    slope = d[k, 1 - major] / np.where(da == 0.0, 1.0, da)
+    lo = np.floor(np.minimum(a0, a1)).astype(np.int32) - EDGE_BAND_EXTEND_PX
+    counts = np.ceil(np.maximum(a0, a1)).astype(np.int32) + EDGE_BAND_EXTEND_PX - lo + 1
+    # Samples: one per integer major coordinate a, at the minor coordinate b of the segment.
+    seg = np.repeat(k.astype(np.int32), counts)
+    a = (np.arange(counts.sum(), dtype=np.int32)
+         - np.repeat((np.cumsum(counts) - counts - lo).astype(np.int32), counts))
+    b = np.rint(b0[seg] + (a - a0[seg]) * slope[seg]).astype(np.int32)
+    st = steep[seg]
+    xs, ys = np.where(st, b, a), np.where(st, a, b)
+    # Pixels: the samples moved by `offsets` across (along x for steep segments, else y).
+    offsets = np.arange(-EDGE_BAND_HALF_PX, EDGE_BAND_HALF_PX + 1, dtype=np.float32)
+    xf, yf = xs.astype(np.float32), ys.astype(np.float32)
+    cov = np.ones((len(seg), len(offsets)), np.float32)
+    for lines, hole in regions:
+        L = (lines if lines.ndim == 2 else lines[seg]).astype(np.float32)
+        area = np.ones_like(cov)
+        for j in range(L.shape[-2]):
+            la, lb = L[..., j, 0], L[..., j, 1]
+            at_sample = xf * la + yf * lb + (L[..., j, 2] + np.float32(0.5))
+            across = np.where(st, la, lb) * np.ones_like(xf)
+            dist = at_sample[:, None] + across[:, None] * offsets
+            area *= np.clip(dist, 0.0, 1.0, out=dist)
+        cov *= (1.0 - area) if hole else area
+    stx = st[:, None]
+    off = offsets.astype(np.int32)
+    x = (xs[:, None] + np.where(stx, off, 0)).ravel()
+    y = (ys[:, None] + np.where(stx, 0, off)).ravel()
+    inside = (x >= 0) & (x < size[0]) & (y >= 0) & (y < size[1])
+    return (x[inside], y[inside], np.repeat(seg, len(offsets))[inside],
+            cov.ravel()[inside])
+
+
+def edges_on_lines(uv: np.ndarray, lines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Edges (uv0, uv1) of the image polygon uv (n, 2) that lie on one of the lines (K, 3)."""
+    nxt = np.arange(1, len(uv) + 1) % len(uv)
+    on = np.abs(uv @ lines[:, :2].T + lines[:, 2]) < ON_LINE_TOLERANCE_PX
+    keep = np.any(on & on[nxt], axis=1)
+    return uv[keep], uv[nxt[keep]]
 
 
 # --- Renderer ----------------------------------------------------------------------------
@@ -283,6 +387,7 @@ class SceneRenderer:
         self.virtual_size = (int(np.ceil(x_hi * f + cx + m)) + 1,
                              int(np.ceil(y_hi * f + cy + m)) + 1)
         self.K_v = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+        self._K_v_inv = np.linalg.inv(self.K_v)
         map_x = (xy[:, 0] * f + cx).reshape(h, w).astype(np.float32)
         map_y = (xy[:, 1] * f + cy).reshape(h, w).astype(np.float32)
         self._map1, self._map2 = cv2.convertMaps(map_x, map_y, cv2.CV_16SC2)
@@ -357,9 +462,21 @@ class SceneRenderer:
                                  [c[0] - h, c[1] + h, fz], [c[0] - h, c[1] - h, fz]])
                 plane = TexturedPlane(f'marker_{mid}', tex, corner,
                                       np.array([0.0, full, 0.0]),
-                                      np.array([-full, 0.0, 0.0]), polygons_I=(body,))
+                                      np.array([-full, 0.0, 0.0]), polygons_I=(body,),
+                                      texture_edges=True)
                 self.markers.append(plane)
                 self.quiet_zones_I.append(plane.outline_I())
+        # Aperture clip (render): valid when what lies across the wall is within its extent.
+        far = [self.floor_near, self.floor_far, self.back_wall, *self.markers]
+        pts = np.concatenate([p for plane in far for p in plane.polygons_I]
+                             + self.quiet_zones_I)
+        self._far_within_wall = bool(np.all((pts[:, 1] >= wy0) & (pts[:, 1] <= wy1)
+                                            & (pts[:, 2] >= wz0) & (pts[:, 2] <= wz1)))
+        # Rectangle of the floor holding every quiet zone: the pad is skipped when it is unseen.
+        (px0, py0, _), (px1, py1, _) = np.min(pts[-4 * len(self.markers):], axis=0), \
+            np.max(pts[-4 * len(self.markers):], axis=0)
+        self._pad_outline_I = np.array([[px0, py0, fz], [px0, py1, fz], [px1, py1, fz],
+                                        [px1, py0, fz]])
 
     # -- rendering --
     def render(self, R_IB: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
@@ -376,53 +493,164 @@ class SceneRenderer:
         R_CI = (R_IB @ self.R_BC).T
         W, H = self.virtual_size
         canvas = np.full((H, W), BACKGROUND_GRAY, np.uint8)
+        cone = self._aperture_cone(R_CI, xi_I)
+        # Quiet zones first, then every marker body: a black border wins over a quiet zone.
+        pad = [_QUIET_ZONES, *self.markers]
         if xi_I[0] < self.world.wall_x:
-            order = [self.back_wall, self.floor_far, _QUIET_ZONES, *self.markers, self.wall,
-                     self.floor_near]
+            far = [self.back_wall, self.floor_far, *pad]
+            order = far + [self.wall, self.floor_near]
         else:
-            order = [self.floor_near, self.wall, self.floor_far, _QUIET_ZONES, *self.markers,
-                     self.back_wall]
+            order = [self.floor_near, self.wall, self.floor_far, *pad, self.back_wall]
+            far = [self.floor_near]
+        pad_planes = cone if any(p is self.floor_far for p in far) else None
+        if len(self._visible(self._pad_outline_I, R_CI, xi_I, pad_planes)) < 3:
+            order = [item for item in order if not any(item is p for p in pad)]
         for item in order + self.overlay_planes:
+            planes = cone if any(item is f for f in far) else None
             if item is _QUIET_ZONES:
-                for poly_I in self.quiet_zones_I:
-                    self._fill_polygon(canvas, poly_I, QUIET_ZONE_GRAY, R_CI, xi_I)
+                if self.quiet_zones_I:
+                    self._fill_polygons(canvas, np.array(self.quiet_zones_I), QUIET_ZONE_GRAY,
+                                        R_CI, xi_I, planes)
             else:
-                self._draw_plane(canvas, item, R_CI, xi_I)
+                self._draw_plane(canvas, item, R_CI, xi_I, planes)
         return cv2.remap(canvas, self._map1, self._map2, cv2.INTER_LINEAR,
                          borderMode=cv2.BORDER_CONSTANT, borderValue=BACKGROUND_GRAY)
+
+    def _aperture_cone(self, R_CI: np.ndarray, xi_I: np.ndarray
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Clip planes (normals, offsets) of everything seen across the wall, or None.
+
+        With the optical centre within the wall's y-z extent, a point across the wall plane and
+        within that extent too is seen only through the aperture: the cone from the optical
+        centre through the aperture, widened by APERTURE_CLIP_MARGIN_PX.
+        """
+        world = self.world
+        (y0, y1), (z0, z1) = world.wall_y_range, world.wall_z_range
+        if not (self._far_within_wall and y0 <= xi_I[1] <= y1 and z0 <= xi_I[2] <= z1
+                and abs(xi_I[0] - world.wall_x) > MIN_WALL_DISTANCE_M):
+            return None
+        win = world.window
+        corners = win.corners_I()
+        centre = np.asarray(win.center_I, float)
+        reach = float(np.max(np.linalg.norm(corners - xi_I, axis=1)))
+        margin = APERTURE_CLIP_MARGIN_PX * reach / self.K_v[0, 0]
+        grow = np.sign(corners - centre)
+        grow[:, 0] = 0.0
+        P_C = self._to_camera(corners + margin * grow, R_CI, xi_I)
+        n = np.cross(P_C, np.roll(P_C, -1, axis=0))
+        n *= np.sign(n @ self._to_camera(centre, R_CI, xi_I))[:, None]
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        return (np.vstack([self._frustum_n, n]),
+                np.concatenate([self._frustum_d, np.zeros(len(n))]))
 
     def _to_camera(self, P_I: np.ndarray, R_CI: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
         return (P_I - xi_I) @ R_CI.T
 
-    def _visible(self, poly_I: np.ndarray, R_CI: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
-        return clip_polygon(self._to_camera(poly_I, R_CI, xi_I),
-                            self._frustum_n, self._frustum_d)
+    def _visible(self, poly_I: np.ndarray, R_CI: np.ndarray, xi_I: np.ndarray,
+                 planes: tuple | None = None) -> np.ndarray:
+        normals, offsets = planes if planes is not None else (self._frustum_n, self._frustum_d)
+        return clip_polygon(self._to_camera(poly_I, R_CI, xi_I), normals, offsets)
 
     def _project(self, P_C: np.ndarray) -> np.ndarray:
         p = P_C @ self.K_v.T
         return p[:, :2] / p[:, 2:3]
 
-    def _fill_polygon(self, canvas: np.ndarray, poly_I: np.ndarray, value: int,
-                      R_CI: np.ndarray, xi_I: np.ndarray) -> None:
-        vis_C = self._visible(poly_I, R_CI, xi_I)
-        if len(vis_C) >= 3:
-            pts = np.round(self._project(vis_C) * SUBPIXEL_SCALE).astype(np.int32)
-            cv2.fillConvexPoly(canvas, pts, int(value), lineType=cv2.LINE_8,
-                               shift=SUBPIXEL_SHIFT)
+    def _edge_lines(self, P_C: np.ndarray, inside_C: np.ndarray,
+                    edges: np.ndarray | None = None) -> np.ndarray:
+        """Image lines (K, 3) of the polygon P_C's edges (camera frame), all or the selected.
 
-    def _draw_plane(self, canvas: np.ndarray, plane: TexturedPlane, R_CI: np.ndarray,
-                    xi_I: np.ndarray) -> None:
-        W, H = self.virtual_size
-        f = self.K_v[0, 0]
-        for poly_I in plane.polygons_I:
-            vis_C = self._visible(poly_I, R_CI, xi_I)
+        Line l of edge (P_i, P_i+1): the plane through the optical centre and the edge,
+        ``l = K_v^-T (P_i x P_i+1)``, scaled so that ``l . (u, v, 1)`` is the signed distance
+        in virtual pixels, positive on the side of ``inside_C`` (a point of the polygon).
+        """
+        Q = P_C[np.arange(1, len(P_C) + 1) % len(P_C)]
+        n = np.column_stack([P_C[:, 1] * Q[:, 2] - P_C[:, 2] * Q[:, 1],
+                             P_C[:, 2] * Q[:, 0] - P_C[:, 0] * Q[:, 2],
+                             P_C[:, 0] * Q[:, 1] - P_C[:, 1] * Q[:, 0]])
+        if edges is not None:
+            n = n[edges]
+        lines = n @ self._K_v_inv
+        norm = np.hypot(lines[:, 0], lines[:, 1]) * np.sign(n @ inside_C)
+        ok = np.abs(norm) > 1e-12
+        return lines[ok] / norm[ok, None]
+
+    def _coverage_band(self, uv: np.ndarray, lines: np.ndarray, holes: list
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixels (x, y) along the anti-aliased edges and their coverage (float32).
+
+        ``uv``: the visible polygon (virtual pixels), ``lines``: its anti-aliased edges'
+        lines; ``holes``: (uv, lines) of each visible hole.
+        """
+        seg0, seg1 = [], []
+        for poly, ls in [(uv, lines)] + holes:
+            a, b = edges_on_lines(poly, ls)
+            seg0.append(a)
+            seg1.append(b)
+        regions = [(lines, False)] + [(hole_lines, True) for _, hole_lines in holes]
+        x, y, _, cov = edge_band(np.concatenate(seg0), np.concatenate(seg1), regions,
+                                 self.virtual_size)
+        return x, y, cov
+
+    def _fill_polygons(self, canvas: np.ndarray, polys_I: np.ndarray, value: int,
+                       R_CI: np.ndarray, xi_I: np.ndarray, planes: tuple | None = None) -> None:
+        """Fill convex polygons (M, K, 3) of {I}, in order, with a grey; anti-aliased edges.
+
+        The geometry of all polygons is computed at once; only the fills are done one by one.
+        """
+        P_C = self._to_camera(polys_I.reshape(-1, 3), R_CI, xi_I).reshape(polys_I.shape)
+        Q_C = np.roll(P_C, -1, axis=1)
+        n = np.cross(P_C, Q_C)                                       # (M, K, 3)
+        lines = n @ self._K_v_inv
+        norm = (np.hypot(lines[..., 0], lines[..., 1])
+                * np.sign(np.einsum('mkj,mj->mk', n, P_C.mean(axis=1))))
+        degenerate = norm == 0.0                                     # edge seen end-on
+        lines /= np.where(degenerate, 1.0, norm)[..., None]
+        lines[degenerate] = (0.0, 0.0, 1e6)                          # no constraint
+        normals, offsets = planes if planes is not None else (self._frustum_n, self._frustum_d)
+        uvs, seg0, seg1, owner = [], [], [], []
+        for m in range(len(P_C)):
+            poly_C = P_C[m]
+            vis_C = clip_polygon(poly_C, normals, offsets)
             if len(vis_C) < 3:
                 continue
             uv = self._project(vis_C)
-            u0 = max(int(np.floor(uv[:, 0].min())), 0)
-            v0 = max(int(np.floor(uv[:, 1].min())), 0)
-            u1 = min(int(np.ceil(uv[:, 0].max())) + 1, W)
-            v1 = min(int(np.ceil(uv[:, 1].max())) + 1, H)
+            a, b = (uv, np.roll(uv, -1, axis=0)) if vis_C is poly_C else \
+                edges_on_lines(uv, lines[m])
+            uvs.append((m, uv))
+            seg0.append(a)
+            seg1.append(b)
+            owner.append(np.full(len(a), m))
+        if not uvs:
+            return
+        owner = np.concatenate(owner)
+        x, y, seg, cov = edge_band(np.concatenate(seg0), np.concatenate(seg1),
+                                   [(lines[owner], False)], self.virtual_size)
+        poly = owner[seg]
+        ends = np.searchsorted(poly, [m for m, _ in uvs], side='right')
+        start = 0
+        for (m, uv), end in zip(uvs, ends):
+            xm, ym = x[start:end], y[start:end]
+            below = canvas[ym, xm].astype(np.float32)
+            cv2.fillConvexPoly(canvas, np.round(uv * SUBPIXEL_SCALE).astype(np.int32),
+                               int(value), lineType=cv2.LINE_8, shift=SUBPIXEL_SHIFT)
+            canvas[ym, xm] = np.rint(below + cov[start:end] * (float(value) - below)
+                                     ).astype(np.uint8)
+            start = end
+
+    def _draw_plane(self, canvas: np.ndarray, plane: TexturedPlane, R_CI: np.ndarray,
+                    xi_I: np.ndarray, planes: tuple | None = None) -> None:
+        W, H = self.virtual_size
+        f = self.K_v[0, 0]
+        for poly_I, outer in zip(plane.polygons_I, plane.outer_edges):
+            vis_C = self._visible(poly_I, R_CI, xi_I, planes)
+            if len(vis_C) < 3:
+                continue
+            uv = self._project(vis_C)
+            m = EDGE_BAND_HALF_PX + EDGE_BAND_EXTEND_PX + 1     # room for the edge band
+            u0 = max(int(np.floor(uv[:, 0].min())) - m, 0)
+            v0 = max(int(np.floor(uv[:, 1].min())) - m, 0)
+            u1 = min(int(np.ceil(uv[:, 0].max())) + 1 + m, W)
+            v1 = min(int(np.ceil(uv[:, 1].max())) + 1 + m, H)
             if u1 <= u0 or v1 <= v0:
                 continue
             # Finest pixel footprint on this polygon: at its nearest visible point.
@@ -438,14 +666,29 @@ class SceneRenderer:
                                          flags=cv2.INTER_LINEAR,
                                          borderMode=cv2.BORDER_REPLICATE)
             mask = np.zeros((size[1], size[0]), np.uint8)
-            off = np.array([u0, v0], float)
-            cv2.fillConvexPoly(mask, np.round((uv - off) * SUBPIXEL_SCALE).astype(np.int32), 1,
-                               lineType=cv2.LINE_8, shift=SUBPIXEL_SHIFT)
+            pts = np.round((uv - (u0, v0)) * SUBPIXEL_SCALE).astype(np.int32)
+            cv2.fillConvexPoly(mask, pts, 1, lineType=cv2.LINE_8, shift=SUBPIXEL_SHIFT)
+            roi = canvas[v0:v1, u0:u1]
+            if plane.texture_edges:
+                cv2.polylines(mask, [pts], True, 1, thickness=2 * TEXTURE_EDGE_MARGIN_PX + 1,
+                              lineType=cv2.LINE_8, shift=SUBPIXEL_SHIFT)
+                np.copyto(roi, warped, where=mask.view(bool))
+                continue
+            holes = []
             for hole_I in plane.holes_I:
                 hole_C = self._visible(hole_I, R_CI, xi_I)
                 if len(hole_C) >= 3:
                     huv = self._project(hole_C)
-                    pts = np.round((huv - off) * SUBPIXEL_SCALE).astype(np.int32)
-                    cv2.fillConvexPoly(mask, pts, 0, lineType=cv2.LINE_8,
+                    holes.append((huv, self._edge_lines(self._to_camera(hole_I, R_CI, xi_I),
+                                                        hole_C.mean(axis=0))))
+                    cv2.fillConvexPoly(mask, np.round((huv - (u0, v0)) * SUBPIXEL_SCALE)
+                                       .astype(np.int32), 0, lineType=cv2.LINE_8,
                                        shift=SUBPIXEL_SHIFT)
-            np.copyto(canvas[v0:v1, u0:u1], warped, where=mask.view(bool))
+            lines = self._edge_lines(self._to_camera(poly_I, R_CI, xi_I), vis_C.mean(axis=0),
+                                     outer)
+            x, y, cov = self._coverage_band(uv, lines, holes)
+            x -= u0
+            y -= v0
+            below = roi[y, x].astype(np.float32)
+            np.copyto(roi, warped, where=mask.view(bool))
+            roi[y, x] = np.rint(below + cov * (warped[y, x] - below)).astype(np.uint8)
