@@ -1,7 +1,8 @@
 """Per-frame cost of the perception cores at 752x480 on rendered frames of the reference run.
 
 Prints median and p99 (ms) of: window detection (front camera, approach), pad detection (down
-camera, descent from 1.8 m to 0.15 m) and translational flow (down camera, tracking + solve,
+camera, descent from 1.8 m to 0.15 m; tracked, and the whole-image search that the tracker falls
+back to on a loss, forced on every frame) and translational flow (down camera, tracking + solve,
 frames 20 ms apart with |v| = 0.5 m/s and |Omega| = 1 rad/s). Rendering is not timed.
 Run: AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python benchmarks/bench_perception.py
 """
@@ -56,6 +57,11 @@ def main() -> None:
                           np.array([0.01, -0.02, -h]))
             for k, h in enumerate(np.linspace(1.8, 0.15, N_FRAMES))]
     report('pad', timed(lambda im: pad_detector.process(im, down.model), [(im,) for im in imgs]))
+
+    def full_search(im):
+        pad_detector.reset()
+        pad_detector.process(im, down.model)
+    report('pad full', timed(full_search, [(im,) for im in imgs]))
 
     flow = FlowEstimator(FlowConfig(), down.model, down.R_BC)
     v = np.array([0.4, 0.2, 0.2])

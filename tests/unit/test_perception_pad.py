@@ -76,3 +76,38 @@ def test_no_pad_gives_empty_detection(setup):
     det = PadDetector(layout, PadDetectorConfig()).process(
         renderer.render(np.eye(3), np.array([-3.0, 1.5, -1.0])), cam.model)
     assert det.bearings_C.shape == (0, 3) and det.group_names == ()
+
+
+def test_tracked_region_finds_what_the_whole_image_finds(setup):
+    """Tracking (region of interest) gives the groups and bearings of a whole-image search."""
+    layout, cam, renderer = setup
+    tracked = PadDetector(layout, PadDetectorConfig())
+    whole = PadDetector(layout, PadDetectorConfig())
+    searches = []
+    for k, h in enumerate(np.linspace(1.8, 0.15, 40)):
+        img = renderer.render(frames.rot_from_euler_zyx(0.04 * np.sin(k / 5), 0.03, 0.1),
+                              np.array([0.01, -0.02, -h]))
+        det = tracked.process(img, cam.model)
+        searches.append(tracked.last_search)
+        whole.reset()
+        ref = whole.process(img, cam.model)
+        assert whole.last_search == 'full'
+        assert det.group_names == ref.group_names, f'{h:.2f} m'
+        assert max(angle_deg(a, b) for a, b in zip(det.bearings_C, ref.bearings_C)) < 0.2
+    assert searches[0] == 'full' and searches.count('roi') >= 30
+
+
+def test_loss_in_region_searches_the_whole_image_at_once(setup):
+    layout, cam, renderer = setup
+    detector = PadDetector(layout, PadDetectorConfig())
+    R_IB = frames.rot_from_euler_zyx(0.0, 0.0, 0.2)
+    assert detector.process(renderer.render(R_IB, np.array([0.0, 0.0, -1.2])),
+                            cam.model).group_names
+    detector.process(renderer.render(R_IB, np.array([0.0, 0.0, -1.2])), cam.model)
+    assert detector.last_search == 'roi'
+    # the pad moved far in the image (new pose): the region misses it, the same frame recovers
+    img = renderer.render(R_IB, np.array([0.5, 0.6, -1.2]))
+    det = detector.process(img, cam.model)
+    assert detector.last_search == 'roi+full'
+    ref = PadDetector(layout, PadDetectorConfig()).process(img, cam.model)
+    assert det.group_names == ref.group_names != ()

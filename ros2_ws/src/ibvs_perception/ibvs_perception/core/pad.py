@@ -6,6 +6,14 @@ coordinates (the image of the 3-D centre under a perspective map, unlike the cor
 then turned into a unit bearing in the optical frame (x right, y down, z forward).
 Each complete group is centred on the pad, so using all complete groups keeps the centroid
 direction consistent when groups appear or disappear during the descent.
+
+Speed: once a group is complete, the next frame is searched only in a region of interest, the
+bounding box of the pad markers seen last grown by a margin (the smaller groups lie inside the
+larger ones, so groups that appear during the descent are inside it). The whole image is
+searched when no group is complete in the region (loss, same frame), every
+``full_search_every_n_frames`` frames, and when nothing is tracked. The minimum marker
+perimeter stays the same number of pixels in the region as in the whole image, and the region
+keeps markers away from its border, so the region finds what the whole image would.
 """
 from __future__ import annotations
 
@@ -35,9 +43,13 @@ class PadDetectorConfig:
     adaptive_thresh_win_size_step: int = 10   # px
     adaptive_thresh_constant: float = 30.0    # grey levels below the local mean = black
     min_marker_perimeter_rate: float = 0.04   # marker perimeter / max image side
+    min_corner_distance_rate: float = 0.1     # min corner distance / marker perimeter
     corner_refinement_win_size: int = 5       # px, sub-pixel corner refinement window
     corner_refinement_max_iterations: int = 30
     corner_refinement_min_accuracy: float = 0.01  # px
+    roi_margin_fraction: float = 0.1      # ROI margin / larger side of the markers' bounding box
+    roi_margin_px: int = 12               # px, added to the ROI margin
+    full_search_every_n_frames: int = 50  # whole-image search at least this often; 0: only on loss
 
 
 @dataclass(frozen=True)
@@ -70,25 +82,54 @@ def marker_centre_normalized(corners_xy: np.ndarray) -> np.ndarray | None:
 
 
 class PadDetector:
-    """Detect the pad's ArUco markers and return the centres of complete groups."""
+    """Detect the pad's ArUco markers and return the centres of complete groups.
+
+    Stateful: the region of interest follows the last detection (see the module docstring).
+    ``last_search`` tells how the last frame was searched: 'roi', 'full' or 'roi+full' (loss).
+    """
 
     def __init__(self, layout: PadLayout, config: PadDetectorConfig) -> None:
         self.layout = layout
+        self.config = config
+        self._layout_ids = {i for g in layout.groups for i in g.ids}
+        self._roi: tuple[int, int, int, int] | None = None     # x0, y0, x1, y1 (exclusive)
+        self._frames_since_full = 0
+        self.last_search = ''
         params = cv2.aruco.DetectorParameters()
         params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
         params.adaptiveThreshWinSizeMax = config.adaptive_thresh_win_size_max
         params.adaptiveThreshWinSizeStep = config.adaptive_thresh_win_size_step
         params.adaptiveThreshConstant = config.adaptive_thresh_constant
         params.minMarkerPerimeterRate = config.min_marker_perimeter_rate
+        params.minCornerDistanceRate = config.min_corner_distance_rate
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         params.cornerRefinementWinSize = config.corner_refinement_win_size
         params.cornerRefinementMaxIterations = config.corner_refinement_max_iterations
         params.cornerRefinementMinAccuracy = config.corner_refinement_min_accuracy
+        self._params = params
         self._detector = cv2.aruco.ArucoDetector(aruco_dictionary(layout.dictionary), params)
 
-    def detect_markers(self, gray: np.ndarray) -> dict[int, np.ndarray]:
-        """Marker id -> corners (4, 2) in distorted px; ids seen more than once are dropped."""
-        corners, ids, _ = self._detector.detectMarkers(gray)
+    def reset(self) -> None:
+        """Forget the tracked region: the next frame is searched whole."""
+        self._roi = None
+
+    def detect_markers(self, gray: np.ndarray,
+                       roi: tuple[int, int, int, int] | None = None) -> dict[int, np.ndarray]:
+        """Marker id -> corners (4, 2) in distorted px; ids seen more than once are dropped.
+
+        ``roi``: (x0, y0, x1, y1), search only there (same minimum perimeter in pixels).
+        """
+        if roi is None:
+            image, offset, side = gray, np.zeros(2), max(gray.shape)
+        else:
+            x0, y0, x1, y1 = roi
+            image, offset, side = gray[y0:y1, x0:x1], np.array([x0, y0], float), \
+                max(x1 - x0, y1 - y0)
+        rate = self.config.min_marker_perimeter_rate * max(gray.shape) / side
+        if rate != self._params.minMarkerPerimeterRate:
+            self._params.minMarkerPerimeterRate = rate
+            self._detector.setDetectorParameters(self._params)
+        corners, ids, _ = self._detector.detectMarkers(image)
         if ids is None:
             return {}
         found: dict[int, np.ndarray] = {}
@@ -97,12 +138,42 @@ class PadDetector:
             i = int(i)
             if i in found:
                 duplicated.add(i)
-            found[i] = np.asarray(c, dtype=float).reshape(MARKER_CORNERS, 2)
+            found[i] = np.asarray(c, dtype=float).reshape(MARKER_CORNERS, 2) + offset
         return {i: c for i, c in found.items() if i not in duplicated}
+
+    def _complete(self, markers: dict[int, np.ndarray]) -> bool:
+        return any(all(i in markers for i in g.ids) for g in self.layout.groups)
+
+    def _track(self, gray: np.ndarray) -> dict[int, np.ndarray]:
+        """Markers of this frame: in the region of interest, else in the whole image."""
+        cfg = self.config
+        period = cfg.full_search_every_n_frames
+        markers: dict[int, np.ndarray] = {}
+        self.last_search = ''
+        if self._roi is not None and (period <= 0 or self._frames_since_full + 1 < period):
+            markers = self.detect_markers(gray, self._roi)
+            self.last_search = 'roi'
+            self._frames_since_full += 1
+        if not self._complete(markers):
+            markers = self.detect_markers(gray)
+            self.last_search = 'roi+full' if self.last_search else 'full'
+            self._frames_since_full = 0
+        pad = [c for i, c in markers.items() if i in self._layout_ids]
+        if not self._complete(markers) or not pad:
+            self._roi = None
+            return markers
+        pts = np.concatenate(pad)
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        margin = cfg.roi_margin_fraction * float(np.max(hi - lo)) + cfg.roi_margin_px
+        h, w = gray.shape[:2]
+        self._roi = (max(int(lo[0] - margin), 0), max(int(lo[1] - margin), 0),
+                     min(int(np.ceil(hi[0] + margin)) + 1, w),
+                     min(int(np.ceil(hi[1] + margin)) + 1, h))
+        return markers
 
     def process(self, gray: np.ndarray, camera: CameraModel) -> PadDetection:
         """Landmarks of every complete group (empty arrays when none is complete)."""
-        markers = self.detect_markers(gray)
+        markers = self._track(gray)
         bearings, names, centres = [], [], []
         for group in self.layout.groups:
             if not all(i in markers for i in group.ids):
