@@ -22,6 +22,7 @@ RUN_TIMEOUT_S = 420          # wall clock per run (2 shared cores)
 RANDOM_SEEDS = (1, 2, 3)
 REPLAY_TOLERANCE_PX = 0.1
 REPLAY_MIN_COVERAGE = 0.6
+REPLAY_QUIET_S = 20.0
 
 
 def _missing() -> list:
@@ -194,10 +195,16 @@ def test_replaying_the_bag_reproduces_the_detections(reference, tmp_path):
                     np.array([[p.x, p.y, p.z] for p in m.polygon.points]).reshape(-1, 3)), qos)
         runner.start_graph(specs)
         deadline = time.monotonic() + 240.0
+        last_count, last_change = 0, time.monotonic()
         while time.monotonic() < deadline and runner.running() and not all(
                 len(replayed[t]) >= n_frames[t] for t in replayed):
             rclpy.spin_once(node, timeout_sec=0.1)
             assert not [d for d in runner.dead() if d.name != 'bag_player'], runner.dead()
+            count = sum(len(r) for r in replayed.values())
+            if count != last_count:
+                last_count, last_change = count, time.monotonic()
+            elif count and time.monotonic() - last_change > REPLAY_QUIET_S:
+                break                       # the bag is over: nothing new for a while
     finally:
         runner.stop()
         if node is not None:
