@@ -20,6 +20,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from ibvs_control.spin import spin_guarded
 from rosgraph_msgs.msg import Clock
 
 REPLAY_TOPICS = ('front_camera/image_raw', 'down_camera/image_raw', 'front_camera/camera_info',
@@ -93,7 +94,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = BagPlayerNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -18,6 +18,7 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from ibvs_control.spin import spin_guarded
 
 
 @dataclass(frozen=True)
@@ -109,7 +110,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = RecorderNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -42,6 +42,7 @@ from ibvs_control.core.stamp_sync import (
 from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, NS_PER_S, ns_to_stamp, polygon_points, quat_wxyz, SENSOR_QOS,
     set_quat, set_vector3, stamp_to_ns, vector3)
+from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
 MAP_FRAME = 'map'
@@ -190,7 +191,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = ForceControllerNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:   # GainError, ConfigError: never fly with a bad configuration

@@ -29,6 +29,7 @@ from ibvs_control.core.mavlink_sequencer import SequencerConfig
 from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, ns_to_stamp, quat_wxyz, set_quat, set_vector3, stamp_to_ns,
     vector3)
+from ibvs_control.spin import spin_guarded
 
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
 UNKNOWN_COVARIANCE = [-1.0] + [0.0] * 8     # sensor_msgs/Imu: element 0 = -1 "not provided"
@@ -234,7 +235,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = MavlinkBridgeNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ValueError, SigningError) as exc:

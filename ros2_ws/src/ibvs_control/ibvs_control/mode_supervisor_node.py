@@ -33,6 +33,7 @@ from ibvs_control.core.stamp_sync import check_bearings, check_vector
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_control.node_common import (
     MODE_QOS, NS_PER_S, polygon_points, quat_wxyz, SENSOR_QOS, stamp_to_ns, vector3)
+from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
 MAP_FRAME = 'map'
@@ -199,7 +200,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = ModeSupervisorNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:   # ConfigError or a bad parameter: refuse to start

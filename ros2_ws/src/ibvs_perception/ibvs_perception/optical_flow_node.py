@@ -27,6 +27,7 @@ from ibvs_perception.core.attitude_buffer import AttitudeBuffer, AttitudeBufferC
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
+from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
 FRONT, DOWN = 'front', 'down'
@@ -153,7 +154,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = OpticalFlowNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

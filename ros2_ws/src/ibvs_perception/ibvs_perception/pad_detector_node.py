@@ -20,6 +20,7 @@ from std_msgs.msg import String
 
 from ibvs_perception.core.pad import PadConfigError, PadDetector, PadDetectorConfig
 from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
+from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
 GROUP_SEPARATOR = ','
@@ -72,7 +73,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = PadDetectorNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -20,6 +20,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
 from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
+from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
 DEBUG_AXIS_PX = 40      # length of the drawn image axes, px
@@ -94,7 +95,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = WindowDetectorNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -35,6 +35,7 @@ from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.sim_core import FrameOutput, NS_PER_S, Pacing, SimConfig, Simulation
+from ibvs_control.spin import spin_guarded
 
 NODE_NAME = 'sim'
 MAP_FRAME = 'map'
@@ -247,7 +248,7 @@ def main(args=None) -> None:
     node = None
     try:
         node = SimNode()
-        rclpy.spin(node)
+        spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except (ConfigError, ValueError) as exc:
