@@ -23,7 +23,8 @@ from ibvs_control.core.frames import e3, vec_I_to_map
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32
 
-from ibvs_perception.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_perception.core.attitude_buffer import (AttitudeBuffer, AttitudeBufferConfig,
+                                                  GyroDerotation)
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
@@ -59,6 +60,7 @@ class OpticalFlowNode(Node):
             raise
         self.flow_config = FlowConfig(**flow_values)
         self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
+        self.derotation = GyroDerotation(self.attitudes)
         self.estimator: FlowEstimator | None = None
         self.camera_key: tuple | None = None
         self.camera_info: CameraInfo | None = None
@@ -103,7 +105,7 @@ class OpticalFlowNode(Node):
             self.estimator = FlowEstimator(self.flow_config, camera, self.R_BC)
             self.camera_key = key
         stamp = stamp_to_s(msg.header.stamp)
-        R_IB = self.attitudes.attitude_at(stamp)
+        R_IB = self.derotation.at_frame(stamp)
         if R_IB is None:
             self.get_logger().warn('optical_flow: no IMU attitude at the image stamp',
                                    throttle_duration_sec=THROTTLE_S)

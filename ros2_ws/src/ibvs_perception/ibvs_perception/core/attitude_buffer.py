@@ -84,3 +84,59 @@ class AttitudeBuffer:
         s = (stamp_s - t0) / (t1 - t0)
         R0 = self._R[i - 1]
         return R0 @ _exp_so3(s * _log_so3(R0.T @ self._R[i]))
+
+    def gyro_rotation(self, t0: float, t1: float) -> np.ndarray | None:
+        """Body rotation dR from t0 to t1 integrated from the buffered rates (R(t1) = R(t0) dR).
+
+        Rates are trapezoid-averaged between consecutive samples and held after the newest one
+        (for at most ``max_extrapolation_s``); None when the buffer does not cover [t0, t1].
+        """
+        cfg = self.config
+        if not self._stamps or not (np.isfinite(t0) and np.isfinite(t1)) or t1 < t0 \
+                or t0 < self._stamps[0] or t1 - self._stamps[-1] > cfg.max_extrapolation_s:
+            return None
+        dR = np.eye(3)
+        n = len(self._stamps)
+        for k in range(bisect.bisect_right(self._stamps, t0) - 1, n):
+            a = max(self._stamps[k], t0)
+            b = min(self._stamps[k + 1], t1) if k + 1 < n else t1
+            if b <= a:
+                if a >= t1:
+                    break
+                continue
+            if k + 1 < n and self._stamps[k + 1] - self._stamps[k] > cfg.max_interpolation_gap_s:
+                return None
+            omega = self._omega[k] if k + 1 == n else 0.5 * (self._omega[k] + self._omega[k + 1])
+            dR = dR @ _exp_so3(omega * (b - a))
+        return dR
+
+
+class GyroDerotation:
+    """Attitude of each camera frame for derotating the optical flow (paper section 3.3).
+
+    The previous frame's attitude is propagated with the gyro (AttitudeBuffer.gyro_rotation),
+    then pulled towards the measured attitude by a small complementary gain: the rotation
+    between two frames comes from the low-noise gyro (an attitude estimate's own noise would
+    read as spurious rotation), while the absolute attitude cannot drift.
+    """
+
+    def __init__(self, buffer: AttitudeBuffer, gain: float = 0.05,
+                 max_gap_s: float = 0.2) -> None:
+        self.buffer, self.gain, self.max_gap_s = buffer, gain, max_gap_s
+        self._R: np.ndarray | None = None
+        self._t: float | None = None
+
+    def at_frame(self, stamp_s: float) -> np.ndarray | None:
+        """R_IB to use for the frame at ``stamp_s`` (None: no IMU coverage, state reset)."""
+        R_meas = self.buffer.attitude_at(stamp_s)
+        if R_meas is None:
+            self._R, self._t = None, None
+            return None
+        R = R_meas
+        if self._R is not None and 0.0 < stamp_s - self._t <= self.max_gap_s:
+            dR = self.buffer.gyro_rotation(self._t, stamp_s)
+            if dR is not None:
+                R_prop = self._R @ dR
+                R = R_prop @ _exp_so3(self.gain * _log_so3(R_prop.T @ R_meas))
+        self._R, self._t = R, stamp_s
+        return R

@@ -194,7 +194,11 @@ class AutopilotConfig:
     telemetry_max_hz: float = 250.0
     gyro_noise_std: float = 0.005           # rad/s, white, per axis
     accel_noise_std: float = 0.05           # m/s^2, white, per axis
-    attitude_noise_std: float = math.radians(0.2)  # rad, white small rotation per axis
+    attitude_noise_std: float = math.radians(0.2)  # rad, stationary std per axis
+    # An attitude estimator's error wanders slowly (first-order Gauss-Markov), it is not white
+    # from one sample to the next: white 0.2 deg per sample would read as ~0.25 rad/s of
+    # spurious rotation between two camera frames 20 ms apart.
+    attitude_noise_tau_s: float = 5.0              # s, correlation time of that error
     hold_kp_xy: float = 2.0                 # 1/s^2
     hold_kd_xy: float = 2.5                 # 1/s
     hold_kp_z: float = 3.0                  # 1/s^2
@@ -342,6 +346,8 @@ class Autopilot:
         self.config = config
         self._wall = wall_clock
         self._rng = np.random.default_rng(config.noise_seed)
+        self._att_err = self._rng.normal(0.0, config.attitude_noise_std, 3)  # rad, body axes
+        self._att_err_t: float | None = None
         self._warn = _RateLimitedLog(config.log_period_wall_s, wall_clock)
         self.counters = AutopilotCounters()
         self.armed: bool = bool(config.start_armed)
@@ -862,9 +868,19 @@ class Autopilot:
             if self._peer_known():
                 senders[msg_id](state)
 
-    def _noisy_attitude(self, R_IB: np.ndarray) -> np.ndarray:
-        """Quaternion (w, x, y, z) of R_IB times a small random body rotation."""
-        half = 0.5 * self._rng.normal(0.0, self.config.attitude_noise_std, 3)
+    def _noisy_attitude(self, R_IB: np.ndarray, t: float) -> np.ndarray:
+        """Quaternion (w, x, y, z) of R_IB times a small, slowly varying body rotation.
+
+        The error is a first-order Gauss-Markov process per axis (std attitude_noise_std,
+        correlation time attitude_noise_tau_s), advanced to the sim time t.
+        """
+        cfg = self.config
+        dt = 0.0 if self._att_err_t is None else max(t - self._att_err_t, 0.0)
+        self._att_err_t = t
+        a = math.exp(-dt / cfg.attitude_noise_tau_s) if cfg.attitude_noise_tau_s > 0 else 0.0
+        self._att_err = a * self._att_err + math.sqrt(1.0 - a * a) * self._rng.normal(
+            0.0, cfg.attitude_noise_std, 3)
+        half = 0.5 * self._att_err
         dq = np.concatenate(([1.0], half))
         q = quat_multiply(quat_from_rot(R_IB), dq / np.linalg.norm(dq))
         return q if q[0] >= 0.0 else -q
@@ -874,7 +890,7 @@ class Autopilot:
             self.counters.state_invalid += 1
             self._warn.warning('state', 'non-finite attitude at t=%.3f: not sent', state.t)
             return
-        q = self._noisy_attitude(state.R_IB)
+        q = self._noisy_attitude(state.R_IB, state.t)
         w = np.asarray(state.Omega_B, dtype=float) + self._rng.normal(
             0.0, self.config.gyro_noise_std, 3)
         self._conn.mav.attitude_quaternion_send(int(round(state.t * MS_PER_S)), *map(float, q),
