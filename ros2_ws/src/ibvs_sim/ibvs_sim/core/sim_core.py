@@ -215,6 +215,10 @@ class Simulation:
                 if event.type is EventType.COLLISION:
                     self.ended = True
                     break
+        # Telemetry due at the frame time (IMU, attitude) leaves before the frame is rendered
+        # and published, as a camera-IMU synchronised vehicle delivers it: otherwise the
+        # graph derotates the frame with an attitude extrapolated over a whole frame period.
+        self.autopilot.poll(self.state_view())
         return self._emit(new_events)
 
     def _emit(self, new_events: list) -> FrameOutput:
