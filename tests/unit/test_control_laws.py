@@ -46,6 +46,20 @@ def test_window_force_equilibrium_and_signs():
     assert np.allclose(F, M * GRAVITY * e3)
 
 
+def test_lateral_gain_schedule_near_the_ground():
+    g = cl.LandingGains()
+    assert g.lateral_scale(None) == 1.0 and g.lateral_scale(1.0) == 1.0
+    assert g.lateral_scale(0.2) == pytest.approx(0.5)
+    assert g.lateral_scale(0.01) == g.lateral_scale_min
+    q_t = np.array([0.1, 0.0, -0.9])
+    full = accel(cl.force_landing(q_t, np.zeros(3), g, M))
+    half = accel(cl.force_landing(q_t, np.zeros(3), g, M, lateral_scale=0.5))
+    assert half[0] == pytest.approx(full[0] / 2) and half[2] == pytest.approx(full[2])
+    # the effective lateral damping K_d/d stays bounded as d -> 0 (here <= 10 1/s)
+    for d in (0.4, 0.2, 0.1):
+        assert g.kd_xy * g.lateral_scale(d) / d <= 10.0 + 1e-9
+
+
 def test_gain_conditions_are_enforced():
     cl.WindowGains().validate(1.2)                       # the paper's: 0.64 > 0.6
     with pytest.raises(cl.GainError, match='r_w'):

@@ -72,19 +72,19 @@ def test_whole_sequence_with_crossing_length_from_images():
     assert sup.mode == Mode.CROSSING and xi[0] < -1.19
     t_cross = t
     # the pad is visible through the window long before the vehicle is through: no switch
-    while xi[0] < WORLD.wall_x + 0.3:
+    while xi[0] < WORLD.wall_x + sup.config.crossing_margin_m - 0.1:
         t += 0.02
         xi = xi + v * 0.02
         feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
         assert sup.mode == Mode.CROSSING
-    # d_o(T2) = 0.7 m, margin 0.4 m: the switch comes 1.1 m after T2 (+- one frame)
+    # d_o(T2) = 0.7 m plus the margin: the switch comes that far after T2 (+- one frame)
     while sup.mode == Mode.CROSSING:
         t += 0.02
         xi = xi + v * 0.02
         feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
     travelled = v[0] * (t - t_cross)
     assert sup.mode == Mode.LANDING
-    assert abs(travelled - 1.1) < 0.02
+    assert abs(travelled - (0.7 + sup.config.crossing_margin_m)) < 0.02
     # descend over the pad: mode 4 below 0.14 m from the smallest complete group
     xi = np.array([0.0, 0.0, -0.5])
     v = np.array([0.0, 0.0, 0.2])

@@ -28,9 +28,9 @@ from rclpy.node import Node
 
 from geometry_msgs.msg import PolygonStamped, QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import UInt8
+from std_msgs.msg import String, UInt8
 
-from ibvs_control.core.config import load_vehicle, load_world
+from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.control_laws import CrossingGains, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
 from ibvs_control.core.frames import (
@@ -66,6 +66,7 @@ PARAMETERS = {
     'imu_history_s': 1.0,
     'vehicle_file': '',
     'world_file': '',
+    'pad_layout_file': '',
 }
 
 
@@ -82,11 +83,13 @@ class ForceControllerNode(Node):
         r_w = load_world(p['world_file'] or None).window.width
         gains = {k: p[k] for k in GAIN_PARAMETERS}
         gains['crossing_law'] = p['crossing_law']
-        config = ControllerConfig.from_params(gains, vehicle, r_w)   # raises GainError
+        pad = load_pad_layout(p['pad_layout_file'] or None)
+        config = ControllerConfig.from_params(gains, vehicle, r_w, pad)   # raises GainError
         self._controller = IbvsController(config)
         self._sync = StampSynchronizer(p['sync_timeout_s'])
         self._attitudes = AttitudeHistory(int(p['imu_history_s'] * NS_PER_S))
         self._mode = Mode.IDLE
+        self._pad_groups: tuple | None = None    # latest pad/groups (follows each landmarks)
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
                                                 COMMAND_QOS)
@@ -95,6 +98,7 @@ class ForceControllerNode(Node):
         self._features_pub = self.create_publisher(JointState, 'ibvs/features', COMMAND_QOS)
         self.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'pad/landmarks', self._on_pad, SENSOR_QOS)
+        self.create_subscription(String, 'pad/groups', self._on_groups, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'front_camera/translational_flow',
                                  self._on_front_flow, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'down_camera/translational_flow',
@@ -114,6 +118,9 @@ class ForceControllerNode(Node):
     def _on_pad(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg))
         self._add(InputKind.PAD, msg, bearings, err)
+
+    def _on_groups(self, msg: String) -> None:
+        self._pad_groups = tuple(g.strip() for g in msg.data.split(',') if g.strip())
 
     def _on_front_flow(self, msg: Vector3Stamped) -> None:
         self._add_flow(InputKind.FLOW_FRONT, msg)
@@ -162,7 +169,7 @@ class ForceControllerNode(Node):
     # --- output ----------------------------------------------------------------------------
     def _answer(self, bundle: FrameBundle) -> None:
         out, F_I = step_controller(self._controller, self._mode, bundle,
-                                   self._attitudes.at(bundle.stamp_ns))
+                                   self._attitudes.at(bundle.stamp_ns), self._pad_groups)
         if out is None:
             self.get_logger().warning('no IMU attitude (or no valid output): answering with '
                                       'hover', throttle_duration_sec=LOG_THROTTLE_S)

@@ -35,6 +35,10 @@ class LandingGains:
     kd_xy: float = 4.0
     kd_z: float = 4.0
     phi_t_star: float = 0.0     # eq:FT2 robust variant when > 0
+    # Below this image-estimated height (m) the lateral gains shrink in proportion to it, so
+    # that K/d stays within the inner loop's bandwidth (0 disables; see docs/design.md).
+    lateral_schedule_height_m: float = 0.4
+    lateral_scale_min: float = 0.25
 
     def validate(self) -> None:
         """Raise GainError unless K_p^t, K_d^t are positive definite and phi*_t >= 0."""
@@ -42,6 +46,15 @@ class LandingGains:
             raise GainError(f'landing gains must be positive (K_p^t, K_d^t > 0): {self}')
         if self.phi_t_star < 0.0:
             raise GainError(f'phi*_t must be >= 0: {self.phi_t_star}')
+        if self.lateral_schedule_height_m < 0.0 or not 0.0 < self.lateral_scale_min <= 1.0:
+            raise GainError('lateral_schedule_height_m >= 0 and 0 < lateral_scale_min <= 1')
+
+    def lateral_scale(self, height_m: float | None) -> float:
+        """Factor on K_p^t, K_d^t in the landing plane for an estimated height (m)."""
+        if height_m is None or self.lateral_schedule_height_m <= 0.0:
+            return 1.0
+        return float(np.clip(height_m / self.lateral_schedule_height_m,
+                             self.lateral_scale_min, 1.0))
 
 
 @dataclass(frozen=True)
@@ -95,13 +108,14 @@ def gain_matrix(k_xy: float, k_z: float, eta: np.ndarray = e3) -> np.ndarray:
 
 
 def force_landing(q_t: np.ndarray, phi_t: np.ndarray, gains: LandingGains, mass: float,
-                  eta_t: np.ndarray = e3) -> np.ndarray:
+                  eta_t: np.ndarray = e3, lateral_scale: float = 1.0) -> np.ndarray:
     """Landing force eq:FT (eq:FT2 when phi*_t > 0), newtons in {I}.
 
-    F_t = m (K_p^t q_t + K_d^t (phi_t - eta_t phi*_t)) + m g e3.
+    F_t = m (K_p^t q_t + K_d^t (phi_t - eta_t phi*_t)) + m g e3, with the in-plane gains
+    k_xy multiplied by ``lateral_scale`` (1 = the paper's law).
     """
-    Kp = gain_matrix(gains.kp_xy, gains.kp_z, eta_t)
-    Kd = gain_matrix(gains.kd_xy, gains.kd_z, eta_t)
+    Kp = gain_matrix(gains.kp_xy * lateral_scale, gains.kp_z, eta_t)
+    Kd = gain_matrix(gains.kd_xy * lateral_scale, gains.kd_z, eta_t)
     phi = np.asarray(phi_t, dtype=float) - np.asarray(eta_t) * gains.phi_t_star
     return mass * (Kp @ np.asarray(q_t, dtype=float) + Kd @ phi) + mass * GRAVITY * e3
 

@@ -11,12 +11,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ibvs_control.core.attitude import yaw_facing
-from ibvs_control.core.config import VehicleConfig
+from ibvs_control.core.config import PadLayout, VehicleConfig
 from ibvs_control.core.control_laws import (
     CrossingGains, CrossingLaw, force_crossing_closed, force_crossing_intended,
     force_crossing_seed, force_landing, force_window, GainError, LandingGains, WindowGains)
 from ibvs_control.core.features import (
-    centroid_feature, compute_window_features, window_flow, WindowFeatures)
+    centroid_feature, compute_window_features, pad_height_estimate, window_flow,
+    WindowFeatures)
 from ibvs_control.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
 from ibvs_control.core.modes import Mode
 
@@ -36,6 +37,7 @@ class ControllerConfig:
     crossing: CrossingGains = field(default_factory=CrossingGains)
     crossing_law: CrossingLaw = CrossingLaw.CLOSED
     eta_t: np.ndarray = field(default_factory=lambda: e3.copy())   # landing plane normal
+    group_half_sides: dict = field(default_factory=dict)   # pad group name -> c (m)
 
     def validate(self) -> None:
         """Raise GainError for gains that break the paper's conditions."""
@@ -46,13 +48,16 @@ class ControllerConfig:
         self.crossing.validate()
 
     @classmethod
-    def from_params(cls, params: dict, vehicle: VehicleConfig, r_w: float) -> 'ControllerConfig':
+    def from_params(cls, params: dict, vehicle: VehicleConfig, r_w: float,
+                    pad: PadLayout | None = None) -> 'ControllerConfig':
         """Build from a flat parameter dict (names as in params.yaml) and validate it.
 
         Keys (all optional, the paper's values by default): landing.kp_xy, landing.kp_z,
         landing.kd_xy, landing.kd_z, landing.phi_t_star, window.kp, window.kd, window.k_phi,
         window.phi_star, window.eps, window.delta, crossing.kv, crossing.ks, crossing.kf,
-        crossing.phi_fwd_min, crossing_law. Raises GainError (a ValueError).
+        crossing.phi_fwd_min, crossing_law, landing.lateral_schedule_height_m,
+        landing.lateral_scale_min. ``pad`` gives the group sizes for the height estimate.
+        Raises GainError (a ValueError).
         """
         def group(prefix: str, kind):
             known = {f.name for f in kind.__dataclass_fields__.values()}
@@ -72,7 +77,8 @@ class ControllerConfig:
                   R_BC_front=vehicle.cameras['front'].R_BC,
                   R_BC_down=vehicle.cameras['down'].R_BC,
                   landing=group('landing', LandingGains), window=group('window', WindowGains),
-                  crossing=group('crossing', CrossingGains), crossing_law=law)
+                  crossing=group('crossing', CrossingGains), crossing_law=law,
+                  group_half_sides={} if pad is None else {g.name: g.c for g in pad.groups})
         cfg.validate()
         return cfg
 
@@ -87,6 +93,7 @@ class Measurements:
     pad_bearings_C: np.ndarray | None         # (N, 3) landmarks of complete groups, or None
     phi_front_I: np.ndarray | None            # wall flow v/d_o (1/s), or None
     phi_down_I: np.ndarray | None             # floor flow v/d_t (1/s), or None
+    pad_groups: tuple | None = None           # names of the groups in pad_bearings_C, in order
 
 
 @dataclass(frozen=True)
@@ -173,14 +180,28 @@ class IbvsController:
 
         if self._yaw_des is None:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
-        F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t)
+        height = self._pad_height(meas, R_IB) if mode == Mode.LANDING else None
+        F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t, height)
         if valid:
             self._F_last = F
         return ControlOutput(F if valid else self._F_last, self._yaw_des, feats, valid)
 
+    def _pad_height(self, meas: Measurements, R_IB: np.ndarray) -> float | None:
+        """Height (m) from the smallest complete pad group of known size, or None."""
+        groups, p_C = meas.pad_groups, meas.pad_bearings_C
+        if not groups or p_C is None or len(p_C) != 4 * len(groups):
+            return None
+        sizes = [(self.config.group_half_sides[g], i) for i, g in enumerate(groups)
+                 if g in self.config.group_half_sides]
+        if not sizes:
+            return None
+        c, i = min(sizes)
+        p_I = bearings_C_to_I(p_C[4 * i:4 * i + 4], R_IB, self.config.R_BC_down)
+        return pad_height_estimate(p_I, c, self.config.eta_t)
+
     def _force(self, mode: Mode, entering: bool, dt: float, win: WindowFeatures | None,
                q_t: np.ndarray | None, phi_w: np.ndarray | None,
-               phi_t: np.ndarray | None) -> tuple[np.ndarray, bool]:
+               phi_t: np.ndarray | None, height: float | None) -> tuple[np.ndarray, bool]:
         cfg = self.config
         if mode == Mode.WINDOW:
             if win is None or phi_w is None:
@@ -195,7 +216,8 @@ class IbvsController:
         if mode == Mode.LANDING:
             if q_t is None or phi_t is None:
                 return self._F_last, False
-            return force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t), True
+            return force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t,
+                                 cfg.landing.lateral_scale(height)), True
         # IDLE (the autopilot holds), SHUTDOWN (level, the bridge ramps thrust down) and
         # FAILSAFE (level hover, the bridge/autopilot descend): a level attitude.
         return self._hover(), True

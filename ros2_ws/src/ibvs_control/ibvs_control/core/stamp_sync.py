@@ -197,7 +197,8 @@ def heading_quat_enu_flu(yaw_ned: float) -> np.ndarray:
 
 
 def step_controller(controller: IbvsController, mode: Mode, bundle: FrameBundle,
-                    R_IB: np.ndarray | None) -> tuple[ControlOutput | None, np.ndarray]:
+                    R_IB: np.ndarray | None,
+                    pad_groups: tuple | None = None) -> tuple[ControlOutput | None, np.ndarray]:
     """Answer one frame: (controller output or None, force F in {I} (N)).
 
     Without any IMU attitude yet the controller cannot derotate the bearings: the answer is
@@ -210,7 +211,8 @@ def step_controller(controller: IbvsController, mode: Mode, bundle: FrameBundle,
     meas = Measurements(
         t=bundle.stamp_ns / NS_PER_S, R_IB=R_IB,
         window_bearings_C=bundle.get(InputKind.WINDOW), pad_bearings_C=bundle.get(InputKind.PAD),
-        phi_front_I=bundle.get(InputKind.FLOW_FRONT), phi_down_I=bundle.get(InputKind.FLOW_DOWN))
+        phi_front_I=bundle.get(InputKind.FLOW_FRONT), phi_down_I=bundle.get(InputKind.FLOW_DOWN),
+        pad_groups=pad_groups)
     out = controller.step(mode, meas)
     F = np.asarray(out.F_I, dtype=float)
     if F.shape != (3,) or not np.all(np.isfinite(F)) or not np.isfinite(out.yaw_des):

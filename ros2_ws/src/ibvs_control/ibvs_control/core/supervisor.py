@@ -44,7 +44,7 @@ class SupervisorConfig:
     pad_timeout_s: float = 1.0                     # mode 3
     crossing_min_angular_height_rad: float = 1.0   # window lost closer than this -> mode 2
     window_jump_rad: float = 0.1                   # corner jump between frames = loss
-    crossing_margin_m: float = 0.4                 # travel past the wall plane before mode 3
+    crossing_margin_m: float = 0.5                 # travel past the wall plane before mode 3
     crossing_fallback_travel: float = 1.0          # d-normalised travel if d_t is unknown
     crossing_timeout_s: float = 10.0               # mode 2 without a pad -> failsafe
     shutdown_height_m: float = 0.14                # body height of the 3 -> 4 switch

@@ -200,7 +200,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             started, _ = supervisor.start(t)
         supervisor.update(t)
         mode = supervisor.mode
-        out = controller.step(mode, Measurements(t, R, win_C, pad_C, phi_front, phi_down))
+        out = controller.step(mode, Measurements(t, R, win_C, pad_C, phi_front, phi_down,
+                                                 tuple(groups)))
         sp = attitude_from_force(out.F_I, out.yaw_des, m, vehicle.hover_thrust,
                                  vehicle.max_thrust_factor)
         R_d, thrust_d = sp.R_IB_des, sp.thrust_N
