@@ -1,1 +1,5 @@
-"""IBVS core (frames, camera model, paper features and control laws, mode state machine) and the control nodes: mode supervisor, outer-loop force controller, MAVLink bridge."""
+"""IBVS core and control nodes: mode supervisor, outer-loop force controller, MAVLink bridge.
+
+The ROS-free core (frames, camera model, the paper's features and control laws, the mode state
+machine) lives in ``ibvs_control.core``.
+"""
