@@ -180,6 +180,9 @@ class _Stop(Exception):
     pass
 
 
+START_RETRY_S = 20.0   # s of wall clock during which a refused ibvs/start is asked again
+
+
 def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str:
     """Preflight, start, watch; return the stop reason (raise _Stop on a run error)."""
     import rclpy
@@ -199,16 +202,22 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str
     print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
     if not monitor.health.healthy():
         raise _Stop(f'preflight failed after {opts.preflight_timeout_s:.0f} s')
-    future = None
-    while future is None or not future.done():
-        if future is None:
-            future = monitor.request_start()
-        spin(0.05)
-        if time.monotonic() > deadline + 30.0:
-            raise _Stop('ibvs/start did not answer')
-    result = future.result()
-    if not result.success:
-        raise _Stop(f'ibvs/start refused: {result.message}')
+    # The supervisor may refuse a start while its inputs settle (e.g. an IMU sample still in
+    # flight under load): ask again, for at most START_RETRY_S of wall clock.
+    start_deadline = time.monotonic() + START_RETRY_S
+    while True:
+        future = monitor.request_start()
+        while not future.done():
+            spin(0.05)
+            if time.monotonic() > deadline + 30.0:
+                raise _Stop('ibvs/start did not answer')
+        result = future.result()
+        if result.success:
+            break
+        if time.monotonic() > start_deadline:
+            raise _Stop(f'ibvs/start refused: {result.message}')
+        print(f'ibvs/start refused ({result.message}): asking again', flush=True)
+        spin(0.5)
     t_start = monitor.now_s()
     print(f'started at sim t = {t_start:.2f} s: {result.message}', flush=True)
     next_print = time.monotonic()
