@@ -74,3 +74,12 @@ def test_evaluation_catches_frame_contact_landing_error_and_hard_touchdown():
     assert s['landing']['error_m'] == pytest.approx(0.4)
     t, xi, v = straight_run(touchdown_speed=0.8)
     assert not evaluate_run(t, xi, v, W, R, H, [])['success']
+
+
+def test_touchdown_speed_from_the_sim_event_or_the_sample_before_contact():
+    t, xi, v = straight_run(touchdown_speed=0.3)
+    v[-1] = 0.0                     # the plant's floor stopped the body in the contact sample
+    assert evaluate_run(t, xi, v, W, R, H, [])['landing']['touchdown_speed_mps'] == \
+        pytest.approx(0.3)
+    s = evaluate_run(t, xi, v, W, R, H, [], touchdown_speed_mps=0.7)
+    assert s['landing']['touchdown_speed_mps'] == 0.7 and not s['success']

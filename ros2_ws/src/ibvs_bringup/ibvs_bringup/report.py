@@ -163,7 +163,10 @@ def summarize(log: RunLog, world: WorldConfig, envelope_radius: float,
                 'landing': {'landed': False, 'error_m': None, 'touchdown_speed_mps': None},
                 'modes': [{'mode': m, 't_start_s': ts} for m, ts in log.modes],
                 'duration_s': 0.0}
-    return evaluate_run(t, xi, v, world, envelope_radius, envelope_height, log.modes)
+    touchdown = next((e for e in log.events if e.get('type') == 'touchdown'), None)
+    speed = None if touchdown is None else touchdown.get('speed_mps')
+    return evaluate_run(t, xi, v, world, envelope_radius, envelope_height, log.modes,
+                        None if speed is None else float(speed))
 
 
 def write_json(path: str, data: dict) -> None:
