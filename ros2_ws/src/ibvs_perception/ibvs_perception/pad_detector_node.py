@@ -19,7 +19,8 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
 from ibvs_perception.core.pad import PadConfigError, PadDetector, PadDetectorConfig
-from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
+from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
+                                      stamp_to_s)
 from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
@@ -57,7 +58,8 @@ class PadDetectorNode(Node):
         bearings, names = None, ()
         try:
             camera = camera_from_info(self.camera_info, msg)
-            detection = self.detector.process(mono8_from_image(msg), camera)
+            detection = self.detector.process(mono8_from_image(msg), camera,
+                                              stamp_to_s(msg.header.stamp))
             if len(detection.bearings_C):
                 bearings, names = detection.bearings_C, detection.group_names
         except ValueError as exc:

@@ -34,6 +34,9 @@ class PadConfigError(ValueError):
     """The pad layout names an ArUco dictionary that OpenCV does not know."""
 
 
+MODULES_PER_SIDE = 6     # DICT_4X4: 4 data bits + 2 border modules per side
+
+
 @dataclass(frozen=True)
 class PadDetectorConfig:
     """Tuning of the ArUco detector (OpenCV DetectorParameters names, pixels)."""
@@ -47,9 +50,11 @@ class PadDetectorConfig:
     corner_refinement_win_size: int = 5       # px, sub-pixel corner refinement window
     corner_refinement_max_iterations: int = 30
     corner_refinement_min_accuracy: float = 0.01  # px
+    relative_corner_refinement_win_size: float = 0.3  # window / module size (as ArUco's)
     roi_margin_fraction: float = 0.1      # ROI margin / larger side of the markers' bounding box
     roi_margin_px: int = 12               # px, added to the ROI margin
     full_search_every_n_frames: int = 50  # whole-image search at least this often; 0: only on loss
+    roi_max_age_s: float = 0.03           # s, an older region (frames skipped) is not trusted
 
 
 @dataclass(frozen=True)
@@ -93,6 +98,7 @@ class PadDetector:
         self.config = config
         self._layout_ids = {i for g in layout.groups for i in g.ids}
         self._roi: tuple[int, int, int, int] | None = None     # x0, y0, x1, y1 (exclusive)
+        self._roi_stamp: float | None = None
         self._frames_since_full = 0
         self.last_search = ''
         params = cv2.aruco.DetectorParameters()
@@ -102,7 +108,9 @@ class PadDetector:
         params.adaptiveThreshConstant = config.adaptive_thresh_constant
         params.minMarkerPerimeterRate = config.min_marker_perimeter_rate
         params.minCornerDistanceRate = config.min_corner_distance_rate
-        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+        # Sub-pixel refinement is done by _refine on the full image (same window and
+        # criteria as ArUco's CORNER_REFINE_SUBPIX), not inside detectMarkers on a crop.
+        params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_NONE
         params.cornerRefinementWinSize = config.corner_refinement_win_size
         params.cornerRefinementMaxIterations = config.corner_refinement_max_iterations
         params.cornerRefinementMinAccuracy = config.corner_refinement_min_accuracy
@@ -144,12 +152,44 @@ class PadDetector:
     def _complete(self, markers: dict[int, np.ndarray]) -> bool:
         return any(all(i in markers for i in g.ids) for g in self.layout.groups)
 
-    def _track(self, gray: np.ndarray) -> dict[int, np.ndarray]:
+    def _refine(self, gray: np.ndarray, markers: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+        """Refine every corner sub-pixel on the full image (ArUco's SUBPIX settings).
+
+        Done here rather than inside detectMarkers, whose refinement would run on the region
+        of interest's crop: on the full image the result no longer depends on how the marker
+        was found (region or whole image, i.e. on the frame history), which is what a replayed
+        bag must reproduce.
+        """
+        if not markers:
+            return markers
+        cfg = self.config
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
+                    cfg.corner_refinement_max_iterations, cfg.corner_refinement_min_accuracy)
+        ids = list(markers)
+        corners = np.stack([markers[i] for i in ids])                    # (n, 4, 2)
+        # as ArUco: the window shrinks with the module size, so that it stays off the
+        # marker's inner bits (module = side / (4 data bits + 2 border))
+        sides = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).mean(axis=1)
+        wins = np.clip(np.round(cfg.relative_corner_refinement_win_size * sides
+                                / MODULES_PER_SIDE), 1, cfg.corner_refinement_win_size)
+        refined = corners.astype(np.float32)
+        for w in np.unique(wins).astype(int):                # one call per window size
+            sel = wins == w
+            pts = refined[sel].reshape(-1, 1, 2)
+            cv2.cornerSubPix(gray, pts, (int(w), int(w)), (-1, -1), criteria)
+            refined[sel] = pts.reshape(-1, MARKER_CORNERS, 2)
+        return {i: refined[k].astype(float) for k, i in enumerate(ids)}
+
+    def _track(self, gray: np.ndarray, stamp_s: float | None = None) -> dict[int, np.ndarray]:
         """Markers of this frame: in the region of interest, else in the whole image."""
         cfg = self.config
         period = cfg.full_search_every_n_frames
         markers: dict[int, np.ndarray] = {}
         self.last_search = ''
+        if stamp_s is not None and self._roi_stamp is not None \
+                and not 0.0 < stamp_s - self._roi_stamp <= cfg.roi_max_age_s:
+            self._roi = None            # frames were skipped (or time went back): search all
+        self._roi_stamp = stamp_s
         if self._roi is not None and (period <= 0 or self._frames_since_full + 1 < period):
             markers = self.detect_markers(gray, self._roi)
             self.last_search = 'roi'
@@ -158,6 +198,7 @@ class PadDetector:
             markers = self.detect_markers(gray)
             self.last_search = 'roi+full' if self.last_search else 'full'
             self._frames_since_full = 0
+        markers = self._refine(gray, markers)
         pad = [c for i, c in markers.items() if i in self._layout_ids]
         if not self._complete(markers) or not pad:
             self._roi = None
@@ -171,9 +212,14 @@ class PadDetector:
                      min(int(np.ceil(hi[1] + margin)) + 1, h))
         return markers
 
-    def process(self, gray: np.ndarray, camera: CameraModel) -> PadDetection:
-        """Landmarks of every complete group (empty arrays when none is complete)."""
-        markers = self._track(gray)
+    def process(self, gray: np.ndarray, camera: CameraModel,
+                stamp_s: float | None = None) -> PadDetection:
+        """Landmarks of every complete group (empty arrays when none is complete).
+
+        ``stamp_s``: the image time; a region of interest from a frame more than
+        ``roi_max_age_s`` older is dropped for a whole-image search.
+        """
+        markers = self._track(gray, stamp_s)
         bearings, names, centres = [], [], []
         for group in self.layout.groups:
             if not all(i in markers for i in group.ids):
