@@ -168,6 +168,18 @@ class ReferenceSource(str, enum.Enum):
 
 # --- Data in and out ---------------------------------------------------------------------------
 
+
+NOISE_GRID_S = 0.01      # s, sim-time step of the attitude error process
+
+
+class NoiseStream(enum.IntEnum):
+    """Independent noise streams of the telemetry (part of each sample's RNG key)."""
+
+    ATTITUDE = 1
+    ATTITUDE_RATES = 2
+    HIGHRES_IMU = 3
+
+
 @dataclass
 class AutopilotConfig:
     """Settings of the simulated autopilot (SI units; rates in Hz; angles in rad).
@@ -346,8 +358,10 @@ class Autopilot:
         self.config = config
         self._wall = wall_clock
         self._rng = np.random.default_rng(config.noise_seed)
-        self._att_err = self._rng.normal(0.0, config.attitude_noise_std, 3)  # rad, body axes
-        self._att_err_t: float | None = None
+        # attitude error process on a fixed sim-time grid (see _noisy_attitude)
+        self._att_err = self._rng_at(NoiseStream.ATTITUDE, 0).normal(
+            0.0, config.attitude_noise_std, 3)                   # rad, body axes
+        self._att_k = 0
         self._warn = _RateLimitedLog(config.log_period_wall_s, wall_clock)
         self.counters = AutopilotCounters()
         self.armed: bool = bool(config.start_armed)
@@ -875,15 +889,26 @@ class Autopilot:
         correlation time attitude_noise_tau_s), advanced to the sim time t.
         """
         cfg = self.config
-        dt = 0.0 if self._att_err_t is None else max(t - self._att_err_t, 0.0)
-        self._att_err_t = t
-        a = math.exp(-dt / cfg.attitude_noise_tau_s) if cfg.attitude_noise_tau_s > 0 else 0.0
-        self._att_err = a * self._att_err + math.sqrt(1.0 - a * a) * self._rng.normal(
-            0.0, cfg.attitude_noise_std, 3)
+        a = math.exp(-NOISE_GRID_S / cfg.attitude_noise_tau_s) \
+            if cfg.attitude_noise_tau_s > 0 else 0.0
+        k = int(t / NOISE_GRID_S)
+        while self._att_k < k:            # advance on the grid: same errors whatever the rates
+            self._att_k += 1
+            self._att_err = a * self._att_err + math.sqrt(1.0 - a * a) * self._rng_at(
+                NoiseStream.ATTITUDE, self._att_k).normal(0.0, cfg.attitude_noise_std, 3)
         half = 0.5 * self._att_err
         dq = np.concatenate(([1.0], half))
         q = quat_multiply(quat_from_rot(R_IB), dq / np.linalg.norm(dq))
         return q if q[0] >= 0.0 else -q
+
+    def _rng_at(self, stream: 'NoiseStream', index: int) -> np.random.Generator:
+        """Return the generator of one noise sample, keyed by (seed, stream, sim-time index).
+
+        Noise then depends on the sim time only, not on how many messages were sent before
+        (which depends on wall-clock timing of rate requests): two lockstep runs see the same
+        noise.
+        """
+        return np.random.default_rng((self.config.noise_seed, int(stream), int(index)))
 
     def _send_attitude_quaternion(self, state: VehicleStateView) -> None:
         if not _finite(state.R_IB, state.Omega_B):
@@ -891,7 +916,8 @@ class Autopilot:
             self._warn.warning('state', 'non-finite attitude at t=%.3f: not sent', state.t)
             return
         q = self._noisy_attitude(state.R_IB, state.t)
-        w = np.asarray(state.Omega_B, dtype=float) + self._rng.normal(
+        w = np.asarray(state.Omega_B, dtype=float) + self._rng_at(
+            NoiseStream.ATTITUDE_RATES, int(round(state.t * US_PER_S))).normal(
             0.0, self.config.gyro_noise_std, 3)
         self._conn.mav.attitude_quaternion_send(int(round(state.t * MS_PER_S)), *map(float, q),
                                                 *map(float, w))
@@ -903,10 +929,10 @@ class Autopilot:
             self._warn.warning('state', 'non-finite IMU at t=%.3f: not sent', state.t)
             return
         c = self.config
-        acc = np.asarray(state.accel_B_specific, dtype=float) + self._rng.normal(
+        rng = self._rng_at(NoiseStream.HIGHRES_IMU, int(round(state.t * US_PER_S)))
+        acc = np.asarray(state.accel_B_specific, dtype=float) + rng.normal(
             0.0, c.accel_noise_std, 3)
-        gyro = np.asarray(state.Omega_B, dtype=float) + self._rng.normal(
-            0.0, c.gyro_noise_std, 3)
+        gyro = np.asarray(state.Omega_B, dtype=float) + rng.normal(0.0, c.gyro_noise_std, 3)
         zero = 0.0
         self._conn.mav.highres_imu_send(int(round(state.t * US_PER_S)), *map(float, acc),
                                         *map(float, gyro), zero, zero, zero, zero, zero, zero,
