@@ -26,8 +26,8 @@ def test_release_rules_order_timeout_and_drops():
     assert s.dropped == 2
 
 
-def test_flow_expected_after_it_came_late_and_forgotten_after_a_timeout():
-    s = StampSynchronizer(timeout_s=0.03)
+def test_flow_expected_after_it_came_late_and_forgotten_after_patience():
+    s = StampSynchronizer(timeout_s=0.03, flow_patience=3)
     s.add(W, 1, 'w', 0.0)
     assert len(s.add(P, 1, 'p', 0.0)[0]) == 1           # flow not expected yet
     assert s.add(FF, 1, 'f', 0.001)[1] != ''            # late: dropped, but now expected
@@ -35,11 +35,23 @@ def test_flow_expected_after_it_came_late_and_forgotten_after_a_timeout():
     assert s.add(P, 2, 'p', 0.02)[0] == []              # waits for the flow
     out, _ = s.add(FF, 2, 'f', 0.021)
     assert len(out) == 1 and out[0].get(FF) == 'f'
+    # one flow missing under load does not make the next frame go without waiting for it
     s.add(W, 3, 'w', 0.04)
     s.add(P, 3, 'p', 0.04)
-    assert len(s.poll(0.071)) == 1                      # flow stopped: one timeout ...
+    assert len(s.poll(0.071)) == 1                      # timed out without its flow
     s.add(W, 4, 'w', 0.08)
-    assert len(s.add(P, 4, 'p', 0.08)[0]) == 1          # ... then no more waiting
+    assert s.add(P, 4, 'p', 0.08)[0] == []              # still waited for
+    out, _ = s.add(FF, 4, 'f', 0.09)
+    assert out[0].get(FF) == 'f'
+    # a flow that stopped costs flow_patience timeouts, then no more waiting
+    t = 0.1
+    for stamp in (5, 6, 7):
+        s.add(W, stamp, 'w', t)
+        assert s.add(P, stamp, 'p', t)[0] == []
+        assert len(s.poll(t + 0.031)) == 1
+        t += 0.05
+    s.add(W, 8, 'w', t)
+    assert len(s.add(P, 8, 'p', t)[0]) == 1
 
 
 def test_attitude_history_picks_at_or_before():

@@ -181,6 +181,7 @@ class _Stop(Exception):
 
 
 START_RETRY_S = 20.0   # s of wall clock during which a refused ibvs/start is asked again
+START_AT_SIM_S = 1.0   # s of sim time at which ibvs/start is asked (same in every run)
 
 
 def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str:
@@ -202,8 +203,11 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str
     print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
     if not monitor.health.healthy():
         raise _Stop(f'preflight failed after {opts.preflight_timeout_s:.0f} s')
-    # The supervisor may refuse a start while its inputs settle (e.g. an IMU sample still in
-    # flight under load): ask again, for at most START_RETRY_S of wall clock.
+    # Start at the same sim time in every run (lockstep repeatability), then: the supervisor
+    # may refuse a start while its inputs settle (e.g. an IMU sample still in flight under
+    # load): ask again, for at most START_RETRY_S of wall clock.
+    while monitor.now_s() < START_AT_SIM_S:
+        spin(0.01)
     start_deadline = time.monotonic() + START_RETRY_S
     while True:
         future = monitor.request_start()

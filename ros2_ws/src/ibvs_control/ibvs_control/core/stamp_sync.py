@@ -6,9 +6,11 @@ force controller must answer EVERY stamp exactly once (the sim's lockstep waits 
 so :class:`StampSynchronizer` gathers the inputs of one stamp and releases the bundle
 
 - as soon as the window and pad detections are there, plus each flow that is *expected*
-  (a flow is expected when it came for the previously released stamp, in time or late:
-  flows are only published when valid, so a camera whose flow stopped does not cost a
-  timeout every frame, and one that comes after the detections is waited for);
+  (a flow is expected until it has been missing for ``flow_patience`` released stamps in a
+  row; a flow arriving, even late, makes it expected again: flows are only published when
+  valid, so a camera whose flow stopped costs a few timeouts, not one every frame, while one
+  late flow under load does not make the next frames go without it — which would make the
+  answers depend on the machine's load and lockstep runs unrepeatable);
 - or when ``timeout_s`` (wall clock) has passed since the first input of that stamp arrived.
 
 Bundles leave in stamp order: releasing stamp S first releases every older pending stamp.
@@ -65,23 +67,28 @@ class FrameBundle:
 class StampSynchronizer:
     """Gather per-stamp inputs; see the module docstring for the release rules."""
 
-    def __init__(self, timeout_s: float, max_pending: int = 20) -> None:
-        if not timeout_s > 0.0:
-            raise ValueError(f'timeout_s must be > 0, got {timeout_s}')
+    def __init__(self, timeout_s: float, max_pending: int = 20, flow_patience: int = 3) -> None:
+        if not timeout_s > 0.0 or flow_patience < 1:
+            raise ValueError(f'need timeout_s > 0 and flow_patience >= 1, got {timeout_s}, '
+                             f'{flow_patience}')
         self.timeout_s = timeout_s
         self.max_pending = max_pending
+        self.flow_patience = flow_patience
         self.last_released_ns: int | None = None
         self.dropped = 0
         self._pending: dict[int, FrameBundle] = {}
-        self._expect_flow = {k: False for k in FLOWS}
+        self._missing = {k: flow_patience for k in FLOWS}   # released stamps without it, in a row
+
+    def _expected(self, kind: InputKind) -> bool:
+        return self._missing[kind] < self.flow_patience
 
     def add(self, kind: InputKind, stamp_ns: int, value, now: float
             ) -> tuple[list[FrameBundle], str]:
         """Add one input; return (bundles released now, '' or why the input was dropped)."""
         stamp_ns = int(stamp_ns)
         if self.last_released_ns is not None and stamp_ns <= self.last_released_ns:
-            if kind in FLOWS and stamp_ns == self.last_released_ns:
-                self._expect_flow[kind] = True   # it comes, just later: wait for it next time
+            if kind in FLOWS:
+                self._missing[kind] = 0          # it comes, just later: wait for it next time
             self.dropped += 1
             return [], (f'{kind.value} for stamp {stamp_ns} ns arrived after stamp '
                         f'{self.last_released_ns} ns was answered (out of order or late)')
@@ -109,7 +116,7 @@ class StampSynchronizer:
 
     def _complete(self, b: FrameBundle) -> bool:
         return (all(k in b.values for k in REQUIRED)
-                and all(k in b.values for k in FLOWS if self._expect_flow[k]))
+                and all(k in b.values for k in FLOWS if self._expected(k)))
 
     def _release_up_to(self, stamp_ns: int, timed_out: bool) -> list[FrameBundle]:
         out = []
@@ -117,10 +124,10 @@ class StampSynchronizer:
             b = self._pending.pop(s)
             b.timed_out = timed_out or not self._complete(b)
             out.append(b)
-        if out:
-            self.last_released_ns = out[-1].stamp_ns
+        for b in out:
+            self.last_released_ns = b.stamp_ns
             for k in FLOWS:
-                self._expect_flow[k] = k in out[-1].values
+                self._missing[k] = 0 if k in b.values else self._missing[k] + 1
         return out
 
 
