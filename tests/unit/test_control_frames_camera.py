@@ -168,3 +168,18 @@ def test_opencv_agrees_on_a_random_projection():
                                .reshape(3, 3), D)
     uv, _ = cam.bearings_to_pixels(P @ R.T)
     assert np.allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+
+
+def test_so3_exp_log_against_rodrigues_and_round_trip():
+    for _ in range(50):
+        w = RNG.normal(size=3)
+        w *= RNG.uniform(0.0, np.pi - 1e-3) / np.linalg.norm(w)
+        R = fr.exp_so3(w)
+        assert np.allclose(R, cv2.Rodrigues(w.reshape(3, 1))[0], atol=1e-12)
+        assert np.allclose(fr.log_so3(R), w, atol=1e-9)
+    assert np.allclose(fr.exp_so3(np.zeros(3)), np.eye(3))
+    w = np.array([0.0, np.pi, 0.0])                      # the angle-pi branch
+    assert np.allclose(fr.exp_so3(fr.log_so3(fr.exp_so3(w))), fr.exp_so3(w), atol=1e-9)
+    w = np.array([1.0, -2.0, 0.5])
+    w *= np.pi / np.linalg.norm(w)
+    assert np.allclose(fr.exp_so3(fr.log_so3(fr.exp_so3(w))), fr.exp_so3(w), atol=1e-6)

@@ -75,6 +75,30 @@ def rot_z(a: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def exp_so3(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix exp(S(w)) of a rotation vector w (axis * angle, rad), Rodrigues."""
+    w = np.asarray(rotvec, dtype=float).reshape(3)
+    th = float(np.linalg.norm(w))
+    if th < 1e-12:
+        return np.eye(3) + skew(w)
+    K = skew(w / th)
+    return np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * K @ K
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation vector (axis * angle, rad, angle in [0, pi]) of a rotation matrix."""
+    R = np.asarray(R, dtype=float)
+    th = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    if th < 1e-9:
+        return np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]]) / 2.0
+    if th > np.pi - 1e-6:                 # near pi: (R + I) / 2 = axis axis^T
+        B = (R + np.eye(3)) / 2.0
+        i = int(np.argmax(np.diag(B)))
+        return th * B[:, i] / np.sqrt(B[i, i])
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return w * th / (2.0 * np.sin(th))
+
+
 def rot_from_euler_zyx(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Return R_IB = R_Z(yaw) R_Y(pitch) R_X(roll) (aerospace ZYX, NED/FRD, radians)."""
     return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)

@@ -11,10 +11,9 @@ from __future__ import annotations
 import bisect
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
-from ibvs_control.core.frames import is_rotation
+from ibvs_control.core.frames import exp_so3, is_rotation, log_so3
 
 
 @dataclass(frozen=True)
@@ -24,14 +23,6 @@ class AttitudeBufferConfig:
     history_s: float = 1.0              # samples older than newest - history_s are dropped
     max_extrapolation_s: float = 0.05   # propagation beyond the newest sample, at most
     max_interpolation_gap_s: float = 0.2  # two samples farther apart are not interpolated
-
-
-def _exp_so3(rotvec: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(rotvec, dtype=np.float64).reshape(3, 1))[0]
-
-
-def _log_so3(R: np.ndarray) -> np.ndarray:
-    return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].reshape(3)
 
 
 class AttitudeBuffer:
@@ -75,7 +66,7 @@ class AttitudeBuffer:
             dt = stamp_s - self._stamps[-1]
             if dt > cfg.max_extrapolation_s:
                 return None
-            return self._R[-1] @ _exp_so3(self._omega[-1] * dt)
+            return self._R[-1] @ exp_so3(self._omega[-1] * dt)
         if i == 0:
             return None
         t0, t1 = self._stamps[i - 1], self._stamps[i]
@@ -83,7 +74,7 @@ class AttitudeBuffer:
             return None
         s = (stamp_s - t0) / (t1 - t0)
         R0 = self._R[i - 1]
-        return R0 @ _exp_so3(s * _log_so3(R0.T @ self._R[i]))
+        return R0 @ exp_so3(s * log_so3(R0.T @ self._R[i]))
 
     def gyro_rotation(self, t0: float, t1: float) -> np.ndarray | None:
         """Body rotation dR from t0 to t1 integrated from the buffered rates (R(t1) = R(t0) dR).
@@ -107,7 +98,7 @@ class AttitudeBuffer:
             if k + 1 < n and self._stamps[k + 1] - self._stamps[k] > cfg.max_interpolation_gap_s:
                 return None
             omega = self._omega[k] if k + 1 == n else 0.5 * (self._omega[k] + self._omega[k + 1])
-            dR = dR @ _exp_so3(omega * (b - a))
+            dR = dR @ exp_so3(omega * (b - a))
         return dR
 
 
@@ -137,6 +128,6 @@ class GyroDerotation:
             dR = self.buffer.gyro_rotation(self._t, stamp_s)
             if dR is not None:
                 R_prop = self._R @ dR
-                R = R_prop @ _exp_so3(self.gain * _log_so3(R_prop.T @ R_meas))
+                R = R_prop @ exp_so3(self.gain * log_so3(R_prop.T @ R_meas))
         self._R, self._t = R, stamp_s
         return R

@@ -17,7 +17,8 @@ from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scal
 from ibvs_control.core.config import CameraConfig, PadLayout, VehicleConfig, WorldConfig
 from ibvs_control.core.control_laws import CrossingLaw
 from ibvs_control.core.controller import ControllerConfig, IbvsController, Measurements
-from ibvs_control.core.frames import bearings_C_to_I, bearings_I_to_C, e3, GRAVITY, rot_z
+from ibvs_control.core.frames import (
+    bearings_C_to_I, bearings_I_to_C, e3, exp_so3, GRAVITY, log_so3, rot_z)
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
@@ -58,24 +59,6 @@ class FeatureSimLog:
     q_t: list = field(default_factory=list)
     phi_t: list = field(default_factory=list)
     phi_w: list = field(default_factory=list)
-
-
-def _exp_so3(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    if th < 1e-12:
-        return np.eye(3)
-    k = w / th
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
-
-
-def _log_so3(R: np.ndarray) -> np.ndarray:
-    c = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    th = float(np.arccos(c))
-    if th < 1e-9:
-        return np.zeros(3)
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    return w * th / (2.0 * np.sin(th))
 
 
 class FeatureSensors:
@@ -221,7 +204,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         done = False
         for _ in range(n_sub):
             dt = config.physics_dt
-            R = R @ _exp_so3(_log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
+            R = R @ exp_so3(log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
             a = -thrust * (R @ e3) / m + g * e3 + config.wind_accel_I
             v = v + a * dt
