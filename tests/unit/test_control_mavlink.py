@@ -153,13 +153,18 @@ def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
     return MavlinkBridge(cfg)
 
 
-def spin(bridge, seconds, until=None, stream_hz=60.0):
-    """Tick the bridge like the node's timers; stop early when until() is true."""
+def spin(bridge, seconds, until=None, stream_hz=60.0, force_fn=None):
+    """Tick the bridge like the node's timers; stop early when until() is true.
+
+    ``force_fn(now)``: called at the stream rate, e.g. to feed forces like the controller.
+    """
     t_end = time.monotonic() + seconds
     next_stream = next_hb = 0.0
     samples = []
     while time.monotonic() < t_end:
         now = time.monotonic()
+        if force_fn is not None and now >= next_stream:
+            force_fn(now)
         if now >= next_hb:
             next_hb = now + 0.2
             bridge.heartbeat()
@@ -294,7 +299,9 @@ def test_px4_offboard_after_streaming_then_arm(peer_bridge):
     assert ok, bridge.sequencer.last_reason
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 6.0)      # custom mode enabled, OFFBOARD main mode
-    assert t_mode - peer.setpoints[0][0] > 1.0     # > 1 s of setpoint stream first
+    # > 1 s of stream first (prestream 1.0 s in the bridge clock; the peer stamps receipt, so
+    # allow 20 ms of scheduling between the two clocks)
+    assert t_mode - peer.setpoints[0][0] > 0.98
     assert peer.custom_mode >> 16 == 6 and peer.armed
     t_arm, arm = peer.arm_commands()[0]
     assert arm.param1 == 1.0 and t_arm > t_mode
@@ -307,7 +314,7 @@ def test_px4_switch_requested_immediately_still_waits_for_stream(peer_bridge):
                  and bridge.sequencer.state == EngageState.ENGAGED)
     assert ok
     t_mode, _ = peer.set_mode_commands()[0]
-    assert t_mode - peer.setpoints[0][0] > 1.0
+    assert t_mode - peer.setpoints[0][0] > 0.98
     assert peer.arm_commands() == []               # already armed: no arm command
 
 
@@ -403,7 +410,10 @@ def test_shutdown_ramps_thrust_then_forces_disarm(peer_bridge):
     assert ok
     bridge.on_supervisor_mode(Mode.SHUTDOWN)
     t_sd = time.monotonic()
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
+    # the controller keeps answering frames: the vehicle time (stamps) runs at wall speed here
+    hover = np.array([0.0, 0.0, MASS * GRAVITY])
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
+                 force_fn=lambda now: bridge.on_force(int(1e9 + (now - t_sd) * 1e9), hover))
     assert ok, bridge.sequencer.last_reason
     assert not peer.armed
     ramp = [(t, m.thrust) for t, m in peer.setpoints if t >= t_sd]
@@ -417,6 +427,16 @@ def test_shutdown_ramps_thrust_then_forces_disarm(peer_bridge):
     assert int(disarms[0][1].param2) == 0          # first a normal disarm (refused) ...
     assert int(disarms[-1][1].param2) == 21196     # ... then forced
     assert bridge.sequencer.disarm_forced
+
+
+def test_shutdown_ramp_runs_on_vehicle_time_and_on_the_wall_after_a_stall():
+    from ibvs_control.core.mavlink_bridge import RAMP_STALL_S, ShutdownRamp
+    r = ShutdownRamp(0.5, t_vehicle=10.0, t_wall=100.0)
+    r.advance(10.2, 100.9)                 # lockstep: 0.2 s of vehicle time in 0.9 s of wall
+    assert r.elapsed(100.9) == pytest.approx(0.2)
+    r.advance(10.2, 101.5)                 # stamps stopped: nothing yet ...
+    assert r.elapsed(101.5) == pytest.approx(0.2)
+    assert r.elapsed(100.9 + RAMP_STALL_S + 0.5) == pytest.approx(0.7)   # ... then the wall
 
 
 def test_bad_force_is_never_sent_held_then_level_hover(peer_bridge):

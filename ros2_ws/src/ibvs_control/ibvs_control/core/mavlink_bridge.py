@@ -47,6 +47,7 @@ HOVER_PARAM = {Autopilot.PX4: 'MPC_THR_HOVER', Autopilot.ARDUPILOT: 'MOT_THST_HO
 GUID_OPTIONS_PARAM = 'GUID_OPTIONS'
 HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover-thrust parameter outside this is refused
 QUAT_NORM_TOLERANCE = 0.1               # |q| in [0.9, 1.1], else the sample is dropped
+MS_PER_S = 1000.0
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
 AUTOPILOT_OF_HEARTBEAT = {MavAutopilot.PX4: Autopilot.PX4,
                           MavAutopilot.ARDUPILOTMEGA: Autopilot.ARDUPILOT}
@@ -205,7 +206,7 @@ class SetpointShaper:
         self._valid: tuple[float, np.ndarray, float | None] | None = None  # (t_rx, F, yaw)
         self._last_refused = False
         self._yaw_des: float | None = None
-        self._ramp: tuple[float, float] | None = None    # (t0, thrust at the switch)
+        self._ramp: ShutdownRamp | None = None
         self._last_thrust: float | None = None
 
     def on_heading(self, yaw: float) -> None:
@@ -236,9 +237,9 @@ class SetpointShaper:
         return ''
 
     def ramp_done(self, t: float) -> bool:
-        """Whether the SHUTDOWN ramp has reached zero thrust."""
-        return (self._ramp is not None
-                and shutdown_thrust_scale(t - self._ramp[0], self.config.shutdown_ramp_s) <= 0.0)
+        """Whether the SHUTDOWN ramp has reached zero thrust (t: monotonic s)."""
+        return (self._ramp is not None and shutdown_thrust_scale(
+            self._ramp.elapsed(t), self.config.shutdown_ramp_s) <= 0.0)
 
     def target(self, t: float, mode: Mode, yaw_now: float, hover: float,
                time_boot_ms: int) -> AttitudeTarget:
@@ -251,9 +252,10 @@ class SetpointShaper:
         if mode == Mode.SHUTDOWN:
             if self._ramp is None:
                 start = self._last_thrust if self._last_thrust is not None else hover
-                self._ramp = (t, start)
-            scale = shutdown_thrust_scale(t - self._ramp[0], self.config.shutdown_ramp_s)
-            return self._out(time_boot_ms, level_q, self._ramp[1] * scale,
+                self._ramp = ShutdownRamp(start, time_boot_ms / MS_PER_S, t)
+            self._ramp.advance(time_boot_ms / MS_PER_S, t)
+            scale = shutdown_thrust_scale(self._ramp.elapsed(t), self.config.shutdown_ramp_s)
+            return self._out(time_boot_ms, level_q, self._ramp.start_thrust * scale,
                              SetpointSource.SHUTDOWN_RAMP)
         self._ramp = None
         if mode == Mode.FAILSAFE:
@@ -274,6 +276,38 @@ class SetpointShaper:
         thrust = float(np.clip(thrust, 0.0, 1.0))
         self._last_thrust = thrust
         return AttitudeTarget(int(time_boot_ms), np.asarray(q, dtype=float), thrust, source)
+
+
+RAMP_STALL_S = 1.0          # s (wall) without newer setpoint stamps before the ramp uses the wall
+
+
+@dataclass
+class ShutdownRamp:
+    """Elapsed time of the mode-4 thrust ramp, in the VEHICLE's time.
+
+    The ramp runs on the setpoints' time_boot_ms (the vehicle's clock: sim time in the sim,
+    where lockstep makes it run slower than the wall clock), so the descent profile is the
+    same whatever the pacing. If the setpoint stamps stop advancing (the controller went
+    silent), it goes on with the wall clock after RAMP_STALL_S, so thrust never hangs.
+    """
+
+    start_thrust: float
+    t_vehicle: float                 # s, last vehicle time seen
+    t_wall: float                    # s, monotonic time when it was seen
+    progress: float = 0.0            # s of vehicle time elapsed up to t_vehicle
+
+    def advance(self, t_vehicle: float, t_wall: float) -> None:
+        """Account for a setpoint at vehicle time t_vehicle, sent at wall time t_wall."""
+        if t_vehicle > self.t_vehicle:
+            self.progress += self._stalled(t_wall) + (t_vehicle - self.t_vehicle)
+            self.t_vehicle, self.t_wall = t_vehicle, t_wall
+
+    def _stalled(self, t_wall: float) -> float:
+        return max(0.0, t_wall - self.t_wall - RAMP_STALL_S)
+
+    def elapsed(self, t_wall: float) -> float:
+        """Return how long the ramp has run (s): vehicle time, plus wall time past a stall."""
+        return self.progress + self._stalled(t_wall)
 
 
 class RateMeter:
