@@ -40,8 +40,8 @@ from ibvs_control.core.stamp_sync import (
     AttitudeHistory, check_bearings, check_vector, feature_vector, FrameBundle,
     heading_quat_enu_flu, InputKind, StampSynchronizer, step_controller)
 from ibvs_control.node_common import (
-    COMMAND_QOS, MODE_QOS, NS_PER_S, ns_to_stamp, polygon_points, quat_wxyz, SENSOR_QOS,
-    set_quat, set_vector3, stamp_to_ns, vector3)
+    COMMAND_QOS, MODE_QOS, NS_PER_S, ns_to_stamp, parse_pad_groups, polygon_points, quat_wxyz,
+    SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
 from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
@@ -120,7 +120,7 @@ class ForceControllerNode(Node):
         self._add(InputKind.PAD, msg, bearings, err)
 
     def _on_groups(self, msg: String) -> None:
-        self._pad_groups = tuple(g.strip() for g in msg.data.split(',') if g.strip())
+        self._pad_groups = parse_pad_groups(msg.data)
 
     def _on_front_flow(self, msg: Vector3Stamped) -> None:
         self._add_flow(InputKind.FLOW_FRONT, msg)

@@ -32,7 +32,8 @@ from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import check_bearings, check_vector
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_control.node_common import (
-    MODE_QOS, NS_PER_S, polygon_points, quat_wxyz, SENSOR_QOS, stamp_to_ns, vector3)
+    MODE_QOS, NS_PER_S, parse_pad_groups, polygon_points, quat_wxyz, SENSOR_QOS, stamp_to_ns,
+    vector3)
 from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
@@ -147,7 +148,7 @@ class ModeSupervisorNode(Node):
             self._pair_pad()
 
     def _on_groups(self, msg: String) -> None:
-        self._pending_groups = [g.strip() for g in msg.data.split(',') if g.strip()]
+        self._pending_groups = list(parse_pad_groups(msg.data))
         self._pair_pad()
 
     def _pair_pad(self) -> None:

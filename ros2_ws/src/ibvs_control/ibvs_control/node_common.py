@@ -9,6 +9,8 @@ from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 
 NS_PER_S = 1_000_000_000
+# pad/groups (std_msgs/String): group names of the pad/landmarks message, e.g. "A,B"
+PAD_GROUP_SEPARATOR = ','
 
 # ibvs/mode: latched state (the last mode reaches late joiners).
 MODE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -54,3 +56,8 @@ def set_quat(q_msg, q_wxyz: np.ndarray) -> None:
 def set_vector3(v_msg, v: np.ndarray) -> None:
     """Write a 3-vector into a geometry_msgs/Vector3 (in place)."""
     v_msg.x, v_msg.y, v_msg.z = (float(x) for x in v)
+
+
+def parse_pad_groups(text: str) -> tuple[str, ...]:
+    """Group names of a ``pad/groups`` message ("A,B" -> ('A', 'B'); "" -> ())."""
+    return tuple(g.strip() for g in text.split(PAD_GROUP_SEPARATOR) if g.strip())

@@ -21,10 +21,10 @@ from std_msgs.msg import String
 from ibvs_perception.core.pad import PadConfigError, PadDetector, PadDetectorConfig
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
+from ibvs_control.node_common import PAD_GROUP_SEPARATOR
 from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
-GROUP_SEPARATOR = ','
 
 
 class PadDetectorNode(Node):
@@ -66,7 +66,7 @@ class PadDetectorNode(Node):
             self.get_logger().error(f'pad_detector: image dropped: {exc}',
                                     throttle_duration_sec=THROTTLE_S)
         self.pub_landmarks.publish(polygon_from_vectors(msg.header, self.frame_id, bearings))
-        self.pub_groups.publish(String(data=GROUP_SEPARATOR.join(names)))
+        self.pub_groups.publish(String(data=PAD_GROUP_SEPARATOR.join(names)))
 
 
 def main(args=None) -> None:

@@ -44,6 +44,7 @@ class SupervisorConfig:
     pad_timeout_s: float = 1.0                     # mode 3
     crossing_min_angular_height_rad: float = 1.0   # window lost closer than this -> mode 2
     window_jump_rad: float = 0.1                   # corner jump between frames = loss
+    window_jump_max_gap_s: float = 0.1             # jumps are judged only across shorter gaps
     crossing_margin_m: float = 0.5                 # travel past the wall plane before mode 3
     crossing_fallback_travel: float = 1.0          # d-normalised travel if d_t is unknown
     crossing_timeout_s: float = 10.0               # mode 2 without a pad -> failsafe
@@ -92,7 +93,7 @@ class ModeSupervisor:
         self.mode = Mode.IDLE
         self.transitions: list[Transition] = []
         self._last: dict[str, float] = {}              # input name -> last fresh time
-        self._pending: list[tuple[str, Mode, str]] = []
+        self._pending: list[tuple[Mode, str]] = []       # requested (mode, reason)
         self._corners: np.ndarray | None = None         # last full-window corners, {I}
         self._window_close = False
         self._eta_w: np.ndarray | None = None
@@ -136,7 +137,8 @@ class ModeSupervisor:
         cfg = self.config
         if corner_bearings_I is not None:
             p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
-            jumped = self._corners is not None and self._fresh('window', t, 0.1) and \
+            jumped = self._corners is not None and \
+                self._fresh('window', t, cfg.window_jump_max_gap_s) and \
                 float(np.max(np.arccos(np.clip(np.sum(p * self._corners, axis=1), -1, 1)))) \
                 > cfg.window_jump_rad
             if not jumped:
@@ -198,7 +200,7 @@ class ModeSupervisor:
     def update(self, t: float) -> list[Transition]:
         """Apply requested transitions, then the staleness rules; return what changed."""
         done = []
-        for _, to_mode, reason in self._pending:
+        for to_mode, reason in self._pending:
             if self._allowed(to_mode):
                 done.append(self._switch(t, to_mode, reason))
         self._pending.clear()
@@ -217,7 +219,7 @@ class ModeSupervisor:
         return name in self._last and t - self._last[name] <= timeout
 
     def _request(self, to_mode: Mode, reason: str) -> None:
-        self._pending.append(('request', to_mode, reason))
+        self._pending.append((to_mode, reason))
 
     def _allowed(self, to_mode: Mode) -> bool:
         allowed = {Mode.WINDOW: (Mode.CROSSING,), Mode.CROSSING: (Mode.LANDING,),

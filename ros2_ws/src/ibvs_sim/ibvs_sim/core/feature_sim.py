@@ -16,7 +16,8 @@ import numpy as np
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
 from ibvs_control.core.config import CameraConfig, PadLayout, VehicleConfig, WorldConfig
 from ibvs_control.core.control_laws import CrossingLaw
-from ibvs_control.core.controller import ControllerConfig, IbvsController, Measurements
+from ibvs_control.core.controller import (
+    ControllerConfig, IbvsController, Measurements, with_crossing_law)
 from ibvs_control.core.frames import (
     bearings_C_to_I, bearings_I_to_C, e3, exp_so3, GRAVITY, log_so3, rot_z)
 from ibvs_control.core.modes import Mode
@@ -152,11 +153,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     rng = np.random.default_rng(config.seed)
     sensors = FeatureSensors(world, pad, vehicle, rng, config.bearing_noise_rad,
                              config.flow_noise)
-    ctrl_cfg = controller_config
-    if ctrl_cfg.crossing_law != config.crossing_law:
-        from ibvs_control.core.controller import with_crossing_law
-        ctrl_cfg = with_crossing_law(ctrl_cfg, config.crossing_law)
-    controller = IbvsController(ctrl_cfg)
+    controller = IbvsController(with_crossing_law(controller_config, config.crossing_law))
     supervisor = ModeSupervisor(supervisor_config)
     m, g = vehicle.mass, GRAVITY
     xi = np.asarray(config.initial_position_I, dtype=float).copy()
