@@ -134,8 +134,8 @@ def test_random_initial_condition_succeeds(tmp_path, seed):
 
 
 @pytest.mark.xfail(reason='known gap (issue 6, open): lockstep runs are not bit-repeatable '
-                   '(inputs that miss the sync timeout under load); after the fixes it passed '
-                   'in the last two runs (0.8 cm), 1.1-2.0 cm before them',
+                   '(inputs that miss the sync timeout under load); measured run-to-run '
+                   'crossing offset 0.8 cm in two runs, 1.1-2.1 cm in three others',
                    strict=False)
 def test_second_run_gives_the_same_summary_within_1cm(reference, tmp_path):
     _, first = reference
@@ -168,7 +168,7 @@ def _max_pixel_error(a: np.ndarray, b: np.ndarray, camera) -> float:
 
 @pytest.mark.xfail(reason='known gap (issue 6, open): the window tracker depends on the frame '
                    'history; replaying every recorded frame: 0.107 px worst over 623 frames '
-                   'in one run (bar 0.1 px), passed in the last; the pad detector is exact',
+                   '(bar 0.1 px), passing in some runs only; the pad detector is exact',
                    strict=False)
 def test_replaying_the_bag_reproduces_the_detections(reference, tmp_path):
     import rclpy
