@@ -5,6 +5,7 @@ import sys
 import time
 
 from ibvs_bringup import ros2run
+from ibvs_bringup.run_scenario import supervisor_transitions
 from ibvs_bringup.runner import ProcessRunner
 import pytest
 
@@ -129,3 +130,17 @@ def test_ros2run_script_runs_a_console_script_with_ros_args():
     bad = subprocess.run([script, 'ibvs_bringup', 'nope'], capture_output=True, text=True,
                          timeout=60, env=dict(os.environ, PYTHON=PY))
     assert bad.returncode == 1 and 'no executable' in bad.stderr
+
+
+def test_supervisor_transitions_are_read_from_its_log(tmp_path):
+    log = tmp_path / 'mode_supervisor.log'
+    log.write_text(
+        '[INFO] [1.0] [mode_supervisor]: mode supervisor ready in IDLE: SupervisorConfig()\n'
+        '[INFO] [2.0] [mode_supervisor]: mode IDLE -> WINDOW at t = 1.000 s: start requested\n'
+        '[ERROR] [3.0] [mode_supervisor]: a refused message\n'
+        '[INFO] [4.0] [mode_supervisor]: mode WINDOW -> FAILSAFE at t = 5.620 s: '
+        'window stale for more than 0.5 s in WINDOW\n')
+    assert supervisor_transitions(str(log)) == [
+        'mode IDLE -> WINDOW at t = 1.000 s: start requested',
+        'mode WINDOW -> FAILSAFE at t = 5.620 s: window stale for more than 0.5 s in WINDOW']
+    assert supervisor_transitions(str(tmp_path / 'missing.log')) == []

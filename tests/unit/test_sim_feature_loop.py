@@ -84,3 +84,26 @@ def test_side_wind_open_loop_hits_the_frame_closed_loop_does_not(side):
 def test_intended_law_without_wind_succeeds():
     s, _ = fly(crossing_law=CrossingLaw.INTENDED)
     assert_success(s)
+
+
+def _box_corners():
+    box = WORLD.random_box
+    return [np.array([x, y, z]) for x in box['x'] for y in box['y'] for z in box['z']]
+
+
+@pytest.mark.parametrize('ic', _box_corners(), ids=lambda ic: 'x%.2f_y%.2f_z%.2f' % tuple(ic))
+def test_corners_of_the_initial_box_succeed(ic):
+    """The box's extremes: the window leaves the view earliest there (angular height ~1.0)."""
+    s, _ = fly(ic)
+    assert_success(s)
+
+
+def test_crossing_threshold_is_above_every_start_in_the_box():
+    """A loss right after the start is never taken for a crossing: at every box corner the
+    window's angular height (mid-points of top and bottom edges, level vehicle) is below it."""
+    w = WORLD.window
+    for ic in _box_corners():
+        top = np.array([w.center_I[0], w.center_I[1], w.center_I[2] - w.height / 2]) - ic
+        bottom = top + np.array([0.0, 0.0, w.height])
+        angle = np.arccos(top @ bottom / np.linalg.norm(top) / np.linalg.norm(bottom))
+        assert angle < SUP.crossing_min_angular_height_rad - 0.1, (ic, angle)

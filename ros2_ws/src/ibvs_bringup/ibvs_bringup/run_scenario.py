@@ -157,6 +157,18 @@ def feature_run_data(flog, world, pad) -> plots.RunData:
 
 # --- whole-graph run ------------------------------------------------------------------------
 
+TRANSITION_LINE = re.compile(r'\]: (mode \w+ -> \w+ at t = .*)$')
+
+
+def supervisor_transitions(log_path: str) -> list[str]:
+    """Return the mode supervisor's transition lines ('mode A -> B at t = ... s: reason')."""
+    try:
+        with open(log_path, errors='replace') as f:
+            return [m.group(1) for m in map(TRANSITION_LINE.search, f) if m]
+    except OSError:
+        return []
+
+
 def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
     """Return the node specs of a run: the sim graph plus the recorder."""
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
@@ -295,7 +307,9 @@ def run_graph(opts: RunOptions) -> int:
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
     summary['run'] = _run_block(opts, xi0, stop_reason=stop_reason, error=error,
                                 wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
-                                events=log.events)
+                                events=log.events,
+                                transitions=supervisor_transitions(
+                                    os.path.join(opts.out_dir, 'logs', 'mode_supervisor.log')))
     return _finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
 
 

@@ -130,6 +130,12 @@ class WindowGeometry:
         return np.array([[cx, cy - hw, cz - hh], [cx, cy + hw, cz - hh],
                          [cx, cy + hw, cz + hh], [cx, cy - hw, cz + hh]])
 
+    def outer_corners_I(self) -> np.ndarray:
+        """Outer corners (4, 3) of the dark frame band in {I}, same order as corners_I."""
+        grown = WindowGeometry(self.center_I, self.width + 2.0 * self.frame_band,
+                               self.height + 2.0 * self.frame_band, 0.0)
+        return grown.corners_I()
+
 
 @dataclass(frozen=True)
 class WorldConfig:

@@ -42,7 +42,7 @@ class SupervisorConfig:
     front_flow_timeout_s: float = 0.5              # mode 1
     down_flow_timeout_s: float = 0.5               # modes 2, 3
     pad_timeout_s: float = 1.0                     # mode 3
-    crossing_min_angular_height_rad: float = 1.0   # window lost closer than this -> mode 2
+    crossing_min_angular_height_rad: float = 0.85  # window lost closer than this -> mode 2
     window_jump_rad: float = 0.1                   # corner jump between frames = loss
     window_jump_max_gap_s: float = 0.1             # jumps are judged only across shorter gaps
     crossing_margin_m: float = 0.5                 # travel past the wall plane before mode 3

@@ -27,6 +27,8 @@ from ibvs_sim.core.evaluation import evaluate_run, GroundTruthLog
 
 MIN_MARKER_PIXELS = 12.0      # a marker smaller than this (side, px) is not detected
 IMAGE_MARGIN_PX = 2.0         # a point this close to the border counts as outside
+WINDOW_BORDER_MARGIN_PX = 4.0  # the window detector needs the whole dark band this far inside
+BAND_SAMPLES_PER_EDGE = 9      # points per outer band edge checked (distortion curves edges)
 
 
 @dataclass(frozen=True)
@@ -70,13 +72,18 @@ class FeatureSensors:
         self.world, self.pad, self.vehicle = world, pad, vehicle
         self.rng, self.bearing_noise, self.flow_noise = rng, bearing_noise, flow_noise
         self.corners_I = world.window.corners_I()
+        outer = world.window.outer_corners_I()
+        s = np.linspace(0.0, 1.0, BAND_SAMPLES_PER_EDGE)[:, None]
+        self.band_outline_I = np.vstack([(1.0 - s) * outer[i] + s * outer[(i + 1) % 4]
+                                         for i in range(4)])
 
     def _visible_C(self, cam: CameraConfig, R_IB: np.ndarray, points_I: np.ndarray,
-                   xi_I: np.ndarray) -> tuple[np.ndarray, bool]:
+                   xi_I: np.ndarray, margin_px: float = IMAGE_MARGIN_PX
+                   ) -> tuple[np.ndarray, bool]:
         P = points_I - xi_I
         P_C = bearings_I_to_C(P, R_IB, cam.R_BC)
         uv, ok = cam.model.bearings_to_pixels(P_C)
-        m = IMAGE_MARGIN_PX
+        m = margin_px
         ok &= (uv[:, 0] >= m) & (uv[:, 0] <= cam.model.width - 1 - m) \
             & (uv[:, 1] >= m) & (uv[:, 1] <= cam.model.height - 1 - m)
         return P_C / np.linalg.norm(P_C, axis=1, keepdims=True), bool(np.all(ok))
@@ -88,11 +95,19 @@ class FeatureSensors:
         return b / np.linalg.norm(b, axis=1, keepdims=True)
 
     def window(self, R_IB: np.ndarray, xi_I: np.ndarray) -> np.ndarray | None:
-        """Corner bearings (4, 3) in the front optical frame when all 4 are in view."""
+        """Corner bearings (4, 3) in the front optical frame when the whole window is in view.
+
+        As the window detector sees it: the aperture corners and the whole outline of the dark
+        band around them (sampled, since distortion curves its edges) at least
+        WINDOW_BORDER_MARGIN_PX inside the image.
+        """
         if xi_I[0] >= self.world.wall_x:
             return None
-        b, ok = self._visible_C(self.vehicle.cameras['front'], R_IB, self.corners_I, xi_I)
-        return self._noisy(b) if ok else None
+        cam = self.vehicle.cameras['front']
+        b, ok = self._visible_C(cam, R_IB, self.corners_I, xi_I)
+        _, band_ok = self._visible_C(cam, R_IB, self.band_outline_I, xi_I,
+                                     WINDOW_BORDER_MARGIN_PX)
+        return self._noisy(b) if ok and band_ok else None
 
     def _occluded_by_wall(self, xi_I: np.ndarray, s_I: np.ndarray) -> bool:
         wx = self.world.wall_x
