@@ -2,6 +2,7 @@
 
 Ground truth: MarkerGroup.marker_centres_I() seen from the known pose.
 """
+import cv2
 import numpy as np
 import pytest
 
@@ -111,3 +112,20 @@ def test_loss_in_region_searches_the_whole_image_at_once(setup):
     assert detector.last_search == 'roi+full'
     ref = PadDetector(layout, PadDetectorConfig()).process(img, cam.model)
     assert det.group_names == ref.group_names != ()
+
+
+def test_replay_is_exact_and_opencv_settings_are_restored(setup):
+    """Same frames, fresh detector: bit-identical output; OpenCV's IPP/threads left as found."""
+    layout, cam, renderer = setup
+    imgs = [renderer.render(frames.rot_from_euler_zyx(0.04 * np.sin(k), 0.03, 0.1),
+                            np.array([0.01, -0.02, -h]))
+            for k, h in enumerate(np.linspace(1.5, 0.3, 8))]
+    ipp, threads = cv2.ipp.useIPP(), cv2.getNumThreads()
+    runs = []
+    for _ in range(2):
+        detector = PadDetector(layout, PadDetectorConfig())
+        runs.append([detector.process(img, cam.model) for img in imgs])
+        assert cv2.ipp.useIPP() == ipp and cv2.getNumThreads() == threads
+    for a, b in zip(*runs):
+        assert a.group_names == b.group_names != ()
+        assert np.array_equal(a.bearings_C, b.bearings_C)

@@ -13,10 +13,22 @@ larger ones, so groups that appear during the descent are inside it). The whole 
 searched when no group is complete in the region (loss, same frame), every
 ``full_search_every_n_frames`` frames, and when nothing is tracked. The minimum marker
 perimeter stays the same number of pixels in the region as in the whole image, and the region
-keeps markers away from its border, so the region finds what the whole image would.
+keeps markers away from its border, so the region finds what the whole image would. Only the
+corners of the markers of complete groups (the ones the centres need) are refined.
+
+OpenCV settings: ``process`` runs OpenCV with its Intel IPP paths off and one thread by default
+(``use_ipp``, ``opencv_threads``; both restored afterwards). Measured on the development VM
+(AMD EPYC under Firecracker): IPP's per-call CPU dispatch executes ``cpuid``, which traps to the
+hypervisor (~3.8 us each), about a thousand times per frame (cornerSubPix, the bit extraction
+of every candidate, ...): 4.4-6 ms per frame with IPP, 1.6 ms without. One thread keeps the
+results a deterministic function of the frames: the IPP switch is per thread in OpenCV, and
+IPP and plain paths do not round alike, so OpenCV's worker threads (IPP still on) would make
+a result depend on which thread handled which candidate.
 """
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import cv2
@@ -55,6 +67,8 @@ class PadDetectorConfig:
     roi_margin_px: int = 12               # px, added to the ROI margin
     full_search_every_n_frames: int = 50  # whole-image search at least this often; 0: only on loss
     roi_max_age_s: float = 0.03           # s, an older region (frames skipped) is not trusted
+    use_ipp: bool = False     # OpenCV's Intel IPP paths inside process() (module docstring)
+    opencv_threads: int = 1   # OpenCV threads inside process(); 0: leave OpenCV's setting
 
 
 @dataclass(frozen=True)
@@ -84,6 +98,25 @@ def marker_centre_normalized(corners_xy: np.ndarray) -> np.ndarray | None:
     if abs(centre[2]) < _MIN_DIAGONAL_CROSS:
         return None
     return centre[:2] / centre[2]
+
+
+@contextmanager
+def opencv_settings(use_ipp: bool, threads: int) -> Iterator[None]:
+    """Run a block with OpenCV's IPP switch and thread count set, then restore both.
+
+    ``threads`` <= 0 leaves the thread count alone. The IPP switch is per thread (OpenCV's
+    thread-local setting), the thread count is process-wide.
+    """
+    saved_ipp, saved_threads = cv2.ipp.useIPP(), cv2.getNumThreads()
+    cv2.ipp.setUseIPP(use_ipp)
+    if threads > 0:
+        cv2.setNumThreads(threads)
+    try:
+        yield
+    finally:
+        cv2.ipp.setUseIPP(saved_ipp)
+        if threads > 0:
+            cv2.setNumThreads(saved_threads)
 
 
 class PadDetector:
@@ -152,8 +185,12 @@ class PadDetector:
     def _complete(self, markers: dict[int, np.ndarray]) -> bool:
         return any(all(i in markers for i in g.ids) for g in self.layout.groups)
 
+    def _complete_ids(self, markers: dict[int, np.ndarray]) -> list[int]:
+        """Ids of the markers of every complete group (the only corners the centres need)."""
+        return [i for g in self.layout.groups if all(j in markers for j in g.ids) for i in g.ids]
+
     def _refine(self, gray: np.ndarray, markers: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-        """Refine every corner sub-pixel on the full image (ArUco's SUBPIX settings).
+        """Refine every corner given sub-pixel on the full image (ArUco's SUBPIX settings).
 
         Done here rather than inside detectMarkers, whose refinement would run on the region
         of interest's crop: on the full image the result no longer depends on how the marker
@@ -181,7 +218,11 @@ class PadDetector:
         return {i: refined[k].astype(float) for k, i in enumerate(ids)}
 
     def _track(self, gray: np.ndarray, stamp_s: float | None = None) -> dict[int, np.ndarray]:
-        """Markers of this frame: in the region of interest, else in the whole image."""
+        """Markers of this frame: in the region of interest, else in the whole image.
+
+        With a complete group: the markers of the complete groups, corners refined; else all
+        markers found, unrefined (no group is reported).
+        """
         cfg = self.config
         period = cfg.full_search_every_n_frames
         markers: dict[int, np.ndarray] = {}
@@ -198,12 +239,12 @@ class PadDetector:
             markers = self.detect_markers(gray)
             self.last_search = 'roi+full' if self.last_search else 'full'
             self._frames_since_full = 0
-        markers = self._refine(gray, markers)
         pad = [c for i, c in markers.items() if i in self._layout_ids]
         if not self._complete(markers) or not pad:
             self._roi = None
             return markers
-        pts = np.concatenate(pad)
+        pts = np.concatenate(pad)      # region from the unrefined corners (margin >> 1 px)
+        markers = self._refine(gray, {i: markers[i] for i in self._complete_ids(markers)})
         lo, hi = pts.min(axis=0), pts.max(axis=0)
         margin = cfg.roi_margin_fraction * float(np.max(hi - lo)) + cfg.roi_margin_px
         h, w = gray.shape[:2]
@@ -219,7 +260,8 @@ class PadDetector:
         ``stamp_s``: the image time; a region of interest from a frame more than
         ``roi_max_age_s`` older is dropped for a whole-image search.
         """
-        markers = self._track(gray, stamp_s)
+        with opencv_settings(self.config.use_ipp, self.config.opencv_threads):
+            markers = self._track(gray, stamp_s)
         bearings, names, centres = [], [], []
         for group in self.layout.groups:
             if not all(i in markers for i in group.ids):
