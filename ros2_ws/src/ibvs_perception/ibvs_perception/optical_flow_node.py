@@ -6,13 +6,20 @@ the floor (eta_t = e3) for the down camera, the window wall (eta_w from `window/
 aperture excluded) for the front camera. Publishes `<camera>_camera/translational_flow`
 (Vector3Stamped, frame `map`, stamp of the later image) when enough inliers, and
 `<camera>_camera/translational_flow_quality` (Float32 inlier ratio) for every estimate tried.
+
+Each image is held (core.frame_gate) until the IMU samples reach its stamp (interpolated, not
+extrapolated, attitude) and, for the front camera, the window detection of the same image is
+in, at most `input_wait_s` (wall clock): the result then depends on the data, not on which
+message the scheduler delivered first, so lockstep runs repeat and bag replays reproduce.
 """
 from __future__ import annotations
 
 from dataclasses import fields
+import time
 
 import numpy as np
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -26,6 +33,7 @@ from std_msgs.msg import Float32
 from ibvs_perception.core.attitude_buffer import (AttitudeBuffer, AttitudeBufferConfig,
                                                   GyroDerotation)
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
+from ibvs_perception.core.frame_gate import FrameGate
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_control.spin import spin_guarded
@@ -34,6 +42,8 @@ THROTTLE_S = 2.0
 FRONT, DOWN = 'front', 'down'
 N_WINDOW_CORNERS = 4
 MAP_FRAME = 'map'
+WINDOW_HISTORY = 10          # recent window detections kept, to pick the one of a frame's stamp
+STAMP_MATCH_S = 1e-6         # s, two stamps closer than this are the same image
 
 
 class OpticalFlowNode(Node):
@@ -47,6 +57,8 @@ class OpticalFlowNode(Node):
                              f'got {self.camera_name!r}')
         vehicle_file = self.declare_parameter('vehicle_file', '').value
         self.max_window_age_s = float(self.declare_parameter('max_window_age_s', 0.1).value)
+        input_wait_s = float(self.declare_parameter('input_wait_s', 0.05).value)
+        gate_poll_s = float(self.declare_parameter('gate_poll_period_s', 0.005).value)
         flow_defaults, buffer_defaults = FlowConfig(), AttitudeBufferConfig()
         flow_values = {f.name: self.declare_parameter(f.name, getattr(flow_defaults, f.name)).value
                        for f in fields(FlowConfig)}
@@ -64,7 +76,8 @@ class OpticalFlowNode(Node):
         self.estimator: FlowEstimator | None = None
         self.camera_key: tuple | None = None
         self.camera_info: CameraInfo | None = None
-        self.window_msg: PolygonStamped | None = None
+        self.window_msgs: list[PolygonStamped] = []      # newest last
+        self.gate = FrameGate(input_wait_s)                # raises ValueError if < 0
         prefix = f'{self.camera_name}_camera'
         self.pub_flow = self.create_publisher(Vector3Stamped, f'{prefix}/translational_flow', 10)
         self.pub_quality = self.create_publisher(
@@ -77,12 +90,15 @@ class OpticalFlowNode(Node):
                                      qos_profile_sensor_data)
         self.create_subscription(Image, f'{prefix}/image_raw', self.on_image,
                                  qos_profile_sensor_data)
+        self.create_timer(gate_poll_s, self.release_frame,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg
 
     def on_window(self, msg: PolygonStamped) -> None:
-        self.window_msg = msg
+        self.window_msgs = self.window_msgs[-(WINDOW_HISTORY - 1):] + [msg]
+        self.release_frame()
 
     def on_imu(self, msg: Imu) -> None:
         try:
@@ -90,8 +106,33 @@ class OpticalFlowNode(Node):
         except ValueError as exc:
             self.get_logger().error(f'optical_flow: IMU message dropped: {exc}',
                                     throttle_duration_sec=THROTTLE_S)
+        self.release_frame()
 
     def on_image(self, msg: Image) -> None:
+        """Hold the frame until its IMU (and, front, its window detection) are in."""
+        superseded = self.gate.push(stamp_to_s(msg.header.stamp), msg, time.monotonic())
+        if superseded is not None:
+            self.process(superseded.payload)
+        self.release_frame()
+
+    def inputs_ready(self, stamp: float) -> bool:
+        """IMU samples reach the stamp; the front camera also has the same image's window."""
+        return self.attitudes.covers(stamp) and (
+            self.camera_name == DOWN or self.window_at(stamp) is not None)
+
+    def window_at(self, stamp: float) -> PolygonStamped | None:
+        """Return the window detection of the image at ``stamp``, if it arrived."""
+        for msg in reversed(self.window_msgs):
+            if abs(stamp_to_s(msg.header.stamp) - stamp) < STAMP_MATCH_S:
+                return msg
+        return None
+
+    def release_frame(self) -> None:
+        frame = self.gate.release(self.inputs_ready, time.monotonic())
+        if frame is not None:
+            self.process(frame.payload)
+
+    def process(self, msg: Image) -> None:
         try:
             camera = camera_from_info(self.camera_info, msg)
             gray = mono8_from_image(msg)
@@ -126,11 +167,12 @@ class OpticalFlowNode(Node):
         """(eta in {I}, excluded corner bearings in {I}) of the observed plane at ``stamp``.
 
         Down: the floor, eta_t = e3. Front: the window wall from the latest window corners
-        (at most max_window_age_s old), rotated with the IMU attitude at their stamp.
+        of the same image (or the latest, at most max_window_age_s old), rotated with the IMU
+        attitude at their stamp.
         """
         if self.camera_name == DOWN:
             return e3, None
-        msg = self.window_msg
+        msg = self.window_at(stamp) or (self.window_msgs[-1] if self.window_msgs else None)
         reason = None
         if msg is None or len(msg.polygon.points) != N_WINDOW_CORNERS:
             reason = 'no window detection'

@@ -37,6 +37,15 @@ class AttitudeBuffer:
     def __len__(self) -> int:
         return len(self._stamps)
 
+    @property
+    def newest_stamp(self) -> float | None:
+        """Stamp (s) of the newest sample, or None when empty."""
+        return self._stamps[-1] if self._stamps else None
+
+    def covers(self, stamp_s: float) -> bool:
+        """Whether a sample at or after ``stamp_s`` is in (interpolation, not extrapolation)."""
+        return bool(self._stamps) and self._stamps[-1] >= stamp_s
+
     def add(self, stamp_s: float, R_IB: np.ndarray, omega_B: np.ndarray) -> None:
         """Insert a sample; raises ValueError for non-finite values or a non-rotation."""
         R_IB = np.asarray(R_IB, dtype=float)

@@ -1,0 +1,48 @@
+"""FrameGate: a frame leaves when its inputs are in, after the wait, or when superseded."""
+import numpy as np
+import pytest
+
+from ibvs_perception.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_perception.core.frame_gate import FrameGate
+
+
+def test_held_until_ready_then_released_once():
+    gate = FrameGate(max_wait_s=0.05)
+    assert gate.push(1.00, 'a', now_s=10.0) is None
+    inputs_in = set()
+    assert gate.release(lambda s: s in inputs_in, now_s=10.01) is None
+    inputs_in.add(1.00)
+    frame = gate.release(lambda s: s in inputs_in, now_s=10.02)
+    assert (frame.stamp_s, frame.payload) == (1.00, 'a')
+    assert gate.release(lambda s: True, now_s=10.03) is None
+    assert gate.released_on_timeout == 0
+
+
+def test_released_after_the_wait_without_inputs():
+    gate = FrameGate(max_wait_s=0.05)
+    gate.push(2.0, 'b', now_s=0.0)
+    assert gate.release(lambda s: False, now_s=0.049) is None
+    assert gate.release(lambda s: False, now_s=0.050).payload == 'b'
+    assert gate.released_on_timeout == 1
+
+
+def test_a_newer_frame_hands_back_the_held_one():
+    gate = FrameGate(max_wait_s=1.0)
+    gate.push(1.0, 'old', now_s=0.0)
+    superseded = gate.push(1.02, 'new', now_s=0.001)
+    assert superseded.payload == 'old'
+    assert gate.held.payload == 'new'
+
+
+def test_negative_wait_is_refused():
+    with pytest.raises(ValueError):
+        FrameGate(max_wait_s=-0.1)
+
+
+def test_attitude_buffer_covers_a_stamp_only_up_to_its_newest_sample():
+    buf = AttitudeBuffer(AttitudeBufferConfig())
+    assert buf.newest_stamp is None and not buf.covers(0.0)
+    buf.add(1.0, np.eye(3), np.zeros(3))
+    buf.add(1.01, np.eye(3), np.zeros(3))
+    assert buf.newest_stamp == 1.01
+    assert buf.covers(1.01) and buf.covers(1.005) and not buf.covers(1.0100001)
