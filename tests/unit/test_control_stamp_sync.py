@@ -2,7 +2,8 @@
 import numpy as np
 
 from ibvs_control.core.frames import rot_z
-from ibvs_control.core.stamp_sync import AttitudeHistory, InputKind, StampSynchronizer
+from ibvs_control.core.stamp_sync import (
+    AttitudeHistory, InputKind, PadPairing, StampSynchronizer)
 
 W, P, FF = InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT
 
@@ -63,3 +64,40 @@ def test_attitude_history_picks_at_or_before():
     assert np.allclose(h.at(300), rot_z(0.3))
     assert np.allclose(h.at(-10), rot_z(0.0))           # all newer: the oldest
     assert not h.add(50, np.eye(3))                     # older than the newest: ignored
+
+
+def test_wait_for_imu_holds_a_complete_bundle_until_the_imu_reaches_its_stamp():
+    s = StampSynchronizer(timeout_s=1.0, wait_for_imu=True)
+    s.note_imu(90)
+    assert s.add(InputKind.WINDOW, 100, None, now=0.0)[0] == []
+    released, _ = s.add(InputKind.PAD, 100, None, now=0.0)
+    assert released == []                       # window + pad in, IMU only up to 90 ns
+    assert s.note_imu(95) == []
+    out = s.note_imu(100)                       # the sample at the stamp completes it
+    assert [b.stamp_ns for b in out] == [100] and not out[0].timed_out
+    assert s.note_imu(100) == []                # not twice
+    assert s.newest_stamp_ns() == 100
+
+
+def test_wait_for_imu_still_times_out_without_imu():
+    s = StampSynchronizer(timeout_s=0.03, wait_for_imu=True)
+    s.add(InputKind.WINDOW, 100, None, now=0.0)
+    s.add(InputKind.PAD, 100, None, now=0.0)
+    out = s.poll(now=0.05)
+    assert [b.stamp_ns for b in out] == [100] and out[0].timed_out
+
+
+def test_pad_pairing_pairs_landmarks_with_the_groups_that_follow():
+    pairing = PadPairing()
+    b8 = np.tile([0.0, 0.0, 1.0], (8, 1))
+    pairing.add_landmarks(5, b8)
+    stamp, bearings, groups = pairing.add_groups(('A', 'B'))
+    assert stamp == 5 and bearings is b8 and groups == ('A', 'B')
+    # groups alone (their landmarks were refused) are dropped, never kept for later landmarks
+    assert pairing.add_groups(('B', 'C')) is None
+    pairing.add_landmarks(6, None)
+    assert pairing.add_groups(()) == (6, None, ())
+    # a count mismatch is not a pair
+    pairing.add_landmarks(7, b8[:4])
+    assert pairing.add_groups(('A', 'B')) is None
+    assert pairing.unpaired == 2

@@ -38,7 +38,7 @@ from ibvs_control.core.frames import (
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
     AttitudeHistory, check_bearings, check_vector, feature_vector, FrameBundle,
-    heading_quat_enu_flu, InputKind, StampSynchronizer, step_controller)
+    heading_quat_enu_flu, InputKind, PadPairing, StampSynchronizer, step_controller)
 from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, NS_PER_S, ns_to_stamp, parse_pad_groups, polygon_points, quat_wxyz,
     SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
@@ -86,10 +86,11 @@ class ForceControllerNode(Node):
         pad = load_pad_layout(p['pad_layout_file'] or None)
         config = ControllerConfig.from_params(gains, vehicle, r_w, pad)   # raises GainError
         self._controller = IbvsController(config)
-        self._sync = StampSynchronizer(p['sync_timeout_s'])
+        self._sync = StampSynchronizer(p['sync_timeout_s'], wait_for_imu=True)
         self._attitudes = AttitudeHistory(int(p['imu_history_s'] * NS_PER_S))
         self._mode = Mode.IDLE
-        self._pad_groups: tuple | None = None    # latest pad/groups (follows each landmarks)
+        self._mode_changes: list[tuple[Mode, int | None]] = []   # (mode, applies after ns)
+        self._pad_pairing = PadPairing()
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
                                                 COMMAND_QOS)
@@ -113,14 +114,21 @@ class ForceControllerNode(Node):
     # --- inputs ----------------------------------------------------------------------------
     def _on_window(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg), expected=4)
-        self._add(InputKind.WINDOW, msg, bearings, err)
+        self._add(InputKind.WINDOW, msg.header.stamp, bearings, err)
 
     def _on_pad(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg))
-        self._add(InputKind.PAD, msg, bearings, err)
+        if err:                                  # answered as "no pad" for this stamp
+            self._pad_pairing.drop_landmarks()
+            self._add(InputKind.PAD, msg.header.stamp, None, err)
+        else:                                    # the PAD input waits for its groups
+            self._pad_pairing.add_landmarks(msg.header.stamp, bearings)
 
     def _on_groups(self, msg: String) -> None:
-        self._pad_groups = parse_pad_groups(msg.data)
+        pair = self._pad_pairing.add_groups(parse_pad_groups(msg.data))
+        if pair is not None:
+            stamp, bearings, groups = pair
+            self._add(InputKind.PAD, stamp, (bearings, groups), '')
 
     def _on_front_flow(self, msg: Vector3Stamped) -> None:
         self._add_flow(InputKind.FLOW_FRONT, msg)
@@ -132,7 +140,7 @@ class ForceControllerNode(Node):
         phi, err = check_vector(vector3(msg.vector))
         if msg.header.frame_id != MAP_FRAME:
             phi, err = None, f'frame {msg.header.frame_id!r} is not {MAP_FRAME!r}'
-        self._add(kind, msg, None if phi is None else vec_map_to_I(phi), err)
+        self._add(kind, msg.header.stamp, None if phi is None else vec_map_to_I(phi), err)
 
     def _on_imu(self, msg: Imu) -> None:
         try:
@@ -141,22 +149,42 @@ class ForceControllerNode(Node):
             self.get_logger().error(f'imu/data refused: {exc}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
             return
-        self._attitudes.add(stamp_to_ns(msg.header.stamp), R_IB)
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self._attitudes.add(stamp_ns, R_IB):
+            for bundle in self._sync.note_imu(stamp_ns):
+                self._answer(bundle)
 
     def _on_mode(self, msg: UInt8) -> None:
-        try:
-            self._mode = Mode(msg.data)
-        except ValueError:
-            self.get_logger().error(f'unknown mode {msg.data}: keeping {self._mode.name}',
-                                    throttle_duration_sec=LOG_THROTTLE_S)
+        """Queue a mode change for the frames after the newest one already seen.
 
-    def _add(self, kind: InputKind, msg, value, err: str) -> None:
+        The supervisor decides from frame k's inputs; the frames this node has started to
+        gather when the change arrives keep the old mode, so which frame first flies the new
+        mode does not depend on whether the change or the frame's last input came first.
+        """
+        try:
+            mode = Mode(msg.data)
+        except ValueError:
+            self.get_logger().error(f'unknown mode {msg.data}: ignored',
+                                    throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        self._mode_changes.append((mode, self._sync.newest_stamp_ns()))
+
+    def _mode_for(self, stamp_ns: int) -> Mode:
+        """Apply the queued mode changes that are due at ``stamp_ns``; return the mode."""
+        while self._mode_changes and (self._mode_changes[0][1] is None
+                                      or stamp_ns > self._mode_changes[0][1]):
+            self._mode = self._mode_changes.pop(0)[0]
+        return self._mode
+
+    def _refused(self, kind: InputKind, err: str) -> None:
+        self.get_logger().error(f'{kind.value} refused: {err}',
+                                throttle_duration_sec=LOG_THROTTLE_S)
+
+    def _add(self, kind: InputKind, stamp, value, err: str) -> None:
         """Give one input to the synchroniser (a bad one counts as 'not detected')."""
         if err:
-            self.get_logger().error(f'{kind.value} refused: {err}',
-                                    throttle_duration_sec=LOG_THROTTLE_S)
-        bundles, dropped = self._sync.add(kind, stamp_to_ns(msg.header.stamp), value,
-                                          time.monotonic())
+            self._refused(kind, err)
+        bundles, dropped = self._sync.add(kind, stamp_to_ns(stamp), value, time.monotonic())
         if dropped:
             self.get_logger().warning(f'dropped: {dropped}', throttle_duration_sec=LOG_THROTTLE_S)
         for bundle in bundles:
@@ -168,8 +196,8 @@ class ForceControllerNode(Node):
 
     # --- output ----------------------------------------------------------------------------
     def _answer(self, bundle: FrameBundle) -> None:
-        out, F_I = step_controller(self._controller, self._mode, bundle,
-                                   self._attitudes.at(bundle.stamp_ns), self._pad_groups)
+        out, F_I = step_controller(self._controller, self._mode_for(bundle.stamp_ns), bundle,
+                                   self._attitudes.at(bundle.stamp_ns))
         if out is None:
             self.get_logger().warning('no IMU attitude (or no valid output): answering with '
                                       'hover', throttle_duration_sec=LOG_THROTTLE_S)

@@ -29,7 +29,8 @@ from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.frames import (
     bearings_C_to_I, R_IB_from_rot_map_base, rot_from_quat, vec_map_to_I)
 from ibvs_control.core.modes import Mode
-from ibvs_control.core.stamp_sync import check_bearings, check_vector
+from ibvs_control.core.stamp_sync import (
+    AttitudeHistory, check_bearings, check_vector, PadPairing)
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_control.node_common import (
     MODE_QOS, NS_PER_S, parse_pad_groups, polygon_points, quat_wxyz, SENSOR_QOS, stamp_to_ns,
@@ -39,6 +40,7 @@ from ibvs_control.spin import spin_guarded
 LOG_THROTTLE_S = 2.0
 MAP_FRAME = 'map'
 LANDMARKS_PER_GROUP = 4
+ATTITUDE_HISTORY_NS = 1_000_000_000      # IMU attitudes kept to derotate at an input's stamp
 # Core parameters that come from the shared YAML files, not from params.yaml.
 FROM_FILES = ('r_w', 'group_half_sides')
 PARAMETERS = {
@@ -74,9 +76,8 @@ class ModeSupervisorNode(Node):
             raise ValueError('update_rate_hz must be > 0')
         self._core = ModeSupervisor(config)
         self._R_BC = {name: vehicle.cameras[name].R_BC for name in ('front', 'down')}
-        self._R_IB: np.ndarray | None = None
-        self._pending_pad: tuple[float, np.ndarray | None] | None = None
-        self._pending_groups: list[str] | None = None
+        self._attitudes = AttitudeHistory(ATTITUDE_HISTORY_NS)   # R_IB by stamp
+        self._pad_pairing = PadPairing(LANDMARKS_PER_GROUP)
         self._n_reported = 0
         self._published: Mode | None = None
 
@@ -122,45 +123,43 @@ class ModeSupervisorNode(Node):
             return False, None
         if bearings is None:
             return True, None
-        if self._R_IB is None:
+        R_IB = self._attitudes.at(stamp_to_ns(msg.header.stamp))   # at or just before
+        if R_IB is None:
             self._error('no IMU attitude yet: cannot derotate bearings')
             return False, None
-        return True, bearings_C_to_I(bearings, self._R_IB, self._R_BC[camera])
+        return True, bearings_C_to_I(bearings, R_IB, self._R_BC[camera])
 
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:
         try:
-            self._R_IB = R_IB_from_rot_map_base(rot_from_quat(quat_wxyz(msg.orientation)))
+            R_IB = R_IB_from_rot_map_base(rot_from_quat(quat_wxyz(msg.orientation)))
         except ValueError as exc:
             self._error(f'imu/data refused: {exc}')
             return
-        self._core.on_imu(stamp_to_ns(msg.header.stamp) / NS_PER_S, self._R_IB)
+        self._attitudes.add(stamp_to_ns(msg.header.stamp), R_IB)
+        self._core.on_imu(stamp_to_ns(msg.header.stamp) / NS_PER_S, R_IB)
 
     def _on_window(self, msg: PolygonStamped) -> None:
         ok, corners_I = self._to_I(msg, 'front', expected=4)
         if ok:
-            self._core.on_window(stamp_to_ns(msg.header.stamp) / NS_PER_S, corners_I)
+            t = stamp_to_ns(msg.header.stamp) / NS_PER_S
+            self._core.on_window(t, corners_I)
+            self._update(t)
 
     def _on_landmarks(self, msg: PolygonStamped) -> None:
         ok, landmarks_I = self._to_I(msg, 'down', expected=None)
         if ok:
-            self._pending_pad = (stamp_to_ns(msg.header.stamp) / NS_PER_S, landmarks_I)
-            self._pair_pad()
+            self._pad_pairing.add_landmarks(stamp_to_ns(msg.header.stamp) / NS_PER_S,
+                                            landmarks_I)
+        else:
+            self._pad_pairing.drop_landmarks()
 
     def _on_groups(self, msg: String) -> None:
-        self._pending_groups = list(parse_pad_groups(msg.data))
-        self._pair_pad()
-
-    def _pair_pad(self) -> None:
-        """Call on_pad once a landmarks message and its groups are both there."""
-        if self._pending_pad is None or self._pending_groups is None:
-            return
-        (t, landmarks_I), groups = self._pending_pad, self._pending_groups
-        n = 0 if landmarks_I is None else len(landmarks_I)
-        if n != LANDMARKS_PER_GROUP * len(groups):
-            return   # not the pair of each other: wait for the matching message
-        self._pending_pad = self._pending_groups = None
-        self._core.on_pad(t, landmarks_I, groups)
+        pair = self._pad_pairing.add_groups(parse_pad_groups(msg.data))
+        if pair is not None:
+            t, landmarks_I, groups = pair
+            self._core.on_pad(t, landmarks_I, list(groups))
+            self._update(t)
 
     def _on_front_flow(self, msg: Vector3Stamped) -> None:
         self._on_flow('front', msg)
@@ -173,7 +172,9 @@ class ModeSupervisorNode(Node):
         if err or msg.header.frame_id != MAP_FRAME:
             self._error(f'{camera} flow refused: {err or "frame " + msg.header.frame_id}')
             return
-        self._core.on_flow(stamp_to_ns(msg.header.stamp) / NS_PER_S, camera, vec_map_to_I(phi))
+        t = stamp_to_ns(msg.header.stamp) / NS_PER_S
+        self._core.on_flow(t, camera, vec_map_to_I(phi))
+        self._update(t)
 
     # --- services and timer ----------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response
@@ -190,9 +191,18 @@ class ModeSupervisorNode(Node):
         self._publish_mode()
         return response
 
-    def _on_timer(self) -> None:
-        if self._core.update(self._now()):
+    def _update(self, t: float) -> None:
+        """Evaluate the triggers at ``t`` and publish what changed.
+
+        Called with each input's stamp, so that a transition happens at the frame whose input
+        caused it whatever the scheduling (lockstep runs repeat), and by the timer with the
+        node clock, so that staleness is detected when inputs stop.
+        """
+        if self._core.update(t):
             self._publish_mode()
+
+    def _on_timer(self) -> None:
+        self._update(self._now())
 
 
 def main(args=None) -> None:

@@ -11,6 +11,8 @@ so :class:`StampSynchronizer` gathers the inputs of one stamp and releases the b
   valid, so a camera whose flow stopped costs a few timeouts, not one every frame, while one
   late flow under load does not make the next frames go without it — which would make the
   answers depend on the machine's load and lockstep runs unrepeatable);
+- and, with ``wait_for_imu``, once the IMU samples reach the stamp (:meth:`note_imu`), so that
+  the attitude "at or before the stamp" is the same whatever arrived first;
 - or when ``timeout_s`` (wall clock) has passed since the first input of that stamp arrived.
 
 Bundles leave in stamp order: releasing stamp S first releases every older pending stamp.
@@ -67,13 +69,16 @@ class FrameBundle:
 class StampSynchronizer:
     """Gather per-stamp inputs; see the module docstring for the release rules."""
 
-    def __init__(self, timeout_s: float, max_pending: int = 20, flow_patience: int = 3) -> None:
+    def __init__(self, timeout_s: float, max_pending: int = 20, flow_patience: int = 3,
+                 wait_for_imu: bool = False) -> None:
         if not timeout_s > 0.0 or flow_patience < 1:
             raise ValueError(f'need timeout_s > 0 and flow_patience >= 1, got {timeout_s}, '
                              f'{flow_patience}')
         self.timeout_s = timeout_s
         self.max_pending = max_pending
         self.flow_patience = flow_patience
+        self.wait_for_imu = wait_for_imu
+        self.imu_through_ns: int | None = None       # newest IMU stamp seen
         self.last_released_ns: int | None = None
         self.dropped = 0
         self._pending: dict[int, FrameBundle] = {}
@@ -106,6 +111,21 @@ class StampSynchronizer:
             released += self._release_up_to(stamp_ns, timed_out=False)
         return released, ''
 
+    def note_imu(self, stamp_ns: int) -> list[FrameBundle]:
+        """Note an IMU sample's stamp; return the bundles it completes (oldest first)."""
+        stamp_ns = int(stamp_ns)
+        if self.imu_through_ns is not None and stamp_ns <= self.imu_through_ns:
+            return []
+        self.imu_through_ns = stamp_ns
+        done = [s for s, b in self._pending.items() if self._complete(b)]
+        return self._release_up_to(max(done), timed_out=False) if done else []
+
+    def newest_stamp_ns(self) -> int | None:
+        """Newest stamp of any input seen (pending or released), or None."""
+        stamps = list(self._pending) + ([self.last_released_ns]
+                                        if self.last_released_ns is not None else [])
+        return max(stamps) if stamps else None
+
     def poll(self, now: float) -> list[FrameBundle]:
         """Release the bundles whose timeout has expired (call from a wall-clock timer)."""
         expired = [s for s, b in self._pending.items()
@@ -115,6 +135,9 @@ class StampSynchronizer:
         return self._release_up_to(max(expired), timed_out=True)
 
     def _complete(self, b: FrameBundle) -> bool:
+        if self.wait_for_imu and (self.imu_through_ns is None
+                                  or self.imu_through_ns < b.stamp_ns):
+            return False
         return (all(k in b.values for k in REQUIRED)
                 and all(k in b.values for k in FLOWS if self._expected(k)))
 
@@ -129,6 +152,45 @@ class StampSynchronizer:
             for k in FLOWS:
                 self._missing[k] = 0 if k in b.values else self._missing[k] + 1
         return out
+
+
+class PadPairing:
+    """Pair each ``pad/landmarks`` with the ``pad/groups`` message that follows it.
+
+    The pad detector publishes both for every image, landmarks first; ``pad/groups`` has no
+    stamp, so a pair is made only in that order and only when the counts agree (4 landmarks
+    per group, 0 for none). Group names are never kept for a later landmarks message: that
+    could label frame k's landmarks with frame k-1's groups at a group switch. A groups
+    message without its landmarks is dropped (counted in ``unpaired``).
+    """
+
+    def __init__(self, landmarks_per_group: int = 4) -> None:
+        self.landmarks_per_group = landmarks_per_group
+        self.unpaired = 0
+        self._landmarks: tuple | None = None     # (stamp, bearings or None)
+
+    def add_landmarks(self, stamp, bearings: np.ndarray | None) -> None:
+        """Hold a landmarks message (it replaces one whose groups never came)."""
+        if self._landmarks is not None:
+            self.unpaired += 1
+        self._landmarks = (stamp, bearings)
+
+    def drop_landmarks(self) -> None:
+        """Forget the held landmarks (e.g. the message was refused)."""
+        self._landmarks = None
+
+    def add_groups(self, groups: tuple) -> tuple | None:
+        """Return (stamp, bearings, groups) if these groups complete the held landmarks."""
+        held, self._landmarks = self._landmarks, None
+        if held is None:
+            self.unpaired += 1
+            return None
+        stamp, bearings = held
+        n = 0 if bearings is None else len(bearings)
+        if n != self.landmarks_per_group * len(groups):
+            self.unpaired += 1
+            return None
+        return stamp, bearings, tuple(groups)
 
 
 class AttitudeHistory:
@@ -204,9 +266,11 @@ def heading_quat_enu_flu(yaw_ned: float) -> np.ndarray:
 
 
 def step_controller(controller: IbvsController, mode: Mode, bundle: FrameBundle,
-                    R_IB: np.ndarray | None,
-                    pad_groups: tuple | None = None) -> tuple[ControlOutput | None, np.ndarray]:
+                    R_IB: np.ndarray | None) -> tuple[ControlOutput | None, np.ndarray]:
     """Answer one frame: (controller output or None, force F in {I} (N)).
+
+    The PAD input of the bundle is (landmark bearings or None, group names), as PadPairing
+    gives it; a bare array (no group names) is accepted too.
 
     Without any IMU attitude yet the controller cannot derotate the bearings: the answer is
     the hover force m g e3 (level) and no output (no heading, no features). A non-finite
@@ -215,9 +279,12 @@ def step_controller(controller: IbvsController, mode: Mode, bundle: FrameBundle,
     hover = controller.config.mass * GRAVITY * e3
     if R_IB is None:
         return None, hover
+    pad, pad_groups = bundle.get(InputKind.PAD), None
+    if isinstance(pad, tuple):
+        pad, pad_groups = pad
     meas = Measurements(
         t=bundle.stamp_ns / NS_PER_S, R_IB=R_IB,
-        window_bearings_C=bundle.get(InputKind.WINDOW), pad_bearings_C=bundle.get(InputKind.PAD),
+        window_bearings_C=bundle.get(InputKind.WINDOW), pad_bearings_C=pad,
         phi_front_I=bundle.get(InputKind.FLOW_FRONT), phi_down_I=bundle.get(InputKind.FLOW_DOWN),
         pad_groups=pad_groups)
     out = controller.step(mode, meas)
