@@ -5,6 +5,7 @@ from pathlib import Path
 import re
 import sys
 import types
+import xml.etree.ElementTree as ET
 
 from ibvs_bringup import graph
 import pytest
@@ -163,3 +164,15 @@ def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
         assert urls['sim'] == 'udpin:127.0.0.1:14999'
     else:
         assert urls['mavlink_bridge'] == 'udpout:10.0.0.2:14540'
+
+
+def test_dds_profile_is_added_unless_the_user_chose_one():
+    path = graph.dds_env_overrides({})[graph.FASTDDS_PROFILE_ENV]
+    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    root = ET.parse(path).getroot()
+    segment = int(root.find('.//p:transport_descriptor/p:segment_size', ns).text)
+    assert segment >= 10 * 752 * 480        # room for several image pairs in flight
+    assert graph.dds_env_overrides({graph.FASTDDS_PROFILE_ENV: '/mine.xml'}) == {}
+    assert graph.dds_env_overrides({graph.RMW_ENV: 'rmw_cyclonedds_cpp'}) == {}
+    assert graph.dds_env_overrides({graph.RMW_ENV: graph.FASTDDS_RMW}) == {
+        graph.FASTDDS_PROFILE_ENV: path}

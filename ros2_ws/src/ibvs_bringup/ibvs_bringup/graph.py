@@ -105,6 +105,25 @@ def default_params_file() -> str:
     return os.path.join(get_package_share_directory(CONFIG_PACKAGE), 'config', PARAMS_FILE_NAME)
 
 
+DDS_PROFILE_FILE_NAME = 'fastdds.xml'
+FASTDDS_PROFILE_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'    # read by Fast DDS 2.x (Jazzy)
+RMW_ENV, FASTDDS_RMW = 'RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp'
+
+
+def dds_env_overrides(environ=None) -> dict:
+    """Return the environment to add for the graph's processes: the project's Fast DDS profile.
+
+    config/fastdds.xml enlarges the shared-memory segment so that camera images are not lost
+    (see the file). Nothing is added when a profile is already set or another RMW is chosen.
+    """
+    env = os.environ if environ is None else environ
+    if env.get(FASTDDS_PROFILE_ENV) or env.get(RMW_ENV, FASTDDS_RMW) != FASTDDS_RMW:
+        return {}
+    from ament_index_python.packages import get_package_share_directory
+    return {FASTDDS_PROFILE_ENV: os.path.join(get_package_share_directory(CONFIG_PACKAGE),
+                                              'config', DDS_PROFILE_FILE_NAME)}
+
+
 def sim_mavlink_urls(port: int) -> tuple[str, str]:
     """Return (sim URL, bridge URL) of the lockstep MAVLink link on 127.0.0.1:port."""
     if not 0 < int(port) < 65536:

@@ -85,7 +85,8 @@ class ProcessRunner:
 
     def __init__(self, env: dict | None = None, log_dir: str | None = None,
                  stop_timeouts: tuple = (5.0, 3.0, 2.0)) -> None:
-        self.env = dict(os.environ if env is None else env)
+        # default: the caller's environment plus the project's DDS profile (graph.py)
+        self.env = {**os.environ, **graph.dds_env_overrides()} if env is None else dict(env)
         self.log_dir = log_dir
         self.stop_timeouts = stop_timeouts     # after SIGINT, after SIGTERM, after SIGKILL
         self.children: list[_Child] = []

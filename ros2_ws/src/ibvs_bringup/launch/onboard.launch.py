@@ -17,7 +17,8 @@ def _nodes(context):
     opts = graph.GraphOptions(params_file=params, use_sim_time=use_sim_time,
                               mavlink_url=get(Lc('mavlink_url')), crossing_law=law)
     return [Node(package=s.package, executable=s.executable, name=s.name,
-                 parameters=list(s.parameters), remappings=list(s.remappings), output='screen')
+                 parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
+                 additional_env=graph.dds_env_overrides())
             for s in graph.onboard_graph(opts)]
 
 
