@@ -162,11 +162,6 @@ def _max_pixel_error(a: np.ndarray, b: np.ndarray, camera) -> float:
     return float(np.max(np.linalg.norm(np.asarray(ua) - np.asarray(ub), axis=1)))
 
 
-@pytest.mark.xfail(reason='known gap (issue 6, open): the window tracker depends on the frame '
-                   'history and the live detector starts on a later frame than the bag '
-                   '(node start-up): 0.16 px worst (bar 0.1 px) with no frame lost; '
-                   'the pad detector is exact',
-                   strict=False)
 def test_replaying_the_bag_reproduces_the_detections(reference, tmp_path):
     import rclpy
     from geometry_msgs.msg import PolygonStamped

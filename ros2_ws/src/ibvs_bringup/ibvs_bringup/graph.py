@@ -26,6 +26,8 @@ ROLES = ('sim', 'onboard', 'tool')
 SIM_INITIAL_OVERRIDE = 'initial_override'    # true: use the two below, not world.yaml's
 SIM_INITIAL_POSITION = 'initial_position_I'   # [x, y, z] in the paper frame {I}, m
 SIM_INITIAL_YAW = 'initial_yaw'               # rad, {I}
+SIM_MIN_IMAGE_SUBSCRIBERS = 'min_image_subscribers'   # frame 0 waits for these per camera
+IMAGE_SUBSCRIBERS_PER_CAMERA = 2                # a detector and an optical_flow per camera
 SIM_WIND = 'wind_force_map'                   # [fx, fy, fz] in map (ENU), N
 MAVLINK_URL = 'mavlink_url'                   # sim: its MAVLink endpoint
 BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's URL
@@ -84,6 +86,7 @@ class GraphOptions:
     wind: tuple | None = None                       # {I}, N (sent in map); None: params'
     crossing_law: str | None = None                 # None: params.yaml's
     extra_remappings: tuple = field(default_factory=tuple)
+    extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
 
 
 def format_param_value(value) -> str:
@@ -168,7 +171,8 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
     """Return the whole graph with the simulator: sim first, then the onboard nodes."""
     params = opts.params_file or default_params_file()
     sim_url, bridge_url = sim_mavlink_urls(opts.mavlink_port)
-    sim_over: dict = {MAVLINK_URL: sim_url}
+    sim_over: dict = {MAVLINK_URL: sim_url, SIM_MIN_IMAGE_SUBSCRIBERS:
+                      IMAGE_SUBSCRIBERS_PER_CAMERA + int(opts.extra_image_subscribers)}
     if opts.initial_position is not None or opts.initial_yaw is not None:
         sim_over[SIM_INITIAL_OVERRIDE] = True
     if opts.initial_position is not None:

@@ -15,10 +15,13 @@ import importlib
 
 from ibvs_bringup import bag
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from ibvs_control.spin import spin_guarded
+
+DISCOVERY_PERIOD_S = 0.2      # s (steady clock), how often new publishers are looked for
 
 
 @dataclass(frozen=True)
@@ -63,7 +66,10 @@ class RecorderNode(Node):
         self.specs = {t.topic: t for t in bag.RUN_TOPICS if t.topic in self.config.topics}
         self.subs: dict = {}
         self.counts: dict = {}
-        self.discovery_timer = self.create_timer(0.2, self._discover)
+        # steady clock: under use_sim_time a sim-time timer would not fire before the first
+        # /clock, and the first frames would go unrecorded
+        self.discovery_timer = self.create_timer(
+            DISCOVERY_PERIOD_S, self._discover, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'recording {len(self.specs)} topics to {self.config.bag_path}')
 
     def _declare_config(self) -> RecorderConfig:

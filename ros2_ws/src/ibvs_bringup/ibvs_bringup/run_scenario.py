@@ -173,7 +173,8 @@ def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
     """Return the node specs of a run: the sim graph plus the recorder."""
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
                                mavlink_port=port, initial_position=initial_position,
-                               wind=opts.wind, crossing_law=opts.crossing_law)
+                               wind=opts.wind, crossing_law=opts.crossing_law,
+                               extra_image_subscribers=1 if opts.bag else 0)
     specs = graph.sim_graph(gopts)
     if opts.bag:
         specs.append(graph.tool_node('recorder', 'recorder', ({

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import json
 import math
+import time
 
 import numpy as np
 import rclpy
@@ -45,6 +46,7 @@ CAMERAS = ('front', 'down')
 LOG_THROTTLE_S = 2.0
 EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
+SUBSCRIBER_SETTLE_S = 0.5     # s (wall), image subscribers matched this long before frame 0
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,8 @@ class SimNodeConfig:
     pad_layout_file: str
     vehicle_file: str
     seed: int
+    min_image_subscribers: int = 0
+    subscriber_wait_timeout_s: float = 30.0
 
 
 def stamp_from_ns(t_ns: int) -> Time:
@@ -156,6 +160,9 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
         self.events_pub = self.create_publisher(String, 'sim/events', latched)
         self._ended_logged = False
+        self._min_subscribers = cfg.min_image_subscribers
+        self._subscribers_deadline = time.monotonic() + cfg.subscriber_wait_timeout_s
+        self._subscribers_since: float | None = None
         self.timer = self.create_timer(cfg.tick_period_s, self._on_tick,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
@@ -179,6 +186,8 @@ class SimNode(Node):
             'pad_layout_file': '',
             'vehicle_file': '',
             'seed': 0,
+            'min_image_subscribers': 0,
+            'subscriber_wait_timeout_s': 30.0,
         }
         v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
         try:
@@ -207,9 +216,37 @@ class SimNode(Node):
             wind_gust_frequency_hz=float(v['wind_gust_frequency_hz']),
             mavlink_url=str(v['mavlink_url']), signing_key_file=str(v['signing_key_file']),
             world_file=str(v['world_file']), pad_layout_file=str(v['pad_layout_file']),
-            vehicle_file=str(v['vehicle_file']), seed=int(v['seed']))
+            vehicle_file=str(v['vehicle_file']), seed=int(v['seed']),
+            min_image_subscribers=int(v['min_image_subscribers']),
+            subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']))
+
+    def _subscribers_ready(self) -> bool:
+        """Whether the first frame may go: every camera has its image subscribers.
+
+        So that every perception node (and a recorder) sees the same frames from the first one
+        on, and a replay of the bag starts its trackers where the live ones started. Matched
+        for SUBSCRIBER_SETTLE_S (discovery completes on both sides), or after the timeout.
+        """
+        now = time.monotonic()
+        counts = {n: pub.get_subscription_count() for n, pub in self.image_pubs.items()}
+        if all(c >= self._min_subscribers for c in counts.values()):
+            self._subscribers_since = self._subscribers_since or now
+            return now - self._subscribers_since >= SUBSCRIBER_SETTLE_S
+        self._subscribers_since = None
+        if now > self._subscribers_deadline:
+            self.get_logger().warning(f'starting without all image subscribers: {counts} '
+                                      f'(expected {self._min_subscribers} per camera)')
+            self._min_subscribers = 0
+            return True
+        self.get_logger().info(f'waiting for image subscribers: {counts}',
+                               throttle_duration_sec=LOG_THROTTLE_S)
+        return False
 
     def _on_tick(self) -> None:
+        if self._min_subscribers > 0 and self.sim.frame_index < 0:
+            if not self._subscribers_ready():
+                return
+            self._min_subscribers = 0
         try:
             out = self.sim.tick()
         except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
