@@ -247,3 +247,11 @@ def test_front_optical_flow_node_needs_a_window(ctx, renderers):
         pubs['front_camera/image_raw'].publish(image_msg(img, 20.0 + DT * k))
     spin_until(executor, lambda: False, 1.0)
     assert got['front_camera/translational_flow'] == []
+
+
+@pytest.mark.parametrize('name, value', [('gate_poll_period_s', 0.0), ('input_wait_s', -0.1)])
+def test_optical_flow_refuses_a_bad_input_wait_parameter(ctx, name, value):
+    context, _, _ = ctx
+    with pytest.raises(ValueError, match=name):
+        OpticalFlowNode(f'bad_flow_{TAG}', context=context,
+                        parameter_overrides=[Parameter(name, value=value)])

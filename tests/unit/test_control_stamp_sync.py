@@ -2,8 +2,9 @@
 import numpy as np
 
 from ibvs_control.core.frames import rot_z
+from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, InputKind, PadPairing, StampSynchronizer)
+    AttitudeHistory, InputKind, ModeSchedule, PadPairing, StampSynchronizer)
 
 W, P, FF = InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT
 
@@ -101,3 +102,16 @@ def test_pad_pairing_pairs_landmarks_with_the_groups_that_follow():
     pairing.add_landmarks(7, b8[:4])
     assert pairing.add_groups(('A', 'B')) is None
     assert pairing.unpaired == 2
+
+
+def test_mode_schedule_applies_a_change_after_the_frames_already_seen():
+    modes = ModeSchedule()
+    modes.change(Mode.WINDOW, newest_seen_ns=None)        # nothing seen yet: the next frame
+    assert modes.mode_at(100) == Mode.WINDOW
+    modes.change(Mode.CROSSING, newest_seen_ns=120)       # decided while frame 120 gathered
+    assert modes.mode_at(120) == Mode.WINDOW              # frame 120 keeps the old mode
+    assert modes.mode_at(140) == Mode.CROSSING
+    modes.change(Mode.LANDING, newest_seen_ns=160)
+    modes.change(Mode.FAILSAFE, newest_seen_ns=180)
+    assert modes.mode_at(180) == Mode.LANDING             # in order, each when due
+    assert modes.mode_at(200) == Mode.FAILSAFE

@@ -15,7 +15,7 @@ def test_held_until_ready_then_released_once():
     frame = gate.release(lambda s: s in inputs_in, now_s=10.02)
     assert (frame.stamp_s, frame.payload) == (1.00, 'a')
     assert gate.release(lambda s: True, now_s=10.03) is None
-    assert gate.released_on_timeout == 0
+    assert gate.released_without_inputs == 0
 
 
 def test_released_after_the_wait_without_inputs():
@@ -23,7 +23,7 @@ def test_released_after_the_wait_without_inputs():
     gate.push(2.0, 'b', now_s=0.0)
     assert gate.release(lambda s: False, now_s=0.049) is None
     assert gate.release(lambda s: False, now_s=0.050).payload == 'b'
-    assert gate.released_on_timeout == 1
+    assert gate.released_without_inputs == 1
 
 
 def test_a_newer_frame_hands_back_the_held_one():

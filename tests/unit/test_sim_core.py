@@ -6,7 +6,7 @@ from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.frames import GRAVITY
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.dynamics import WindConfig
-from ibvs_sim.core.sim_core import EventType, Pacing, SimConfig, Simulation
+from ibvs_sim.core.sim_core import EventType, Pacing, SimConfig, Simulation, SubscriberHold
 
 
 class FakeAutopilot:
@@ -135,3 +135,22 @@ def test_wall_collision_ends_the_run(configs):
     assert e.surface == 'wall'
     assert e.position_I[0] == pytest.approx(configs[0].wall_x - configs[2].envelope_radius,
                                             abs=0.01)
+
+
+def test_first_frame_hold_waits_for_subscribers_then_settles():
+    hold = SubscriberHold(min_count=3, settle_s=0.5, timeout_s=30.0, now=0.0)
+    assert not hold.ready({'front': 2, 'down': 3}, now=1.0)
+    assert not hold.ready({'front': 3, 'down': 3}, now=2.0)      # matched: settling
+    assert not hold.ready({'front': 2, 'down': 3}, now=2.3)      # lost one: settle restarts
+    assert not hold.ready({'front': 3, 'down': 3}, now=2.4)
+    assert hold.ready({'front': 3, 'down': 3}, now=2.9) and not hold.timed_out
+    assert hold.ready({'front': 0, 'down': 0}, now=3.0)          # released for good
+
+
+def test_first_frame_hold_times_out_and_zero_never_holds():
+    hold = SubscriberHold(min_count=3, settle_s=0.5, timeout_s=30.0, now=0.0)
+    assert not hold.ready({'front': 1, 'down': 1}, now=29.9)
+    assert hold.ready({'front': 1, 'down': 1}, now=30.1) and hold.timed_out
+    assert SubscriberHold(0, 0.5, 30.0, now=0.0).ready({'front': 0, 'down': 0}, now=0.0)
+    with pytest.raises(ValueError):
+        SubscriberHold(-1, 0.5, 30.0, now=0.0)

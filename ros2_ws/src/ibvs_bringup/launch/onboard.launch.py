@@ -16,9 +16,10 @@ def _nodes(context):
     use_sim_time = get(Lc('use_sim_time')).lower() in ('1', 'true', 'yes')
     opts = graph.GraphOptions(params_file=params, use_sim_time=use_sim_time,
                               mavlink_url=get(Lc('mavlink_url')), crossing_law=law)
+    env = graph.dds_env_overrides()
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
-                 additional_env=graph.dds_env_overrides())
+                 additional_env=env)
             for s in graph.onboard_graph(opts)]
 
 

@@ -16,9 +16,10 @@ def _nodes(context):
     law = get(Lc('crossing_law')) or None
     opts = graph.GraphOptions(params_file=params, use_sim_time=True,
                               mavlink_port=int(get(Lc('mavlink_port'))), crossing_law=law)
+    env = graph.dds_env_overrides()
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
-                 additional_env=graph.dds_env_overrides())
+                 additional_env=env)
             for s in graph.sim_graph(opts)]
 
 

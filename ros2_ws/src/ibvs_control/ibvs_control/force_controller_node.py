@@ -38,7 +38,8 @@ from ibvs_control.core.frames import (
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
     AttitudeHistory, check_bearings, check_vector, feature_vector, FrameBundle,
-    heading_quat_enu_flu, InputKind, PadPairing, StampSynchronizer, step_controller)
+    heading_quat_enu_flu, InputKind, ModeSchedule, PadPairing, StampSynchronizer,
+    step_controller)
 from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, NS_PER_S, ns_to_stamp, parse_pad_groups, polygon_points, quat_wxyz,
     SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
@@ -88,8 +89,7 @@ class ForceControllerNode(Node):
         self._controller = IbvsController(config)
         self._sync = StampSynchronizer(p['sync_timeout_s'], wait_for_imu=True)
         self._attitudes = AttitudeHistory(int(p['imu_history_s'] * NS_PER_S))
-        self._mode = Mode.IDLE
-        self._mode_changes: list[tuple[Mode, int | None]] = []   # (mode, applies after ns)
+        self._modes = ModeSchedule()
         self._pad_pairing = PadPairing()
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
@@ -155,26 +155,14 @@ class ForceControllerNode(Node):
                 self._answer(bundle)
 
     def _on_mode(self, msg: UInt8) -> None:
-        """Queue a mode change for the frames after the newest one already seen.
-
-        The supervisor decides from frame k's inputs; the frames this node has started to
-        gather when the change arrives keep the old mode, so which frame first flies the new
-        mode does not depend on whether the change or the frame's last input came first.
-        """
+        """Queue a mode change for the frames after the newest one already seen."""
         try:
             mode = Mode(msg.data)
         except ValueError:
             self.get_logger().error(f'unknown mode {msg.data}: ignored',
                                     throttle_duration_sec=LOG_THROTTLE_S)
             return
-        self._mode_changes.append((mode, self._sync.newest_stamp_ns()))
-
-    def _mode_for(self, stamp_ns: int) -> Mode:
-        """Apply the queued mode changes that are due at ``stamp_ns``; return the mode."""
-        while self._mode_changes and (self._mode_changes[0][1] is None
-                                      or stamp_ns > self._mode_changes[0][1]):
-            self._mode = self._mode_changes.pop(0)[0]
-        return self._mode
+        self._modes.change(mode, self._sync.newest_stamp_ns())
 
     def _refused(self, kind: InputKind, err: str) -> None:
         self.get_logger().error(f'{kind.value} refused: {err}',
@@ -196,7 +184,7 @@ class ForceControllerNode(Node):
 
     # --- output ----------------------------------------------------------------------------
     def _answer(self, bundle: FrameBundle) -> None:
-        out, F_I = step_controller(self._controller, self._mode_for(bundle.stamp_ns), bundle,
+        out, F_I = step_controller(self._controller, self._modes.mode_at(bundle.stamp_ns), bundle,
                                    self._attitudes.at(bundle.stamp_ns))
         if out is None:
             self.get_logger().warning('no IMU attitude (or no valid output): answering with '

@@ -59,6 +59,9 @@ class OpticalFlowNode(Node):
         self.max_window_age_s = float(self.declare_parameter('max_window_age_s', 0.1).value)
         input_wait_s = float(self.declare_parameter('input_wait_s', 0.05).value)
         gate_poll_s = float(self.declare_parameter('gate_poll_period_s', 0.005).value)
+        if not gate_poll_s > 0.0 or not input_wait_s >= 0.0:
+            raise ValueError(f'parameters gate_poll_period_s must be > 0 and input_wait_s >= 0, '
+                             f'got {gate_poll_s}, {input_wait_s}')
         flow_defaults, buffer_defaults = FlowConfig(), AttitudeBufferConfig()
         flow_values = {f.name: self.declare_parameter(f.name, getattr(flow_defaults, f.name)).value
                        for f in fields(FlowConfig)}
@@ -77,7 +80,7 @@ class OpticalFlowNode(Node):
         self.camera_key: tuple | None = None
         self.camera_info: CameraInfo | None = None
         self.window_msgs: list[PolygonStamped] = []      # newest last
-        self.gate = FrameGate(input_wait_s)                # raises ValueError if < 0
+        self.gate = FrameGate(input_wait_s)
         prefix = f'{self.camera_name}_camera'
         self.pub_flow = self.create_publisher(Vector3Stamped, f'{prefix}/translational_flow', 10)
         self.pub_quality = self.create_publisher(
@@ -201,6 +204,9 @@ def main(args=None) -> None:
         spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:                     # a bad parameter: say which, exit
+        rclpy.logging.get_logger('optical_flow').fatal(f'cannot start: {exc}')
+        raise SystemExit(1) from exc
     finally:
         if node is not None:
             node.destroy_node()

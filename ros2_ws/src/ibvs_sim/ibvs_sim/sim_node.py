@@ -35,7 +35,8 @@ from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_
                                       vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.sim_core import FrameOutput, NS_PER_S, Pacing, SimConfig, Simulation
+from ibvs_sim.core.sim_core import (FrameOutput, NS_PER_S, Pacing, SimConfig, Simulation,
+                                    SubscriberHold)
 from ibvs_control.spin import spin_guarded
 
 NODE_NAME = 'sim'
@@ -160,9 +161,8 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
         self.events_pub = self.create_publisher(String, 'sim/events', latched)
         self._ended_logged = False
-        self._min_subscribers = cfg.min_image_subscribers
-        self._subscribers_deadline = time.monotonic() + cfg.subscriber_wait_timeout_s
-        self._subscribers_since: float | None = None
+        self.first_frame_hold = SubscriberHold(cfg.min_image_subscribers, SUBSCRIBER_SETTLE_S,
+                                               cfg.subscriber_wait_timeout_s, time.monotonic())
         self.timer = self.create_timer(cfg.tick_period_s, self._on_tick,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
@@ -206,6 +206,10 @@ class SimNode(Node):
             raise ValueError(f'parameter wind_force_map needs 3 finite numbers, got {wind}')
         if v['lockstep_timeout_s'] <= 0 or v['tick_period_s'] <= 0:
             raise ValueError('lockstep_timeout_s and tick_period_s must be positive')
+        if int(v['min_image_subscribers']) < 0 or not v['subscriber_wait_timeout_s'] > 0:
+            raise ValueError(f"min_image_subscribers must be >= 0 and subscriber_wait_timeout_s "
+                             f"> 0, got {v['min_image_subscribers']}, "
+                             f"{v['subscriber_wait_timeout_s']}")
         return SimNodeConfig(
             pacing=pacing, lockstep_timeout_s=float(v['lockstep_timeout_s']),
             tick_period_s=float(v['tick_period_s']),
@@ -220,33 +224,21 @@ class SimNode(Node):
             min_image_subscribers=int(v['min_image_subscribers']),
             subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']))
 
-    def _subscribers_ready(self) -> bool:
-        """Whether the first frame may go: every camera has its image subscribers.
-
-        So that every perception node (and a recorder) sees the same frames from the first one
-        on, and a replay of the bag starts its trackers where the live ones started. Matched
-        for SUBSCRIBER_SETTLE_S (discovery completes on both sides), or after the timeout.
-        """
-        now = time.monotonic()
+    def _first_frame_may_go(self) -> bool:
+        """Ask the hold (core) with the image subscriber counts; log the wait and a timeout."""
         counts = {n: pub.get_subscription_count() for n, pub in self.image_pubs.items()}
-        if all(c >= self._min_subscribers for c in counts.values()):
-            self._subscribers_since = self._subscribers_since or now
-            return now - self._subscribers_since >= SUBSCRIBER_SETTLE_S
-        self._subscribers_since = None
-        if now > self._subscribers_deadline:
-            self.get_logger().warning(f'starting without all image subscribers: {counts} '
-                                      f'(expected {self._min_subscribers} per camera)')
-            self._min_subscribers = 0
+        if self.first_frame_hold.ready(counts, time.monotonic()):
+            if self.first_frame_hold.timed_out:
+                self.get_logger().warning(f'starting without all image subscribers: {counts} '
+                                          f'(expected {self.first_frame_hold.min_count} each)')
             return True
         self.get_logger().info(f'waiting for image subscribers: {counts}',
                                throttle_duration_sec=LOG_THROTTLE_S)
         return False
 
     def _on_tick(self) -> None:
-        if self._min_subscribers > 0 and self.sim.frame_index < 0:
-            if not self._subscribers_ready():
-                return
-            self._min_subscribers = 0
+        if not self.first_frame_hold.released and not self._first_frame_may_go():
+            return
         try:
             out = self.sim.tick()
         except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
@@ -290,6 +282,7 @@ def main(args=None) -> None:
         pass
     except (ConfigError, ValueError) as exc:
         rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
+        raise SystemExit(1) from exc
     finally:
         if node is not None:
             node.destroy_node()

@@ -154,6 +154,30 @@ class StampSynchronizer:
         return out
 
 
+class ModeSchedule:
+    """Mode changes applied from the frame after those already seen when the change arrived.
+
+    The supervisor decides from frame k's inputs; frames the controller had started to gather
+    when the change arrived keep the old mode, so which frame first flies the new mode does
+    not depend on whether the change or that frame's last input came first.
+    """
+
+    def __init__(self, initial: Mode = Mode.IDLE) -> None:
+        self.mode = initial
+        self._changes: list[tuple[Mode, int | None]] = []   # (mode, applies after stamp ns)
+
+    def change(self, mode: Mode, newest_seen_ns: int | None) -> None:
+        """Queue ``mode`` for the frames after ``newest_seen_ns`` (None: the next frame)."""
+        self._changes.append((mode, newest_seen_ns))
+
+    def mode_at(self, stamp_ns: int) -> Mode:
+        """Apply the queued changes that are due at ``stamp_ns``; return the mode to fly."""
+        while self._changes and (self._changes[0][1] is None
+                                 or stamp_ns > self._changes[0][1]):
+            self.mode = self._changes.pop(0)[0]
+        return self.mode
+
+
 class PadPairing:
     """Pair each ``pad/landmarks`` with the ``pad/groups`` message that follows it.
 

@@ -36,13 +36,13 @@ class FrameGate:
             raise ValueError(f'max_wait_s must be >= 0, got {max_wait_s}')
         self.max_wait_s = float(max_wait_s)
         self.held: GatedFrame | None = None
-        self.released_on_timeout = 0      # frames released without their inputs (diagnostics)
+        self.released_without_inputs = 0      # frames released without their inputs (diagnostics)
 
     def push(self, stamp_s: float, payload: Any, now_s: float) -> GatedFrame | None:
         """Hold a new frame; return the previously held one (to process now), if any."""
         previous, self.held = self.held, GatedFrame(float(stamp_s), float(now_s), payload)
         if previous is not None:
-            self.released_on_timeout += 1
+            self.released_without_inputs += 1
         return previous
 
     def release(self, ready: Callable[[float], bool], now_s: float) -> GatedFrame | None:
@@ -55,6 +55,6 @@ class FrameGate:
             return frame
         if now_s - frame.arrival_s >= self.max_wait_s:
             self.held = None
-            self.released_on_timeout += 1
+            self.released_without_inputs += 1
             return frame
         return None

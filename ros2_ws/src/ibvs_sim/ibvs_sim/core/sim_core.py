@@ -114,6 +114,38 @@ class FrameOutput:
         return self.t_ns / NS_PER_S
 
 
+class SubscriberHold:
+    """Whether the first frame may go: every camera has ``min_count`` image subscribers.
+
+    So that every perception node (and a recorder) sees the same frames from the first one on,
+    and a bag replay starts its trackers where the live ones started. The counts must hold for
+    ``settle_s`` (discovery completes on both sides) before the release; after ``timeout_s``
+    the frame goes anyway. Times are one monotonic clock (s); min_count 0 never holds.
+    """
+
+    def __init__(self, min_count: int, settle_s: float, timeout_s: float, now: float) -> None:
+        if min_count < 0 or settle_s < 0.0 or not timeout_s > 0.0:
+            raise ValueError(f'need min_count >= 0, settle_s >= 0, timeout_s > 0; got '
+                             f'{min_count}, {settle_s}, {timeout_s}')
+        self.min_count, self.settle_s = int(min_count), float(settle_s)
+        self.deadline = now + timeout_s
+        self.released = min_count == 0
+        self.timed_out = False
+        self._since: float | None = None
+
+    def ready(self, counts: dict, now: float) -> bool:
+        """Update with the subscriber count per camera; True once (and after) released."""
+        if self.released:
+            return True
+        if all(c >= self.min_count for c in counts.values()):
+            self._since = now if self._since is None else self._since
+            self.released = now - self._since >= self.settle_s
+        else:
+            self._since = None
+            self.released = self.timed_out = now > self.deadline
+        return self.released
+
+
 class Simulation:
     """Compose plant, inner loop, autopilot, renderers, contacts and wind (see module doc)."""
 
