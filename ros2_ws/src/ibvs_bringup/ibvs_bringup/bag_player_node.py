@@ -23,6 +23,8 @@ from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from ibvs_control.spin import spin_guarded
 from rosgraph_msgs.msg import Clock
 
+INFO_SUFFIX = 'camera_info'
+PRIME_LEAD_S = 0.5            # s (wall) before playback: first CameraInfo of each camera
 REPLAY_TOPICS = ('front_camera/image_raw', 'down_camera/image_raw', 'front_camera/camera_info',
                  'down_camera/camera_info', 'imu/data')
 
@@ -54,6 +56,11 @@ class BagPlayerNode(Node):
         self.published = 0
         self.t0_wall = time.monotonic() + self.config.start_delay
         self.t0_bag = self.pending[2] if self.pending else 0
+        # each camera's first CameraInfo, published PRIME_LEAD_S before playback: the detectors
+        # drop an image that arrives before any CameraInfo, and at the bag's first stamp the
+        # image and its info race on different topics
+        self.primes = first_messages(self.config.bag_path,
+                                     [t for t in self.config.topics if t.endswith(INFO_SUFFIX)])
         self.timer = self.create_timer(0.002, self._tick)
         self.get_logger().info(f'playing {sorted(self.pubs)} of {self.config.bag_path}')
 
@@ -68,6 +75,10 @@ class BagPlayerNode(Node):
         return PlayerConfig(str(path), tuple(topics), rate if rate > 0 else 1.0, clock, delay)
 
     def _tick(self) -> None:
+        if self.primes and time.monotonic() >= self.t0_wall - PRIME_LEAD_S:
+            for topic, data in self.primes:
+                self.pubs[topic].publish(data)
+            self.primes = []
         elapsed_ns = (time.monotonic() - self.t0_wall) * 1e9 * self.config.rate
         while self.pending is not None and self.pending[2] - self.t0_bag <= elapsed_ns:
             topic, _, t_ns, data = self.pending
@@ -80,6 +91,17 @@ class BagPlayerNode(Node):
         if self.pending is None:
             self.timer.cancel()
             self.get_logger().info(f'bag finished: {self.published} messages')
+
+
+def first_messages(path: str, topics: list) -> list[tuple[str, bytes]]:
+    """Return (bag topic, CDR bytes) of the first message of each of ``topics`` in a bag."""
+    first: dict = {}
+    if topics:
+        for topic, _, _, data in bag.read_messages(path, topics):
+            first.setdefault(topic, data)
+            if len(first) == len(topics):
+                break
+    return list(first.items())
 
 
 def _qos(topic: str) -> QoSProfile:
