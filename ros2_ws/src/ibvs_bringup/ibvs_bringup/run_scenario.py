@@ -224,6 +224,11 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str
     start_deadline = time.monotonic() + START_RETRY_S
     while True:
         future = monitor.request_start()
+        if future is None:                    # ibvs/start not discovered yet: ask again
+            if time.monotonic() > start_deadline:
+                raise _Stop('ibvs/start service not available')
+            spin(0.1)
+            continue
         while not future.done():
             spin(0.05)
             if time.monotonic() > deadline + 30.0:
