@@ -16,9 +16,11 @@ class FakeAutopilot:
         self.thrust, self.q = thrust, np.array(q)
         self.last_setpoint_time_boot_ms = None
         self.polls = 0
+        self.receiving_polls = 0
 
-    def poll(self, state):
+    def poll(self, state, receive=True):
         self.polls += 1
+        self.receiving_polls += int(receive)
 
     def attitude_reference(self, state):
         return AttitudeReference(self.q, self.thrust, 'offboard')
@@ -69,6 +71,27 @@ def test_lockstep_waits_for_the_answer_or_the_timeout(configs):
     clock.now += 1.0                               # wall-clock timeout
     assert sim.tick().t_ns == 40_000_000
     assert sim.lockstep_timeouts == 1
+
+
+@pytest.mark.parametrize('pacing, receiving_substeps', [(Pacing.LOCKSTEP, 0),
+                                                        (Pacing.REALTIME, 'all')])
+def test_lockstep_reads_mavlink_only_between_frames(configs, pacing, receiving_substeps):
+    # A datagram landing while a frame's substeps are computed must not take effect at a
+    # wall-clock-dependent substep in lockstep; in realtime it arrives whenever it arrives.
+    ap, clock = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap, clock, pacing=pacing)
+    sim.tick()
+    polls, receiving = ap.polls, ap.receiving_polls
+    sim.step_frame()
+    n_polls = ap.polls - polls
+    assert n_polls == sim.substeps + 1            # each substep, then the frame-time telemetry
+    expected = n_polls if receiving_substeps == 'all' else receiving_substeps
+    assert ap.receiving_polls - receiving == expected
+    ap.last_setpoint_time_boot_ms = 20
+    polls, receiving = ap.polls, ap.receiving_polls
+    if pacing is Pacing.LOCKSTEP:
+        sim.tick()                                 # waiting between frames: reads
+        assert ap.receiving_polls - receiving >= 1
 
 
 def test_realtime_paces_by_the_wall_clock(configs):

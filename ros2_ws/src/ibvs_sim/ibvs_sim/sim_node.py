@@ -239,6 +239,7 @@ class SimNode(Node):
     def _on_tick(self) -> None:
         if not self.first_frame_hold.released and not self._first_frame_may_go():
             return
+        timeouts_before = self.sim.lockstep_timeouts
         try:
             out = self.sim.tick()
         except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
@@ -246,6 +247,13 @@ class SimNode(Node):
             self.get_logger().error(f'simulation stopped: {exc}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
             return
+        if self.sim.lockstep_timeouts > timeouts_before:
+            self.get_logger().warning(
+                f'lockstep: no setpoint answered a frame within '
+                f'{self.sim.config.lockstep_timeout_s} s (wall): simulated up to '
+                f't = {self.sim.t:.3f} s with the last one; {self.sim.lockstep_timeouts} '
+                'time-outs so far (the run no longer repeats exactly)',
+                throttle_duration_sec=LOG_THROTTLE_S)
         if out is not None:
             self._publish(out)
         elif self.sim.ended and not self._ended_logged:

@@ -403,16 +403,18 @@ class Autopilot:
         """True while the offboard-loss failsafe flies the vehicle (reported as AUTO_LAND)."""
         return self._failsafe_active
 
-    def poll(self, state: VehicleStateView) -> None:
+    def poll(self, state: VehicleStateView, receive: bool = True) -> None:
         """Do one autopilot cycle at sim time ``state.t``; never blocks.
 
-        Reads every pending datagram and answers it, checks the offboard stream (failsafe),
+        Reads every pending datagram and answers it (unless ``receive`` is False: the
+        lockstep sim reads only between frames), checks the offboard stream (failsafe),
         auto-disarms after a landing, sends due telemetry (sim-time rates) and the heartbeat
         (wall clock).
         """
         self._last_t = float(state.t)
         self._ensure_hold_target(state)
-        self._receive(state)
+        if receive:
+            self._receive(state)
         self._check_offboard_loss(state)
         self._check_auto_disarm(state)
         self._send_heartbeat_if_due()

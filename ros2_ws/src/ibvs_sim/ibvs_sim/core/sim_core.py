@@ -15,7 +15,10 @@ Pacing (:meth:`Simulation.tick`, called often by the node):
 - ``lockstep``: the next camera period is simulated only after the autopilot received a
   SET_ATTITUDE_TARGET whose time_boot_ms is at least the last frame's time in ms (the graph's
   answer to that frame), or after ``lockstep_timeout_s`` of wall clock; meanwhile the autopilot
-  is polled at the same sim time. Two runs of a deterministic graph give the same trajectory.
+  is polled at the same sim time. MAVLink input is read only there, between frames, never
+  during a frame's physics substeps: a datagram that lands while a frame is being computed (a
+  stream repeat, a command) takes effect at the next frame boundary, not at whichever substep
+  the wall clock happened to reach. Two runs of a deterministic graph give the same trajectory.
 
 Events (ground truth, {I}): ``touchdown`` when the envelope bottom reaches the floor (vertical
 speed reported), ``collision`` when the envelope touches the wall, window frame or back wall
@@ -63,7 +66,7 @@ class ReferenceSource(Protocol):
 
     last_setpoint_time_boot_ms: int | None
 
-    def poll(self, state: VehicleStateView) -> None: ...
+    def poll(self, state: VehicleStateView, receive: bool = True) -> None: ...
 
     def attitude_reference(self, state: VehicleStateView) -> AttitudeReference: ...
 
@@ -233,9 +236,11 @@ class Simulation:
         if self.frame_index < 0:
             return self._emit([])
         new_events = []
+        # realtime: datagrams arrive at any substep, as on a vehicle; lockstep: between frames
+        receive = self.config.pacing is Pacing.REALTIME
         for _ in range(self.substeps):
             view = self.state_view()
-            self.autopilot.poll(view)
+            self.autopilot.poll(view, receive=receive)
             self.reference = self.autopilot.attitude_reference(view)
             cmd = self.controller.rotor_commands_q(self.state, self.reference.q_IB_wxyz,
                                                    self.reference.thrust_norm)
@@ -250,7 +255,7 @@ class Simulation:
         # Telemetry due at the frame time (IMU, attitude) leaves before the frame is rendered
         # and published, as a camera-IMU synchronised vehicle delivers it: otherwise the
         # graph derotates the frame with an attitude extrapolated over a whole frame period.
-        self.autopilot.poll(self.state_view())
+        self.autopilot.poll(self.state_view(), receive=receive)
         return self._emit(new_events)
 
     def _emit(self, new_events: list) -> FrameOutput:
