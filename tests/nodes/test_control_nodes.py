@@ -32,7 +32,7 @@ from ibvs_control.mode_supervisor_node import ModeSupervisorNode
 from ibvs_control.node_common import COMMAND_QOS, MODE_QOS, SENSOR_QOS
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'unit'))
-from test_control_mavlink import FakeAutopilot, free_udp_port  # noqa: E402
+from test_control_mavlink import FakeAutopilot, free_udp_port, same_rotation  # noqa: E402
 
 VEHICLE = load_vehicle()
 WORLD = load_world()
@@ -392,6 +392,7 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
             node_name=f'bridge_{TAG}', context=context, parameter_overrides=[
                 Parameter('url', value=f'udpout:127.0.0.1:{port}'),
                 Parameter('hover_thrust_source', value='config'),
+                Parameter('heading_wait_s', value=0.5),
                 Parameter('diagnostics_rate_hz', value=5.0)])
         feed = Feeder(context, f'feedbr_{TAG}')
         nodes += [bridge, feed.node]
@@ -421,8 +422,22 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         m = [m for _, m in peer.setpoints if m.time_boot_ms == 4321][-1]
         assert m.thrust == pytest.approx(VEHICLE.hover_thrust)
         assert np.allclose(np.abs(m.q), [1, 0, 0, 0], atol=1e-6)    # level, yaw 0 (north)
+        # Next frame: force and heading both queued before the executor runs, so it takes
+        # them in either order; the setpoint of that stamp carries that stamp's heading.
+        yaw = 0.5
+        h.header.stamp = stamp(4.341)
+        w, x, y, z = quat_ned_frd_to_enu_flu(np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
+        h.quaternion.w, h.quaternion.x, h.quaternion.y, h.quaternion.z = w, x, y, z
+        force.publish(flow_msg(4.341, np.array([0.0, 0.0, VEHICLE.mass * GRAVITY])))
+        heading.publish(h)
+        assert spin_until(executor, lambda: len([m for _, m in peer.setpoints
+                                                 if m.time_boot_ms == 4341]) >= 3, 3.0)
+        for m in [m for _, m in list(peer.setpoints) if m.time_boot_ms == 4341]:
+            assert same_rotation(m.q, [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+        spin_for(executor, 0.3)
         keys = {kv.key: kv.value for kv in diags[-1].status[0].values}
         assert keys['link'] == 'up' and keys['autopilot'] == 'px4'
         assert 'setpoint_rate_hz' in keys and 'hover_thrust_source' in keys
+        assert keys['heading_timeouts'] == '0'
     finally:
         peer.close()

@@ -53,8 +53,9 @@ def test_params_yaml_has_a_section_per_node():
 def test_mavlink_port_and_options_reach_the_right_nodes():
     opts = graph.GraphOptions(params_file=PARAMS, mavlink_port=15001,
                               initial_position=(-2.2, 0.2, -1.5), wind=(0.0, 0.335, 0.0),
-                              crossing_law='seed')
+                              crossing_law='seed', auto_start_at_s=1.0)
     by_name = {s.name: s for s in graph.sim_graph(opts)}
+    assert by_name['mode_supervisor'].overrides()[graph.SUPERVISOR_AUTO_START] == 1.0
     assert by_name['sim'].overrides()[graph.MAVLINK_URL] == 'udpin:127.0.0.1:15001'
     assert by_name['mavlink_bridge'].overrides()[graph.BRIDGE_URL] == 'udpout:127.0.0.1:15001'
     assert by_name['sim'].overrides()[graph.SIM_INITIAL_POSITION] == [-2.2, 0.2, -1.5]
@@ -63,6 +64,7 @@ def test_mavlink_port_and_options_reach_the_right_nodes():
     assert by_name['sim'].overrides()[graph.SIM_WIND] == [0.335, 0.0, 0.0]
     plain = {s.name: s for s in graph.sim_graph(graph.GraphOptions(params_file=PARAMS))}
     assert graph.SIM_INITIAL_OVERRIDE not in plain['sim'].overrides()
+    assert graph.SUPERVISOR_AUTO_START not in plain['mode_supervisor'].overrides()
     assert by_name['force_controller'].overrides()[graph.CROSSING_LAW] == 'seed'
     assert graph.CROSSING_LAW not in by_name['mode_supervisor'].overrides()
     assert graph.SIM_WIND not in by_name['force_controller'].overrides()

@@ -19,7 +19,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from ibvs_control.core.frames import GRAVITY, quat_multiply  # noqa: E402
 from ibvs_control.core.mavlink_bridge import (  # noqa: E402
-    BridgeConfig, MavlinkBridge, SetpointSource)
+    BridgeConfig, HeadingPairing, MavlinkBridge, SetpointSource)
 from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
 from ibvs_control.core.mavlink_sequencer import EngageState, SequencerConfig  # noqa: E402
 from ibvs_control.core.modes import Mode  # noqa: E402
@@ -141,7 +141,7 @@ class FakeAutopilot:
 
 
 def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
-                hold_last_s=5.0, **kw):
+                hold_last_s=5.0, clock=None, **kw):
     link = LinkConfig(url=f'udpout:127.0.0.1:{port}', heartbeat_timeout_s=0.5,
                       reconnect_period_s=0.3, signing_key=key)
     seq = SequencerConfig(prestream_s=1.0, command_retry_s=0.3, max_attempts=5,
@@ -150,7 +150,17 @@ def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
                        configured_hover_thrust=hover, autopilot=autopilot,
                        hover_thrust_source=source, param_timeout_s=1.0, param_retry_s=0.2,
                        hold_last_s=hold_last_s, sequencer=seq, **kw)
-    return MavlinkBridge(cfg)
+    return MavlinkBridge(cfg) if clock is None else MavlinkBridge(cfg, clock)
+
+
+class FrozenClock:
+    """A monotonic clock that only moves when the test advances it."""
+
+    def __init__(self, t=100.0):
+        self.t = t
+
+    def __call__(self):
+        return self.t
 
 
 def spin(bridge, seconds, until=None, stream_hz=60.0, force_fn=None):
@@ -221,7 +231,7 @@ def same_rotation(q_a, q_b, atol=1e-6):
 def test_setpoint_up_with_yaw_90_is_a_pure_yaw_rotation(peer_bridge):
     peer, bridge = peer_bridge()
     wait_link(bridge)
-    assert bridge.on_heading(heading_msg_quat(np.pi / 2)) == ''
+    assert bridge.on_heading(1_234_000_000, heading_msg_quat(np.pi / 2)) == ''
     # Heading of NED yaw 90 deg (east) is the ENU identity: checked independently.
     assert np.allclose(heading_msg_quat(np.pi / 2), [1, 0, 0, 0])
     assert bridge.on_force(1_234_000_000, np.array([0.0, 0.0, MASS * GRAVITY])) == ''
@@ -239,7 +249,7 @@ def test_setpoint_up_with_yaw_90_is_a_pure_yaw_rotation(peer_bridge):
 def test_forward_tilt_pitches_nose_down(peer_bridge):
     peer, bridge = peer_bridge()
     wait_link(bridge)
-    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_heading(2_000_000_000, heading_msg_quat(0.0))
     a = 2.0  # m/s^2 forward (+x of NED): m v_dot = -F + m g e3  =>  F = m (g e3 - a e1)
     F = MASS * np.array([-a, 0.0, GRAVITY])
     bridge.on_force(2_000_000_000, F)
@@ -257,7 +267,7 @@ def test_forward_tilt_pitches_nose_down(peer_bridge):
 def test_thrust_scales_with_configured_and_autopilot_hover(peer_bridge):
     peer, bridge = peer_bridge(bridge_kw={'hover': 0.4})
     wait_link(bridge)
-    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_heading(3_000_000_000, heading_msg_quat(0.0))
     bridge.on_force(3_000_000_000, np.array([0.0, 0.0, 1.5 * MASS * GRAVITY]))
     spin(bridge, 0.2)
     assert last_setpoint(peer).thrust == pytest.approx(0.6, abs=1e-6)
@@ -267,7 +277,7 @@ def test_thrust_scales_with_configured_and_autopilot_hover(peer_bridge):
     ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.hover.value is not None)
     assert ok and bridge2.hover.value == pytest.approx(0.35, abs=1e-6)
     assert 'MPC_THR_HOVER' in bridge2.status().hover_thrust_source
-    bridge2.on_heading(heading_msg_quat(0.0))
+    bridge2.on_heading(3_000_000_000, heading_msg_quat(0.0))
     bridge2.on_force(3_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
     spin(bridge2, 0.2)
     assert last_setpoint(peer2).thrust == pytest.approx(0.35, abs=1e-6)
@@ -276,7 +286,7 @@ def test_thrust_scales_with_configured_and_autopilot_hover(peer_bridge):
 def test_setpoint_stream_rate_at_least_50_hz(peer_bridge):
     peer, bridge = peer_bridge()
     wait_link(bridge)
-    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_heading(1_000_000_000, heading_msg_quat(0.0))
     bridge.on_force(1_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
     n0 = len(peer.setpoints)
     t0 = time.monotonic()
@@ -403,7 +413,7 @@ def test_shutdown_ramps_thrust_then_forces_disarm(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'refuse_disarm_unforced': True},
                                bridge_kw={'shutdown_ramp_s': 0.6})
     wait_link(bridge)
-    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_heading(1_000_000_000, heading_msg_quat(0.0))
     bridge.on_force(1_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
     bridge.on_supervisor_mode(Mode.LANDING)
     ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
@@ -442,7 +452,7 @@ def test_shutdown_ramp_runs_on_vehicle_time_and_on_the_wall_after_a_stall():
 def test_bad_force_is_never_sent_held_then_level_hover(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'yaw_ned': 0.5}, bridge_kw={'hold_last_s': 0.3})
     wait_link(bridge)
-    bridge.on_heading(heading_msg_quat(0.0))
+    bridge.on_heading(1_000_000_000, heading_msg_quat(0.0))
     F = MASS * np.array([-1.0, 0.0, GRAVITY])
     assert bridge.on_force(1_000_000_000, F) == ''
     spin(bridge, 0.1)
@@ -461,14 +471,14 @@ def test_bad_force_is_never_sent_held_then_level_hover(peer_bridge):
     assert m.thrust == pytest.approx(0.5)
     for _, m in peer.setpoints:
         assert np.all(np.isfinite(m.q)) and np.isfinite(m.thrust)
-    assert bridge.on_heading(np.array([np.nan, 0, 0, 1.0])) != ''
-    assert bridge.on_heading(np.array([2.0, 0, 0, 0])) != ''
+    assert bridge.on_heading(1_040_000_000, np.array([np.nan, 0, 0, 1.0])) != ''
+    assert bridge.on_heading(1_060_000_000, np.array([2.0, 0, 0, 0])) != ''
 
 
 def test_failsafe_level_at_current_yaw_below_hover(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'yaw_ned': -1.0})
     wait_link(bridge)
-    bridge.on_heading(heading_msg_quat(0.7))
+    bridge.on_heading(1_000_000_000, heading_msg_quat(0.7))
     bridge.on_force(1_000_000_000, MASS * np.array([-2.0, 1.0, GRAVITY]))
     bridge.on_supervisor_mode(Mode.FAILSAFE)
     spin(bridge, 0.2)
@@ -490,3 +500,179 @@ def test_imu_republished_in_enu_flu_with_boot_time_stamp(peer_bridge):
     assert np.allclose(s.angular_velocity_flu, [0.1, -0.2, -0.3])
     assert s.stamp_ns % 1_000_000 == 0 and 0 < s.stamp_ns < 60e9
     assert same_rotation(quat_multiply([1, 0, 0, 0], s.q_wxyz), s.q_wxyz)
+
+
+# --- heading / force pairing by stamp ---------------------------------------------------------
+
+HOVER_F = np.array([0.0, 0.0, MASS * GRAVITY])     # level: the setpoint is a pure yaw
+S0, S1, S2 = 1_000_000_000, 1_020_000_000, 1_040_000_000      # 20 ms frames: 1000, 1020, 1040
+
+
+def level_q(yaw_ned):
+    """SET_ATTITUDE_TARGET q of a level attitude with NED yaw (rotation about NED z)."""
+    return [np.cos(yaw_ned / 2.0), 0.0, 0.0, np.sin(yaw_ned / 2.0)]
+
+
+def sent_for(peer, ms):
+    return [m for _, m in list(peer.setpoints) if m.time_boot_ms == ms]
+
+
+def wait_peer(until, timeout_s=1.0):
+    """Wait for the peer's receiving thread, without ticking the bridge."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not until():
+        time.sleep(0.005)
+    return until()
+
+
+def test_force_before_its_heading_waits_for_the_heading_of_its_stamp(peer_bridge):
+    peer, bridge = peer_bridge(bridge_kw={'clock': FrozenClock()})
+    wait_link(bridge)
+    bridge.on_heading(S0, heading_msg_quat(0.1))
+    bridge.on_force(S0, HOVER_F)                   # frame 0 paired: headings are expected
+    assert wait_peer(lambda: sent_for(peer, 1000))
+    assert bridge.on_force(S1, HOVER_F) == ''      # frame 1: the force overtook its heading
+    bridge.stream()                                # (the clock stands: the wait runs on)
+    time.sleep(0.1)
+    assert sent_for(peer, 1020) == []              # not sent with the heading of frame 0
+    assert bridge.on_heading(S1, heading_msg_quat(0.2)) == ''
+    assert wait_peer(lambda: sent_for(peer, 1020))  # sent on the heading, no timer needed
+    for _ in range(3):
+        bridge.stream()
+    assert wait_peer(lambda: len(sent_for(peer, 1020)) >= 4)
+    assert all(same_rotation(m.q, level_q(0.2)) for m in sent_for(peer, 1020))
+    assert all(same_rotation(m.q, level_q(0.1)) for m in sent_for(peer, 1000))
+    c = bridge.status().counters
+    assert c['heading_timeouts'] == 0 and c['late_headings'] == 0
+
+
+def test_heading_before_force_sent_at_once_with_the_heading_of_the_same_stamp(peer_bridge):
+    peer, bridge = peer_bridge(bridge_kw={'clock': FrozenClock()})
+    wait_link(bridge)
+    bridge.on_heading(S0, heading_msg_quat(0.1))
+    bridge.on_heading(S1, heading_msg_quat(0.2))   # a newer heading is already there ...
+    bridge.on_force(S0, HOVER_F)
+    assert wait_peer(lambda: sent_for(peer, 1000))  # ... at once, no timer ...
+    assert same_rotation(sent_for(peer, 1000)[0].q, level_q(0.1))   # ... with its own stamp's
+    bridge.on_force(S1, HOVER_F)
+    assert wait_peer(lambda: sent_for(peer, 1020))
+    assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.2))
+
+
+def test_missing_heading_sent_after_heading_wait_with_the_latest_heading(peer_bridge):
+    clock = FrozenClock()
+    peer, bridge = peer_bridge(bridge_kw={'clock': clock, 'heading_wait_s': 0.02})
+    wait_link(bridge)
+    bridge.on_heading(S0, heading_msg_quat(0.3))
+    bridge.on_force(S0, HOVER_F)
+    bridge.on_force(S1, HOVER_F)                   # its heading never comes
+    clock.t += 0.01
+    bridge.poll()
+    bridge.stream()
+    time.sleep(0.1)
+    assert sent_for(peer, 1020) == []              # 10 ms < heading_wait_s: still waiting
+    clock.t += 0.015
+    bridge.poll()                                  # the node's poll timer releases it
+    assert wait_peer(lambda: sent_for(peer, 1020))
+    assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.3))   # the latest heading
+    assert bridge.status().counters['heading_timeouts'] == 1
+    assert 'without the heading' in bridge.pop_heading_warning()
+    assert bridge.pop_heading_warning() == ''      # reported once
+    # The last force went without its heading: the next one is not held.
+    bridge.on_force(S2, HOVER_F)
+    assert wait_peer(lambda: sent_for(peer, 1040))
+    assert same_rotation(sent_for(peer, 1040)[0].q, level_q(0.3))
+
+
+def test_late_heading_never_changes_what_was_sent_for_its_stamp(peer_bridge):
+    clock = FrozenClock()
+    peer, bridge = peer_bridge(bridge_kw={'clock': clock})
+    wait_link(bridge)
+    bridge.on_heading(S0, heading_msg_quat(0.1))
+    bridge.on_force(S0, HOVER_F)
+    bridge.on_force(S1, HOVER_F)
+    clock.t += 0.025
+    bridge.stream()                                # wait over: sent with the heading of S0
+    assert wait_peer(lambda: sent_for(peer, 1020))
+    assert bridge.on_heading(S1, heading_msg_quat(0.5)) == ''   # too late for S1
+    for _ in range(5):
+        bridge.stream()
+    assert wait_peer(lambda: len(sent_for(peer, 1020)) >= 6)
+    first = sent_for(peer, 1020)[0]
+    for m in sent_for(peer, 1020):                 # every repeat is what was sent
+        assert np.allclose(m.q, first.q, atol=0.0) and m.thrust == first.thrust
+    assert same_rotation(first.q, level_q(0.1))
+    assert bridge.status().counters['late_headings'] == 1
+    # The late heading is the latest for later forces; S1 had its heading after all, so the
+    # next force waits for its own again (here in vain: then flown with the late one).
+    bridge.on_force(S2, HOVER_F)
+    time.sleep(0.1)
+    assert sent_for(peer, 1040) == []
+    clock.t += 0.025
+    bridge.stream()
+    assert wait_peer(lambda: sent_for(peer, 1040))
+    assert same_rotation(sent_for(peer, 1040)[0].q, level_q(0.5))
+
+
+def test_heading_pairing_exact_stamps_first_force_late_and_newer_inputs():
+    F = np.array([0.0, 0.0, 10.0])
+    p = HeadingPairing(wait_s=0.02)
+    # no heading seen yet: at once, without a heading (the bridge flies the current yaw)
+    [f] = p.on_force(10, F, t=0.0)
+    assert (f.stamp_ns, f.yaw, f.paired) == (10, None, False)
+    assert p.on_heading(10, 0.1) == [] and p.late == 1
+    # 10 had its heading (late): 20 waits for its own; a newer force releases it first
+    assert p.on_force(20, F, t=1.0) == [] and p.holding
+    out = p.on_force(30, F, t=1.005)
+    assert [(f.stamp_ns, f.yaw, f.paired) for f in out] == [(20, 0.1, False), (30, 0.1, False)]
+    assert p.missing == 1 and not p.holding        # 20 went without: 30 was not held
+    # exact stamps: a heading 1 ns away is another frame's
+    assert p.on_heading(39, 0.39) == [] and p.on_heading(40, 0.4) == []
+    [f] = p.on_force(40, F, t=2.0)
+    assert (f.yaw, f.paired) == (0.4, True)
+    # a heading newer than the held force's stamp: the held one's heading will not come
+    assert p.on_force(50, F, t=3.0) == []
+    [f] = p.on_heading(60, 0.6)
+    assert (f.stamp_ns, f.yaw, f.paired) == (50, 0.4, False) and p.missing == 2
+    [f] = p.on_force(60, F, t=4.0)
+    assert (f.stamp_ns, f.yaw, f.paired) == (60, 0.6, True)
+    # a refused force never waits
+    [f] = p.on_force(70, F, t=5.0, may_wait=False)
+    assert (f.stamp_ns, f.yaw) == (70, 0.6)
+    # a refused heading (None) releases its force with the latest valid heading
+    p.on_heading(70, 0.7)
+    assert p.on_force(80, F, t=6.0) == []
+    [f] = p.on_heading(80, None)
+    assert (f.stamp_ns, f.yaw, f.paired) == (80, 0.7, False)
+    # the wait
+    assert p.on_force(90, F, t=7.0) == []
+    assert p.expire(7.01) == []
+    [f] = p.expire(7.03)
+    assert (f.stamp_ns, f.yaw, f.paired) == (90, 0.7, False) and p.missing == 3
+
+
+def test_heading_pairing_zero_wait_never_holds():
+    p = HeadingPairing(wait_s=0.0)
+    p.on_heading(10, 0.1)
+    p.on_force(10, np.array([0.0, 0.0, 1.0]), t=0.0)
+    [f] = p.on_force(20, np.array([0.0, 0.0, 1.0]), t=0.1)
+    assert (f.stamp_ns, f.yaw, f.paired) == (20, 0.1, False)
+
+
+def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    bridge.on_heading(S0, heading_msg_quat(0.0))
+    bridge.on_force(S0, HOVER_F)
+    spin(bridge, 1.3)                              # > prestream_s (1.0 s) of stream
+    assert bridge.sequencer.state == EngageState.STANDBY and peer.set_mode_commands() == []
+    bridge.on_supervisor_mode(Mode.WINDOW)         # no poll between this and the next force
+    assert bridge.sequencer.state == EngageState.SET_MODE
+    bridge.on_heading(S1, heading_msg_quat(0.0))
+    bridge.on_force(S1, HOVER_F)
+    assert wait_peer(lambda: peer.set_mode_commands() and sent_for(peer, 1020))
+    t_mode, m = peer.set_mode_commands()[0]
+    assert (m.param1, m.param2) == (1.0, 6.0)
+    t_sp = min(t for t, sp in list(peer.setpoints) if sp.time_boot_ms == 1020)
+    assert t_mode <= t_sp                          # the command left before the setpoint

@@ -1,10 +1,11 @@
 """StampSynchronizer and AttitudeHistory of the force controller (pure, no ROS)."""
 import numpy as np
+import pytest
 
 from ibvs_control.core.frames import rot_z
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, InputKind, ModeSchedule, PadPairing, StampSynchronizer)
+    AttitudeHistory, FLOWS, InputKind, ModeTracker, PadPairing, StampSynchronizer)
 
 W, P, FF = InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT
 
@@ -104,14 +105,39 @@ def test_pad_pairing_pairs_landmarks_with_the_groups_that_follow():
     assert pairing.unpaired == 2
 
 
-def test_mode_schedule_applies_a_change_after_the_frames_already_seen():
-    modes = ModeSchedule()
-    modes.change(Mode.WINDOW, newest_seen_ns=None)        # nothing seen yet: the next frame
-    assert modes.mode_at(100) == Mode.WINDOW
-    modes.change(Mode.CROSSING, newest_seen_ns=120)       # decided while frame 120 gathered
-    assert modes.mode_at(120) == Mode.WINDOW              # frame 120 keeps the old mode
-    assert modes.mode_at(140) == Mode.CROSSING
-    modes.change(Mode.LANDING, newest_seen_ns=160)
-    modes.change(Mode.FAILSAFE, newest_seen_ns=180)
-    assert modes.mode_at(180) == Mode.LANDING             # in order, each when due
-    assert modes.mode_at(200) == Mode.FAILSAFE
+def test_mode_tracker_flies_the_status_of_the_frame_else_the_latest_mode():
+    s = StampSynchronizer(timeout_s=0.03, optional=(*FLOWS, InputKind.MODE))
+    modes = ModeTracker()
+    s.add(InputKind.MODE, 100, Mode.WINDOW, 0.0)     # statuses come: expected from now on
+    s.add(InputKind.WINDOW, 100, None, 0.0)
+    (first,), _ = s.add(InputKind.PAD, 100, None, 0.0)
+    assert modes.mode_at(first) == Mode.WINDOW
+    # the supervisor's CROSSING for frame 120 arrives after a late ibvs/mode LANDING note:
+    # frame 120 still flies the mode reported for its own stamp
+    s.add(InputKind.WINDOW, 120, None, 0.0)
+    s.add(InputKind.PAD, 120, None, 0.0)
+    modes.note(Mode.LANDING)
+    (bundle,), _ = s.add(InputKind.MODE, 120, Mode.CROSSING, 0.0)
+    assert modes.mode_at(bundle) == Mode.CROSSING
+    # a frame released without its status (timed out) flies the latest mode known
+    modes.note(Mode.FAILSAFE)
+    s.add(InputKind.WINDOW, 140, None, 1.0)
+    s.add(InputKind.PAD, 140, None, 1.0)
+    (late,) = s.poll(2.0)
+    assert late.timed_out and modes.mode_at(late) == Mode.FAILSAFE
+    assert modes.frames_without_status == 1
+
+
+def test_synchroniser_waits_for_an_expected_mode_like_a_flow():
+    s = StampSynchronizer(timeout_s=0.03, optional=(InputKind.MODE,))
+    s.add(InputKind.MODE, 20, Mode.WINDOW, 0.0)     # seen once: expected from now on
+    s.add(InputKind.WINDOW, 20, None, 0.0)
+    released, _ = s.add(InputKind.PAD, 20, None, 0.0)
+    assert [b.stamp_ns for b in released] == [20]
+    s.add(InputKind.WINDOW, 40, None, 0.0)
+    released, _ = s.add(InputKind.PAD, 40, None, 0.0)
+    assert released == []                           # waits for the supervisor's status
+    released, _ = s.add(InputKind.MODE, 40, Mode.WINDOW, 0.0)
+    assert [b.get(InputKind.MODE) for b in released] == [Mode.WINDOW]
+    with pytest.raises(ValueError):
+        StampSynchronizer(timeout_s=0.03, required=(InputKind.MODE,), optional=(InputKind.MODE,))

@@ -138,3 +138,36 @@ def test_bad_parameters_refused():
         SupervisorConfig.from_params({'imu_timeout_s': -1.0})
     with pytest.raises(ValueError):
         SupervisorConfig.from_params({'no_such_thing': 1.0})
+
+
+def test_auto_start_at_the_first_frame_at_or_after_its_time_and_only_once():
+    sup = ModeSupervisor(SupervisorConfig(r_w=WORLD.window.width, auto_start_at_s=0.05))
+    xi = np.array([-2.0, 0.0, -1.6])
+    sup.on_imu(0.0, R)
+    assert sup.end_frame(0.0) == [] and sup.auto_start_refusal == ''   # not yet due
+    sup.on_imu(0.06, R)
+    sup.end_frame(0.06)                           # due, but no window yet: refused, retried
+    assert sup.mode == Mode.IDLE and 'window' in sup.auto_start_refusal
+    sup.on_imu(0.08, R)
+    sup.on_window(0.08, bearings(CORNERS, xi))
+    (tr,) = sup.end_frame(0.08)
+    assert (tr.to_mode, tr.t) == (Mode.WINDOW, 0.08) and 'auto-start' in tr.reason
+    sup.abort(0.1)
+    sup.on_imu(0.12, R)
+    sup.on_window(0.12, bearings(CORNERS, xi))
+    sup.end_frame(0.12)
+    assert sup.mode == Mode.FAILSAFE               # never started again by itself
+
+
+def test_auto_start_is_off_by_default_and_needs_a_finite_time():
+    sup = ModeSupervisor(SupervisorConfig())
+    sup.on_imu(5.0, R)
+    sup.on_window(5.0, bearings(CORNERS, np.array([-2.0, 0.0, -1.6])))
+    assert sup.end_frame(5.0) == [] and sup.mode == Mode.IDLE
+    for bad in (float('nan'), float('inf')):
+        try:
+            SupervisorConfig.from_params({'auto_start_at_s': bad})
+        except ValueError as exc:
+            assert 'auto_start_at_s' in str(exc)
+        else:
+            raise AssertionError(f'auto_start_at_s = {bad} accepted')

@@ -32,6 +32,7 @@ SIM_WIND = 'wind_force_map'                   # [fx, fy, fz] in map (ENU), N
 MAVLINK_URL = 'mavlink_url'                   # sim: its MAVLink endpoint
 BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's URL
 CROSSING_LAW = 'crossing_law'                 # force_controller: mode-2 law
+SUPERVISOR_AUTO_START = 'auto_start_at_s'     # mode_supervisor: start by itself at this time
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,7 @@ class GraphOptions:
     initial_yaw: float | None = None                # rad; None: world.yaml's
     wind: tuple | None = None                       # {I}, N (sent in map); None: params'
     crossing_law: str | None = None                 # None: params.yaml's
+    auto_start_at_s: float | None = None            # s; None: params.yaml's (ibvs/start)
     extra_remappings: tuple = field(default_factory=tuple)
     extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
 
@@ -147,6 +149,8 @@ def _onboard_nodes(params: str, common: dict, opts: GraphOptions, mavlink_url: s
         if opts.crossing_law not in CROSSING_LAWS:
             raise ValueError(f'crossing law must be one of {CROSSING_LAWS}')
         law = {CROSSING_LAW: opts.crossing_law}
+    start = {} if opts.auto_start_at_s is None else {
+        SUPERVISOR_AUTO_START: float(opts.auto_start_at_s)}
     remap = tuple(opts.extra_remappings)
 
     def node(package: str, executable: str, name: str, *overrides: dict) -> NodeSpec:
@@ -161,7 +165,7 @@ def _onboard_nodes(params: str, common: dict, opts: GraphOptions, mavlink_url: s
         node('ibvs_perception', 'pad_detector', 'pad_detector'),
         node('ibvs_perception', 'optical_flow', 'front_optical_flow', {'camera': 'front'}),
         node('ibvs_perception', 'optical_flow', 'down_optical_flow', {'camera': 'down'}),
-        node('ibvs_control', 'mode_supervisor', 'mode_supervisor'),
+        node('ibvs_control', 'mode_supervisor', 'mode_supervisor', start),
         node('ibvs_control', 'force_controller', 'force_controller', law),
         node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {BRIDGE_URL: mavlink_url}),
     ]

@@ -1,8 +1,9 @@
 """Scenario monitor: the in-process node of ``run_scenario`` that watches one run.
 
 It fills a ``report.RunLog`` ({I}, sim time) from the ground truth, modes, events, force
-setpoint, flows and features, carries the preflight ``GraphHealth`` checks, and calls
-``ibvs/start``. All frame conversions go through ``ibvs_control.core.frames``.
+setpoint, flows and features, and carries the preflight ``GraphHealth`` checks (the
+supervisor starts by itself: graph option ``auto_start_at_s``). All frame conversions go
+through ``ibvs_control.core.frames``.
 """
 from __future__ import annotations
 
@@ -18,7 +19,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String, UInt8
-from std_srvs.srv import Trigger
 
 FLOW_TOPICS = {'flow_front': 'front_camera/translational_flow',
                'flow_down': 'down_camera/translational_flow'}
@@ -67,7 +67,6 @@ class ScenarioMonitor(Node):
             self.create_subscription(Vector3Stamped, topic,
                                      lambda m, n=name: self._on_map_vector(n, m), BEST_EFFORT)
         self.create_subscription(JointState, 'ibvs/features', self._on_features, BEST_EFFORT)
-        self.start_client = self.create_client(Trigger, 'ibvs/start')
 
     def now_s(self) -> float:
         """Return the node's (sim) time in seconds."""
@@ -100,9 +99,3 @@ class ScenarioMonitor(Node):
             v = named_vector(list(msg.name), list(msg.position), name)
             if v is not None:
                 self.log.add_vector(name, stamp_s(msg), v)
-
-    def request_start(self):
-        """Call ibvs/start; return the future (None if the service is not there)."""
-        if not self.start_client.service_is_ready():
-            return None
-        return self.start_client.call_async(Trigger.Request())

@@ -1,11 +1,12 @@
 """Fly the reference scenario through the whole graph and report like the paper (`make run`).
 
 sim (lockstep) <-> MAVLink <-> bridge <-> controller <-> supervisor <-> perception, started
-with the runner (graph.sim_graph), gated by the preflight checks, started with ``ibvs/start``
-and stopped on touchdown + mode 4 (disarm), collision, failsafe, 60 s of sim time or the wall
-timeout. Writes ``results/<run>/``: summary.json (SPEC.md section 5, ibvs_sim's evaluation
-of the ground truth, plus a ``run`` block), the paper's figures (PNG), ``bag/`` (MCAP rosbag2)
-and ``logs/<node>.log``. ``--feature-level`` flies ibvs_sim's feature-level closed loop
+with the runner (graph.sim_graph), gated by the preflight checks, started by the supervisor
+itself at sim t = 1 s (``auto_start_at_s``: the same frame in every run) and stopped on
+touchdown + mode 4 (disarm), collision, failsafe, 60 s of sim time or the wall timeout.
+Writes ``results/<run>/``: summary.json (SPEC.md section 5, ibvs_sim's evaluation of the
+ground truth, plus a ``run`` block), the paper's figures (PNG), ``bag/`` (MCAP rosbag2) and
+``logs/<node>.log``. ``--feature-level`` flies ibvs_sim's feature-level closed loop
 instead (no images, no ROS) and reports the same way.
 
 Exit code: 0 success, 1 the flight failed SPEC.md's criteria, 2 the run could not be flown.
@@ -28,6 +29,7 @@ import numpy as np
 
 MAX_SIM_TIME_S = 60.0
 SHUTDOWN_GRACE_S = 3.0        # sim s after touchdown in mode 4 to wait for the disarm
+IDLE_MODE = 0
 FAILSAFE_MODE = 5
 SHUTDOWN_MODE = 4
 DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
@@ -174,6 +176,7 @@ def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
                                mavlink_port=port, initial_position=initial_position,
                                wind=opts.wind, crossing_law=opts.crossing_law,
+                               auto_start_at_s=START_AT_SIM_S,
                                extra_image_subscribers=1 if opts.bag else 0)
     specs = graph.sim_graph(gopts)
     if opts.bag:
@@ -193,8 +196,11 @@ class _Stop(Exception):
     pass
 
 
-START_RETRY_S = 20.0   # s of wall clock during which a refused ibvs/start is asked again
-START_AT_SIM_S = 1.0   # s of sim time at which ibvs/start is asked (same in every run)
+START_WAIT_S = 20.0    # s of wall clock after START_AT_SIM_S for the supervisor to start
+# The supervisor starts by itself at the first frame at or after this sim time (graph option
+# auto_start_at_s), so that every run starts at the same frame: an ibvs/start call lands at
+# a frame that depends on the machine's load, and lockstep runs would not repeat.
+START_AT_SIM_S = 1.0
 
 
 def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str:
@@ -216,32 +222,19 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str
     print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
     if not monitor.health.healthy():
         raise _Stop(f'preflight failed after {opts.preflight_timeout_s:.0f} s')
-    # Start at the same sim time in every run (lockstep repeatability), then: the supervisor
-    # may refuse a start while its inputs settle (e.g. an IMU sample still in flight under
-    # load): ask again, for at most START_RETRY_S of wall clock.
+    # The supervisor starts by itself at START_AT_SIM_S (it retries at each frame while its
+    # inputs settle); a run that has not started START_WAIT_S of wall clock later is stopped.
     while monitor.now_s() < START_AT_SIM_S:
         spin(0.01)
-    start_deadline = time.monotonic() + START_RETRY_S
-    while True:
-        future = monitor.request_start()
-        if future is None:                    # ibvs/start not discovered yet: ask again
-            if time.monotonic() > start_deadline:
-                raise _Stop('ibvs/start service not available')
-            spin(0.1)
-            continue
-        while not future.done():
-            spin(0.05)
-            if time.monotonic() > deadline + 30.0:
-                raise _Stop('ibvs/start did not answer')
-        result = future.result()
-        if result.success:
-            break
+    start_deadline = time.monotonic() + START_WAIT_S
+    while monitor.log.mode in (None, IDLE_MODE):
         if time.monotonic() > start_deadline:
-            raise _Stop(f'ibvs/start refused: {result.message}')
-        print(f'ibvs/start refused ({result.message}): asking again', flush=True)
-        spin(0.5)
+            raise _Stop(f'the supervisor did not start by itself at sim t = '
+                        f'{START_AT_SIM_S:.2f} s (see logs/mode_supervisor.log)')
+        spin(0.02)
     t_start = monitor.now_s()
-    print(f'started at sim t = {t_start:.2f} s: {result.message}', flush=True)
+    print(f'started by the supervisor at sim t = {START_AT_SIM_S:.2f} s (seen at '
+          f'{t_start:.2f} s)', flush=True)
     next_print = time.monotonic()
     while True:
         spin(0.02)

@@ -1,10 +1,10 @@
 """force_controller: detections + flows + IMU + mode -> the paper's force F and a heading.
 
 Thin ROS wrapper of :class:`ibvs_control.core.controller.IbvsController`. For each image stamp
-it gathers window/corners, pad/landmarks and the flows of that stamp
-(:class:`~ibvs_control.core.stamp_sync.StampSynchronizer`, wall-clock timeout
-``sync_timeout_s``), steps the controller once with the IMU attitude at (or just before) the
-stamp, and publishes, stamped with the image stamp:
+it gathers window/corners, pad/landmarks, the flows and the supervisor's mode of that stamp
+(``ibvs/supervisor_status``; :class:`~ibvs_control.core.stamp_sync.StampSynchronizer`,
+wall-clock timeout ``sync_timeout_s``), steps the controller once in that mode with the IMU
+attitude at (or just before) the stamp, and publishes, stamped with the image stamp:
 
 - ``ibvs/force_setpoint`` (geometry_msgs/Vector3Stamped, frame map, newtons),
 - ``ibvs/heading_setpoint`` (geometry_msgs/QuaternionStamped, frame map; yaw-only attitude of
@@ -26,6 +26,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PolygonStamped, QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String, UInt8
@@ -37,12 +38,12 @@ from ibvs_control.core.frames import (
     R_IB_from_rot_map_base, rot_from_quat, vec_I_to_map, vec_map_to_I)
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, check_bearings, check_vector, feature_vector, FrameBundle,
-    heading_quat_enu_flu, InputKind, ModeSchedule, PadPairing, StampSynchronizer,
+    AttitudeHistory, check_bearings, check_vector, feature_vector, FLOWS, FrameBundle,
+    heading_quat_enu_flu, InputKind, ModeTracker, PadPairing, StampSynchronizer,
     step_controller)
 from ibvs_control.node_common import (
-    COMMAND_QOS, MODE_QOS, NS_PER_S, ns_to_stamp, parse_pad_groups, polygon_points, quat_wxyz,
-    SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
+    COMMAND_QOS, mode_from_status, MODE_QOS, NS_PER_S, ns_to_stamp, parse_pad_groups,
+    polygon_points, quat_wxyz, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
 from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
@@ -57,6 +58,14 @@ def _gain_defaults() -> dict:
         for f in kind.__dataclass_fields__.values():
             out[f'{prefix}.{f.name}'] = float(f.default)
     return out
+
+
+def _mode(number) -> tuple[Mode | None, str]:
+    """A mode number from a message -> (Mode, '') or (None, why it is refused)."""
+    try:
+        return Mode(int(number)), ''
+    except (TypeError, ValueError):
+        return None, f'unknown mode {number!r}: ignored'
 
 
 GAIN_PARAMETERS = _gain_defaults()
@@ -87,9 +96,10 @@ class ForceControllerNode(Node):
         pad = load_pad_layout(p['pad_layout_file'] or None)
         config = ControllerConfig.from_params(gains, vehicle, r_w, pad)   # raises GainError
         self._controller = IbvsController(config)
-        self._sync = StampSynchronizer(p['sync_timeout_s'], wait_for_imu=True)
+        self._sync = StampSynchronizer(p['sync_timeout_s'], wait_for_imu=True,
+                                       optional=(*FLOWS, InputKind.MODE))
         self._attitudes = AttitudeHistory(int(p['imu_history_s'] * NS_PER_S))
-        self._modes = ModeSchedule()
+        self._modes = ModeTracker()
         self._pad_pairing = PadPairing()
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
@@ -106,6 +116,8 @@ class ForceControllerNode(Node):
                                  self._on_down_flow, SENSOR_QOS)
         self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
         self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
+        self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
+                                 COMMAND_QOS)
         self.create_timer(p['sync_poll_period_s'], self._on_sync_timer,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'force controller: gains {config.landing}, {config.window}, '
@@ -155,14 +167,26 @@ class ForceControllerNode(Node):
                 self._answer(bundle)
 
     def _on_mode(self, msg: UInt8) -> None:
-        """Queue a mode change for the frames after the newest one already seen."""
-        try:
-            mode = Mode(msg.data)
-        except ValueError:
-            self.get_logger().error(f'unknown mode {msg.data}: ignored',
-                                    throttle_duration_sec=LOG_THROTTLE_S)
+        """Latest mode (frames without their own status fly it)."""
+        mode, err = _mode(msg.data)
+        if err:
+            self._refused(InputKind.MODE, err)
+        else:
+            self._modes.note(mode)
+
+    def _on_status(self, msg: DiagnosticArray) -> None:
+        """The supervisor's mode for one frame: a MODE input of that stamp."""
+        stamp_ns, number, err = mode_from_status(msg)
+        mode, err = (None, err) if err else _mode(number)
+        if err:
+            self._refused(InputKind.MODE, err)
             return
-        self._modes.change(mode, self._sync.newest_stamp_ns())
+        self._modes.note(mode)
+        bundles, dropped = self._sync.add(InputKind.MODE, stamp_ns, mode, time.monotonic())
+        if dropped:
+            self.get_logger().warning(f'dropped: {dropped}', throttle_duration_sec=LOG_THROTTLE_S)
+        for bundle in bundles:
+            self._answer(bundle)
 
     def _refused(self, kind: InputKind, err: str) -> None:
         self.get_logger().error(f'{kind.value} refused: {err}',
@@ -184,7 +208,7 @@ class ForceControllerNode(Node):
 
     # --- output ----------------------------------------------------------------------------
     def _answer(self, bundle: FrameBundle) -> None:
-        out, F_I = step_controller(self._controller, self._modes.mode_at(bundle.stamp_ns), bundle,
+        out, F_I = step_controller(self._controller, self._modes.mode_at(bundle), bundle,
                                    self._attitudes.at(bundle.stamp_ns))
         if out is None:
             self.get_logger().warning('no IMU attitude (or no valid output): answering with '

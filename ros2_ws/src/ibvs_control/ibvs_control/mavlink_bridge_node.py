@@ -61,6 +61,7 @@ PARAMETERS = {
     'max_tilt_rad': 0.6,
     'failsafe_thrust_ratio': 0.9,
     'shutdown_ramp_s': 2.0,
+    'heading_wait_s': 0.02,
     'prestream_s': 1.2,
     'command_retry_s': 1.0,
     'max_attempts': 5,
@@ -136,7 +137,8 @@ class MavlinkBridgeNode(Node):
             boot_time_offset_s=p['boot_time_offset_s'], hold_last_s=p['hold_last_s'],
             max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
             failsafe_thrust_ratio=p['failsafe_thrust_ratio'],
-            shutdown_ramp_s=p['shutdown_ramp_s'], sequencer=seq)
+            shutdown_ramp_s=p['shutdown_ramp_s'], heading_wait_s=p['heading_wait_s'],
+            sequencer=seq)
 
     # --- callbacks -------------------------------------------------------------------------
     def _on_force(self, msg: Vector3Stamped) -> None:
@@ -150,16 +152,19 @@ class MavlinkBridgeNode(Node):
         self._log_events()
 
     def _on_heading(self, msg: QuaternionStamped) -> None:
-        reason = self._bridge.on_heading(quat_wxyz(msg.quaternion))
+        reason = self._bridge.on_heading(stamp_to_ns(msg.header.stamp),
+                                         quat_wxyz(msg.quaternion))
         if reason:
             self.get_logger().error(f'heading setpoint refused: {reason}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
+        self._log_events()
 
     def _on_mode(self, msg: UInt8) -> None:
         self._bridge.on_supervisor_mode(msg.data)
         self._log_events()
 
     def _on_poll(self) -> None:
+        # poll() also sends a force whose wait for its heading has expired
         for sample in self._bridge.poll(self.get_clock().now().nanoseconds):
             self._imu_pub.publish(self._imu_msg(sample))
         self._log_events()
@@ -215,6 +220,9 @@ class MavlinkBridgeNode(Node):
 
     def _log_events(self) -> None:
         log = self.get_logger()
+        heading_warning = self._bridge.pop_heading_warning()
+        if heading_warning:     # own call site: its throttle is not shared with the events'
+            log.warning(heading_warning, throttle_duration_sec=LOG_THROTTLE_S)
         for level, text in self._bridge.pop_events():
             if level == 'error':
                 log.error(text, throttle_duration_sec=LOG_THROTTLE_S)

@@ -4,6 +4,7 @@ Only conversions of message fields (no frames: frames.py does those, no maths).
 """
 from __future__ import annotations
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
@@ -61,3 +62,37 @@ def set_vector3(v_msg, v: np.ndarray) -> None:
 def parse_pad_groups(text: str) -> tuple[str, ...]:
     """Group names of a ``pad/groups`` message ("A,B" -> ('A', 'B'); "" -> ())."""
     return tuple(g.strip() for g in text.split(PAD_GROUP_SEPARATOR) if g.strip())
+
+
+# ibvs/supervisor_status (diagnostic_msgs/DiagnosticArray): one per frame the supervisor
+# evaluated, stamped with the frame's stamp; status[0] names the node, its message is the mode
+# name and its values carry the mode number under STATUS_MODE_KEY (the controller flies that
+# mode for that frame).
+STATUS_NAME = 'mode_supervisor'
+STATUS_MODE_KEY = 'mode'
+
+
+def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes,
+                          values: dict) -> DiagnosticArray:
+    """Build the ibvs/supervisor_status message of one evaluated frame (level: OK, WARN...)."""
+    status = DiagnosticStatus(level=level, name=STATUS_NAME, message=mode_name,
+                              values=[KeyValue(key=STATUS_MODE_KEY, value=str(int(mode)))]
+                              + [KeyValue(key=k, value=str(v)) for k, v in values.items()])
+    msg = DiagnosticArray(status=[status])
+    ns_to_stamp(stamp_ns, msg.header.stamp)
+    return msg
+
+
+def mode_from_status(msg: DiagnosticArray) -> tuple[int, int | None, str]:
+    """ibvs/supervisor_status -> (stamp ns, mode number or None, '' or why it is refused)."""
+    stamp_ns = stamp_to_ns(msg.header.stamp)
+    for status in msg.status:
+        if status.name != STATUS_NAME:
+            continue
+        for kv in status.values:
+            if kv.key == STATUS_MODE_KEY:
+                try:
+                    return stamp_ns, int(kv.value), ''
+                except ValueError:
+                    return stamp_ns, None, f'mode value {kv.value!r} is not an integer'
+    return stamp_ns, None, f'no {STATUS_NAME!r} status with a {STATUS_MODE_KEY!r} value'

@@ -12,6 +12,12 @@ Setpoint (SET_ATTITUDE_TARGET, docs/mavlink.md)
     [0, 1]; type_mask = 7 (body rates ignored); time_boot_ms = the setpoint's stamp mapped to
     the autopilot's boot time. A NEW setpoint is sent at once (the sim's lockstep pacing waits
     for it), the stream timer repeats the latest one with the same time_boot_ms.
+Heading / force pairing (:class:`HeadingPairing`)
+    The heading and the force of one camera frame share its stamp but come on two topics, in
+    either order. A force is flown with the heading of the SAME stamp: if that heading has not
+    arrived yet, and headings are expected (the previous force had its heading), the force is
+    held until it arrives or for at most ``heading_wait_s`` (then flown with the latest
+    heading). A heading arriving after its force was sent never changes what was sent.
 Mode-dependent content (supervisor mode -> what is sent)
     IDLE, WINDOW, CROSSING, LANDING: the controller's F and heading. SHUTDOWN: level at the
     current yaw, thrust ramped linearly from its value at the switch to 0 over
@@ -23,7 +29,7 @@ Bad input
 """
 from __future__ import annotations
 
-from collections import deque
+from collections import deque, OrderedDict
 from dataclasses import dataclass, field
 from enum import Enum
 import time
@@ -49,6 +55,7 @@ HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover-thrust parameter outside this 
 QUAT_NORM_TOLERANCE = 0.1               # |q| in [0.9, 1.1], else the sample is dropped
 MS_PER_S = 1000.0
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
+HEADING_BUFFER_LEN = 8                  # headings kept by stamp, and sent stamps remembered
 AUTOPILOT_OF_HEARTBEAT = {MavAutopilot.PX4: Autopilot.PX4,
                           MavAutopilot.ARDUPILOTMEGA: Autopilot.ARDUPILOT}
 
@@ -94,6 +101,8 @@ class BridgeConfig:
     max_tilt_rad: float = 0.6                # tilt limit of the thrust direction
     failsafe_thrust_ratio: float = 0.9       # FAILSAFE thrust = ratio * hover thrust
     shutdown_ramp_s: float = 2.0             # SHUTDOWN: thrust ramp time to 0
+    heading_wait_s: float = 0.02             # s (monotonic): a force waits this long at most
+    #                                          for the heading of its stamp (0: never waits)
     sequencer: SequencerConfig = field(default_factory=SequencerConfig)
 
     def __post_init__(self):
@@ -115,6 +124,9 @@ class BridgeConfig:
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
         if not 0.0 < self.failsafe_thrust_ratio <= 1.0:
             raise ValueError('failsafe_thrust_ratio must be in (0, 1]')
+        if not (np.isfinite(self.heading_wait_s) and self.heading_wait_s >= 0.0):
+            raise ValueError(f'heading_wait_s must be finite and >= 0, got '
+                             f'{self.heading_wait_s}')
 
 
 @dataclass(frozen=True)
@@ -203,15 +215,10 @@ class SetpointShaper:
         self.config = config
         self.rejected = 0
         self.last_error = ''
-        self._valid: tuple[float, np.ndarray, float | None] | None = None  # (t_rx, F, yaw)
+        self._valid: tuple[float, np.ndarray, float] | None = None  # (t_rx, F, NED yaw)
         self._last_refused = False
-        self._yaw_des: float | None = None
         self._ramp: ShutdownRamp | None = None
         self._last_thrust: float | None = None
-
-    def on_heading(self, yaw: float) -> None:
-        """Latest desired NED yaw (validated by the caller)."""
-        self._yaw_des = float(yaw)
 
     def check_force(self, F_I: np.ndarray) -> str:
         """Return '' for a usable force (N, {I}), else the reason it is refused."""
@@ -225,15 +232,18 @@ class SetpointShaper:
             return f'F = {F} has no downward (thrust-up) component'
         return ''
 
-    def on_force(self, t: float, F_I: np.ndarray) -> str:
-        """Store a force received at monotonic time t; return '' or the refusal reason."""
+    def on_force(self, t: float, F_I: np.ndarray, yaw: float) -> str:
+        """Store a force received at monotonic time t with the NED yaw it is flown with.
+
+        Returns '' or the refusal reason (a refused force keeps the last valid one).
+        """
         reason = self.check_force(F_I)
         self._last_refused = bool(reason)
         if reason:
             self.rejected += 1
             self.last_error = reason
             return reason
-        self._valid = (t, np.asarray(F_I, dtype=float).copy(), self._yaw_des)
+        self._valid = (t, np.asarray(F_I, dtype=float).copy(), float(yaw))
         return ''
 
     def ramp_done(self, t: float) -> bool:
@@ -245,8 +255,7 @@ class SetpointShaper:
                time_boot_ms: int) -> AttitudeTarget:
         """Return the attitude target for supervisor ``mode`` at monotonic time t.
 
-        ``yaw_now``: current NED yaw (level setpoints keep it, and so does a force that came
-        before any heading); ``hover``: hover thrust.
+        ``yaw_now``: current NED yaw (level setpoints keep it); ``hover``: hover thrust.
         """
         level_q = quat_from_rot(rot_z(yaw_now))
         if mode == Mode.SHUTDOWN:
@@ -263,9 +272,8 @@ class SetpointShaper:
                              SetpointSource.FAILSAFE)
         if self._valid is not None and t - self._valid[0] <= self.config.hold_last_s:
             _, F, yaw = self._valid
-            sp = attitude_from_force(F, yaw_now if yaw is None else yaw, self.config.mass,
-                                     hover, self.config.max_thrust_factor,
-                                     self.config.max_tilt_rad)
+            sp = attitude_from_force(F, yaw, self.config.mass, hover,
+                                     self.config.max_thrust_factor, self.config.max_tilt_rad)
             return self._out(time_boot_ms, sp.q_IB_wxyz, sp.thrust_norm,
                              SetpointSource.HOLD_LAST if self._last_refused
                              else SetpointSource.IBVS)
@@ -276,6 +284,122 @@ class SetpointShaper:
         thrust = float(np.clip(thrust, 0.0, 1.0))
         self._last_thrust = thrust
         return AttitudeTarget(int(time_boot_ms), np.asarray(q, dtype=float), thrust, source)
+
+
+@dataclass(frozen=True)
+class PairedForce:
+    """A force to send now, with the heading it is flown with."""
+
+    stamp_ns: int                   # the force's stamp (ROS time, ns)
+    F_I: np.ndarray                 # N, {I}
+    t_rx: float                     # monotonic s when the force was received
+    yaw: float | None               # NED yaw to fly; None: no heading yet (the current yaw)
+    paired: bool                    # True: the heading of the same stamp
+
+
+class HeadingPairing:
+    """Pairs each force with the heading of the same stamp (ROS-free, no I/O).
+
+    The controller publishes, per camera frame of stamp S, the heading S and then the force S
+    on two topics, which the node may take in either order. Rules:
+
+    - headings are kept by exact stamp (int ns; the last ``buffer_len``);
+    - a force S whose heading S is there is sent at once with it;
+    - otherwise, if headings are *expected* (a heading was seen and the previous force had its
+      heading S', before or after it was sent), a valid force is held until its heading
+      arrives (then sent at once with it), or until ``wait_s`` has passed (:meth:`expire`), or
+      until a heading newer than S arrives (the topic is ordered: heading S will not come),
+      or until a newer force arrives; it is then sent with the latest heading and counted in
+      ``missing``;
+    - any other force (none expected, or refused: it is not flown anyway) is sent at once with
+      the latest heading (None before any heading);
+    - a heading whose force was already sent is counted in ``late`` and only becomes the
+      latest heading for later forces: what was sent for its stamp never changes.
+
+    Each method returns the forces to send now, in order.
+    """
+
+    def __init__(self, wait_s: float, buffer_len: int = HEADING_BUFFER_LEN) -> None:
+        self.wait_s = wait_s
+        self.latest_yaw: float | None = None    # latest valid heading received (NED yaw)
+        self.late = 0                           # headings that came after their force
+        self.missing = 0                        # held forces sent without their heading
+        self._headings: OrderedDict[int, float | None] = OrderedDict()  # None: refused
+        self._sent: deque = deque(maxlen=buffer_len)    # stamps of forces already sent
+        self._buffer_len = buffer_len
+        self._held: PairedForce | None = None
+        self._any_heading = False
+        self._last_force_stamp: int | None = None
+        self._last_force_had_heading = False
+
+    @property
+    def holding(self) -> bool:
+        """Whether a force is waiting for its heading."""
+        return self._held is not None
+
+    def expected(self) -> bool:
+        """Whether the next force is expected to come with a heading of its stamp."""
+        if not self._any_heading:
+            return False
+        return self._last_force_stamp is None or self._last_force_had_heading
+
+    def on_heading(self, stamp_ns: int, yaw: float | None) -> list[PairedForce]:
+        """Heading of stamp_ns (NED yaw, or None if it was refused as invalid)."""
+        stamp_ns = int(stamp_ns)
+        out = []
+        if self._held is not None and stamp_ns > self._held.stamp_ns:
+            out.append(self._release_unpaired())
+        self._any_heading = True
+        if stamp_ns == self._last_force_stamp:
+            self._last_force_had_heading = True
+        if self._held is not None and stamp_ns == self._held.stamp_ns:
+            held, self._held = self._held, None
+            out.append(PairedForce(held.stamp_ns, held.F_I, held.t_rx,
+                                   self.latest_yaw if yaw is None else yaw, yaw is not None))
+            self._sent.append(stamp_ns)
+        elif stamp_ns in self._sent:
+            self.late += 1
+        else:
+            self._headings[stamp_ns] = yaw
+            self._headings.move_to_end(stamp_ns)
+            while len(self._headings) > self._buffer_len:
+                self._headings.popitem(last=False)
+        if yaw is not None:
+            self.latest_yaw = float(yaw)
+        return out
+
+    def on_force(self, stamp_ns: int, F_I: np.ndarray, t: float,
+                 may_wait: bool = True) -> list[PairedForce]:
+        """Force of stamp_ns received at monotonic time t (``may_wait`` False: refused)."""
+        stamp_ns = int(stamp_ns)
+        out = [self._release_unpaired()] if self._held is not None else []
+        expected = self.expected()
+        self._last_force_stamp = stamp_ns
+        self._last_force_had_heading = stamp_ns in self._headings
+        F = np.asarray(F_I, dtype=float).copy()
+        if self._last_force_had_heading:
+            yaw = self._headings.pop(stamp_ns)
+            out.append(PairedForce(stamp_ns, F, t, self.latest_yaw if yaw is None else yaw,
+                                   yaw is not None))
+        elif expected and may_wait and self.wait_s > 0.0:
+            self._held = PairedForce(stamp_ns, F, t, None, False)
+            return out
+        else:
+            out.append(PairedForce(stamp_ns, F, t, self.latest_yaw, False))
+        self._sent.append(stamp_ns)
+        return out
+
+    def expire(self, t: float) -> list[PairedForce]:
+        """Release a held force whose wait has passed at monotonic time t."""
+        if self._held is not None and t - self._held.t_rx >= self.wait_s:
+            return [self._release_unpaired()]
+        return []
+
+    def _release_unpaired(self) -> PairedForce:
+        held, self._held = self._held, None
+        self.missing += 1
+        self._sent.append(held.stamp_ns)
+        return PairedForce(held.stamp_ns, held.F_I, held.t_rx, self.latest_yaw, False)
 
 
 RAMP_STALL_S = 1.0          # s (wall) without newer setpoint stamps before the ramp uses the wall
@@ -341,6 +465,8 @@ class MavlinkBridge:
         self._clock = clock
         self.link = MavlinkLink(config.link, clock)
         self.shaper = SetpointShaper(config)
+        self.pairing = HeadingPairing(config.heading_wait_s)
+        self._reported_missing = 0
         self.hover = HoverThrust(config.configured_hover_thrust,
                                  config.hover_thrust_source == 'autopilot')
         self.autopilot: Autopilot | None = (None if config.autopilot == 'auto'
@@ -374,31 +500,54 @@ class MavlinkBridge:
         except ValueError:
             self._event('error', f'unknown supervisor mode {mode}: kept {self.supervisor_mode}')
             return
-        if new != self.supervisor_mode:
-            self._event('info', f'supervisor mode {self.supervisor_mode.name} -> {new.name}')
+        if new == self.supervisor_mode:
+            return
+        self._event('info', f'supervisor mode {self.supervisor_mode.name} -> {new.name}')
         self.supervisor_mode = new
+        # Engagement commands leave now, not at the next poll (before the next setpoint).
+        self._run_sequencer(self._clock())
 
-    def on_heading(self, q_wxyz_enu_flu: np.ndarray) -> str:
-        """ibvs/heading_setpoint (base_link in map); returns '' or the refusal reason."""
+    def on_heading(self, stamp_ns: int, q_wxyz_enu_flu: np.ndarray) -> str:
+        """ibvs/heading_setpoint of stamp_ns (base_link in map).
+
+        Sends the force of the same stamp if it is waiting for this heading. Returns '' or the
+        refusal reason (a refused heading is never flown; its force takes the latest one).
+        """
         try:
-            self.shaper.on_heading(yaw_from_heading_quat(q_wxyz_enu_flu))
+            yaw: float | None = yaw_from_heading_quat(q_wxyz_enu_flu)
+            reason = ''
         except ValueError as exc:
             self.shaper.rejected += 1
-            return str(exc)
-        return ''
+            yaw, reason = None, str(exc)
+        self._send_forces(self.pairing.on_heading(stamp_ns, yaw))
+        return reason
 
     def on_force(self, stamp_ns: int, F_I: np.ndarray) -> str:
-        """ibvs/force_setpoint (already in {I}): send the new setpoint NOW.
+        """ibvs/force_setpoint (already in {I}): send the new setpoint as soon as it is paired.
 
-        Returns '' or why the force was refused (the held/fallback setpoint is still sent,
-        with the new stamp, so that a lockstep sim keeps advancing).
+        Sent at once if the heading of the same stamp is there or none is expected, else when
+        that heading arrives or ``heading_wait_s`` has passed (:class:`HeadingPairing`).
+        Returns '' or why the force was refused (then the held/fallback setpoint is sent at
+        once, with the new stamp, so that a lockstep sim keeps advancing).
         """
-        reason = self.shaper.on_force(self._clock(), F_I)
-        ms = self.stamp_to_boot_ms(stamp_ns)
-        if ms is not None:
-            self._setpoint_time_boot_ms = max(self._setpoint_time_boot_ms, ms)
-        self._send_current(new=True)
+        reason = self.shaper.check_force(F_I)
+        self._send_forces(self.pairing.on_force(stamp_ns, F_I, self._clock(),
+                                                may_wait=not reason))
         return reason
+
+    def release_expired(self) -> None:
+        """Send a force that waited ``heading_wait_s`` in vain for its heading (timers)."""
+        self._send_forces(self.pairing.expire(self._clock()))
+
+    def pop_heading_warning(self) -> str:
+        """Text about forces sent without their heading since the last call, or ''."""
+        n = self.pairing.missing - self._reported_missing
+        if n <= 0:
+            return ''
+        self._reported_missing = self.pairing.missing
+        return (f'{n} force setpoint(s) sent without the heading of their stamp (waited '
+                f'{self.config.heading_wait_s * MS_PER_S:.0f} ms): flown with the latest '
+                f'heading ({self.pairing.missing} in all, {self.pairing.late} late headings)')
 
     # --- timers ------------------------------------------------------------------------
     def heartbeat(self) -> None:
@@ -406,14 +555,20 @@ class MavlinkBridge:
         self.link.send_heartbeat()
 
     def stream(self) -> None:
-        """>= 50 Hz: repeat the latest setpoint (recomputed for fallbacks and ramps)."""
+        """>= 50 Hz: repeat the latest setpoint (recomputed for fallbacks and ramps).
+
+        A force whose heading wait has expired is sent first.
+        """
+        self.release_expired()
         self._send_current(new=False)
 
     def poll(self, receive_ns: int | None = None) -> list[ImuSample]:
         """Receive everything pending, run the sequencer, return new IMU samples.
 
+        Also sends a force whose heading wait has expired (:meth:`release_expired`).
         ``receive_ns``: ROS time now (used by the RECEIVE_TIME strategy).
         """
+        self.release_expired()
         now = self._clock()
         self._receive_ns = receive_ns
         samples = []
@@ -451,7 +606,9 @@ class MavlinkBridge:
             rejected_setpoints=self.shaper.rejected,
             counters={'received': c.received, 'sent': c.sent, 'bad_data': c.bad_data,
                       'foreign': c.foreign, 'reconnects': c.reconnects,
-                      'link_losses': c.link_losses, 'send_errors': c.send_errors})
+                      'link_losses': c.link_losses, 'send_errors': c.send_errors,
+                      'heading_timeouts': self.pairing.missing,
+                      'late_headings': self.pairing.late})
 
     def close(self) -> None:
         """Close the link."""
@@ -599,6 +756,16 @@ class MavlinkBridge:
         if self._stream_start is None:
             return 0.0
         return now - self._stream_start
+
+    def _send_forces(self, forces: list[PairedForce]) -> None:
+        """Store and send each paired force at once, in order."""
+        for p in forces:
+            # Before any heading: the current yaw, frozen so that repeats equal what was sent.
+            self.shaper.on_force(p.t_rx, p.F_I, self._yaw_now if p.yaw is None else p.yaw)
+            ms = self.stamp_to_boot_ms(p.stamp_ns)
+            if ms is not None:
+                self._setpoint_time_boot_ms = max(self._setpoint_time_boot_ms, ms)
+            self._send_current(new=True)
 
     def _send_current(self, new: bool) -> None:
         """Build the target for the current mode and send it (if the link can)."""

@@ -1,16 +1,19 @@
 """Per-image-stamp synchronisation of the force controller's inputs (ROS-free).
 
 Every camera frame produces, with the frame's capture stamp, one ``window/corners`` (front
-image), one ``pad/landmarks`` (down image) and, when valid, the two translational flows. The
-force controller must answer EVERY stamp exactly once (the sim's lockstep waits for the answer),
-so :class:`StampSynchronizer` gathers the inputs of one stamp and releases the bundle
+image), one ``pad/landmarks`` (down image), when valid the two translational flows, and the
+supervisor's mode evaluated at that stamp (``ibvs/supervisor_status``). The force controller
+must answer EVERY stamp exactly once (the sim's lockstep waits for the answer), and the
+supervisor must evaluate every stamp on the same inputs whatever their arrival order, so
+:class:`StampSynchronizer` gathers the inputs of one stamp and releases the bundle
 
-- as soon as the window and pad detections are there, plus each flow that is *expected*
-  (a flow is expected until it has been missing for ``flow_patience`` released stamps in a
-  row; a flow arriving, even late, makes it expected again: flows are only published when
-  valid, so a camera whose flow stopped costs a few timeouts, not one every frame, while one
-  late flow under load does not make the next frames go without it — which would make the
-  answers depend on the machine's load and lockstep runs unrepeatable);
+- as soon as the ``required`` inputs (window and pad detections) are there, plus each
+  ``optional`` input (flows, supervisor mode) that is *expected* (an optional input is
+  expected until it has been missing for ``flow_patience`` released stamps in a row; one
+  arriving, even late, makes it expected again: flows are only published when valid, so a
+  camera whose flow stopped costs a few timeouts, not one every frame, while one late flow
+  under load does not make the next frames go without it — which would make the answers
+  depend on the machine's load and lockstep runs unrepeatable);
 - and, with ``wait_for_imu``, once the IMU samples reach the stamp (:meth:`note_imu`), so that
   the attitude "at or before the stamp" is the same whatever arrived first;
 - or when ``timeout_s`` (wall clock) has passed since the first input of that stamp arrived.
@@ -46,6 +49,7 @@ class InputKind(Enum):
     PAD = 'pad'
     FLOW_FRONT = 'flow_front'
     FLOW_DOWN = 'flow_down'
+    MODE = 'mode'                 # the supervisor's mode after evaluating this stamp
 
 
 REQUIRED = (InputKind.WINDOW, InputKind.PAD)
@@ -70,10 +74,16 @@ class StampSynchronizer:
     """Gather per-stamp inputs; see the module docstring for the release rules."""
 
     def __init__(self, timeout_s: float, max_pending: int = 20, flow_patience: int = 3,
-                 wait_for_imu: bool = False) -> None:
+                 wait_for_imu: bool = False, required: tuple = REQUIRED,
+                 optional: tuple = FLOWS) -> None:
         if not timeout_s > 0.0 or flow_patience < 1:
             raise ValueError(f'need timeout_s > 0 and flow_patience >= 1, got {timeout_s}, '
                              f'{flow_patience}')
+        if set(required) & set(optional):
+            raise ValueError(f'an input cannot be both required and optional: {required}, '
+                             f'{optional}')
+        self.required = tuple(required)
+        self.optional = tuple(optional)
         self.timeout_s = timeout_s
         self.max_pending = max_pending
         self.flow_patience = flow_patience
@@ -82,7 +92,7 @@ class StampSynchronizer:
         self.last_released_ns: int | None = None
         self.dropped = 0
         self._pending: dict[int, FrameBundle] = {}
-        self._missing = {k: flow_patience for k in FLOWS}   # released stamps without it, in a row
+        self._missing = {k: flow_patience for k in self.optional}   # released stamps without it
 
     def _expected(self, kind: InputKind) -> bool:
         return self._missing[kind] < self.flow_patience
@@ -92,7 +102,7 @@ class StampSynchronizer:
         """Add one input; return (bundles released now, '' or why the input was dropped)."""
         stamp_ns = int(stamp_ns)
         if self.last_released_ns is not None and stamp_ns <= self.last_released_ns:
-            if kind in FLOWS:
+            if kind in self.optional:
                 self._missing[kind] = 0          # it comes, just later: wait for it next time
             self.dropped += 1
             return [], (f'{kind.value} for stamp {stamp_ns} ns arrived after stamp '
@@ -138,8 +148,8 @@ class StampSynchronizer:
         if self.wait_for_imu and (self.imu_through_ns is None
                                   or self.imu_through_ns < b.stamp_ns):
             return False
-        return (all(k in b.values for k in REQUIRED)
-                and all(k in b.values for k in FLOWS if self._expected(k)))
+        return (all(k in b.values for k in self.required)
+                and all(k in b.values for k in self.optional if self._expected(k)))
 
     def _release_up_to(self, stamp_ns: int, timed_out: bool) -> list[FrameBundle]:
         out = []
@@ -149,33 +159,36 @@ class StampSynchronizer:
             out.append(b)
         for b in out:
             self.last_released_ns = b.stamp_ns
-            for k in FLOWS:
+            for k in self.optional:
                 self._missing[k] = 0 if k in b.values else self._missing[k] + 1
         return out
 
 
-class ModeSchedule:
-    """Mode changes applied from the frame after those already seen when the change arrived.
+class ModeTracker:
+    """The mode to fly for each frame.
 
-    The supervisor decides from frame k's inputs; frames the controller had started to gather
-    when the change arrived keep the old mode, so which frame first flies the new mode does
-    not depend on whether the change or that frame's last input came first.
+    A frame flies the mode the supervisor reported for that very stamp (the MODE input of its
+    bundle, ``ibvs/supervisor_status``), so that which frame first flies a new mode does not
+    depend on message timing. A frame released without it (supervisor silent or late: the
+    bundle timed out) flies the latest mode known from any status or ``ibvs/mode``.
     """
 
     def __init__(self, initial: Mode = Mode.IDLE) -> None:
         self.mode = initial
-        self._changes: list[tuple[Mode, int | None]] = []   # (mode, applies after stamp ns)
+        self.frames_without_status = 0
 
-    def change(self, mode: Mode, newest_seen_ns: int | None) -> None:
-        """Queue ``mode`` for the frames after ``newest_seen_ns`` (None: the next frame)."""
-        self._changes.append((mode, newest_seen_ns))
+    def note(self, mode: Mode) -> None:
+        """Latest mode from ``ibvs/mode`` or from a status of any stamp."""
+        self.mode = mode
 
-    def mode_at(self, stamp_ns: int) -> Mode:
-        """Apply the queued changes that are due at ``stamp_ns``; return the mode to fly."""
-        while self._changes and (self._changes[0][1] is None
-                                 or stamp_ns > self._changes[0][1]):
-            self.mode = self._changes.pop(0)[0]
-        return self.mode
+    def mode_at(self, bundle: FrameBundle) -> Mode:
+        """Return the mode to fly for ``bundle`` (and remember it as the latest)."""
+        mode = bundle.get(InputKind.MODE)
+        if mode is None:
+            self.frames_without_status += 1
+            return self.mode
+        self.mode = mode
+        return mode
 
 
 class PadPairing:

@@ -17,6 +17,12 @@ Transitions and their image cues (no position or velocity estimate is used):
 - any flying mode -> 5 (failsafe) when an input it needs is stale (timeouts), on ``abort``,
           or when the crossing does not find the pad within ``crossing_timeout_s``.
 All times are seconds of the node clock (sim time in simulation).
+
+The node feeds one camera frame's inputs together (``on_*`` with the frame's stamp, in a
+fixed order, once the frame's inputs are in) and closes the frame with :meth:`end_frame`, so
+that a transition happens at the frame whose inputs caused it, whatever their arrival order.
+``auto_start_at_s`` >= 0 makes the supervisor start by itself at the first frame at or after
+that time (repeatable simulation runs; on a vehicle ``ibvs/start`` starts it).
 """
 from __future__ import annotations
 
@@ -49,6 +55,7 @@ class SupervisorConfig:
     crossing_fallback_travel: float = 1.0          # d-normalised travel if d_t is unknown
     crossing_timeout_s: float = 10.0               # mode 2 without a pad -> failsafe
     shutdown_height_m: float = 0.14                # body height of the 3 -> 4 switch
+    auto_start_at_s: float = -1.0                  # s; >= 0: start at the first frame then
     group_half_sides: dict = field(default_factory=lambda: {
         'A': 0.36, 'B': 0.20, 'C': 0.10, 'D': 0.045})   # from pad_layout.yaml (c per group)
 
@@ -62,7 +69,10 @@ class SupervisorConfig:
         cfg = cls(**params)
         for f in fields(cls):
             v = getattr(cfg, f.name)
-            if isinstance(v, float) and not (np.isfinite(v) and v > 0.0):
+            if f.name == 'auto_start_at_s':
+                if not np.isfinite(v):
+                    raise ValueError(f'supervisor parameter {f.name} must be finite, got {v}')
+            elif isinstance(v, float) and not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'supervisor parameter {f.name} must be > 0, got {v}')
         return cfg
 
@@ -107,9 +117,10 @@ class ModeSupervisor:
         self._pad_seen = False
         self._landing_entered = False
         self._height_est: float | None = None
+        self.auto_start_refusal = ''                    # why the last auto-start was refused
 
     # --- commands ---------------------------------------------------------------------------
-    def start(self, t: float) -> tuple[bool, str]:
+    def start(self, t: float, reason: str = 'start requested') -> tuple[bool, str]:
         """Leave IDLE for WINDOW if the window and the IMU are fresh."""
         if self.mode != Mode.IDLE:
             return False, f'cannot start from mode {self.mode.name}'
@@ -117,7 +128,7 @@ class ModeSupervisor:
             return False, 'IMU attitude is stale or missing'
         if self._corners is None or not self._fresh('window', t, self.config.window_timeout_s):
             return False, 'the full window is not detected'
-        self._switch(t, Mode.WINDOW, 'start requested, window detected')
+        self._switch(t, Mode.WINDOW, f'{reason}, window detected')
         return True, 'started: window approach (mode 1)'
 
     def abort(self, t: float, reason: str = 'abort requested') -> tuple[bool, str]:
@@ -197,6 +208,23 @@ class ModeSupervisor:
             self._last['down_flow'] = t
 
     # --- evaluation -------------------------------------------------------------------------
+    def end_frame(self, t: float) -> list[Transition]:
+        """Close the frame of stamp t (its inputs were given): auto-start, then :meth:`update`.
+
+        The auto-start is tried at each frame from ``auto_start_at_s`` on until it is accepted
+        (``auto_start_refusal`` says why it was not), never again after.
+        """
+        done = []
+        self.auto_start_refusal = ''
+        start_at = self.config.auto_start_at_s
+        if 0.0 <= start_at <= t and self.mode == Mode.IDLE and not self.transitions:
+            ok, message = self.start(t, f'auto-start at {start_at:g} s')
+            if ok:
+                done.append(self.transitions[-1])
+            else:
+                self.auto_start_refusal = message
+        return done + self.update(t)
+
     def update(self, t: float) -> list[Transition]:
         """Apply requested transitions, then the staleness rules; return what changed."""
         done = []
