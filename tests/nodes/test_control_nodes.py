@@ -16,6 +16,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PolygonStamped, QuaternionStamped, Vector3Stamped
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
@@ -29,7 +30,8 @@ from ibvs_control.core.frames import (
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
-from ibvs_control.node_common import COMMAND_QOS, MODE_QOS, SENSOR_QOS
+from ibvs_control.node_common import (
+    COMMAND_QOS, mode_from_status, MODE_QOS, SENSOR_QOS, supervisor_status_msg)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'unit'))
 from test_control_mavlink import FakeAutopilot, free_udp_port, same_rotation  # noqa: E402
@@ -137,6 +139,11 @@ class Feeder:
         n.create_subscription(QuaternionStamped, 'ibvs/heading_setpoint', self.headings.append,
                               COMMAND_QOS)
         n.create_subscription(JointState, 'ibvs/features', self.features.append, COMMAND_QOS)
+        self.statuses = []
+        n.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self.statuses.append,
+                              COMMAND_QOS)
+        self.status = n.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
+                                         COMMAND_QOS)
 
     def frame(self, t, xi, window=True, pad=None, front_flow=None, down_flow=None):
         """Publish everything one camera frame at time t would produce at position xi."""
@@ -175,10 +182,12 @@ def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
 
     dt, v = 0.02, 1.0
     t, xi = 1.0, np.array([-2.0, 0.0, -1.6])
+    fed = []
 
     def step(**kw):
         nonlocal t
         feed.frame(t, xi, **kw)
+        fed.append(int(round(t * 1e9)))
         spin_for(executor, 0.005)
         t += dt
 
@@ -206,6 +215,13 @@ def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
     assert feed.modes == [0, 1, 2, 3, 4]
     assert -xi[2] < 0.2
     assert not call(executor, feed.node, 'ibvs/start').success
+    # one ibvs/supervisor_status per frame, stamped with it, carrying the mode after it
+    assert spin_until(executor, lambda: len(feed.statuses) >= len(fed), 2.0)
+    reported = [mode_from_status(m) for m in feed.statuses]
+    assert [stamp_ns for stamp_ns, _, _ in reported] == fed
+    modes = [mode for _, mode, _ in reported]
+    assert sorted(set(modes)) == [0, 1, 2, 3, 4] and modes == sorted(modes)
+    assert feed.statuses[-1].status[0].message == 'SHUTDOWN'
 
 
 def test_supervisor_stale_input_failsafe_and_abort(ctx):
@@ -365,6 +381,39 @@ def test_controller_window_mode_force_heading_features(ctx):
     # the window is centred at y = 0 and the vehicle sits at y = +0.3: push towards -y_I,
     # i.e. (m v_dot = -F + m g e3) F_y_I > 0, which is +x in map
     assert F_map[0] > 0.0
+
+
+def test_controller_flies_the_mode_reported_for_each_stamp(ctx):
+    # ibvs/mode says IDLE (hover), but the supervisor's status for the frame says WINDOW:
+    # that frame flies the window law; a later frame whose status says IDLE hovers again.
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fc6_{TAG}', sync_timeout_s=0.5)
+    feed = Feeder(context, f'feedfc6_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    spin_for(executor, 0.3)
+    feed.mode.publish(UInt8(data=0))
+    xi = np.array([-2.0, 0.3, -1.82])
+    hover_map = vec_I_to_map(np.array([0, 0, VEHICLE.mass * GRAVITY]))
+    forces = []
+    for i, mode in enumerate((0, 1, 1, 0)):
+        t = 40.0 + 0.02 * i
+        ns = int(round(t * 1e9))
+        n = len(feed.forces)
+        feed.status.publish(supervisor_status_msg(ns, mode, 'm', DiagnosticStatus.OK, {}))
+        spin_for(executor, 0.02)
+        feed.imu.publish(imu_msg(t))
+        feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+        feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
+        feed.groups.publish(String(data=''))
+        feed.front.publish(flow_msg(t, np.zeros(3)))
+        assert spin_until(executor, lambda: len(feed.forces) > n, 2.0)
+        f = feed.forces[-1]
+        assert stamps_of([f]) == [ns]
+        forces.append(np.array([f.vector.x, f.vector.y, f.vector.z]))
+    assert np.allclose(forces[0], hover_map) and np.allclose(forces[3], hover_map)
+    assert not np.allclose(forces[1], hover_map) and not np.allclose(forces[2], hover_map)
 
 
 def test_controller_refuses_bad_gains(ctx):
