@@ -70,6 +70,7 @@ class SimNodeConfig:
     seed: int
     min_image_subscribers: int = 0
     subscriber_wait_timeout_s: float = 30.0
+    telemetry_default_hz: float = 50.0
 
 
 def stamp_from_ns(t_ns: int) -> Time:
@@ -141,7 +142,8 @@ class SimNode(Node):
         self.autopilot = Autopilot(AutopilotConfig(
             url=cfg.mavlink_url, hover_thrust=vehicle.hover_thrust,
             signing_key_file=cfg.signing_key_file or None, noise_seed=cfg.seed,
-            mass=vehicle.mass, floor_z=world.floor_z))
+            mass=vehicle.mass, floor_z=world.floor_z,
+            telemetry_default_hz=cfg.telemetry_default_hz))
         wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
@@ -188,6 +190,7 @@ class SimNode(Node):
             'seed': 0,
             'min_image_subscribers': 0,
             'subscriber_wait_timeout_s': 30.0,
+            'telemetry_default_hz': 50.0,
         }
         v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
         try:
@@ -210,6 +213,9 @@ class SimNode(Node):
             raise ValueError(f"min_image_subscribers must be >= 0 and subscriber_wait_timeout_s "
                              f"> 0, got {v['min_image_subscribers']}, "
                              f"{v['subscriber_wait_timeout_s']}")
+        telemetry_hz = float(v['telemetry_default_hz'])
+        if not (math.isfinite(telemetry_hz) and telemetry_hz > 0):
+            raise ValueError(f'telemetry_default_hz must be > 0, got {telemetry_hz}')
         return SimNodeConfig(
             pacing=pacing, lockstep_timeout_s=float(v['lockstep_timeout_s']),
             tick_period_s=float(v['tick_period_s']),
@@ -222,7 +228,8 @@ class SimNode(Node):
             world_file=str(v['world_file']), pad_layout_file=str(v['pad_layout_file']),
             vehicle_file=str(v['vehicle_file']), seed=int(v['seed']),
             min_image_subscribers=int(v['min_image_subscribers']),
-            subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']))
+            subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']),
+            telemetry_default_hz=telemetry_hz)
 
     def _first_frame_may_go(self) -> bool:
         """Ask the hold (core) with the image subscriber counts; log the wait and a timeout."""
