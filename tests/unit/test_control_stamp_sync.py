@@ -141,3 +141,20 @@ def test_synchroniser_waits_for_an_expected_mode_like_a_flow():
     assert [b.get(InputKind.MODE) for b in released] == [Mode.WINDOW]
     with pytest.raises(ValueError):
         StampSynchronizer(timeout_s=0.03, required=(InputKind.MODE,), optional=(InputKind.MODE,))
+
+
+def test_a_bundle_says_what_it_was_released_without():
+    s = StampSynchronizer(timeout_s=0.03, wait_for_imu=True)
+    s.note_imu(20)
+    s.add(W, 20, None, 0.0)
+    s.add(P, 20, None, 0.0)
+    s.add(FF, 20, None, 0.0)                     # late (20 was released): expected from now
+    s.note_imu(40)
+    s.add(W, 40, None, 0.0)
+    (late,) = s.poll(1.0)                         # no pad, no front flow for 40
+    assert late.timed_out and late.missing == ('pad', 'flow_front')
+    s.add(W, 60, None, 1.0)
+    s.add(P, 60, None, 1.0)
+    s.add(FF, 60, None, 1.0)
+    (no_imu,) = s.poll(2.0)
+    assert no_imu.missing == ('imu',)

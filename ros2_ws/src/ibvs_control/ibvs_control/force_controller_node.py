@@ -208,6 +208,12 @@ class ForceControllerNode(Node):
 
     # --- output ----------------------------------------------------------------------------
     def _answer(self, bundle: FrameBundle) -> None:
+        if bundle.missing:
+            self.get_logger().warning(
+                f'frame {bundle.stamp_ns / NS_PER_S:.3f} s answered without '
+                f'{", ".join(bundle.missing)} (late or lost; lockstep runs stop repeating '
+                'exactly)',
+                throttle_duration_sec=LOG_THROTTLE_S)
         out, F_I = step_controller(self._controller, self._modes.mode_at(bundle), bundle,
                                    self._attitudes.at(bundle.stamp_ns))
         if out is None:

@@ -204,6 +204,11 @@ class ModeSupervisorNode(Node):
         """Give each released frame's inputs to the core in a fixed order and close it."""
         for bundle in bundles:
             t = bundle.stamp_ns / NS_PER_S
+            if bundle.missing:
+                self.get_logger().warning(
+                    f'frame {t:.3f} s evaluated without {", ".join(bundle.missing)} (late or '
+                    'lost; lockstep runs stop repeating exactly)',
+                    throttle_duration_sec=LOG_THROTTLE_S)
             if InputKind.WINDOW in bundle.values:
                 ok, corners_I = self._to_I(bundle.get(InputKind.WINDOW), bundle.stamp_ns,
                                            'front')

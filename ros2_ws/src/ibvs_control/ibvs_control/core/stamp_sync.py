@@ -64,6 +64,7 @@ class FrameBundle:
     first_arrival: float                 # monotonic s
     values: dict = field(default_factory=dict)   # InputKind -> value (None = "empty")
     timed_out: bool = False
+    missing: tuple = ()                  # what it was released without ('imu' or kind values)
 
     def get(self, kind: InputKind):
         """Return the value of an input, or None if it did not come (or was empty)."""
@@ -151,11 +152,20 @@ class StampSynchronizer:
         return (all(k in b.values for k in self.required)
                 and all(k in b.values for k in self.optional if self._expected(k)))
 
+    def _missing_inputs(self, b: FrameBundle) -> tuple:
+        missing = [k.value for k in self.required if k not in b.values]
+        missing += [k.value for k in self.optional if self._expected(k) and k not in b.values]
+        if self.wait_for_imu and (self.imu_through_ns is None
+                                  or self.imu_through_ns < b.stamp_ns):
+            missing.append('imu')
+        return tuple(missing)
+
     def _release_up_to(self, stamp_ns: int, timed_out: bool) -> list[FrameBundle]:
         out = []
         for s in sorted(x for x in self._pending if x <= stamp_ns):
             b = self._pending.pop(s)
-            b.timed_out = timed_out or not self._complete(b)
+            b.missing = self._missing_inputs(b)
+            b.timed_out = timed_out or bool(b.missing)
             out.append(b)
         for b in out:
             self.last_released_ns = b.stamp_ns
