@@ -61,7 +61,7 @@ def _gain_defaults() -> dict:
 
 
 def _mode(number) -> tuple[Mode | None, str]:
-    """A mode number from a message -> (Mode, '') or (None, why it is refused)."""
+    """Convert a mode number from a message to (Mode, '') or (None, why it is refused)."""
     try:
         return Mode(int(number)), ''
     except (TypeError, ValueError):
@@ -167,7 +167,7 @@ class ForceControllerNode(Node):
                 self._answer(bundle)
 
     def _on_mode(self, msg: UInt8) -> None:
-        """Latest mode (frames without their own status fly it)."""
+        """Note the latest mode (frames without their own status fly it)."""
         mode, err = _mode(msg.data)
         if err:
             self._refused(InputKind.MODE, err)
@@ -175,7 +175,7 @@ class ForceControllerNode(Node):
             self._modes.note(mode)
 
     def _on_status(self, msg: DiagnosticArray) -> None:
-        """The supervisor's mode for one frame: a MODE input of that stamp."""
+        """Add the supervisor's mode for one frame as the MODE input of that stamp."""
         stamp_ns, number, err = mode_from_status(msg)
         mode, err = (None, err) if err else _mode(number)
         if err:
