@@ -158,3 +158,15 @@ def test_a_bundle_says_what_it_was_released_without():
     s.add(FF, 60, None, 1.0)
     (no_imu,) = s.poll(2.0)
     assert no_imu.missing == ('imu',)
+
+
+def test_check_flow_converts_map_to_the_paper_frame_and_refuses_bad_input():
+    from ibvs_control.core.stamp_sync import check_flow
+    # map is ENU, {I} is (north, east, down): a flow east in map is +y in {I}
+    phi_I, err = check_flow(np.array([1.0, 0.0, 0.0]), 'map')
+    assert err == '' and np.allclose(phi_I, [0.0, 1.0, 0.0])
+    phi_I, err = check_flow(np.array([0.0, 0.0, 2.0]), 'map')
+    assert np.allclose(phi_I, [0.0, 0.0, -2.0])
+    assert check_flow(np.array([np.nan, 0.0, 0.0]), 'map')[0] is None
+    phi_I, err = check_flow(np.zeros(3), 'odom')
+    assert phi_I is None and 'odom' in err

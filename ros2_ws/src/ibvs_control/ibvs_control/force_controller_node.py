@@ -35,10 +35,10 @@ from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.control_laws import CrossingGains, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
 from ibvs_control.core.frames import (
-    R_IB_from_rot_map_base, rot_from_quat, vec_I_to_map, vec_map_to_I)
+    MAP_FRAME, R_IB_from_rot_map_base, rot_from_quat, vec_I_to_map)
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, check_bearings, check_vector, feature_vector, FLOWS, FrameBundle,
+    AttitudeHistory, check_bearings, check_flow, feature_vector, FLOWS, FrameBundle,
     heading_quat_enu_flu, InputKind, ModeTracker, PadPairing, StampSynchronizer,
     step_controller)
 from ibvs_control.node_common import (
@@ -47,7 +47,6 @@ from ibvs_control.node_common import (
 from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
-MAP_FRAME = 'map'
 
 
 def _gain_defaults() -> dict:
@@ -149,10 +148,8 @@ class ForceControllerNode(Node):
         self._add_flow(InputKind.FLOW_DOWN, msg)
 
     def _add_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:
-        phi, err = check_vector(vector3(msg.vector))
-        if msg.header.frame_id != MAP_FRAME:
-            phi, err = None, f'frame {msg.header.frame_id!r} is not {MAP_FRAME!r}'
-        self._add(kind, msg.header.stamp, None if phi is None else vec_map_to_I(phi), err)
+        phi_I, err = check_flow(vector3(msg.vector), msg.header.frame_id)
+        self._add(kind, msg.header.stamp, phi_I, err)
 
     def _on_imu(self, msg: Imu) -> None:
         try:

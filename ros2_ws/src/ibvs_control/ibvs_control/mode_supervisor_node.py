@@ -38,10 +38,10 @@ from std_srvs.srv import Trigger
 
 from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.frames import (
-    bearings_C_to_I, R_IB_from_rot_map_base, rot_from_quat, vec_map_to_I)
+    bearings_C_to_I, R_IB_from_rot_map_base, rot_from_quat)
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, check_bearings, check_vector, FrameBundle, InputKind, PadPairing,
+    AttitudeHistory, check_bearings, check_flow, FrameBundle, InputKind, PadPairing,
     StampSynchronizer)
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_control.node_common import (
@@ -50,7 +50,6 @@ from ibvs_control.node_common import (
 from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
-MAP_FRAME = 'map'
 LANDMARKS_PER_GROUP = 4
 ATTITUDE_HISTORY_NS = 1_000_000_000      # IMU attitudes kept to derotate at an input's stamp
 # Core parameters that come from the shared YAML files, not from params.yaml.
@@ -182,10 +181,8 @@ class ModeSupervisorNode(Node):
         self._on_flow(InputKind.FLOW_DOWN, msg)
 
     def _on_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:
-        phi, err = check_vector(vector3(msg.vector))
-        if msg.header.frame_id != MAP_FRAME:
-            phi, err = None, f'frame {msg.header.frame_id!r} is not {MAP_FRAME!r}'
-        self._add(kind, msg.header.stamp, None if phi is None else vec_map_to_I(phi), err)
+        phi_I, err = check_flow(vector3(msg.vector), msg.header.frame_id)
+        self._add(kind, msg.header.stamp, phi_I, err)
 
     def _add(self, kind: InputKind, stamp, value, err: str) -> None:
         """Give one input to the synchroniser (a refused one counts as 'not detected')."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 GRAVITY = 9.80665  # m/s^2, standard gravity
+MAP_FRAME = 'map'  # frame_id of the ROS world frame (ENU), = {I} rotated by R_MAP_I
 e1 = np.array([1.0, 0.0, 0.0])
 e2 = np.array([0.0, 1.0, 0.0])
 e3 = np.array([0.0, 0.0, 1.0])

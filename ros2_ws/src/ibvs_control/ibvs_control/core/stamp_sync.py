@@ -36,7 +36,8 @@ import numpy as np
 
 from ibvs_control.core.controller import (
     ControlOutput, FeatureSnapshot, IbvsController, Measurements)
-from ibvs_control.core.frames import e3, GRAVITY, quat_from_rot, quat_ned_frd_to_enu_flu, rot_z
+from ibvs_control.core.frames import (
+    e3, GRAVITY, MAP_FRAME, quat_from_rot, quat_ned_frd_to_enu_flu, rot_z, vec_map_to_I)
 from ibvs_control.core.modes import Mode
 
 NS_PER_S = 1_000_000_000
@@ -301,6 +302,17 @@ def check_vector(v: np.ndarray) -> tuple[np.ndarray | None, str]:
     if x.shape != (3,) or not np.all(np.isfinite(x)):
         return None, f'non-finite vector {x.tolist()}'
     return x, ''
+
+
+def check_flow(phi_map: np.ndarray, frame_id: str) -> tuple[np.ndarray | None, str]:
+    """Validate a translational flow given in ``frame_id``: (phi in {I} (1/s) or None, error).
+
+    Flows are published in ``map`` (ENU); any other frame or a non-finite value is refused.
+    """
+    phi, err = check_vector(phi_map)
+    if frame_id != MAP_FRAME:
+        return None, f'frame {frame_id!r} is not {MAP_FRAME!r}'
+    return (None, err) if phi is None else (vec_map_to_I(phi), '')
 
 
 def heading_quat_enu_flu(yaw_ned: float) -> np.ndarray:
