@@ -133,10 +133,6 @@ def test_random_initial_condition_succeeds(tmp_path, seed):
     assert_success(summary)
 
 
-@pytest.mark.xfail(reason='known gap (issue 6): runs repeat bit for bit until SHUTDOWN when no '
-                   'input misses its wall-clock wait, but one fresh-clone CI run lost the pad '
-                   'of frames 0.00/0.28 s to the 0.3 s sync timeout at start-up (logged), and '
-                   'the window-loss frame then moved from 3.92 to 4.16 s: 1.3 cm', strict=False)
 def test_second_run_gives_the_same_summary_within_1cm(reference, tmp_path):
     _, first = reference
     second = run_scenario(tmp_path, 'reference-again', '--no-bag', '--no-plots')

@@ -21,6 +21,7 @@ from std_msgs.msg import Float32, String
 
 from ibvs_control.core import frames
 from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.stamp_sync import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
 from ibvs_perception.window_detector_node import WindowDetectorNode
@@ -222,7 +223,11 @@ def test_down_optical_flow_node(ctx, renderers):
     truth = frames.vec_I_to_map(v / (-(xi0[2] + v[2] * DT / 2)))
     assert np.linalg.norm(phi_map - truth) <= 0.1 * np.linalg.norm(truth)
     assert 0.0 < got['down_camera/translational_flow_quality'][-1].data <= 1.0
-    # NaN IMU: dropped with a log; images after the buffer runs out: no flow, no exception
+    # one message per image: the first image (no pair yet) got the all-NaN "no flow"
+    first = got['down_camera/translational_flow'][0]
+    assert (first.header.stamp.sec, first.header.stamp.nanosec) == (10, 0)
+    assert is_no_flow([first.vector.x, first.vector.y, first.vector.z])
+    # NaN IMU: dropped with a log; images after the buffer runs out: "no flow", no exception
     nan = imu_msg(10.05, R)
     nan.orientation.w = float('nan')
     pubs['imu/data'].publish(nan)
@@ -230,9 +235,10 @@ def test_down_optical_flow_node(ctx, renderers):
     for k in range(2, 4):
         img = renderers['down'].render(R, xi0 + v * DT * k)
         pubs['down_camera/image_raw'].publish(image_msg(img, 12.0 + DT * k))
-    time.sleep(0.05)
-    spin_until(executor, lambda: False, 1.0)
-    assert len(got['down_camera/translational_flow']) == n_before
+    assert spin_until(executor, lambda: len(got['down_camera/translational_flow'])
+                      == n_before + 2)
+    for msg in got['down_camera/translational_flow'][n_before:]:
+        assert is_no_flow([msg.vector.x, msg.vector.y, msg.vector.z])
 
 
 def test_front_optical_flow_node_needs_a_window(ctx, renderers):
@@ -245,8 +251,13 @@ def test_front_optical_flow_node_needs_a_window(ctx, renderers):
     for k in range(3):
         img = renderers['front'].render(np.eye(3), START + np.array([0.3, 0.0, 0.0]) * DT * k)
         pubs['front_camera/image_raw'].publish(image_msg(img, 20.0 + DT * k))
-    spin_until(executor, lambda: False, 1.0)
-    assert got['front_camera/translational_flow'] == []
+    # no window detection: one all-NaN "no flow" per image, never a value
+    assert spin_until(executor, lambda: len(got['front_camera/translational_flow']) == 3)
+    spin_until(executor, lambda: False, 0.3)
+    flows = got['front_camera/translational_flow']
+    assert [round(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, 6) for m in flows] == [
+        round(20.0 + DT * k, 6) for k in range(3)]
+    assert all(is_no_flow([m.vector.x, m.vector.y, m.vector.z]) for m in flows)
 
 
 @pytest.mark.parametrize('name, value', [('gate_poll_period_s', 0.0), ('input_wait_s', -0.1)])

@@ -676,3 +676,18 @@ def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
     assert (m.param1, m.param2) == (1.0, 6.0)
     t_sp = min(t for t, sp in list(peer.setpoints) if sp.time_boot_ms == 1020)
     assert t_mode <= t_sp                          # the command left before the setpoint
+
+
+def test_stream_held_sends_nothing_then_fallback_carries_no_newer_time(peer_bridge):
+    # The node holds the stream until imu/data has its readers; a fallback setpoint (level
+    # hover before any force) carries time_boot_ms 0, never the autopilot's current time,
+    # which a lockstep sim would take for the answer to its newest frame.
+    peer, bridge = peer_bridge()
+    bridge.stream_enabled = False
+    wait_link(bridge)
+    spin(bridge, 0.3)
+    assert peer.setpoints == []
+    bridge.stream_enabled = True
+    ok, _ = spin(bridge, 1.0, until=lambda: len(peer.setpoints) >= 3)
+    assert ok
+    assert {m.time_boot_ms for _, m in peer.setpoints} == {0}

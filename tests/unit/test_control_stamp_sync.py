@@ -5,13 +5,13 @@ import pytest
 from ibvs_control.core.frames import rot_z
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, FLOWS, InputKind, ModeTracker, PadPairing, StampSynchronizer)
+    AttitudeHistory, InputKind, ModeTracker, PadPairing, StampSynchronizer)
 
 W, P, FF = InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT
 
 
 def test_release_rules_order_timeout_and_drops():
-    s = StampSynchronizer(timeout_s=0.03)
+    s = StampSynchronizer(timeout_s=0.03, optional=())
     assert s.add(W, 100, 'w1', 0.0) == ([], '')
     out, _ = s.add(P, 100, 'p1', 0.001)                 # both detections: released at once
     assert [b.stamp_ns for b in out] == [100] and not out[0].timed_out
@@ -30,10 +30,11 @@ def test_release_rules_order_timeout_and_drops():
 
 
 def test_flow_expected_after_it_came_late_and_forgotten_after_patience():
-    s = StampSynchronizer(timeout_s=0.03, flow_patience=3)
+    s = StampSynchronizer(timeout_s=0.03, flow_patience=3, optional=(FF,))
     s.add(W, 1, 'w', 0.0)
-    assert len(s.add(P, 1, 'p', 0.0)[0]) == 1           # flow not expected yet
-    assert s.add(FF, 1, 'f', 0.001)[1] != ''            # late: dropped, but now expected
+    assert s.add(P, 1, 'p', 0.0)[0] == []               # flows are expected from the start
+    assert len(s.poll(0.031)) == 1
+    assert s.add(FF, 1, 'f', 0.032)[1] != ''            # late: dropped, still expected
     s.add(W, 2, 'w', 0.02)
     assert s.add(P, 2, 'p', 0.02)[0] == []              # waits for the flow
     out, _ = s.add(FF, 2, 'f', 0.021)
@@ -69,7 +70,7 @@ def test_attitude_history_picks_at_or_before():
 
 
 def test_wait_for_imu_holds_a_complete_bundle_until_the_imu_reaches_its_stamp():
-    s = StampSynchronizer(timeout_s=1.0, wait_for_imu=True)
+    s = StampSynchronizer(timeout_s=1.0, wait_for_imu=True, optional=())
     s.note_imu(90)
     assert s.add(InputKind.WINDOW, 100, None, now=0.0)[0] == []
     released, _ = s.add(InputKind.PAD, 100, None, now=0.0)
@@ -106,9 +107,9 @@ def test_pad_pairing_pairs_landmarks_with_the_groups_that_follow():
 
 
 def test_mode_tracker_flies_the_status_of_the_frame_else_the_latest_mode():
-    s = StampSynchronizer(timeout_s=0.03, optional=(*FLOWS, InputKind.MODE))
+    s = StampSynchronizer(timeout_s=0.03, optional=(InputKind.MODE,))
     modes = ModeTracker()
-    s.add(InputKind.MODE, 100, Mode.WINDOW, 0.0)     # statuses come: expected from now on
+    s.add(InputKind.MODE, 100, Mode.WINDOW, 0.0)
     s.add(InputKind.WINDOW, 100, None, 0.0)
     (first,), _ = s.add(InputKind.PAD, 100, None, 0.0)
     assert modes.mode_at(first) == Mode.WINDOW
@@ -130,7 +131,7 @@ def test_mode_tracker_flies_the_status_of_the_frame_else_the_latest_mode():
 
 def test_synchroniser_waits_for_an_expected_mode_like_a_flow():
     s = StampSynchronizer(timeout_s=0.03, optional=(InputKind.MODE,))
-    s.add(InputKind.MODE, 20, Mode.WINDOW, 0.0)     # seen once: expected from now on
+    s.add(InputKind.MODE, 20, Mode.WINDOW, 0.0)     # expected from the start
     s.add(InputKind.WINDOW, 20, None, 0.0)
     released, _ = s.add(InputKind.PAD, 20, None, 0.0)
     assert [b.stamp_ns for b in released] == [20]
@@ -144,11 +145,12 @@ def test_synchroniser_waits_for_an_expected_mode_like_a_flow():
 
 
 def test_a_bundle_says_what_it_was_released_without():
-    s = StampSynchronizer(timeout_s=0.03, wait_for_imu=True)
+    s = StampSynchronizer(timeout_s=0.03, wait_for_imu=True, optional=(FF,))
     s.note_imu(20)
     s.add(W, 20, None, 0.0)
     s.add(P, 20, None, 0.0)
-    s.add(FF, 20, None, 0.0)                     # late (20 was released): expected from now
+    (complete,), _ = s.add(FF, 20, None, 0.0)    # an all-NaN "no flow" is an input that came
+    assert complete.missing == () and not complete.timed_out
     s.note_imu(40)
     s.add(W, 40, None, 0.0)
     (late,) = s.poll(1.0)                         # no pad, no front flow for 40
@@ -167,6 +169,12 @@ def test_check_flow_converts_map_to_the_paper_frame_and_refuses_bad_input():
     assert err == '' and np.allclose(phi_I, [0.0, 1.0, 0.0])
     phi_I, err = check_flow(np.array([0.0, 0.0, 2.0]), 'map')
     assert np.allclose(phi_I, [0.0, 0.0, -2.0])
-    assert check_flow(np.array([np.nan, 0.0, 0.0]), 'map')[0] is None
+    phi_I, err = check_flow(np.array([np.nan, 0.0, 0.0]), 'map')     # partly NaN: refused
+    assert phi_I is None and 'non-finite' in err
+    phi_I, err = check_flow(np.array([np.inf, np.inf, np.inf]), 'map')
+    assert phi_I is None and err
+    # all three NaN: "no valid flow at this stamp", an input that came, not an error
+    assert check_flow(np.full(3, np.nan), 'map') == (None, '')
+    assert check_flow(np.full(3, np.nan), 'odom')[1]                 # wrong frame still refused
     phi_I, err = check_flow(np.zeros(3), 'odom')
     assert phi_I is None and 'odom' in err

@@ -6,7 +6,7 @@ from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.frames import GRAVITY
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.dynamics import WindConfig
-from ibvs_sim.core.sim_core import EventType, Pacing, SimConfig, Simulation, SubscriberHold
+from ibvs_sim.core.sim_core import EventType, Pacing, SimConfig, Simulation, FirstFrameHold
 
 
 class FakeAutopilot:
@@ -17,10 +17,13 @@ class FakeAutopilot:
         self.last_setpoint_time_boot_ms = None
         self.polls = 0
         self.receiving_polls = 0
+        self.telemetry_times = []       # sim times of the polls that may send telemetry
 
-    def poll(self, state, receive=True):
+    def poll(self, state, receive=True, telemetry=True):
         self.polls += 1
         self.receiving_polls += int(receive)
+        if telemetry:
+            self.telemetry_times.append(state.t)
 
     def attitude_reference(self, state):
         return AttitudeReference(self.q, self.thrust, 'offboard')
@@ -161,7 +164,7 @@ def test_wall_collision_ends_the_run(configs):
 
 
 def test_first_frame_hold_waits_for_subscribers_then_settles():
-    hold = SubscriberHold(min_count=3, settle_s=0.5, timeout_s=30.0, now=0.0)
+    hold = FirstFrameHold({'front': 3, 'down': 3}, settle_s=0.5, timeout_s=30.0, now=0.0)
     assert not hold.ready({'front': 2, 'down': 3}, now=1.0)
     assert not hold.ready({'front': 3, 'down': 3}, now=2.0)      # matched: settling
     assert not hold.ready({'front': 2, 'down': 3}, now=2.3)      # lost one: settle restarts
@@ -170,10 +173,42 @@ def test_first_frame_hold_waits_for_subscribers_then_settles():
     assert hold.ready({'front': 0, 'down': 0}, now=3.0)          # released for good
 
 
+def test_first_frame_hold_counts_each_topic_against_its_own_minimum():
+    hold = FirstFrameHold({'front': 2, 'down': 2, 'imu/data': 4}, settle_s=0.0, timeout_s=30.0,
+                          now=0.0)
+    assert not hold.ready({'front': 2, 'down': 2, 'imu/data': 3}, now=1.0)
+    assert not hold.ready({'front': 2, 'down': 2}, now=1.0)      # a topic not counted: 0
+    assert hold.ready({'front': 2, 'down': 2, 'imu/data': 5}, now=1.0)
+
+
 def test_first_frame_hold_times_out_and_zero_never_holds():
-    hold = SubscriberHold(min_count=3, settle_s=0.5, timeout_s=30.0, now=0.0)
+    hold = FirstFrameHold({'front': 3, 'down': 3}, settle_s=0.5, timeout_s=30.0, now=0.0)
     assert not hold.ready({'front': 1, 'down': 1}, now=29.9)
     assert hold.ready({'front': 1, 'down': 1}, now=30.1) and hold.timed_out
-    assert SubscriberHold(0, 0.5, 30.0, now=0.0).ready({'front': 0, 'down': 0}, now=0.0)
+    assert FirstFrameHold({'front': 0, 'down': 0}, 0.5, 30.0, now=0.0).ready(
+        {'front': 0, 'down': 0}, now=0.0)
     with pytest.raises(ValueError):
-        SubscriberHold(-1, 0.5, 30.0, now=0.0)
+        FirstFrameHold({'front': -1}, 0.5, 30.0, now=0.0)
+
+
+def test_first_frame_hold_can_also_wait_for_the_setpoint_stream():
+    hold = FirstFrameHold({}, settle_s=0.5, timeout_s=30.0, now=0.0, need_setpoints=True)
+    counts = {'front': 0, 'down': 0}
+    assert not hold.ready(counts, now=0.0)                       # no subscribers needed, but
+    assert not hold.ready(counts, now=5.0, setpoints=False)      # no companion stream yet
+    assert not hold.ready(counts, now=6.0, setpoints=True)       # streaming: settling
+    assert hold.ready(counts, now=6.5, setpoints=True) and not hold.timed_out
+    late = FirstFrameHold({'front': 2}, 0.5, 30.0, now=0.0, need_setpoints=True)
+    assert not late.ready({'front': 2}, now=29.0)
+    assert late.ready({'front': 2}, now=30.5) and late.timed_out
+
+
+def test_before_frame_0_the_link_is_served_without_telemetry_then_t0_telemetry_leaves(configs):
+    ap, clock = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap, clock, pacing=Pacing.LOCKSTEP)
+    assert sim.poll_before_start() is False        # no setpoint stream yet
+    ap.last_setpoint_time_boot_ms = 0
+    assert sim.poll_before_start() is True
+    assert ap.receiving_polls == 2 and ap.telemetry_times == []
+    assert sim.tick().t_ns == 0
+    assert ap.telemetry_times == [0.0]             # the IMU at t = 0 goes with frame 0

@@ -17,6 +17,7 @@ import numpy as np
 
 CONFIG_PACKAGE = 'ibvs_bringup'
 PARAMS_FILE_NAME = 'params.yaml'
+SIM_GRAPH_PARAMS_FILE_NAME = 'sim_graph.yaml'    # lockstep waits, layered after params.yaml
 DEFAULT_MAVLINK_PORT = 14560
 CROSSING_LAWS = ('closed', 'intended', 'seed')
 ROLES = ('sim', 'onboard', 'tool')
@@ -28,6 +29,8 @@ SIM_INITIAL_POSITION = 'initial_position_I'   # [x, y, z] in the paper frame {I}
 SIM_INITIAL_YAW = 'initial_yaw'               # rad, {I}
 SIM_MIN_IMAGE_SUBSCRIBERS = 'min_image_subscribers'   # frame 0 waits for these per camera
 IMAGE_SUBSCRIBERS_PER_CAMERA = 2                # a detector and an optical_flow per camera
+BRIDGE_MIN_IMU_SUBSCRIBERS = 'min_imu_subscribers'  # bridge: setpoint stream waits for these
+IMU_SUBSCRIBERS = 4                             # both optical_flows, supervisor, controller
 SIM_WIND = 'wind_force_map'                   # [fx, fy, fz] in map (ENU), N
 MAVLINK_URL = 'mavlink_url'                   # sim: its MAVLink endpoint
 BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's URL
@@ -79,6 +82,8 @@ class GraphOptions:
     """Per-run options of the graph (everything else is in params.yaml)."""
 
     params_file: str | None = None                  # None: the installed params.yaml
+    sim_params_file: str | None = None              # sim graph, after params_file; None: the
+    #                                                 installed sim_graph.yaml, '': none
     use_sim_time: bool = True
     mavlink_port: int = DEFAULT_MAVLINK_PORT        # sim graph: UDP port on 127.0.0.1
     mavlink_url: str | None = None                  # onboard graph: the vehicle's MAVLink URL
@@ -89,6 +94,7 @@ class GraphOptions:
     auto_start_at_s: float | None = None            # s; None: params.yaml's (ibvs/start)
     extra_remappings: tuple = field(default_factory=tuple)
     extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
+    extra_imu_subscribers: int = 0                  # e.g. 1 for a recorder of imu/data
 
 
 def format_param_value(value) -> str:
@@ -104,10 +110,10 @@ def format_param_value(value) -> str:
     return str(value)
 
 
-def default_params_file() -> str:
-    """Return the installed ``share/ibvs_bringup/config/params.yaml``."""
+def default_params_file(name: str = PARAMS_FILE_NAME) -> str:
+    """Return the installed ``share/ibvs_bringup/config/<name>`` (default: params.yaml)."""
     from ament_index_python.packages import get_package_share_directory
-    return os.path.join(get_package_share_directory(CONFIG_PACKAGE), 'config', PARAMS_FILE_NAME)
+    return os.path.join(get_package_share_directory(CONFIG_PACKAGE), 'config', name)
 
 
 DDS_PROFILE_FILE_NAME = 'fastdds.xml'
@@ -143,7 +149,7 @@ def _floats(values: Sequence[float], n: int, what: str) -> list[float]:
     return out
 
 
-def _onboard_nodes(params: str, common: dict, opts: GraphOptions, mavlink_url: str) -> list:
+def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url: str) -> list:
     law = {}
     if opts.crossing_law is not None:
         if opts.crossing_law not in CROSSING_LAWS:
@@ -157,7 +163,7 @@ def _onboard_nodes(params: str, common: dict, opts: GraphOptions, mavlink_url: s
         merged = dict(common)
         for o in overrides:
             merged.update(o)
-        return NodeSpec(package, executable, name, (params, merged) if merged else (params,),
+        return NodeSpec(package, executable, name, params + ((merged,) if merged else ()),
                         remap, 'onboard')
 
     return [
@@ -167,16 +173,32 @@ def _onboard_nodes(params: str, common: dict, opts: GraphOptions, mavlink_url: s
         node('ibvs_perception', 'optical_flow', 'down_optical_flow', {'camera': 'down'}),
         node('ibvs_control', 'mode_supervisor', 'mode_supervisor', start),
         node('ibvs_control', 'force_controller', 'force_controller', law),
-        node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {BRIDGE_URL: mavlink_url}),
+        node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {
+            BRIDGE_URL: mavlink_url,
+            BRIDGE_MIN_IMU_SUBSCRIBERS: IMU_SUBSCRIBERS + int(opts.extra_imu_subscribers)}),
     ]
 
 
+def sim_param_files(opts: GraphOptions) -> tuple:
+    """Return the parameter files of the sim graph, in order (later files win per key)."""
+    files = (opts.params_file or default_params_file(),)
+    if opts.sim_params_file is None:
+        return files + (default_params_file(SIM_GRAPH_PARAMS_FILE_NAME),)
+    return files + ((opts.sim_params_file,) if opts.sim_params_file else ())
+
+
 def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
-    """Return the whole graph with the simulator: sim first, then the onboard nodes."""
-    params = opts.params_file or default_params_file()
+    """Return the whole graph with the simulator: sim first, then the onboard nodes.
+
+    Every node reads ``params.yaml`` (or ``opts.params_file``) and then ``sim_graph.yaml`` (or
+    ``opts.sim_params_file``; '' for none): the lockstep graph's longer waits.
+    """
+    params = sim_param_files(opts)
     sim_url, bridge_url = sim_mavlink_urls(opts.mavlink_port)
-    sim_over: dict = {MAVLINK_URL: sim_url, SIM_MIN_IMAGE_SUBSCRIBERS:
-                      IMAGE_SUBSCRIBERS_PER_CAMERA + int(opts.extra_image_subscribers)}
+    sim_over: dict = {
+        MAVLINK_URL: sim_url,
+        SIM_MIN_IMAGE_SUBSCRIBERS: (IMAGE_SUBSCRIBERS_PER_CAMERA
+                                    + int(opts.extra_image_subscribers))}
     if opts.initial_position is not None or opts.initial_yaw is not None:
         sim_over[SIM_INITIAL_OVERRIDE] = True
     if opts.initial_position is not None:
@@ -187,14 +209,14 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
         wind_map = frames.vec_I_to_map(np.array(_floats(opts.wind, 3, 'wind')))
         sim_over[SIM_WIND] = [float(x) + 0.0 for x in wind_map]
     common = {'use_sim_time': True} if opts.use_sim_time else {}
-    sim = NodeSpec('ibvs_sim', 'sim', 'sim', (params, sim_over), tuple(opts.extra_remappings),
+    sim = NodeSpec('ibvs_sim', 'sim', 'sim', params + (sim_over,), tuple(opts.extra_remappings),
                    'sim')
     return [sim] + _onboard_nodes(params, common, opts, bridge_url)
 
 
 def onboard_graph(opts: GraphOptions = GraphOptions(use_sim_time=False)) -> list[NodeSpec]:
     """Return the onboard nodes only, talking to the vehicle at ``opts.mavlink_url``."""
-    params = opts.params_file or default_params_file()
+    params = (opts.params_file or default_params_file(),)
     url = opts.mavlink_url or sim_mavlink_urls(opts.mavlink_port)[1]
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     return _onboard_nodes(params, common, opts, url)

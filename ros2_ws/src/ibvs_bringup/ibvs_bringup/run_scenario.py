@@ -177,7 +177,8 @@ def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
                                mavlink_port=port, initial_position=initial_position,
                                wind=opts.wind, crossing_law=opts.crossing_law,
                                auto_start_at_s=START_AT_SIM_S,
-                               extra_image_subscribers=1 if opts.bag else 0)
+                               extra_image_subscribers=1 if opts.bag else 0,
+                               extra_imu_subscribers=1 if opts.bag else 0)
     specs = graph.sim_graph(gopts)
     if opts.bag:
         specs.append(graph.tool_node('recorder', 'recorder', ({

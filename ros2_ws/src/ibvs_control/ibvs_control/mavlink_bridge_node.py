@@ -62,6 +62,7 @@ PARAMETERS = {
     'failsafe_thrust_ratio': 0.9,
     'shutdown_ramp_s': 2.0,
     'heading_wait_s': 0.02,
+    'min_imu_subscribers': 0,
     'prestream_s': 1.2,
     'command_retry_s': 1.0,
     'max_attempts': 5,
@@ -87,6 +88,10 @@ class MavlinkBridgeNode(Node):
             'orientation_covariance', 'angular_velocity_covariance',
             'linear_acceleration_covariance')}
         self._bridge = MavlinkBridge(self._config)
+        self._min_imu_subscribers = int(p['min_imu_subscribers'])
+        if self._min_imu_subscribers < 0:
+            raise ValueError(f'min_imu_subscribers must be >= 0, got {self._min_imu_subscribers}')
+        self._bridge.stream_enabled = self._min_imu_subscribers == 0
 
         self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -97,7 +102,7 @@ class MavlinkBridgeNode(Node):
         self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / p['poll_rate_hz'], self._on_poll, clock=steady)
-        self.create_timer(1.0 / p['stream_rate_hz'], self._bridge.stream, clock=steady)
+        self.create_timer(1.0 / p['stream_rate_hz'], self._on_stream, clock=steady)
         self.create_timer(1.0 / p['heartbeat_rate_hz'], self._bridge.heartbeat, clock=steady)
         self.create_timer(1.0 / p['diagnostics_rate_hz'], self._on_diagnostics, clock=steady)
         self.get_logger().info(
@@ -168,6 +173,22 @@ class MavlinkBridgeNode(Node):
         for sample in self._bridge.poll(self.get_clock().now().nanoseconds):
             self._imu_pub.publish(self._imu_msg(sample))
         self._log_events()
+
+    def _on_stream(self) -> None:
+        if not self._bridge.stream_enabled:
+            self._check_imu_consumers()
+        self._bridge.stream()
+
+    def _check_imu_consumers(self) -> None:
+        """Start the setpoint stream once imu/data has its consumers matched (then for good)."""
+        matched = self._imu_pub.get_subscription_count()
+        if matched >= self._min_imu_subscribers:
+            self._bridge.stream_enabled = True
+            self.get_logger().info(f'imu/data matched {matched} subscribers: setpoint stream on')
+        else:
+            self.get_logger().info(
+                f'setpoint stream held: imu/data matched {matched} of '
+                f'{self._min_imu_subscribers} subscribers', throttle_duration_sec=LOG_THROTTLE_S)
 
     def _on_diagnostics(self) -> None:
         self._diag_pub.publish(self._diagnostics(self._bridge.status()))

@@ -4,13 +4,17 @@ One executable, one instance per camera (node names front_optical_flow, down_opt
 parameter `camera` ('front' | 'down') selects the mount R_BC (vehicle.yaml) and the plane:
 the floor (eta_t = e3) for the down camera, the window wall (eta_w from `window/corners`,
 aperture excluded) for the front camera. Publishes `<camera>_camera/translational_flow`
-(Vector3Stamped, frame `map`, stamp of the later image) when enough inliers, and
-`<camera>_camera/translational_flow_quality` (Float32 inlier ratio) for every estimate tried.
+(Vector3Stamped, frame `map`, stamp of the image) for EVERY processed image: the flow when
+enough inliers, else all three components NaN, "no valid flow at this stamp" (first image, too
+few inliers, no window, no attitude), so that the supervisor and the controller know per stamp
+whether a flow is coming; and `<camera>_camera/translational_flow_quality` (Float32 inlier
+ratio) for every estimate tried.
 
-Each image is held (core.frame_gate) until the IMU samples reach its stamp (interpolated, not
-extrapolated, attitude) and, for the front camera, the window detection of the same image is
-in, at most `input_wait_s` (wall clock): the result then depends on the data, not on which
-message the scheduler delivered first, so lockstep runs repeat and bag replays reproduce.
+Each image is held (core.frame_gate: a few, released in order) until the IMU samples reach its
+stamp (interpolated, not extrapolated, attitude) and, for the front camera, the window
+detection of the same image is in, at most `input_wait_s` (wall clock): the result then
+depends on the data, not on which message the scheduler delivered first, so lockstep runs
+repeat and bag replays reproduce.
 """
 from __future__ import annotations
 
@@ -26,7 +30,7 @@ from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from ibvs_control.core.config import ConfigError, load_vehicle
-from ibvs_control.core.frames import e3, vec_I_to_map
+from ibvs_control.core.frames import e3, MAP_FRAME, vec_I_to_map
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32
 
@@ -41,7 +45,7 @@ from ibvs_control.spin import spin_guarded
 THROTTLE_S = 2.0
 FRONT, DOWN = 'front', 'down'
 N_WINDOW_CORNERS = 4
-MAP_FRAME = 'map'
+NO_FLOW = (float('nan'),) * 3    # the "no valid flow at this stamp" vector (docs/interfaces.md)
 WINDOW_HISTORY = 10          # recent window detections kept, to pick the one of a frame's stamp
 STAMP_MATCH_S = 1e-6         # s, two stamps closer than this are the same image
 
@@ -113,9 +117,9 @@ class OpticalFlowNode(Node):
 
     def on_image(self, msg: Image) -> None:
         """Hold the frame until its IMU (and, front, its window detection) are in."""
-        superseded = self.gate.push(stamp_to_s(msg.header.stamp), msg, time.monotonic())
-        if superseded is not None:
-            self.process(superseded.payload)
+        overflow = self.gate.push(stamp_to_s(msg.header.stamp), msg, time.monotonic())
+        if overflow is not None:
+            self.process(overflow.payload)
         self.release_frame()
 
     def inputs_ready(self, stamp: float) -> bool:
@@ -131,8 +135,7 @@ class OpticalFlowNode(Node):
         return None
 
     def release_frame(self) -> None:
-        frame = self.gate.release(self.inputs_ready, time.monotonic())
-        if frame is not None:
+        for frame in self.gate.release(self.inputs_ready, time.monotonic()):
             self.process(frame.payload)
 
     def process(self, msg: Image) -> None:
@@ -155,16 +158,15 @@ class OpticalFlowNode(Node):
                                    throttle_duration_sec=THROTTLE_S)
         eta_I, exclude_I = self.plane(stamp)
         result = self.estimator.process(gray, stamp, R_IB, eta_I, exclude_I)
-        if result is None:
-            return
-        self.pub_quality.publish(Float32(data=float(result.inlier_ratio)))
-        if result.phi_I is not None:
-            out = Vector3Stamped()
-            out.header.stamp = msg.header.stamp
-            out.header.frame_id = MAP_FRAME
-            out.vector.x, out.vector.y, out.vector.z = (float(x) for x in
-                                                        vec_I_to_map(result.phi_I))
-            self.pub_flow.publish(out)
+        if result is not None:
+            self.pub_quality.publish(Float32(data=float(result.inlier_ratio)))
+        valid = result is not None and result.phi_I is not None
+        out = Vector3Stamped()
+        out.header.stamp = msg.header.stamp
+        out.header.frame_id = MAP_FRAME
+        out.vector.x, out.vector.y, out.vector.z = (
+            (float(x) for x in vec_I_to_map(result.phi_I)) if valid else NO_FLOW)
+        self.pub_flow.publish(out)
 
     def plane(self, stamp: float) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(eta in {I}, excluded corner bearings in {I}) of the observed plane at ``stamp``.
@@ -190,7 +192,7 @@ class OpticalFlowNode(Node):
                     return wall_normal_from_corners(vectors_from_polygon(msg), R_IB, self.R_BC)
                 except ValueError as exc:
                     reason = f'degenerate window corners ({exc})'
-        self.get_logger().info(f'optical_flow: front flow not published: {reason}',
+        self.get_logger().info(f'optical_flow: no front flow (NaN published): {reason}',
                                throttle_duration_sec=THROTTLE_S)
         return None, None
 

@@ -36,7 +36,7 @@ from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.sim_core import (FrameOutput, NS_PER_S, Pacing, SimConfig, Simulation,
-                                    SubscriberHold)
+                                    FirstFrameHold)
 from ibvs_control.spin import spin_guarded
 
 NODE_NAME = 'sim'
@@ -47,7 +47,7 @@ CAMERAS = ('front', 'down')
 LOG_THROTTLE_S = 2.0
 EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
-SUBSCRIBER_SETTLE_S = 0.5     # s (wall), image subscribers matched this long before frame 0
+SUBSCRIBER_SETTLE_S = 0.5     # s (wall), image subscribers and setpoints this long before frame 0
 
 
 @dataclass(frozen=True)
@@ -70,6 +70,7 @@ class SimNodeConfig:
     seed: int
     min_image_subscribers: int = 0
     subscriber_wait_timeout_s: float = 30.0
+    start_on_setpoints: bool = False         # frame 0 also waits for the companion's setpoints
     telemetry_default_hz: float = 50.0
 
 
@@ -163,8 +164,10 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
         self.events_pub = self.create_publisher(String, 'sim/events', latched)
         self._ended_logged = False
-        self.first_frame_hold = SubscriberHold(cfg.min_image_subscribers, SUBSCRIBER_SETTLE_S,
-                                               cfg.subscriber_wait_timeout_s, time.monotonic())
+        min_counts = {n: cfg.min_image_subscribers for n in self.image_pubs}
+        self.first_frame_hold = FirstFrameHold(
+            min_counts, SUBSCRIBER_SETTLE_S, cfg.subscriber_wait_timeout_s, time.monotonic(),
+            need_setpoints=cfg.start_on_setpoints)
         self.timer = self.create_timer(cfg.tick_period_s, self._on_tick,
                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(
@@ -190,6 +193,7 @@ class SimNode(Node):
             'seed': 0,
             'min_image_subscribers': 0,
             'subscriber_wait_timeout_s': 30.0,
+            'start_on_setpoints': False,
             'telemetry_default_hz': 50.0,
         }
         v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
@@ -229,17 +233,20 @@ class SimNode(Node):
             vehicle_file=str(v['vehicle_file']), seed=int(v['seed']),
             min_image_subscribers=int(v['min_image_subscribers']),
             subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']),
+            start_on_setpoints=bool(v['start_on_setpoints']),
             telemetry_default_hz=telemetry_hz)
 
     def _first_frame_may_go(self) -> bool:
-        """Ask the hold (core) with the image subscriber counts; log the wait and a timeout."""
+        """Ask the hold (core) with the subscriber counts; log the wait and a timeout."""
         counts = {n: pub.get_subscription_count() for n, pub in self.image_pubs.items()}
-        if self.first_frame_hold.ready(counts, time.monotonic()):
+        streaming = self.sim.poll_before_start()
+        state = (f'subscribers {counts} (needed {self.first_frame_hold.min_counts}), '
+                 f'setpoints streaming: {streaming}')
+        if self.first_frame_hold.ready(counts, time.monotonic(), streaming):
             if self.first_frame_hold.timed_out:
-                self.get_logger().warning(f'starting without all image subscribers: {counts} '
-                                          f'(expected {self.first_frame_hold.min_count} each)')
+                self.get_logger().warning(f'frame 0 goes without its whole graph: {state}')
             return True
-        self.get_logger().info(f'waiting for image subscribers: {counts}',
+        self.get_logger().info(f'frame 0 waits for the graph: {state}',
                                throttle_duration_sec=LOG_THROTTLE_S)
         return False
 

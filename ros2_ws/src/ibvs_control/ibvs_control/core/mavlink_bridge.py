@@ -10,8 +10,9 @@ Setpoint (SET_ATTITUDE_TARGET, docs/mavlink.md)
     q = attitude of body FRD in the autopilot's local NED (= {I}) with R_d e3 = F / |F| and
     the desired yaw (attitude.attitude_from_force); thrust = |F| / (m g) * hover_thrust in
     [0, 1]; type_mask = 7 (body rates ignored); time_boot_ms = the setpoint's stamp mapped to
-    the autopilot's boot time. A NEW setpoint is sent at once (the sim's lockstep pacing waits
-    for it), the stream timer repeats the latest one with the same time_boot_ms.
+    the autopilot's boot time (fallback targets: the latest force's, 0 before any). A NEW
+    setpoint is sent at once (the sim's lockstep pacing waits for it), the stream timer repeats
+    the latest one with the same time_boot_ms.
 Heading / force pairing (:class:`HeadingPairing`)
     The heading and the force of one camera frame share its stamp but come on two topics, in
     either order. A force is flown with the heading of the SAME stamp: if that heading has not
@@ -476,8 +477,10 @@ class MavlinkBridge:
         self.guid_options: int | None = None
         self.rate = RateMeter()
         self.setpoint_source = SetpointSource.NONE
+        # False: build the targets but send none (the node holds the stream until the IMU's
+        # consumers are matched, so that a lockstep sim starts only when they hear every sample)
+        self.stream_enabled = True
         self._current: AttitudeTarget | None = None
-        self._last_time_boot_ms = 0          # autopilot's latest time_boot_ms
         self._setpoint_time_boot_ms = 0      # time_boot_ms of the latest IBVS setpoint
         self._stream_start: float | None = None
         self._last_stream_t: float | None = None
@@ -680,7 +683,6 @@ class MavlinkBridge:
             self._event('error', f'ATTITUDE_QUATERNION out of range (q={q}, rates={w}): '
                                  'dropped')
             return None
-        self._last_time_boot_ms = int(msg.time_boot_ms)
         if self._receive_ns is not None:
             self._time_offset_ns = self._receive_ns - int(msg.time_boot_ms) * NS_PER_MS
         self._yaw_now = euler_zyx_from_rot(rot_from_quat(q))[2]
@@ -772,8 +774,11 @@ class MavlinkBridge:
         now = self._clock()
         hover = self.hover.value if self.hover.value is not None \
             else self.config.configured_hover_thrust
-        ms = self._setpoint_time_boot_ms if self._setpoint_time_boot_ms else \
-            self._last_time_boot_ms
+        # Every target carries the stamp of the latest controller output (0 before any), never
+        # the autopilot's current time: a fallback (level hover before the first force, hold,
+        # shutdown ramp) is not an answer to a newer camera frame, so the sim's lockstep keeps
+        # waiting for the controller instead of running ahead of the graph.
+        ms = self._setpoint_time_boot_ms
         target = self.shaper.target(now, self.supervisor_mode, self._yaw_now, hover, ms)
         if target.source == SetpointSource.HOLD_LAST and new:
             self._event('error', f'force setpoint refused ({self.shaper.last_error}): '
@@ -784,7 +789,7 @@ class MavlinkBridge:
                         f'{target.source.value}')
             self.setpoint_source = target.source
         self._current = target
-        if not self.link.link_up:
+        if not self.link.link_up or not self.stream_enabled:
             self._stream_start = None
             return
         if self.link.send_attitude_target(target.time_boot_ms, target.q_wxyz, target.thrust,

@@ -9,11 +9,13 @@ supervisor must evaluate every stamp on the same inputs whatever their arrival o
 
 - as soon as the ``required`` inputs (window and pad detections) are there, plus each
   ``optional`` input (flows, supervisor mode) that is *expected* (an optional input is
-  expected until it has been missing for ``flow_patience`` released stamps in a row; one
-  arriving, even late, makes it expected again: flows are only published when valid, so a
-  camera whose flow stopped costs a few timeouts, not one every frame, while one late flow
-  under load does not make the next frames go without it — which would make the answers
-  depend on the machine's load and lockstep runs unrepeatable);
+  expected from the start, until it has been missing for ``flow_patience`` released stamps in
+  a row; one
+  arriving, even late, makes it expected again. The flow nodes publish one message per image
+  (all-NaN when there is no valid flow, :func:`is_no_flow`), so in a healthy graph every
+  optional input comes at every stamp and none is ever skipped by a race; the patience only
+  bounds the cost of a flow node that died or a lost link to a few timeouts, not one every
+  frame, while one late flow under load does not make the next frames go without it);
 - and, with ``wait_for_imu``, once the IMU samples reach the stamp (:meth:`note_imu`), so that
   the attitude "at or before the stamp" is the same whatever arrived first;
 - or when ``timeout_s`` (wall clock) has passed since the first input of that stamp arrived.
@@ -94,7 +96,7 @@ class StampSynchronizer:
         self.last_released_ns: int | None = None
         self.dropped = 0
         self._pending: dict[int, FrameBundle] = {}
-        self._missing = {k: flow_patience for k in self.optional}   # released stamps without it
+        self._missing = {k: 0 for k in self.optional}   # released stamps without it in a row
 
     def _expected(self, kind: InputKind) -> bool:
         return self._missing[kind] < self.flow_patience
@@ -304,14 +306,30 @@ def check_vector(v: np.ndarray) -> tuple[np.ndarray | None, str]:
     return x, ''
 
 
+def is_no_flow(phi_map: np.ndarray) -> bool:
+    """Return True for the "no valid flow at this stamp" message: all three components NaN.
+
+    The optical_flow nodes publish one flow message per image, so that a consumer knows at
+    each stamp whether a flow is coming (lockstep runs then do not depend on arrival order);
+    an image without a valid estimate (first frame, too few inliers, no window, no attitude)
+    gets this all-NaN vector.
+    """
+    x = np.asarray(phi_map, dtype=float)
+    return x.shape == (3,) and bool(np.all(np.isnan(x)))
+
+
 def check_flow(phi_map: np.ndarray, frame_id: str) -> tuple[np.ndarray | None, str]:
     """Validate a translational flow given in ``frame_id``: (phi in {I} (1/s) or None, error).
 
-    Flows are published in ``map`` (ENU); any other frame or a non-finite value is refused.
+    Flows are published in ``map`` (ENU); any other frame or a partly non-finite value is
+    refused (None and an error); the all-NaN "no flow at this stamp" (:func:`is_no_flow`) is
+    None without an error.
     """
-    phi, err = check_vector(phi_map)
     if frame_id != MAP_FRAME:
         return None, f'frame {frame_id!r} is not {MAP_FRAME!r}'
+    if is_no_flow(phi_map):
+        return None, ''
+    phi, err = check_vector(phi_map)
     return (None, err) if phi is None else (vec_map_to_I(phi), '')
 
 

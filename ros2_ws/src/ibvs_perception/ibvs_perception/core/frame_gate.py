@@ -1,22 +1,29 @@
-"""Hold a camera frame until the other inputs of its stamp have arrived (ROS-free).
+"""Hold camera frames until the other inputs of their stamps have arrived (ROS-free).
 
 A perception node that combines an image with inputs from other topics (the IMU attitude for
 derotation, the window detection of the same image for the wall plane) gives a result that
 depends on *which* of those inputs happened to be there when the image arrived, i.e. on thread
-scheduling, unless it waits for them. :class:`FrameGate` keeps the latest frame and releases it
+scheduling, unless it waits for them. :class:`FrameGate` keeps the latest few frames, in
+arrival order, and releases the oldest
 
 - as soon as ``ready(stamp)`` says its inputs are in (the node decides what that means),
 - or when ``max_wait_s`` (a monotonic wall clock) has passed since it arrived (an input that
   never comes costs at most that latency, never the frame),
-- or at once when a newer frame arrives (the held frame is released first, never dropped).
+- or at once when more than ``max_held`` frames wait (the oldest leaves first, never dropped).
 
-With inputs that arrive within ``max_wait_s`` the output is a function of the recorded data
-alone, so lockstep runs repeat and a bag replay reproduces them.
+Frames leave in order, each at most once. Holding a few frames (not one) matters when an image
+overtakes the IMU sample of the previous one, as at a lockstep start where frame 1 can follow
+frame 0 within milliseconds: frame 0 still waits for its attitude instead of being processed
+without it. With inputs that arrive within ``max_wait_s`` the output is a function of the
+recorded data alone, so lockstep runs repeat and a bag replay reproduces them.
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 from typing import Any, Callable
+
+DEFAULT_MAX_HELD = 3     # frames; 60 ms at 50 Hz, above any wait a real-time node should allow
 
 
 @dataclass(frozen=True)
@@ -29,32 +36,36 @@ class GatedFrame:
 
 
 class FrameGate:
-    """One held frame at a time; see the module docstring for the release rules."""
+    """Up to ``max_held`` held frames; see the module docstring for the release rules."""
 
-    def __init__(self, max_wait_s: float) -> None:
-        if not max_wait_s >= 0.0:
-            raise ValueError(f'max_wait_s must be >= 0, got {max_wait_s}')
+    def __init__(self, max_wait_s: float, max_held: int = DEFAULT_MAX_HELD) -> None:
+        if not max_wait_s >= 0.0 or int(max_held) < 1:
+            raise ValueError(f'need max_wait_s >= 0 and max_held >= 1, got {max_wait_s}, '
+                             f'{max_held}')
         self.max_wait_s = float(max_wait_s)
-        self.held: GatedFrame | None = None
+        self.max_held = int(max_held)
+        self.held: deque[GatedFrame] = deque()
         self.released_without_inputs = 0      # frames released without their inputs (diagnostics)
 
     def push(self, stamp_s: float, payload: Any, now_s: float) -> GatedFrame | None:
-        """Hold a new frame; return the previously held one (to process now), if any."""
-        previous, self.held = self.held, GatedFrame(float(stamp_s), float(now_s), payload)
-        if previous is not None:
+        """Hold a new frame; return the oldest held one if the gate overflowed (process it now)."""
+        self.held.append(GatedFrame(float(stamp_s), float(now_s), payload))
+        if len(self.held) > self.max_held:
             self.released_without_inputs += 1
-        return previous
-
-    def release(self, ready: Callable[[float], bool], now_s: float) -> GatedFrame | None:
-        """Return the held frame if ``ready(stamp)`` or it waited ``max_wait_s``; else None."""
-        frame = self.held
-        if frame is None:
-            return None
-        if ready(frame.stamp_s):
-            self.held = None
-            return frame
-        if now_s - frame.arrival_s >= self.max_wait_s:
-            self.held = None
-            self.released_without_inputs += 1
-            return frame
+            return self.held.popleft()
         return None
+
+    def release(self, ready: Callable[[float], bool], now_s: float) -> list[GatedFrame]:
+        """Return, oldest first, the held frames that are ``ready(stamp)`` or waited enough.
+
+        Only the head of the queue leaves: a frame never overtakes an older one.
+        """
+        out = []
+        while self.held:
+            frame = self.held[0]
+            if not ready(frame.stamp_s):
+                if now_s - frame.arrival_s < self.max_wait_s:
+                    break
+                self.released_without_inputs += 1
+            out.append(self.held.popleft())
+        return out

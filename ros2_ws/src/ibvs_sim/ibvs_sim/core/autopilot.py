@@ -403,13 +403,14 @@ class Autopilot:
         """True while the offboard-loss failsafe flies the vehicle (reported as AUTO_LAND)."""
         return self._failsafe_active
 
-    def poll(self, state: VehicleStateView, receive: bool = True) -> None:
+    def poll(self, state: VehicleStateView, receive: bool = True,
+             telemetry: bool = True) -> None:
         """Do one autopilot cycle at sim time ``state.t``; never blocks.
 
         Reads every pending datagram and answers it (unless ``receive`` is False: the
         lockstep sim reads only between frames), checks the offboard stream (failsafe),
-        auto-disarms after a landing, sends due telemetry (sim-time rates) and the heartbeat
-        (wall clock).
+        auto-disarms after a landing, sends due telemetry (sim-time rates; not with
+        ``telemetry`` False: the sim before its first frame) and the heartbeat (wall clock).
         """
         self._last_t = float(state.t)
         self._ensure_hold_target(state)
@@ -418,7 +419,8 @@ class Autopilot:
         self._check_offboard_loss(state)
         self._check_auto_disarm(state)
         self._send_heartbeat_if_due()
-        self._send_telemetry_if_due(state)
+        if telemetry:
+            self._send_telemetry_if_due(state)
 
     def attitude_reference(self, state: VehicleStateView) -> AttitudeReference:
         """Return the inner-loop reference for the current mode (does not change the mode)."""

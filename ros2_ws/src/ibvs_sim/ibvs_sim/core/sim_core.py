@@ -66,7 +66,8 @@ class ReferenceSource(Protocol):
 
     last_setpoint_time_boot_ms: int | None
 
-    def poll(self, state: VehicleStateView, receive: bool = True) -> None: ...
+    def poll(self, state: VehicleStateView, receive: bool = True,
+             telemetry: bool = True) -> None: ...
 
     def attitude_reference(self, state: VehicleStateView) -> AttitudeReference: ...
 
@@ -117,30 +118,44 @@ class FrameOutput:
         return self.t_ns / NS_PER_S
 
 
-class SubscriberHold:
-    """Whether the first frame may go: every camera has ``min_count`` image subscribers.
+class FirstFrameHold:
+    """Whether the first frame may go: the graph is there to answer it.
 
-    So that every perception node (and a recorder) sees the same frames from the first one on,
-    and a bag replay starts its trackers where the live ones started. The counts must hold for
-    ``settle_s`` (discovery completes on both sides) before the release; after ``timeout_s``
-    the frame goes anyway. Times are one monotonic clock (s); min_count 0 never holds.
+    Each counted topic has its minimum number of subscribers (``min_counts``, e.g. both
+    cameras' images: detector + flow (+ recorder)), so that every node sees the same frames from
+    the first one on (an image published before discovery matched a subscriber is lost for it)
+    and a bag replay starts its trackers where the live ones started; and, with
+    ``need_setpoints``, the companion already streams setpoints, so its link is up and the IMU
+    at t = 0 reaches the graph with frame 0 (the bridge starts its stream only once its
+    ``imu/data`` consumers are matched, ``min_imu_subscribers``). The conditions must hold for
+    ``settle_s`` (discovery completes on all sides) before the release; after ``timeout_s`` the
+    frame goes anyway. Times are one monotonic clock (s); no minimum and no need_setpoints
+    never holds.
     """
 
-    def __init__(self, min_count: int, settle_s: float, timeout_s: float, now: float) -> None:
-        if min_count < 0 or settle_s < 0.0 or not timeout_s > 0.0:
-            raise ValueError(f'need min_count >= 0, settle_s >= 0, timeout_s > 0; got '
-                             f'{min_count}, {settle_s}, {timeout_s}')
-        self.min_count, self.settle_s = int(min_count), float(settle_s)
+    def __init__(self, min_counts: dict, settle_s: float, timeout_s: float, now: float,
+                 need_setpoints: bool = False) -> None:
+        if any(int(c) < 0 for c in min_counts.values()) or settle_s < 0.0 \
+                or not timeout_s > 0.0:
+            raise ValueError(f'need counts >= 0, settle_s >= 0, timeout_s > 0; got '
+                             f'{min_counts}, {settle_s}, {timeout_s}')
+        self.min_counts = {k: int(c) for k, c in min_counts.items()}
+        self.settle_s = float(settle_s)
+        self.need_setpoints = bool(need_setpoints)
         self.deadline = now + timeout_s
-        self.released = min_count == 0
+        self.released = not any(self.min_counts.values()) and not need_setpoints
         self.timed_out = False
         self._since: float | None = None
 
-    def ready(self, counts: dict, now: float) -> bool:
-        """Update with the subscriber count per camera; True once (and after) released."""
+    def ready(self, counts: dict, now: float, setpoints: bool = False) -> bool:
+        """Update with the subscriber count per topic and whether setpoints stream.
+
+        Return True once (and after) released.
+        """
         if self.released:
             return True
-        if all(c >= self.min_count for c in counts.values()):
+        if (all(counts.get(k, 0) >= c for k, c in self.min_counts.items())
+                and (setpoints or not self.need_setpoints)):
             self._since = now if self._since is None else self._since
             self.released = now - self._since >= self.settle_s
         else:
@@ -210,7 +225,7 @@ class Simulation:
         now = self.wall_clock()
         if self.frame_index < 0:
             self._next_due_wall = now + self.period_ns / NS_PER_S
-            return self._emit([])
+            return self._first_frame()
         if self.config.pacing is Pacing.REALTIME:
             if now < self._next_due_wall:
                 return None
@@ -234,7 +249,7 @@ class Simulation:
         if self.ended:
             return None
         if self.frame_index < 0:
-            return self._emit([])
+            return self._first_frame()
         new_events = []
         # realtime: datagrams arrive at any substep, as on a vehicle; lockstep: between frames
         receive = self.config.pacing is Pacing.REALTIME
@@ -257,6 +272,22 @@ class Simulation:
         # graph derotates the frame with an attitude extrapolated over a whole frame period.
         self.autopilot.poll(self.state_view(), receive=receive)
         return self._emit(new_events)
+
+    def poll_before_start(self) -> bool:
+        """Serve the autopilot's link before frame 0; return whether setpoints stream already.
+
+        The sim node calls it while it holds the first frame (:class:`FirstFrameHold`), so
+        that the companion can connect, read parameters and start its stream meanwhile. No
+        telemetry leaves yet: the IMU at t = 0 goes with frame 0, once the graph is matched
+        (sent earlier, it reaches some subscribers and not others, by discovery timing).
+        """
+        self.autopilot.poll(self.state_view(), telemetry=False)
+        return self.autopilot.last_setpoint_time_boot_ms is not None
+
+    def _first_frame(self) -> FrameOutput:
+        # the telemetry due at t = 0 leaves before frame 0, as before every later frame
+        self.autopilot.poll(self.state_view(), receive=self.config.pacing is Pacing.REALTIME)
+        return self._emit([])
 
     def _emit(self, new_events: list) -> FrameOutput:
         self.frame_index += 1
