@@ -691,3 +691,24 @@ def test_stream_held_sends_nothing_then_fallback_carries_no_newer_time(peer_brid
     ok, _ = spin(bridge, 1.0, until=lambda: len(peer.setpoints) >= 3)
     assert ok
     assert {m.time_boot_ms for _, m in peer.setpoints} == {0}
+
+
+def test_content_follows_the_status_of_the_force_stamp_not_the_latest_mode(peer_bridge):
+    # ibvs/mode SHUTDOWN may land before the force of the last LANDING frame: that force is
+    # still flown as LANDING (its own status); the SHUTDOWN frame's force starts the ramp.
+    peer, bridge = peer_bridge(bridge_kw={'heading_wait_s': 0.0})
+    wait_link(bridge)
+    hover_F = np.array([0.0, 0.0, MASS * GRAVITY])
+    assert bridge.on_supervisor_status(1_000_000_000, int(Mode.LANDING)) == ''
+    assert bridge.on_supervisor_status(1_020_000_000, int(Mode.SHUTDOWN)) == ''
+    assert bridge.on_supervisor_status(1_040_000_000, 99) != ''      # refused
+    bridge.on_supervisor_mode(int(Mode.SHUTDOWN))
+    bridge.on_force(1_000_000_000, 1.2 * hover_F)
+    assert bridge.content_mode(time.monotonic()) == Mode.LANDING
+    assert bridge.setpoint_source == SetpointSource.IBVS
+    bridge.on_force(1_020_000_000, 1.2 * hover_F)
+    assert bridge.content_mode(time.monotonic()) == Mode.SHUTDOWN
+    assert bridge.setpoint_source == SetpointSource.SHUTDOWN_RAMP
+    # a force without a status of its own: the latest ibvs/mode
+    bridge.on_force(1_060_000_000, hover_F)
+    assert bridge.content_mode(time.monotonic()) == Mode.SHUTDOWN

@@ -2,7 +2,8 @@
 
 Thin ROS wrapper of :class:`ibvs_control.core.mavlink_bridge.MavlinkBridge` (docs/mavlink.md,
 docs/interfaces.md). Subscribes ibvs/force_setpoint (Vector3Stamped, map, N),
-ibvs/heading_setpoint (QuaternionStamped, map) and ibvs/mode (UInt8, transient local);
+ibvs/heading_setpoint (QuaternionStamped, map), ibvs/mode (UInt8, transient local) and
+ibvs/supervisor_status (DiagnosticArray, the mode of each frame);
 publishes imu/data (sensor_msgs/Imu, base_link in map) and /diagnostics. The link timers
 (receive, setpoint stream, heartbeat) run on the steady clock: the autopilot's offboard timeout
 counts in its own time, and a lockstep sim's /clock waits for our setpoints.
@@ -27,8 +28,8 @@ from ibvs_control.core.mavlink_bridge import (
 from ibvs_control.core.mavlink_link import LinkConfig, load_signing_key, SigningError
 from ibvs_control.core.mavlink_sequencer import SequencerConfig
 from ibvs_control.node_common import (
-    COMMAND_QOS, MODE_QOS, ns_to_stamp, quat_wxyz, set_quat, set_vector3, stamp_to_ns,
-    vector3)
+    COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
+    stamp_to_ns, vector3)
 from ibvs_control.spin import spin_guarded
 
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
@@ -100,6 +101,8 @@ class MavlinkBridgeNode(Node):
         self.create_subscription(QuaternionStamped, 'ibvs/heading_setpoint', self._on_heading,
                                  COMMAND_QOS)
         self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
+        self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
+                                 COMMAND_QOS)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / p['poll_rate_hz'], self._on_poll, clock=steady)
         self.create_timer(1.0 / p['stream_rate_hz'], self._on_stream, clock=steady)
@@ -167,6 +170,14 @@ class MavlinkBridgeNode(Node):
     def _on_mode(self, msg: UInt8) -> None:
         self._bridge.on_supervisor_mode(msg.data)
         self._log_events()
+
+    def _on_status(self, msg: DiagnosticArray) -> None:
+        """Give the supervisor's mode of one frame to the core (the content of its force)."""
+        stamp_ns, mode, err = mode_from_status(msg)
+        err = err or self._bridge.on_supervisor_status(stamp_ns, mode)
+        if err:
+            self.get_logger().error(f'ibvs/supervisor_status refused: {err}',
+                                    throttle_duration_sec=LOG_THROTTLE_S)
 
     def _on_poll(self) -> None:
         # poll() also sends a force whose wait for its heading has expired

@@ -20,10 +20,13 @@ Heading / force pairing (:class:`HeadingPairing`)
     held until it arrives or for at most ``heading_wait_s`` (then flown with the latest
     heading). A heading arriving after its force was sent never changes what was sent.
 Mode-dependent content (supervisor mode -> what is sent)
-    IDLE, WINDOW, CROSSING, LANDING: the controller's F and heading. SHUTDOWN: level at the
-    current yaw, thrust ramped linearly from its value at the switch to 0 over
-    ``shutdown_ramp_s``. FAILSAFE: level at the current yaw, thrust = ``failsafe_thrust_ratio``
-    x hover thrust (a slow descent; the autopilot's land detector or an operator ends it).
+    The mode is the supervisor's for the stamp of the latest force (``ibvs/supervisor_status``,
+    :meth:`MavlinkBridge.content_mode`), else the latest ``ibvs/mode``, which also drives the
+    engage sequencer. IDLE, WINDOW, CROSSING, LANDING: the controller's F and heading.
+    SHUTDOWN: level at the current yaw, thrust ramped linearly from its value at the switch to
+    0 over ``shutdown_ramp_s``. FAILSAFE: level at the current yaw, thrust =
+    ``failsafe_thrust_ratio`` x hover thrust (a slow descent; the autopilot's land detector or
+    an operator ends it).
 Bad input
     A non-finite or out-of-range force or heading is never sent: the last valid setpoint is
     kept for at most ``hold_last_s``, then a level hover at the current yaw replaces it.
@@ -457,6 +460,9 @@ class RateMeter:
             self._t.popleft()
 
 
+STATUS_MODES_KEPT = 32      # supervisor modes by stamp kept to pair with forces (0.64 s)
+
+
 class MavlinkBridge:
     """ROS-free bridge: call on_* for inputs, poll/stream/heartbeat from timers."""
 
@@ -482,6 +488,9 @@ class MavlinkBridge:
         self.stream_enabled = True
         self._current: AttitudeTarget | None = None
         self._setpoint_time_boot_ms = 0      # time_boot_ms of the latest IBVS setpoint
+        self._force_stamp_ns: int | None = None   # stamp of the latest force sent
+        self._force_sent_t = -np.inf              # when (monotonic s)
+        self._status_modes: dict[int, Mode] = {}  # stamp ns -> supervisor mode of that frame
         self._stream_start: float | None = None
         self._last_stream_t: float | None = None
         self._params_since: float | None = None
@@ -509,6 +518,37 @@ class MavlinkBridge:
         self.supervisor_mode = new
         # Engagement commands leave now, not at the next poll (before the next setpoint).
         self._run_sequencer(self._clock())
+
+    def on_supervisor_status(self, stamp_ns: int, mode: int | None) -> str:
+        """Note the supervisor's mode for the frame of ``stamp_ns`` (ibvs/supervisor_status).
+
+        The force of that stamp is then flown with the content of that mode (see
+        :meth:`content_mode`). Returns '' or why the value is refused.
+        """
+        try:
+            m = Mode(int(mode))
+        except (TypeError, ValueError):
+            return f'unknown supervisor mode {mode!r}'
+        self._status_modes[int(stamp_ns)] = m
+        while len(self._status_modes) > STATUS_MODES_KEPT:
+            del self._status_modes[min(self._status_modes)]
+        return ''
+
+    def content_mode(self, now: float) -> Mode:
+        """Return the mode whose content (F, shutdown ramp, failsafe) the target carries.
+
+        The supervisor's mode reported for the stamp of the latest force, so that e.g. the
+        shutdown ramp starts on the SHUTDOWN frame itself, not on whichever setpoint follows the
+        ``ibvs/mode`` message (lockstep runs then repeat to the end). Without that status, or
+        once the forces stopped for ``hold_last_s`` (controller silent: the latest mode must
+        still act, e.g. FAILSAFE), the latest ``ibvs/mode``.
+        """
+        if self._force_stamp_ns is not None \
+                and now - self._force_sent_t <= self.config.hold_last_s:
+            mode = self._status_modes.get(self._force_stamp_ns)
+            if mode is not None:
+                return mode
+        return self.supervisor_mode
 
     def on_heading(self, stamp_ns: int, q_wxyz_enu_flu: np.ndarray) -> str:
         """ibvs/heading_setpoint of stamp_ns (base_link in map).
@@ -767,6 +807,7 @@ class MavlinkBridge:
             ms = self.stamp_to_boot_ms(p.stamp_ns)
             if ms is not None:
                 self._setpoint_time_boot_ms = max(self._setpoint_time_boot_ms, ms)
+            self._force_stamp_ns, self._force_sent_t = p.stamp_ns, self._clock()
             self._send_current(new=True)
 
     def _send_current(self, new: bool) -> None:
@@ -779,7 +820,7 @@ class MavlinkBridge:
         # shutdown ramp) is not an answer to a newer camera frame, so the sim's lockstep keeps
         # waiting for the controller instead of running ahead of the graph.
         ms = self._setpoint_time_boot_ms
-        target = self.shaper.target(now, self.supervisor_mode, self._yaw_now, hover, ms)
+        target = self.shaper.target(now, self.content_mode(now), self._yaw_now, hover, ms)
         if target.source == SetpointSource.HOLD_LAST and new:
             self._event('error', f'force setpoint refused ({self.shaper.last_error}): '
                                  'holding the last valid one')
