@@ -67,6 +67,7 @@ def test_sim_graph_yaml_only_lengthens_waits_of_existing_parameters():
             assert value >= base[node][key], (node, key)
     # the supervisor's status of a timed-out frame reaches the controller before its own wait
     assert sim['force_controller']['sync_timeout_s'] > sim['mode_supervisor']['sync_timeout_s']
+    assert sim['mode_supervisor']['sync_timeout_s'] > sim['down_optical_flow']['input_wait_s']
     # the chain of waits that one frame can meet stays below the sim's own lockstep wait
     chain = (sim['front_optical_flow']['input_wait_s'] + sim['mode_supervisor']['sync_timeout_s']
              + sim['force_controller']['sync_timeout_s']

@@ -65,6 +65,11 @@ def test_evaluation_of_a_good_run():
     assert s['landing']['touchdown_speed_mps'] == pytest.approx(0.3)
     assert s['landing']['error_m'] == pytest.approx(0.0, abs=1e-9)
     assert s['modes'][1] == {'mode': 1, 't_start_s': 0.5}
+    # duration counts from sim time 0, also when the first samples were not heard
+    late = evaluate_run(t[5:], xi[5:], v[5:], W, R, H, [])
+    assert late['duration_s'] == pytest.approx(s['duration_s'])
+    assert evaluate_run(t[5:], xi[5:], v[5:], W, R, H, [], t_start_s=None)['duration_s'] \
+        == pytest.approx(s['duration_s'] - (t[5] - t[0]))
 
 
 def test_evaluation_catches_frame_contact_landing_error_and_hard_touchdown():

@@ -1,7 +1,8 @@
 """Scenario monitor: the in-process node of ``run_scenario`` that watches one run.
 
-It fills a ``report.RunLog`` ({I}, sim time) from the ground truth, modes, events, force
-setpoint, flows and features, and carries the preflight ``GraphHealth`` checks (the
+It fills a ``report.RunLog`` ({I}, sim time) from the ground truth, modes (from
+``ibvs/supervisor_status``: each change at the stamp of the frame where the supervisor made it,
+not when the monitor heard it), events, force setpoint, flows and features, and carries the preflight ``GraphHealth`` checks (the
 supervisor starts by itself: graph option ``auto_start_at_s``). All frame conversions go
 through ``ibvs_control.core.frames``.
 """
@@ -12,13 +13,15 @@ import json
 from geometry_msgs.msg import Vector3Stamped
 from ibvs_bringup.preflight import BEST_EFFORT, GraphHealth, LATCHED
 from ibvs_bringup.report import FEATURE_VECTORS, named_vector, RunLog
+from diagnostic_msgs.msg import DiagnosticArray
 from ibvs_control.core import frames
+from ibvs_control.node_common import COMMAND_QOS, mode_from_status, NS_PER_S
 from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String, UInt8
+from std_msgs.msg import String
 
 FLOW_TOPICS = {'flow_front': 'front_camera/translational_flow',
                'flow_down': 'down_camera/translational_flow'}
@@ -59,7 +62,8 @@ class ScenarioMonitor(Node):
         self.disarmed = False
         self.health = GraphHealth(self)
         self.create_subscription(Odometry, 'sim/ground_truth/odom', self._on_odom, BEST_EFFORT)
-        self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, LATCHED)
+        self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
+                                 COMMAND_QOS)
         self.create_subscription(String, 'sim/events', self._on_event, LATCHED)
         self.create_subscription(Vector3Stamped, 'ibvs/force_setpoint',
                                  lambda m: self._on_map_vector('force', m), BEST_EFFORT)
@@ -75,9 +79,13 @@ class ScenarioMonitor(Node):
     def _on_odom(self, msg: Odometry) -> None:
         self.log.add_truth(stamp_s(msg), *odom_to_I(msg))
 
-    def _on_mode(self, msg: UInt8) -> None:
-        if self.log.add_mode(self.now_s(), msg.data):
-            self.get_logger().info(f'mode {msg.data} at t = {self.now_s():.2f} s')
+    def _on_status(self, msg: DiagnosticArray) -> None:
+        """Record a mode change at the stamp of the frame where the supervisor made it."""
+        stamp_ns, mode, err = mode_from_status(msg)
+        if err or mode is None:
+            return
+        if self.log.add_mode(stamp_ns / NS_PER_S, mode):
+            self.get_logger().info(f'mode {mode} at t = {stamp_ns / NS_PER_S:.2f} s')
 
     def _on_event(self, msg: String) -> None:
         try:

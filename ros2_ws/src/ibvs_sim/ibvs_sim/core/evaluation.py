@@ -40,7 +40,8 @@ class GroundTruthLog:
 def evaluate_run(t: np.ndarray, xi_I: np.ndarray, v_I: np.ndarray, world: WorldConfig,
                  envelope_radius: float, envelope_height: float,
                  modes: list[tuple[int, float]],
-                 touchdown_speed_mps: float | None = None) -> dict:
+                 touchdown_speed_mps: float | None = None, t_start_s: float | None = 0.0
+                 ) -> dict:
     """Return the summary dict of SPEC.md section 5 from a ground-truth trajectory.
 
     - touchdown: the first sample whose envelope bottom reaches the floor; its speed is the
@@ -55,6 +56,10 @@ def evaluate_run(t: np.ndarray, xi_I: np.ndarray, v_I: np.ndarray, world: WorldC
     touchdown event); sampled ground truth can miss it (a floor contact stops the body within
     one step), so when given it is used, and otherwise the larger vertical speed of the
     contact sample and the one before it.
+
+    ``t_start_s``: the sim time the run started at, the origin of ``duration_s`` (the sim
+    clock starts at 0; a recorder that heard its first sample later must not shorten the
+    run); None: the first sample.
     """
     t = np.asarray(t, dtype=float)
     xi = np.asarray(xi_I, dtype=float).reshape(-1, 3)
@@ -86,7 +91,8 @@ def evaluate_run(t: np.ndarray, xi_I: np.ndarray, v_I: np.ndarray, world: WorldC
         td_speed = float(max(v[td, 2], v[td - 1, 2] if td > 0 else v[td, 2]))
         if touchdown_speed_mps is not None:
             td_speed = float(touchdown_speed_mps)
-    duration = float(t[td] if landed else t[-1]) - float(t[0])
+    duration = float(t[td] if landed else t[-1]) - float(t[0] if t_start_s is None
+                                                         else t_start_s)
     success = bool(crossed and clear > 0.0 and landed and error <= MAX_LANDING_ERROR_M
                    and td_speed <= MAX_TOUCHDOWN_SPEED_MPS and duration <= MAX_DURATION_S)
     return {
