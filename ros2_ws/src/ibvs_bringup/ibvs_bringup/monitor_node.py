@@ -2,8 +2,9 @@
 
 It fills a ``report.RunLog`` ({I}, sim time) from the ground truth, modes (from
 ``ibvs/supervisor_status``: each change at the stamp of the frame where the supervisor made it,
-not when the monitor heard it), events, force setpoint, flows and features, and carries the preflight ``GraphHealth`` checks (the
-supervisor starts by itself: graph option ``auto_start_at_s``). All frame conversions go
+not when the monitor heard it), events, force setpoint, flows and features, and carries the
+preflight ``GraphHealth`` checks (the supervisor starts by itself: graph option
+``auto_start_at_s``). All frame conversions go
 through ``ibvs_control.core.frames``.
 """
 from __future__ import annotations
