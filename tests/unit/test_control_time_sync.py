@@ -1,0 +1,236 @@
+"""The TIMESYNC clock-offset estimator (ibvs_control.core.time_sync) on synthetic round trips.
+
+A synthetic link: the autopilot's boot clock is the ROS clock minus a known offset; a request
+sent at ROS time t reaches the autopilot after ``up`` ns (it answers with its boot time then)
+and the answer comes back ``down`` ns later. Expected offsets are written out from that model
+(a symmetric link measures the offset exactly, an asymmetric one is off by half the
+difference of the two legs), never recomputed with the estimator's formula.
+"""
+import pytest
+
+from ibvs_control.core.time_sync import TimeSync, TimeSyncConfig
+
+MS = 1_000_000                                  # ns
+OFFSET = 1_700_000_000_123_456_789              # ns: ROS (system time) - boot, a real-looking one
+
+
+class Link:
+    """Drives a TimeSync with round trips of a simulated link (ROS clock ns, steady s)."""
+
+    def __init__(self, ts: TimeSync, offset: int, ros_ns: int = 5_000 * MS + OFFSET) -> None:
+        self.ts = ts
+        self.offset = offset          # the true ROS - boot
+        self.ros = ros_ns             # ROS time now
+        self.steady = 100.0
+
+    def trip(self, up: int = 0, down: int = 0, offset: int | None = None,
+             ts1_override: int | None = None) -> list:
+        """One request/answer; the clocks then move on 0.1 s (ROS) / 0.05 s (steady)."""
+        self.ros += 100 * MS
+        self.steady += 0.05
+        ts1 = self.ts.next_request(self.ros, self.steady)
+        assert ts1 == self.ros, 'a request was due'
+        true_offset = self.offset if offset is None else offset
+        tc1 = self.ros + up - true_offset          # the autopilot's boot time when it answers
+        return self.ts.on_reply(tc1, ts1 if ts1_override is None else ts1_override,
+                                self.ros + up + down)
+
+
+def synced(offset=OFFSET, **config) -> tuple[TimeSync, Link]:
+    ts = TimeSync(TimeSyncConfig(**config))
+    link = Link(ts, offset)
+    for _ in range(ts.config.init_samples):
+        link.trip(up=200_000, down=200_000)
+    assert ts.synced
+    return ts, link
+
+
+def test_unknown_until_five_samples_then_their_median():
+    ts = TimeSync()
+    link = Link(ts, OFFSET)
+    # legs (up, down) in us -> sample error (down - up) / 2: +1, -0.5, 0, +2, -1.5 (us)
+    legs = [(1000, 3000), (2000, 1000), (500, 500), (0, 4000), (3000, 0)]
+    for i, (up, down) in enumerate(legs):
+        assert not ts.synced and ts.offset_ns is None
+        assert ts.boot_ms_to_ros_ns(1234) is None and ts.ros_ns_to_boot_ms(OFFSET) is None
+        events = link.trip(up * 1000, down * 1000)
+        assert ts.accepted == i + 1
+    assert ts.synced
+    assert ts.offset_ns == OFFSET                 # the median sample: the symmetric one
+    assert any('synced' in text for _, text in events)
+
+
+def test_symmetric_link_gives_the_exact_offset_and_the_mappings():
+    ts, _ = synced()
+    assert ts.offset_ns == OFFSET
+    assert ts.boot_ms_to_ros_ns(1234) == 1_700_000_001_357_456_789   # 1.234 s after boot
+    # ROS -> boot ms, nearest ms, halves up
+    assert ts.ros_ns_to_boot_ms(OFFSET + 1_234_499_999) == 1234
+    assert ts.ros_ns_to_boot_ms(OFFSET + 1_234_500_000) == 1235
+    assert ts.ros_ns_to_boot_ms(OFFSET + 1_233_500_000) == 1234
+
+
+def test_asymmetric_link_is_off_by_half_the_difference_of_the_legs():
+    ts = TimeSync()
+    link = Link(ts, OFFSET)
+    for _ in range(5):
+        link.trip(up=1 * MS, down=3 * MS)          # back leg 2 ms longer
+    assert ts.offset_ns == OFFSET + 1 * MS         # ROS of the answer's middle taken 1 ms late
+    assert ts.last_rtt_ns == 4 * MS
+
+
+def test_rtt_gate_rejects_long_round_trips_and_counts_them():
+    ts = TimeSync()
+    link = Link(ts, OFFSET)
+    link.trip(up=5 * MS, down=5 * MS + 1)          # 10 ms + 1 ns: rejected
+    assert ts.rejected_rtt == 1 and ts.accepted == 0
+    link.trip(up=5 * MS, down=5 * MS)              # exactly 10 ms: accepted
+    assert ts.accepted == 1
+    # our clock went back during the round trip (rtt < 0): rejected
+    ts1 = ts.next_request(link.ros + 100 * MS, link.steady + 1.0)
+    ts.on_reply(ts1 - OFFSET, ts1, ts1 - 1 * MS)
+    assert ts.rejected_rtt == 2 and ts.last_rtt_ns == -1 * MS
+    # max_rtt_s is a parameter
+    ts2 = TimeSync(TimeSyncConfig(max_rtt_s=0.002))
+    Link(ts2, OFFSET).trip(up=1 * MS, down=1 * MS + 1)
+    assert ts2.rejected_rtt == 1
+
+
+def test_answers_to_no_request_of_ours_are_ignored():
+    ts = TimeSync()
+    link = Link(ts, OFFSET)
+    link.trip(ts1_override=123)
+    assert ts.unmatched == 1 and ts.accepted == 0
+    ts.on_reply(5, 999, 1000)                      # never requested
+    assert ts.unmatched == 2
+
+
+def test_tracking_smooths_with_alpha():
+    ts, link = synced()
+    link.trip(offset=OFFSET + 1 * MS)              # 1 ms more: moves 5 % of the way
+    assert ts.offset_ns == OFFSET + 50_000
+    link.trip(offset=OFFSET + 1 * MS)              # 5 % of the remaining 950 us
+    assert ts.offset_ns == OFFSET + 97_500
+    ts2, link2 = synced(alpha=0.5)
+    link2.trip(offset=OFFSET + 2 * MS)
+    assert ts2.offset_ns == OFFSET + 1 * MS
+
+
+def test_outliers_are_not_used_and_five_in_a_row_reset_then_resync():
+    ts, link = synced()
+    accepted = ts.accepted
+    for _ in range(4):
+        link.trip(offset=OFFSET - 20 * MS)         # -20 ms with rtt 0: a lagging /clock
+    assert ts.offset_ns == OFFSET and ts.rejected_outliers == 4 and ts.accepted == accepted
+    link.trip()                                    # a good one ends the streak
+    # a real time jump: our system clock is set back by 3 s (the boot clock runs on)
+    jumped = OFFSET - 3_000 * MS
+    link.ros -= 3_000 * MS
+    link.offset = jumped
+    for _ in range(4):
+        link.trip()
+    assert ts.synced and ts.offset_ns == OFFSET
+    events = link.trip()                           # the 5th in a row
+    assert not ts.synced and ts.resets == 1
+    assert any('time jump' in text for _, text in events)
+    for _ in range(4):
+        link.trip()
+        assert not ts.synced
+    link.trip()
+    assert ts.synced and ts.offset_ns == jumped
+
+
+def test_deviation_gate_is_a_parameter():
+    ts, link = synced(max_deviation_s=0.002, max_consecutive_outliers=2)
+    link.trip(offset=OFFSET + 1_900_000)           # within 2 ms: used
+    assert ts.rejected_outliers == 0
+    link.trip(offset=OFFSET + 5 * MS)
+    assert ts.synced
+    link.trip(offset=OFFSET + 5 * MS)              # 2 in a row: reset
+    assert not ts.synced
+
+
+def test_reboot_resets_on_time_boot_ms_or_tc1_going_back():
+    ts, link = synced()
+    ts.on_boot_time('time_boot_ms', 100_000 * MS)
+    assert ts.on_boot_time('time_boot_ms', 99_500 * MS) == []    # 0.5 s back: reordering
+    assert ts.synced
+    events = ts.on_boot_time('time_boot_ms', 2_000 * MS)         # 98 s back: reboot
+    assert not ts.synced and ts.resets == 1
+    assert any('reboot' in text for _, text in events)
+    # re-sync on the new boot clock (booted 150 s after the old one)
+    link.offset = OFFSET + 150_000 * MS
+    for _ in range(5):
+        link.trip()
+    assert ts.synced and ts.offset_ns == OFFSET + 150_000 * MS
+    # tc1 going back by more than 1 s resets as well
+    link.offset = OFFSET + 300_000 * MS
+    link.trip()
+    assert not ts.synced and ts.resets == 2
+
+
+def test_requests_never_at_ros_time_zero_and_paced_by_the_right_clock():
+    ts = TimeSync()
+    assert ts.next_request(0, 1.0) is None         # no /clock yet under use_sim_time
+    assert ts.next_request(None, 1.0) is None
+    # unsynced: every call, at most every 0.05 s of the steady clock (ROS time may stand)
+    assert ts.next_request(20 * MS, 1.0) == 20 * MS
+    assert ts.next_request(20 * MS, 1.03) is None
+    assert ts.next_request(20 * MS, 1.05) == 20 * MS
+    ts2 = TimeSync()
+    steady = 0.0
+    while not ts2.synced:                          # lockstep: ROS = boot = 20 ms, frozen
+        steady += 0.05
+        ts1 = ts2.next_request(20 * MS, steady)
+        ts2.on_reply(20 * MS, ts1, 20 * MS)
+    assert ts2.offset_ns == 0
+    # synced: every 0.1 s of ROS time, whatever the steady clock does
+    assert ts2.next_request(20 * MS, steady + 10.0) is None
+    assert ts2.next_request(100 * MS, steady + 10.0) is None
+    assert ts2.next_request(120 * MS, steady) == 120 * MS
+    assert ts2.next_request(200 * MS, steady + 10.0) is None
+    assert ts2.next_request(220 * MS, steady) == 220 * MS
+
+
+def lockstep_run() -> tuple[list, TimeSync]:
+    """A lockstep sim: ROS time = sim time = boot time, 20 ms frames, answers in the frame.
+
+    One request in seven is read by the autopilot a frame late while our /clock still shows
+    the old frame (a sample of -20 ms with rtt 0), one in eleven comes back after our /clock
+    moved on (rtt 20 ms). Returns the mapped stamps of every frame's IMU sample.
+    """
+    ts = TimeSync()
+    stamps = []
+    steady = 0.0
+    for frame in range(1, 400):
+        t = frame * 20 * MS
+        steady += 0.02
+        ts1 = ts.next_request(t, steady)
+        if ts1 is not None:
+            if frame % 7 == 3:
+                ts.on_reply(t + 20 * MS, ts1, t)           # answered in the next frame
+            elif frame % 11 == 5:
+                ts.on_reply(t, ts1, t + 20 * MS)           # read after /clock moved on
+            else:
+                ts.on_reply(t, ts1, t)
+        stamps.append(ts.boot_ms_to_ros_ns(frame * 20))
+    return stamps, ts
+
+
+def test_lockstep_pattern_keeps_the_offset_exactly_zero_and_stamps_repeat():
+    stamps, ts = lockstep_run()
+    assert ts.synced and ts.offset_ns == 0
+    assert ts.rejected_outliers > 0 and ts.rejected_rtt > 0       # the pattern happened
+    assert ts.resets == 0
+    first = next(i for i, s in enumerate(stamps) if s is not None)
+    assert all(s == (i + 1) * 20 * MS for i, s in enumerate(stamps) if i >= first)
+    again, _ = lockstep_run()
+    assert again == stamps                                         # bit for bit
+
+
+def test_config_is_validated():
+    for bad in ({'period_s': 0.0}, {'max_rtt_s': -1.0}, {'alpha': 0.0}, {'alpha': 1.5},
+                {'init_samples': 0}, {'max_consecutive_outliers': 2.5},
+                {'max_deviation_s': float('nan')}):
+        with pytest.raises(ValueError):
+            TimeSyncConfig(**bad)
