@@ -284,9 +284,15 @@ def stamps_of(msgs):
     return [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs]
 
 
-def test_controller_answers_every_stamp_once_in_idle(ctx):
+def status(feed, t, mode):
+    """Publish the supervisor's status of the frame at t (s) in ``mode``."""
+    feed.status.publish(supervisor_status_msg(int(round(t * 1e9)), mode, 'm',
+                                              DiagnosticStatus.OK, {}))
+
+
+def test_controller_answers_every_status_once_in_idle(ctx):
     context, executor, nodes = ctx
-    fc = make_controller(context, f'fc_{TAG}', sync_timeout_s=0.03)
+    fc = make_controller(context, f'fc_{TAG}')
     feed = Feeder(context, f'feedfc_{TAG}')
     nodes += [fc, feed.node]
     executor.add_node(fc)
@@ -295,11 +301,12 @@ def test_controller_answers_every_stamp_once_in_idle(ctx):
     xi = np.array([-2.0, 0.1, -1.82])
     sent = []
     for i in range(12):
-        t = 10.0 + 0.02 * i
+        t = 10.0 + 0.02 * i      # stamps long past on the system clock: deadlines expired
         feed.imu.publish(imu_msg(t - 0.001))
-        feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
-        if i % 3:   # every third frame the pad detector says nothing: timeout path
-            feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
+        if i % 3:   # every third frame the window detector says nothing: answered anyway
+            feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+        spin_for(executor, 0.01)
+        status(feed, t, 0)
         sent.append(int(round(t * 1e9)))
         spin_for(executor, 0.01)
     assert spin_until(executor, lambda: len(feed.forces) >= 12, 3.0)
@@ -314,14 +321,51 @@ def test_controller_answers_every_stamp_once_in_idle(ctx):
     q = feed.headings[0].quaternion
     assert np.allclose([q.w, q.z], [np.cos(np.pi / 4), np.sin(np.pi / 4)], atol=1e-9)
 
-    # out of order and duplicates: dropped, no extra answer
+    # a status out of order or repeated: dropped, no extra answer
     n = len(feed.forces)
-    feed.corners.publish(polygon(10.0, corners_C(xi), 'front_camera_optical_frame'))
-    t = 11.0
-    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
-    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+    status(feed, 10.0, 0)
+    status(feed, 11.0, 0)
+    status(feed, 11.0, 0)
     spin_for(executor, 0.3)
-    assert stamps_of(feed.forces[n:]) == [int(t * 1e9)]
+    assert stamps_of(feed.forces[n:]) == [int(11.0 * 1e9)]
+
+
+def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clock(ctx):
+    """WINDOW needs the front flow: no answer while sim time stands still, one at stamp + 40 ms.
+
+    An unneeded product (the pad, whose detector is dead here) never delays a frame.
+    """
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fc7_{TAG}', use_sim_time=True, frame_deadline_s=0.04)
+    feed = Feeder(context, f'feedfc7_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    xi = np.array([-2.0, 0.1, -1.82])
+    t = 5.0
+    feed.clock.publish(Clock(clock=stamp(t)))
+    spin_for(executor, 0.3)
+    feed.imu.publish(imu_msg(t))
+    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+    status(feed, t, 1)
+    spin_for(executor, 0.5)            # half a second of wall clock, sim time stands still
+    assert feed.forces == []
+    feed.clock.publish(Clock(clock=stamp(t + 0.039)))
+    spin_for(executor, 0.2)
+    assert feed.forces == []
+    feed.clock.publish(Clock(clock=stamp(t + 0.041)))
+    assert spin_until(executor, lambda: len(feed.forces) == 1, 2.0)
+    assert stamps_of(feed.forces) == [int(t * 1e9)]
+    # next frame: window + front flow of its stamp, no pad at all -> answered at once
+    t2 = t + 0.06
+    feed.clock.publish(Clock(clock=stamp(t2)))
+    spin_for(executor, 0.1)
+    feed.imu.publish(imu_msg(t2))
+    feed.corners.publish(polygon(t2, corners_C(xi), 'front_camera_optical_frame'))
+    feed.front.publish(flow_msg(t2, np.zeros(3)))
+    status(feed, t2, 1)
+    assert spin_until(executor, lambda: len(feed.forces) == 2, 2.0)
+    assert stamps_of(feed.forces[1:]) == [int(round(t2 * 1e9))]
 
 
 def test_controller_bad_inputs_still_answered_without_nan(ctx):
@@ -332,8 +376,6 @@ def test_controller_bad_inputs_still_answered_without_nan(ctx):
     executor.add_node(fc)
     executor.add_node(feed.node)
     spin_for(executor, 0.3)
-    feed.mode.publish(UInt8(data=1))
-    spin_for(executor, 0.2)
     xi = np.array([-2.0, 0.1, -1.82])
     bad = corners_C(xi)
     bad[0, 2] = np.nan
@@ -344,8 +386,14 @@ def test_controller_bad_inputs_still_answered_without_nan(ctx):
         feed.corners.publish(polygon(t, corners, 'front_camera_optical_frame'))
         feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
         feed.front.publish(flow_msg(t, np.array([np.nan, 0.0, 0.0])))
+        spin_for(executor, 0.02)
+        status(feed, t, 1)
         spin_for(executor, 0.05)
-    assert spin_until(executor, lambda: len(feed.forces) >= 3, 2.0)
+    nan_imu = imu_msg(20.1)
+    nan_imu.orientation.w = float('nan')
+    feed.imu.publish(nan_imu)
+    status(feed, 20.1, 1)
+    assert spin_until(executor, lambda: len(feed.forces) >= 4, 2.0)
     for f in feed.forces:
         assert np.all(np.isfinite([f.vector.x, f.vector.y, f.vector.z]))
 
@@ -358,8 +406,6 @@ def test_controller_window_mode_force_heading_features(ctx):
     executor.add_node(fc)
     executor.add_node(feed.node)
     spin_for(executor, 0.3)
-    feed.mode.publish(UInt8(data=1))
-    spin_for(executor, 0.2)
     xi = np.array([-2.0, 0.3, -1.82])
     for i in range(6):
         t = 30.0 + 0.02 * i
@@ -368,6 +414,8 @@ def test_controller_window_mode_force_heading_features(ctx):
         feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
         feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
         feed.front.publish(flow_msg(t, np.zeros(3)))
+        spin_for(executor, 0.02)
+        status(feed, t, 1)
         spin_for(executor, 0.05)
     assert spin_until(executor, lambda: len(feed.features) >= 6, 2.0)
     f = feed.forces[-1]
@@ -384,16 +432,16 @@ def test_controller_window_mode_force_heading_features(ctx):
 
 
 def test_controller_flies_the_mode_reported_for_each_stamp(ctx):
-    # ibvs/mode says IDLE (hover), but the supervisor's status for the frame says WINDOW:
-    # that frame flies the window law; a later frame whose status says IDLE hovers again.
+    # The supervisor's status for each frame says which law flies it: IDLE hovers, WINDOW
+    # flies the window law; the status may come before its frame's products.
     context, executor, nodes = ctx
-    fc = make_controller(context, f'fc6_{TAG}', sync_timeout_s=0.5)
+    fc = make_controller(context, f'fc6_{TAG}', use_sim_time=True)
     feed = Feeder(context, f'feedfc6_{TAG}')
     nodes += [fc, feed.node]
     executor.add_node(fc)
     executor.add_node(feed.node)
+    feed.clock.publish(Clock(clock=stamp(40.0)))
     spin_for(executor, 0.3)
-    feed.mode.publish(UInt8(data=0))
     xi = np.array([-2.0, 0.3, -1.82])
     hover_map = vec_I_to_map(np.array([0, 0, VEHICLE.mass * GRAVITY]))
     forces = []
@@ -401,7 +449,8 @@ def test_controller_flies_the_mode_reported_for_each_stamp(ctx):
         t = 40.0 + 0.02 * i
         ns = int(round(t * 1e9))
         n = len(feed.forces)
-        feed.status.publish(supervisor_status_msg(ns, mode, 'm', DiagnosticStatus.OK, {}))
+        feed.clock.publish(Clock(clock=stamp(t)))
+        status(feed, t, mode)
         spin_for(executor, 0.02)
         feed.imu.publish(imu_msg(t))
         feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
@@ -435,10 +484,13 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
     from diagnostic_msgs.msg import DiagnosticArray
     context, executor, nodes = ctx
     port = free_udp_port()
-    peer = FakeAutopilot(port, yaw_ned=np.pi / 2)
+    # Clocks stand still: the autopilot's boot time 1.5 s, our ROS time (/clock) 4.0 s, so the
+    # TIMESYNC offset is exactly 2.5 s (rtt 0) and the mapped times are exact.
+    peer = FakeAutopilot(port, yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000)
     try:
         bridge = MavlinkBridgeNode(
             node_name=f'bridge_{TAG}', context=context, parameter_overrides=[
+                Parameter('use_sim_time', value=True),
                 Parameter('url', value=f'udpout:127.0.0.1:{port}'),
                 Parameter('hover_thrust_source', value='config'),
                 Parameter('heading_wait_s', value=0.5),
@@ -451,13 +503,14 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         heading = feed.node.create_publisher(QuaternionStamped, 'ibvs/heading_setpoint',
                                              COMMAND_QOS)
         force = feed.node.create_publisher(Vector3Stamped, 'ibvs/force_setpoint', COMMAND_QOS)
+        feed.node.create_timer(0.02, lambda: feed.clock.publish(Clock(clock=stamp(4.0))))
         executor.add_node(bridge)
         executor.add_node(feed.node)
         assert spin_until(executor, lambda: len(imus) >= 3 and diags, 5.0)
         q = imus[-1].orientation
         assert np.allclose([abs(q.w), q.x, q.y, q.z], [1, 0, 0, 0], atol=1e-6)  # east = ENU
         assert imus[-1].header.frame_id == 'base_link'
-        assert imus[-1].header.stamp.nanosec % 1_000_000 == 0
+        assert all(stamps_of([m]) == [4_000_000_000] for m in imus)   # 1.5 s boot + 2.5 s
         h = QuaternionStamped()
         h.header.stamp = stamp(4.321)
         h.header.frame_id = 'map'
@@ -466,9 +519,9 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         heading.publish(h)
         spin_for(executor, 0.1)
         force.publish(flow_msg(4.321, np.array([0.0, 0.0, VEHICLE.mass * GRAVITY])))
-        assert spin_until(executor, lambda: any(m.time_boot_ms == 4321
+        assert spin_until(executor, lambda: any(m.time_boot_ms == 1821
                                                 for _, m in peer.setpoints), 3.0)
-        m = [m for _, m in peer.setpoints if m.time_boot_ms == 4321][-1]
+        m = [m for _, m in peer.setpoints if m.time_boot_ms == 1821][-1]
         assert m.thrust == pytest.approx(VEHICLE.hover_thrust)
         assert np.allclose(np.abs(m.q), [1, 0, 0, 0], atol=1e-6)    # level, yaw 0 (north)
         # Next frame: force and heading both queued before the executor runs, so it takes
@@ -480,13 +533,15 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         force.publish(flow_msg(4.341, np.array([0.0, 0.0, VEHICLE.mass * GRAVITY])))
         heading.publish(h)
         assert spin_until(executor, lambda: len([m for _, m in peer.setpoints
-                                                 if m.time_boot_ms == 4341]) >= 3, 3.0)
-        for m in [m for _, m in list(peer.setpoints) if m.time_boot_ms == 4341]:
+                                                 if m.time_boot_ms == 1841]) >= 3, 3.0)
+        for m in [m for _, m in list(peer.setpoints) if m.time_boot_ms == 1841]:
             assert same_rotation(m.q, [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
         spin_for(executor, 0.3)
         keys = {kv.key: kv.value for kv in diags[-1].status[0].values}
         assert keys['link'] == 'up' and keys['autopilot'] == 'px4'
         assert 'setpoint_rate_hz' in keys and 'hover_thrust_source' in keys
         assert keys['heading_timeouts'] == '0'
+        assert keys['clock_synced'] == 'yes' and keys['clock_offset_ms'] == '2500.000'
+        assert int(keys['timesync_accepted']) >= 5
     finally:
         peer.close()

@@ -15,13 +15,13 @@ from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 
 from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PolygonStamped, Vector3Stamped
+from geometry_msgs.msg import Point32, PolygonStamped, Vector3Stamped
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32, String
 
 from ibvs_control.core import frames
 from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
-from ibvs_control.core.stamp_sync import is_no_flow
+from ibvs_control.core.frame_io import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
 from ibvs_perception.window_detector_node import WindowDetectorNode
@@ -184,10 +184,22 @@ def flow_node(context, nodes, camera):
     nodes.append(node)
     prefix = f'{camera}_camera'
     inputs = {f'{prefix}/image_raw': Image, f'{prefix}/camera_info': CameraInfo,
-              'imu/data': Imu}
+              'imu/data': Imu, 'window/corners': PolygonStamped}
     outputs = {f'{prefix}/translational_flow': Vector3Stamped,
                f'{prefix}/translational_flow_quality': Float32}
     return node, *harness(context, nodes, inputs, outputs)
+
+
+def stamp_s(msg):
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+def polygon_msg(t, n=4):
+    msg = PolygonStamped()
+    msg.header.stamp = stamp(t)
+    msg.header.frame_id = 'front_camera_optical_frame'
+    msg.polygon.points = [Point32(x=0.0, y=0.0, z=1.0) for _ in range(n)]
+    return msg
 
 
 def send_imu(executor, node, pubs, samples):
@@ -258,11 +270,20 @@ def test_front_optical_flow_node_needs_a_window(ctx, renderers):
     assert [round(m.header.stamp.sec + m.header.stamp.nanosec * 1e-9, 6) for m in flows] == [
         round(20.0 + DT * k, 6) for k in range(3)]
     assert all(is_no_flow([m.vector.x, m.vector.y, m.vector.z]) for m in flows)
+    # the wall plane of image t comes from the newest detection strictly older than t (the
+    # same image's detection is computed in parallel: never waited for), within the age bound
+    for t in (19.96, 19.98, 20.0):
+        pubs['window/corners'].publish(polygon_msg(t))
+    assert spin_until(executor, lambda: len(node.window_msgs) == 3)
+    assert stamp_s(node.window_before(20.0)) == pytest.approx(19.98)
+    assert stamp_s(node.window_before(20.001)) == pytest.approx(20.0)
+    assert node.window_before(19.96) is None
 
 
-@pytest.mark.parametrize('name, value', [('gate_poll_period_s', 0.0), ('input_wait_s', -0.1)])
-def test_optical_flow_refuses_a_bad_input_wait_parameter(ctx, name, value):
+@pytest.mark.parametrize('name, value', [('max_window_age_s', 0.0),
+                                         ('imu_max_extrapolation_s', -0.1)])
+def test_optical_flow_refuses_a_bad_timing_parameter(ctx, name, value):
     context, _, _ = ctx
-    with pytest.raises(ValueError, match=name):
+    with pytest.raises(ValueError, match=name.removeprefix('imu_')):
         OpticalFlowNode(f'bad_flow_{TAG}', context=context,
                         parameter_overrides=[Parameter(name, value=value)])

@@ -13,7 +13,6 @@ import pytest
 SRC = Path(__file__).resolve().parents[2] / 'ros2_ws' / 'src'
 LAUNCH = SRC / 'ibvs_bringup' / 'launch'
 PARAMS = str(SRC / 'ibvs_bringup' / 'config' / 'params.yaml')
-SIM_PARAMS = str(SRC / 'ibvs_bringup' / 'config' / 'sim_graph.yaml')
 EXPECTED_NODES = {'sim', 'window_detector', 'pad_detector', 'front_optical_flow',
                   'down_optical_flow', 'mode_supervisor', 'force_controller', 'mavlink_bridge'}
 
@@ -25,14 +24,14 @@ def console_scripts(package: str) -> set:
 
 
 def test_sim_graph_is_the_whole_graph_with_unique_names():
-    specs = graph.sim_graph(graph.GraphOptions(params_file=PARAMS, sim_params_file=SIM_PARAMS))
+    specs = graph.sim_graph(graph.GraphOptions(params_file=PARAMS))
     names = [s.name for s in specs]
     assert set(names) == EXPECTED_NODES and len(names) == len(set(names))
     assert [s.role for s in specs].count('sim') == 1
     flows = {s.name: s.overrides()['camera'] for s in specs if s.executable == 'optical_flow'}
     assert flows == {'front_optical_flow': 'front', 'down_optical_flow': 'down'}
     for s in specs:
-        assert s.param_files() == [PARAMS, SIM_PARAMS]     # sim_graph.yaml wins per key
+        assert s.param_files() == [PARAMS]          # the onboard parameters, unchanged
         if s.role == 'onboard':
             assert s.overrides()['use_sim_time'] is True
 
@@ -51,30 +50,18 @@ def test_params_yaml_has_a_section_per_node():
     assert EXPECTED_NODES <= sections
 
 
-def _params(path: str) -> dict:
-    import yaml
-    return {node: body['ros__parameters'] for node, body in
-            yaml.safe_load(Path(path).read_text()).items()}
-
-
-def test_sim_graph_yaml_only_lengthens_waits_of_existing_parameters():
-    """The lockstep overlay changes waits that params.yaml has, never to something shorter."""
-    base, sim = _params(PARAMS), _params(SIM_PARAMS)
-    for node, values in sim.items():
-        for key, value in values.items():
-            assert key in base[node], (node, key)
-            assert key.endswith(('_timeout_s', '_wait_s')), (node, key)
-            assert value >= base[node][key], (node, key)
-    # the supervisor's status of a timed-out frame reaches the controller before its own wait
-    assert sim['force_controller']['sync_timeout_s'] > sim['mode_supervisor']['sync_timeout_s']
-    assert sim['mode_supervisor']['sync_timeout_s'] > sim['down_optical_flow']['input_wait_s']
-    # the chain of waits that one frame can meet stays below the sim's own lockstep wait
-    chain = (sim['front_optical_flow']['input_wait_s'] + sim['mode_supervisor']['sync_timeout_s']
-             + sim['force_controller']['sync_timeout_s']
-             + sim['mavlink_bridge']['heading_wait_s'])
-    assert chain < sim['sim']['lockstep_timeout_s']
-    no_overlay = graph.sim_graph(graph.GraphOptions(params_file=PARAMS, sim_params_file=''))
-    assert all(s.param_files() == [PARAMS] for s in no_overlay)
+def test_flight_path_of_the_sim_graph_is_the_onboard_graph_on_another_clock():
+    """Same files and overrides for every flight-path node; only the clock and URL differ."""
+    sim = {s.name: s for s in graph.sim_graph(graph.GraphOptions(params_file=PARAMS))
+           if s.role == 'onboard'}
+    onboard = {s.name: s for s in graph.onboard_graph(graph.GraphOptions(
+        params_file=PARAMS, use_sim_time=False, mavlink_url='udpin:0.0.0.0:14540'))}
+    assert set(sim) == set(onboard)
+    for name, spec in sim.items():
+        assert spec.param_files() == onboard[name].param_files() == [PARAMS]
+        a, b = spec.overrides(), onboard[name].overrides()
+        differing = {k for k in set(a) | set(b) if a.get(k) != b.get(k)}
+        assert differing <= {'use_sim_time', graph.BRIDGE_URL}, (name, differing)
 
 
 def test_mavlink_port_and_options_reach_the_right_nodes():

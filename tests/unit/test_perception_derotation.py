@@ -2,8 +2,8 @@
 import cv2
 import numpy as np
 
-from ibvs_perception.core.attitude_buffer import (
-    AttitudeBuffer, AttitudeBufferConfig, GyroDerotation)
+from ibvs_control.core.timing import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_perception.core.derotation import GyroDerotation
 
 
 def expm(w):

@@ -212,3 +212,21 @@ def test_before_frame_0_the_link_is_served_without_telemetry_then_t0_telemetry_l
     assert ap.receiving_polls == 2 and ap.telemetry_times == []
     assert sim.tick().t_ns == 0
     assert ap.telemetry_times == [0.0]             # the IMU at t = 0 goes with frame 0
+
+
+def test_lockstep_harness_holds_a_frame_until_imu_data_reached_its_time():
+    from ibvs_sim.core.sim_core import FrameOutput, ImuBeforeImages
+    frame = FrameOutput(40_000_000, {}, None, [])
+    hold = ImuBeforeImages(timeout_s=1.0)
+    assert hold.hold(frame, now=0.0) is frame           # no IMU seen yet: nothing to wait for
+    hold.note_imu(30_000_000)
+    assert hold.hold(frame, now=0.0) is None and hold.holding
+    assert hold.release(now=0.5) is None                 # 30 ms < 40 ms, within the wait
+    hold.note_imu(40_000_000)
+    assert hold.release(now=0.6) is frame and not hold.timed_out and not hold.holding
+    later = FrameOutput(60_000_000, {}, None, [])
+    assert hold.hold(later, now=1.0) is None
+    assert hold.release(now=2.0) is later and hold.timed_out and hold.timeouts == 1
+    free = ImuBeforeImages(timeout_s=1.0, enabled=False)  # realtime pacing: pass-through
+    free.note_imu(0)
+    assert free.hold(later, now=0.0) is later

@@ -17,7 +17,6 @@ import numpy as np
 
 CONFIG_PACKAGE = 'ibvs_bringup'
 PARAMS_FILE_NAME = 'params.yaml'
-SIM_GRAPH_PARAMS_FILE_NAME = 'sim_graph.yaml'    # lockstep waits, layered after params.yaml
 DEFAULT_MAVLINK_PORT = 14560
 CROSSING_LAWS = ('closed', 'intended', 'seed')
 ROLES = ('sim', 'onboard', 'tool')
@@ -82,8 +81,6 @@ class GraphOptions:
     """Per-run options of the graph (everything else is in params.yaml)."""
 
     params_file: str | None = None                  # None: the installed params.yaml
-    sim_params_file: str | None = None              # sim graph, after params_file; None: the
-    #                                                 installed sim_graph.yaml, '': none
     use_sim_time: bool = True
     mavlink_port: int = DEFAULT_MAVLINK_PORT        # sim graph: UDP port on 127.0.0.1
     mavlink_url: str | None = None                  # onboard graph: the vehicle's MAVLink URL
@@ -179,21 +176,14 @@ def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url:
     ]
 
 
-def sim_param_files(opts: GraphOptions) -> tuple:
-    """Return the parameter files of the sim graph, in order (later files win per key)."""
-    files = (opts.params_file or default_params_file(),)
-    if opts.sim_params_file is None:
-        return files + (default_params_file(SIM_GRAPH_PARAMS_FILE_NAME),)
-    return files + ((opts.sim_params_file,) if opts.sim_params_file else ())
-
-
 def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
     """Return the whole graph with the simulator: sim first, then the onboard nodes.
 
-    Every node reads ``params.yaml`` (or ``opts.params_file``) and then ``sim_graph.yaml`` (or
-    ``opts.sim_params_file``; '' for none): the lockstep graph's longer waits.
+    Every node reads the same ``params.yaml`` (or ``opts.params_file``) as onboard: the flight
+    path has no simulator-only waits or timeouts; only the per-run overrides below (MAVLink
+    port, initial condition, wind, ...) and ``use_sim_time`` differ.
     """
-    params = sim_param_files(opts)
+    params = (opts.params_file or default_params_file(),)
     sim_url, bridge_url = sim_mavlink_urls(opts.mavlink_port)
     sim_over: dict = {
         MAVLINK_URL: sim_url,

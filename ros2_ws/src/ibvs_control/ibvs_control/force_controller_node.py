@@ -1,10 +1,13 @@
 """force_controller: detections + flows + IMU + mode -> the paper's force F and a heading.
 
-Thin ROS wrapper of :class:`ibvs_control.core.controller.IbvsController`. For each image stamp
-it gathers window/corners, pad/landmarks, the flows and the supervisor's mode of that stamp
-(``ibvs/supervisor_status``; :class:`~ibvs_control.core.stamp_sync.StampSynchronizer`,
-wall-clock timeout ``sync_timeout_s``), steps the controller once in that mode with the IMU
-attitude at (or just before) the stamp, and publishes, stamped with the image stamp:
+Thin ROS wrapper of :class:`ibvs_control.core.controller.IbvsController` on the timing layer
+(core/timing.py, docs/design.md "Time"). The supervisor's ``ibvs/supervisor_status`` names
+each frame it evaluated and that frame's mode; the controller answers every such frame
+exactly once, in that mode, as soon as the products the mode needs (window + front flow in
+WINDOW, down flow in CROSSING, pad + down flow in LANDING, window in IDLE) of that stamp are
+in, or when the ROS clock reaches the stamp + ``frame_deadline_s`` (then without them: the
+core holds its last valid force). The attitude is the IMU's interpolated at the stamp, or
+propagated to it with the gyro; never waited for. It publishes, stamped with the frame:
 
 - ``ibvs/force_setpoint`` (geometry_msgs/Vector3Stamped, frame map, newtons),
 - ``ibvs/heading_setpoint`` (geometry_msgs/QuaternionStamped, frame map; yaw-only attitude of
@@ -13,37 +16,35 @@ attitude at (or just before) the stamp, and publishes, stamped with the image st
   'q_w_bar.*', 'q_t.*', 'phi_w.*', 'phi_t.*', 'eta_w.*', 'alpha_w'; position = values in {I};
   unavailable features are left out).
 
-Every stamp is answered exactly once in every mode (IDLE included: the core gives hover), as
-the sim's lockstep pacing waits for it. Gains are checked at start by
+Every evaluated frame is answered exactly once in every mode (IDLE included: the core gives
+hover). Without statuses (supervisor dead) nothing is answered: the bridge's safety policy
+then hands the vehicle back to the autopilot. Gains are checked at start by
 ControllerConfig.from_params: bad gains -> GainError, the process exits with status 1.
 """
 from __future__ import annotations
 
-import time
-
 import rclpy
-from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PolygonStamped, QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import String, UInt8
+from std_msgs.msg import String
 
 from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.control_laws import CrossingGains, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
-from ibvs_control.core.frames import (
-    MAP_FRAME, R_IB_from_rot_map_base, rot_from_quat, vec_I_to_map)
-from ibvs_control.core.modes import Mode
-from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, check_bearings, check_flow, feature_vector, FLOWS, FrameBundle,
-    heading_quat_enu_flu, InputKind, ModeTracker, PadPairing, StampSynchronizer,
+from ibvs_control.core.frame_io import (
+    check_bearings, check_flow, feature_vector, heading_quat_enu_flu, PadPairing,
     step_controller)
+from ibvs_control.core.frames import MAP_FRAME, vec_I_to_map
+from ibvs_control.core.modes import Mode
+from ibvs_control.core.timing import (
+    AttitudeBuffer, AttitudeBufferConfig, Frame, FrameAssembler, InputKind, MODE_INPUTS)
 from ibvs_control.node_common import (
-    COMMAND_QOS, mode_from_status, MODE_QOS, NS_PER_S, ns_to_stamp, parse_pad_groups,
-    polygon_points, quat_wxyz, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
+    COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
+    parse_pad_groups, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
 from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
@@ -70,9 +71,10 @@ def _mode(number) -> tuple[Mode | None, str]:
 GAIN_PARAMETERS = _gain_defaults()
 PARAMETERS = {
     'crossing_law': 'closed',
-    'sync_timeout_s': 0.03,
-    'sync_poll_period_s': 0.005,
+    'frame_deadline_s': 0.04,
     'imu_history_s': 1.0,
+    'imu_max_extrapolation_s': 0.05,
+    'imu_max_interpolation_gap_s': 0.2,
     'vehicle_file': '',
     'world_file': '',
     'pad_layout_file': '',
@@ -95,10 +97,12 @@ class ForceControllerNode(Node):
         pad = load_pad_layout(p['pad_layout_file'] or None)
         config = ControllerConfig.from_params(gains, vehicle, r_w, pad)   # raises GainError
         self._controller = IbvsController(config)
-        self._sync = StampSynchronizer(p['sync_timeout_s'], wait_for_imu=True,
-                                       optional=(*FLOWS, InputKind.MODE))
-        self._attitudes = AttitudeHistory(int(p['imu_history_s'] * NS_PER_S))
-        self._modes = ModeTracker()
+        self._attitudes = AttitudeBuffer(AttitudeBufferConfig(
+            float(p['imu_history_s']), float(p['imu_max_extrapolation_s']),
+            float(p['imu_max_interpolation_gap_s'])))
+        # a frame = one supervisor status (tag: its mode), waiting for that mode's products
+        self._frames = FrameAssembler(float(p['frame_deadline_s']),
+                                      lambda mode: MODE_INPUTS[mode].needed)
         self._pad_pairing = PadPairing()
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
@@ -106,6 +110,8 @@ class ForceControllerNode(Node):
         self._heading_pub = self.create_publisher(QuaternionStamped, 'ibvs/heading_setpoint',
                                                   COMMAND_QOS)
         self._features_pub = self.create_publisher(JointState, 'ibvs/features', COMMAND_QOS)
+        # products and IMU first: at one wake-up rclpy takes them before a status
+        self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'pad/landmarks', self._on_pad, SENSOR_QOS)
         self.create_subscription(String, 'pad/groups', self._on_groups, SENSOR_QOS)
@@ -113,12 +119,9 @@ class ForceControllerNode(Node):
                                  self._on_front_flow, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'down_camera/translational_flow',
                                  self._on_down_flow, SENSOR_QOS)
-        self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
-        self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
                                  COMMAND_QOS)
-        self.create_timer(p['sync_poll_period_s'], self._on_sync_timer,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._deadline = DeadlineTimer(self, self._release)
         self.get_logger().info(f'force controller: gains {config.landing}, {config.window}, '
                                f'{config.crossing}, crossing law {config.crossing_law.value}')
 
@@ -153,84 +156,71 @@ class ForceControllerNode(Node):
 
     def _on_imu(self, msg: Imu) -> None:
         try:
-            R_IB = R_IB_from_rot_map_base(rot_from_quat(quat_wxyz(msg.orientation)))
+            stamp_ns, R_IB, omega_B = imu_sample(msg)
+            self._attitudes.add(stamp_ns / NS_PER_S, R_IB, omega_B)
         except ValueError as exc:
             self.get_logger().error(f'imu/data refused: {exc}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
             return
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        if self._attitudes.add(stamp_ns, R_IB):
-            for bundle in self._sync.note_imu(stamp_ns):
-                self._answer(bundle)
-
-    def _on_mode(self, msg: UInt8) -> None:
-        """Note the latest mode (frames without their own status fly it)."""
-        mode, err = _mode(msg.data)
-        if err:
-            self._refused(InputKind.MODE, err)
-        else:
-            self._modes.note(mode)
+        self._release()
 
     def _on_status(self, msg: DiagnosticArray) -> None:
-        """Add the supervisor's mode for one frame as the MODE input of that stamp."""
+        """Open the frame the supervisor evaluated, to be answered in the mode it reports."""
         stamp_ns, number, err = mode_from_status(msg)
         mode, err = (None, err) if err else _mode(number)
         if err:
-            self._refused(InputKind.MODE, err)
+            self._refused('ibvs/supervisor_status', err)
             return
-        self._modes.note(mode)
-        bundles, dropped = self._sync.add(InputKind.MODE, stamp_ns, mode, time.monotonic())
-        if dropped:
-            self.get_logger().warning(f'dropped: {dropped}', throttle_duration_sec=LOG_THROTTLE_S)
-        for bundle in bundles:
-            self._answer(bundle)
+        if not self._frames.open(stamp_ns, mode, self.get_clock().now().nanoseconds):
+            self.get_logger().warning(f'status of {stamp_ns} ns is a duplicate or older than '
+                                      'a frame already answered: dropped',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+        self._release()
 
-    def _refused(self, kind: InputKind, err: str) -> None:
-        self.get_logger().error(f'{kind.value} refused: {err}',
-                                throttle_duration_sec=LOG_THROTTLE_S)
+    def _refused(self, what: str, err: str) -> None:
+        self.get_logger().error(f'{what} refused: {err}', throttle_duration_sec=LOG_THROTTLE_S)
 
     def _add(self, kind: InputKind, stamp, value, err: str) -> None:
-        """Give one input to the synchroniser (a bad one counts as 'not detected')."""
+        """Keep one product (a bad one counts as 'not detected') and answer what it completes."""
         if err:
-            self._refused(kind, err)
-        bundles, dropped = self._sync.add(kind, stamp_to_ns(stamp), value, time.monotonic())
-        if dropped:
-            self.get_logger().warning(f'dropped: {dropped}', throttle_duration_sec=LOG_THROTTLE_S)
-        for bundle in bundles:
-            self._answer(bundle)
+            self._refused(kind.value, err)
+        if not self._frames.add_input(kind, stamp_to_ns(stamp), value):
+            self.get_logger().warning(f'duplicate {kind.value}: dropped',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+        self._release()
 
-    def _on_sync_timer(self) -> None:
-        for bundle in self._sync.poll(time.monotonic()):
-            self._answer(bundle)
+    def _release(self) -> None:
+        for frame in self._frames.release(self.get_clock().now().nanoseconds):
+            self._answer(frame)
+        self._deadline.arm(self._frames.next_deadline_ns())
 
     # --- output ----------------------------------------------------------------------------
-    def _answer(self, bundle: FrameBundle) -> None:
-        if bundle.missing:
+    def _answer(self, frame: Frame) -> None:
+        if frame.missing:
             self.get_logger().warning(
-                f'frame {bundle.stamp_ns / NS_PER_S:.3f} s answered without '
-                f'{", ".join(bundle.missing)} (late or lost; lockstep runs stop repeating '
-                'exactly)',
+                f'frame {frame.stamp_ns / NS_PER_S:.3f} s answered at its deadline without '
+                f'{", ".join(k.value for k in frame.missing)} (late or lost)',
                 throttle_duration_sec=LOG_THROTTLE_S)
-        out, F_I = step_controller(self._controller, self._modes.mode_at(bundle), bundle,
-                                   self._attitudes.at(bundle.stamp_ns))
+        out, F_I = step_controller(self._controller, frame.tag, frame,
+                                   self._attitudes.attitude_at(frame.stamp_ns / NS_PER_S))
         if out is None:
             self.get_logger().warning('no IMU attitude (or no valid output): answering with '
                                       'hover', throttle_duration_sec=LOG_THROTTLE_S)
         else:
             heading = QuaternionStamped()
-            ns_to_stamp(bundle.stamp_ns, heading.header.stamp)
+            ns_to_stamp(frame.stamp_ns, heading.header.stamp)
             heading.header.frame_id = MAP_FRAME
             set_quat(heading.quaternion, heading_quat_enu_flu(out.yaw_des))
             self._heading_pub.publish(heading)
         force = Vector3Stamped()
-        ns_to_stamp(bundle.stamp_ns, force.header.stamp)
+        ns_to_stamp(frame.stamp_ns, force.header.stamp)
         force.header.frame_id = MAP_FRAME
         set_vector3(force.vector, vec_I_to_map(F_I))
         self._force_pub.publish(force)
         if out is not None:
             names, values = feature_vector(out.features)
             features = JointState(name=names, position=values)
-            ns_to_stamp(bundle.stamp_ns, features.header.stamp)
+            ns_to_stamp(frame.stamp_ns, features.header.stamp)
             features.header.frame_id = ''   # values are in the paper frame {I}
             self._features_pub.publish(features)
 

@@ -1,14 +1,18 @@
 """mode_supervisor: the flight-mode state machine on ROS (SPEC.md section 3).
 
-Thin ROS wrapper of :class:`ibvs_control.core.supervisor.ModeSupervisor`. The inputs of one
-camera frame (window corners, pad landmarks + groups, the two flows, all with the frame's
-stamp) are gathered by a :class:`StampSynchronizer` (released once the IMU reaches the stamp
-and every expected input is in, or after ``sync_timeout_s`` of wall clock), converted to {I}
-(bearings: optical -> body FRD by the camera mount R_BC of vehicle.yaml -> {I} by the IMU
-attitude at the stamp; flows: map -> {I}) and given to the core in a fixed order, then the
-frame is closed (``end_frame``: auto-start, triggers, staleness). So the mode of each frame
-depends on that frame's inputs, not on the order in which DDS delivered them. A node-clock
-timer calls ``update(now)`` for the staleness rules when inputs stop.
+Thin ROS wrapper of :class:`ibvs_control.core.supervisor.ModeSupervisor` on the timing layer
+(core/timing.py, docs/design.md "Time"). The current mode is evaluated frame by frame on the
+frames of its camera (front for IDLE and WINDOW, down for the others): a frame is released
+when the products the mode needs are in (WINDOW: window + front flow; CROSSING: down flow;
+LANDING: pad + down flow; IDLE: window) or when the ROS clock reaches its stamp +
+``frame_deadline_s``; then its products are converted to {I} (bearings: optical -> body FRD
+by the camera mount R_BC of vehicle.yaml -> {I} by the IMU attitude interpolated at the
+stamp, or propagated to it; flows: map -> {I}), given to the core in a fixed order and the
+frame is closed (``end_frame``: auto-start, triggers, staleness). Products of the other
+camera, and products arriving after their frame was released, are given to the core on
+arrival. So the mode of each frame depends on that frame's inputs, not on the order in which
+DDS delivered them, and an input the mode does not use never delays a frame. A timer on the
+node clock (``update_rate_hz``) applies the staleness rules when inputs stop altogether.
 
 Publishes ``ibvs/mode`` (std_msgs/UInt8, reliable, transient local, depth 1) at start and on
 every transition (each logged with its reason), and ``ibvs/supervisor_status``
@@ -22,12 +26,10 @@ message just before it (PadPairing).
 from __future__ import annotations
 
 from dataclasses import fields
-import time
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
 import rclpy
-from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
@@ -37,27 +39,29 @@ from std_msgs.msg import String, UInt8
 from std_srvs.srv import Trigger
 
 from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
-from ibvs_control.core.frames import (
-    bearings_C_to_I, R_IB_from_rot_map_base, rot_from_quat)
+from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
+from ibvs_control.core.frames import bearings_C_to_I
 from ibvs_control.core.modes import Mode
-from ibvs_control.core.stamp_sync import (
-    AttitudeHistory, check_bearings, check_flow, FrameBundle, InputKind, PadPairing,
-    StampSynchronizer)
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
+from ibvs_control.core.timing import (
+    AttitudeBuffer, AttitudeBufferConfig, CAMERA_OF, Frame, FrameAssembler, InputKind,
+    MODE_INPUTS)
 from ibvs_control.node_common import (
-    COMMAND_QOS, MODE_QOS, NS_PER_S, parse_pad_groups, polygon_points, quat_wxyz, SENSOR_QOS,
-    stamp_to_ns, supervisor_status_msg, vector3)
+    COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, parse_pad_groups,
+    polygon_points, SENSOR_QOS, stamp_to_ns, supervisor_status_msg, vector3)
 from ibvs_control.spin import spin_guarded
 
 LOG_THROTTLE_S = 2.0
 LANDMARKS_PER_GROUP = 4
-ATTITUDE_HISTORY_NS = 1_000_000_000      # IMU attitudes kept to derotate at an input's stamp
+CAMERA_NAME = {InputKind.WINDOW: 'front', InputKind.PAD: 'down'}
 # Core parameters that come from the shared YAML files, not from params.yaml.
 FROM_FILES = ('r_w', 'group_half_sides')
 PARAMETERS = {
     'update_rate_hz': 20.0,
-    'sync_timeout_s': 0.03,
-    'sync_poll_period_s': 0.005,
+    'frame_deadline_s': 0.04,
+    'imu_history_s': 1.0,
+    'imu_max_extrapolation_s': 0.05,
+    'imu_max_interpolation_gap_s': 0.2,
     'vehicle_file': '',
     'world_file': '',
     'pad_layout_file': '',
@@ -85,20 +89,23 @@ class ModeSupervisorNode(Node):
         config = SupervisorConfig.from_params(
             {**{k: float(p[k]) for k in core_params}, 'r_w': world.window.width,
              'group_half_sides': {g.name: g.c for g in pad.groups}})
-        for name in ('update_rate_hz', 'sync_timeout_s', 'sync_poll_period_s'):
-            if not float(p[name]) > 0.0:
-                raise ValueError(f'{name} must be > 0, got {p[name]}')
+        if not float(p['update_rate_hz']) > 0.0:
+            raise ValueError(f"update_rate_hz must be > 0, got {p['update_rate_hz']}")
         self._core = ModeSupervisor(config)
         self._R_BC = {name: vehicle.cameras[name].R_BC for name in ('front', 'down')}
-        self._attitudes = AttitudeHistory(ATTITUDE_HISTORY_NS)   # R_IB by stamp
+        self._attitudes = AttitudeBuffer(AttitudeBufferConfig(
+            float(p['imu_history_s']), float(p['imu_max_extrapolation_s']),
+            float(p['imu_max_interpolation_gap_s'])))
         self._pad_pairing = PadPairing(LANDMARKS_PER_GROUP)
-        self._sync = StampSynchronizer(float(p['sync_timeout_s']), wait_for_imu=True)
+        # frames of the current mode's camera wait for the products that mode needs
+        self._frames = FrameAssembler(float(p['frame_deadline_s']), self._needed)
         self._n_reported = 0
         self._published: Mode | None = None
 
         self._mode_pub = self.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
                                                  COMMAND_QOS)
+        self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'pad/landmarks', self._on_landmarks,
                                  SENSOR_QOS)
@@ -107,12 +114,10 @@ class ModeSupervisorNode(Node):
                                  self._on_front_flow, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'down_camera/translational_flow',
                                  self._on_down_flow, SENSOR_QOS)
-        self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
         self.create_timer(1.0 / p['update_rate_hz'], self._on_timer)   # node clock
-        self.create_timer(float(p['sync_poll_period_s']), self._on_sync_timer,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self._deadline = DeadlineTimer(self, self._release)
         self._publish_mode()
         self.get_logger().info(f'mode supervisor ready in {self._core.mode.name}: {config}')
 
@@ -138,23 +143,28 @@ class ModeSupervisorNode(Node):
         """Derotate bearings to {I} with the attitude at the stamp: (usable?, bearings or None)."""
         if bearings_C is None:
             return True, None
-        R_IB = self._attitudes.at(stamp_ns)   # at or just before
+        R_IB = self._attitudes.attitude_at(stamp_ns / NS_PER_S)
         if R_IB is None:
-            self._error('no IMU attitude yet: cannot derotate bearings')
+            self._error(f'no IMU attitude at {stamp_ns / NS_PER_S:.3f} s: cannot derotate '
+                        f'the {camera} bearings (taken as not detected)')
             return False, None
         return True, bearings_C_to_I(bearings_C, R_IB, self._R_BC[camera])
+
+    def _needed(self, camera) -> frozenset:
+        """Products a frame of ``camera`` waits for in the current mode (none: other camera)."""
+        inputs = MODE_INPUTS[self._core.mode]
+        return inputs.needed if camera == inputs.camera else frozenset()
 
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:
         try:
-            R_IB = R_IB_from_rot_map_base(rot_from_quat(quat_wxyz(msg.orientation)))
+            stamp_ns, R_IB, omega_B = imu_sample(msg)
+            self._attitudes.add(stamp_ns / NS_PER_S, R_IB, omega_B)
         except ValueError as exc:
             self._error(f'imu/data refused: {exc}')
             return
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        if self._attitudes.add(stamp_ns, R_IB):
-            self._core.on_imu(stamp_ns / NS_PER_S, R_IB)
-            self._evaluate(self._sync.note_imu(stamp_ns))
+        self._core.on_imu(stamp_ns / NS_PER_S, R_IB)
+        self._release()
 
     def _on_window(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg), expected=4)
@@ -185,45 +195,61 @@ class ModeSupervisorNode(Node):
         self._add(kind, msg.header.stamp, phi_I, err)
 
     def _add(self, kind: InputKind, stamp, value, err: str) -> None:
-        """Give one input to the synchroniser (a refused one counts as 'not detected')."""
+        """Route one product: into its frame, or to the core at once (see the module doc)."""
         if err:
             self._error(f'{kind.value} refused: {err}')
-        bundles, dropped = self._sync.add(kind, stamp_to_ns(stamp), value, time.monotonic())
-        if dropped:
-            self.get_logger().warning(f'dropped: {dropped}', throttle_duration_sec=LOG_THROTTLE_S)
-        self._evaluate(bundles)
+        stamp_ns = stamp_to_ns(stamp)
+        if not self._frames.add_input(kind, stamp_ns, value):
+            self.get_logger().warning(f'duplicate {kind.value} at {stamp_ns} ns: dropped',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        camera = CAMERA_OF[kind]
+        now_ns = self.get_clock().now().nanoseconds
+        if camera != MODE_INPUTS[self._core.mode].camera \
+                or not (self._frames.is_pending(stamp_ns)
+                        or self._frames.open(stamp_ns, camera, now_ns)):
+            self._feed(kind, stamp_ns, value)        # other camera, or its frame is gone
+        self._release()
 
-    def _on_sync_timer(self) -> None:
-        self._evaluate(self._sync.poll(time.monotonic()))
+    def _release(self) -> None:
+        """Evaluate the frames that are complete or past their deadline; re-arm the timer."""
+        for frame in self._frames.release(self.get_clock().now().nanoseconds):
+            self._evaluate(frame)
+        self._deadline.arm(self._frames.next_deadline_ns())
 
     # --- evaluation ------------------------------------------------------------------------
-    def _evaluate(self, bundles: list[FrameBundle]) -> None:
-        """Give each released frame's inputs to the core in a fixed order and close it."""
-        for bundle in bundles:
-            t = bundle.stamp_ns / NS_PER_S
-            if bundle.missing:
-                self.get_logger().warning(
-                    f'frame {t:.3f} s evaluated without {", ".join(bundle.missing)} (late or '
-                    'lost; lockstep runs stop repeating exactly)',
-                    throttle_duration_sec=LOG_THROTTLE_S)
-            if InputKind.WINDOW in bundle.values:
-                ok, corners_I = self._to_I(bundle.get(InputKind.WINDOW), bundle.stamp_ns,
-                                           'front')
-                if ok:
-                    self._core.on_window(t, corners_I)
-            if InputKind.PAD in bundle.values:
-                landmarks_C, groups = bundle.get(InputKind.PAD) or (None, ())
-                ok, landmarks_I = self._to_I(landmarks_C, bundle.stamp_ns, 'down')
-                if ok:
-                    self._core.on_pad(t, landmarks_I, list(groups))
-            for kind, camera in ((InputKind.FLOW_FRONT, 'front'), (InputKind.FLOW_DOWN, 'down')):
-                if bundle.get(kind) is not None:
-                    self._core.on_flow(t, camera, bundle.get(kind))
-            self._core.end_frame(t)
-            if self._core.auto_start_refusal:
-                self._error(f'auto-start refused: {self._core.auto_start_refusal}')
-            self._publish_mode()
-            self._publish_status(bundle.stamp_ns)
+    def _feed(self, kind: InputKind, stamp_ns: int, value) -> None:
+        """Give one product to the core (converted to {I})."""
+        t = stamp_ns / NS_PER_S
+        if kind == InputKind.WINDOW:
+            ok, corners_I = self._to_I(value, stamp_ns, 'front')
+            if ok:
+                self._core.on_window(t, corners_I)
+        elif kind == InputKind.PAD:
+            landmarks_C, groups = value or (None, ())
+            ok, landmarks_I = self._to_I(landmarks_C, stamp_ns, 'down')
+            if ok:
+                self._core.on_pad(t, landmarks_I, list(groups))
+        elif value is not None:
+            self._core.on_flow(t, 'front' if kind == InputKind.FLOW_FRONT else 'down', value)
+
+    def _evaluate(self, frame: Frame) -> None:
+        """Give a released frame's products to the core in a fixed order and close it."""
+        t = frame.stamp_ns / NS_PER_S
+        for kind, value in frame.inputs.items():      # timing.EVALUATION_ORDER
+            self._feed(kind, frame.stamp_ns, value)
+        if frame.tag != MODE_INPUTS[self._core.mode].camera:
+            return          # the mode moved to the other camera: products only, no frame
+        if frame.missing:
+            self.get_logger().warning(
+                f'frame {t:.3f} s evaluated at its deadline without '
+                f'{", ".join(k.value for k in frame.missing)} (late or lost)',
+                throttle_duration_sec=LOG_THROTTLE_S)
+        self._core.end_frame(t)
+        if self._core.auto_start_refusal:
+            self._error(f'auto-start refused: {self._core.auto_start_refusal}')
+        self._publish_mode()
+        self._publish_status(frame.stamp_ns)
 
     def _publish_status(self, stamp_ns: int) -> None:
         mode = self._core.mode

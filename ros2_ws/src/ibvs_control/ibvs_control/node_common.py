@@ -1,15 +1,20 @@
 """Message <-> numpy helpers and QoS profiles shared by the ibvs_control nodes.
 
-Only conversions of message fields (no frames: frames.py does those, no maths).
+Only conversions of message fields (frames.py does the frame conversions, no maths), and
+:class:`DeadlineTimer`, the one-shot ROS-clock timer of the timing layer's frame deadlines.
 """
 from __future__ import annotations
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
+from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 
+from ibvs_control.core.frames import R_IB_from_rot_map_base, rot_from_quat, vec_flu_to_frd
+
 NS_PER_S = 1_000_000_000
+MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
 # pad/groups (std_msgs/String): group names of the pad/landmarks message, e.g. "A,B"
 PAD_GROUP_SEPARATOR = ','
 
@@ -32,6 +37,61 @@ def stamp_to_ns(stamp) -> int:
 def ns_to_stamp(ns: int, stamp) -> None:
     """Write integer nanoseconds into a builtin_interfaces/Time (in place)."""
     stamp.sec, stamp.nanosec = divmod(int(ns), NS_PER_S)
+
+
+def imu_sample(msg) -> tuple[int, np.ndarray, np.ndarray]:
+    """sensor_msgs/Imu (base_link FLU in map ENU) -> (stamp ns, R_IB, Omega_B FRD in rad/s).
+
+    Raises ValueError for NaN/Inf or a quaternion that is not unit within 10 %.
+    """
+    q = quat_wxyz(msg.orientation)
+    w = vector3(msg.angular_velocity)
+    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(w)):
+        raise ValueError('IMU message holds NaN or Inf')
+    if abs(np.linalg.norm(q) - 1.0) > 0.1:
+        raise ValueError(f'IMU orientation is not a unit quaternion '
+                         f'(|q| = {np.linalg.norm(q):.3f})')
+    R_IB = R_IB_from_rot_map_base(rot_from_quat(q))
+    return stamp_to_ns(msg.header.stamp), R_IB, vec_flu_to_frd(w)
+
+
+class DeadlineTimer:
+    """One-shot timer on the node's ROS clock for the earliest pending frame deadline.
+
+    :meth:`arm` (re)schedules it for a deadline (ROS time, ns); an earlier deadline replaces
+    a later one, a later one is ignored while armed. When the ROS clock reaches the deadline
+    the callback runs once. Under ``use_sim_time`` it fires on /clock: in lockstep, where the
+    clock stands still while the graph computes, it cannot fire before an input that is
+    coming. Nodes also check deadlines on every arrival; this covers inputs that stop.
+    """
+
+    def __init__(self, node: Node, callback) -> None:
+        self._node = node
+        self._callback = callback
+        self._timer = None
+        self.deadline_ns: int | None = None
+
+    def arm(self, deadline_ns: int | None) -> None:
+        """Fire at ``deadline_ns`` (None: nothing pending, cancel)."""
+        if deadline_ns is None:
+            self._cancel()
+            return
+        if self._timer is not None and self.deadline_ns <= deadline_ns:
+            return
+        self._cancel()
+        now_ns = self._node.get_clock().now().nanoseconds
+        period_s = max(int(deadline_ns) - now_ns, MIN_TIMER_NS) / NS_PER_S
+        self.deadline_ns = int(deadline_ns)
+        self._timer = self._node.create_timer(period_s, self._fire)
+
+    def _cancel(self) -> None:
+        if self._timer is not None:
+            self._node.destroy_timer(self._timer)
+        self._timer, self.deadline_ns = None, None
+
+    def _fire(self) -> None:
+        self._cancel()
+        self._callback()
 
 
 def polygon_points(msg) -> np.ndarray:

@@ -10,20 +10,20 @@ few inliers, no window, no attitude), so that the supervisor and the controller 
 whether a flow is coming; and `<camera>_camera/translational_flow_quality` (Float32 inlier
 ratio) for every estimate tried.
 
-Each image is held (core.frame_gate: a few, released in order) until the IMU samples reach its
-stamp (interpolated, not extrapolated, attitude) and, for the front camera, the window
-detection of the same image is in, at most `input_wait_s` (wall clock): the result then
-depends on the data, not on which message the scheduler delivered first, so lockstep runs
-repeat and bag replays reproduce.
+Each image is processed on arrival (timing layer, docs/design.md "Time"): its attitude is
+the IMU's interpolated at the image stamp, or propagated to it with the gyro for at most
+``imu_max_extrapolation_s`` (a frame never waits for a later IMU sample); the front camera's
+wall plane comes from the newest window detection strictly older than the image, at most
+``max_window_age_s`` older on the ROS clock (it never waits for the same image's detection,
+which is computed in parallel). With stamps on one clock the result is a function of the
+recorded data, so lockstep runs repeat and bag replays reproduce.
 """
 from __future__ import annotations
 
 from dataclasses import fields
-import time
 
 import numpy as np
 import rclpy
-from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
@@ -31,13 +31,12 @@ from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from ibvs_control.core.config import ConfigError, load_vehicle
 from ibvs_control.core.frames import e3, MAP_FRAME, vec_I_to_map
+from ibvs_control.core.timing import AttitudeBuffer, AttitudeBufferConfig
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32
 
-from ibvs_perception.core.attitude_buffer import (AttitudeBuffer, AttitudeBufferConfig,
-                                                  GyroDerotation)
+from ibvs_perception.core.derotation import GyroDerotation
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
-from ibvs_perception.core.frame_gate import FrameGate
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_control.spin import spin_guarded
@@ -46,8 +45,7 @@ THROTTLE_S = 2.0
 FRONT, DOWN = 'front', 'down'
 N_WINDOW_CORNERS = 4
 NO_FLOW = (float('nan'),) * 3    # the "no valid flow at this stamp" vector (docs/interfaces.md)
-WINDOW_HISTORY = 10          # recent window detections kept, to pick the one of a frame's stamp
-STAMP_MATCH_S = 1e-6         # s, two stamps closer than this are the same image
+WINDOW_HISTORY = 10          # recent window detections kept (newest last)
 
 
 class OpticalFlowNode(Node):
@@ -61,11 +59,9 @@ class OpticalFlowNode(Node):
                              f'got {self.camera_name!r}')
         vehicle_file = self.declare_parameter('vehicle_file', '').value
         self.max_window_age_s = float(self.declare_parameter('max_window_age_s', 0.1).value)
-        input_wait_s = float(self.declare_parameter('input_wait_s', 0.05).value)
-        gate_poll_s = float(self.declare_parameter('gate_poll_period_s', 0.005).value)
-        if not gate_poll_s > 0.0 or not input_wait_s >= 0.0:
-            raise ValueError(f'parameters gate_poll_period_s must be > 0 and input_wait_s >= 0, '
-                             f'got {gate_poll_s}, {input_wait_s}')
+        if not self.max_window_age_s > 0.0:
+            raise ValueError(f'parameter max_window_age_s must be > 0, '
+                             f'got {self.max_window_age_s}')
         flow_defaults, buffer_defaults = FlowConfig(), AttitudeBufferConfig()
         flow_values = {f.name: self.declare_parameter(f.name, getattr(flow_defaults, f.name)).value
                        for f in fields(FlowConfig)}
@@ -84,28 +80,25 @@ class OpticalFlowNode(Node):
         self.camera_key: tuple | None = None
         self.camera_info: CameraInfo | None = None
         self.window_msgs: list[PolygonStamped] = []      # newest last
-        self.gate = FrameGate(input_wait_s)
         prefix = f'{self.camera_name}_camera'
         self.pub_flow = self.create_publisher(Vector3Stamped, f'{prefix}/translational_flow', 10)
         self.pub_quality = self.create_publisher(
             Float32, f'{prefix}/translational_flow_quality', 10)
-        self.create_subscription(CameraInfo, f'{prefix}/camera_info', self.on_info,
-                                 qos_profile_sensor_data)
+        # IMU and window first: at one wake-up rclpy takes them before an image
         self.create_subscription(Imu, 'imu/data', self.on_imu, qos_profile_sensor_data)
         if self.camera_name == FRONT:
             self.create_subscription(PolygonStamped, 'window/corners', self.on_window,
                                      qos_profile_sensor_data)
-        self.create_subscription(Image, f'{prefix}/image_raw', self.on_image,
+        self.create_subscription(CameraInfo, f'{prefix}/camera_info', self.on_info,
                                  qos_profile_sensor_data)
-        self.create_timer(gate_poll_s, self.release_frame,
-                          clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.create_subscription(Image, f'{prefix}/image_raw', self.process,
+                                 qos_profile_sensor_data)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg
 
     def on_window(self, msg: PolygonStamped) -> None:
         self.window_msgs = self.window_msgs[-(WINDOW_HISTORY - 1):] + [msg]
-        self.release_frame()
 
     def on_imu(self, msg: Imu) -> None:
         try:
@@ -113,30 +106,11 @@ class OpticalFlowNode(Node):
         except ValueError as exc:
             self.get_logger().error(f'optical_flow: IMU message dropped: {exc}',
                                     throttle_duration_sec=THROTTLE_S)
-        self.release_frame()
 
-    def on_image(self, msg: Image) -> None:
-        """Hold the frame until its IMU (and, front, its window detection) are in."""
-        overflow = self.gate.push(stamp_to_s(msg.header.stamp), msg, time.monotonic())
-        if overflow is not None:
-            self.process(overflow.payload)
-        self.release_frame()
-
-    def inputs_ready(self, stamp: float) -> bool:
-        """IMU samples reach the stamp; the front camera also has the same image's window."""
-        return self.attitudes.covers(stamp) and (
-            self.camera_name == DOWN or self.window_at(stamp) is not None)
-
-    def window_at(self, stamp: float) -> PolygonStamped | None:
-        """Return the window detection of the image at ``stamp``, if it arrived."""
-        for msg in reversed(self.window_msgs):
-            if abs(stamp_to_s(msg.header.stamp) - stamp) < STAMP_MATCH_S:
-                return msg
-        return None
-
-    def release_frame(self) -> None:
-        for frame in self.gate.release(self.inputs_ready, time.monotonic()):
-            self.process(frame.payload)
+    def window_before(self, stamp: float) -> PolygonStamped | None:
+        """Return the newest window detection strictly older than ``stamp``, or None."""
+        older = [m for m in self.window_msgs if stamp_to_s(m.header.stamp) < stamp]
+        return max(older, key=lambda m: stamp_to_s(m.header.stamp)) if older else None
 
     def process(self, msg: Image) -> None:
         try:
@@ -171,13 +145,13 @@ class OpticalFlowNode(Node):
     def plane(self, stamp: float) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(eta in {I}, excluded corner bearings in {I}) of the observed plane at ``stamp``.
 
-        Down: the floor, eta_t = e3. Front: the window wall from the latest window corners
-        of the same image (or the latest, at most max_window_age_s old), rotated with the IMU
+        Down: the floor, eta_t = e3. Front: the window wall from the newest window corners
+        strictly older than the image (at most max_window_age_s older), rotated with the IMU
         attitude at their stamp.
         """
         if self.camera_name == DOWN:
             return e3, None
-        msg = self.window_at(stamp) or (self.window_msgs[-1] if self.window_msgs else None)
+        msg = self.window_before(stamp)
         reason = None
         if msg is None or len(msg.polygon.points) != N_WINDOW_CORNERS:
             reason = 'no window detection'

@@ -7,6 +7,13 @@ all stamped with the capture time: ``/clock``, ``front_camera/image_raw``,
 ``sim/ground_truth/odom`` (evaluation only) and, when they happen, contact events on
 ``sim/events`` (JSON in std_msgs/String, transient local). The autopilot speaks MAVLink on
 ``mavlink_url``. Pacing, wind and the initial condition are parameters (docs/interfaces.md).
+
+In lockstep the node is the test harness's clock, and only it waits: a frame's images leave
+once ``imu/data`` (the bridge's, from this autopilot's telemetry) has reached the frame's
+time, as a camera-IMU synchronised vehicle delivers them, so that the graph's attitude at the
+stamp is the same in every run (:class:`~ibvs_sim.core.sim_core.ImuBeforeImages`); then the
+next 20 ms are simulated only after the graph answered the frame. Both waits end after
+``lockstep_timeout_s`` of wall clock (a dead node). The flight path has no wait of its own.
 """
 from __future__ import annotations
 
@@ -26,7 +33,7 @@ from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
 from builtin_interfaces.msg import Time
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock as ClockMsg
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import String
 
 from ibvs_control.core.camera import CameraModel
@@ -35,8 +42,8 @@ from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_
                                       vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.sim_core import (FrameOutput, NS_PER_S, Pacing, SimConfig, Simulation,
-                                    FirstFrameHold)
+from ibvs_sim.core.sim_core import (FirstFrameHold, FrameOutput, ImuBeforeImages, NS_PER_S,
+                                    Pacing, SimConfig, Simulation)
 from ibvs_control.spin import spin_guarded
 
 NODE_NAME = 'sim'
@@ -164,6 +171,10 @@ class SimNode(Node):
         self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
         self.events_pub = self.create_publisher(String, 'sim/events', latched)
         self._ended_logged = False
+        self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
+                                        enabled=cfg.pacing is Pacing.LOCKSTEP)
+        if self.imu_hold.enabled:
+            self.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
         min_counts = {n: cfg.min_image_subscribers for n in self.image_pubs}
         self.first_frame_hold = FirstFrameHold(
             min_counts, SUBSCRIBER_SETTLE_S, cfg.subscriber_wait_timeout_s, time.monotonic(),
@@ -250,8 +261,21 @@ class SimNode(Node):
                                throttle_duration_sec=LOG_THROTTLE_S)
         return False
 
+    def _on_imu(self, msg: Imu) -> None:
+        self.imu_hold.note_imu(msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec)
+
     def _on_tick(self) -> None:
         if not self.first_frame_hold.released and not self._first_frame_may_go():
+            return
+        held = self.imu_hold.release(time.monotonic())
+        if held is not None:
+            if self.imu_hold.timed_out:
+                self.get_logger().warning(
+                    f'lockstep: imu/data did not reach t = {held.t:.3f} s within '
+                    f'{self.imu_hold.timeout_s} s (wall): frame published without it',
+                    throttle_duration_sec=LOG_THROTTLE_S)
+            self._publish(held)
+        if self.imu_hold.holding:
             return
         timeouts_before = self.sim.lockstep_timeouts
         try:
@@ -269,7 +293,9 @@ class SimNode(Node):
                 'time-outs so far (the run no longer repeats exactly)',
                 throttle_duration_sec=LOG_THROTTLE_S)
         if out is not None:
-            self._publish(out)
+            out = self.imu_hold.hold(out, time.monotonic())
+            if out is not None:
+                self._publish(out)
         elif self.sim.ended and not self._ended_logged:
             self._ended_logged = True
             self.get_logger().error(f'run ended by a collision at t={self.sim.t:.3f} s: '

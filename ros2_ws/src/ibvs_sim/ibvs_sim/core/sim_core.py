@@ -164,6 +164,64 @@ class FirstFrameHold:
         return self.released
 
 
+class ImuBeforeImages:
+    """Lockstep harness: hold a frame until ``imu/data`` has reached its time.
+
+    The sim's autopilot sends the telemetry due at a frame's time before the frame is rendered
+    (:meth:`Simulation.step_frame`), but it reaches the graph through MAVLink and the bridge,
+    while the images go out directly: without this hold, whether a node has the IMU sample at
+    the image stamp (interpolation) or only the one before (gyro propagation) would depend on
+    scheduling. Before any IMU sample was seen (link or clock sync not up yet) nothing is
+    held; a frame waits at most ``timeout_s`` (wall clock, s) and is then released anyway.
+    Disabled (pass-through) outside lockstep.
+    """
+
+    def __init__(self, timeout_s: float, enabled: bool = True) -> None:
+        if not timeout_s > 0.0:
+            raise ValueError(f'timeout_s must be > 0, got {timeout_s}')
+        self.timeout_s = float(timeout_s)
+        self.enabled = bool(enabled)
+        self.imu_through_ns: int | None = None     # newest IMU stamp seen
+        self.timed_out = False
+        self.timeouts = 0
+        self._held: FrameOutput | None = None
+        self._since = 0.0
+
+    @property
+    def holding(self) -> bool:
+        """Whether a frame is held."""
+        return self._held is not None
+
+    def note_imu(self, stamp_ns: int) -> None:
+        """Note an imu/data stamp (ns, ROS clock = sim time)."""
+        if self.imu_through_ns is None or stamp_ns > self.imu_through_ns:
+            self.imu_through_ns = int(stamp_ns)
+
+    def hold(self, frame: FrameOutput, now: float) -> FrameOutput | None:
+        """Return the frame if it may go now, else keep it (:meth:`release` gives it later)."""
+        if not self.enabled or self._covered(frame):
+            return frame
+        self._held, self._since = frame, now
+        return None
+
+    def release(self, now: float) -> FrameOutput | None:
+        """Return the held frame once the IMU reached it or the wait timed out, else None."""
+        frame = self._held
+        self.timed_out = False
+        if frame is None:
+            return None
+        if not self._covered(frame):
+            if now - self._since < self.timeout_s:
+                return None
+            self.timed_out = True
+            self.timeouts += 1
+        self._held = None
+        return frame
+
+    def _covered(self, frame: FrameOutput) -> bool:
+        return self.imu_through_ns is None or self.imu_through_ns >= frame.t_ns
+
+
 class Simulation:
     """Compose plant, inner loop, autopilot, renderers, contacts and wind (see module doc)."""
 

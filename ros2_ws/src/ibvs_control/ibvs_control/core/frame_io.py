@@ -1,0 +1,172 @@
+"""One frame's inputs from messages to the controller and back (ROS-free).
+
+Validation of the products a frame carries (bearings, flows), pairing of ``pad/landmarks``
+with ``pad/groups``, one controller step on a released :class:`~ibvs_control.core.timing.Frame`
+and the flattening of its features for ``ibvs/features``. When a frame is released is the
+timing layer's business (core/timing.py), not this module's.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ibvs_control.core.controller import (
+    ControlOutput, FeatureSnapshot, IbvsController, Measurements)
+from ibvs_control.core.frames import (
+    e3, GRAVITY, MAP_FRAME, quat_from_rot, quat_ned_frd_to_enu_flu, rot_z, vec_map_to_I)
+from ibvs_control.core.modes import Mode
+from ibvs_control.core.timing import Frame, InputKind, NS_PER_S
+
+
+class PadPairing:
+    """Pair each ``pad/landmarks`` with the ``pad/groups`` message that follows it.
+
+    The pad detector publishes both for every image, landmarks first; ``pad/groups`` has no
+    stamp, so a pair is made only in that order and only when the counts agree (4 landmarks
+    per group, 0 for none). Group names are never kept for a later landmarks message: that
+    could label frame k's landmarks with frame k-1's groups at a group switch. A groups
+    message without its landmarks is dropped (counted in ``unpaired``).
+    """
+
+    def __init__(self, landmarks_per_group: int = 4) -> None:
+        self.landmarks_per_group = landmarks_per_group
+        self.unpaired = 0
+        self._landmarks: tuple | None = None     # (stamp, bearings or None)
+
+    def add_landmarks(self, stamp, bearings: np.ndarray | None) -> None:
+        """Hold a landmarks message (it replaces one whose groups never came)."""
+        if self._landmarks is not None:
+            self.unpaired += 1
+        self._landmarks = (stamp, bearings)
+
+    def drop_landmarks(self) -> None:
+        """Forget the held landmarks (e.g. the message was refused)."""
+        self._landmarks = None
+
+    def add_groups(self, groups: tuple) -> tuple | None:
+        """Return (stamp, bearings, groups) if these groups complete the held landmarks."""
+        held, self._landmarks = self._landmarks, None
+        if held is None:
+            self.unpaired += 1
+            return None
+        stamp, bearings = held
+        n = 0 if bearings is None else len(bearings)
+        if n != self.landmarks_per_group * len(groups):
+            self.unpaired += 1
+            return None
+        return stamp, bearings, tuple(groups)
+
+
+BEARING_NORM_TOLERANCE = 0.05   # |b| of a unit bearing must be within 5 % of 1
+
+
+def check_bearings(points: np.ndarray, expected: int | None = None
+                   ) -> tuple[np.ndarray | None, str]:
+    """Validate bearings (rows) from a polygon: return (unit bearings or None, error).
+
+    An empty set is "not detected": (None, ''). A wrong count (``expected``), a non-finite
+    value or a vector that is not unit within 5 % returns (None, reason).
+    """
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    if len(p) == 0:
+        return None, ''
+    if expected is not None and len(p) != expected:
+        return None, f'{len(p)} bearings where {expected} were expected'
+    if not np.all(np.isfinite(p)):
+        return None, 'non-finite bearing'
+    n = np.linalg.norm(p, axis=1)
+    if np.any(np.abs(n - 1.0) > BEARING_NORM_TOLERANCE):
+        return None, f'bearings are not unit vectors (norms {np.round(n, 3).tolist()})'
+    return p / n[:, None], ''
+
+
+def check_vector(v: np.ndarray) -> tuple[np.ndarray | None, str]:
+    """Validate a 3-vector (a flow, a force): (vector or None, error)."""
+    x = np.asarray(v, dtype=float)
+    if x.shape != (3,) or not np.all(np.isfinite(x)):
+        return None, f'non-finite vector {x.tolist()}'
+    return x, ''
+
+
+def is_no_flow(phi_map: np.ndarray) -> bool:
+    """Return True for the "no valid flow at this stamp" message: all three components NaN.
+
+    The optical_flow nodes publish one flow message per image, so that a consumer knows at
+    each stamp whether a flow is coming (lockstep runs then do not depend on arrival order);
+    an image without a valid estimate (first frame, too few inliers, no window, no attitude)
+    gets this all-NaN vector.
+    """
+    x = np.asarray(phi_map, dtype=float)
+    return x.shape == (3,) and bool(np.all(np.isnan(x)))
+
+
+def check_flow(phi_map: np.ndarray, frame_id: str) -> tuple[np.ndarray | None, str]:
+    """Validate a translational flow given in ``frame_id``: (phi in {I} (1/s) or None, error).
+
+    Flows are published in ``map`` (ENU); any other frame or a partly non-finite value is
+    refused (None and an error); the all-NaN "no flow at this stamp" (:func:`is_no_flow`) is
+    None without an error.
+    """
+    if frame_id != MAP_FRAME:
+        return None, f'frame {frame_id!r} is not {MAP_FRAME!r}'
+    if is_no_flow(phi_map):
+        return None, ''
+    phi, err = check_vector(phi_map)
+    return (None, err) if phi is None else (vec_map_to_I(phi), '')
+
+
+def heading_quat_enu_flu(yaw_ned: float) -> np.ndarray:
+    """Return the ibvs/heading_setpoint quaternion (w, x, y, z) for a NED yaw (rad).
+
+    The yaw-only rotation R_Z(yaw) (body FRD in NED) expressed as the attitude of base_link
+    in map (frames.quat_ned_frd_to_enu_flu).
+    """
+    return quat_ned_frd_to_enu_flu(quat_from_rot(rot_z(float(yaw_ned))))
+
+
+def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
+                    R_IB: np.ndarray | None) -> tuple[ControlOutput | None, np.ndarray]:
+    """Answer one frame: (controller output or None, force F in {I} (N)).
+
+    The PAD input of the frame is (landmark bearings or None, group names), as PadPairing
+    gives it; a bare array (no group names) is accepted too.
+
+    Without any IMU attitude yet the controller cannot derotate the bearings: the answer is
+    the hover force m g e3 (level) and no output (no heading, no features). A non-finite
+    controller force (a bug) is replaced by the hover force as well.
+    """
+    hover = controller.config.mass * GRAVITY * e3
+    if R_IB is None:
+        return None, hover
+    pad, pad_groups = frame.get(InputKind.PAD), None
+    if isinstance(pad, tuple):
+        pad, pad_groups = pad
+    meas = Measurements(
+        t=frame.stamp_ns / NS_PER_S, R_IB=R_IB,
+        window_bearings_C=frame.get(InputKind.WINDOW), pad_bearings_C=pad,
+        phi_front_I=frame.get(InputKind.FLOW_FRONT), phi_down_I=frame.get(InputKind.FLOW_DOWN),
+        pad_groups=pad_groups)
+    out = controller.step(mode, meas)
+    F = np.asarray(out.F_I, dtype=float)
+    if F.shape != (3,) or not np.all(np.isfinite(F)) or not np.isfinite(out.yaw_des):
+        return None, hover
+    return out, F
+
+
+FEATURE_NAMES = ('q_w', 'q_w_bar', 'q_t', 'phi_w', 'phi_t', 'eta_w')
+
+
+def feature_vector(features: FeatureSnapshot) -> tuple[list[str], list[float]]:
+    """Flatten a FeatureSnapshot for ibvs/features: names 'q_w.x', ..., 'alpha_w' (in {I}).
+
+    Features that are not available (None) or not finite are left out of the message.
+    """
+    names, values = [], []
+    for name in FEATURE_NAMES:
+        v = getattr(features, name)
+        if v is not None and np.all(np.isfinite(v)):
+            names += [f'{name}.x', f'{name}.y', f'{name}.z']
+            values += [float(x) for x in np.asarray(v, dtype=float).reshape(3)]
+    if features.alpha_w is not None and np.isfinite(features.alpha_w):
+        names.append('alpha_w')
+        values.append(float(features.alpha_w))
+    return names, values

@@ -1,0 +1,150 @@
+"""The timing layer (core/timing.py) and one frame's message checks (core/frame_io.py)."""
+import cv2
+import numpy as np
+import pytest
+
+from ibvs_control.core.frame_io import check_flow, PadPairing
+from ibvs_control.core.modes import Mode
+from ibvs_control.core.timing import (
+    AttitudeBuffer, AttitudeBufferConfig, Camera, FrameAssembler, InputKind, MODE_INPUTS)
+
+W, P, FF, FD = InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT, InputKind.FLOW_DOWN
+MS = 1_000_000
+
+
+def assembler(deadline_s=0.04):
+    """The controller's use: a frame is tagged with its mode and waits for that mode's needs."""
+    return FrameAssembler(deadline_s, lambda mode: MODE_INPUTS[mode].needed)
+
+
+def test_each_mode_waits_for_the_products_the_issue_names_and_no_other():
+    needs = {m: (MODE_INPUTS[m].camera, MODE_INPUTS[m].needed) for m in Mode}
+    assert needs[Mode.WINDOW] == (Camera.FRONT, {W, FF})
+    assert needs[Mode.CROSSING] == (Camera.DOWN, {FD})
+    assert needs[Mode.LANDING] == (Camera.DOWN, {P, FD})
+    assert needs[Mode.IDLE] == (Camera.FRONT, {W})          # its cue to start
+    assert needs[Mode.SHUTDOWN][1] == needs[Mode.FAILSAFE][1] == frozenset()
+
+
+def test_a_frame_leaves_as_soon_as_its_needed_products_are_in_in_either_order():
+    a = assembler()
+    a.add_input(FF, 100 * MS, 'phi')                 # product before the frame is opened
+    assert a.open(100 * MS, Mode.WINDOW, now_ns=100 * MS)
+    assert a.release(now_ns=101 * MS) == []          # window missing, deadline not reached
+    a.add_input(W, 100 * MS, 'corners')
+    (frame,) = a.release(now_ns=101 * MS)
+    assert frame.stamp_ns == 100 * MS and not frame.expired and frame.missing == ()
+    assert frame.get(W) == 'corners' and frame.get(FF) == 'phi' and frame.tag == Mode.WINDOW
+
+
+def test_a_product_the_mode_does_not_need_never_delays_a_frame():
+    a = assembler()
+    a.open(100 * MS, Mode.CROSSING, now_ns=100 * MS)
+    a.add_input(FD, 100 * MS, 'phi_t')               # no pad detection (a dead detector)
+    (frame,) = a.release(now_ns=100 * MS)
+    assert frame.missing == () and frame.get(P) is None
+    a.add_input(P, 120 * MS, 'pad')                  # a pad that did come is carried along
+    a.add_input(FD, 120 * MS, 'phi_t')
+    a.open(120 * MS, Mode.CROSSING, now_ns=120 * MS)
+    (frame,) = a.release(now_ns=120 * MS)
+    assert frame.get(P) == 'pad'
+
+
+def test_the_deadline_counts_on_the_given_clock_from_the_frame_stamp():
+    a = assembler(deadline_s=0.04)
+    a.open(100 * MS, Mode.LANDING, now_ns=100 * MS)
+    a.add_input(FD, 100 * MS, 'phi_t')
+    assert a.next_deadline_ns() == 140 * MS
+    # a clock that stands still (lockstep) never expires it, however long the wall clock runs
+    assert a.release(now_ns=100 * MS) == []
+    assert a.release(now_ns=139 * MS) == []
+    (frame,) = a.release(now_ns=140 * MS)
+    assert frame.expired and frame.missing == (P,) and a.expired == 1
+    assert a.next_deadline_ns() is None
+
+
+def test_frames_leave_in_stamp_order_and_a_late_or_repeated_one_is_refused():
+    a = assembler()
+    a.open(120 * MS, Mode.SHUTDOWN, now_ns=121 * MS)      # needs nothing: ready at once
+    a.open(100 * MS, Mode.WINDOW, now_ns=121 * MS)        # older, waiting
+    assert a.release(now_ns=121 * MS) == []               # 120 does not overtake 100
+    out = a.release(now_ns=140 * MS)                      # 100 expires, then 120 goes
+    assert [f.stamp_ns for f in out] == [100 * MS, 120 * MS]
+    assert not a.open(110 * MS, Mode.IDLE, now_ns=141 * MS)   # older than one answered
+    assert not a.open(120 * MS, Mode.IDLE, now_ns=141 * MS)   # answered already
+    a.open(160 * MS, Mode.IDLE, now_ns=161 * MS)
+    assert not a.open(160 * MS, Mode.IDLE, now_ns=161 * MS)   # open already
+    assert a.add_input(W, 160 * MS, 'x') and not a.add_input(W, 160 * MS, 'y')
+
+
+def test_latest_before_is_strictly_older_and_bounded_in_age():
+    a = assembler()
+    for t in (40, 60, 80):
+        a.add_input(W, t * MS, t)
+    assert a.latest_before(W, 80 * MS, 100 * MS) == (60 * MS, 60)
+    assert a.latest_before(W, 81 * MS, 100 * MS) == (80 * MS, 80)
+    assert a.latest_before(W, 200 * MS, 100 * MS) is None      # 80 ms is 120 ms old
+    assert a.latest_before(W, 40 * MS, 100 * MS) is None
+
+
+def test_the_assembler_refuses_a_bad_deadline():
+    with pytest.raises(ValueError):
+        assembler(deadline_s=0.0)
+    with pytest.raises(ValueError):
+        assembler(deadline_s=float('nan'))
+    with pytest.raises(ValueError):
+        AttitudeBufferConfig(max_extrapolation_s=-1.0)
+
+
+def rot(rotvec):
+    """Rotation matrix of a rotation vector by OpenCV's Rodrigues (a second implementation)."""
+    return cv2.Rodrigues(np.asarray(rotvec, dtype=float).reshape(3, 1))[0]
+
+
+def test_attitude_at_a_stamp_is_interpolated_or_propagated_never_waited_for():
+    w = np.array([0.3, -0.2, 0.5])                   # rad/s, constant body rate
+    buf = AttitudeBuffer(AttitudeBufferConfig())
+    for k in range(5):                               # 100 Hz samples of R(t) = exp(S(w) t)
+        t = 1.0 + 0.01 * k
+        buf.add(t, rot(w * (t - 1.0)), w)
+    # between samples: the geodesic interpolation is exact for a constant rate
+    assert np.allclose(buf.attitude_at(1.015), rot(w * 0.015), atol=1e-9)
+    # after the newest sample: propagated with its rate, exact for a constant rate
+    assert np.allclose(buf.attitude_at(1.07), rot(w * 0.07), atol=1e-9)
+    assert buf.attitude_at(1.04 + 0.051) is None     # beyond max_extrapolation_s (0.05)
+    assert buf.attitude_at(0.99) is None             # before the first sample
+    with pytest.raises(ValueError):
+        buf.add(1.1, np.full((3, 3), np.nan), w)
+
+
+def test_pad_pairing_pairs_landmarks_with_the_groups_that_follow():
+    pairing = PadPairing()
+    b8 = np.tile([0.0, 0.0, 1.0], (8, 1))
+    pairing.add_landmarks(5, b8)
+    stamp, bearings, groups = pairing.add_groups(('A', 'B'))
+    assert stamp == 5 and bearings is b8 and groups == ('A', 'B')
+    # groups alone (their landmarks were refused) are dropped, never kept for later landmarks
+    assert pairing.add_groups(('B', 'C')) is None
+    pairing.add_landmarks(6, None)
+    assert pairing.add_groups(()) == (6, None, ())
+    # a count mismatch is not a pair
+    pairing.add_landmarks(7, b8[:4])
+    assert pairing.add_groups(('A', 'B')) is None
+    assert pairing.unpaired == 2
+
+
+def test_check_flow_converts_map_to_the_paper_frame_and_refuses_bad_input():
+    # map is ENU, {I} is (north, east, down): a flow east in map is +y in {I}
+    phi_I, err = check_flow(np.array([1.0, 0.0, 0.0]), 'map')
+    assert err == '' and np.allclose(phi_I, [0.0, 1.0, 0.0])
+    phi_I, err = check_flow(np.array([0.0, 0.0, 2.0]), 'map')
+    assert np.allclose(phi_I, [0.0, 0.0, -2.0])
+    phi_I, err = check_flow(np.array([np.nan, 0.0, 0.0]), 'map')     # partly NaN: refused
+    assert phi_I is None and 'non-finite' in err
+    phi_I, err = check_flow(np.array([np.inf, np.inf, np.inf]), 'map')
+    assert phi_I is None and err
+    # all three NaN: "no valid flow at this stamp", an input that came, not an error
+    assert check_flow(np.full(3, np.nan), 'map') == (None, '')
+    assert check_flow(np.full(3, np.nan), 'odom')[1]                 # wrong frame still refused
+    phi_I, err = check_flow(np.zeros(3), 'odom')
+    assert phi_I is None and 'odom' in err
