@@ -2,11 +2,16 @@
 
 The peer (FakeAutopilot) is written here from the MAVLink message definitions, not from the
 bridge: it runs in a thread, sends HEARTBEAT and ATTITUDE_QUATERNION, answers parameter reads and
-commands, and records every SET_ATTITUDE_TARGET with its arrival time. Expected values come from
-geometry (a pure yaw rotation, the nose-down pitch needed to accelerate forward) and from the
-MAVLink/PX4/ArduPilot documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196).
+commands, answers TIMESYNC as PX4 does, and records every SET_ATTITUDE_TARGET with its arrival
+time. Its boot clock is a :class:`FrameClock` (whole 20 ms frames, as the lockstep sim's), and the
+bridge's ROS clock is the same clock plus a chosen offset: a TIMESYNC round trip inside one frame
+measures the offset exactly, one across a frame boundary has an rtt of 20 ms and is rejected, so
+mapped times are exact. Expected values come from geometry (a pure yaw rotation, the nose-down
+pitch needed to accelerate forward), from the clocks' offset, and from the MAVLink/PX4/ArduPilot
+documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196).
 """
 import os
+import select
 import socket
 import threading
 import time
@@ -28,6 +33,20 @@ MASS = 1.676
 PX4_OFFBOARD = 6 << 16
 PX4_POSCTL = 3 << 16
 KEY = bytes(range(32))
+MS = 1_000_000                                  # ns
+OFFSET = 1_700_000_000_123_456_789              # ns, ROS (system time) - autopilot boot time
+FRAME_NS = 20 * MS
+
+
+class FrameClock:
+    """An autopilot boot clock in whole 20 ms frames (ns), 1 s at creation, never 0."""
+
+    def __init__(self, start_ns=1_000 * MS):
+        self.start_ns = start_ns
+        self.t0 = time.monotonic_ns()
+
+    def __call__(self):
+        return self.start_ns + (time.monotonic_ns() - self.t0) // FRAME_NS * FRAME_NS
 
 
 def free_udp_port() -> int:
@@ -47,8 +66,15 @@ class FakeAutopilot:
     """A minimal PX4- or ArduPilot-like autopilot speaking MAVLink 2 on udpin."""
 
     def __init__(self, port, kind='px4', armed=True, params=None, key=None,
-                 refuse_disarm_unforced=False, yaw_ned=0.0):
+                 refuse_disarm_unforced=False, yaw_ned=0.0, boot_clock=None,
+                 timesync_on=True, timesync_requests=False):
         self.kind = kind
+        self.boot_clock = boot_clock if boot_clock is not None else FrameClock()
+        self.timesync_on = timesync_on              # answer TIMESYNC requests
+        self.timesync_requests = timesync_requests  # send our own, as PX4 does
+        self.timesync_seen = []    # requests (tc1 == 0) received: msg
+        self.timesync_answers = []  # (boot ns at receipt, msg) answers to our requests
+        self.attitude_ms = []      # time_boot_ms of every ATTITUDE_QUATERNION sent
         self.conn = mavutil.mavlink_connection(f'udpin:127.0.0.1:{port}', source_system=1,
                                                source_component=1)
         if key is not None:
@@ -73,10 +99,10 @@ class FakeAutopilot:
         self.conn.close()
 
     def boot_ms(self):
-        return int((time.monotonic() - self.t0) * 1000)
+        return self.boot_clock() // MS
 
     def _run(self):
-        next_hb = next_att = 0.0
+        next_hb = next_att = next_ts = 0.0
         kind = {'px4': mavutil.mavlink.MAV_AUTOPILOT_PX4,
                 'ardupilot': mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA}[self.kind]
         while not self._stop.is_set():
@@ -90,11 +116,16 @@ class FakeAutopilot:
                 next_att = now + 0.02
                 if self.heartbeats_on:
                     h = self.yaw_ned / 2.0
-                    self.conn.mav.attitude_quaternion_send(self.boot_ms(), np.cos(h), 0.0, 0.0,
+                    ms = self.boot_ms()
+                    self.attitude_ms.append(ms)
+                    self.conn.mav.attitude_quaternion_send(ms, np.cos(h), 0.0, 0.0,
                                                            np.sin(h), 0.1, 0.2, 0.3)
+            if self.timesync_requests and now >= next_ts and self.conn.clients:
+                next_ts = now + 0.2
+                self.conn.mav.timesync_send(0, self.boot_clock())
             msg = self.conn.recv_msg()
             if msg is None:
-                time.sleep(0.001)
+                select.select([self.conn.port], [], [], 0.001)   # wake on a datagram
                 continue
             self._handle(msg, now)
 
@@ -105,6 +136,13 @@ class FakeAutopilot:
         self.signed.append(bool(getattr(msg, '_signed', False)))
         if kind == 'SET_ATTITUDE_TARGET':
             self.setpoints.append((now, msg))
+        elif kind == 'TIMESYNC':
+            if msg.tc1 == 0:
+                self.timesync_seen.append(msg)
+                if self.timesync_on:           # PX4: tc1 = boot time (ns), ts1 echoed
+                    self.conn.mav.timesync_send(self.boot_clock(), msg.ts1)
+            else:
+                self.timesync_answers.append((self.boot_clock(), msg))
         elif kind == 'PARAM_REQUEST_READ':
             name = msg.param_id
             if name in self.params:
@@ -141,7 +179,8 @@ class FakeAutopilot:
 
 
 def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
-                hold_last_s=5.0, clock=None, **kw):
+                hold_last_s=5.0, clock=None, ros_clock=None, **kw):
+    """A bridge on udpout to ``port``; ``ros_clock()`` (ns) is what spin() passes to poll()."""
     link = LinkConfig(url=f'udpout:127.0.0.1:{port}', heartbeat_timeout_s=0.5,
                       reconnect_period_s=0.3, signing_key=key)
     seq = SequencerConfig(prestream_s=1.0, command_retry_s=0.3, max_attempts=5,
@@ -150,7 +189,9 @@ def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
                        configured_hover_thrust=hover, autopilot=autopilot,
                        hover_thrust_source=source, param_timeout_s=1.0, param_retry_s=0.2,
                        hold_last_s=hold_last_s, sequencer=seq, **kw)
-    return MavlinkBridge(cfg) if clock is None else MavlinkBridge(cfg, clock)
+    bridge = MavlinkBridge(cfg) if clock is None else MavlinkBridge(cfg, clock)
+    bridge.test_ros_clock = ros_clock
+    return bridge
 
 
 class FrozenClock:
@@ -163,10 +204,17 @@ class FrozenClock:
         return self.t
 
 
-def spin(bridge, seconds, until=None, stream_hz=60.0, force_fn=None):
+def ros_now(bridge):
+    """The bridge's ROS time for poll() (None: the bridge was made without a ROS clock)."""
+    clock = getattr(bridge, 'test_ros_clock', None)
+    return None if clock is None else clock()
+
+
+def spin(bridge, seconds, until=None, stream_hz=60.0, force_fn=None, on_tick=None):
     """Tick the bridge like the node's timers; stop early when until() is true.
 
     ``force_fn(now)``: called at the stream rate, e.g. to feed forces like the controller.
+    ``on_tick()``: called every loop (e.g. to move a FrozenClock on).
     """
     t_end = time.monotonic() + seconds
     next_stream = next_hb = 0.0
@@ -175,10 +223,12 @@ def spin(bridge, seconds, until=None, stream_hz=60.0, force_fn=None):
         now = time.monotonic()
         if force_fn is not None and now >= next_stream:
             force_fn(now)
+        if on_tick is not None:
+            on_tick()
         if now >= next_hb:
             next_hb = now + 0.2
             bridge.heartbeat()
-        samples += bridge.poll()
+        samples += bridge.poll(ros_now(bridge))
         if now >= next_stream:
             next_stream = now + 1.0 / stream_hz
             bridge.stream()
@@ -201,10 +251,16 @@ def heading_msg_quat(yaw_ned):
 def peer_bridge(request):
     made = []
 
-    def factory(peer_kw=None, bridge_kw=None):
+    def factory(peer_kw=None, bridge_kw=None, ros_offset_ns=0, ros_clock=None):
+        """Peer + bridge; the bridge's ROS clock = the peer's boot clock + ros_offset_ns."""
         port = free_udp_port()
-        peer = FakeAutopilot(port, **(peer_kw or {}))
-        bridge = make_bridge(port, **(bridge_kw or {}))
+        peer_kw = dict(peer_kw or {})
+        boot = peer_kw.setdefault('boot_clock', FrameClock())
+        peer = FakeAutopilot(port, **peer_kw)
+        if ros_clock is None:
+            def ros_clock():
+                return boot() + ros_offset_ns
+        bridge = make_bridge(port, ros_clock=ros_clock, **(bridge_kw or {}))
         made.append((peer, bridge))
         return peer, bridge
     yield factory
@@ -214,9 +270,16 @@ def peer_bridge(request):
 
 
 def wait_link(bridge):
+    """Spin until the link is up and the clocks are synced (a FrozenClock is moved on)."""
+    clock = bridge._clock
+
+    def on_tick():
+        if isinstance(clock, FrozenClock):
+            clock.t += 0.002
     ok, _ = spin(bridge, 3.0, until=lambda: bridge.link.link_up
-                 and bridge.sequencer is not None)
-    assert ok, 'link never came up'
+                 and bridge.sequencer is not None and bridge.time_sync.synced,
+                 on_tick=on_tick)
+    assert ok, f'link never came up or never synced: {bridge.time_sync.status()}'
 
 
 def last_setpoint(peer):
@@ -488,18 +551,111 @@ def test_failsafe_level_at_current_yaw_below_hover(peer_bridge):
     assert bridge.setpoint_source == SetpointSource.FAILSAFE
 
 
-def test_imu_republished_in_enu_flu_with_boot_time_stamp(peer_bridge):
-    peer, bridge = peer_bridge(peer_kw={'yaw_ned': np.pi / 2})
-    ok, samples = spin(bridge, 2.0, until=lambda: bridge.link.link_up)
-    _, more = spin(bridge, 0.2)
-    samples += more
-    assert samples
+def test_imu_held_until_synced_then_stamped_boot_time_plus_offset(peer_bridge):
+    # The autopilot does not answer TIMESYNC yet: its attitude is received, never published.
+    peer, bridge = peer_bridge(peer_kw={'yaw_ned': np.pi / 2, 'timesync_on': False},
+                               ros_offset_ns=OFFSET)
+    ok, samples = spin(bridge, 2.0, until=lambda: bridge.link.link_up
+                       and bridge.imu_dropped_unsynced >= 10)
+    assert ok and samples == []
+    assert peer.timesync_seen, 'the bridge asks'
+    assert all(m.ts1 > OFFSET for m in peer.timesync_seen)       # ts1 = its ROS time
+    st = bridge.status()
+    assert not st.time_sync.synced and st.time_sync.offset_ns is None
+    warnings = [text for level, text in bridge.pop_events() if level == 'warn']
+    assert any('imu/data' in w and 'not synced' in w for w in warnings)
+    # Answered now: synced from the median of 5, then every sample stamped boot + offset.
+    peer.timesync_on = True
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.time_sync.synced)
+    assert ok
+    assert bridge.time_sync.offset_ns == OFFSET                  # exact: rtt 0 in a frame
+    _, samples = spin(bridge, 0.3)
+    assert len(samples) >= 5
+    sent_ns = {ms * MS for ms in peer.attitude_ms}
+    for s in samples:
+        assert s.stamp_ns - OFFSET in sent_ns                    # boot time of a sample + offset
+    assert [s.stamp_ns for s in samples] == sorted(s.stamp_ns for s in samples)
     s = samples[-1]
     # Facing east: base_link coincides with map (ENU) -> identity quaternion.
     assert same_rotation(s.q_wxyz, [1.0, 0.0, 0.0, 0.0], atol=1e-6)
     assert np.allclose(s.angular_velocity_flu, [0.1, -0.2, -0.3])
-    assert s.stamp_ns % 1_000_000 == 0 and 0 < s.stamp_ns < 60e9
     assert same_rotation(quat_multiply([1, 0, 0, 0], s.q_wxyz), s.q_wxyz)
+    st = bridge.status()
+    assert st.time_sync.accepted >= 5 and st.time_sync.last_rtt_ns is not None
+
+
+def test_autopilot_reboot_holds_the_imu_until_synced_again(peer_bridge):
+    frames = FrameClock(start_ns=100_000 * MS)     # booted 100 s ago
+    boot_epoch = [0]                                # ns of `frames` at the last boot
+
+    def boot():
+        return frames() - boot_epoch[0]
+    peer, bridge = peer_bridge(peer_kw={'boot_clock': boot},
+                               ros_clock=lambda: frames() + OFFSET)
+    wait_link(bridge)
+    assert bridge.time_sync.offset_ns == OFFSET
+    # Reboot: the boot clock starts again at 1 s; our ROS clock runs on.
+    boot_epoch[0] = frames() - 1_000 * MS
+    spin(bridge, 0.1)
+    assert bridge.time_sync.resets == 1
+    ok, samples = spin(bridge, 2.0, until=lambda: bridge.time_sync.synced)
+    assert ok
+    new_offset = OFFSET + boot_epoch[0]
+    assert bridge.time_sync.offset_ns == new_offset
+    _, samples = spin(bridge, 0.2)
+    sent_ns = {ms * MS for ms in peer.attitude_ms}
+    assert samples and all(s.stamp_ns - new_offset in sent_ns for s in samples)
+
+
+def test_bridge_answers_the_autopilots_timesync_requests_with_its_ros_time(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'timesync_requests': True}, ros_offset_ns=OFFSET)
+    ok, _ = spin(bridge, 3.0, until=lambda: len(peer.timesync_answers) >= 3)
+    assert ok
+    for boot_at_receipt, m in peer.timesync_answers:
+        # ts1 echoed (the autopilot's boot time when it asked); tc1 = our ROS time when we
+        # answered, i.e. between its request and its receipt on the autopilot's clock + offset
+        assert m.ts1 <= boot_at_receipt
+        assert m.ts1 + OFFSET <= m.tc1 <= boot_at_receipt + OFFSET
+    assert bridge.status().counters['timesync_answered'] >= 3
+
+
+def test_no_timesync_while_the_ros_time_is_zero(peer_bridge):
+    # Under use_sim_time before the first /clock the node's ROS time is 0: ts1 = 0 or an
+    # answer tc1 = 0 (a request!) would be meaningless.
+    peer, bridge = peer_bridge(peer_kw={'timesync_requests': True}, ros_clock=lambda: 0)
+    ok, samples = spin(bridge, 1.5, until=lambda: bridge.link.link_up
+                       and bridge.imu_dropped_unsynced > 20)
+    spin(bridge, 0.3)
+    assert bridge.link.link_up
+    assert peer.timesync_seen == [] and peer.timesync_answers == []
+    assert samples == [] and bridge.imu_dropped_unsynced > 0
+    assert bridge.status().counters['timesync_answered'] == 0
+
+
+def test_setpoint_time_boot_ms_is_the_force_stamp_mapped_at_each_send(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'timesync_on': False}, ros_offset_ns=OFFSET)
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.link.link_up and bridge.sequencer)
+    assert ok
+    bridge.on_heading(OFFSET + 1_234 * MS, heading_msg_quat(0.0))
+    bridge.on_force(OFFSET + 1_234 * MS, HOVER_F)
+    spin(bridge, 0.2)
+    assert peer.setpoints and {m.time_boot_ms for _, m in peer.setpoints} == {0}   # unsynced
+    peer.timesync_on = True
+    ok, _ = spin(bridge, 2.0, until=lambda: sent_for(peer, 1234))
+    assert ok, 'a repeat after the sync carries the mapped stamp'
+    # The next frame's stamp 1254.5 ms after boot on the ROS clock: rounded to 1255 (halves up).
+    bridge.on_heading(OFFSET + 1_254_500_000, heading_msg_quat(0.0))
+    bridge.on_force(OFFSET + 1_254_500_000, HOVER_F)
+    assert wait_peer(lambda: sent_for(peer, 1255))
+    assert sent_for(peer, 1254) == []
+
+
+def test_diagnostics_report_the_clock_sync(peer_bridge):
+    peer, bridge = peer_bridge(ros_offset_ns=OFFSET)
+    wait_link(bridge)
+    ts = bridge.status().time_sync
+    assert ts.synced and ts.offset_ns == OFFSET and ts.accepted >= 5
+    assert ts.last_rtt_ns == 0                    # within one frame of the FrameClock
 
 
 # --- heading / force pairing by stamp ---------------------------------------------------------

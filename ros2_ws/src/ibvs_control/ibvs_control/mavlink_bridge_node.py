@@ -4,9 +4,11 @@ Thin ROS wrapper of :class:`ibvs_control.core.mavlink_bridge.MavlinkBridge` (doc
 docs/interfaces.md). Subscribes ibvs/force_setpoint (Vector3Stamped, map, N),
 ibvs/heading_setpoint (QuaternionStamped, map), ibvs/mode (UInt8, transient local) and
 ibvs/supervisor_status (DiagnosticArray, the mode of each frame);
-publishes imu/data (sensor_msgs/Imu, base_link in map) and /diagnostics. The link timers
-(receive, setpoint stream, heartbeat) run on the steady clock: the autopilot's offboard timeout
-counts in its own time, and a lockstep sim's /clock waits for our setpoints.
+publishes imu/data (sensor_msgs/Imu, base_link in map; stamps = the autopilot's sample times
+on the ROS clock by MAVLink TIMESYNC, nothing before the clocks are synced) and /diagnostics.
+The receive timer hands the ROS time to the core (clock sync). The link timers (receive,
+setpoint stream, heartbeat) run on the steady clock: the autopilot's offboard timeout counts in
+its own time, and a lockstep sim's /clock waits for our setpoints.
 """
 from __future__ import annotations
 
@@ -24,9 +26,10 @@ from std_msgs.msg import UInt8
 from ibvs_control.core.config import ConfigError, load_vehicle
 from ibvs_control.core.frames import vec_map_to_I
 from ibvs_control.core.mavlink_bridge import (
-    BridgeConfig, BridgeStatus, ImuSample, MavlinkBridge, TimeStrategy)
+    BridgeConfig, BridgeStatus, ImuSample, MavlinkBridge)
 from ibvs_control.core.mavlink_link import LinkConfig, load_signing_key, SigningError
 from ibvs_control.core.mavlink_sequencer import SequencerConfig
+from ibvs_control.core.time_sync import TimeSyncConfig
 from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
     stamp_to_ns, vector3)
@@ -51,8 +54,13 @@ PARAMETERS = {
     'param_timeout_s': 3.0,
     'attitude_rate_hz': 100.0,
     'imu_rate_hz': 100.0,
-    'time_strategy': 'boot_time',
-    'boot_time_offset_s': 0.0,
+    'timesync_period_s': 0.1,
+    'timesync_init_request_period_s': 0.05,
+    'timesync_init_samples': 5,
+    'timesync_max_rtt_s': 0.010,
+    'timesync_alpha': 0.05,
+    'timesync_max_deviation_s': 0.010,
+    'timesync_max_consecutive_outliers': 5,
     'stream_rate_hz': 60.0,
     'poll_rate_hz': 250.0,
     'heartbeat_rate_hz': 1.0,
@@ -111,7 +119,8 @@ class MavlinkBridgeNode(Node):
         self.get_logger().info(
             f'MAVLink bridge on {self._config.link.url} (autopilot {p["autopilot"]}, '
             f'signing {"on" if self._config.link.signing_key else "off"}, hover thrust '
-            f'source {p["hover_thrust_source"]}, time {p["time_strategy"]})')
+            f'source {p["hover_thrust_source"]}, clock sync by TIMESYNC every '
+            f'{p["timesync_period_s"]} s)')
 
     def _build_config(self, p: dict) -> BridgeConfig:
         """Typed configuration from the parameters; raises ValueError with the reason."""
@@ -136,13 +145,18 @@ class MavlinkBridgeNode(Node):
         for k in ('stream_rate_hz', 'poll_rate_hz', 'heartbeat_rate_hz', 'diagnostics_rate_hz'):
             if not p[k] > 0.0:
                 raise ValueError(f'{k} must be > 0')
+        sync = TimeSyncConfig(
+            period_s=p['timesync_period_s'],
+            init_request_period_s=p['timesync_init_request_period_s'],
+            init_samples=p['timesync_init_samples'], max_rtt_s=p['timesync_max_rtt_s'],
+            alpha=p['timesync_alpha'], max_deviation_s=p['timesync_max_deviation_s'],
+            max_consecutive_outliers=p['timesync_max_consecutive_outliers'])
         return BridgeConfig(
             link=link, mass=vehicle.mass, max_thrust_factor=vehicle.max_thrust_factor,
             configured_hover_thrust=hover, autopilot=p['autopilot'],
             hover_thrust_source=p['hover_thrust_source'], param_timeout_s=p['param_timeout_s'],
             attitude_rate_hz=p['attitude_rate_hz'], imu_rate_hz=p['imu_rate_hz'],
-            time_strategy=TimeStrategy(p['time_strategy']),
-            boot_time_offset_s=p['boot_time_offset_s'], hold_last_s=p['hold_last_s'],
+            time_sync=sync, hold_last_s=p['hold_last_s'],
             max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
             failsafe_thrust_ratio=p['failsafe_thrust_ratio'],
             shutdown_ramp_s=p['shutdown_ramp_s'], heading_wait_s=p['heading_wait_s'],
@@ -226,12 +240,14 @@ class MavlinkBridgeNode(Node):
         status.hardware_id = self._config.link.url
         if not st.link_up or st.engage_state in ('refused', 'failed'):
             status.level = DiagnosticStatus.ERROR
-        elif st.setpoint_source not in ('ibvs', 'none'):
+        elif st.setpoint_source not in ('ibvs', 'none') or not st.time_sync.synced:
             status.level = DiagnosticStatus.WARN
         else:
             status.level = DiagnosticStatus.OK
+        ts = st.time_sync
         status.message = (f'link {"up" if st.link_up else "LOST"}, {st.engage_state}'
-                          + (f' ({st.engage_reason})' if st.engage_reason else ''))
+                          + (f' ({st.engage_reason})' if st.engage_reason else '')
+                          + ('' if ts.synced else ', clock not synced: no imu/data'))
         values = {'link': 'up' if st.link_up else 'lost',
                   'heartbeat_age_s': f'{st.heartbeat_age_s:.2f}',
                   'autopilot': st.autopilot, 'armed': str(st.armed),
@@ -242,7 +258,18 @@ class MavlinkBridgeNode(Node):
                   'hover_thrust_source': st.hover_thrust_source,
                   'setpoint_source': st.setpoint_source,
                   'setpoint_rate_hz': f'{st.setpoint_rate_hz:.1f}',
-                  'rejected_setpoints': str(st.rejected_setpoints)}
+                  'rejected_setpoints': str(st.rejected_setpoints),
+                  'clock_synced': 'yes' if ts.synced else 'no',
+                  'clock_offset_ms': 'unknown' if ts.offset_ns is None
+                  else f'{ts.offset_ns / 1e6:.3f}',
+                  'timesync_accepted': str(ts.accepted),
+                  'timesync_rejected': str(ts.rejected_rtt + ts.rejected_outliers),
+                  'timesync_rejected_rtt': str(ts.rejected_rtt),
+                  'timesync_rejected_outliers': str(ts.rejected_outliers),
+                  'timesync_resets': str(ts.resets),
+                  'timesync_last_rtt_ms': 'none' if ts.last_rtt_ns is None
+                  else f'{ts.last_rtt_ns / 1e6:.3f}',
+                  'imu_dropped_unsynced': str(st.imu_dropped_unsynced)}
         values.update({k: str(v) for k, v in st.counters.items()})
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray()

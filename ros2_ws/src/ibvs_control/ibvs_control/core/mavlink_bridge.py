@@ -1,4 +1,4 @@
-"""The MAVLink bridge without ROS: setpoint shaping, IMU decoding, time mapping, sequencing.
+"""The MAVLink bridge without ROS: setpoint shaping, IMU decoding, clock sync, sequencing.
 
 :class:`MavlinkBridge` owns a :class:`~ibvs_control.core.mavlink_link.MavlinkLink` and an
 :class:`~ibvs_control.core.mavlink_sequencer.EngageSequencer`. The node feeds it the force and
@@ -9,10 +9,16 @@ heading setpoints and the supervisor mode, and calls :meth:`MavlinkBridge.poll` 
 Setpoint (SET_ATTITUDE_TARGET, docs/mavlink.md)
     q = attitude of body FRD in the autopilot's local NED (= {I}) with R_d e3 = F / |F| and
     the desired yaw (attitude.attitude_from_force); thrust = |F| / (m g) * hover_thrust in
-    [0, 1]; type_mask = 7 (body rates ignored); time_boot_ms = the setpoint's stamp mapped to
-    the autopilot's boot time (fallback targets: the latest force's, 0 before any). A NEW
-    setpoint is sent at once (the sim's lockstep pacing waits for it), the stream timer repeats
-    the latest one with the same time_boot_ms.
+    [0, 1]; type_mask = 7 (body rates ignored); time_boot_ms = the latest force's stamp mapped
+    to the autopilot's boot time at each send (fallback targets too; 0 before any force or
+    while the clocks are not synced). A NEW setpoint is sent at once (the sim's lockstep pacing
+    waits for it), the stream timer repeats the latest one.
+Clock sync (:mod:`ibvs_control.core.time_sync`, docs/mavlink.md)
+    :meth:`MavlinkBridge.poll` gets the ROS time; the bridge sends TIMESYNC requests, takes the
+    answers into :class:`~ibvs_control.core.time_sync.TimeSync` and answers the autopilot's
+    own requests (tc1 = our ROS time). imu/data stamps = time_boot_ms + offset, on the ROS
+    clock; while the offset is unknown no IMU sample is published (a wrong stamp would be a
+    silent wrong output): it is dropped, counted and reported by a throttled warning.
 Heading / force pairing (:class:`HeadingPairing`)
     The heading and the force of one camera frame share its stamp but come on two topics, in
     either order. A force is flown with the heading of the SAME stamp: if that heading has not
@@ -49,6 +55,7 @@ from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink
 from ibvs_control.core.mavlink_sequencer import (
     Autopilot, EngageSequencer, SequencerConfig, SequencerInputs)
 from ibvs_control.core.modes import Mode
+from ibvs_control.core.time_sync import TimeSync, TimeSyncConfig, TimeSyncStatus
 
 ATTITUDE_TARGET_IGNORE_BODY_RATES = 7   # type_mask bits 0-2: roll, pitch, yaw rate ignored
 NS_PER_MS = 1_000_000
@@ -62,13 +69,7 @@ STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the
 HEADING_BUFFER_LEN = 8                  # headings kept by stamp, and sent stamps remembered
 AUTOPILOT_OF_HEARTBEAT = {MavAutopilot.PX4: Autopilot.PX4,
                           MavAutopilot.ARDUPILOTMEGA: Autopilot.ARDUPILOT}
-
-
-class TimeStrategy(Enum):
-    """How autopilot time_boot_ms and ROS stamps map onto each other."""
-
-    BOOT_TIME = 'boot_time'        # ros_ns = time_boot_ms * 1e6 + offset (sim: offset = 0)
-    RECEIVE_TIME = 'receive_time'  # stamps = ROS time of receipt; offset tracked per message
+IMU_DROP_WARN_PERIOD_S = 2.0            # s (monotonic) between "IMU dropped" warnings
 
 
 class SetpointSource(Enum):
@@ -97,8 +98,7 @@ class BridgeConfig:
     attitude_rate_hz: float = 100.0          # ATTITUDE_QUATERNION requested rate
     imu_rate_hz: float = 100.0               # HIGHRES_IMU requested rate
     interval_retry_s: float = 2.0            # re-request a message not received for this long
-    time_strategy: TimeStrategy = TimeStrategy.BOOT_TIME
-    boot_time_offset_s: float = 0.0          # BOOT_TIME: ROS time of the autopilot's boot
+    time_sync: TimeSyncConfig = field(default_factory=TimeSyncConfig)   # TIMESYNC estimator
     hold_last_s: float = 0.5                 # keep the last valid setpoint this long (s,
     #                                          monotonic) when input is bad or stops
     max_force_factor: float = 3.0            # |F| above factor * m g is out of range
@@ -172,6 +172,8 @@ class BridgeStatus:
     setpoint_rate_hz: float
     rejected_setpoints: int
     counters: dict
+    time_sync: TimeSyncStatus
+    imu_dropped_unsynced: int       # ATTITUDE_QUATERNION dropped while the clock was unsynced
 
 
 def yaw_from_heading_quat(q_wxyz_enu_flu: np.ndarray) -> float:
@@ -256,17 +258,19 @@ class SetpointShaper:
             self._ramp.elapsed(t), self.config.shutdown_ramp_s) <= 0.0)
 
     def target(self, t: float, mode: Mode, yaw_now: float, hover: float,
-               time_boot_ms: int) -> AttitudeTarget:
+               time_boot_ms: int, t_vehicle: float) -> AttitudeTarget:
         """Return the attitude target for supervisor ``mode`` at monotonic time t.
 
-        ``yaw_now``: current NED yaw (level setpoints keep it); ``hover``: hover thrust.
+        ``yaw_now``: current NED yaw (level setpoints keep it); ``hover``: hover thrust;
+        ``time_boot_ms``: what the target carries; ``t_vehicle``: the latest force's stamp (s,
+        ROS clock: sim time in the sim), the clock of the shutdown ramp.
         """
         level_q = quat_from_rot(rot_z(yaw_now))
         if mode == Mode.SHUTDOWN:
             if self._ramp is None:
                 start = self._last_thrust if self._last_thrust is not None else hover
-                self._ramp = ShutdownRamp(start, time_boot_ms / MS_PER_S, t)
-            self._ramp.advance(time_boot_ms / MS_PER_S, t)
+                self._ramp = ShutdownRamp(start, t_vehicle, t)
+            self._ramp.advance(t_vehicle, t)
             scale = shutdown_thrust_scale(self._ramp.elapsed(t), self.config.shutdown_ramp_s)
             return self._out(time_boot_ms, level_q, self._ramp.start_thrust * scale,
                              SetpointSource.SHUTDOWN_RAMP)
@@ -413,8 +417,9 @@ RAMP_STALL_S = 1.0          # s (wall) without newer setpoint stamps before the 
 class ShutdownRamp:
     """Elapsed time of the mode-4 thrust ramp, in the VEHICLE's time.
 
-    The ramp runs on the setpoints' time_boot_ms (the vehicle's clock: sim time in the sim,
-    where lockstep makes it run slower than the wall clock), so the descent profile is the
+    The ramp runs on the stamps of the forces (the ROS clock: sim time in the sim, where
+    lockstep makes it run slower than the wall clock; the same instants the setpoints'
+    time_boot_ms carry, without depending on the clock sync), so the descent profile is the
     same whatever the pacing. If the setpoint stamps stop advancing (the controller went
     silent), it goes on with the wall clock after RAMP_STALL_S, so thrust never hangs.
     """
@@ -487,7 +492,13 @@ class MavlinkBridge:
         # consumers are matched, so that a lockstep sim starts only when they hear every sample)
         self.stream_enabled = True
         self._current: AttitudeTarget | None = None
-        self._setpoint_time_boot_ms = 0      # time_boot_ms of the latest IBVS setpoint
+        self.time_sync = TimeSync(config.time_sync)
+        self._ros_ns: int | None = None           # ROS time of the current poll (ns)
+        self._setpoint_stamp_ns: int | None = None   # latest stamp of a force sent (ROS ns)
+        self.imu_dropped_unsynced = 0
+        self._imu_drop_reported = 0
+        self._imu_drop_warned_t = -np.inf
+        self.timesync_answered = 0                # the autopilot's requests we answered
         self._force_stamp_ns: int | None = None   # stamp of the latest force sent
         self._force_sent_t = -np.inf              # when (monotonic s)
         self._status_modes: dict[int, Mode] = {}  # stamp ns -> supervisor mode of that frame
@@ -499,8 +510,6 @@ class MavlinkBridge:
         self._last_interval_request: dict[int, float] = {}
         self._yaw_now = 0.0
         self._lin_acc_frd: np.ndarray | None = None
-        self._time_offset_ns: int | None = None
-        self._receive_ns: int | None = None
         self._events: list[tuple[str, str]] = []
         self._maybe_build_sequencer()
 
@@ -605,21 +614,25 @@ class MavlinkBridge:
         self.release_expired()
         self._send_current(new=False)
 
-    def poll(self, receive_ns: int | None = None) -> list[ImuSample]:
+    def poll(self, ros_ns: int | None = None) -> list[ImuSample]:
         """Receive everything pending, run the sequencer, return new IMU samples.
 
-        Also sends a force whose heading wait has expired (:meth:`release_expired`).
-        ``receive_ns``: ROS time now (used by the RECEIVE_TIME strategy).
+        ``ros_ns``: ROS time now (ns; the node's clock: system time on a vehicle, sim time in
+        the sim). It is the receipt time of the TIMESYNC answers read here, the tc1 of our
+        answers to the autopilot's requests and the ts1 of our requests; None or 0 (no
+        ``/clock`` yet): no clock sync. Also sends a force whose heading wait has expired
+        (:meth:`release_expired`).
         """
         self.release_expired()
         now = self._clock()
-        self._receive_ns = receive_ns
+        self._ros_ns = None if ros_ns is None else int(ros_ns)
         samples = []
         for msg in self.link.poll():
             sample = self._handle(msg, now)
             if sample is not None:
                 samples.append(sample)
         self._maybe_build_sequencer()
+        self._request_timesync(now)
         self._service_requests(now)
         self._run_sequencer(now)
         return samples
@@ -651,7 +664,9 @@ class MavlinkBridge:
                       'foreign': c.foreign, 'reconnects': c.reconnects,
                       'link_losses': c.link_losses, 'send_errors': c.send_errors,
                       'heading_timeouts': self.pairing.missing,
-                      'late_headings': self.pairing.late})
+                      'late_headings': self.pairing.late,
+                      'timesync_answered': self.timesync_answered},
+            time_sync=self.time_sync.status(), imu_dropped_unsynced=self.imu_dropped_unsynced)
 
     def close(self) -> None:
         """Close the link."""
@@ -659,21 +674,30 @@ class MavlinkBridge:
 
     # --- time mapping ------------------------------------------------------------------
     def stamp_to_boot_ms(self, stamp_ns: int) -> int | None:
-        """ROS stamp -> autopilot time_boot_ms (None while the offset is unknown)."""
-        if self.config.time_strategy == TimeStrategy.BOOT_TIME:
-            offset = int(round(self.config.boot_time_offset_s * NS_PER_S))
-        elif self._time_offset_ns is None:
-            return None
-        else:
-            offset = self._time_offset_ns
-        return max(0, (int(stamp_ns) - offset + NS_PER_MS // 2) // NS_PER_MS)
+        """ROS stamp -> autopilot time_boot_ms (>= 0; None while the clocks are not synced)."""
+        ms = self.time_sync.ros_ns_to_boot_ms(stamp_ns)
+        return None if ms is None else max(0, ms)
 
-    def boot_ms_to_stamp(self, time_boot_ms: int, receive_ns: int | None) -> int:
-        """Autopilot time_boot_ms -> ROS stamp (ns) by the configured strategy."""
-        if self.config.time_strategy == TimeStrategy.BOOT_TIME:
-            return (int(time_boot_ms) * NS_PER_MS
-                    + int(round(self.config.boot_time_offset_s * NS_PER_S)))
-        return int(receive_ns) if receive_ns is not None else int(time_boot_ms) * NS_PER_MS
+    def _request_timesync(self, now: float) -> None:
+        """Send a TIMESYNC request when the estimator wants one (link up, ROS time > 0)."""
+        if not self.link.link_up:
+            return
+        ts1 = self.time_sync.next_request(self._ros_ns, now)
+        if ts1 is not None:
+            self.link.send_timesync(0, ts1)
+
+    def _on_timesync(self, msg) -> None:
+        """Answer the autopilot's request (tc1 == 0), or take the answer to one of ours."""
+        tc1, ts1 = int(msg.tc1), int(msg.ts1)
+        ros = self._ros_ns
+        if ros is None or ros <= 0:
+            return      # no ROS time yet: an answer tc1 = 0 would read as a request
+        if tc1 == 0:
+            if self.link.send_timesync(ros, ts1):
+                self.timesync_answered += 1
+        elif tc1 > 0:
+            for level, text in self.time_sync.on_reply(tc1, ts1, ros):
+                self._event(level, text)
 
     # --- internals ---------------------------------------------------------------------
     def _event(self, level: str, text: str) -> None:
@@ -706,6 +730,8 @@ class MavlinkBridge:
             acc = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float)
             if np.all(np.isfinite(acc)):
                 self._lin_acc_frd = acc
+        elif kind == 'TIMESYNC':
+            self._on_timesync(msg)
         elif kind == 'PARAM_VALUE':
             self._param(msg.param_id, float(msg.param_value))
         elif kind == 'COMMAND_ACK':
@@ -723,12 +749,32 @@ class MavlinkBridge:
             self._event('error', f'ATTITUDE_QUATERNION out of range (q={q}, rates={w}): '
                                  'dropped')
             return None
-        if self._receive_ns is not None:
-            self._time_offset_ns = self._receive_ns - int(msg.time_boot_ms) * NS_PER_MS
         self._yaw_now = euler_zyx_from_rot(rot_from_quat(q))[2]
+        boot_ms = int(msg.time_boot_ms)
+        for level, text in self.time_sync.on_boot_time('time_boot_ms', boot_ms * NS_PER_MS):
+            self._event(level, text)
+        stamp_ns = self.time_sync.boot_ms_to_ros_ns(boot_ms)
+        if stamp_ns is None:
+            self._imu_unsynced()
+            return None
         acc = None if self._lin_acc_frd is None else vec_frd_to_flu(self._lin_acc_frd)
-        return ImuSample(self.boot_ms_to_stamp(msg.time_boot_ms, self._receive_ns),
-                         quat_ned_frd_to_enu_flu(q), vec_frd_to_flu(w), acc)
+        return ImuSample(stamp_ns, quat_ned_frd_to_enu_flu(q), vec_frd_to_flu(w), acc)
+
+    def _imu_unsynced(self) -> None:
+        """Count an IMU sample dropped for want of the clock offset; warn now and then."""
+        self.imu_dropped_unsynced += 1
+        now = self._clock()
+        if now - self._imu_drop_warned_t < IMU_DROP_WARN_PERIOD_S:
+            return
+        self._imu_drop_warned_t = now
+        n = self.imu_dropped_unsynced - self._imu_drop_reported
+        self._imu_drop_reported = self.imu_dropped_unsynced
+        ts = self.time_sync
+        why = ('no ROS time yet' if self._ros_ns is None or self._ros_ns <= 0
+               else f'{ts.init_progress} of {ts.config.init_samples} TIMESYNC samples, '
+                    f'{ts.rejected_rtt} rejected for their round trip')
+        self._event('warn', f'imu/data: {n} sample(s) dropped, clock not synced with the '
+                            f'autopilot yet ({why}); {self.imu_dropped_unsynced} in all')
 
     def _param(self, raw_name, value: float) -> None:
         name = raw_name.decode('ascii', 'replace') if isinstance(raw_name, bytes) else raw_name
@@ -804,9 +850,8 @@ class MavlinkBridge:
         for p in forces:
             # Before any heading: the current yaw, frozen so that repeats equal what was sent.
             self.shaper.on_force(p.t_rx, p.F_I, self._yaw_now if p.yaw is None else p.yaw)
-            ms = self.stamp_to_boot_ms(p.stamp_ns)
-            if ms is not None:
-                self._setpoint_time_boot_ms = max(self._setpoint_time_boot_ms, ms)
+            if self._setpoint_stamp_ns is None or p.stamp_ns > self._setpoint_stamp_ns:
+                self._setpoint_stamp_ns = p.stamp_ns
             self._force_stamp_ns, self._force_sent_t = p.stamp_ns, self._clock()
             self._send_current(new=True)
 
@@ -818,9 +863,13 @@ class MavlinkBridge:
         # Every target carries the stamp of the latest controller output (0 before any), never
         # the autopilot's current time: a fallback (level hover before the first force, hold,
         # shutdown ramp) is not an answer to a newer camera frame, so the sim's lockstep keeps
-        # waiting for the controller instead of running ahead of the graph.
-        ms = self._setpoint_time_boot_ms
-        target = self.shaper.target(now, self.content_mode(now), self._yaw_now, hover, ms)
+        # waiting for the controller instead of running ahead of the graph. Mapped at each
+        # send: a repeat sent once the clocks are synced carries the mapped value (0 before).
+        stamp = self._setpoint_stamp_ns
+        ms = (self.stamp_to_boot_ms(stamp) if stamp is not None else None) or 0
+        t_vehicle = 0.0 if stamp is None else stamp / NS_PER_S
+        target = self.shaper.target(now, self.content_mode(now), self._yaw_now, hover, ms,
+                                    t_vehicle)
         if target.source == SetpointSource.HOLD_LAST and new:
             self._event('error', f'force setpoint refused ({self.shaper.last_error}): '
                                  'holding the last valid one')

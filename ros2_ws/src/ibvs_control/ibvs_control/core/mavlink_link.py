@@ -58,10 +58,11 @@ class MavState(IntEnum):
 
 
 class MavMsgId(IntEnum):
-    """Message ids the bridge requests with MAV_CMD_SET_MESSAGE_INTERVAL."""
+    """Message ids the bridge requests (MAV_CMD_SET_MESSAGE_INTERVAL) or exchanges."""
 
     HIGHRES_IMU = 105
     ATTITUDE_QUATERNION = 31
+    TIMESYNC = 111
 
 
 # Message types of the autopilot that mean "someone else", never our peer autopilot.
@@ -308,6 +309,15 @@ class MavlinkLink:
         return self._send('set_attitude_target_encode', int(time_boot_ms) & UINT32_MAX,
                           self.target_system, self.target_component, int(type_mask), q,
                           0.0, 0.0, 0.0, float(thrust))
+
+    def send_timesync(self, tc1: int, ts1: int) -> bool:
+        """TIMESYNC (111), times in ns: a request is (0, our time), an answer (our time, ts1).
+
+        Not addressed: the common dialect of pymavlink 2.4.x has no TIMESYNC target fields.
+        """
+        if self.target_system == 0:
+            return False
+        return self._send('timesync_encode', int(tc1), int(ts1))
 
     def send_command_long(self, command: int, params: tuple[float, ...],
                           confirmation: int = 0) -> bool:
