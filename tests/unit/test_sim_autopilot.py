@@ -490,6 +490,71 @@ def test_param_request_read_unknown_name_gets_no_value(rig):
     assert rig.ap.counters.param_unknown == 1
 
 
+# --- clock sync (TIMESYNC) ----------------------------------------------------------------------
+
+def test_timesync_request_answered_with_the_boot_time_in_ns(rig):
+    rig.poll(1.234)                                   # sim time = boot time: 1.234 s
+    ts1 = 1_700_000_000_123_456_789                   # the companion's clock, echoed
+    reply, _ = rig.exchange(lambda: rig.client.mav.timesync_send(0, ts1), 'TIMESYNC')
+    assert reply is not None
+    assert reply.tc1 == 1_234_000_000 and reply.ts1 == ts1
+    assert (reply.get_srcSystem(), reply.get_srcComponent()) == (1, 1)
+    # the same clock as time_boot_ms of the telemetry
+    att, _ = rig.exchange(
+        lambda: rig.client.mav.command_long_send(1, 1, CMD_REQUEST_MESSAGE, 0,
+                                                 MSG_ID_ATTITUDE_QUATERNION, 0, 0, 0, 0, 0, 0),
+        'ATTITUDE_QUATERNION')
+    assert att.time_boot_ms * 1_000_000 == reply.tc1
+    assert rig.ap.counters.timesync_answered == 1
+    assert rig.ap.counters.unknown_messages == 0
+
+
+def test_timesync_not_answered_at_time_zero_and_answers_ignored(rig):
+    assert rig.t == 0.0
+    reply, _ = rig.exchange(lambda: rig.client.mav.timesync_send(0, 5_000_000), 'TIMESYNC',
+                            wait_s=0.3)
+    assert reply is None                              # tc1 = 0 would read as a request
+    assert rig.ap.counters.timesync_unanswered == 1
+    rig.poll(0.02)
+    reply, _ = rig.exchange(lambda: rig.client.mav.timesync_send(7, 5_000_000), 'TIMESYNC',
+                            wait_s=0.3)
+    assert reply is None                              # an answer to nobody: ignored
+    assert rig.ap.counters.unknown_messages == 0
+    assert rig.ap.counters.timesync_answered == 0
+
+
+def test_timesync_answered_where_messages_are_read_with_that_polls_time(rig):
+    # Lockstep: no reading during a frame's physics (receive=False); the request is answered
+    # at the next poll that reads, with the sim time of that poll (the frame boundary).
+    rig.poll(0.02)
+    rig.client.mav.timesync_send(0, 123)
+    time.sleep(0.05)
+    for k in range(1, 20):                            # a frame's substeps, 1 ms each
+        rig.ap.poll(rig.state(0.02 + k * 0.001), receive=False)
+    assert [m for m in rig.drain() if m.get_type() == 'TIMESYNC'] == []
+    rig.t = 0.04
+    rig.ap.poll(rig.state())
+    replies = [m for m in rig.drain() if m.get_type() == 'TIMESYNC']
+    assert [(m.tc1, m.ts1) for m in replies] == [(40_000_000, 123)]
+
+
+def test_timesync_answered_before_the_first_frame_once_time_is_not_zero():
+    # poll_before_start reads with telemetry off: a request is answered there too.
+    r = make_rig()
+    try:
+        r.t = 0.5
+        r.client.mav.timesync_send(0, 99)
+        deadline = time.monotonic() + ACK_WAIT_S
+        replies = []
+        while not replies and time.monotonic() < deadline:
+            r.ap.poll(r.state(), telemetry=False)
+            replies = [m for m in r.drain() if m.get_type() == 'TIMESYNC']
+            time.sleep(0.001)
+        assert [(m.tc1, m.ts1) for m in replies] == [(500_000_000, 99)]
+    finally:
+        r.close()
+
+
 # --- failsafe -----------------------------------------------------------------------------------
 
 def test_offboard_loss_lands_and_needs_an_explicit_switch_back(rig):

@@ -21,6 +21,9 @@ Behaviour (details, and how it differs from real PX4, in docs/sim_autopilot.md):
   PX4's commander answers);
 - telemetry ATTITUDE_QUATERNION and HIGHRES_IMU (50 Hz by default, paced in sim time, noisy),
   HEARTBEAT at 1 Hz wall time;
+- TIMESYNC answered as PX4 does: a request (tc1 = 0) gets tc1 = the boot time in ns (= the sim
+  time it is polled at, the clock of time_boot_ms), ts1 echoed; not at time 0 (tc1 = 0 would
+  read as a request);
 - optional MAVLink 2 signing; malformed, unknown, foreign or unsigned input is counted and
   ignored.
 """
@@ -102,6 +105,7 @@ PX4_MAIN_MODE_BIT = 16           # custom_mode bits 16-23: main mode
 PX4_SUB_MODE_BIT = 24            # custom_mode bits 24-31: sub mode
 US_PER_S = 1_000_000
 MS_PER_S = 1000
+NS_PER_S = 1_000_000_000
 PARAM_ID_LEN = 16                # PARAM_VALUE.param_id, chars
 STATUSTEXT_LEN = 50              # STATUSTEXT.text, chars
 MIN_LIFT_FRACTION = 0.1          # hold / land never command less than 0.1 g of lift
@@ -273,6 +277,8 @@ class AutopilotCounters:
     setpoints_rates_ignored: int = 0  # body rates not flagged ignored (the sim does not use them)
     param_requests: int = 0
     param_unknown: int = 0
+    timesync_answered: int = 0      # TIMESYNC requests answered
+    timesync_unanswered: int = 0    # requests read at boot time 0 (not answered)
     interval_clamped: int = 0       # SET_MESSAGE_INTERVAL faster than telemetry_max_hz
     failsafe_events: int = 0
     heartbeats_sent: int = 0
@@ -624,7 +630,8 @@ class Autopilot:
         handler = {'COMMAND_LONG': self._on_command_long,
                    'SET_ATTITUDE_TARGET': self._on_set_attitude_target,
                    'PARAM_REQUEST_READ': self._on_param_request_read,
-                   'PARAM_REQUEST_LIST': self._on_param_request_list}.get(mtype)
+                   'PARAM_REQUEST_LIST': self._on_param_request_list,
+                   'TIMESYNC': self._on_timesync}.get(mtype)
         if handler is None:
             self.counters.unknown_messages += 1
             self._warn.warning('unhandled', 'MAVLink %s not handled by the sim autopilot', mtype)
@@ -757,6 +764,27 @@ class Autopilot:
         else:
             return MAV_RESULT_UNSUPPORTED
         return MAV_RESULT_ACCEPTED
+
+    # --- clock sync -----------------------------------------------------------------------------
+
+    def _on_timesync(self, msg, state: VehicleStateView) -> None:
+        """Answer a TIMESYNC request as PX4 does: tc1 = boot time now (ns), ts1 echoed.
+
+        The boot time is the sim time of this poll (time_boot_ms is the same clock). In
+        lockstep the sim reads MAVLink only between frames, so a request is answered with the
+        time of the frame being waited on. An answer (tc1 != 0: we send no requests) is
+        ignored. At time 0 no answer: a real autopilot's boot time is never 0, and tc1 = 0
+        would read as a request. pymavlink's common TIMESYNC has no target fields: the answer
+        goes to the link's peer.
+        """
+        if int(msg.tc1) != 0:
+            return
+        t_ns = int(round(float(state.t) * NS_PER_S))
+        if t_ns <= 0:
+            self.counters.timesync_unanswered += 1
+            return
+        self._conn.mav.timesync_send(t_ns, int(msg.ts1))
+        self.counters.timesync_answered += 1
 
     # --- setpoints and parameters ---------------------------------------------------------------
 
