@@ -192,3 +192,17 @@ def test_dds_profile_is_added_unless_the_user_chose_one():
     assert graph.dds_env_overrides({graph.RMW_ENV: 'rmw_cyclonedds_cpp'}) == {}
     assert graph.dds_env_overrides({graph.RMW_ENV: graph.FASTDDS_RMW}) == {
         graph.FASTDDS_PROFILE_ENV: path}
+
+
+def test_free_running_option_changes_only_the_sim():
+    plain = graph.sim_graph(graph.GraphOptions(params_file=PARAMS))
+    free = graph.sim_graph(graph.GraphOptions(params_file=PARAMS, real_time_factor=0.25))
+    for a, b in zip(plain, free):
+        if a.role == 'sim':
+            assert b.overrides()[graph.SIM_PACING] == 'realtime'
+            assert b.overrides()[graph.SIM_REAL_TIME_FACTOR] == 0.25
+            assert graph.SIM_PACING not in a.overrides()
+        else:
+            assert a == b
+    with pytest.raises(ValueError):
+        graph.sim_graph(graph.GraphOptions(params_file=PARAMS, real_time_factor=0.0))

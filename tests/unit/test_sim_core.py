@@ -105,8 +105,25 @@ def test_realtime_paces_by_the_wall_clock(configs):
     clock.now += 0.021
     assert sim.tick().t_ns == 20_000_000
     assert sim.tick() is None
-    clock.now += 5.0                               # far behind: one frame, no burst
-    assert sim.tick() is not None and sim.tick() is None
+    clock.now += 5.0                               # the sim process stalled: re-phased
+    assert sim.tick() is None and sim.stalls == 1 and sim.frames_dropped == 0
+    clock.now += 0.02
+    assert sim.tick().t_ns == 40_000_000
+
+
+def test_free_running_sim_drops_the_frames_it_cannot_render_on_time(configs):
+    ap, clock = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap, clock, pacing=Pacing.REALTIME, real_time_factor=0.5)
+    assert sim.tick().t_ns == 0
+    clock.now += 0.02                              # 10 ms of sim time: nothing due yet
+    assert sim.tick() is None and sim.t_ns == 10_000_000
+    clock.now += 0.08                              # sim time 50 ms: frame 20 ms is 30 ms late
+    out = sim.tick()                               # -> dropped; frame 40 ms (10 ms late) goes
+    assert out.t_ns == 40_000_000 and sim.frames_dropped == 1
+    assert sim.tick() is None and sim.t_ns == 50_000_000     # physics caught up with the clock
+    assert sim.sim_ns_at(clock.now + 1.0) == 550_000_000      # /clock runs at 0.5 x wall
+    with pytest.raises(ValueError):
+        _sim(configs, ap, clock, pacing=Pacing.REALTIME, real_time_factor=0.0)
 
 
 def test_hover_reference_keeps_the_initial_condition(configs):

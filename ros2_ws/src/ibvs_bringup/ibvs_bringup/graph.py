@@ -31,6 +31,8 @@ IMAGE_SUBSCRIBERS_PER_CAMERA = 2                # a detector and an optical_flow
 BRIDGE_MIN_IMU_SUBSCRIBERS = 'min_imu_subscribers'  # bridge: setpoint stream waits for these
 IMU_SUBSCRIBERS = 4                             # both optical_flows, supervisor, controller
 SIM_WIND = 'wind_force_map'                   # [fx, fy, fz] in map (ENU), N
+SIM_PACING = 'pacing'                         # 'lockstep' | 'realtime' (free-running)
+SIM_REAL_TIME_FACTOR = 'real_time_factor'     # free-running: sim s per wall s
 MAVLINK_URL = 'mavlink_url'                   # sim: its MAVLink endpoint
 BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's URL
 CROSSING_LAW = 'crossing_law'                 # force_controller: mode-2 law
@@ -89,6 +91,8 @@ class GraphOptions:
     wind: tuple | None = None                       # {I}, N (sent in map); None: params'
     crossing_law: str | None = None                 # None: params.yaml's
     auto_start_at_s: float | None = None            # s; None: params.yaml's (ibvs/start)
+    real_time_factor: float | None = None           # sim graph: free-running at this factor
+    #                                                 (None: params.yaml's pacing, lockstep)
     extra_remappings: tuple = field(default_factory=tuple)
     extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
     extra_imu_subscribers: int = 0                  # e.g. 1 for a recorder of imu/data
@@ -198,6 +202,11 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
     if opts.wind is not None:
         wind_map = frames.vec_I_to_map(np.array(_floats(opts.wind, 3, 'wind')))
         sim_over[SIM_WIND] = [float(x) + 0.0 for x in wind_map]
+    if opts.real_time_factor is not None:
+        rtf = float(opts.real_time_factor)
+        if not 0.0 < rtf <= 10.0:
+            raise ValueError(f'real-time factor must be in (0, 10], got {rtf}')
+        sim_over[SIM_PACING], sim_over[SIM_REAL_TIME_FACTOR] = 'realtime', rtf
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     sim = NodeSpec('ibvs_sim', 'sim', 'sim', params + (sim_over,), tuple(opts.extra_remappings),
                    'sim')

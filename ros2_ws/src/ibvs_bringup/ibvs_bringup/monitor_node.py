@@ -33,6 +33,16 @@ def stamp_s(msg) -> float:
     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
 
+def _number(text: str):
+    """A diagnostic value as int or float when it is one, else the text."""
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
 def _vec(v) -> np.ndarray:
     return np.array([v.x, v.y, v.z], dtype=float)
 
@@ -72,6 +82,8 @@ class ScenarioMonitor(Node):
             self.create_subscription(Vector3Stamped, topic,
                                      lambda m, n=name: self._on_map_vector(n, m), BEST_EFFORT)
         self.create_subscription(JointState, 'ibvs/features', self._on_features, BEST_EFFORT)
+        self.sim_stats: dict = {}
+        self.create_subscription(DiagnosticArray, 'sim/stats', self._on_sim_stats, LATCHED)
 
     def now_s(self) -> float:
         """Return the node's (sim) time in seconds."""
@@ -87,6 +99,11 @@ class ScenarioMonitor(Node):
             return
         if self.log.add_mode(stamp_ns / NS_PER_S, mode):
             self.get_logger().info(f'mode {mode} at t = {stamp_ns / NS_PER_S:.2f} s')
+
+    def _on_sim_stats(self, msg: DiagnosticArray) -> None:
+        """Keep the sim's latest timing figures (frames dropped, image -> setpoint latency)."""
+        for status in msg.status:
+            self.sim_stats = {kv.key: _number(kv.value) for kv in status.values}
 
     def _on_event(self, msg: String) -> None:
         try:

@@ -51,6 +51,7 @@ class RunOptions:
     preflight_timeout_s: float = 120.0  # wall clock
     mavlink_port: int | None = None     # None: a free port
     params_file: str | None = None
+    real_time_factor: float | None = None   # free-running sim at this factor (None: lockstep)
     plots: bool = True
     extra: dict = field(default_factory=dict)
 
@@ -177,6 +178,7 @@ def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
                                mavlink_port=port, initial_position=initial_position,
                                wind=opts.wind, crossing_law=opts.crossing_law,
                                auto_start_at_s=START_AT_SIM_S,
+                               real_time_factor=opts.real_time_factor,
                                extra_image_subscribers=1 if opts.bag else 0,
                                extra_imu_subscribers=1 if opts.bag else 0)
     specs = graph.sim_graph(gopts)
@@ -300,11 +302,13 @@ def run_graph(opts: RunOptions) -> int:
             for _ in range(20):               # drain what arrived meanwhile
                 rclpy.spin_once(monitor, timeout_sec=0.0)
         log = monitor.log if monitor is not None else report.RunLog()
+        sim_stats = dict(monitor.sim_stats) if monitor is not None else {}
         if monitor is not None:
             monitor.destroy_node()
         rclpy.try_shutdown()
     print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
+    summary['timing'] = sim_stats
     summary['run'] = _run_block(opts, xi0, stop_reason=stop_reason, error=error,
                                 wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
                                 events=log.events,
@@ -336,6 +340,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--preflight-timeout', type=float, default=120.0)
     p.add_argument('--mavlink-port', type=int, default=None, help='default: a free UDP port')
     p.add_argument('--params-file', default=None)
+    p.add_argument('--real-time-factor', type=float, default=None, metavar='RTF',
+                   help='free-running sim (not lockstep): sim time runs at RTF x the wall '
+                        'clock, frames it cannot render on time are dropped (e.g. 0.25)')
     a = p.parse_args(argv)
     xi0 = tuple(a.initial_position) if a.initial_position else None
     extra = {}
@@ -350,7 +357,8 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       bag=not a.no_bag, image_every=max(1, a.bag_image_every),
                       feature_level=a.feature_level, timeout_s=a.timeout,
                       preflight_timeout_s=a.preflight_timeout, mavlink_port=a.mavlink_port,
-                      params_file=a.params_file, plots=not a.no_plots, extra=extra)
+                      params_file=a.params_file, plots=not a.no_plots, extra=extra,
+                      real_time_factor=a.real_time_factor)
 
 
 def main(argv: list | None = None) -> int:

@@ -31,6 +31,7 @@ from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, Imu
@@ -42,8 +43,8 @@ from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_
                                       vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.sim_core import (FirstFrameHold, FrameOutput, ImuBeforeImages, NS_PER_S,
-                                    Pacing, SimConfig, Simulation)
+from ibvs_sim.core.sim_core import (AnswerLatency, FirstFrameHold, FrameOutput,
+                                    ImuBeforeImages, NS_PER_S, Pacing, SimConfig, Simulation)
 from ibvs_control.spin import spin_guarded
 
 NODE_NAME = 'sim'
@@ -55,6 +56,7 @@ LOG_THROTTLE_S = 2.0
 EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
 SUBSCRIBER_SETTLE_S = 0.5     # s (wall), image subscribers and setpoints this long before frame 0
+STATS_PERIOD_S = 1.0          # s (wall), sim/stats
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,7 @@ class SimNodeConfig:
 
     pacing: Pacing
     lockstep_timeout_s: float
+    real_time_factor: float
     tick_period_s: float
     initial_position_I: tuple | None
     initial_yaw: float | None
@@ -157,6 +160,7 @@ class SimNode(Node):
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
         self.sim = Simulation(world, pad, vehicle, self.autopilot, SimConfig(
             pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
+            real_time_factor=cfg.real_time_factor,
             camera_rate_hz=self.cameras['down'].rate_hz,
             initial_position_I=cfg.initial_position_I, initial_yaw=cfg.initial_yaw,
             wind=wind, cameras=CAMERAS))
@@ -170,6 +174,11 @@ class SimNode(Node):
         self.odom_pub = self.create_publisher(Odometry, 'sim/ground_truth/odom', reliable)
         self.clock_pub = self.create_publisher(ClockMsg, '/clock', reliable)
         self.events_pub = self.create_publisher(String, 'sim/events', latched)
+        self.stats_pub = self.create_publisher(DiagnosticArray, 'sim/stats', QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.latency = AnswerLatency()
+        self._clock_ns = -1
         self._ended_logged = False
         self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
                                         enabled=cfg.pacing is Pacing.LOCKSTEP)
@@ -179,16 +188,19 @@ class SimNode(Node):
         self.first_frame_hold = FirstFrameHold(
             min_counts, SUBSCRIBER_SETTLE_S, cfg.subscriber_wait_timeout_s, time.monotonic(),
             need_setpoints=cfg.start_on_setpoints)
-        self.timer = self.create_timer(cfg.tick_period_s, self._on_tick,
-                                       clock=Clock(clock_type=ClockType.STEADY_TIME))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.timer = self.create_timer(cfg.tick_period_s, self._on_tick, clock=steady)
+        self.create_timer(STATS_PERIOD_S, self._publish_stats, clock=steady)
         self.get_logger().info(
-            f'sim: {cfg.pacing.value} pacing, MAVLink {cfg.mavlink_url}, start at '
+            f'sim: {cfg.pacing.value} pacing (real-time factor {cfg.real_time_factor:g}), '
+            f'MAVLink {cfg.mavlink_url}, start at '
             f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {cfg.wind_force_map} N (map)')
 
     def _read_parameters(self) -> SimNodeConfig:
         p = {
             'pacing': Pacing.LOCKSTEP.value,
             'lockstep_timeout_s': 1.0,
+            'real_time_factor': 1.0,
             'tick_period_s': 0.002,
             'initial_override': False,
             'initial_position_I': [-2.0, 0.1, -1.82],
@@ -233,6 +245,7 @@ class SimNode(Node):
             raise ValueError(f'telemetry_default_hz must be > 0, got {telemetry_hz}')
         return SimNodeConfig(
             pacing=pacing, lockstep_timeout_s=float(v['lockstep_timeout_s']),
+            real_time_factor=float(v['real_time_factor']),
             tick_period_s=float(v['tick_period_s']),
             initial_position_I=tuple(pos) if override else None,
             initial_yaw=yaw if override else None,
@@ -277,7 +290,7 @@ class SimNode(Node):
             self._publish(held)
         if self.imu_hold.holding:
             return
-        timeouts_before = self.sim.lockstep_timeouts
+        timeouts_before, dropped_before = self.sim.lockstep_timeouts, self.sim.frames_dropped
         try:
             out = self.sim.tick()
         except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
@@ -292,6 +305,14 @@ class SimNode(Node):
                 f't = {self.sim.t:.3f} s with the last one; {self.sim.lockstep_timeouts} '
                 'time-outs so far (the run no longer repeats exactly)',
                 throttle_duration_sec=LOG_THROTTLE_S)
+        if self.sim.frames_dropped > dropped_before:
+            self.get_logger().warning(
+                f'free-running: could not render on time at t = {self.sim.t:.3f} s: '
+                f'{self.sim.frames_dropped} frame(s) dropped so far (lower real_time_factor)',
+                throttle_duration_sec=LOG_THROTTLE_S)
+        self.latency.answered(self.sim.autopilot.last_setpoint_time_boot_ms, time.monotonic())
+        if self.sim.config.pacing is Pacing.REALTIME:
+            self._publish_clock(self.sim.t_ns)          # /clock runs on between frames
         if out is not None:
             out = self.imu_hold.hold(out, time.monotonic())
             if out is not None:
@@ -301,13 +322,35 @@ class SimNode(Node):
             self.get_logger().error(f'run ended by a collision at t={self.sim.t:.3f} s: '
                                     f'{self.sim.events[-1].to_dict()}')
 
+    def _publish_clock(self, t_ns: int) -> None:
+        if t_ns > self._clock_ns:
+            self._clock_ns = t_ns
+            self.clock_pub.publish(ClockMsg(clock=stamp_from_ns(t_ns)))
+
+    def _publish_stats(self) -> None:
+        """sim/stats: frames published, dropped, answered and the image -> setpoint latency."""
+        values = {'pacing': self.sim.config.pacing.value,
+                  'real_time_factor': self.sim.config.real_time_factor,
+                  'sim_time_s': self.sim.t, 'frames_dropped': self.sim.frames_dropped,
+                  'stalls': self.sim.stalls, 'lockstep_timeouts': self.sim.lockstep_timeouts,
+                  'imu_hold_timeouts': self.imu_hold.timeouts, **self.latency.stats()}
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if self.sim.frames_dropped else DiagnosticStatus.OK,
+            name='sim: timing', message=f"{values['frames_published']} frames published, "
+            f"{self.sim.frames_dropped} dropped",
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp_from_ns(self.sim.t_ns)
+        self.stats_pub.publish(msg)
+
     def _publish(self, out: FrameOutput) -> None:
         stamp = stamp_from_ns(out.t_ns)
-        self.clock_pub.publish(ClockMsg(clock=stamp))
+        self._publish_clock(out.t_ns)
         for name, img in out.images.items():
             cam = self.cameras[name]
             self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
             self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))
+        self.latency.published(out.t_ns, time.monotonic())
         self.odom_pub.publish(odometry_msg(out.state, stamp))
         for event in out.events:
             self.events_pub.publish(String(data=json.dumps(event.to_dict())))

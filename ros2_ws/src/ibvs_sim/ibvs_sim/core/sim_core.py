@@ -10,8 +10,12 @@ The initial frame (t = 0) shows the initial condition.
 
 Pacing (:meth:`Simulation.tick`, called often by the node):
 
-- ``realtime``: a frame is simulated when the wall clock reaches its due time (frames are
-  dropped rather than bunched when the machine falls behind);
+- ``realtime`` (free-running): sim time runs at ``real_time_factor`` x the wall clock (e.g.
+  0.25 on a machine that cannot render 50 Hz in real time); physics substeps catch up with it
+  at every tick, MAVLink is read at every substep, and a camera frame is rendered only if the
+  sim is less than one camera period behind its due time: a frame it cannot render on time is
+  dropped and counted (``frames_dropped``), never delayed or bunched. A stall of the sim
+  process itself longer than ``MAX_CATCH_UP_S`` of sim time re-phases its clock (``stalls``);
 - ``lockstep``: the next camera period is simulated only after the autopilot received a
   SET_ATTITUDE_TARGET whose time_boot_ms is at least the last frame's time in ms (the graph's
   answer to that frame), or after ``lockstep_timeout_s`` of wall clock; meanwhile the autopilot
@@ -45,6 +49,7 @@ from ibvs_sim.core.render import SceneRenderer
 NS_PER_S = 1_000_000_000
 NS_PER_MS = 1_000_000
 DEFAULT_CAMERA_RATE_HZ = 50.0
+MAX_CATCH_UP_S = 0.5          # s of sim time: a longer stall of the sim process re-phases it
 
 
 class Pacing(str, enum.Enum):
@@ -78,6 +83,7 @@ class SimConfig:
 
     pacing: Pacing = Pacing.LOCKSTEP
     lockstep_timeout_s: float = 1.0                  # wall clock, s
+    real_time_factor: float = 1.0                    # realtime: sim s per wall s, (0, 10]
     camera_rate_hz: float = DEFAULT_CAMERA_RATE_HZ   # both cameras, Hz
     initial_position_I: tuple | None = None          # m, {I}; None = world.yaml
     initial_yaw: float | None = None                 # rad; None = world.yaml
@@ -222,6 +228,51 @@ class ImuBeforeImages:
         return self.imu_through_ns is None or self.imu_through_ns >= frame.t_ns
 
 
+class AnswerLatency:
+    """Image -> setpoint latency of the graph, as the simulated vehicle sees it (wall clock).
+
+    :meth:`published` notes when each frame's images left (wall s); :meth:`answered` is called
+    with the autopilot's newest SET_ATTITUDE_TARGET.time_boot_ms whenever it is read: the frame
+    of exactly that time is answered, and its latency is the wall time of the read minus that
+    of the publication (resolution: the sim node's tick period). Frames whose own answer never
+    came (skipped by a newer one, or never answered) count as unanswered.
+    """
+
+    def __init__(self, keep: int = 200) -> None:
+        self._published: dict[int, float] = {}     # frame ms -> wall s
+        self._keep = int(keep)
+        self.latencies_s: list[float] = []
+        self.frames = 0
+        self._last_ms: int | None = None
+
+    def published(self, t_ns: int, wall: float) -> None:
+        """Note that the frame at sim time ``t_ns`` was published at ``wall``."""
+        self.frames += 1
+        self._published[t_ns // NS_PER_MS] = wall
+        while len(self._published) > self._keep:
+            del self._published[min(self._published)]
+
+    def answered(self, time_boot_ms: int | None, wall: float) -> None:
+        """Note the newest setpoint's time_boot_ms as read at ``wall``."""
+        if time_boot_ms is None or time_boot_ms == self._last_ms:
+            return
+        self._last_ms = time_boot_ms
+        sent = self._published.pop(int(time_boot_ms), None)
+        if sent is not None:
+            self.latencies_s.append(wall - sent)
+
+    def stats(self) -> dict:
+        """Median, p95, p99, max (ms) and the fraction of published frames answered."""
+        lat = np.asarray(self.latencies_s, dtype=float) * 1e3
+        out = {'frames_published': self.frames, 'frames_answered': int(lat.size),
+               'answered_fraction': float(lat.size / self.frames) if self.frames else 0.0}
+        if lat.size:
+            out.update({f'latency_{k}_ms': float(v) for k, v in (
+                ('median', np.median(lat)), ('p95', np.percentile(lat, 95)),
+                ('p99', np.percentile(lat, 99)), ('max', lat.max()))})
+        return out
+
+
 class Simulation:
     """Compose plant, inner loop, autopilot, renderers, contacts and wind (see module doc)."""
 
@@ -254,10 +305,18 @@ class Simulation:
         self.events: list[SimEvent] = []
         self.touched_down = False
         self.ended = False
+        if not (math.isfinite(config.real_time_factor) and 0.0 < config.real_time_factor <= 10.0):
+            raise ValueError(f'real_time_factor must be in (0, 10], got '
+                             f'{config.real_time_factor}')
         self.lockstep_timeouts = 0
+        self.frames_dropped = 0               # realtime: frames not rendered on time
+        self.stalls = 0                       # realtime: re-phased after a stall of the sim
         self.reference: AttitudeReference | None = None
-        self._next_due_wall: float | None = None
         self._waiting_since_wall: float | None = None
+        self._wall0 = 0.0                     # realtime: wall time at sim time _t0_ns
+        self._t0_ns = 0
+        self._next_frame_ns = 0               # realtime: time of the next camera frame
+        self._events: list[SimEvent] = []     # realtime: contacts since the last frame
 
     # --- state views ---
     @property
@@ -282,16 +341,10 @@ class Simulation:
             return None
         now = self.wall_clock()
         if self.frame_index < 0:
-            self._next_due_wall = now + self.period_ns / NS_PER_S
+            self._wall0, self._t0_ns, self._next_frame_ns = now, self.t_ns, self.period_ns
             return self._first_frame()
         if self.config.pacing is Pacing.REALTIME:
-            if now < self._next_due_wall:
-                return None
-            period = self.period_ns / NS_PER_S
-            self._next_due_wall += period
-            if self._next_due_wall <= now:          # fell behind: do not bunch frames
-                self._next_due_wall = now + period
-            return self.step_frame()
+            return self._free_run(now)
         self.autopilot.poll(self.state_view())
         answered = self.autopilot.last_setpoint_time_boot_ms
         if answered is not None and answered >= self.last_frame_ms():
@@ -301,7 +354,48 @@ class Simulation:
             return self.step_frame()
         return None
 
+    def sim_ns_at(self, wall: float) -> int:
+        """Realtime: the sim time (ns) that the wall time ``wall`` (s) stands for."""
+        return self._t0_ns + round((wall - self._wall0) * self.config.real_time_factor * NS_PER_S)
+
+    def _free_run(self, now: float) -> FrameOutput | None:
+        """Realtime: step physics up to the sim time of ``now``; emit a frame if one is due."""
+        target = self.sim_ns_at(now)
+        if target - self.t_ns > MAX_CATCH_UP_S * NS_PER_S:      # the sim itself stalled
+            self.stalls += 1
+            self._wall0, self._t0_ns = now, self.t_ns
+            target = self.t_ns
+        while not self.ended and self.t_ns < target:
+            event = self._substep(receive=True)
+            if event is not None:
+                self._events.append(event)
+            if self.t_ns < self._next_frame_ns:
+                continue
+            frame_ns = self._next_frame_ns
+            self._next_frame_ns += self.period_ns
+            self.autopilot.poll(self.state_view())         # telemetry due at the frame time
+            if target - frame_ns >= self.period_ns:          # a whole period late: drop it
+                self.frames_dropped += 1
+                continue
+            events, self._events = self._events, []
+            return self._emit(events)
+        return None
+
     # --- simulation ---
+    def _substep(self, receive: bool) -> SimEvent | None:
+        """One physics step: autopilot, inner loop, plant, contacts (sets ``ended``)."""
+        view = self.state_view()
+        self.autopilot.poll(view, receive=receive)
+        self.reference = self.autopilot.attitude_reference(view)
+        cmd = self.controller.rotor_commands_q(self.state, self.reference.q_IB_wxyz,
+                                               self.reference.thrust_norm)
+        self.state = self.plant.step(self.state, cmd, self.wind.force_I(self.t))
+        self.t_ns += self.dt_ns
+        event = self._check_contacts()
+        if event is not None and event.type is EventType.COLLISION:
+            self.ended = True
+        return event
+
     def step_frame(self) -> FrameOutput | None:
         """Simulate one camera period and render (the initial frame first). None once ended."""
         if self.ended:
@@ -312,18 +406,10 @@ class Simulation:
         # realtime: datagrams arrive at any substep, as on a vehicle; lockstep: between frames
         receive = self.config.pacing is Pacing.REALTIME
         for _ in range(self.substeps):
-            view = self.state_view()
-            self.autopilot.poll(view, receive=receive)
-            self.reference = self.autopilot.attitude_reference(view)
-            cmd = self.controller.rotor_commands_q(self.state, self.reference.q_IB_wxyz,
-                                                   self.reference.thrust_norm)
-            self.state = self.plant.step(self.state, cmd, self.wind.force_I(self.t))
-            self.t_ns += self.dt_ns
-            event = self._check_contacts()
+            event = self._substep(receive)
             if event is not None:
                 new_events.append(event)
-                if event.type is EventType.COLLISION:
-                    self.ended = True
+                if self.ended:
                     break
         # Telemetry due at the frame time (IMU, attitude) leaves before the frame is rendered
         # and published, as a camera-IMU synchronised vehicle delivers it: otherwise the
