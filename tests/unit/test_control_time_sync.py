@@ -4,8 +4,11 @@ A synthetic link: the autopilot's boot clock is the ROS clock minus a known offs
 sent at ROS time t reaches the autopilot after ``up`` ns (it answers with its boot time then)
 and the answer comes back ``down`` ns later. Expected offsets are written out from that model
 (a symmetric link measures the offset exactly, an asymmetric one is off by half the
-difference of the two legs), never recomputed with the estimator's formula.
+difference of the two legs; a drifting boot clock is a straight line; a least-squares line fit
+by numpy is the reference of the first tracking steps), never recomputed with the estimator's
+formula.
 """
+import numpy as np
 import pytest
 
 from ibvs_control.core.time_sync import TimeSync, TimeSyncConfig
@@ -19,9 +22,15 @@ class Link:
 
     def __init__(self, ts: TimeSync, offset: int, ros_ns: int = 5_000 * MS + OFFSET) -> None:
         self.ts = ts
-        self.offset = offset          # the true ROS - boot
+        self.offset = offset          # the true ROS - boot (at ros_ns, with drift)
+        self.drift = 0.0              # ns of offset per ns of ROS time (boot clock slow: > 0)
         self.ros = ros_ns             # ROS time now
+        self.t_start = ros_ns
         self.steady = 100.0
+
+    def true_offset(self, t: int) -> int:
+        """ROS - boot (ns) at ROS time t (integers: 1.7e18 ns does not fit a float exactly)."""
+        return self.offset + int(round(self.drift * (t - self.t_start)))
 
     def trip(self, up: int = 0, down: int = 0, offset: int | None = None,
              ts1_override: int | None = None) -> list:
@@ -30,8 +39,9 @@ class Link:
         self.steady += 0.05
         ts1 = self.ts.next_request(self.ros, self.steady)
         assert ts1 == self.ros, 'a request was due'
-        true_offset = self.offset if offset is None else offset
-        tc1 = self.ros + up - true_offset          # the autopilot's boot time when it answers
+        arrival = self.ros + up
+        true_offset = self.true_offset(arrival) if offset is None else offset
+        tc1 = arrival - true_offset                # the autopilot's boot time when it answers
         return self.ts.on_reply(tc1, ts1 if ts1_override is None else ts1_override,
                                 self.ros + up + down)
 
@@ -40,7 +50,7 @@ def synced(offset=OFFSET, **config) -> tuple[TimeSync, Link]:
     ts = TimeSync(TimeSyncConfig(**config))
     link = Link(ts, offset)
     for _ in range(ts.config.init_samples):
-        link.trip(up=200_000, down=200_000)
+        link.trip()
     assert ts.synced
     return ts, link
 
@@ -48,7 +58,7 @@ def synced(offset=OFFSET, **config) -> tuple[TimeSync, Link]:
 def test_unknown_until_five_samples_then_their_median():
     ts = TimeSync()
     link = Link(ts, OFFSET)
-    # legs (up, down) in us -> sample error (down - up) / 2: +1, -0.5, 0, +2, -1.5 (us)
+    # legs (up, down) in us -> sample error (down - up) / 2: +1, -0.5, 0, +2, -1.5 (ms)
     legs = [(1000, 3000), (2000, 1000), (500, 500), (0, 4000), (3000, 0)]
     for i, (up, down) in enumerate(legs):
         assert not ts.synced and ts.offset_ns is None
@@ -105,15 +115,61 @@ def test_answers_to_no_request_of_ours_are_ignored():
     assert ts.unmatched == 2
 
 
-def test_tracking_smooths_with_alpha():
+def test_first_tracking_steps_are_the_least_squares_line_through_all_samples():
+    ts, link = synced()                            # 5 samples of OFFSET, 0.1 s apart
+    extra = [1_000_000, -400_000, 700_000, 0, 2_500_000, -1_200_000]     # ns, within the gate
+    values = [0] * 5
+    for e in extra:
+        link.trip(offset=OFFSET + e)
+        values.append(e)
+        x = np.arange(len(values)) * 0.1           # s, equally spaced samples
+        line = np.polyfit(x, np.array(values, dtype=float), 1)
+        assert ts.offset_ns - OFFSET == pytest.approx(np.polyval(line, x[-1]), abs=1.0)
+        assert ts.skew * 1e9 == pytest.approx(line[0], rel=1e-9, abs=1e-3)   # ns/s
+
+
+def test_tracking_smooths_with_alpha_and_beta_once_the_line_has_enough_samples():
     ts, link = synced()
-    link.trip(offset=OFFSET + 1 * MS)              # 1 ms more: moves 5 % of the way
+    for _ in range(200):
+        link.trip()                                # exact samples: nothing moves
+    assert ts.offset_ns == OFFSET and ts.skew == 0.0
+    link.trip(offset=OFFSET + 1 * MS)              # 1 ms more: 5 % of the way (alpha)
     assert ts.offset_ns == OFFSET + 50_000
-    link.trip(offset=OFFSET + 1 * MS)              # 5 % of the remaining 950 us
-    assert ts.offset_ns == OFFSET + 97_500
-    ts2, link2 = synced(alpha=0.5)
+    # skew now beta * 1 ms / 0.1 s = 2e-5: predicted 50 us + 2 us, then 5 % of the rest
+    assert ts.skew == pytest.approx(2e-5, rel=1e-12)
+    link.trip(offset=OFFSET + 1 * MS)
+    assert ts.offset_ns == OFFSET + 52_000 + 47_400
+    ts2, link2 = synced(alpha=0.5, beta=0.1)
+    for _ in range(200):
+        link2.trip()
     link2.trip(offset=OFFSET + 2 * MS)
     assert ts2.offset_ns == OFFSET + 1 * MS
+
+
+def test_a_drifting_boot_clock_is_tracked_with_its_skew():
+    # PX4 SITL (SIH) measured: boot clock 0.77 % slow (7700 ppm), round trips 0.2-1 ms.
+    rng = np.random.default_rng(3)
+    ts = TimeSync()
+    link = Link(ts, OFFSET)
+    link.drift = 7700e-6
+    errors = []
+    for i in range(300):
+        up, down = (int(x) for x in rng.uniform(0, 500_000, 2))    # asymmetry up to 0.25 ms
+        link.trip(up, down)
+        if ts.synced:
+            errors.append(ts.offset_at(link.ros) - link.true_offset(link.ros))
+    assert ts.resets == 0 and ts.rejected_outliers == 0
+    # the start: the median of 5 samples 0.1 s apart is the middle one's, 0.2 s old (1.5 ms)
+    assert max(abs(e) for e in errors) < 2 * MS
+    assert max(abs(e) for e in errors[10:]) < 0.5 * MS
+    assert max(abs(e) for e in errors[-100:]) < 0.3 * MS
+    assert ts.skew * 1e6 == pytest.approx(7700, abs=30)            # ppm
+    # boot -> ROS mapping on the drifting line: a sample 1 s after the last request
+    boot_ms = (link.ros + 1_000 * MS - int(link.true_offset(link.ros + 1_000 * MS))) // MS
+    ros_of_sample = link.ros + 1_000 * MS          # within a us: what the boot time was taken at
+    truth = boot_ms * MS + link.true_offset(ros_of_sample)
+    assert abs(ts.boot_ms_to_ros_ns(boot_ms) - truth) < 0.5 * MS
+    # a plain exponential smoothing (no skew) lags 7.7 ms/s * 0.1 s / 0.05 = 15 ms: outliers
 
 
 def test_outliers_are_not_used_and_five_in_a_row_reset_then_resync():

@@ -59,6 +59,7 @@ PARAMETERS = {
     'timesync_init_samples': 5,
     'timesync_max_rtt_s': 0.010,
     'timesync_alpha': 0.05,
+    'timesync_beta': 0.002,
     'timesync_max_deviation_s': 0.010,
     'timesync_max_consecutive_outliers': 5,
     'stream_rate_hz': 60.0,
@@ -149,7 +150,8 @@ class MavlinkBridgeNode(Node):
             period_s=p['timesync_period_s'],
             init_request_period_s=p['timesync_init_request_period_s'],
             init_samples=p['timesync_init_samples'], max_rtt_s=p['timesync_max_rtt_s'],
-            alpha=p['timesync_alpha'], max_deviation_s=p['timesync_max_deviation_s'],
+            alpha=p['timesync_alpha'], beta=p['timesync_beta'],
+            max_deviation_s=p['timesync_max_deviation_s'],
             max_consecutive_outliers=p['timesync_max_consecutive_outliers'])
         return BridgeConfig(
             link=link, mass=vehicle.mass, max_thrust_factor=vehicle.max_thrust_factor,
@@ -262,6 +264,7 @@ class MavlinkBridgeNode(Node):
                   'clock_synced': 'yes' if ts.synced else 'no',
                   'clock_offset_ms': 'unknown' if ts.offset_ns is None
                   else f'{ts.offset_ns / 1e6:.3f}',
+                  'clock_skew_ppm': 'unknown' if ts.skew_ppm is None else f'{ts.skew_ppm:.1f}',
                   'timesync_accepted': str(ts.accepted),
                   'timesync_rejected': str(ts.rejected_rtt + ts.rejected_outliers),
                   'timesync_rejected_rtt': str(ts.rejected_rtt),

@@ -18,27 +18,44 @@ Round trip (as PX4's timesync and MAVROS's sys_time plugin do)
 RTT gate (``max_rtt_s``, 10 ms)
     A sample with rtt > max_rtt_s (or rtt < 0: our clock went back) may be off by up to rtt / 2:
     rejected, counted. Only answers to requests we sent (ts1 one of our recent requests) count.
+    Each sample refers to the middle of its round trip, t = (t0 + t2) / 2 on the ROS clock.
 Initialisation
     The offset is unknown (:attr:`synced` False, the mappings return None) until
     ``init_samples`` (5) samples passed the RTT gate; the estimate is then their median (an
-    actual sample, exact integer: one wrong sample of five cannot move it). While unsynced,
+    actual sample, exact integer: one wrong sample of five cannot move it), skew 0, taken as a
+    least-squares line through that many samples at the latest one's time. While unsynced,
     :meth:`next_request` asks at every call but at most every ``init_request_period_s`` of the
     steady clock (the ROS clock may stand still: a lockstep sim waits for the graph); once
     synced, every ``period_s`` (0.1 s, 10 Hz as MAVROS) of ROS time.
 Tracking
-    Exponential smoothing (``alpha``) of the accepted samples, kept as an exact integer base (the
-    initial median) plus a float residual: samples equal to the estimate leave it unchanged to
-    the bit (in a lockstep sim the true offset is exactly 0 and a round trip takes 0 s of sim
-    time, so every good sample is exactly 0 and the mapped stamps repeat bit for bit). A sample
-    farther than ``max_deviation_s`` (10 ms) from the estimate is an outlier and not used (e.g.
+    The two clocks do not run at the same rate: PX4 SITL (SIH)'s boot clock was measured 0.77 %
+    slow against the system clock (7.7 ms/s), a crystal is off by tens of ppm. So the offset is
+    tracked with its rate (skew, ns per ns) by an alpha-beta filter, PX4's and MAVROS's double
+    exponential smoothing in time units: at a sample s of time t, with the prediction
+    p = offset + skew (t - t_last) and r = s - p,
+
+        offset = p + a r,    skew = skew + b r / (t - t_last)
+
+    with a = max(``alpha``, 2(2k-1)/(k(k+1))), b = max(``beta``, 6/(k(k+1))) for the k-th sample
+    since the reset: the gains of a least-squares line through all the samples so far (the skew
+    is learnt in a few samples), down to the smoothing gains (alpha 0.05, beta 0.002) after
+    some 80 samples (8 s). A plain exponential smoothing lags a skew s by s T / alpha at a
+    sample period T (15 ms for SIH): beyond the deviation gate, it resets again and again.
+    The estimate is an exact integer base (the initial median) plus float terms: samples equal
+    to the prediction leave it unchanged to the bit (in a lockstep sim the true offset is
+    exactly 0 and a round trip takes 0 s of sim time, so every good sample is exactly 0, the
+    skew stays 0.0 and the mapped stamps repeat bit for bit).
+Outliers
+    A sample farther than ``max_deviation_s`` (10 ms) from the prediction is not used (e.g.
     -20 ms with rtt 0 when our ``/clock`` lags the sim by one frame); ``max_consecutive_outliers``
     (5) in a row mean a time jump (a clock was set): reset, re-initialise.
 Reboot
     A ``time_boot_ms`` or ``tc1`` more than 1 s before the previous one of its kind: the
     autopilot rebooted, reset, re-initialise.
 Mapping
-    boot ms -> ROS ns = ms * 1e6 + offset; ROS ns -> boot ms = (ns - offset) / 1e6 rounded to
-    the nearest ms (halves up); None while unsynced.
+    boot ms -> ROS ns = ms * 1e6 + offset(t); ROS ns t -> boot ms = (t - offset(t)) / 1e6
+    rounded to the nearest ms (halves up), offset(t) = offset + skew (t - t_last) rounded to the
+    ns; None while unsynced.
 """
 from __future__ import annotations
 
@@ -64,6 +81,7 @@ class TimeSyncConfig:
     init_samples: int = 5                  # accepted samples whose median starts the estimate
     max_rtt_s: float = 0.010               # s, round trips above this are rejected
     alpha: float = 0.05                    # smoothing gain of the tracked offset, (0, 1]
+    beta: float = 0.002                    # smoothing gain of the tracked skew, (0, 1]
     max_deviation_s: float = 0.010         # s, a sample this far from the estimate: outlier
     max_consecutive_outliers: int = 5      # that many outliers in a row: time jump, reset
 
@@ -72,8 +90,10 @@ class TimeSyncConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0.0):
                 raise ValueError(f'timesync {name} must be finite and > 0, got {v}')
-        if not (math.isfinite(self.alpha) and 0.0 < self.alpha <= 1.0):
-            raise ValueError(f'timesync alpha must be in (0, 1], got {self.alpha}')
+        for name in ('alpha', 'beta'):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0.0 < v <= 1.0):
+                raise ValueError(f'timesync {name} must be in (0, 1], got {v}')
         for name in ('init_samples', 'max_consecutive_outliers'):
             v = getattr(self, name)
             if int(v) != v or v < 1:
@@ -85,7 +105,8 @@ class TimeSyncStatus:
     """Snapshot for /diagnostics."""
 
     synced: bool
-    offset_ns: int | None           # ROS - boot, None while unsynced
+    offset_ns: int | None           # ROS - boot at the last sample, None while unsynced
+    skew_ppm: float | None          # rate of the offset, 1e-6 ns per ns (> 0: boot clock slow)
     accepted: int                   # samples used (initialisation + tracking)
     rejected_rtt: int               # round trip above max_rtt_s (or negative)
     rejected_outliers: int          # farther than max_deviation_s from the estimate
@@ -124,10 +145,21 @@ class TimeSync:
 
     @property
     def offset_ns(self) -> int | None:
-        """ROS time - autopilot boot time (ns), None while unsynced."""
+        """ROS time - autopilot boot time (ns) at the last accepted sample; None unsynced."""
         if self._base_ns is None:
             return None
         return self._base_ns + int(round(self._residual_ns))
+
+    @property
+    def skew(self) -> float | None:
+        """Rate of the offset (ns per ns of ROS time); None while unsynced."""
+        return None if self._base_ns is None else self._skew
+
+    def offset_at(self, ros_ns: int) -> int | None:
+        """ROS - boot (ns) at ROS time ``ros_ns``, extrapolated with the skew; None unsynced."""
+        if self._base_ns is None:
+            return None
+        return self._base_ns + int(round(self._predict(int(ros_ns))))
 
     @property
     def init_progress(self) -> int:
@@ -136,9 +168,11 @@ class TimeSync:
 
     def status(self) -> TimeSyncStatus:
         """Return the counters and the estimate."""
-        return TimeSyncStatus(self.synced, self.offset_ns, self.accepted, self.rejected_rtt,
-                              self.rejected_outliers, self.unmatched, self.resets,
-                              self.last_rtt_ns)
+        skew = self.skew
+        return TimeSyncStatus(self.synced, self.offset_ns,
+                              None if skew is None else skew * 1e6, self.accepted,
+                              self.rejected_rtt, self.rejected_outliers, self.unmatched,
+                              self.resets, self.last_rtt_ns)
 
     # --- requests ----------------------------------------------------------------------------
     def next_request(self, ros_ns: int | None, steady_s: float) -> int | None:
@@ -187,30 +221,39 @@ class TimeSync:
             return events
         self._rtt_streak = 0
         sample = (ts1_ns + ros_ns - 2 * tc1_ns) // 2
+        t = (ts1_ns + ros_ns) // 2                 # the sample's time: middle of the round trip
         if not self.synced:
             self.accepted += 1
-            self._init.append(sample)
+            self._init.append((t, sample))
             if len(self._init) >= self.config.init_samples:
-                self._base_ns = statistics.median_low(self._init)
-                self._residual_ns = 0.0
-                self._init = []
+                self._start()
                 events.append(('info', f'clock synced with the autopilot: ROS - boot = '
-                                       f'{self._base_ns / NS_PER_S:.6f} s (median of '
+                                       f'{self._base_ns / NS_PER_S:.6f} s, skew '
+                                       f'{self._skew * 1e6:+.0f} ppm (median of '
                                        f'{self.config.init_samples} TIMESYNC samples)'))
             return events
-        if abs(sample - self.offset_ns) > self._max_dev_ns:
+        residual = (sample - self._base_ns) - self._predict(t)
+        if abs(residual) > self._max_dev_ns:
             self.rejected_outliers += 1
             self._outlier_streak += 1
             if self._outlier_streak >= self.config.max_consecutive_outliers:
                 events.append(('warn', f'TIMESYNC: {self._outlier_streak} samples in a row more '
                                        f'than {self.config.max_deviation_s * 1e3:.1f} ms from '
-                                       f'the offset (last {(sample - self.offset_ns) / 1e6:+.1f}'
-                                       ' ms): time jump, clock sync reset'))
+                                       f'the offset (last {residual / 1e6:+.1f} ms): time jump, '
+                                       'clock sync reset'))
                 self.reset()
             return events
         self.accepted += 1
         self._outlier_streak = 0
-        self._residual_ns += self.config.alpha * ((sample - self._base_ns) - self._residual_ns)
+        self._k += 1
+        k = self._k
+        a = max(self.config.alpha, 2.0 * (2 * k - 1) / (k * (k + 1)))
+        b = max(self.config.beta, 6.0 / (k * (k + 1)))
+        dt = t - self._t_ref
+        self._residual_ns = self._predict(t) + a * residual
+        if dt > 0:
+            self._skew += b * residual / dt
+            self._t_ref = t
         return events
 
     def on_boot_time(self, kind: str, boot_ns: int) -> list[tuple[str, str]]:
@@ -239,18 +282,35 @@ class TimeSync:
         offset = self.offset_ns
         if offset is None:
             return None
-        return int(time_boot_ms) * NS_PER_MS + offset
+        boot_ns = int(time_boot_ms) * NS_PER_MS
+        return boot_ns + self.offset_at(boot_ns + offset)
 
     def ros_ns_to_boot_ms(self, ros_ns: int) -> int | None:
         """ROS time (ns) -> autopilot time_boot_ms, nearest ms (halves up); None unsynced."""
-        offset = self.offset_ns
+        offset = self.offset_at(ros_ns)
         if offset is None:
             return None
         return (int(ros_ns) - offset + NS_PER_MS // 2) // NS_PER_MS
 
+    def _predict(self, t: int) -> float:
+        """Offset - base (ns) extrapolated to ROS time t."""
+        return self._residual_ns + self._skew * (t - self._t_ref)
+
+    def _start(self) -> None:
+        """Start from the median of the initial samples, skew 0, at the latest one's time."""
+        self._base_ns = statistics.median_low([s for _, s in self._init])
+        self._t_ref = max(t for t, _ in self._init)
+        self._skew = 0.0
+        self._residual_ns = 0.0
+        self._k = len(self._init)
+        self._init = []
+
     def _clear(self) -> None:
         self._base_ns: int | None = None
         self._residual_ns = 0.0
-        self._init: list[int] = []
+        self._skew = 0.0
+        self._t_ref = 0
+        self._k = 0
+        self._init: list[tuple[int, int]] = []
         self._outlier_streak = 0
         self._last_request_ros_ns = None
