@@ -555,6 +555,69 @@ def test_timesync_answered_before_the_first_frame_once_time_is_not_zero():
         r.close()
 
 
+def lockstep_with_the_bridge(frames: int = 10) -> tuple[list, object]:
+    """The sim's lockstep exchange with the real bridge core, without ROS or physics.
+
+    As sim_core / sim_node do: the autopilot is served before frame 0 without telemetry; each
+    frame's telemetry leaves before the frame is published; the frame's time becomes the
+    bridge's ROS time (/clock); the controller answers each published frame with a force of
+    its stamp; the next 20 ms are simulated once a setpoint with time_boot_ms >= the frame's ms
+    arrived. Returns the stamps of the IMU samples the bridge published, and the bridge.
+    """
+    from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge
+    from ibvs_control.core.mavlink_link import LinkConfig
+    port = free_udp_port()
+    ap = Autopilot(AutopilotConfig(url=f'udpin:127.0.0.1:{port}'))
+    bridge = MavlinkBridge(BridgeConfig(
+        link=LinkConfig(url=f'udpout:127.0.0.1:{port}'), mass=1.676, max_thrust_factor=2.0,
+        configured_hover_thrust=0.5, hover_thrust_source='config'))
+    stamps, hover = [], np.array([0.0, 0.0, 1.676 * GRAVITY])
+    t_ns, ros_ns, answered_frame = 0, 0, None
+    deadline = time.monotonic() + 10.0
+    try:
+        while ap.last_setpoint_time_boot_ms is None and time.monotonic() < deadline:
+            ap.poll(hover_state(0.0), telemetry=False)          # poll_before_start
+            bridge.heartbeat()
+            stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]
+            bridge.stream()
+            time.sleep(0.001)
+        ap.poll(hover_state(0.0), receive=False)                # frame 0's telemetry, frame 0
+        while t_ns < frames * 20_000_000 and time.monotonic() < deadline:
+            ap.poll(hover_state(t_ns / 1e9))                     # tick: read between frames
+            time.sleep(0.001)
+            stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]
+            if answered_frame != ros_ns:                         # the controller's answer
+                answered_frame = ros_ns
+                bridge.on_force(ros_ns, hover)
+            bridge.stream()
+            if ap.last_setpoint_time_boot_ms >= t_ns // 1_000_000:
+                t_ns += 20_000_000                               # step_frame ...
+                ap.poll(hover_state(t_ns / 1e9), receive=False)  # ... its telemetry ...
+                time.sleep(0.002)
+                stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]   # ... (old /clock)
+                ros_ns = t_ns                                    # ... then /clock
+        assert t_ns == frames * 20_000_000, 'lockstep stalled'
+        return stamps, bridge
+    finally:
+        bridge.close()
+        ap.close()
+
+
+def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
+    stamps, bridge = lockstep_with_the_bridge()
+    ts = bridge.time_sync
+    assert ts.synced and ts.offset_ns == 0 and ts.skew == 0.0
+    assert ts.rejected_outliers == 0 and ts.resets == 0
+    # no answer at t = 0 and no request at ROS time 0: synced during frame 1, so the samples
+    # of t = 0 and 0.02 s are dropped and the first published one is t = 0.04 s
+    # (a sample may come twice: SET_MESSAGE_INTERVAL re-phases a stream at the current time)
+    assert bridge.imu_dropped_unsynced == 2
+    assert stamps == sorted(stamps)
+    assert sorted(set(stamps)) == [k * 20_000_000 for k in range(2, 11)]
+    again, _ = lockstep_with_the_bridge()
+    assert sorted(set(again)) == sorted(set(stamps))
+
+
 # --- failsafe -----------------------------------------------------------------------------------
 
 def test_offboard_loss_lands_and_needs_an_explicit_switch_back(rig):
