@@ -247,3 +247,20 @@ def test_lockstep_harness_holds_a_frame_until_imu_data_reached_its_time():
     free = ImuBeforeImages(timeout_s=1.0, enabled=False)  # realtime pacing: pass-through
     free.note_imu(0)
     assert free.hold(later, now=0.0) is later
+
+
+def test_answer_latency_pairs_each_setpoint_with_the_frame_of_its_time():
+    from ibvs_sim.core.sim_core import AnswerLatency
+    lat = AnswerLatency()
+    for k in range(5):                                   # frames at 0, 20, ..., 80 ms
+        lat.published(k * 20_000_000, wall=10.0 + 0.08 * k)
+    lat.answered(0, 10.005)                              # 5 ms
+    lat.answered(0, 10.050)                              # a repeat: not a new answer
+    lat.answered(20, 10.080 + 0.012)                     # 12 ms
+    lat.answered(60, 10.240 + 0.007)                     # 7 ms; 40 ms never answered
+    lat.answered(1234, 11.0)                             # no such frame: ignored
+    st = lat.stats()
+    assert st['frames_published'] == 5 and st['frames_answered'] == 3
+    assert st['answered_fraction'] == pytest.approx(0.6)
+    assert st['latency_median_ms'] == pytest.approx(7.0)
+    assert st['latency_max_ms'] == pytest.approx(12.0)

@@ -22,8 +22,13 @@ PAD_GROUP_SEPARATOR = ','
 MODE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       durability=DurabilityPolicy.TRANSIENT_LOCAL,
                       history=HistoryPolicy.KEEP_LAST)
-# Detections, flows, IMU: keep only the latest, best effort (accepts any publisher).
+# Detections, flows, IMU: best effort (accepts any publisher), a few kept.
 SENSOR_QOS = qos_profile_sensor_data
+# Camera images: best effort, only the newest kept. A node that falls behind processes the
+# latest frame and skips the older ones, instead of answering frames ever later (a depth of 5
+# queued up to 100 ms of stale images at 50 Hz: benchmarks/bench_latency.py).
+IMAGE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.BEST_EFFORT,
+                       durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 # Setpoints and features: every message matters (lockstep), reliable.
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)

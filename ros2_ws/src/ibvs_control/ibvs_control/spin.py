@@ -1,4 +1,13 @@
-"""spin_guarded: rclpy.spin that survives a sample rclpy cannot convert.
+"""spin_guarded: spin one node on the fastest executor, surviving a sample rclpy cannot convert.
+
+Executor: rclpy's C++ ``EventsExecutor`` (``rclpy.experimental``, in Jazzy's rclpy 7.1) when
+it is there, else the ``SingleThreadedExecutor``. The events executor dispatches each message
+from C++ instead of rebuilding a Python wait set at every wake-up: measured with
+benchmarks/bench_latency.py (docs/performance.md), it is most of the graph's idle CPU, which a
+100 Hz IMU to five subscribers otherwise costs. ``IBVS_EXECUTOR=single`` forces the plain one.
+It is driven by ``spin_once`` with a timeout: with the rclpy 7.1.6 wheels its ``spin()``
+dispatched no timer at all (measured: 0 callbacks of a 100 Hz timer in 1 s, and it ignored
+``shutdown``), while ``spin_once`` ran every one.
 
 Under load, a best-effort sample can reach rclpy in a state its Python message class refuses
 (e.g. a string field that is not valid UTF-8, or a NaN where the class asserts): rclpy's
@@ -9,24 +18,44 @@ resumes. KeyboardInterrupt and ExternalShutdownException still end the spin as u
 """
 from __future__ import annotations
 
+import os
+
 import rclpy
+from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
 
 LOG_THROTTLE_S = 2.0
+SPIN_ONCE_TIMEOUT_S = 0.5               # s, longest wait for work before re-checking rclpy.ok
+EXECUTOR_ENV = 'IBVS_EXECUTOR'          # 'events' (default when available) | 'single'
+
+
+def make_executor(context=None) -> Executor:
+    """Return the events executor when available (and not disabled), else a single-threaded one."""
+    if os.environ.get(EXECUTOR_ENV, 'events') != 'single':
+        try:
+            from rclpy.experimental import EventsExecutor
+            return EventsExecutor(context=context)
+        except ImportError:
+            pass
+    return SingleThreadedExecutor(context=context)
 
 
 def spin_guarded(node: Node) -> int:
     """Spin ``node`` until shutdown; return the number of RuntimeErrors survived."""
     errors = 0
-    while rclpy.ok(context=node.context):
-        try:
-            rclpy.spin(node)
-            return errors
-        except RuntimeError as exc:
-            if not rclpy.ok(context=node.context):
-                return errors
-            errors += 1
-            node.get_logger().error(
-                f'dropped a message rclpy could not take ({exc}); {errors} so far',
-                throttle_duration_sec=LOG_THROTTLE_S)
+    executor = make_executor(node.context)
+    executor.add_node(node)
+    try:
+        while rclpy.ok(context=node.context):
+            try:
+                executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
+            except RuntimeError as exc:
+                if not rclpy.ok(context=node.context):
+                    return errors
+                errors += 1
+                node.get_logger().error(
+                    f'dropped a message rclpy could not take ({exc}); {errors} so far',
+                    throttle_duration_sec=LOG_THROTTLE_S)
+    finally:
+        executor.shutdown()
     return errors

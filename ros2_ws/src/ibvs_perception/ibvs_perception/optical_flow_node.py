@@ -39,6 +39,7 @@ from ibvs_perception.core.derotation import GyroDerotation
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
+from ibvs_control.node_common import IMAGE_QOS
 from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
@@ -92,7 +93,7 @@ class OpticalFlowNode(Node):
         self.create_subscription(CameraInfo, f'{prefix}/camera_info', self.on_info,
                                  qos_profile_sensor_data)
         self.create_subscription(Image, f'{prefix}/image_raw', self.process,
-                                 qos_profile_sensor_data)
+                                 IMAGE_QOS)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

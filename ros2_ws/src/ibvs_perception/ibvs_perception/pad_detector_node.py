@@ -21,7 +21,7 @@ from std_msgs.msg import String
 from ibvs_perception.core.pad import PadConfigError, PadDetector, PadDetectorConfig
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
-from ibvs_control.node_common import PAD_GROUP_SEPARATOR
+from ibvs_control.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
 from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
@@ -49,7 +49,7 @@ class PadDetectorNode(Node):
         self.create_subscription(CameraInfo, 'down_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
         self.create_subscription(Image, 'down_camera/image_raw', self.on_image,
-                                 qos_profile_sensor_data)
+                                 IMAGE_QOS)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

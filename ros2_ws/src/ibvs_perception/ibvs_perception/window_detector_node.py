@@ -20,6 +20,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
 from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
+from ibvs_control.node_common import IMAGE_QOS
 from ibvs_control.spin import spin_guarded
 
 THROTTLE_S = 2.0
@@ -46,7 +47,7 @@ class WindowDetectorNode(Node):
         self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
         self.create_subscription(Image, 'front_camera/image_raw', self.on_image,
-                                 qos_profile_sensor_data)
+                                 IMAGE_QOS)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

@@ -310,7 +310,9 @@ class SimNode(Node):
                 f'free-running: could not render on time at t = {self.sim.t:.3f} s: '
                 f'{self.sim.frames_dropped} frame(s) dropped so far (lower real_time_factor)',
                 throttle_duration_sec=LOG_THROTTLE_S)
-        self.latency.answered(self.sim.autopilot.last_setpoint_time_boot_ms, time.monotonic())
+        answers = self.sim.autopilot.new_setpoints
+        while answers:
+            self.latency.answered(*answers.popleft())
         if self.sim.config.pacing is Pacing.REALTIME:
             self._publish_clock(self.sim.t_ns)          # /clock runs on between frames
         if out is not None:

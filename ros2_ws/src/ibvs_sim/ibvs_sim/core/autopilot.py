@@ -29,6 +29,7 @@ Behaviour (details, and how it differs from real PX4, in docs/sim_autopilot.md):
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 import enum
 import logging
@@ -51,6 +52,7 @@ mavutil.set_dialect(MAVLINK_DIALECT)  # re-select: an earlier import may have ch
 mavlink = mavutil.mavlink
 
 _log = logging.getLogger(__name__)
+SETPOINT_LOG_LEN = 256        # new setpoints kept for latency readers (5 s at 50 Hz)
 
 # --- MAVLink ids and flags (from pymavlink where it has them) ----------------------------------
 MAV_COMP_ID_AUTOPILOT1 = mavlink.MAV_COMP_ID_AUTOPILOT1
@@ -373,6 +375,9 @@ class Autopilot:
         self.armed: bool = bool(config.start_armed)
         self.mode: FlightMode = FlightMode.POSCTL
         self.last_setpoint_time_boot_ms: int | None = None
+        # (time_boot_ms, wall s) of every valid SET_ATTITUDE_TARGET whose time_boot_ms is new,
+        # for latency measurements (the sim's sim/stats, benchmarks); the reader pops them
+        self.new_setpoints: deque = deque(maxlen=SETPOINT_LOG_LEN)
         self._failsafe_active = False
         self._params = {'MPC_THR_HOVER': float(config.hover_thrust),
                         'COM_OF_LOSS_T': float(config.offboard_timeout_s)}
@@ -403,6 +408,10 @@ class Autopilot:
                   'on' if config.signing_key_file else 'off')
 
     # --- public API ---------------------------------------------------------------------------
+
+    def fileno(self) -> int:
+        """File descriptor of the MAVLink socket (to wait on it with select)."""
+        return self._conn.port.fileno()
 
     @property
     def failsafe(self) -> bool:
@@ -824,6 +833,8 @@ class Autopilot:
             self._sp_stream_start_t = state.t          # a new stream starts
         self._sp_last_t = float(state.t)
         self._sp_last_wall = now_wall
+        if int(msg.time_boot_ms) != self.last_setpoint_time_boot_ms:
+            self.new_setpoints.append((int(msg.time_boot_ms), now_wall))
         self.last_setpoint_time_boot_ms = int(msg.time_boot_ms)
         if self.armed and self.mode is FlightMode.OFFBOARD:
             self.counters.setpoints_applied += 1

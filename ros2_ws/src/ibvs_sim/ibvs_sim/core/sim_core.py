@@ -232,10 +232,11 @@ class AnswerLatency:
     """Image -> setpoint latency of the graph, as the simulated vehicle sees it (wall clock).
 
     :meth:`published` notes when each frame's images left (wall s); :meth:`answered` is called
-    with the autopilot's newest SET_ATTITUDE_TARGET.time_boot_ms whenever it is read: the frame
-    of exactly that time is answered, and its latency is the wall time of the read minus that
-    of the publication (resolution: the sim node's tick period). Frames whose own answer never
-    came (skipped by a newer one, or never answered) count as unanswered.
+    for every SET_ATTITUDE_TARGET with a new time_boot_ms and the wall time the autopilot read
+    it (``Autopilot.new_setpoints``): the frame of exactly that time is answered, and its
+    latency is the read minus the publication (the autopilot reads at each physics substep of
+    a tick: resolution about the sim node's tick period). Frames whose own answer never came
+    count as unanswered.
     """
 
     def __init__(self, keep: int = 200) -> None:

@@ -1,0 +1,317 @@
+"""Image stamp -> SET_ATTITUDE_TARGET latency and CPU of the onboard graph, off lockstep.
+
+Setup (issue 12, item 5):
+- the onboard graph as shipped: ``graph.onboard_graph`` with params.yaml, system time, each
+  node its own process (started like ``ros2 run``);
+- both cameras replayed at 50 Hz and stamped with the system time at publication, as a camera
+  driver does; the frames are rendered by the sim's renderer along the window approach of the
+  feature-level reference run (t = 1.0 ... 3.8 s, slowed down 4 x so that 10 s of frames stay
+  in WINDOW mode, with a small roll/pitch sway);
+- a PX4-like MAVLink stand-in on UDP loopback: the sim's autopilot (ibvs_sim.core.autopilot),
+  in its own process on the wall clock, serving the same trajectory's attitude at 100 Hz and
+  answering TIMESYNC; it wakes on each datagram (select) and notes when each
+  SET_ATTITUDE_TARGET came off the wire.
+
+Prints, per run: median, p95, p99 and max of image stamp -> setpoint (ms) over the frames after
+the supervisor started, the fraction of those frames answered, CPU per node (% of one core)
+while replaying, and (first run) the CPU of the idle graph (linked, no images). Runs again with
+the pad detector killed and with the down camera stopped (inputs WINDOW mode does not use).
+Needs a quiet machine for meaningful figures (the load average is printed).
+
+Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
+benchmarks/bench_latency.py [--frames N] [--smoke]``.
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import select
+import socket
+import sys
+import time
+
+import numpy as np
+
+FRAME_PERIOD_S = 0.02
+SLOW = 4.0                      # the approach replayed 4 x slower than flown
+APPROACH_S = (1.0, 3.8)         # s of the feature-level reference run: window fully visible
+START_AT_FRAME = 25             # ibvs/start after 0.5 s of frames (the window is tracked)
+WARMUP_FRAMES = 50              # frames after the start not counted (engage, first flows)
+MATCH_NS = 1_500_000            # a setpoint's time_boot_ms is ms-rounded: match within 1.5 ms
+LINK_TIMEOUT_S = 60.0
+CLK_TCK = os.sysconf('SC_CLK_TCK')
+
+
+def sway(r: float) -> tuple[np.ndarray, np.ndarray]:
+    """(R_IB, Omega_B) of the replayed sway at replay time r (s): ZYX roll, pitch; yaw 0."""
+    from ibvs_control.core import frames
+    roll, roll_dot = 0.03 * np.sin(np.pi * r), 0.03 * np.pi * np.cos(np.pi * r)
+    pitch, pitch_dot = 0.02 * np.sin(2.3 * r), 0.02 * 2.3 * np.cos(2.3 * r)
+    # body rates of R = R_y(pitch) R_x(roll) (yaw fixed): [roll', cos(roll) pitch',
+    # -sin(roll) pitch']
+    omega = np.array([roll_dot, np.cos(roll) * pitch_dot, -np.sin(roll) * pitch_dot])
+    return frames.rot_from_euler_zyx(roll, pitch, 0.0), omega
+
+
+def approach_track(n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    """(replay times (s), xi_I (N, 3)) of the replayed frames, 50 Hz, from the reference run."""
+    from ibvs_bringup.run_scenario import MAX_SIM_TIME_S
+    from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+    from ibvs_control.core.controller import ControllerConfig
+    from ibvs_control.core.supervisor import SupervisorConfig
+    from ibvs_sim.core import feature_sim
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    ctrl = ControllerConfig.from_params({}, vehicle, world.window.width)
+    cfg = feature_sim.FeatureSimConfig(
+        initial_position_I=np.asarray(world.initial_position_I, float),
+        initial_yaw=world.initial_yaw, wind_accel_I=np.zeros(3),
+        crossing_law=ctrl.crossing_law, max_time_s=MAX_SIM_TIME_S)
+    _, log = feature_sim.run_feature_scenario(world, pad, vehicle, ctrl, SupervisorConfig(), cfg)
+    t, xi, _ = log.truth.arrays()
+    r = FRAME_PERIOD_S * np.arange(n_frames)                # replay time of each frame, s
+    t_run = np.minimum(APPROACH_S[0] + r / SLOW, APPROACH_S[1])
+    return r, np.stack([np.interp(t_run, t, xi[:, i]) for i in range(3)], axis=1)
+
+
+def render(r: np.ndarray, xi: np.ndarray) -> dict:
+    """Both cameras' mono8 images of every frame (position xi, attitude of the sway at r)."""
+    from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+    from ibvs_sim.core.render import SceneRenderer
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    out = {}
+    for cam in ('front', 'down'):
+        renderer = SceneRenderer(world, pad, vehicle.cameras[cam])
+        out[cam] = [renderer.render(sway(r[k])[0], xi[k]) for k in range(len(xi))]
+    return out
+
+
+def stand_in(port: int, track, start_mono, stop, results) -> None:
+    """Serve the sim's PX4-like autopilot on the wall clock; put (time_boot_ms, rx ns) pairs.
+
+    Its attitude is the sway at the replay time of now (continuous, as a real IMU), its
+    position the replayed frames' (linear in between).
+    """
+    from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig, VehicleStateView
+    r_frames, xi = track
+    ap = Autopilot(AutopilotConfig(url=f'udpin:127.0.0.1:{port}', telemetry_default_hz=100.0))
+    mono0 = time.monotonic()
+    sys_minus_mono_ns = time.time_ns() - time.monotonic_ns()
+    got = []
+    fd = ap.fileno()
+    while not stop.is_set():
+        select.select([fd], [], [], 0.002)
+        now = time.monotonic()
+        r = max(now - start_mono.value, 0.0) if start_mono.value > 0 else 0.0
+        R, omega = sway(r)
+        pos = np.array([np.interp(r, r_frames, xi[:, i]) for i in range(3)])
+        ap.poll(VehicleStateView(now - mono0, pos, np.zeros(3), R, omega,
+                                 np.array([0.0, 0.0, -9.81])))
+        while ap.new_setpoints:
+            ms, wall = ap.new_setpoints.popleft()
+            got.append((ms, int(wall * 1e9) + sys_minus_mono_ns))
+    ap.close()
+    # the autopilot's boot time -> system time, exactly (its boot clock is monotonic - mono0)
+    results.put((got, sys_minus_mono_ns + int(mono0 * 1e9)))
+
+
+def cpu_ticks(pids: dict) -> dict:
+    """Return utime + stime (clock ticks) of each named process."""
+    out = {}
+    for name, pid in pids.items():
+        try:
+            with open(f'/proc/{pid}/stat') as f:
+                fields = f.read().rsplit(')', 1)[1].split()
+            out[name] = int(fields[11]) + int(fields[12])
+        except (OSError, IndexError, ValueError):
+            out[name] = None
+    return out
+
+
+def cpu_percent(a: dict, b: dict, seconds: float) -> dict:
+    """% of one core per process between two cpu_ticks() readings."""
+    return {n: 100.0 * (b[n] - a[n]) / CLK_TCK / seconds for n in a
+            if a[n] is not None and b.get(n) is not None}
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        return s.getsockname()[1]
+
+
+class Replayer:
+    """The benchmark's ROS node: camera publishers, imu/data watch, ibvs/start client."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from ibvs_sim.sim_node import camera_info_msg, image_msg
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import CameraInfo, Image, Imu
+        from std_srvs.srv import Trigger
+        from ibvs_control.core.config import load_vehicle
+        self.rclpy = rclpy
+        self.image_msg, self.info_msg = image_msg, camera_info_msg
+        self.node = rclpy.create_node('bench_latency_replayer')
+        self.cameras = load_vehicle().cameras
+        self.images = {c: self.node.create_publisher(Image, f'{c}_camera/image_raw',
+                                                     qos_profile_sensor_data)
+                       for c in ('front', 'down')}
+        self.infos = {c: self.node.create_publisher(CameraInfo, f'{c}_camera/camera_info',
+                                                    qos_profile_sensor_data)
+                      for c in ('front', 'down')}
+        self.imu_count = 0
+        self.node.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
+        self.start = self.node.create_client(Trigger, 'ibvs/start')
+        self.start_request = Trigger.Request()
+        self.start_future = None
+
+    def _on_imu(self, msg) -> None:
+        self.imu_count += 1
+
+    def spin(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while True:
+            self.rclpy.spin_once(self.node,
+                                 timeout_sec=max(0.0, min(0.01, end - time.monotonic())))
+            if time.monotonic() >= end:
+                return
+
+    def publish(self, images: dict, k: int, cameras: tuple) -> int:
+        """Publish frame k of ``cameras`` stamped now (system time); return the stamp (ns)."""
+        from builtin_interfaces.msg import Time
+        ns = time.time_ns()
+        stamp = Time(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+        for c in cameras:
+            cam = self.cameras[c]
+            self.infos[c].publish(self.info_msg(cam.model, stamp, cam.frame_id))
+            self.images[c].publish(self.image_msg(images[c][k], stamp, cam.frame_id))
+        return ns
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
+             kill: str | None = None, cameras: tuple = ('front', 'down')) -> dict:
+    """One replay through a fresh onboard graph; return its figures."""
+    from ibvs_bringup import graph
+    from ibvs_bringup.runner import ProcessRunner
+    port = free_udp_port()
+    ctx = mp.get_context('spawn')
+    stop, results, start_mono = ctx.Event(), ctx.Queue(), ctx.Value('d', 0.0)
+    ap = ctx.Process(target=stand_in, args=(port, track, start_mono, stop, results))
+    ap.start()
+    specs = graph.onboard_graph(graph.GraphOptions(
+        use_sim_time=False, mavlink_url=f'udpout:127.0.0.1:{port}'))
+    runner = ProcessRunner(log_dir=os.path.join('results', 'bench_latency', name))
+    rep = Replayer()
+    out = {'name': name}
+    try:
+        runner.start_graph(specs)
+        pids = {c.name: c.proc.pid for c in runner.children}
+        deadline = time.monotonic() + LINK_TIMEOUT_S
+        while rep.imu_count < 50 and time.monotonic() < deadline:    # linked, clocks synced
+            rep.spin(0.1)
+            if runner.dead():
+                raise RuntimeError(f'a node died at start: {runner.dead()}')
+        if rep.imu_count < 50:
+            raise RuntimeError('imu/data never came: MAVLink link or TIMESYNC not up')
+        if kill:
+            next(c for c in runner.children if c.name == kill).proc.kill()
+            pids.pop(kill)
+            rep.spin(0.5)
+        if idle_s > 0:
+            a = cpu_ticks(pids)
+            rep.spin(idle_s)
+            out['idle_cpu'] = cpu_percent(a, cpu_ticks(pids), idle_s)
+        stamps = []
+        t0 = time.monotonic() + 0.1
+        start_mono.value = t0
+        a = cpu_ticks(pids)
+        for k in range(n_frames):
+            while time.monotonic() < t0 + k * FRAME_PERIOD_S:
+                rep.rclpy.spin_once(rep.node, timeout_sec=0.001)
+            stamps.append(rep.publish(images, k, cameras))
+            if k == START_AT_FRAME:
+                rep.start_future = rep.start.call_async(rep.start_request)
+        seconds = time.monotonic() - t0
+        out['cpu'] = cpu_percent(a, cpu_ticks(pids), seconds)
+        rep.spin(0.5)
+        out['started'] = bool(rep.start_future and rep.start_future.done()
+                              and rep.start_future.result().success)
+    finally:
+        stop.set()
+        got, boot_to_sys_ns = results.get(timeout=20.0)
+        ap.join(timeout=10.0)
+        runner.stop()
+        rep.close()
+    counted = np.array(stamps[START_AT_FRAME + WARMUP_FRAMES:], dtype=np.int64)
+    lat, answered = [], set()
+    for ms, rx_ns in got:
+        s = ms * 1_000_000 + boot_to_sys_ns
+        i = np.searchsorted(counted, s)
+        near = [j for j in (i - 1, i) if 0 <= j < len(counted)]
+        if near:
+            j = min(near, key=lambda j: abs(counted[j] - s))
+            if abs(counted[j] - s) <= MATCH_NS and j not in answered:   # first answer only
+                answered.add(j)
+                lat.append((rx_ns - counted[j]) / 1e6)
+    out['latency_ms'] = np.array(lat)
+    out['frames'] = len(counted)
+    return out
+
+
+def report(r: dict) -> None:
+    lat = r['latency_ms']
+    line = f"{r['name']:22s} answered {len(lat)}/{r['frames']} " \
+           f"({100.0 * len(lat) / max(r['frames'], 1):.1f} %)"
+    if len(lat):
+        line += (f"  latency median {np.median(lat):6.2f}  p95 {np.percentile(lat, 95):6.2f}  "
+                 f"p99 {np.percentile(lat, 99):6.2f}  max {lat.max():6.2f} ms")
+    print(line + ('' if r.get('started') else '  (supervisor did not start)'))
+    cpu = r['cpu']
+    print('    CPU while replaying (% of one core): ' + ', '.join(
+        f'{n} {v:.0f}' for n, v in sorted(cpu.items())) + f'; total {sum(cpu.values()):.0f}')
+    if 'idle_cpu' in r:
+        idle = r['idle_cpu']
+        print('    CPU idle, no images (% of one core): ' + ', '.join(
+            f'{n} {v:.1f}' for n, v in sorted(idle.items()))
+            + f'; total {sum(idle.values()):.1f}')
+
+
+def main(argv: list | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument('--frames', type=int, default=500, help='frames replayed per run (50 Hz)')
+    p.add_argument('--idle-s', type=float, default=5.0, help='idle CPU window, s')
+    p.add_argument('--smoke', action='store_true', help='a short run for CI (figures mean little)')
+    a = p.parse_args(argv)
+    n = max(a.frames if not a.smoke else 110, START_AT_FRAME + WARMUP_FRAMES + 10)
+    idle_s = 1.0 if a.smoke else a.idle_s
+    from ibvs_bringup import graph
+    os.environ.update(graph.dds_env_overrides())     # the graph's shared-memory profile
+    import rclpy
+    print(f'bench_latency: {n} frames per run, load average {os.getloadavg()[0]:.2f} '
+          f'on {os.cpu_count()} cores; rendering...', flush=True)
+    track = approach_track(n)
+    images = render(*track)
+    rclpy.init()
+    try:
+        runs = [run_once('all inputs', images, track, n, idle_s),
+                run_once('pad detector killed', images, track, n, 0.0, kill='pad_detector'),
+                run_once('down camera stopped', images, track, n, 0.0, cameras=('front',))]
+    finally:
+        rclpy.try_shutdown()
+    for r in runs:
+        report(r)
+    base = np.median(runs[0]['latency_ms']) if len(runs[0]['latency_ms']) else np.nan
+    for r in runs[1:]:
+        if len(r['latency_ms']):
+            print(f"{r['name']}: median latency {np.median(r['latency_ms']) - base:+.2f} ms "
+                  'against all inputs')
+    ok = all(len(r['latency_ms']) > 0 and r.get('started') for r in runs)
+    return 0 if ok else 1
+
+
+if __name__ == '__main__':
+    sys.exit(main())
