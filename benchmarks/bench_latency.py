@@ -211,12 +211,15 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
         runner.start_graph(specs)
         pids = {c.name: c.proc.pid for c in runner.children}
         deadline = time.monotonic() + LINK_TIMEOUT_S
-        while rep.imu_count < 50 and time.monotonic() < deadline:    # linked, clocks synced
+        while (rep.imu_count < 50 or not rep.start.service_is_ready()) \
+                and time.monotonic() < deadline:        # linked, clocks synced, graph matched
             rep.spin(0.1)
             if runner.dead():
                 raise RuntimeError(f'a node died at start: {runner.dead()}')
-        if rep.imu_count < 50:
-            raise RuntimeError('imu/data never came: MAVLink link or TIMESYNC not up')
+        if rep.imu_count < 50 or not rep.start.service_is_ready():
+            raise RuntimeError(f'graph not ready after {LINK_TIMEOUT_S:.0f} s: {rep.imu_count} '
+                               'imu/data samples (MAVLink link, TIMESYNC), ibvs/start '
+                               f'{"ready" if rep.start.service_is_ready() else "not found"}')
         if kill:
             next(c for c in runner.children if c.name == kill).proc.kill()
             pids.pop(kill)

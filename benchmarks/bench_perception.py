@@ -6,6 +6,7 @@ back to on a loss, forced on every frame) and translational flow (down camera, t
 frames 20 ms apart with |v| = 0.5 m/s and |Omega| = 1 rad/s). Rendering is not timed.
 Run: AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python benchmarks/bench_perception.py
 """
+import argparse
 import time
 
 import cv2
@@ -40,6 +41,9 @@ def timed(fn, frames_):
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--frames', type=int, default=N_FRAMES, help='frames per core timed')
+    n_frames = parser.parse_args().frames
     world, vehicle, pad = load_world(), load_vehicle(), load_pad_layout()
     front, down = vehicle.cameras['front'], vehicle.cameras['down']
     r_front = SceneRenderer(world, pad, front)
@@ -49,13 +53,13 @@ def main() -> None:
     imgs = [r_front.render(frames.rot_from_euler_zyx(0.03 * np.sin(s * 9), 0.02,
                                                      0.04 * np.sin(s * 5)),
                            START + s * (WINDOW_CENTRE - START))
-            for s in np.linspace(0.0, 0.22, N_FRAMES)]
+            for s in np.linspace(0.0, 0.22, n_frames)]
     report('window', timed(lambda im: window.process(im, front.model), [(im,) for im in imgs]))
 
     pad_detector = PadDetector(pad, PadDetectorConfig())
     imgs = [r_down.render(frames.rot_from_euler_zyx(0.04 * np.sin(k / 5), 0.03, 0.1),
                           np.array([0.01, -0.02, -h]))
-            for k, h in enumerate(np.linspace(1.8, 0.15, N_FRAMES))]
+            for k, h in enumerate(np.linspace(1.8, 0.15, n_frames))]
     report('pad', timed(lambda im: pad_detector.process(im, down.model), [(im,) for im in imgs]))
 
     def full_search(im):
@@ -68,7 +72,7 @@ def main() -> None:
     omega = np.array([0.6, -0.6, 0.5])
     omega /= np.linalg.norm(omega)
     R, xi, args = np.eye(3), np.array([0.0, 0.0, -1.2]), []
-    for k in range(N_FRAMES):
+    for k in range(n_frames):
         args.append((r_down.render(R, xi), k * DT, R.copy(), frames.e3))
         R = R @ cv2.Rodrigues(omega * DT * np.sin(k / 10.0))[0]
         xi = xi + v * DT

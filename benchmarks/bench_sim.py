@@ -25,8 +25,8 @@ class HoverReference:
     def __init__(self, hover_thrust: float) -> None:
         self.hover_thrust = hover_thrust
 
-    def poll(self, state) -> None:
-        pass
+    def poll(self, state, receive: bool = True, telemetry: bool = True) -> None:
+        """Nothing to receive or send (the sim_core.ReferenceSource protocol)."""
 
     def attitude_reference(self, state) -> AttitudeReference:
         return AttitudeReference(LEVEL_Q, self.hover_thrust, 'hold')

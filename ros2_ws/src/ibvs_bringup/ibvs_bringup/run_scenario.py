@@ -14,6 +14,7 @@ Exit code: 0 success, 1 the flight failed SPEC.md's criteria, 2 the run could no
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from dataclasses import dataclass, field
 import os
 import re
@@ -129,7 +130,10 @@ def run_feature_level(opts: RunOptions) -> int:
         return (params.get(name) or {}).get('ros__parameters') or {}
 
     ctrl = ControllerConfig.from_params(section('force_controller'), vehicle, world.window.width)
-    sup = SupervisorConfig.from_params(section('mode_supervisor'))
+    # the supervisor's core thresholds only (timing and file parameters belong to the node)
+    core_keys = {f.name for f in dataclasses.fields(SupervisorConfig)}
+    sup = SupervisorConfig.from_params({k: v for k, v in section('mode_supervisor').items()
+                                        if k in core_keys})
     xi0 = opts.initial_position or tuple(world.initial_position_I)
     law = CrossingLaw(opts.crossing_law) if opts.crossing_law else ctrl.crossing_law
     wind = np.asarray(opts.wind or (0.0, 0.0, 0.0), dtype=float) / vehicle.mass

@@ -1,0 +1,51 @@
+"""Every benchmark and the README's run commands, run briefly, so that drift fails CI.
+
+The figures of these short runs mean nothing (a few frames, a loaded machine); the point is
+that each command still starts, runs its whole path and exits 0. The real figures come from
+the full runs documented in docs/performance.md.
+"""
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.slow
+ROOT = Path(__file__).resolve().parents[2]
+BENCH_ARGS = {'bench_perception.py': ['--frames', '5'], 'bench_sim.py': ['--frames', '10'],
+              'bench_latency.py': ['--smoke']}
+
+
+def run(args, cwd, timeout=600):
+    proc = subprocess.run([sys.executable, *args], cwd=cwd, capture_output=True, text=True,
+                          timeout=timeout, env=dict(os.environ))
+    assert proc.returncode == 0, f'{args} exited {proc.returncode}:\n{proc.stdout[-2000:]}\n' \
+                                 f'{proc.stderr[-3000:]}'
+    return proc.stdout
+
+
+def test_every_benchmark_has_a_smoke_run():
+    assert sorted(p.name for p in (ROOT / 'benchmarks').glob('bench_*.py')) == sorted(BENCH_ARGS)
+
+
+@pytest.mark.parametrize('name', sorted(BENCH_ARGS))
+def test_benchmark_smoke_run(name, tmp_path):
+    out = run([str(ROOT / 'benchmarks' / name), *BENCH_ARGS[name]], cwd=tmp_path)
+    print(out)
+    assert 'median' in out
+
+
+def test_readme_feature_level_run(tmp_path):
+    """``make run RUN_ARGS="--feature-level"`` (README): the feature-level closed loop."""
+    run(['-m', 'ibvs_bringup.run_scenario', '--feature-level', '--no-plots',
+         '--results-root', str(tmp_path), '--run-name', 'feature'], cwd=tmp_path)
+    summary = json.loads((tmp_path / 'feature' / 'summary.json').read_text())
+    assert summary['success'] is True, summary
+
+
+def test_readme_run_help_lists_the_options(tmp_path):
+    out = run(['-m', 'ibvs_bringup.run_scenario', '--help'], cwd=tmp_path)
+    for option in ('--feature-level', '--random-ic', '--wind', '--real-time-factor'):
+        assert option in out
