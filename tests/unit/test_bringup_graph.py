@@ -1,6 +1,7 @@
 """graph.py, the launch files and setup.py agree: one node list, existing executables."""
 import ast
 import importlib.util
+import os
 from pathlib import Path
 import re
 import sys
@@ -206,3 +207,22 @@ def test_free_running_option_changes_only_the_sim():
             assert a == b
     with pytest.raises(ValueError):
         graph.sim_graph(graph.GraphOptions(params_file=PARAMS, real_time_factor=0.0))
+
+
+def test_only_perception_nodes_respawn():
+    specs = {s.name: s for s in graph.onboard_graph(graph.GraphOptions(params_file=PARAMS))}
+    assert {n for n, s in specs.items() if s.respawn} == {
+        'window_detector', 'pad_detector', 'front_optical_flow', 'down_optical_flow'}
+
+
+def test_the_venv_prefix_is_found_without_ament_prefix_path(tmp_path, monkeypatch):
+    marker = tmp_path / 'share' / 'ament_index' / 'resource_index' / 'packages'
+    marker.mkdir(parents=True)
+    monkeypatch.delenv(graph.AMENT_ENV, raising=False)
+    graph.ensure_ament_prefix_path(str(tmp_path))          # no ibvs_bringup marker: left unset
+    assert graph.AMENT_ENV not in os.environ
+    (marker / graph.CONFIG_PACKAGE).touch()
+    graph.ensure_ament_prefix_path(str(tmp_path))
+    assert os.environ[graph.AMENT_ENV] == str(tmp_path)
+    graph.ensure_ament_prefix_path('/elsewhere')           # a set path is never changed
+    assert os.environ[graph.AMENT_ENV] == str(tmp_path)

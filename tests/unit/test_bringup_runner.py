@@ -144,3 +144,29 @@ def test_supervisor_transitions_are_read_from_its_log(tmp_path):
         'mode IDLE -> WINDOW at t = 1.000 s: start requested',
         'mode WINDOW -> FAILSAFE at t = 5.620 s: window stale for more than 0.5 s in WINDOW']
     assert supervisor_transitions(str(tmp_path / 'missing.log')) == []
+
+
+def test_runner_restarts_a_respawn_node_with_backoff_and_leaves_the_others(tmp_path):
+    """As on a vehicle: the graph keeps running; perception nodes come back, doubling waits."""
+    import time as _time
+    from ibvs_bringup import graph
+    from ibvs_bringup.runner import ProcessRunner
+    runner = ProcessRunner(log_dir=str(tmp_path), stop_timeouts=(1.0, 1.0, 1.0))
+    try:
+        runner.start('flaky', [sys.executable, '-c', 'import sys; sys.exit(3)'], respawn=True)
+        runner.start('steady', [sys.executable, '-c', 'import time; time.sleep(60)'])
+        runner.start('fatal', [sys.executable, '-c', 'import sys; sys.exit(4)'])
+        _time.sleep(0.5)
+        t0 = _time.monotonic()
+        events = runner.supervise(t0)
+        assert any("'flaky' died with exit code 3" in e for e in events)
+        assert any("'fatal' died with exit code 4" in e and 'not restarted' in e for e in events)
+        assert any('restarts in 1.0 s' in e for e in events)
+        assert runner.supervise(t0 + 0.5) == []                        # backoff not over
+        assert "restarted (1 so far)" in runner.supervise(t0 + graph.RESPAWN_DELAY_S)[0]
+        _time.sleep(0.5)                                               # dies again at once
+        events = runner.supervise(t0 + 2.0)
+        assert any('restarts in 2.0 s' in e for e in events)          # doubled
+        assert 'steady' in runner.running() and 'fatal' not in runner.running()
+    finally:
+        runner.stop()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import os
+import sys
 from typing import Sequence
 
 from ibvs_control.core import frames
@@ -37,6 +38,11 @@ MAVLINK_URL = 'mavlink_url'                   # sim: its MAVLink endpoint
 BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's URL
 CROSSING_LAW = 'crossing_law'                 # force_controller: mode-2 law
 SUPERVISOR_AUTO_START = 'auto_start_at_s'     # mode_supervisor: start by itself at this time
+# Perception nodes are restarted when they die (launch_ros ``respawn``; the runner with
+# backoff): a detector or flow that comes back is an input that comes back. The supervisor,
+# controller and bridge are not: their death is handled by the safety policy (no statuses ->
+# no forces -> the bridge hands the vehicle back; no bridge -> the autopilot's offboard loss).
+RESPAWN_DELAY_S = 1.0                         # s before the first restart (then doubled)
 
 
 @dataclass(frozen=True)
@@ -49,6 +55,7 @@ class NodeSpec:
     parameters: tuple = ()          # parameter-file paths (str) and override dicts, in order
     remappings: tuple = ()          # (from, to) pairs
     role: str = 'onboard'           # 'sim' | 'onboard' | 'tool'
+    respawn: bool = False           # restart when it dies (launch_ros respawn)
 
     def __post_init__(self) -> None:
         if self.role not in ROLES:
@@ -111,6 +118,22 @@ def format_param_value(value) -> str:
     return str(value)
 
 
+AMENT_ENV = 'AMENT_PREFIX_PATH'
+
+
+def ensure_ament_prefix_path(prefix: str = sys.prefix) -> None:
+    """Put the install prefix of this Python (the venv) on AMENT_PREFIX_PATH if it is missing.
+
+    ``make install`` installs the packages' share/ into the venv; a user who runs
+    ``.venv/bin/runner`` without the Makefile's environment then still finds params.yaml.
+    A sourced ROS install (AMENT_PREFIX_PATH set) is left as it is.
+    """
+    marker = os.path.join(prefix, 'share', 'ament_index', 'resource_index', 'packages',
+                          CONFIG_PACKAGE)
+    if not os.environ.get(AMENT_ENV) and os.path.exists(marker):
+        os.environ[AMENT_ENV] = prefix
+
+
 def default_params_file(name: str = PARAMS_FILE_NAME) -> str:
     """Return the installed ``share/ibvs_bringup/config/<name>`` (default: params.yaml)."""
     from ament_index_python.packages import get_package_share_directory
@@ -165,7 +188,7 @@ def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url:
         for o in overrides:
             merged.update(o)
         return NodeSpec(package, executable, name, params + ((merged,) if merged else ()),
-                        remap, 'onboard')
+                        remap, 'onboard', respawn=package == 'ibvs_perception')
 
     return [
         node('ibvs_perception', 'window_detector', 'window_detector'),

@@ -368,6 +368,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
 def main(argv: list | None = None) -> int:
     """Run one scenario from the command line; return the exit code."""
     opts = parse_args(argv)
+    graph.ensure_ament_prefix_path()
     try:
         prepare_out_dir(opts)
     except (ValueError, OSError) as exc:

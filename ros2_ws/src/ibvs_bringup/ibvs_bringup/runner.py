@@ -5,12 +5,18 @@ Each node runs as ``<resolved executable> --ros-args -r __node:=<name> --params-
 (ROS_DOMAIN_ID, discovery range, AMENT_PREFIX_PATH pass through). ``ProcessRunner`` stops every
 process it started on exit, Ctrl-C or SIGTERM (SIGINT, then SIGTERM, then SIGKILL, each with a
 timeout) and reports a process that died: name, exit code and its last stderr lines.
+
+As on a vehicle, the graph keeps running when a node dies: ``ProcessRunner.supervise`` restarts
+the nodes marked ``respawn`` (the perception nodes, graph.py) after ``RESPAWN_DELAY_S``, doubled
+at each restart up to ``RESPAWN_MAX_DELAY_S`` and reset once a node has run for
+``RESPAWN_RESET_S``; the others stay down and the safety policy acts on their silence, exactly
+as with ``ros2 launch`` (launch_ros ``respawn``).
 """
 from __future__ import annotations
 
 import argparse
 import collections
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import os
 import signal
 import subprocess
@@ -23,6 +29,8 @@ from ibvs_bringup import graph
 from ibvs_bringup.ros2run import command_for
 
 STDERR_TAIL_LINES = 20
+RESPAWN_MAX_DELAY_S = 16.0    # s, longest wait before a restart
+RESPAWN_RESET_S = 30.0        # s of running that resets the backoff
 
 
 @dataclass(frozen=True)
@@ -39,14 +47,26 @@ class DeadProcess:
         return f'node {self.name!r} died with exit code {self.returncode}; last stderr:\n{tail}'
 
 
+@dataclass
+class _Respawn:
+    """Restart bookkeeping of one ``respawn`` node (monotonic seconds)."""
+
+    started: float = field(default_factory=time.monotonic)
+    restarts: int = 0
+    delay: float = 0.0
+    due: float | None = None
+
+
 class _Child:
     """One started process, its stderr tail and optional log file."""
 
-    def __init__(self, name: str, argv: list, env: dict, log_path: str | None) -> None:
+    def __init__(self, name: str, argv: list, env: dict, log_path: str | None,
+                 append: bool = False) -> None:
         self.name = name
         self.argv = argv
         self.tail: collections.deque = collections.deque(maxlen=STDERR_TAIL_LINES)
-        self._log = open(log_path, 'w', encoding='utf-8') if log_path else None
+        self._log = open(log_path, 'a' if append else 'w', encoding='utf-8') \
+            if log_path else None
         self.proc = subprocess.Popen(
             argv, env=env, stdin=subprocess.DEVNULL,
             stdout=self._log if self._log else subprocess.DEVNULL,
@@ -91,17 +111,50 @@ class ProcessRunner:
         self.stop_timeouts = stop_timeouts     # after SIGINT, after SIGTERM, after SIGKILL
         self.children: list[_Child] = []
         self._reported: set = set()
+        self._respawn: dict[str, _Respawn] = {}
         if log_dir:
             os.makedirs(log_dir, exist_ok=True)
 
-    def start(self, name: str, argv: list) -> None:
+    def start(self, name: str, argv: list, respawn: bool = False) -> None:
         """Start ``argv`` as process ``name`` in a new process group."""
         log = os.path.join(self.log_dir, f'{name}.log') if self.log_dir else None
         self.children.append(_Child(name, list(argv), self.env, log))
+        if respawn:
+            self._respawn[name] = _Respawn()
 
     def start_node(self, spec: graph.NodeSpec) -> None:
         """Start one node of the graph the way ``ros2 run`` would."""
-        self.start(spec.name, command_for(spec.package, spec.executable, spec.ros_args()))
+        self.start(spec.name, command_for(spec.package, spec.executable, spec.ros_args()),
+                   respawn=spec.respawn)
+
+    def supervise(self, now: float | None = None) -> list[str]:
+        """Restart the dead ``respawn`` nodes whose backoff has passed; return what happened.
+
+        Deaths are reported once each (as by :meth:`dead`); call it periodically.
+        """
+        now = time.monotonic() if now is None else now
+        events = [d.report() + ('' if d.name in self._respawn else ' (not restarted)')
+                  for d in self.dead()]
+        for i, c in enumerate(self.children):
+            state = self._respawn.get(c.name)
+            if state is None or c.proc.poll() is None:
+                continue
+            if state.due is None:                     # it just died: schedule the restart
+                if state.restarts == 0 or now - state.started >= RESPAWN_RESET_S:
+                    state.delay = graph.RESPAWN_DELAY_S
+                else:
+                    state.delay = min(2.0 * state.delay, RESPAWN_MAX_DELAY_S)
+                state.due = now + state.delay
+                events.append(f'node {c.name!r} restarts in {state.delay:.1f} s')
+            elif now >= state.due:
+                c.close()
+                log = os.path.join(self.log_dir, f'{c.name}.log') if self.log_dir else None
+                self.children[i] = _Child(c.name, c.argv, self.env, log, append=True)
+                self._reported.discard(c.name)
+                state.restarts += 1
+                state.started, state.due = now, None
+                events.append(f'node {c.name!r} restarted ({state.restarts} so far)')
+        return events
 
     def start_graph(self, specs: Iterable[graph.NodeSpec]) -> None:
         """Start every node of ``specs``."""
@@ -182,12 +235,13 @@ def add_graph_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list | None = None) -> int:
-    """Run the sim or onboard graph until Ctrl-C, SIGTERM or a node dies."""
+    """Run the sim or onboard graph until Ctrl-C or SIGTERM; restart perception nodes."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('graph', nargs='?', choices=('sim', 'onboard'), default='sim')
     add_graph_arguments(parser)
     parser.add_argument('--log-dir', default=None, help='write <node>.log files here')
     args = parser.parse_args(argv)
+    graph.ensure_ament_prefix_path()
     opts = options_from_args(args)
     specs = graph.sim_graph(opts) if args.graph == 'sim' else graph.onboard_graph(opts)
     raise_on_sigterm()
@@ -197,12 +251,9 @@ def main(argv: list | None = None) -> int:
         runner.start_graph(specs)
         print(f'runner: started {", ".join(s.name for s in specs)}', flush=True)
         while True:
-            dead = runner.dead()
-            if dead:
-                for d in dead:
-                    print(d.report(), file=sys.stderr, flush=True)
+            for event in runner.supervise():
+                print(f'runner: {event}', file=sys.stderr, flush=True)
                 rc = 1
-                break
             time.sleep(0.2)
     except (KeyboardInterrupt, Terminated):
         pass
