@@ -173,6 +173,9 @@ def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
     assert names == expected
     for n in nodes:
         assert n.kwargs['executable'] in console_scripts(n.kwargs['package'])
+        # launch_ros respawns the perception nodes, like the runner
+        assert n.kwargs['respawn'] is (n.kwargs['package'] == 'ibvs_perception')
+        assert n.kwargs['respawn_delay'] == graph.RESPAWN_DELAY_S
         assert n.kwargs['parameters'][0] == PARAMS
     urls = {n.kwargs['name']: n.kwargs['parameters'][-1].get(
         graph.BRIDGE_URL if n.kwargs['name'] == 'mavlink_bridge' else graph.MAVLINK_URL)
