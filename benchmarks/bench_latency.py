@@ -15,7 +15,8 @@ Setup (issue 12, item 5):
 Prints, per run: median, p95, p99 and max of image stamp -> setpoint (ms) over the frames after
 the supervisor started, the fraction of those frames answered, CPU per node (% of one core)
 while replaying, and (first run) the CPU of the idle graph (linked, no images). Runs again with
-the pad detector killed and with the down camera stopped (inputs WINDOW mode does not use).
+the pad detector killed and with the down camera stopped (inputs WINDOW mode does not use),
+and once more with the same nodes composed in one process (``ibvs_bringup.composed``).
 Needs a quiet machine for meaningful figures (the load average is printed).
 
 Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
@@ -193,8 +194,12 @@ class Replayer:
 
 
 def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
-             kill: str | None = None, cameras: tuple = ('front', 'down')) -> dict:
-    """One replay through a fresh onboard graph; return its figures."""
+             kill: str | None = None, cameras: tuple = ('front', 'down'),
+             composed: bool = False) -> dict:
+    """One replay through a fresh onboard graph; return its figures.
+
+    ``composed``: the same nodes in one process (ibvs_bringup.composed) instead of seven.
+    """
     from ibvs_bringup import graph
     from ibvs_bringup.runner import ProcessRunner
     port = free_udp_port()
@@ -208,7 +213,11 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
     rep = Replayer()
     out = {'name': name}
     try:
-        runner.start_graph(specs)
+        if composed:
+            runner.start('composed (7 nodes)', [sys.executable, '-m', 'ibvs_bringup.composed',
+                                                '--mavlink-url', f'udpout:127.0.0.1:{port}'])
+        else:
+            runner.start_graph(specs)
         pids = {c.name: c.proc.pid for c in runner.children}
         deadline = time.monotonic() + LINK_TIMEOUT_S
         while (rep.imu_count < 50 or not rep.start.service_is_ready()) \
@@ -288,6 +297,8 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--frames', type=int, default=500, help='frames replayed per run (50 Hz)')
     p.add_argument('--idle-s', type=float, default=5.0, help='idle CPU window, s')
     p.add_argument('--smoke', action='store_true', help='a short run for CI (figures mean little)')
+    p.add_argument('--no-composed', action='store_true',
+                   help='skip the single-process layout (ibvs_bringup.composed)')
     a = p.parse_args(argv)
     n = max(a.frames if not a.smoke else 110, START_AT_FRAME + WARMUP_FRAMES + 10)
     idle_s = 1.0 if a.smoke else a.idle_s
@@ -303,12 +314,15 @@ def main(argv: list | None = None) -> int:
         runs = [run_once('all inputs', images, track, n, idle_s),
                 run_once('pad detector killed', images, track, n, 0.0, kill='pad_detector'),
                 run_once('down camera stopped', images, track, n, 0.0, cameras=('front',))]
+        if not a.no_composed:
+            runs.append(run_once('composed, all inputs', images, track, n, idle_s,
+                                 composed=True))
     finally:
         rclpy.try_shutdown()
     for r in runs:
         report(r)
     base = np.median(runs[0]['latency_ms']) if len(runs[0]['latency_ms']) else np.nan
-    for r in runs[1:]:
+    for r in runs[1:3]:
         if len(r['latency_ms']):
             print(f"{r['name']}: median latency {np.median(r['latency_ms']) - base:+.2f} ms "
                   'against all inputs')

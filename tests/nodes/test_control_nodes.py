@@ -545,3 +545,21 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         assert int(keys['timesync_accepted']) >= 5
     finally:
         peer.close()
+
+
+# --- composition ---------------------------------------------------------------------------
+
+def test_composed_process_builds_the_onboard_nodes_of_graph_py(ctx):
+    """ibvs_bringup.composed: the same node list, names and overrides, in one process."""
+    from ibvs_bringup import composed, graph
+    context, executor, nodes = ctx
+    specs = graph.onboard_graph(graph.GraphOptions(
+        use_sim_time=False, mavlink_url=f'udpout:127.0.0.1:{free_udp_port()}'))
+    built = composed.build_nodes(specs, context)
+    nodes += built
+    assert [n.get_name() for n in built] == [s.name for s in specs]
+    by_name = {n.get_name(): n for n in built}
+    assert by_name['front_optical_flow'].camera_name == 'front'
+    assert by_name['down_optical_flow'].camera_name == 'down'
+    bridge = by_name['mavlink_bridge']
+    assert bridge.get_parameter('url').value == specs[-1].overrides()[graph.BRIDGE_URL]

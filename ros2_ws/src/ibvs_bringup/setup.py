@@ -25,6 +25,7 @@ setup(
     entry_points={
         'console_scripts': [
             'runner = ibvs_bringup.runner:main',
+            'composed = ibvs_bringup.composed:main',
             'preflight = ibvs_bringup.preflight:main',
             'recorder = ibvs_bringup.recorder_node:main',
             'bag_player = ibvs_bringup.bag_player_node:main',

@@ -42,18 +42,25 @@ def make_executor(context=None) -> Executor:
 
 def spin_guarded(node: Node) -> int:
     """Spin ``node`` until shutdown; return the number of RuntimeErrors survived."""
+    return spin_guarded_nodes([node])
+
+
+def spin_guarded_nodes(nodes: list) -> int:
+    """Spin ``nodes`` on one executor until shutdown; return the RuntimeErrors survived."""
     errors = 0
-    executor = make_executor(node.context)
-    executor.add_node(node)
+    context = nodes[0].context
+    executor = make_executor(context)
+    for node in nodes:
+        executor.add_node(node)
     try:
-        while rclpy.ok(context=node.context):
+        while rclpy.ok(context=context):
             try:
                 executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
             except RuntimeError as exc:
-                if not rclpy.ok(context=node.context):
+                if not rclpy.ok(context=context):
                     return errors
                 errors += 1
-                node.get_logger().error(
+                nodes[0].get_logger().error(
                     f'dropped a message rclpy could not take ({exc}); {errors} so far',
                     throttle_duration_sec=LOG_THROTTLE_S)
     finally:

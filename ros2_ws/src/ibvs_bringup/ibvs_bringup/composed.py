@@ -1,0 +1,89 @@
+"""The onboard nodes of graph.py in ONE process on one executor (like a component container).
+
+Same node classes, names, parameter files and per-run overrides as the separate processes of
+``graph.onboard_graph`` (the node list comes from there); only the process layout differs: one
+Python interpreter, one DDS participant and one rclpy ``EventsExecutor`` for all of them, so
+that the per-process and per-wake-up costs are paid once (docs/performance.md measures both
+layouts). Callbacks run one at a time: the per-frame work (detectors, flows, supervisor,
+controller) then shares one core, OpenCV's own threads aside.
+
+A node whose construction fails (bad parameter) ends the process with status 1, like the
+node's own ``main``. A node cannot die alone here: the process is the unit that a supervisor
+(systemd, launch) restarts.
+
+Usage: ``composed [--mavlink-url URL] [--params-file FILE] [--use-sim-time]
+[--ros-args ...]``.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ibvs_bringup import graph
+
+NODE_CLASSES = {
+    ('ibvs_perception', 'window_detector'):
+        'ibvs_perception.window_detector_node:WindowDetectorNode',
+    ('ibvs_perception', 'pad_detector'): 'ibvs_perception.pad_detector_node:PadDetectorNode',
+    ('ibvs_perception', 'optical_flow'): 'ibvs_perception.optical_flow_node:OpticalFlowNode',
+    ('ibvs_control', 'mode_supervisor'):
+        'ibvs_control.mode_supervisor_node:ModeSupervisorNode',
+    ('ibvs_control', 'force_controller'):
+        'ibvs_control.force_controller_node:ForceControllerNode',
+    ('ibvs_control', 'mavlink_bridge'): 'ibvs_control.mavlink_bridge_node:MavlinkBridgeNode',
+}
+
+
+def node_class(package: str, executable: str):
+    """Import the node class of ``package``/``executable``."""
+    module, name = NODE_CLASSES[(package, executable)].split(':')
+    return getattr(__import__(module, fromlist=[name]), name)
+
+
+def build_nodes(specs: list, context) -> list:
+    """Instantiate every spec's node class with its name and per-run overrides."""
+    from rclpy.parameter import Parameter
+    nodes = []
+    for spec in specs:
+        overrides = [Parameter(k, value=v) for k, v in spec.overrides().items()]
+        nodes.append(node_class(spec.package, spec.executable)(
+            node_name=spec.name, context=context, parameter_overrides=overrides))
+    return nodes
+
+
+def main(argv: list | None = None) -> int:
+    """Run the onboard graph in this process until Ctrl-C or SIGTERM."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.utilities import remove_ros_args
+    from ibvs_control.spin import spin_guarded_nodes
+    argv = sys.argv[1:] if argv is None else list(argv)
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument('--mavlink-url', default=None, help="the autopilot's MAVLink URL")
+    p.add_argument('--params-file', default=None, help='default: installed params.yaml')
+    p.add_argument('--use-sim-time', action='store_true')
+    a = p.parse_args(remove_ros_args(['composed'] + argv)[1:])
+    graph.ensure_ament_prefix_path()
+    specs = graph.onboard_graph(graph.GraphOptions(
+        params_file=a.params_file, use_sim_time=a.use_sim_time, mavlink_url=a.mavlink_url))
+    ros_args = ['--ros-args'] + [x for f in specs[0].param_files() for x in ('--params-file', f)]
+    user_ros_args = argv[argv.index('--ros-args') + 1:] if '--ros-args' in argv else []
+    rclpy.init(args=['composed'] + ros_args + user_ros_args)
+    nodes = []
+    try:
+        nodes = build_nodes(specs, rclpy.get_default_context())
+        spin_guarded_nodes(nodes)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except ValueError as exc:          # a bad parameter of one node: never fly with it
+        rclpy.logging.get_logger('composed').fatal(f'refusing to start: {exc}')
+        return 1
+    finally:
+        for n in nodes:
+            n.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
