@@ -229,3 +229,14 @@ def test_the_venv_prefix_is_found_without_ament_prefix_path(tmp_path, monkeypatc
     assert os.environ[graph.AMENT_ENV] == str(tmp_path)
     graph.ensure_ament_prefix_path('/elsewhere')           # a set path is never changed
     assert os.environ[graph.AMENT_ENV] == str(tmp_path)
+
+
+def test_onboard_window_width_agrees_with_the_sim_world():
+    """The controller and supervisor know r_w from params.yaml, never from the sim's world."""
+    import yaml
+    from ibvs_control.core.config import load_world
+    params = yaml.safe_load(Path(PARAMS).read_text())
+    for node in ('mode_supervisor', 'force_controller'):
+        section = params[node]['ros__parameters']
+        assert 'world_file' not in section
+        assert section['window_width_m'] == load_world().window.width

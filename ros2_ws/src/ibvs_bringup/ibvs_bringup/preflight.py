@@ -1,8 +1,12 @@
 """Preflight: wait until the graph is healthy, print a checklist, exit 0 (ready) or 1.
 
 Checks: camera_info valid on both cameras, imu/data flowing, MAVLink link up in /diagnostics
-(a status of the bridge with 'mavlink' in its name at level OK), ibvs/mode present, window
-detected (4 corners on window/corners). ``GraphHealth`` can also be attached to another node
+(a status of the bridge with 'mavlink' in its name at level OK), the bridge's clock synced with
+the autopilot (TIMESYNC, ``clock_synced`` in its diagnostics, with the offset), image and IMU
+stamps on one clock (both cameras' and the IMU's latest stamps within
+``STAMP_AGREEMENT_S`` of each other and of this node's ROS clock: a camera driver or an IMU
+mapping on another clock fails here), ibvs/mode present, window detected (4 corners on
+window/corners). ``GraphHealth`` can also be attached to another node
 (``run_scenario`` does) so that the same checks gate a scripted run.
 """
 from __future__ import annotations
@@ -24,6 +28,7 @@ from std_msgs.msg import UInt8
 
 IMU_MIN_MESSAGES = 10
 IMU_MAX_AGE_S = 1.0
+STAMP_AGREEMENT_S = 0.1       # s, latest image and IMU stamps vs each other and the ROS clock
 BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -61,6 +66,34 @@ def armed_state(msg: DiagnosticArray) -> bool | None:
     return None
 
 
+def diag_value(msg: DiagnosticArray, key: str) -> str | None:
+    """Return the value of ``key`` in the bridge's MAVLink status of a DiagnosticArray."""
+    for s in msg.status:
+        if 'mavlink' in s.name.lower():
+            for kv in s.values:
+                if kv.key == key:
+                    return kv.value
+    return None
+
+
+def stamp_ns(msg) -> int:
+    """Header stamp of a message in integer nanoseconds."""
+    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+
+
+def stamps_agree(stamps: dict, now_ns: int, tolerance_s: float = STAMP_AGREEMENT_S
+                 ) -> tuple[bool, str]:
+    """Whether the latest stamps (name -> ns or None) agree with each other and with now."""
+    missing = [n for n, t in stamps.items() if t is None]
+    if missing:
+        return False, 'no stamp yet from ' + ', '.join(missing)
+    tol = int(tolerance_s * 1e9)
+    offsets = {n: (t - now_ns) / 1e9 for n, t in stamps.items()}
+    detail = ', '.join(f'{n} {dt * 1e3:+.0f} ms' for n, dt in offsets.items()) + ' vs ROS time'
+    values = list(stamps.values()) + [now_ns]
+    return max(values) - min(values) <= tol, detail
+
+
 def link_up(msg: DiagnosticArray) -> bool | None:
     """Return the MAVLink link state reported in a DiagnosticArray (None if not reported)."""
     states = [s.level == DiagnosticStatus.OK for s in msg.status if 'mavlink' in s.name.lower()]
@@ -72,6 +105,10 @@ class GraphHealth:
 
     def __init__(self, node: Node, clock: Callable[[], float] = time.monotonic) -> None:
         self.clock = clock
+        self.node = node
+        self.stamps: dict = {'front camera': None, 'down camera': None, 'imu': None}
+        self.clock_synced: str | None = None
+        self.clock_offset_ms: str | None = None
         self.camera_info: dict = {'front': None, 'down': None}
         self.imu_count = 0
         self.imu_last = None
@@ -92,12 +129,18 @@ class GraphHealth:
 
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
+        self.stamps[f'{cam} camera'] = stamp_ns(msg)
 
     def _on_imu(self, msg: Imu) -> None:
         self.imu_count += 1
         self.imu_last = self.clock()
+        self.stamps['imu'] = stamp_ns(msg)
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
+        synced = diag_value(msg, 'clock_synced')
+        if synced is not None:
+            self.clock_synced = synced
+            self.clock_offset_ms = diag_value(msg, 'clock_offset_ms')
         state, armed = link_up(msg), armed_state(msg)
         if state is not None:
             self.link = state
@@ -121,6 +164,12 @@ class GraphHealth:
                                                             if age is not None else '')))
         checks.append(Check('MAVLink link up (/diagnostics)', bool(self.link),
                             {None: 'not reported', True: 'OK', False: 'DOWN'}[self.link]))
+        checks.append(Check('clock synced with the autopilot (TIMESYNC)',
+                            self.clock_synced == 'yes',
+                            'not reported' if self.clock_synced is None else
+                            f'{self.clock_synced}, offset {self.clock_offset_ms} ms'))
+        agree, detail = stamps_agree(self.stamps, self.node.get_clock().now().nanoseconds)
+        checks.append(Check('image and IMU stamps on one clock', agree, detail))
         checks.append(Check('ibvs/mode present', self.mode is not None,
                             'not received' if self.mode is None else f'mode {self.mode}'))
         checks.append(Check('window detected', self.window_corners == 4,

@@ -32,7 +32,7 @@ from geometry_msgs.msg import PolygonStamped, QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.control_laws import CrossingGains, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
 from ibvs_control.core.frame_io import (
@@ -76,7 +76,7 @@ PARAMETERS = {
     'imu_max_extrapolation_s': 0.05,
     'imu_max_interpolation_gap_s': 0.2,
     'vehicle_file': '',
-    'world_file': '',
+    'window_width_m': 1.2,
     'pad_layout_file': '',
 }
 
@@ -91,7 +91,7 @@ class ForceControllerNode(Node):
         p = {name: self.get_parameter(name).value
              for name in {**GAIN_PARAMETERS, **PARAMETERS}}
         vehicle = load_vehicle(p['vehicle_file'] or None)
-        r_w = load_world(p['world_file'] or None).window.width
+        r_w = float(p['window_width_m'])
         gains = {k: p[k] for k in GAIN_PARAMETERS}
         gains['crossing_law'] = p['crossing_law']
         pad = load_pad_layout(p['pad_layout_file'] or None)

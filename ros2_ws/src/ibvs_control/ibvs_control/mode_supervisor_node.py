@@ -38,7 +38,7 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import String, UInt8
 from std_srvs.srv import Trigger
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
 from ibvs_control.core.frames import bearings_C_to_I
 from ibvs_control.core.modes import Mode
@@ -54,7 +54,8 @@ from ibvs_control.spin import spin_guarded
 LOG_THROTTLE_S = 2.0
 LANDMARKS_PER_GROUP = 4
 CAMERA_NAME = {InputKind.WINDOW: 'front', InputKind.PAD: 'down'}
-# Core parameters that come from the shared YAML files, not from params.yaml.
+# Core parameters not declared under their core names: r_w is the node's window_width_m, the
+# group sizes come from pad_layout.yaml.
 FROM_FILES = ('r_w', 'group_half_sides')
 PARAMETERS = {
     'update_rate_hz': 20.0,
@@ -63,7 +64,7 @@ PARAMETERS = {
     'imu_max_extrapolation_s': 0.05,
     'imu_max_interpolation_gap_s': 0.2,
     'vehicle_file': '',
-    'world_file': '',
+    'window_width_m': 1.2,
     'pad_layout_file': '',
 }
 
@@ -84,10 +85,9 @@ class ModeSupervisorNode(Node):
             self.declare_parameter(name, default)
         p = {name: self.get_parameter(name).value for name in {**core_params, **PARAMETERS}}
         vehicle = load_vehicle(p['vehicle_file'] or None)
-        world = load_world(p['world_file'] or None)
         pad = load_pad_layout(p['pad_layout_file'] or None)
         config = SupervisorConfig.from_params(
-            {**{k: float(p[k]) for k in core_params}, 'r_w': world.window.width,
+            {**{k: float(p[k]) for k in core_params}, 'r_w': float(p['window_width_m']),
              'group_half_sides': {g.name: g.c for g in pad.groups}})
         if not float(p['update_rate_hz']) > 0.0:
             raise ValueError(f"update_rate_hz must be > 0, got {p['update_rate_hz']}")
