@@ -152,6 +152,25 @@ def test_second_run_repeats_the_first_bit_for_bit(reference, tmp_path):
     assert second['success'] == first['success']
 
 
+def test_a_perception_node_killed_mid_flight_is_restarted_and_the_flight_succeeds(reference,
+                                                                                  tmp_path):
+    """Kill the pad detector in WINDOW mode, where the pad is not used: no effect.
+
+    The runner restarts it (1 s backoff) before the landing needs it, as on a vehicle.
+    """
+    _, ref = reference
+    summary = run_scenario(tmp_path, 'pad-killed', '--kill-node', 'pad_detector',
+                           '--kill-at-s', '2.0', '--no-bag', '--no-plots')
+    restarts = summary['run']['node_restarts']
+    print('node restarts: ' + '; '.join(restarts))
+    assert any("'pad_detector' restarted" in r for r in restarts), restarts
+    assert_success(summary)
+    # nothing before the crossing uses the pad: the approach is the reference's, bit for bit
+    assert summary['window'] == ref['window']
+    assert [m['mode'] for m in summary['modes']] == [m['mode'] for m in ref['modes']]
+    assert abs(summary['landing']['error_m'] - ref['landing']['error_m']) <= 0.01
+
+
 def test_free_running_reference_on_the_onboard_parameters(tmp_path):
     """Off lockstep: sim time runs at 0.25 x wall and the graph keeps up with it, or drops."""
     summary = run_scenario(tmp_path, 'free-running', '--real-time-factor', '0.25', '--no-bag',

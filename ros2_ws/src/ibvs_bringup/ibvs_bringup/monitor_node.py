@@ -34,7 +34,7 @@ def stamp_s(msg) -> float:
 
 
 def _number(text: str):
-    """A diagnostic value as int or float when it is one, else the text."""
+    """Return a diagnostic value as int or float when it is one, else the text."""
     for kind in (int, float):
         try:
             return kind(text)

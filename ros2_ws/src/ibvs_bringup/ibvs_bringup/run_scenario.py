@@ -53,6 +53,8 @@ class RunOptions:
     mavlink_port: int | None = None     # None: a free port
     params_file: str | None = None
     real_time_factor: float | None = None   # free-running sim at this factor (None: lockstep)
+    kill_node: str | None = None        # fault injection: SIGKILL this node ...
+    kill_at_s: float = 2.0              # ... at this sim time (perception nodes come back)
     plots: bool = True
     extra: dict = field(default_factory=dict)
 
@@ -210,16 +212,30 @@ START_WAIT_S = 20.0    # s of wall clock after START_AT_SIM_S for the supervisor
 START_AT_SIM_S = 1.0
 
 
-def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float) -> str:
-    """Preflight, start, watch; return the stop reason (raise _Stop on a run error)."""
+def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner_specs: list,
+        restarts: list) -> str:
+    """Preflight, start, watch; return the stop reason (raise _Stop on a run error).
+
+    As on a vehicle, a perception node that dies is restarted (runner.supervise) and the run
+    goes on (``restarts`` lists what happened); any other death stops the run.
+    """
+    killed: list = []
     import rclpy
     from ibvs_bringup.preflight import format_checklist
 
+    respawning = {s.name for s in runner_specs if s.respawn}
+
     def spin(dt: float) -> None:
         rclpy.spin_once(monitor, timeout_sec=dt)
-        dead = runner.dead()
-        if dead:
-            raise _Stop('; '.join(d.report() for d in dead))
+        if opts.kill_node and not killed and monitor.now_s() >= opts.kill_at_s:
+            killed.append(runner.kill(opts.kill_node))
+            print(f'fault injected: {opts.kill_node} killed at sim t = {monitor.now_s():.2f} s',
+                  flush=True)
+        for event in runner.supervise():
+            print(f'runner: {event}', flush=True)
+            restarts.append(f't = {monitor.now_s():.2f} s: {event.splitlines()[0]}')
+            if 'died' in event and not any(f"'{n}'" in event for n in respawning):
+                raise _Stop(event)
         if time.monotonic() - t_wall0 > opts.timeout_s:
             raise _Stop(f'wall-clock timeout {opts.timeout_s:.0f} s')
 
@@ -290,12 +306,13 @@ def run_graph(opts: RunOptions) -> int:
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     monitor = None
     stop_reason, error = None, None
+    restarts: list = []
     try:
         monitor = ScenarioMonitor()
         runner.start_graph(specs)
         print(f'run {opts.run_name}: started {len(specs)} nodes (MAVLink port {port}), '
               f'initial position {xi0}', flush=True)
-        stop_reason = fly(opts, monitor, runner, t_wall0)
+        stop_reason = fly(opts, monitor, runner, t_wall0, specs, restarts)
     except _Stop as exc:
         error = str(exc)
     except (KeyboardInterrupt, Terminated, ExternalShutdownException):
@@ -315,6 +332,7 @@ def run_graph(opts: RunOptions) -> int:
     summary['timing'] = sim_stats
     summary['run'] = _run_block(opts, xi0, stop_reason=stop_reason, error=error,
                                 wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
+                                node_restarts=restarts,
                                 events=log.events,
                                 transitions=supervisor_transitions(
                                     os.path.join(opts.out_dir, 'logs', 'mode_supervisor.log')))
@@ -344,6 +362,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--preflight-timeout', type=float, default=120.0)
     p.add_argument('--mavlink-port', type=int, default=None, help='default: a free UDP port')
     p.add_argument('--params-file', default=None)
+    p.add_argument('--kill-node', default=None, metavar='NAME',
+                   help='fault injection: SIGKILL this node at --kill-at-s (sim time)')
+    p.add_argument('--kill-at-s', type=float, default=2.0, metavar='T')
     p.add_argument('--real-time-factor', type=float, default=None, metavar='RTF',
                    help='free-running sim (not lockstep): sim time runs at RTF x the wall '
                         'clock, frames it cannot render on time are dropped (e.g. 0.25)')
@@ -362,7 +383,8 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       feature_level=a.feature_level, timeout_s=a.timeout,
                       preflight_timeout_s=a.preflight_timeout, mavlink_port=a.mavlink_port,
                       params_file=a.params_file, plots=not a.no_plots, extra=extra,
-                      real_time_factor=a.real_time_factor)
+                      real_time_factor=a.real_time_factor, kill_node=a.kill_node,
+                      kill_at_s=a.kill_at_s)
 
 
 def main(argv: list | None = None) -> int:

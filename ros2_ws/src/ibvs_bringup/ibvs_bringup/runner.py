@@ -127,6 +127,13 @@ class ProcessRunner:
         self.start(spec.name, command_for(spec.package, spec.executable, spec.ros_args()),
                    respawn=spec.respawn)
 
+    def kill(self, name: str) -> str:
+        """SIGKILL the process ``name`` (fault injection); return its name."""
+        child = next(c for c in self.children if c.name == name)
+        child.signal(signal.SIGKILL)
+        child.proc.wait(timeout=5.0)
+        return name
+
     def supervise(self, now: float | None = None) -> list[str]:
         """Restart the dead ``respawn`` nodes whose backoff has passed; return what happened.
 
