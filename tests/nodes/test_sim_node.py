@@ -53,6 +53,7 @@ def _spin_until(executor, done, timeout_s):
 def test_sim_node_publishes_consistent_frames(ros_context):
     tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
     params = [Parameter('pacing', value='realtime'),
+              Parameter('start_on_setpoints', value=False),   # no companion in this test
               Parameter('mavlink_url', value=f'udpin:127.0.0.1:{_free_udp_port()}'),
               Parameter('initial_override', value=True),
               Parameter('initial_position_I', value=[-1.5, 0.2, -1.5]),
@@ -148,6 +149,7 @@ def test_sim_node_lockstep_advances_on_answers_only(ros_context):
     port = _free_udp_port()
     sim = SimNode(node_name=f'sim_lock_{tag}', context=ros_context, parameter_overrides=[
         Parameter('pacing', value='lockstep'), Parameter('lockstep_timeout_s', value=60.0),
+        Parameter('start_on_setpoints', value=False),
         Parameter('mavlink_url', value=f'udpin:127.0.0.1:{port}')])
     probe = rclpy.create_node(f'sim_lock_probe_{tag}', context=ros_context)
     gcs = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=255,

@@ -80,8 +80,8 @@ class SimNodeConfig:
     seed: int
     min_image_subscribers: int = 0
     subscriber_wait_timeout_s: float = 30.0
-    start_on_setpoints: bool = False         # frame 0 also waits for the companion's setpoints
-    telemetry_default_hz: float = 50.0
+    start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
+    telemetry_default_hz: float = 100.0
 
 
 def stamp_from_ns(t_ns: int) -> Time:
@@ -199,7 +199,7 @@ class SimNode(Node):
     def _read_parameters(self) -> SimNodeConfig:
         p = {
             'pacing': Pacing.LOCKSTEP.value,
-            'lockstep_timeout_s': 1.0,
+            'lockstep_timeout_s': 5.0,
             'real_time_factor': 1.0,
             'tick_period_s': 0.002,
             'initial_override': False,
@@ -216,8 +216,8 @@ class SimNode(Node):
             'seed': 0,
             'min_image_subscribers': 0,
             'subscriber_wait_timeout_s': 30.0,
-            'start_on_setpoints': False,
-            'telemetry_default_hz': 50.0,
+            'start_on_setpoints': True,
+            'telemetry_default_hz': 100.0,
         }
         v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
         try:
