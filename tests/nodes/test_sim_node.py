@@ -54,6 +54,7 @@ def test_sim_node_publishes_consistent_frames(ros_context):
     tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
     params = [Parameter('pacing', value='realtime'),
               Parameter('start_on_setpoints', value=False),   # no companion in this test
+              Parameter('real_time_factor', value=0.25),      # time between frames to spare
               Parameter('mavlink_url', value=f'udpin:127.0.0.1:{_free_udp_port()}'),
               Parameter('initial_override', value=True),
               Parameter('initial_position_I', value=[-1.5, 0.2, -1.5]),
