@@ -57,6 +57,7 @@ EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
 SUBSCRIBER_SETTLE_S = 0.5     # s (wall), image subscribers and setpoints this long before frame 0
 STATS_PERIOD_S = 1.0          # s (wall), sim/stats
+FAULT_ANSWER_WAIT_S = 0.3     # s (wall), lockstep: wait for the answer to a frame with images off
 
 
 @dataclass(frozen=True)
@@ -82,6 +83,15 @@ class SimNodeConfig:
     subscriber_wait_timeout_s: float = 30.0
     start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
     telemetry_default_hz: float = 100.0
+    camera_off_s: dict = None                # fault injection: camera -> (start, end) sim s
+
+
+def _window(values, name: str) -> tuple[float, float]:
+    """A [start, end] sim-time window (s) of a fault parameter; [0, 0] = never."""
+    v = [float(x) for x in values]
+    if len(v) != 2 or not all(math.isfinite(x) for x in v) or v[1] < v[0]:
+        raise ValueError(f'parameter {name} needs [start, end] with end >= start, got {v}')
+    return v[0], v[1]
 
 
 def stamp_from_ns(t_ns: int) -> Time:
@@ -178,6 +188,7 @@ class SimNode(Node):
             depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.latency = AnswerLatency()
+        self.camera_off_s = cfg.camera_off_s
         self._clock_ns = -1
         self._ended_logged = False
         self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
@@ -218,6 +229,8 @@ class SimNode(Node):
             'subscriber_wait_timeout_s': 30.0,
             'start_on_setpoints': True,
             'telemetry_default_hz': 100.0,
+            'fault_front_camera_off_s': [0.0, 0.0],
+            'fault_down_camera_off_s': [0.0, 0.0],
         }
         v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
         try:
@@ -258,7 +271,9 @@ class SimNode(Node):
             min_image_subscribers=int(v['min_image_subscribers']),
             subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']),
             start_on_setpoints=bool(v['start_on_setpoints']),
-            telemetry_default_hz=telemetry_hz)
+            telemetry_default_hz=telemetry_hz,
+            camera_off_s={cam: _window(v[f'fault_{cam}_camera_off_s'], f'fault_{cam}_camera_off_s')
+                          for cam in CAMERAS})
 
     def _first_frame_may_go(self) -> bool:
         """Ask the hold (core) with the subscriber counts; log the wait and a timeout."""
@@ -348,7 +363,16 @@ class SimNode(Node):
     def _publish(self, out: FrameOutput) -> None:
         stamp = stamp_from_ns(out.t_ns)
         self._publish_clock(out.t_ns)
+        withheld = [n for n, (a, b) in self.camera_off_s.items() if a <= out.t < b]
+        # lockstep: the graph may have nothing to answer (its mode's camera is off)
+        self.sim.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld
+                                  else self.sim.config.lockstep_timeout_s)
+        if withheld:
+            self.get_logger().warning(f'fault injection: {", ".join(withheld)} camera off at '
+                                      f't = {out.t:.3f} s', throttle_duration_sec=LOG_THROTTLE_S)
         for name, img in out.images.items():
+            if name in withheld:
+                continue
             cam = self.cameras[name]
             self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
             self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))

@@ -314,6 +314,9 @@ class Simulation:
         self.stalls = 0                       # realtime: re-phased after a stall of the sim
         self.reference: AttitudeReference | None = None
         self._waiting_since_wall: float | None = None
+        # lockstep: wall wait for the answer to the last frame; shorter when fault injection
+        # withheld some of its images (the graph may have nothing to answer)
+        self.answer_wait_s = config.lockstep_timeout_s
         self._wall0 = 0.0                     # realtime: wall time at sim time _t0_ns
         self._t0_ns = 0
         self._next_frame_ns = 0               # realtime: time of the next camera frame
@@ -350,8 +353,9 @@ class Simulation:
         answered = self.autopilot.last_setpoint_time_boot_ms
         if answered is not None and answered >= self.last_frame_ms():
             return self.step_frame()
-        if now - self._waiting_since_wall >= self.config.lockstep_timeout_s:
-            self.lockstep_timeouts += 1
+        if now - self._waiting_since_wall >= self.answer_wait_s:
+            if self.answer_wait_s >= self.config.lockstep_timeout_s:
+                self.lockstep_timeouts += 1
             return self.step_frame()
         return None
 

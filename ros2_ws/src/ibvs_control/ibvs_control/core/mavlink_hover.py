@@ -1,0 +1,186 @@
+"""Hover thrust: the autopilot's parameter as a seed, then estimated online (ROS-free, no I/O).
+
+The bridge normalises the collective thrust as ``thrust = |F| / (m g) * hover_thrust``, so
+``hover_thrust`` (the normalised thrust that holds the vehicle) scales every setpoint. Its seed
+is the autopilot's own parameter, MPC_THR_HOVER (PX4) or MOT_THST_HOVER (ArduPilot), else the
+configured value (:class:`HoverThrustSeed`). Neither is right on a real vehicle: PX4 keeps
+MPC_THR_HOVER as its estimator's starting value only (MPC_USE_HTE = 1), ArduPilot does not learn
+MOT_THST_HOVER in GUIDED_NOGPS. So :class:`HoverThrustEstimator` estimates it from the vehicle's
+own response, as PX4's mc_hover_thrust_estimator does (docs/mavlink.md "Hover thrust").
+
+Model (assumptions)
+    The rotors' collective thrust is along body -z and proportional to the normalised thrust
+    the autopilot applies (linear thrust model, as the autopilots' thrust linearisation and the
+    bridge's own normalisation assume): T = m g u / theta, with theta the hover thrust. The
+    accelerometer measures the specific force f = (thrust + aerodynamic + contact forces) / m,
+    so along body z, with no contact and drag along body z neglected (rotor drag is mainly
+    horizontal):  a = -f_z = g u b / theta.  u is the thrust the autopilot reports it applies
+    (ATTITUDE_TARGET, any mode); b = 1 / cos(tilt) when the autopilot boosts its thrust in a
+    tilt itself (ArduPilot ATC_ANGLE_BOOST = 1: ATTITUDE_TARGET reports the thrust before the
+    boost), else 1 (PX4 applies the thrust as sent). Motor lag and vibration are noise to
+    average: the estimate moves slowly.
+Filter
+    One-state extended Kalman filter on theta (PX4's ZeroOrderHoverThrustEkf in the body axis):
+    prediction P += q dt (process noise ``process_noise`` per sqrt(s), PX4's HTE_HT_NOISE);
+    measurement h = g u b / theta, H = -g u b / theta^2, innovation y = a - h, S = H^2 P + R
+    with R = ``accel_noise``^2; a sample with y^2 > gate^2 S is rejected (counted); otherwise
+    K = P H / S, theta += K y, P -= K H P. Used only airborne (landed state not on the ground,
+    armed), with u in [0.1, 0.9], |f| below 3 g, and a thrust sample at most ``max_pairing_s``
+    older than the IMU sample (the thrust in effect). The estimate is bounded to
+    seed * (1 -/+ ``max_deviation``) within [0.05, 0.95].
+Determinism
+    :meth:`HoverThrustEstimator.value_at` gives the estimate of the samples at least ``margin_s``
+    older than a setpoint's stamp (autopilot boot time): in a lockstep sim those samples have
+    all arrived when the setpoint is computed, so the setpoint's thrust does not depend on when
+    the bridge happened to read them.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+import math
+
+from ibvs_control.core.frames import GRAVITY
+
+HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover thrust outside this is refused
+THRUST_VALID_RANGE = (0.1, 0.9)         # applied thrust used by the estimator
+MAX_ACCEL_G = 3.0                       # |f| above this many g: not used
+HISTORY_S = 3.0                         # estimates kept for value_at (s of boot time)
+NS_PER_S = 1_000_000_000
+
+
+class HoverThrustSeed:
+    """The hover thrust to start from: the autopilot's parameter if it answers, else config."""
+
+    def __init__(self, configured: float, use_autopilot: bool) -> None:
+        self.configured = configured
+        self.use_autopilot = use_autopilot
+        self.value: float | None = None if use_autopilot else configured
+        self.source = 'pending' if use_autopilot else 'config'
+        self.error = ''
+
+    def on_param(self, name: str, value: float) -> None:
+        """Take the autopilot's answer if it is in range (else keep the configured one)."""
+        lo, hi = HOVER_THRUST_RANGE
+        if not (math.isfinite(value) and lo <= value <= hi):
+            self.error = f'{name} = {value} outside [{lo}, {hi}]: using the configured ' \
+                         f'{self.configured}'
+            self.value, self.source = self.configured, 'config (autopilot value refused)'
+            return
+        self.value, self.source = float(value), f'autopilot {name}'
+
+    def on_timeout(self) -> None:
+        """No answer: fall back to the configured value."""
+        if self.value is None:
+            self.value, self.source = self.configured, 'config (autopilot did not answer)'
+
+
+@dataclass(frozen=True)
+class EstimatorConfig:
+    """Settings of :class:`HoverThrustEstimator` (node parameters ``hover_estimator_*``)."""
+
+    enabled: bool = True            # False: the seed is used as it is
+    process_noise: float = 0.0036   # hover thrust random walk, 1/sqrt(s) (PX4 HTE_HT_NOISE)
+    accel_noise: float = 2.0        # m/s^2, std of one accelerometer sample (vibration)
+    initial_std: float = 0.1        # std of the seed (PX4 HTE_HT_ERR_INIT)
+    gate: float = 3.0               # innovation gate, std (PX4 HTE_ACC_GATE)
+    max_deviation: float = 0.3      # estimate bounded to seed * (1 -/+ this)
+    max_pairing_s: float = 0.1      # thrust sample at most this older than the IMU sample
+    margin_s: float = 0.1           # value_at(t) uses samples at least this older than t
+
+    def __post_init__(self):
+        for name in ('process_noise', 'accel_noise', 'initial_std', 'gate', 'max_pairing_s'):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f'hover estimator {name} must be finite and > 0, got {v}')
+        if not 0.0 < self.max_deviation < 1.0:
+            raise ValueError('hover estimator max_deviation must be in (0, 1)')
+        if not (math.isfinite(self.margin_s) and self.margin_s >= 0.0):
+            raise ValueError('hover estimator margin_s must be >= 0')
+
+
+class HoverThrustEstimator:
+    """Online hover-thrust estimate from specific force vs applied thrust (see the module doc)."""
+
+    def __init__(self, config: EstimatorConfig = EstimatorConfig()) -> None:
+        self.config = config
+        self.seed: float | None = None
+        self.theta: float | None = None       # estimate
+        self.var = 0.0                        # its variance
+        self.accepted = 0
+        self.rejected = 0
+        self._t_ns: int | None = None         # boot time of the last update
+        self._history: deque = deque()        # (boot ns, theta) after each accepted sample
+        self._base: float | None = None       # the latest estimate dropped from the history
+        self._bounds = HOVER_THRUST_RANGE
+
+    @property
+    def std(self) -> float | None:
+        """Standard deviation of the estimate (None before the seed)."""
+        return None if self.theta is None else math.sqrt(self.var)
+
+    def start(self, seed: float) -> None:
+        """Start (or restart) from ``seed`` with the initial uncertainty."""
+        c = self.config
+        self.seed = self.theta = float(seed)
+        self.var = c.initial_std ** 2
+        lo, hi = HOVER_THRUST_RANGE
+        self._bounds = (max(lo, seed * (1.0 - c.max_deviation)),
+                        min(hi, seed * (1.0 + c.max_deviation)))
+        self._history.clear()
+        self._base = self.seed
+        self._t_ns = None
+
+    def update(self, boot_ns: int, f_z: float, f_norm: float, thrust: float, boost: float,
+               airborne: bool) -> bool:
+        """One accelerometer sample (boot time, body-z specific force f_z, |f|, m/s^2).
+
+        ``thrust``: the applied thrust in effect; ``boost``: the autopilot's own tilt factor
+        (1 or 1/cos tilt); ``airborne``: armed and not on the ground. Returns whether the sample
+        was used.
+        """
+        c = self.config
+        if self.theta is None or not c.enabled or not airborne:
+            return False
+        if not (THRUST_VALID_RANGE[0] <= thrust <= THRUST_VALID_RANGE[1]) \
+                or not math.isfinite(f_z) or f_norm > MAX_ACCEL_G * GRAVITY:
+            return False
+        if self._t_ns is not None and boot_ns > self._t_ns:
+            dt = (boot_ns - self._t_ns) / NS_PER_S
+            self.var += c.process_noise ** 2 * min(dt, 1.0)
+        self._t_ns = int(boot_ns) if self._t_ns is None else max(self._t_ns, int(boot_ns))
+        u = thrust * boost
+        a = -f_z
+        h = GRAVITY * u / self.theta
+        H = -GRAVITY * u / self.theta ** 2
+        y = a - h
+        S = H * H * self.var + c.accel_noise ** 2
+        if y * y > c.gate ** 2 * S:
+            self.rejected += 1
+            return False
+        K = self.var * H / S
+        self.theta = min(max(self.theta + K * y, self._bounds[0]), self._bounds[1])
+        self.var = max((1.0 - K * H) * self.var, 1e-10)
+        self.accepted += 1
+        self._history.append((int(boot_ns), self.theta))
+        while self._history and self._history[0][0] < boot_ns - HISTORY_S * NS_PER_S:
+            self._base = self._history.popleft()[1]
+        return True
+
+    def value_at(self, boot_ns: int | None) -> float | None:
+        """Estimate from the samples at least ``margin_s`` before ``boot_ns`` (None: latest).
+
+        Before any used sample that old: the latest estimate dropped from the history (older
+        than ``HISTORY_S``), else the seed.
+        """
+        if self.theta is None:
+            return None
+        if boot_ns is None or not self.config.enabled:
+            return self.theta if self.config.enabled else self.seed
+        limit = int(boot_ns) - int(self.config.margin_s * NS_PER_S)
+        value = self._base
+        for t, theta in self._history:
+            if t > limit:
+                break
+            value = theta
+        return value

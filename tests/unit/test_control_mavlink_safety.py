@@ -1,0 +1,68 @@
+"""The safety policy: its table in docs/mavlink.md, and its detectors in closed form."""
+from pathlib import Path
+
+import pytest
+
+from ibvs_control.core.frames import GRAVITY
+from ibvs_control.core.mavlink_safety import POLICY, SafetyConfig, SafetyMonitor
+
+DOC = Path(__file__).resolve().parents[2] / 'docs' / 'mavlink.md'
+MS = 1_000_000
+
+
+def test_the_documented_table_is_the_policy():
+    text = DOC.read_text()
+    table = text[text.index('## Safety policy'):]
+    rows = [line for line in table.splitlines() if line.startswith('|')][2:]   # header, ---
+    documented = [tuple(c.strip() for c in row.strip('|').split('|')) for row in rows
+                  if row.count('|') == 4][:len(POLICY)]
+    assert documented == [(r.event, r.action, r.who) for r in POLICY]
+
+
+def test_inputs_lost_after_hold_last_s_of_vehicle_time_only():
+    m = SafetyMonitor(SafetyConfig(hold_last_s=0.25))
+    assert not m.inputs_lost(100.0)              # no force yet, no engagement: nothing to judge
+    m.start_count(100.0)                         # an engagement starts without any force
+    assert m.inputs_lost(100.3)
+    m.on_force(100.3)
+    assert not m.inputs_lost(100.55) and m.inputs_lost(100.56)
+    assert not m.inputs_lost(None)               # no ROS time (no /clock): no judgement
+    m.start_count(200.0)                         # a force came already: the count stands
+    assert m.forces_silent_s(100.4) == pytest.approx(0.1)
+
+
+def feed(m, seconds, f_g, thrust, hover=0.5, t0=0, dt_ms=10):
+    t = t0
+    for _ in range(int(seconds * 1000 / dt_ms)):
+        m.on_accel(t, f_g * GRAVITY, thrust, hover)
+        t += dt_ms * MS
+    return t
+
+
+def test_touchdown_rule_ground_carries_the_vehicle_at_low_thrust():
+    m = SafetyMonitor(SafetyConfig(disarm_force_after_s=1.0))
+    t = feed(m, 0.99, 1.0, 0.0)                  # resting: |f| = g at zero thrust
+    assert not m.touchdown
+    feed(m, 0.02, 1.0, 0.0, t0=t)
+    assert m.touchdown and not m.airborne_at_low_thrust
+    feed(m, 0.01, 1.0, 0.4)                      # thrust above half hover: no evidence
+    assert not m.touchdown
+
+
+def test_airborne_at_low_thrust_no_ground_contact():
+    m = SafetyMonitor(SafetyConfig(airborne_s=0.4))
+    t = feed(m, 2.0, 1.0, 0.5)                   # hovering: not low thrust
+    assert not m.airborne_at_low_thrust and not m.touchdown
+    t = feed(m, 0.39, 0.3, 0.1, t0=t)            # thrust 0.2 hover, |f| 0.3 g: falling
+    assert not m.airborne_at_low_thrust
+    feed(m, 0.02, 0.3, 0.1, t0=t)
+    assert m.airborne_at_low_thrust and not m.touchdown
+    m.reset_contact()
+    assert not m.airborne_at_low_thrust
+
+
+def test_thresholds_validated():
+    with pytest.raises(ValueError):
+        SafetyConfig(airborne_g=0.9, supported_g=0.8)
+    with pytest.raises(ValueError):
+        SafetyConfig(hold_last_s=0.0)
