@@ -171,6 +171,32 @@ def test_a_perception_node_killed_mid_flight_is_restarted_and_the_flight_succeed
     assert abs(summary['landing']['error_m'] - ref['landing']['error_m']) <= 0.01
 
 
+def _mode_times(summary: dict) -> dict:
+    return {m['mode']: m['t_start_s'] for m in summary['modes']}
+
+
+def test_a_short_down_camera_dropout_in_landing_is_ridden_through(reference, tmp_path):
+    """0.2 s without down images while landing: frames wait, the force is held, no failsafe."""
+    _, ref = reference
+    t0 = _mode_times(ref)[3] + 2.0                 # 2 s into LANDING
+    summary = run_scenario(tmp_path, 'down-dropout-short', '--down-camera-off', str(t0),
+                           str(t0 + 0.2), '--no-bag', '--no-plots')
+    assert 5 not in _mode_times(summary), summary['modes']
+    assert_success(summary)
+
+
+def test_a_long_down_camera_dropout_in_landing_ends_in_failsafe(reference, tmp_path):
+    """2 s without down images while landing: FAILSAFE once the down flow is stale (0.5 s)."""
+    _, ref = reference
+    t0 = _mode_times(ref)[3] + 2.0
+    summary = run_scenario(tmp_path, 'down-dropout-long', '--down-camera-off', str(t0),
+                           str(t0 + 2.0), '--no-bag', '--no-plots')
+    modes = _mode_times(summary)
+    print(f'dropout at {t0:.2f} s, failsafe at {modes.get(5)}')
+    assert summary['run']['stop_reason'] == 'failsafe', summary['run']
+    assert t0 + 0.5 <= modes[5] <= t0 + 0.5 + 0.2, (t0, summary['modes'])
+
+
 def test_free_running_reference_on_the_onboard_parameters(tmp_path):
     """Off lockstep: sim time runs at 0.25 x wall and the graph keeps up with it, or drops."""
     summary = run_scenario(tmp_path, 'free-running', '--real-time-factor', '0.25', '--no-bag',

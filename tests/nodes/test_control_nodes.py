@@ -486,14 +486,15 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
     port = free_udp_port()
     # Clocks stand still: the autopilot's boot time 1.5 s, our ROS time (/clock) 4.0 s, so the
     # TIMESYNC offset is exactly 2.5 s (rtt 0) and the mapped times are exact.
-    peer = FakeAutopilot(port, yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000)
+    peer = FakeAutopilot(port, yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000,
+                         armed=False, landed=True)
     try:
         bridge = MavlinkBridgeNode(
             node_name=f'bridge_{TAG}', context=context, parameter_overrides=[
                 Parameter('use_sim_time', value=True),
                 Parameter('url', value=f'udpout:127.0.0.1:{port}'),
                 Parameter('hover_thrust_source', value='config'),
-                Parameter('heading_wait_s', value=0.5),
+                Parameter('hover_estimator_enabled', value=False),
                 Parameter('diagnostics_rate_hz', value=5.0)])
         feed = Feeder(context, f'feedbr_{TAG}')
         nodes += [bridge, feed.node]
@@ -503,6 +504,7 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         heading = feed.node.create_publisher(QuaternionStamped, 'ibvs/heading_setpoint',
                                              COMMAND_QOS)
         force = feed.node.create_publisher(Vector3Stamped, 'ibvs/force_setpoint', COMMAND_QOS)
+        arm = feed.node.create_client(Trigger, 'ibvs/arm')
         feed.node.create_timer(0.02, lambda: feed.clock.publish(Clock(clock=stamp(4.0))))
         executor.add_node(bridge)
         executor.add_node(feed.node)
@@ -511,6 +513,8 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         assert np.allclose([abs(q.w), q.x, q.y, q.z], [1, 0, 0, 0], atol=1e-6)  # east = ENU
         assert imus[-1].header.frame_id == 'base_link'
         assert all(stamps_of([m]) == [4_000_000_000] for m in imus)   # 1.5 s boot + 2.5 s
+        acc = imus[-1].linear_acceleration                 # HIGHRES_IMU, FRD -> FLU
+        assert (acc.x, acc.y) == (0.0, 0.0) and acc.z == pytest.approx(GRAVITY)
         h = QuaternionStamped()
         h.header.stamp = stamp(4.321)
         h.header.frame_id = 'map'
@@ -524,42 +528,36 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         m = [m for _, m in peer.setpoints if m.time_boot_ms == 1821][-1]
         assert m.thrust == pytest.approx(VEHICLE.hover_thrust)
         assert np.allclose(np.abs(m.q), [1, 0, 0, 0], atol=1e-6)    # level, yaw 0 (north)
-        # Next frame: force and heading both queued before the executor runs, so it takes
-        # them in either order; the setpoint of that stamp carries that stamp's heading.
+        # Next frame as the controller sends it, heading then force, both queued before the
+        # executor runs: the heading subscription comes first, the setpoint of that stamp
+        # carries that stamp's heading.
         yaw = 0.5
         h.header.stamp = stamp(4.341)
         w, x, y, z = quat_ned_frd_to_enu_flu(np.array([np.cos(yaw / 2), 0, 0, np.sin(yaw / 2)]))
         h.quaternion.w, h.quaternion.x, h.quaternion.y, h.quaternion.z = w, x, y, z
-        force.publish(flow_msg(4.341, np.array([0.0, 0.0, VEHICLE.mass * GRAVITY])))
         heading.publish(h)
+        force.publish(flow_msg(4.341, np.array([0.0, 0.0, VEHICLE.mass * GRAVITY])))
         assert spin_until(executor, lambda: len([m for _, m in peer.setpoints
-                                                 if m.time_boot_ms == 1841]) >= 3, 3.0)
+                                                 if m.time_boot_ms == 1841]) >= 1, 3.0)
         for m in [m for _, m in list(peer.setpoints) if m.time_boot_ms == 1841]:
             assert same_rotation(m.q, [np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
-        spin_for(executor, 0.3)
+        # ibvs/arm: never armed unless asked; the request is accepted and waits for the
+        # engagement (no supervisor here)
+        assert not peer.armed and not [c for c in peer.commands
+                                       if c[1].command == 400]
+        assert arm.wait_for_service(timeout_sec=2.0)
+        future = arm.call_async(Trigger.Request())
+        assert spin_until(executor, future.done, 3.0)
+        assert future.result().success and 'arm' in future.result().message
+        spin_for(executor, 0.4)
         keys = {kv.key: kv.value for kv in diags[-1].status[0].values}
         assert keys['link'] == 'up' and keys['autopilot'] == 'px4'
         assert 'setpoint_rate_hz' in keys and 'hover_thrust_source' in keys
-        assert keys['heading_timeouts'] == '0'
+        assert keys['headings_missing'] == '0'
+        assert keys['arm_requested'] == 'True' and keys['armed'] == 'False'
+        assert keys['landed_state'] == '1' and keys['armable'] == 'True'
         assert keys['clock_synced'] == 'yes' and keys['clock_offset_ms'] == '2500.000'
         assert int(keys['timesync_accepted']) >= 5
+        assert not peer.armed
     finally:
         peer.close()
-
-
-# --- composition ---------------------------------------------------------------------------
-
-def test_composed_process_builds_the_onboard_nodes_of_graph_py(ctx):
-    """ibvs_bringup.composed: the same node list, names and overrides, in one process."""
-    from ibvs_bringup import composed, graph
-    context, executor, nodes = ctx
-    specs = graph.onboard_graph(graph.GraphOptions(
-        use_sim_time=False, mavlink_url=f'udpout:127.0.0.1:{free_udp_port()}'))
-    built = composed.build_nodes(specs, context)
-    nodes += built
-    assert [n.get_name() for n in built] == [s.name for s in specs]
-    by_name = {n.get_name(): n for n in built}
-    assert by_name['front_optical_flow'].camera_name == 'front'
-    assert by_name['down_optical_flow'].camera_name == 'down'
-    bridge = by_name['mavlink_bridge']
-    assert bridge.get_parameter('url').value == specs[-1].overrides()[graph.BRIDGE_URL]

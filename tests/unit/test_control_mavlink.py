@@ -1,14 +1,18 @@
 """The MAVLink bridge core against a pymavlink peer autopilot on 127.0.0.1.
 
-The peer (FakeAutopilot) is written here from the MAVLink message definitions, not from the
-bridge: it runs in a thread, sends HEARTBEAT and ATTITUDE_QUATERNION, answers parameter reads and
-commands, answers TIMESYNC as PX4 does, and records every SET_ATTITUDE_TARGET with its arrival
-time. Its boot clock is a :class:`FrameClock` (whole 20 ms frames, as the lockstep sim's), and the
-bridge's ROS clock is the same clock plus a chosen offset: a TIMESYNC round trip inside one frame
-measures the offset exactly, one across a frame boundary has an rtt of 20 ms and is rejected, so
-mapped times are exact. Expected values come from geometry (a pure yaw rotation, the nose-down
-pitch needed to accelerate forward), from the clocks' offset, and from the MAVLink/PX4/ArduPilot
-documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196).
+The peer (FakeAutopilot) is written here from the MAVLink message definitions and the measured
+PX4 / ArduPilot behaviour (docs/mavlink.md), not from the bridge: it runs in a thread, sends
+HEARTBEAT, ATTITUDE_QUATERNION, the IMU's specific force (HIGHRES_IMU as PX4, SCALED_IMU in
+milli-g as ArduPilot), ATTITUDE_TARGET (the thrust it applies), EXTENDED_SYS_STATE and
+SYS_STATUS, answers parameter reads, commands (plain disarm refused unless landed; arming
+refused unless armable; ArduPilot refuses HIGHRES_IMU) and TIMESYNC as PX4 does, and records
+every SET_ATTITUDE_TARGET and COMMAND_LONG with its arrival time. Its boot clock is a
+:class:`FrameClock` (whole 20 ms frames, as the lockstep sim's), and the bridge's ROS clock is
+the same clock plus a chosen offset: a TIMESYNC round trip inside one frame measures the offset
+exactly, so mapped times are exact. Expected values come from geometry (a pure yaw rotation,
+the nose-down pitch needed to accelerate forward), from the clocks' offset, and from the
+MAVLink/PX4/ArduPilot documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196,
+AUTO.LAND = main 4 / sub 6, ArduCopter LAND = 9).
 """
 import os
 import select
@@ -24,7 +28,8 @@ from pymavlink import mavutil  # noqa: E402
 
 from ibvs_control.core.frames import GRAVITY, quat_multiply  # noqa: E402
 from ibvs_control.core.mavlink_bridge import (  # noqa: E402
-    BridgeConfig, HeadingPairing, MavlinkBridge, SetpointSource)
+    BridgeConfig, MavlinkBridge, SetpointSource)
+from ibvs_control.core.mavlink_hover import EstimatorConfig  # noqa: E402
 from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
 from ibvs_control.core.mavlink_sequencer import EngageState, SequencerConfig  # noqa: E402
 from ibvs_control.core.modes import Mode  # noqa: E402
@@ -32,10 +37,14 @@ from ibvs_control.core.modes import Mode  # noqa: E402
 MASS = 1.676
 PX4_OFFBOARD = 6 << 16
 PX4_POSCTL = 3 << 16
+PX4_AUTO_LAND = (4 << 16) | (6 << 24)
+AP_GUIDED_NOGPS, AP_GUIDED, AP_LAND = 20, 4, 9
 KEY = bytes(range(32))
 MS = 1_000_000                                  # ns
 OFFSET = 1_700_000_000_123_456_789              # ns, ROS (system time) - autopilot boot time
 FRAME_NS = 20 * MS
+FORCE_MAGIC = 21196
+HOVER_F = np.array([0.0, 0.0, MASS * GRAVITY])     # level: the setpoint is a pure yaw
 
 
 class FrameClock:
@@ -65,9 +74,9 @@ def rotmat(q):
 class FakeAutopilot:
     """A minimal PX4- or ArduPilot-like autopilot speaking MAVLink 2 on udpin."""
 
-    def __init__(self, port, kind='px4', armed=True, params=None, key=None,
-                 refuse_disarm_unforced=False, yaw_ned=0.0, boot_clock=None,
-                 timesync_on=True, timesync_requests=False):
+    def __init__(self, port, kind='px4', armed=True, params=None, key=None, yaw_ned=0.0,
+                 boot_clock=None, timesync_on=True, timesync_requests=False, landed=False,
+                 armable=True, specific_force=(0.0, 0.0, -GRAVITY), thrust=0.5):
         self.kind = kind
         self.boot_clock = boot_clock if boot_clock is not None else FrameClock()
         self.timesync_on = timesync_on              # answer TIMESYNC requests
@@ -80,13 +89,19 @@ class FakeAutopilot:
         if key is not None:
             self.conn.setup_signing(key, sign_outgoing=True)
         self.armed = armed
+        self.landed = landed                # EXTENDED_SYS_STATE; plain disarm accepted then
+        self.armable = armable              # SYS_STATUS pre-arm bit; arming refused otherwise
+        self.specific_force = np.array(specific_force, dtype=float)  # IMU, FRD, m/s^2
+        self.thrust = thrust                # ATTITUDE_TARGET (the thrust applied)
+        self.refuse_arm = 0                 # refuse this many arm commands even if armable
         self.custom_mode = PX4_POSCTL if kind == 'px4' else 0
         self.params = params or {}
-        self.refuse_disarm_unforced = refuse_disarm_unforced
         self.yaw_ned = yaw_ned
         self.heartbeats_on = True
         self.setpoints = []        # (t_rx, msg)
         self.commands = []         # (t_rx, msg)
+        self.intervals = []        # (t_rx, msg id, interval us) of SET_MESSAGE_INTERVAL
+        self.sources = set()       # (host, port) the bridge sent from
         self.signed = []           # _signed flag of every message received
         self.t0 = time.monotonic()
         self._stop = threading.Event()
@@ -101,25 +116,42 @@ class FakeAutopilot:
     def boot_ms(self):
         return self.boot_clock() // MS
 
+    def statustext(self, text, severity=2):
+        self.conn.mav.statustext_send(severity, text.encode())
+
     def _run(self):
-        next_hb = next_att = next_ts = 0.0
+        next_hb = next_att = next_ts = next_status = 0.0
         kind = {'px4': mavutil.mavlink.MAV_AUTOPILOT_PX4,
                 'ardupilot': mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA}[self.kind]
         while not self._stop.is_set():
             now = time.monotonic()
+            alive = self.heartbeats_on and self.conn.clients
             if now >= next_hb:
                 next_hb = now + 0.1
-                if self.heartbeats_on and self.conn.clients:
+                if alive:
                     base = 1 | (128 if self.armed else 0)
                     self.conn.mav.heartbeat_send(2, kind, base, self.custom_mode, 4)
-            if now >= next_att and self.conn.clients:
+            if now >= next_att and alive:
                 next_att = now + 0.02
-                if self.heartbeats_on:
-                    h = self.yaw_ned / 2.0
-                    ms = self.boot_ms()
-                    self.attitude_ms.append(ms)
-                    self.conn.mav.attitude_quaternion_send(ms, np.cos(h), 0.0, 0.0,
-                                                           np.sin(h), 0.1, 0.2, 0.3)
+                h = self.yaw_ned / 2.0
+                ms = self.boot_ms()
+                self.attitude_ms.append(ms)
+                self.conn.mav.attitude_quaternion_send(ms, np.cos(h), 0.0, 0.0, np.sin(h),
+                                                       0.1, 0.2, 0.3)
+                self.conn.mav.attitude_target_send(ms, 7, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                                   float(self.thrust))
+                f = self.specific_force
+                if self.kind == 'px4':
+                    self.conn.mav.highres_imu_send(ms * 1000, *map(float, f), 0.0, 0.0, 0.0, 0.0,
+                                                   0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0x3F)
+                else:
+                    mg = np.round(f / GRAVITY * 1000.0).astype(int)
+                    self.conn.mav.scaled_imu_send(ms, *map(int, mg), 0, 0, 0, 0, 0, 0)
+            if now >= next_status and alive:
+                next_status = now + 0.1
+                self.conn.mav.extended_sys_state_send(0, 1 if self.landed else 2)
+                self.conn.mav.sys_status_send(0, 0, (1 << 28) if self.armable else 0, 0, 0,
+                                              -1, -1, 0, 0, 0, 0, 0, 0)
             if self.timesync_requests and now >= next_ts and self.conn.clients:
                 next_ts = now + 0.2
                 self.conn.mav.timesync_send(0, self.boot_clock())
@@ -133,6 +165,7 @@ class FakeAutopilot:
         kind = msg.get_type()
         if kind == 'BAD_DATA':
             return
+        self.sources |= set(self.conn.clients)
         self.signed.append(bool(getattr(msg, '_signed', False)))
         if kind == 'SET_ATTITUDE_TARGET':
             self.setpoints.append((now, msg))
@@ -150,22 +183,40 @@ class FakeAutopilot:
                                                len(self.params), 0)
         elif kind == 'COMMAND_LONG':
             self.commands.append((now, msg))
-            self.conn.mav.command_ack_send(msg.command, self._command(msg))
+            self.conn.mav.command_ack_send(msg.command, self._command(msg, now))
 
-    def _command(self, msg):
-        if msg.command == mavutil.mavlink.MAV_CMD_DO_SET_MODE:
-            if self.kind == 'px4' and int(msg.param2) == 6:
-                self.custom_mode = PX4_OFFBOARD
-            elif self.kind == 'ardupilot':
+    def _command(self, msg, now):
+        m = mavutil.mavlink
+        if msg.command == m.MAV_CMD_DO_SET_MODE:
+            if self.kind == 'px4':
+                main, sub = int(msg.param2), int(msg.param3)
+                if main == 6:
+                    self.custom_mode = PX4_OFFBOARD
+                elif (main, sub) == (4, 6):
+                    self.custom_mode = PX4_AUTO_LAND
+                elif main == 3:
+                    self.custom_mode = PX4_POSCTL
+            else:
                 self.custom_mode = int(msg.param2)
             return 0  # PX4 also ACKs the packed 6 << 16 and ignores it
-        if msg.command == mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM:
+        if msg.command == m.MAV_CMD_COMPONENT_ARM_DISARM:
             if msg.param1 == 1.0:
+                if not self.armable or self.refuse_arm > 0:
+                    self.refuse_arm -= 1
+                    self.statustext('Arming denied: not ready')
+                    return 1                # TEMPORARILY_REJECTED, as PX4's commander
                 self.armed = True
                 return 0
-            if self.refuse_disarm_unforced and int(msg.param2) != 21196:
-                return 2  # MAV_RESULT_DENIED: "in the air"
+            if not self.landed and int(msg.param2) != FORCE_MAGIC:
+                self.statustext('Disarming denied: not landed')
+                return 1
             self.armed = False
+            return 0
+        if msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL:
+            self.intervals.append((now, int(msg.param1), msg.param2))
+            if self.kind == 'ardupilot' and int(msg.param1) == 105:
+                self.statustext('No ap_message for mavlink id (105)', 6)
+                return 2                    # DENIED, as ArduPilot for HIGHRES_IMU
             return 0
         return 0
 
@@ -175,20 +226,28 @@ class FakeAutopilot:
 
     def arm_commands(self):
         return [(t, m) for t, m in self.commands
-                if m.command == mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM]
+                if m.command == mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+                and m.param1 == 1.0]
+
+    def disarm_commands(self):
+        return [(t, m) for t, m in self.commands
+                if m.command == mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM
+                and m.param1 == 0.0]
 
 
 def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
-                hold_last_s=5.0, clock=None, ros_clock=None, **kw):
+                hold_last_s=5.0, clock=None, ros_clock=None, estimator=False, arm=False, **kw):
     """A bridge on udpout to ``port``; ``ros_clock()`` (ns) is what spin() passes to poll()."""
     link = LinkConfig(url=f'udpout:127.0.0.1:{port}', heartbeat_timeout_s=0.5,
                       reconnect_period_s=0.3, signing_key=key)
-    seq = SequencerConfig(prestream_s=1.0, command_retry_s=0.3, max_attempts=5,
-                          disarm_force_after_s=0.3)
+    seq_kw = {k: kw.pop(k) for k in list(kw) if k in SequencerConfig.__dataclass_fields__}
+    seq = SequencerConfig(**{'prestream_s': 1.0, 'command_retry_s': 0.3, 'max_attempts': 5,
+                             'disarm_force_after_s': 0.3, 'arm_backoff_max_s': 1.2, **seq_kw})
     cfg = BridgeConfig(link=link, mass=MASS, max_thrust_factor=2.0,
                        configured_hover_thrust=hover, autopilot=autopilot,
                        hover_thrust_source=source, param_timeout_s=1.0, param_retry_s=0.2,
-                       hold_last_s=hold_last_s, sequencer=seq, **kw)
+                       hold_last_s=hold_last_s, sequencer=seq, arm_on_start=arm,
+                       estimator=EstimatorConfig(enabled=estimator), **kw)
     bridge = MavlinkBridge(cfg) if clock is None else MavlinkBridge(cfg, clock)
     bridge.test_ros_clock = ros_clock
     return bridge
@@ -210,28 +269,28 @@ def ros_now(bridge):
     return None if clock is None else clock()
 
 
-def spin(bridge, seconds, until=None, stream_hz=60.0, force_fn=None, on_tick=None):
+def spin(bridge, seconds, until=None, force_hz=50.0, force_fn=None, on_tick=None):
     """Tick the bridge like the node's timers; stop early when until() is true.
 
-    ``force_fn(now)``: called at the stream rate, e.g. to feed forces like the controller.
+    ``force_fn(now)``: called at ``force_hz``, e.g. to feed forces like the controller.
     ``on_tick()``: called every loop (e.g. to move a FrozenClock on).
     """
     t_end = time.monotonic() + seconds
-    next_stream = next_hb = 0.0
+    next_force = next_hb = 0.0
     samples = []
     while time.monotonic() < t_end:
         now = time.monotonic()
-        if force_fn is not None and now >= next_stream:
+        if force_fn is not None and now >= next_force:
+            next_force = now + 1.0 / force_hz
             force_fn(now)
         if on_tick is not None:
             on_tick()
         if now >= next_hb:
             next_hb = now + 0.2
             bridge.heartbeat()
-        samples += bridge.poll(ros_now(bridge))
-        if now >= next_stream:
-            next_stream = now + 1.0 / stream_hz
-            bridge.stream()
+        ros = ros_now(bridge)
+        samples += bridge.poll(ros)
+        bridge.stream(ros)
         if until is not None and until():
             return True, samples
         time.sleep(0.002)
@@ -291,17 +350,56 @@ def same_rotation(q_a, q_b, atol=1e-6):
     return np.allclose(rotmat(q_a), rotmat(q_b), atol=atol)
 
 
+def level_q(yaw_ned):
+    """SET_ATTITUDE_TARGET q of a level attitude with NED yaw (rotation about NED z)."""
+    return [np.cos(yaw_ned / 2.0), 0.0, 0.0, np.sin(yaw_ned / 2.0)]
+
+
+def sent_for(peer, ms):
+    return [m for _, m in list(peer.setpoints) if m.time_boot_ms == ms]
+
+
+def wait_peer(until, timeout_s=1.0):
+    """Wait for the peer's receiving thread, without ticking the bridge."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not until():
+        time.sleep(0.005)
+    return until()
+
+
+def feeder(bridge, force=HOVER_F, yaw=0.0):
+    """force_fn for spin(): heading then force with the ROS time as the stamp (a controller)."""
+    def feed(_now):
+        stamp = ros_now(bridge)
+        bridge.on_heading(stamp, heading_msg_quat(yaw))
+        bridge.on_force(stamp, force)
+    return feed
+
+
+def engage(bridge, peer, mode=Mode.WINDOW, arm=False):
+    """IDLE, then ``mode`` with forces flowing, until ENGAGED (arming on request if ``arm``)."""
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    if arm:
+        bridge.request_arm()
+    bridge.on_supervisor_mode(mode)
+    ok, _ = spin(bridge, 5.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+                 force_fn=feeder(bridge))
+    assert ok, f'{bridge.sequencer.state}: {bridge.sequencer.last_reason}'
+
+
+# --- setpoint content ----------------------------------------------------------------------------
+
 def test_setpoint_up_with_yaw_90_is_a_pure_yaw_rotation(peer_bridge):
     peer, bridge = peer_bridge()
     wait_link(bridge)
     assert bridge.on_heading(1_234_000_000, heading_msg_quat(np.pi / 2)) == ''
     # Heading of NED yaw 90 deg (east) is the ENU identity: checked independently.
     assert np.allclose(heading_msg_quat(np.pi / 2), [1, 0, 0, 0])
-    assert bridge.on_force(1_234_000_000, np.array([0.0, 0.0, MASS * GRAVITY])) == ''
-    ok, _ = spin(bridge, 1.0,
-                 until=lambda: any(m.time_boot_ms == 1234 for _, m in peer.setpoints))
+    assert bridge.on_force(1_234_000_000, HOVER_F) == ''
+    ok, _ = spin(bridge, 1.0, until=lambda: sent_for(peer, 1234))
     assert ok
-    m = [m for _, m in peer.setpoints if m.time_boot_ms == 1234][0]
+    m = sent_for(peer, 1234)[0]
     assert m.type_mask == 7
     assert m.target_system == 1 and m.target_component == 1
     c = np.cos(np.pi / 4)
@@ -331,94 +429,472 @@ def test_thrust_scales_with_configured_and_autopilot_hover(peer_bridge):
     peer, bridge = peer_bridge(bridge_kw={'hover': 0.4})
     wait_link(bridge)
     bridge.on_heading(3_000_000_000, heading_msg_quat(0.0))
-    bridge.on_force(3_000_000_000, np.array([0.0, 0.0, 1.5 * MASS * GRAVITY]))
+    bridge.on_force(3_000_000_000, 1.5 * HOVER_F)
     spin(bridge, 0.2)
     assert last_setpoint(peer).thrust == pytest.approx(0.6, abs=1e-6)
 
     peer2, bridge2 = peer_bridge(peer_kw={'params': {'MPC_THR_HOVER': 0.35}},
                                  bridge_kw={'source': 'autopilot'})
-    ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.hover.value is not None)
-    assert ok and bridge2.hover.value == pytest.approx(0.35, abs=1e-6)
+    ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.seed.value is not None)
+    assert ok and bridge2.seed.value == pytest.approx(0.35, abs=1e-6)
     assert 'MPC_THR_HOVER' in bridge2.status().hover_thrust_source
     bridge2.on_heading(3_000_000_000, heading_msg_quat(0.0))
-    bridge2.on_force(3_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
+    bridge2.on_force(3_000_000_000, HOVER_F)
     spin(bridge2, 0.2)
     assert last_setpoint(peer2).thrust == pytest.approx(0.35, abs=1e-6)
 
 
-def test_setpoint_stream_rate_at_least_50_hz(peer_bridge):
+@pytest.mark.parametrize('boost', [1, 0])
+def test_ardupilot_angle_boost_means_the_vertical_component_is_sent(peer_bridge, boost):
+    # ATC_ANGLE_BOOST = 1: ArduPilot multiplies the thrust by 1/cos(tilt) itself; the bridge
+    # then sends F_z / (m g) * hover, so that the vehicle gets |F| once, not |F| / cos(tilt).
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
+        'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.4, 'ATC_ANGLE_BOOST': boost}},
+        bridge_kw={'source': 'autopilot'})
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.angle_boost is not None
+                 and bridge.sequencer.state == EngageState.STANDBY)
+    assert ok
+    tilt = np.radians(20.0)
+    F = MASS * GRAVITY * np.array([np.tan(tilt), 0.0, 1.0])    # F_z = m g: level flight
+    thrust, _ = None, None
+    bridge.on_heading(3_000_000_000, heading_msg_quat(0.0))
+    bridge.on_force(3_000_000_000, F)
+    thrust = bridge._current.thrust
+    expected = 0.4 if boost else 0.4 / np.cos(tilt)
+    assert thrust == pytest.approx(expected, rel=1e-6)
+    assert bridge.shaper.tilt_boost_by_autopilot == bool(boost)
+
+
+def test_setpoints_leave_at_the_force_rate_and_repeats_only_fill_gaps(peer_bridge):
+    # Each force at once (50 Hz here, one per camera frame); a repeat only when nothing left
+    # for 1 / stream_rate_hz (30 Hz): the force rate with the controller, 30 Hz without.
     peer, bridge = peer_bridge()
     wait_link(bridge)
-    bridge.on_heading(1_000_000_000, heading_msg_quat(0.0))
-    bridge.on_force(1_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
-    n0 = len(peer.setpoints)
-    t0 = time.monotonic()
-    spin(bridge, 1.0)
+    spin(bridge, 0.3, force_fn=feeder(bridge))
+    forces = []
+    feed = feeder(bridge)
+
+    def counted(now):
+        forces.append(now)
+        feed(now)
+    n0, t0 = len(peer.setpoints), time.monotonic()
+    spin(bridge, 2.0, force_fn=counted, force_hz=50.0)
     time.sleep(0.05)
-    rate = (len(peer.setpoints) - n0) / (time.monotonic() - t0)
-    assert rate >= 50.0, f'measured {rate:.1f} Hz'
-    assert bridge.status().setpoint_rate_hz >= 50.0
+    dt = time.monotonic() - t0
+    with_forces, force_rate = (len(peer.setpoints) - n0) / dt, len(forces) / dt
+    n0, t0 = len(peer.setpoints), time.monotonic()
+    spin(bridge, 2.0)
+    time.sleep(0.05)
+    repeats = (len(peer.setpoints) - n0) / (time.monotonic() - t0)
+    print(f'\nsetpoint rate: {with_forces:.1f} Hz with forces at {force_rate:.1f} Hz, '
+          f'{repeats:.1f} Hz without')
+    assert force_rate * 0.97 <= with_forces <= force_rate * 1.1
+    assert 26.0 <= repeats <= 31.5
 
 
-def test_px4_offboard_after_streaming_then_arm(peer_bridge):
-    peer, bridge = peer_bridge(peer_kw={'armed': False})
+# --- engage and arm -----------------------------------------------------------------------------
+
+def test_px4_offboard_after_streaming_and_arms_only_when_asked(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'armed': False, 'landed': True})
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
-    spin(bridge, 1.3)
+    spin(bridge, 1.3, force_fn=feeder(bridge))
     assert peer.set_mode_commands() == []          # IDLE: stream, do not switch
     assert bridge.sequencer.state == EngageState.STANDBY
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.WAIT_ARM,
+                 force_fn=feeder(bridge))
     assert ok, bridge.sequencer.last_reason
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 6.0)      # custom mode enabled, OFFBOARD main mode
-    # > 1 s of stream first (prestream 1.0 s in the bridge clock; the peer stamps receipt, so
-    # allow 20 ms of scheduling between the two clocks)
-    assert t_mode - peer.setpoints[0][0] > 0.98
-    assert peer.custom_mode >> 16 == 6 and peer.armed
-    t_arm, arm = peer.arm_commands()[0]
-    assert arm.param1 == 1.0 and t_arm > t_mode
+    assert t_mode - peer.setpoints[0][0] > 0.98    # > 1 s of stream first
+    spin(bridge, 1.5, force_fn=feeder(bridge))
+    assert peer.arm_commands() == [] and not peer.armed        # never arms by itself
+    assert bridge.sequencer.state == EngageState.WAIT_ARM
+    ok, text = bridge.request_arm()
+    assert ok and 'arm' in text
+    t_req = time.monotonic()
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+                 force_fn=feeder(bridge))
+    assert ok, bridge.sequencer.last_reason
+    [(t_arm, arm)] = peer.arm_commands()           # exactly one ARM
+    assert arm.param1 == 1.0 and t_arm >= t_req and peer.armed
+    assert not bridge.sequencer.arm_requested      # used up
+
+
+def test_arming_waits_until_armable_retries_with_backoff_and_logs_the_reasons(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'armed': False, 'landed': True, 'armable': False})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    bridge.request_arm()
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ARMING,
+                 force_fn=feeder(bridge))
+    assert ok, bridge.sequencer.last_reason
+    spin(bridge, 1.0, force_fn=feeder(bridge))
+    assert peer.arm_commands() == []               # not armable: nothing sent
+    assert bridge.status().armable is False
+    peer.refuse_arm = 3                            # armable, but refused three times
+    peer.armable = True
+    ok, _ = spin(bridge, 8.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+                 force_fn=feeder(bridge))
+    assert ok, bridge.sequencer.last_reason
+    times = [t for t, _ in peer.arm_commands()]
+    assert len(times) == 4
+    gaps = np.diff(times)                          # 0.3, 0.6, 1.2 s (retry 0.3 s, doubling)
+    assert gaps[0] == pytest.approx(0.3, abs=0.1) and gaps[1] == pytest.approx(0.6, abs=0.1)
+    assert gaps[2] == pytest.approx(1.2, abs=0.1)
+    reasons = [t for level, t in bridge.pop_events() if level.startswith('reason')]
+    assert any('Arming denied: not ready' in r for r in reasons)
 
 
 def test_px4_switch_requested_immediately_still_waits_for_stream(peer_bridge):
     peer, bridge = peer_bridge()
+    bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
     ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer is not None
-                 and bridge.sequencer.state == EngageState.ENGAGED)
+                 and bridge.sequencer.state == EngageState.ENGAGED, force_fn=feeder(bridge))
     assert ok
     t_mode, _ = peer.set_mode_commands()[0]
     assert t_mode - peer.setpoints[0][0] > 0.98
     assert peer.arm_commands() == []               # already armed: no arm command
 
 
-def test_ardupilot_guided_nogps_with_guid_options_bit3(peer_bridge):
-    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
-        'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.3}, 'armed': False},
-        bridge_kw={'source': 'autopilot'})
+def test_no_engagement_without_an_idle_report_first(peer_bridge):
+    # A bridge (re)started while the supervisor is already flying never takes the vehicle.
+    peer, bridge = peer_bridge()
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
+    spin(bridge, 1.5, force_fn=feeder(bridge))
+    assert peer.set_mode_commands() == []
+    assert bridge.sequencer.state == EngageState.STANDBY
+
+
+def test_ardupilot_guided_nogps_with_guid_options_bit3(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
+        'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.3, 'ATC_ANGLE_BOOST': 1}, 'armed': False,
+        'landed': True}, bridge_kw={'source': 'autopilot', 'arm': True})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    spin(bridge, 1.5, force_fn=feeder(bridge))
+    assert peer.setpoints == []                    # ArduPilot: nothing before the switch
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+                 force_fn=feeder(bridge))
     assert ok, bridge.sequencer.last_reason
-    _, m = peer.set_mode_commands()[0]
+    t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 20.0)
+    assert peer.setpoints[0][0] >= t_mode - 0.01
     assert peer.custom_mode == 20 and peer.armed
-    assert bridge.hover.value == pytest.approx(0.3)
+    assert bridge.seed.value == pytest.approx(0.3)
 
 
 @pytest.mark.parametrize('guid_options', [0, 7, None])
 def test_ardupilot_refuses_without_guid_options_bit3(peer_bridge, guid_options):
-    params = {'MOT_THST_HOVER': 0.3}
+    params = {'MOT_THST_HOVER': 0.3, 'ATC_ANGLE_BOOST': 1}
     if guid_options is not None:
         params['GUID_OPTIONS'] = guid_options
-    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': params})
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': params, 'armed': False})
     wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
     ok, _ = spin(bridge, 2.5, until=lambda: bridge.sequencer.state == EngageState.REFUSED)
     assert ok
     assert 'GUID_OPTIONS' in bridge.sequencer.last_reason
     spin(bridge, 0.3)
     assert peer.set_mode_commands() == [] and peer.arm_commands() == []
+    assert peer.setpoints == []
+    assert bridge.request_arm()[0] is False
 
+
+def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    spin(bridge, 1.3, force_fn=feeder(bridge))     # > prestream_s (1.0 s) of stream
+    assert bridge.sequencer.state == EngageState.STANDBY and peer.set_mode_commands() == []
+    bridge.on_supervisor_mode(Mode.WINDOW)         # no poll between this and the next force
+    assert bridge.sequencer.state == EngageState.SET_MODE
+    stamp = ros_now(bridge) + 7 * MS
+    bridge.on_heading(stamp, heading_msg_quat(0.0))
+    bridge.on_force(stamp, HOVER_F)
+    ms = bridge.stamp_to_boot_ms(stamp)
+    assert wait_peer(lambda: peer.set_mode_commands() and sent_for(peer, ms))
+    t_mode, m = peer.set_mode_commands()[0]
+    assert (m.param1, m.param2) == (1.0, 6.0)
+    t_sp = min(t for t, sp in list(peer.setpoints) if sp.time_boot_ms == ms)
+    assert t_mode <= t_sp                          # the command left before the setpoint
+
+
+# --- hand back ----------------------------------------------------------------------------------
+
+def test_silent_controller_px4_stops_streaming_after_hold_last(peer_bridge):
+    peer, bridge = peer_bridge(bridge_kw={'hold_last_s': 0.25})
+    engage(bridge, peer)
+    t_last = time.monotonic()
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD)
+    t_held = time.monotonic()
+    assert ok, bridge.sequencer.last_reason
+    assert 'offboard-loss failsafe' in bridge.sequencer.last_reason
+    assert 0.2 <= t_held - t_last <= 0.45          # hold_last_s of vehicle (ROS) time
+    n = len(peer.setpoints)
+    spin(bridge, 1.0)
+    assert len(peer.setpoints) <= n + 1            # nothing more (one may be on its way)
+    assert max(t for t, _ in peer.setpoints) <= t_held + 0.05
+    assert [m for _, m in peer.setpoints if m.thrust != pytest.approx(0.5)] == []  # no hover
+    #                                                of our own: the last force held, then none
+    assert len(peer.set_mode_commands()) == 1      # nothing commanded: PX4's failsafe acts
+
+
+def test_silent_controller_ardupilot_commands_land(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
+        'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.3, 'ATC_ANGLE_BOOST': 1}},
+        bridge_kw={'source': 'autopilot', 'hold_last_s': 0.25})
+    engage(bridge, peer)
+    ok, _ = spin(bridge, 2.0, until=lambda: peer.custom_mode == AP_LAND)
+    assert ok, bridge.sequencer.last_reason
+    _, m = peer.set_mode_commands()[-1]
+    assert (m.param1, m.param2) == (1.0, 9.0)      # ArduCopter LAND
+    ok, _ = spin(bridge, 1.0, until=lambda: not bridge.status().streaming)
+    assert ok and bridge.sequencer.state == EngageState.LANDING
+    n = len(peer.setpoints)
+    spin(bridge, 0.5)
+    assert len(peer.setpoints) <= n + 1
+    peer.landed = True                             # it lands: disarm (ArduPilot would itself)
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
+    assert ok and not peer.armed
+    assert all(int(m.param2) != FORCE_MAGIC for _, m in peer.disarm_commands())
+
+
+@pytest.mark.parametrize('kind', ['px4', 'ardupilot'])
+def test_failsafe_is_the_autopilots_land_mode(peer_bridge, kind):
+    params = {'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.5, 'ATC_ANGLE_BOOST': 0} \
+        if kind == 'ardupilot' else {}
+    peer, bridge = peer_bridge(peer_kw={'kind': kind, 'params': params, 'yaw_ned': -1.0},
+                               bridge_kw={'source': 'autopilot' if params else 'config'})
+    engage(bridge, peer)
+    n = len(peer.setpoints)
+    bridge.on_supervisor_mode(Mode.FAILSAFE)
+    land = PX4_AUTO_LAND if kind == 'px4' else AP_LAND
+    ok, _ = spin(bridge, 2.0, until=lambda: peer.custom_mode == land)
+    assert ok
+    _, m = peer.set_mode_commands()[-1]
+    expected = (1.0, 4.0, 6.0) if kind == 'px4' else (1.0, 9.0, 0.0)
+    assert (m.param1, m.param2, m.param3) == expected
+    ok, _ = spin(bridge, 1.0, until=lambda: not bridge.status().streaming)
+    assert ok
+    # until the land mode showed: level at the current yaw, hover thrust (no descent of ours)
+    for _, sp in peer.setpoints[n + 1:]:
+        assert same_rotation(sp.q, level_q(-1.0)) and sp.thrust == pytest.approx(0.5)
+    n = len(peer.setpoints)
+    spin(bridge, 0.5)
+    assert len(peer.setpoints) <= n + 1
+
+
+@pytest.mark.parametrize('kind', ['px4', 'ardupilot'])
+def test_a_mode_taken_by_the_pilot_stops_the_stream_at_once_for_good(peer_bridge, kind):
+    params = {'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.5, 'ATC_ANGLE_BOOST': 0} \
+        if kind == 'ardupilot' else {}
+    peer, bridge = peer_bridge(peer_kw={'kind': kind, 'params': params},
+                               bridge_kw={'source': 'autopilot' if params else 'config'})
+    engage(bridge, peer)
+    taken = PX4_POSCTL if kind == 'px4' else AP_GUIDED    # GUIDED obeys attitude targets too
+    peer.custom_mode = taken
+    ok, _ = spin(bridge, 1.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+                 force_fn=feeder(bridge))
+    assert ok
+    t_held = time.monotonic()
+    n_modes = len(peer.set_mode_commands())
+    spin(bridge, 1.5, force_fn=feeder(bridge))      # the controller goes on: nothing flies
+    assert max(t for t, _ in peer.setpoints) <= t_held + 0.05
+    assert len(peer.set_mode_commands()) == n_modes and peer.custom_mode == taken
+    # only a new start (supervisor IDLE, then flying again) engages again
+    bridge.on_supervisor_mode(Mode.IDLE)
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+                 force_fn=feeder(bridge))
+    assert ok
+
+
+def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
+    peer, bridge = peer_bridge()
+    engage(bridge, peer)
+    n_modes = len(peer.set_mode_commands())
+    peer.heartbeats_on = False
+    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up, force_fn=feeder(bridge))
+    t_lost = time.monotonic()
+    assert ok and bridge.sequencer.state == EngageState.NO_LINK
+    spin(bridge, 0.7, force_fn=feeder(bridge))
+    assert max(t for t, _ in peer.setpoints) <= t_lost + 0.05     # nothing while lost
+    assert bridge.link.counters.link_losses == 1
+    assert bridge.link.counters.reopens == 0       # the udpout socket is kept ...
+    assert len(peer.sources) == 1                  # ... one source address all along
+    peer.custom_mode = PX4_POSCTL                  # the autopilot's failsafe took over
+    peer.heartbeats_on = True
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+                 force_fn=feeder(bridge))
+    assert ok, bridge.sequencer.last_reason
+    spin(bridge, 1.0, force_fn=feeder(bridge))
+    assert len(peer.set_mode_commands()) == n_modes
+    assert bridge.link.counters.reconnects == 1 and len(peer.sources) == 1
+
+
+def test_link_back_still_offboard_applies_the_input_loss_action(peer_bridge):
+    # ArduPilot keeps GUIDED_NOGPS after GUID_TIMEOUT (it only levels the vehicle and holds
+    # the altitude): back from a link loss, the bridge commands LAND.
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
+        'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.5, 'ATC_ANGLE_BOOST': 0}},
+        bridge_kw={'source': 'autopilot'})
+    engage(bridge, peer)
+    peer.heartbeats_on = False
+    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up)
+    assert ok
+    peer.heartbeats_on = True
+    ok, _ = spin(bridge, 3.0, until=lambda: peer.custom_mode == AP_LAND)
+    assert ok, bridge.sequencer.last_reason
+
+
+def test_link_lost_in_the_shutdown_ends_disarmed(peer_bridge):
+    peer, bridge = peer_bridge(bridge_kw={'shutdown_ramp_s': 0.6})
+    engage(bridge, peer, mode=Mode.LANDING)
+    bridge.on_supervisor_mode(Mode.SHUTDOWN)
+    peer.heartbeats_on = False                     # lost during the ramp
+    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up, force_fn=feeder(bridge))
+    assert ok
+    peer.landed = True                             # meanwhile on the ground, still armed
+    peer.heartbeats_on = True
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
+    assert ok, bridge.sequencer.last_reason
+    assert not peer.armed and int(peer.disarm_commands()[-1][1].param2) == 0
+
+
+def test_shutdown_ramps_thrust_then_forces_disarm_only_under_the_touchdown_rule(peer_bridge):
+    # The peer refuses a plain disarm (its land detector says "in the air"); the IMU says the
+    # vehicle rests on the ground (specific force g at zero thrust): forced, not at once.
+    peer, bridge = peer_bridge(bridge_kw={'shutdown_ramp_s': 0.6})
+    engage(bridge, peer, mode=Mode.LANDING)
+    bridge.on_supervisor_mode(Mode.SHUTDOWN)
+    t_sd = time.monotonic()
+    ok, _ = spin(bridge, 5.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
+                 force_fn=feeder(bridge))
+    assert ok, bridge.sequencer.last_reason
+    assert not peer.armed
+    ramp = [(t, m.thrust) for t, m in peer.setpoints if t >= t_sd]
+    thrusts = np.array([th for _, th in ramp])
+    assert thrusts[0] == pytest.approx(0.5, abs=0.05)
+    assert np.all(np.diff(thrusts) <= 1e-6)        # monotonic ramp down
+    t_zero = min(t for t, th in ramp if th == 0.0)
+    assert 0.5 <= t_zero - t_sd <= 0.9             # ramp of 0.6 s
+    disarms = peer.disarm_commands()
+    assert disarms[0][0] >= t_zero - 0.05          # disarm only after the ramp
+    assert [int(m.param2) for _, m in disarms[:-1]] == [0] * (len(disarms) - 1)
+    assert int(disarms[-1][1].param2) == FORCE_MAGIC
+    # forced >= disarm_force_after_s (0.3 s) after the first refusal, never with a plain one
+    assert disarms[-1][0] - disarms[0][0] >= 0.3 - 0.02
+    assert np.min(np.diff([t for t, _ in disarms])) >= 0.25
+    assert bridge.sequencer.disarm_forced
+
+
+def test_shutdown_in_the_air_is_never_forced_and_lands(peer_bridge):
+    # At low thrust the IMU reads almost no specific force: falling, not on the ground.
+    peer, bridge = peer_bridge(bridge_kw={'shutdown_ramp_s': 0.4})
+    engage(bridge, peer, mode=Mode.LANDING)
+    bridge.on_supervisor_mode(Mode.SHUTDOWN)
+    peer.specific_force = np.array([0.0, 0.0, -0.1 * GRAVITY])
+    ok, _ = spin(bridge, 3.0, until=lambda: peer.custom_mode == PX4_AUTO_LAND,
+                 force_fn=feeder(bridge))
+    assert ok, bridge.sequencer.last_reason
+    assert all(int(m.param2) != FORCE_MAGIC for _, m in peer.disarm_commands())
+    assert peer.armed and bridge.sequencer.state == EngageState.LANDING
+
+
+def test_landed_state_gives_a_plain_disarm(peer_bridge):
+    peer, bridge = peer_bridge(bridge_kw={'shutdown_ramp_s': 0.3})
+    engage(bridge, peer, mode=Mode.LANDING)
+    peer.landed = True
+    bridge.on_supervisor_mode(Mode.SHUTDOWN)
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
+                 force_fn=feeder(bridge))
+    assert ok
+    assert [int(m.param2) for _, m in peer.disarm_commands()] == [0]
+
+
+# --- link, streams, reasons ---------------------------------------------------------------------
+
+@pytest.mark.parametrize('kind', ['px4', 'ardupilot'])
+def test_streams_requested_at_their_rates_and_again_after_a_link_loss(peer_bridge, kind):
+    params = {'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.5, 'ATC_ANGLE_BOOST': 0} \
+        if kind == 'ardupilot' else {}
+    peer, bridge = peer_bridge(peer_kw={'kind': kind, 'params': params},
+                               bridge_kw={'source': 'autopilot' if params else 'config'})
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams is not None
+                 and bridge.streams.complete)
+    assert ok
+    asked = {i: us for _, i, us in peer.intervals}
+    imu = 105 if kind == 'px4' else 26
+    expected = {31: 1e4, imu: 1e4, 83: 2e4, 245: 2e5, 1: 2e5}
+    if kind == 'ardupilot':
+        expected[0] = 2e5                          # HEARTBEAT at 5 Hz: takeovers seen fast
+    assert asked == pytest.approx(expected)
+    assert 105 not in asked or kind == 'px4'       # never HIGHRES_IMU from ArduPilot
+    n = len(peer.intervals)
+    spin(bridge, 0.5)
+    assert len(peer.intervals) == n                # once each, not repeated
+    peer.heartbeats_on = False
+    spin(bridge, 1.0, until=lambda: not bridge.link.link_up)
+    peer.heartbeats_on = True
+    ok, _ = spin(bridge, 4.0, until=lambda: len(peer.intervals) >= 2 * n)
+    assert ok, 'asked again after the link came back'
+
+
+def test_ardupilot_imu_from_scaled_imu_in_milli_g(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={
+        'kind': 'ardupilot', 'specific_force': (0.5, -0.25, -GRAVITY),
+        'params': {'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.5, 'ATC_ANGLE_BOOST': 0}},
+        bridge_kw={'source': 'autopilot'})
+    wait_link(bridge)
+    _, samples = spin(bridge, 0.3)
+    acc = samples[-1].linear_acceleration_flu      # FRD -> FLU, milli-g rounded
+    assert np.allclose(acc, [0.5, 0.25, GRAVITY], atol=GRAVITY / 1000)
+
+
+def test_internal_error_0x100000_and_statustext_reported(peer_bridge):
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    bridge.pop_events()
+    peer.statustext('PreArm: Internal errors 0x100000 l:57 flow_of_ctrl')
+    ok, _ = spin(bridge, 1.0, until=lambda: bridge.status().autopilot_internal_errors)
+    assert ok
+    events = bridge.pop_events()
+    assert any(level == 'error' and '#26865' in text for level, text in events)
+    assert any(level.startswith('reason') and 'flow_of_ctrl' in text for level, text in events)
+    assert bridge.status().autopilot_internal_errors == 0x100000
+
+
+def test_hover_thrust_estimated_from_the_vehicles_response(peer_bridge):
+    # True hover thrust 0.4, seed 0.5 (MPC_THR_HOVER): the vehicle hovers at thrust 0.4, its
+    # IMU reads g; the estimate converges to 0.4 and the setpoints use it.
+    peer, bridge = peer_bridge(peer_kw={'params': {'MPC_THR_HOVER': 0.5}, 'thrust': 0.4},
+                               bridge_kw={'source': 'autopilot', 'estimator': True})
+    wait_link(bridge)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.estimator.accepted >= 50
+                 and abs(bridge.hover_now() - 0.4) < 0.005)
+    assert ok, (bridge.hover_now(), bridge.estimator.accepted, bridge.estimator.rejected)
+    stamp = ros_now(bridge)
+    bridge.on_heading(stamp, heading_msg_quat(0.0))
+    bridge.on_force(stamp, HOVER_F)
+    assert bridge._current.thrust == pytest.approx(0.4, abs=0.006)
+    st = bridge.status()
+    assert st.hover_thrust_seed == pytest.approx(0.5) and 'estimate' in st.hover_thrust_source
+    # on the ground (landed) nothing is learnt
+    peer.landed = True
+    spin(bridge, 0.3)
+    n = bridge.estimator.accepted
+    spin(bridge, 0.3)
+    assert bridge.estimator.accepted == n
+
+
+# --- signing ------------------------------------------------------------------------------------
 
 def test_signing_right_key_accepted(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'key': KEY}, bridge_kw={'key': KEY})
@@ -439,117 +915,7 @@ def test_signing_unsigned_or_wrong_key_rejected(peer_bridge):
         assert b.sequencer is None
 
 
-def test_link_loss_then_reengage_only_when_still_flying(peer_bridge):
-    peer, bridge = peer_bridge()
-    wait_link(bridge)
-    bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
-    assert ok
-    n_modes = len(peer.set_mode_commands())
-    peer.heartbeats_on = False
-    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up)
-    assert ok and bridge.sequencer.state == EngageState.NO_LINK
-    spin(bridge, 0.7)
-    assert bridge.link.counters.reconnects >= 1 and bridge.link.counters.link_losses == 1
-    peer.custom_mode = PX4_POSCTL                  # the autopilot's failsafe took over
-    peer.heartbeats_on = True
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
-    assert ok, bridge.sequencer.last_reason
-    assert len(peer.set_mode_commands()) > n_modes
-
-    # Same again, but the supervisor went to FAILSAFE meanwhile: no re-engagement.
-    peer.heartbeats_on = False
-    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up)
-    assert ok
-    bridge.on_supervisor_mode(Mode.FAILSAFE)
-    peer.custom_mode = PX4_POSCTL
-    n_modes = len(peer.set_mode_commands())
-    peer.heartbeats_on = True
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.HELD)
-    assert ok
-    spin(bridge, 1.5)
-    assert len(peer.set_mode_commands()) == n_modes
-    assert bridge.sequencer.state == EngageState.HELD
-
-
-def test_shutdown_ramps_thrust_then_forces_disarm(peer_bridge):
-    peer, bridge = peer_bridge(peer_kw={'refuse_disarm_unforced': True},
-                               bridge_kw={'shutdown_ramp_s': 0.6})
-    wait_link(bridge)
-    bridge.on_heading(1_000_000_000, heading_msg_quat(0.0))
-    bridge.on_force(1_000_000_000, np.array([0.0, 0.0, MASS * GRAVITY]))
-    bridge.on_supervisor_mode(Mode.LANDING)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED)
-    assert ok
-    bridge.on_supervisor_mode(Mode.SHUTDOWN)
-    t_sd = time.monotonic()
-    # the controller keeps answering frames: the vehicle time (stamps) runs at wall speed here
-    hover = np.array([0.0, 0.0, MASS * GRAVITY])
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
-                 force_fn=lambda now: bridge.on_force(int(1e9 + (now - t_sd) * 1e9), hover))
-    assert ok, bridge.sequencer.last_reason
-    assert not peer.armed
-    ramp = [(t, m.thrust) for t, m in peer.setpoints if t >= t_sd]
-    thrusts = np.array([th for _, th in ramp])
-    assert thrusts[0] == pytest.approx(0.5, abs=0.05)
-    assert np.all(np.diff(thrusts) <= 1e-6)        # monotonic ramp down
-    t_zero = min(t for t, th in ramp if th == 0.0)
-    assert 0.5 <= t_zero - t_sd <= 0.9             # ramp of 0.6 s
-    disarms = [(t, m) for t, m in peer.arm_commands() if m.param1 == 0.0]
-    assert disarms[0][0] >= t_zero - 0.05          # disarm only after the ramp
-    assert int(disarms[0][1].param2) == 0          # first a normal disarm (refused) ...
-    assert int(disarms[-1][1].param2) == 21196     # ... then forced
-    assert bridge.sequencer.disarm_forced
-
-
-def test_shutdown_ramp_runs_on_vehicle_time_and_on_the_wall_after_a_stall():
-    from ibvs_control.core.mavlink_bridge import RAMP_STALL_S, ShutdownRamp
-    r = ShutdownRamp(0.5, t_vehicle=10.0, t_wall=100.0)
-    r.advance(10.2, 100.9)                 # lockstep: 0.2 s of vehicle time in 0.9 s of wall
-    assert r.elapsed(100.9) == pytest.approx(0.2)
-    r.advance(10.2, 101.5)                 # stamps stopped: nothing yet ...
-    assert r.elapsed(101.5) == pytest.approx(0.2)
-    assert r.elapsed(100.9 + RAMP_STALL_S + 0.5) == pytest.approx(0.7)   # ... then the wall
-
-
-def test_bad_force_is_never_sent_held_then_level_hover(peer_bridge):
-    peer, bridge = peer_bridge(peer_kw={'yaw_ned': 0.5}, bridge_kw={'hold_last_s': 0.3})
-    wait_link(bridge)
-    bridge.on_heading(1_000_000_000, heading_msg_quat(0.0))
-    F = MASS * np.array([-1.0, 0.0, GRAVITY])
-    assert bridge.on_force(1_000_000_000, F) == ''
-    spin(bridge, 0.1)
-    good_q = np.array(last_setpoint(peer).q)
-    for bad in (np.array([np.nan, 0.0, 9.0]), np.array([0.0, 0.0, 1e4]),
-                np.array([0.0, 0.0, -5.0])):
-        assert bridge.on_force(1_020_000_000, bad) != ''
-    spin(bridge, 0.1)
-    assert bridge.setpoint_source == SetpointSource.HOLD_LAST
-    assert same_rotation(last_setpoint(peer).q, good_q)
-    assert last_setpoint(peer).time_boot_ms == 1020     # answered with the new stamp
-    spin(bridge, 0.4)
-    assert bridge.setpoint_source == SetpointSource.LEVEL_HOVER
-    m = last_setpoint(peer)
-    assert same_rotation(m.q, [np.cos(0.25), 0.0, 0.0, np.sin(0.25)])   # level, yaw 0.5
-    assert m.thrust == pytest.approx(0.5)
-    for _, m in peer.setpoints:
-        assert np.all(np.isfinite(m.q)) and np.isfinite(m.thrust)
-    assert bridge.on_heading(1_040_000_000, np.array([np.nan, 0, 0, 1.0])) != ''
-    assert bridge.on_heading(1_060_000_000, np.array([2.0, 0, 0, 0])) != ''
-
-
-def test_failsafe_level_at_current_yaw_below_hover(peer_bridge):
-    peer, bridge = peer_bridge(peer_kw={'yaw_ned': -1.0})
-    wait_link(bridge)
-    bridge.on_heading(1_000_000_000, heading_msg_quat(0.7))
-    bridge.on_force(1_000_000_000, MASS * np.array([-2.0, 1.0, GRAVITY]))
-    bridge.on_supervisor_mode(Mode.FAILSAFE)
-    spin(bridge, 0.2)
-    m = last_setpoint(peer)
-    assert same_rotation(m.q, [np.cos(-0.5), 0.0, 0.0, np.sin(-0.5)])
-    assert m.thrust == pytest.approx(0.9 * 0.5)
-    assert bridge.setpoint_source == SetpointSource.FAILSAFE
-
+# --- clock sync and IMU stamps ----------------------------------------------------------------
 
 def test_imu_held_until_synced_then_stamped_boot_time_plus_offset(peer_bridge):
     # The autopilot does not answer TIMESYNC yet: its attitude is received, never published.
@@ -660,46 +1026,7 @@ def test_diagnostics_report_the_clock_sync(peer_bridge):
 
 # --- heading / force pairing by stamp ---------------------------------------------------------
 
-HOVER_F = np.array([0.0, 0.0, MASS * GRAVITY])     # level: the setpoint is a pure yaw
 S0, S1, S2 = 1_000_000_000, 1_020_000_000, 1_040_000_000      # 20 ms frames: 1000, 1020, 1040
-
-
-def level_q(yaw_ned):
-    """SET_ATTITUDE_TARGET q of a level attitude with NED yaw (rotation about NED z)."""
-    return [np.cos(yaw_ned / 2.0), 0.0, 0.0, np.sin(yaw_ned / 2.0)]
-
-
-def sent_for(peer, ms):
-    return [m for _, m in list(peer.setpoints) if m.time_boot_ms == ms]
-
-
-def wait_peer(until, timeout_s=1.0):
-    """Wait for the peer's receiving thread, without ticking the bridge."""
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not until():
-        time.sleep(0.005)
-    return until()
-
-
-def test_force_before_its_heading_waits_for_the_heading_of_its_stamp(peer_bridge):
-    peer, bridge = peer_bridge(bridge_kw={'clock': FrozenClock()})
-    wait_link(bridge)
-    bridge.on_heading(S0, heading_msg_quat(0.1))
-    bridge.on_force(S0, HOVER_F)                   # frame 0 paired: headings are expected
-    assert wait_peer(lambda: sent_for(peer, 1000))
-    assert bridge.on_force(S1, HOVER_F) == ''      # frame 1: the force overtook its heading
-    bridge.stream()                                # (the clock stands: the wait runs on)
-    time.sleep(0.1)
-    assert sent_for(peer, 1020) == []              # not sent with the heading of frame 0
-    assert bridge.on_heading(S1, heading_msg_quat(0.2)) == ''
-    assert wait_peer(lambda: sent_for(peer, 1020))  # sent on the heading, no timer needed
-    for _ in range(3):
-        bridge.stream()
-    assert wait_peer(lambda: len(sent_for(peer, 1020)) >= 4)
-    assert all(same_rotation(m.q, level_q(0.2)) for m in sent_for(peer, 1020))
-    assert all(same_rotation(m.q, level_q(0.1)) for m in sent_for(peer, 1000))
-    c = bridge.status().counters
-    assert c['heading_timeouts'] == 0 and c['late_headings'] == 0
 
 
 def test_heading_before_force_sent_at_once_with_the_heading_of_the_same_stamp(peer_bridge):
@@ -713,125 +1040,34 @@ def test_heading_before_force_sent_at_once_with_the_heading_of_the_same_stamp(pe
     bridge.on_force(S1, HOVER_F)
     assert wait_peer(lambda: sent_for(peer, 1020))
     assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.2))
+    assert bridge.status().counters['headings_missing'] == 0
 
 
-def test_missing_heading_sent_after_heading_wait_with_the_latest_heading(peer_bridge):
-    clock = FrozenClock()
-    peer, bridge = peer_bridge(bridge_kw={'clock': clock, 'heading_wait_s': 0.02})
-    wait_link(bridge)
-    bridge.on_heading(S0, heading_msg_quat(0.3))
-    bridge.on_force(S0, HOVER_F)
-    bridge.on_force(S1, HOVER_F)                   # its heading never comes
-    clock.t += 0.01
-    bridge.poll()
-    bridge.stream()
-    time.sleep(0.1)
-    assert sent_for(peer, 1020) == []              # 10 ms < heading_wait_s: still waiting
-    clock.t += 0.015
-    bridge.poll()                                  # the node's poll timer releases it
-    assert wait_peer(lambda: sent_for(peer, 1020))
-    assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.3))   # the latest heading
-    assert bridge.status().counters['heading_timeouts'] == 1
-    assert 'without the heading' in bridge.pop_heading_warning()
-    assert bridge.pop_heading_warning() == ''      # reported once
-    # The last force went without its heading: the next one is not held.
-    bridge.on_force(S2, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1040))
-    assert same_rotation(sent_for(peer, 1040)[0].q, level_q(0.3))
-
-
-def test_late_heading_never_changes_what_was_sent_for_its_stamp(peer_bridge):
+def test_force_without_its_heading_flies_at_once_with_the_latest_and_is_counted(peer_bridge):
     clock = FrozenClock()
     peer, bridge = peer_bridge(bridge_kw={'clock': clock})
     wait_link(bridge)
-    bridge.on_heading(S0, heading_msg_quat(0.1))
+    bridge.on_heading(S0, heading_msg_quat(0.3))
     bridge.on_force(S0, HOVER_F)
-    bridge.on_force(S1, HOVER_F)
-    clock.t += 0.025
-    bridge.stream()                                # wait over: sent with the heading of S0
+    bridge.on_force(S1, HOVER_F)                   # its heading is not there: no waiting
     assert wait_peer(lambda: sent_for(peer, 1020))
-    assert bridge.on_heading(S1, heading_msg_quat(0.5)) == ''   # too late for S1
+    assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.3))   # the latest heading
+    assert bridge.status().counters['headings_missing'] == 1
+    assert 'without the heading' in bridge.pop_heading_warning()
+    assert bridge.pop_heading_warning() == ''      # reported once
+    # the late heading of S1 never changes what was sent for S1; it is the latest for S2
+    assert bridge.on_heading(S1, heading_msg_quat(0.5)) == ''
     for _ in range(5):
+        clock.t += 0.04
         bridge.stream()
     assert wait_peer(lambda: len(sent_for(peer, 1020)) >= 6)
     first = sent_for(peer, 1020)[0]
     for m in sent_for(peer, 1020):                 # every repeat is what was sent
         assert np.allclose(m.q, first.q, atol=0.0) and m.thrust == first.thrust
-    assert same_rotation(first.q, level_q(0.1))
     assert bridge.status().counters['late_headings'] == 1
-    # The late heading is the latest for later forces; S1 had its heading after all, so the
-    # next force waits for its own again (here in vain: then flown with the late one).
     bridge.on_force(S2, HOVER_F)
-    time.sleep(0.1)
-    assert sent_for(peer, 1040) == []
-    clock.t += 0.025
-    bridge.stream()
     assert wait_peer(lambda: sent_for(peer, 1040))
     assert same_rotation(sent_for(peer, 1040)[0].q, level_q(0.5))
-
-
-def test_heading_pairing_exact_stamps_first_force_late_and_newer_inputs():
-    F = np.array([0.0, 0.0, 10.0])
-    p = HeadingPairing(wait_s=0.02)
-    # no heading seen yet: at once, without a heading (the bridge flies the current yaw)
-    [f] = p.on_force(10, F, t=0.0)
-    assert (f.stamp_ns, f.yaw, f.paired) == (10, None, False)
-    assert p.on_heading(10, 0.1) == [] and p.late == 1
-    # 10 had its heading (late): 20 waits for its own; a newer force releases it first
-    assert p.on_force(20, F, t=1.0) == [] and p.holding
-    out = p.on_force(30, F, t=1.005)
-    assert [(f.stamp_ns, f.yaw, f.paired) for f in out] == [(20, 0.1, False), (30, 0.1, False)]
-    assert p.missing == 1 and not p.holding        # 20 went without: 30 was not held
-    # exact stamps: a heading 1 ns away is another frame's
-    assert p.on_heading(39, 0.39) == [] and p.on_heading(40, 0.4) == []
-    [f] = p.on_force(40, F, t=2.0)
-    assert (f.yaw, f.paired) == (0.4, True)
-    # a heading newer than the held force's stamp: the held one's heading will not come
-    assert p.on_force(50, F, t=3.0) == []
-    [f] = p.on_heading(60, 0.6)
-    assert (f.stamp_ns, f.yaw, f.paired) == (50, 0.4, False) and p.missing == 2
-    [f] = p.on_force(60, F, t=4.0)
-    assert (f.stamp_ns, f.yaw, f.paired) == (60, 0.6, True)
-    # a refused force never waits
-    [f] = p.on_force(70, F, t=5.0, may_wait=False)
-    assert (f.stamp_ns, f.yaw) == (70, 0.6)
-    # a refused heading (None) releases its force with the latest valid heading
-    p.on_heading(70, 0.7)
-    assert p.on_force(80, F, t=6.0) == []
-    [f] = p.on_heading(80, None)
-    assert (f.stamp_ns, f.yaw, f.paired) == (80, 0.7, False)
-    # the wait
-    assert p.on_force(90, F, t=7.0) == []
-    assert p.expire(7.01) == []
-    [f] = p.expire(7.03)
-    assert (f.stamp_ns, f.yaw, f.paired) == (90, 0.7, False) and p.missing == 3
-
-
-def test_heading_pairing_zero_wait_never_holds():
-    p = HeadingPairing(wait_s=0.0)
-    p.on_heading(10, 0.1)
-    p.on_force(10, np.array([0.0, 0.0, 1.0]), t=0.0)
-    [f] = p.on_force(20, np.array([0.0, 0.0, 1.0]), t=0.1)
-    assert (f.stamp_ns, f.yaw, f.paired) == (20, 0.1, False)
-
-
-def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
-    peer, bridge = peer_bridge()
-    wait_link(bridge)
-    bridge.on_supervisor_mode(Mode.IDLE)
-    bridge.on_heading(S0, heading_msg_quat(0.0))
-    bridge.on_force(S0, HOVER_F)
-    spin(bridge, 1.3)                              # > prestream_s (1.0 s) of stream
-    assert bridge.sequencer.state == EngageState.STANDBY and peer.set_mode_commands() == []
-    bridge.on_supervisor_mode(Mode.WINDOW)         # no poll between this and the next force
-    assert bridge.sequencer.state == EngageState.SET_MODE
-    bridge.on_heading(S1, heading_msg_quat(0.0))
-    bridge.on_force(S1, HOVER_F)
-    assert wait_peer(lambda: peer.set_mode_commands() and sent_for(peer, 1020))
-    t_mode, m = peer.set_mode_commands()[0]
-    assert (m.param1, m.param2) == (1.0, 6.0)
-    t_sp = min(t for t, sp in list(peer.setpoints) if sp.time_boot_ms == 1020)
-    assert t_mode <= t_sp                          # the command left before the setpoint
 
 
 def test_stream_held_sends_nothing_then_fallback_carries_no_newer_time(peer_bridge):
@@ -852,19 +1088,54 @@ def test_stream_held_sends_nothing_then_fallback_carries_no_newer_time(peer_brid
 def test_content_follows_the_status_of_the_force_stamp_not_the_latest_mode(peer_bridge):
     # ibvs/mode SHUTDOWN may land before the force of the last LANDING frame: that force is
     # still flown as LANDING (its own status); the SHUTDOWN frame's force starts the ramp.
-    peer, bridge = peer_bridge(bridge_kw={'heading_wait_s': 0.0})
+    peer, bridge = peer_bridge()
     wait_link(bridge)
-    hover_F = np.array([0.0, 0.0, MASS * GRAVITY])
     assert bridge.on_supervisor_status(1_000_000_000, int(Mode.LANDING)) == ''
     assert bridge.on_supervisor_status(1_020_000_000, int(Mode.SHUTDOWN)) == ''
     assert bridge.on_supervisor_status(1_040_000_000, 99) != ''      # refused
     bridge.on_supervisor_mode(int(Mode.SHUTDOWN))
-    bridge.on_force(1_000_000_000, 1.2 * hover_F)
-    assert bridge.content_mode(time.monotonic()) == Mode.LANDING
+    bridge.on_force(1_000_000_000, 1.2 * HOVER_F)
+    assert bridge.content_mode() == Mode.LANDING
     assert bridge.setpoint_source == SetpointSource.IBVS
-    bridge.on_force(1_020_000_000, 1.2 * hover_F)
-    assert bridge.content_mode(time.monotonic()) == Mode.SHUTDOWN
+    bridge.on_force(1_020_000_000, 1.2 * HOVER_F)
+    assert bridge.content_mode() == Mode.SHUTDOWN
     assert bridge.setpoint_source == SetpointSource.SHUTDOWN_RAMP
     # a force without a status of its own: the latest ibvs/mode
-    bridge.on_force(1_060_000_000, hover_F)
-    assert bridge.content_mode(time.monotonic()) == Mode.SHUTDOWN
+    bridge.on_force(1_060_000_000, HOVER_F)
+    assert bridge.content_mode() == Mode.SHUTDOWN
+
+
+def test_bad_force_is_never_sent_held_then_level_hover_outside_an_engagement(peer_bridge):
+    peer, bridge = peer_bridge(peer_kw={'yaw_ned': 0.5}, bridge_kw={'hold_last_s': 0.3})
+    wait_link(bridge)
+    stamp = ros_now(bridge)
+    bridge.on_heading(stamp, heading_msg_quat(0.0))
+    F = MASS * np.array([-1.0, 0.0, GRAVITY])
+    assert bridge.on_force(stamp, F) == ''
+    spin(bridge, 0.1)
+    good_q = np.array(last_setpoint(peer).q)
+    for bad in (np.array([np.nan, 0.0, 9.0]), np.array([0.0, 0.0, 1e4]),
+                np.array([0.0, 0.0, -5.0])):
+        assert bridge.on_force(stamp + FRAME_NS, bad) != ''
+    spin(bridge, 0.1)
+    assert bridge.setpoint_source == SetpointSource.HOLD_LAST
+    assert same_rotation(last_setpoint(peer).q, good_q)
+    assert last_setpoint(peer).time_boot_ms == bridge.stamp_to_boot_ms(stamp + FRAME_NS)
+    spin(bridge, 0.4)
+    assert bridge.setpoint_source == SetpointSource.LEVEL_HOVER     # standby: not engaged
+    m = last_setpoint(peer)
+    assert same_rotation(m.q, [np.cos(0.25), 0.0, 0.0, np.sin(0.25)])   # level, yaw 0.5
+    assert m.thrust == pytest.approx(0.5)
+    for _, m in peer.setpoints:
+        assert np.all(np.isfinite(m.q)) and np.isfinite(m.thrust)
+    assert bridge.on_heading(stamp, np.array([np.nan, 0, 0, 1.0])) != ''
+    assert bridge.on_heading(stamp, np.array([2.0, 0, 0, 0])) != ''
+
+
+def test_code_defaults_equal_params_yaml():
+    import yaml
+    from pathlib import Path
+    from ibvs_control.mavlink_bridge_node import PARAMETERS
+    path = Path(__file__).resolve().parents[2] / 'ros2_ws/src/ibvs_bringup/config/params.yaml'
+    section = yaml.safe_load(path.read_text())['mavlink_bridge']['ros__parameters']
+    assert section == PARAMETERS

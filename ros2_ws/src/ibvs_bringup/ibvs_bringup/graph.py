@@ -103,6 +103,7 @@ class GraphOptions:
     extra_remappings: tuple = field(default_factory=tuple)
     extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
     extra_imu_subscribers: int = 0                  # e.g. 1 for a recorder of imu/data
+    sim_overrides: tuple = ()                       # more (name, value) for the sim (faults)
 
 
 def format_param_value(value) -> str:
@@ -230,6 +231,7 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
         if not 0.0 < rtf <= 10.0:
             raise ValueError(f'real-time factor must be in (0, 10], got {rtf}')
         sim_over[SIM_PACING], sim_over[SIM_REAL_TIME_FACTOR] = 'realtime', rtf
+    sim_over.update(dict(opts.sim_overrides))
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     sim = NodeSpec('ibvs_sim', 'sim', 'sim', params + (sim_over,), tuple(opts.extra_remappings),
                    'sim')

@@ -1,14 +1,16 @@
 """mavlink_bridge: ibvs/force_setpoint + ibvs/heading_setpoint -> SET_ATTITUDE_TARGET; IMU back.
 
 Thin ROS wrapper of :class:`ibvs_control.core.mavlink_bridge.MavlinkBridge` (docs/mavlink.md,
-docs/interfaces.md). Subscribes ibvs/force_setpoint (Vector3Stamped, map, N),
-ibvs/heading_setpoint (QuaternionStamped, map), ibvs/mode (UInt8, transient local) and
-ibvs/supervisor_status (DiagnosticArray, the mode of each frame);
-publishes imu/data (sensor_msgs/Imu, base_link in map; stamps = the autopilot's sample times
-on the ROS clock by MAVLink TIMESYNC, nothing before the clocks are synced) and /diagnostics.
-The receive timer hands the ROS time to the core (clock sync). The link timers (receive,
-setpoint stream, heartbeat) run on the steady clock: the autopilot's offboard timeout counts in
-its own time, and a lockstep sim's /clock waits for our setpoints.
+docs/interfaces.md). Subscribes ibvs/heading_setpoint (QuaternionStamped, map; created before
+the force subscription, so that when both wait the heading of a frame is taken first),
+ibvs/force_setpoint (Vector3Stamped, map, N), ibvs/mode (UInt8, transient local) and
+ibvs/supervisor_status (DiagnosticArray, the mode of each frame); publishes imu/data
+(sensor_msgs/Imu, base_link in map; stamps = the autopilot's sample times on the ROS clock by
+MAVLink TIMESYNC, nothing before the clocks are synced) and /diagnostics; serves ibvs/arm
+(std_srvs/Trigger: the bridge never arms the vehicle unless asked, here or by arm_on_start).
+One receive timer (poll, then a setpoint repeat when due) and the heartbeat timer run on the
+steady clock: the autopilot's offboard timeout counts in its own time, and a lockstep sim's
+/clock waits for our setpoints. The ROS time goes to the core with every call.
 """
 from __future__ import annotations
 
@@ -22,13 +24,15 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu
 from std_msgs.msg import UInt8
+from std_srvs.srv import Trigger
 
 from ibvs_control.core.config import ConfigError, load_vehicle
 from ibvs_control.core.frames import vec_map_to_I
-from ibvs_control.core.mavlink_bridge import (
-    BridgeConfig, BridgeStatus, ImuSample, MavlinkBridge)
+from ibvs_control.core.mavlink_bridge import BridgeConfig, BridgeStatus, MavlinkBridge
+from ibvs_control.core.mavlink_hover import EstimatorConfig
 from ibvs_control.core.mavlink_link import LinkConfig, load_signing_key, SigningError
 from ibvs_control.core.mavlink_sequencer import SequencerConfig
+from ibvs_control.core.mavlink_telemetry import ImuSample, load_px4_events
 from ibvs_control.core.time_sync import TimeSyncConfig
 from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
@@ -38,22 +42,30 @@ from ibvs_control.spin import spin_guarded
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
 UNKNOWN_COVARIANCE = [-1.0] + [0.0] * 8     # sensor_msgs/Imu: element 0 = -1 "not provided"
 LOG_THROTTLE_S = 2.0
+MIN_HEARTBEAT_TIMEOUT_S = 3.0               # >= 3 periods of the autopilots' 1 Hz heartbeat
 PARAMETERS = {
-    'url': 'udpout:127.0.0.1:14560',
+    'url': 'udpin:0.0.0.0:14540',
     'source_system': 1,
     'target_system': 0,
     'target_component': 0,
-    'heartbeat_timeout_s': 1.5,
+    'heartbeat_timeout_s': 3.5,
     'reconnect_period_s': 1.0,
     'signing_key_file': '',
     'signing_link_id': 0,
     'autopilot': 'auto',
     'hover_thrust_source': 'autopilot',
     'hover_thrust': -1.0,
+    'hover_estimator_enabled': True,
+    'hover_estimator_process_noise': 0.0036,
+    'hover_estimator_accel_noise': 2.0,
+    'hover_estimator_max_deviation': 0.3,
     'vehicle_file': '',
     'param_timeout_s': 3.0,
     'attitude_rate_hz': 100.0,
     'imu_rate_hz': 100.0,
+    'thrust_rate_hz': 50.0,
+    'status_rate_hz': 5.0,
+    'heartbeat_request_hz': 5.0,
     'timesync_period_s': 0.1,
     'timesync_init_request_period_s': 0.05,
     'timesync_init_samples': 5,
@@ -62,26 +74,94 @@ PARAMETERS = {
     'timesync_beta': 0.002,
     'timesync_max_deviation_s': 0.010,
     'timesync_max_consecutive_outliers': 5,
-    'stream_rate_hz': 60.0,
+    'stream_rate_hz': 30.0,
     'poll_rate_hz': 250.0,
     'heartbeat_rate_hz': 1.0,
     'diagnostics_rate_hz': 1.0,
-    'hold_last_s': 0.5,
+    'hold_last_s': 0.25,
     'max_force_factor': 3.0,
     'max_tilt_rad': 0.6,
-    'failsafe_thrust_ratio': 0.9,
     'shutdown_ramp_s': 2.0,
-    'heading_wait_s': 0.02,
     'min_imu_subscribers': 0,
     'prestream_s': 1.2,
     'command_retry_s': 1.0,
     'max_attempts': 5,
+    'arm_on_start': False,
+    'arm_backoff_max_s': 8.0,
+    'arm_timeout_s': 60.0,
     'disarm_force_after_s': 1.0,
+    'disarm_timeout_s': 10.0,
+    'input_loss_action': 'auto',
+    'px4_events_file': '',
     'frame_id': 'base_link',
     'orientation_covariance': DEFAULT_COVARIANCE,
     'angular_velocity_covariance': DEFAULT_COVARIANCE,
     'linear_acceleration_covariance': DEFAULT_COVARIANCE,
 }
+
+
+def config_from_parameters(p: dict) -> BridgeConfig:
+    """Return the typed configuration of the parameters (PARAMETERS keys); ValueError: why.
+
+    Also used by the SITL tests to run the core with the shipped params.yaml.
+    """
+    try:
+        vehicle = load_vehicle(p['vehicle_file'] or None)
+    except ConfigError as exc:
+        raise ValueError(str(exc)) from exc
+    key = None
+    if p['signing_key_file']:
+        key = load_signing_key(p['signing_key_file'])
+    if not p['heartbeat_timeout_s'] >= MIN_HEARTBEAT_TIMEOUT_S:
+        raise ValueError(f'heartbeat_timeout_s must be >= {MIN_HEARTBEAT_TIMEOUT_S} s (3 '
+                         f'heartbeat periods), got {p["heartbeat_timeout_s"]}')
+    events = None
+    if p['px4_events_file']:
+        try:
+            events = load_px4_events(p['px4_events_file'])
+        except (OSError, ValueError) as exc:
+            raise ValueError(f'px4_events_file {p["px4_events_file"]}: {exc}') from exc
+    hover = p['hover_thrust'] if p['hover_thrust'] > 0.0 else vehicle.hover_thrust
+    link = LinkConfig(url=p['url'], source_system=p['source_system'],
+                      target_system=p['target_system'],
+                      target_component=p['target_component'],
+                      heartbeat_timeout_s=p['heartbeat_timeout_s'],
+                      reconnect_period_s=p['reconnect_period_s'], signing_key=key,
+                      signing_link_id=p['signing_link_id'])
+    seq = SequencerConfig(prestream_s=p['prestream_s'],
+                          command_retry_s=p['command_retry_s'],
+                          max_attempts=p['max_attempts'],
+                          arm_backoff_max_s=p['arm_backoff_max_s'],
+                          arm_timeout_s=p['arm_timeout_s'],
+                          disarm_force_after_s=p['disarm_force_after_s'],
+                          disarm_timeout_s=p['disarm_timeout_s'],
+                          input_loss_action=p['input_loss_action'])
+    for k in ('poll_rate_hz', 'heartbeat_rate_hz', 'diagnostics_rate_hz'):
+        if not p[k] > 0.0:
+            raise ValueError(f'{k} must be > 0')
+    sync = TimeSyncConfig(
+        period_s=p['timesync_period_s'],
+        init_request_period_s=p['timesync_init_request_period_s'],
+        init_samples=p['timesync_init_samples'], max_rtt_s=p['timesync_max_rtt_s'],
+        alpha=p['timesync_alpha'], beta=p['timesync_beta'],
+        max_deviation_s=p['timesync_max_deviation_s'],
+        max_consecutive_outliers=p['timesync_max_consecutive_outliers'])
+    estimator = EstimatorConfig(
+        enabled=bool(p['hover_estimator_enabled']),
+        process_noise=p['hover_estimator_process_noise'],
+        accel_noise=p['hover_estimator_accel_noise'],
+        max_deviation=p['hover_estimator_max_deviation'])
+    return BridgeConfig(
+        link=link, mass=vehicle.mass, max_thrust_factor=vehicle.max_thrust_factor,
+        configured_hover_thrust=hover, autopilot=p['autopilot'],
+        hover_thrust_source=p['hover_thrust_source'], param_timeout_s=p['param_timeout_s'],
+        attitude_rate_hz=p['attitude_rate_hz'], imu_rate_hz=p['imu_rate_hz'],
+        thrust_rate_hz=p['thrust_rate_hz'], status_rate_hz=p['status_rate_hz'],
+        heartbeat_request_hz=p['heartbeat_request_hz'],
+        stream_rate_hz=p['stream_rate_hz'], time_sync=sync, hold_last_s=p['hold_last_s'],
+        max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
+        shutdown_ramp_s=p['shutdown_ramp_s'], arm_on_start=bool(p['arm_on_start']),
+        px4_events=events, sequencer=seq, estimator=estimator)
 
 
 class MavlinkBridgeNode(Node):
@@ -92,7 +172,7 @@ class MavlinkBridgeNode(Node):
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default)
         p = {name: self.get_parameter(name).value for name in PARAMETERS}
-        self._config = self._build_config(p)
+        self._config = config_from_parameters(p)
         self._frame_id = p['frame_id']
         self._cov = {k: [float(x) for x in p[k]] for k in (
             'orientation_covariance', 'angular_velocity_covariance',
@@ -105,70 +185,35 @@ class MavlinkBridgeNode(Node):
 
         self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(Vector3Stamped, 'ibvs/force_setpoint', self._on_force,
-                                 COMMAND_QOS)
+        # The heading subscription first: with both ready, the executor takes it first, so a
+        # force finds the heading of its own stamp (the controller publishes the heading first).
         self.create_subscription(QuaternionStamped, 'ibvs/heading_setpoint', self._on_heading,
+                                 COMMAND_QOS)
+        self.create_subscription(Vector3Stamped, 'ibvs/force_setpoint', self._on_force,
                                  COMMAND_QOS)
         self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
                                  COMMAND_QOS)
+        self.create_service(Trigger, 'ibvs/arm', self._on_arm)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / p['poll_rate_hz'], self._on_poll, clock=steady)
-        self.create_timer(1.0 / p['stream_rate_hz'], self._on_stream, clock=steady)
         self.create_timer(1.0 / p['heartbeat_rate_hz'], self._bridge.heartbeat, clock=steady)
         self.create_timer(1.0 / p['diagnostics_rate_hz'], self._on_diagnostics, clock=steady)
         self.get_logger().info(
             f'MAVLink bridge on {self._config.link.url} (autopilot {p["autopilot"]}, '
             f'signing {"on" if self._config.link.signing_key else "off"}, hover thrust '
-            f'source {p["hover_thrust_source"]}, clock sync by TIMESYNC every '
-            f'{p["timesync_period_s"]} s)')
+            f'seed {p["hover_thrust_source"]}'
+            f'{", estimated online" if p["hover_estimator_enabled"] else ""}, arming '
+            f'{"requested at start" if p["arm_on_start"] else "only on ibvs/arm"})')
 
-    def _build_config(self, p: dict) -> BridgeConfig:
-        """Typed configuration from the parameters; raises ValueError with the reason."""
-        try:
-            vehicle = load_vehicle(p['vehicle_file'] or None)
-        except ConfigError as exc:
-            raise ValueError(str(exc)) from exc
-        key = None
-        if p['signing_key_file']:
-            key = load_signing_key(p['signing_key_file'])
-        hover = p['hover_thrust'] if p['hover_thrust'] > 0.0 else vehicle.hover_thrust
-        link = LinkConfig(url=p['url'], source_system=p['source_system'],
-                          target_system=p['target_system'],
-                          target_component=p['target_component'],
-                          heartbeat_timeout_s=p['heartbeat_timeout_s'],
-                          reconnect_period_s=p['reconnect_period_s'], signing_key=key,
-                          signing_link_id=p['signing_link_id'])
-        seq = SequencerConfig(prestream_s=p['prestream_s'],
-                              command_retry_s=p['command_retry_s'],
-                              max_attempts=p['max_attempts'],
-                              disarm_force_after_s=p['disarm_force_after_s'])
-        for k in ('stream_rate_hz', 'poll_rate_hz', 'heartbeat_rate_hz', 'diagnostics_rate_hz'):
-            if not p[k] > 0.0:
-                raise ValueError(f'{k} must be > 0')
-        sync = TimeSyncConfig(
-            period_s=p['timesync_period_s'],
-            init_request_period_s=p['timesync_init_request_period_s'],
-            init_samples=p['timesync_init_samples'], max_rtt_s=p['timesync_max_rtt_s'],
-            alpha=p['timesync_alpha'], beta=p['timesync_beta'],
-            max_deviation_s=p['timesync_max_deviation_s'],
-            max_consecutive_outliers=p['timesync_max_consecutive_outliers'])
-        return BridgeConfig(
-            link=link, mass=vehicle.mass, max_thrust_factor=vehicle.max_thrust_factor,
-            configured_hover_thrust=hover, autopilot=p['autopilot'],
-            hover_thrust_source=p['hover_thrust_source'], param_timeout_s=p['param_timeout_s'],
-            attitude_rate_hz=p['attitude_rate_hz'], imu_rate_hz=p['imu_rate_hz'],
-            time_sync=sync, hold_last_s=p['hold_last_s'],
-            max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
-            failsafe_thrust_ratio=p['failsafe_thrust_ratio'],
-            shutdown_ramp_s=p['shutdown_ramp_s'], heading_wait_s=p['heading_wait_s'],
-            sequencer=seq)
+    def _ros_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
 
     # --- callbacks -------------------------------------------------------------------------
     def _on_force(self, msg: Vector3Stamped) -> None:
         frame_ok = msg.header.frame_id in ('map', '')
         F_I = vec_map_to_I(vector3(msg.vector)) if frame_ok else np.full(3, np.nan)
-        reason = self._bridge.on_force(stamp_to_ns(msg.header.stamp), F_I)
+        reason = self._bridge.on_force(stamp_to_ns(msg.header.stamp), F_I, self._ros_ns())
         if reason or not frame_ok:
             self.get_logger().error(
                 f'force setpoint refused (frame {msg.header.frame_id!r}): {reason}',
@@ -177,11 +222,18 @@ class MavlinkBridgeNode(Node):
 
     def _on_heading(self, msg: QuaternionStamped) -> None:
         reason = self._bridge.on_heading(stamp_to_ns(msg.header.stamp),
-                                         quat_wxyz(msg.quaternion))
+                                         quat_wxyz(msg.quaternion), self._ros_ns())
         if reason:
             self.get_logger().error(f'heading setpoint refused: {reason}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
         self._log_events()
+
+    def _on_arm(self, request, response):
+        """ibvs/arm: allow the bridge to arm the vehicle when it engages."""
+        response.success, response.message = self._bridge.request_arm()
+        self.get_logger().info(f'ibvs/arm: {response.message}')
+        self._log_events()
+        return response
 
     def _on_mode(self, msg: UInt8) -> None:
         self._bridge.on_supervisor_mode(msg.data)
@@ -196,15 +248,13 @@ class MavlinkBridgeNode(Node):
                                     throttle_duration_sec=LOG_THROTTLE_S)
 
     def _on_poll(self) -> None:
-        # poll() also sends a force whose wait for its heading has expired
-        for sample in self._bridge.poll(self.get_clock().now().nanoseconds):
+        ros_ns = self._ros_ns()
+        for sample in self._bridge.poll(ros_ns):
             self._imu_pub.publish(self._imu_msg(sample))
-        self._log_events()
-
-    def _on_stream(self) -> None:
         if not self._bridge.stream_enabled:
             self._check_imu_consumers()
-        self._bridge.stream()
+        self._bridge.stream(ros_ns)        # a repeat if no setpoint left for 1 / stream_rate_hz
+        self._log_events()
 
     def _check_imu_consumers(self) -> None:
         """Start the setpoint stream once imu/data has its consumers matched (then for good)."""
@@ -240,38 +290,50 @@ class MavlinkBridgeNode(Node):
         status = DiagnosticStatus()
         status.name = f'{self.get_name()}: MAVLink link'
         status.hardware_id = self._config.link.url
-        if not st.link_up or st.engage_state in ('refused', 'failed'):
+        if not st.link_up or st.engage_state in ('refused', 'failed') \
+                or st.autopilot_internal_errors:
             status.level = DiagnosticStatus.ERROR
-        elif st.setpoint_source not in ('ibvs', 'none') or not st.time_sync.synced:
+        elif st.setpoint_source not in ('ibvs', 'none') or not st.time_sync.synced \
+                or st.engage_state in ('wait_arm', 'held', 'landing'):
             status.level = DiagnosticStatus.WARN
         else:
             status.level = DiagnosticStatus.OK
         ts = st.time_sync
         status.message = (f'link {"up" if st.link_up else "LOST"}, {st.engage_state}'
                           + (f' ({st.engage_reason})' if st.engage_reason else '')
-                          + ('' if ts.synced else ', clock not synced: no imu/data'))
+                          + ('' if ts.synced else ', clock not synced: no imu/data')
+                          + (f', autopilot internal errors 0x{st.autopilot_internal_errors:x}'
+                             if st.autopilot_internal_errors else ''))
+
+        def fmt(v, spec='.3f', none='unknown'):
+            return none if v is None else format(v, spec)
         values = {'link': 'up' if st.link_up else 'lost',
                   'heartbeat_age_s': f'{st.heartbeat_age_s:.2f}',
                   'autopilot': st.autopilot, 'armed': str(st.armed),
                   'custom_mode': str(st.custom_mode), 'engage_state': st.engage_state,
-                  'supervisor_mode': st.supervisor_mode,
-                  'hover_thrust': 'unknown' if st.hover_thrust is None
-                  else f'{st.hover_thrust:.3f}',
+                  'supervisor_mode': st.supervisor_mode, 'streaming': str(st.streaming),
+                  'arm_requested': str(st.arm_requested),
+                  'hover_thrust': fmt(st.hover_thrust),
+                  'hover_thrust_seed': fmt(st.hover_thrust_seed),
                   'hover_thrust_source': st.hover_thrust_source,
+                  'hover_estimate_std': fmt(st.hover_estimate_std, '.4f'),
                   'setpoint_source': st.setpoint_source,
                   'setpoint_rate_hz': f'{st.setpoint_rate_hz:.1f}',
                   'rejected_setpoints': str(st.rejected_setpoints),
+                  'landed_state': fmt(st.landed_state, 'd'),
+                  'armable': fmt(st.armable, '', 'unknown'),
+                  'autopilot_internal_errors': f'0x{st.autopilot_internal_errors:x}',
+                  'last_autopilot_reason': st.last_autopilot_reason,
                   'clock_synced': 'yes' if ts.synced else 'no',
-                  'clock_offset_ms': 'unknown' if ts.offset_ns is None
-                  else f'{ts.offset_ns / 1e6:.3f}',
-                  'clock_skew_ppm': 'unknown' if ts.skew_ppm is None else f'{ts.skew_ppm:.1f}',
+                  'clock_offset_ms': fmt(None if ts.offset_ns is None else ts.offset_ns / 1e6),
+                  'clock_skew_ppm': fmt(ts.skew_ppm, '.1f'),
                   'timesync_accepted': str(ts.accepted),
                   'timesync_rejected': str(ts.rejected_rtt + ts.rejected_outliers),
                   'timesync_rejected_rtt': str(ts.rejected_rtt),
                   'timesync_rejected_outliers': str(ts.rejected_outliers),
                   'timesync_resets': str(ts.resets),
-                  'timesync_last_rtt_ms': 'none' if ts.last_rtt_ns is None
-                  else f'{ts.last_rtt_ns / 1e6:.3f}',
+                  'timesync_last_rtt_ms': fmt(None if ts.last_rtt_ns is None
+                                              else ts.last_rtt_ns / 1e6, '.3f', 'none'),
                   'imu_dropped_unsynced': str(st.imu_dropped_unsynced)}
         values.update({k: str(v) for k, v in st.counters.items()})
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
@@ -290,6 +352,10 @@ class MavlinkBridgeNode(Node):
                 log.error(text, throttle_duration_sec=LOG_THROTTLE_S)
             elif level == 'warn':
                 log.warning(text, throttle_duration_sec=LOG_THROTTLE_S)
+            elif level == 'reason-error':          # the autopilot's words: each one logged
+                log.error(text)                    # (the core repeats a text once per 5 s)
+            elif level == 'reason-warn':
+                log.warning(text)
             else:
                 log.info(text)
 

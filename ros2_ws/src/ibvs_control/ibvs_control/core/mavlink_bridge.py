@@ -1,86 +1,60 @@
-"""The MAVLink bridge without ROS: setpoint shaping, IMU decoding, clock sync, sequencing.
+"""The MAVLink bridge without ROS: a thin composition of its parts (docs/mavlink.md).
 
-:class:`MavlinkBridge` owns a :class:`~ibvs_control.core.mavlink_link.MavlinkLink` and an
-:class:`~ibvs_control.core.mavlink_sequencer.EngageSequencer`. The node feeds it the force and
-heading setpoints and the supervisor mode, and calls :meth:`MavlinkBridge.poll` (receive),
-:meth:`MavlinkBridge.stream` (>= 50 Hz, repeat the latest setpoint) and
-:meth:`MavlinkBridge.heartbeat` (1 Hz) from timers.
+- :mod:`~ibvs_control.core.mavlink_link`: connection, signing, heartbeats, link supervision;
+- :mod:`~ibvs_control.core.time_sync`: clock offset by TIMESYNC (and its message exchange);
+- :mod:`~ibvs_control.core.mavlink_telemetry`: autopilot messages -> imu/data samples, specific
+  force, applied thrust, landed state, armability, the autopilot's reasons; stream requests;
+- :mod:`~ibvs_control.core.mavlink_setpoints`: force / heading pairing and SET_ATTITUDE_TARGET;
+- :mod:`~ibvs_control.core.mavlink_hover`: hover thrust seed and online estimate;
+- :mod:`~ibvs_control.core.mavlink_safety`: the safety policy's table and detectors;
+- :mod:`~ibvs_control.core.mavlink_sequencer`: engage / arm / hand-back state machine.
 
-Setpoint (SET_ATTITUDE_TARGET, docs/mavlink.md)
-    q = attitude of body FRD in the autopilot's local NED (= {I}) with R_d e3 = F / |F| and
-    the desired yaw (attitude.attitude_from_force); thrust = |F| / (m g) * hover_thrust in
-    [0, 1]; type_mask = 7 (body rates ignored); time_boot_ms = the latest force's stamp mapped
-    to the autopilot's boot time at each send (fallback targets too; 0 before any force or
-    while the clocks are not synced). A NEW setpoint is sent at once (the sim's lockstep pacing
-    waits for it), the stream timer repeats the latest one.
-Clock sync (:mod:`ibvs_control.core.time_sync`, docs/mavlink.md)
-    :meth:`MavlinkBridge.poll` gets the ROS time; the bridge sends TIMESYNC requests, takes the
-    answers into :class:`~ibvs_control.core.time_sync.TimeSync` and answers the autopilot's
-    own requests (tc1 = our ROS time). imu/data stamps = time_boot_ms + offset, on the ROS
-    clock; while the offset is unknown no IMU sample is published (a wrong stamp would be a
-    silent wrong output): it is dropped, counted and reported by a throttled warning.
-Heading / force pairing (:class:`HeadingPairing`)
-    The heading and the force of one camera frame share its stamp but come on two topics, in
-    either order. A force is flown with the heading of the SAME stamp: if that heading has not
-    arrived yet, and headings are expected (the previous force had its heading), the force is
-    held until it arrives or for at most ``heading_wait_s`` (then flown with the latest
-    heading). A heading arriving after its force was sent never changes what was sent.
-Mode-dependent content (supervisor mode -> what is sent)
-    The mode is the supervisor's for the stamp of the latest force (``ibvs/supervisor_status``,
-    :meth:`MavlinkBridge.content_mode`), else the latest ``ibvs/mode``, which also drives the
-    engage sequencer. IDLE, WINDOW, CROSSING, LANDING: the controller's F and heading.
-    SHUTDOWN: level at the current yaw, thrust ramped linearly from its value at the switch to
-    0 over ``shutdown_ramp_s``. FAILSAFE: level at the current yaw, thrust =
-    ``failsafe_thrust_ratio`` x hover thrust (a slow descent; the autopilot's land detector or
-    an operator ends it).
-Bad input
-    A non-finite or out-of-range force or heading is never sent: the last valid setpoint is
-    kept for at most ``hold_last_s``, then a level hover at the current yaw replaces it.
+The node feeds :class:`MavlinkBridge` the force and heading setpoints, the supervisor's mode
+and arm requests, and calls :meth:`MavlinkBridge.poll` (receive, 250 Hz), then
+:meth:`MavlinkBridge.stream` (repeat the latest setpoint when none left for 1 / stream_rate_hz)
+and :meth:`MavlinkBridge.heartbeat` (1 Hz), with the ROS time (system time on a vehicle, sim
+time in the sim): the clock of the stamps, of the clock sync and of the safety's hold.
 """
 from __future__ import annotations
 
-from collections import deque, OrderedDict
-from dataclasses import dataclass, field
-from enum import Enum
+from collections import deque
+from dataclasses import dataclass, field, replace
+import math
 import time
 from typing import Callable
 
 import numpy as np
 
-from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
-from ibvs_control.core.frames import (
-    euler_zyx_from_rot, GRAVITY, quat_from_rot, quat_ned_frd_to_enu_flu, R_IB_from_rot_map_base,
-    rot_from_quat, rot_z, vec_frd_to_flu)
-from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink, MavMsgId
+from ibvs_control.core.mavlink_hover import (
+    EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
+from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink
+from ibvs_control.core.mavlink_safety import SafetyConfig, SafetyMonitor
 from ibvs_control.core.mavlink_sequencer import (
-    Autopilot, EngageSequencer, SequencerConfig, SequencerInputs)
+    Autopilot, EngageSequencer, EngageState, SequencerConfig, SequencerInputs)
+from ibvs_control.core.mavlink_setpoints import (
+    AttitudeTarget, HeadingPairing, RateMeter, SetpointShaper, SetpointSource, ShaperConfig,
+    yaw_from_heading_quat)
+from ibvs_control.core.mavlink_telemetry import (
+    AccelSample, ImuSample, StreamRequests, streams_for, Telemetry)
 from ibvs_control.core.modes import Mode
-from ibvs_control.core.time_sync import TimeSync, TimeSyncConfig, TimeSyncStatus
+from ibvs_control.core.time_sync import (
+    TimeSync, TimeSyncConfig, TimesyncExchange, TimeSyncStatus)
 
-ATTITUDE_TARGET_IGNORE_BODY_RATES = 7   # type_mask bits 0-2: roll, pitch, yaw rate ignored
+__all__ = ['BridgeConfig', 'BridgeStatus', 'ImuSample', 'MavlinkBridge', 'SetpointSource']
+
 NS_PER_MS = 1_000_000
 NS_PER_S = 1_000_000_000
 HOVER_PARAM = {Autopilot.PX4: 'MPC_THR_HOVER', Autopilot.ARDUPILOT: 'MOT_THST_HOVER'}
 GUID_OPTIONS_PARAM = 'GUID_OPTIONS'
-HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover-thrust parameter outside this is refused
-QUAT_NORM_TOLERANCE = 0.1               # |q| in [0.9, 1.1], else the sample is dropped
-MS_PER_S = 1000.0
+ANGLE_BOOST_PARAM = 'ATC_ANGLE_BOOST'
+ARDUPILOT_ANGLE_BOOST_DEFAULT = 1
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
-HEADING_BUFFER_LEN = 8                  # headings kept by stamp, and sent stamps remembered
+STREAM_EPS_S = 1e-3                     # s, slack of the repeat period (timer jitter)
 AUTOPILOT_OF_HEARTBEAT = {MavAutopilot.PX4: Autopilot.PX4,
                           MavAutopilot.ARDUPILOTMEGA: Autopilot.ARDUPILOT}
-IMU_DROP_WARN_PERIOD_S = 2.0            # s (monotonic) between "IMU dropped" warnings
-
-
-class SetpointSource(Enum):
-    """Where the content of the setpoint being streamed comes from."""
-
-    NONE = 'none'                   # nothing sent yet
-    IBVS = 'ibvs'                   # the force controller's F and heading
-    HOLD_LAST = 'hold_last'         # bad input: the last valid IBVS setpoint, held
-    LEVEL_HOVER = 'level_hover'     # no valid input for hold_last_s
-    FAILSAFE = 'failsafe'           # supervisor FAILSAFE: level, slow descent
-    SHUTDOWN_RAMP = 'shutdown_ramp'  # supervisor SHUTDOWN: thrust ramp to 0
+STATUS_MODES_KEPT = 32      # supervisor modes by stamp kept to pair with forces (0.64 s)
+PENDING_ACCEL_KEPT = 500    # IMU samples kept until the hover-thrust seed is known
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
 
 
 @dataclass(frozen=True)
@@ -92,22 +66,25 @@ class BridgeConfig:
     max_thrust_factor: float                 # max thrust / (m g) (vehicle.yaml)
     configured_hover_thrust: float           # normalised (vehicle.yaml or parameter)
     autopilot: str = 'auto'                  # 'auto' (from HEARTBEAT) | 'px4' | 'ardupilot'
-    hover_thrust_source: str = 'autopilot'   # 'autopilot' (parameter read) | 'config'
+    hover_thrust_source: str = 'autopilot'   # seed: 'autopilot' (parameter read) | 'config'
     param_timeout_s: float = 3.0             # parameter reads unanswered: fallback/refuse
     param_retry_s: float = 0.5
     attitude_rate_hz: float = 100.0          # ATTITUDE_QUATERNION requested rate
-    imu_rate_hz: float = 100.0               # HIGHRES_IMU requested rate
-    interval_retry_s: float = 2.0            # re-request a message not received for this long
-    time_sync: TimeSyncConfig = field(default_factory=TimeSyncConfig)   # TIMESYNC estimator
-    hold_last_s: float = 0.5                 # keep the last valid setpoint this long (s,
-    #                                          monotonic) when input is bad or stops
+    imu_rate_hz: float = 100.0               # HIGHRES_IMU (PX4) / SCALED_IMU (ArduPilot)
+    thrust_rate_hz: float = 50.0             # ATTITUDE_TARGET (the applied thrust)
+    status_rate_hz: float = 5.0              # EXTENDED_SYS_STATE and SYS_STATUS
+    heartbeat_request_hz: float = 5.0        # ArduPilot's HEARTBEAT (PX4's is fixed at 1 Hz)
+    stream_rate_hz: float = 30.0             # a repeat when no setpoint left for 1 / this
+    time_sync: TimeSyncConfig = field(default_factory=TimeSyncConfig)
+    hold_last_s: float = 0.25                # s of vehicle time: no valid force -> hand back
     max_force_factor: float = 3.0            # |F| above factor * m g is out of range
     max_tilt_rad: float = 0.6                # tilt limit of the thrust direction
-    failsafe_thrust_ratio: float = 0.9       # FAILSAFE thrust = ratio * hover thrust
     shutdown_ramp_s: float = 2.0             # SHUTDOWN: thrust ramp time to 0
-    heading_wait_s: float = 0.02             # s (monotonic): a force waits this long at most
-    #                                          for the heading of its stamp (0: never waits)
+    arm_on_start: bool = False               # an arm request from the start (sim scenario)
+    px4_events: dict | None = None           # PX4 event id -> text (all_events.json), or None
     sequencer: SequencerConfig = field(default_factory=SequencerConfig)
+    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
 
     def __post_init__(self):
         if self.autopilot not in ('auto', 'px4', 'ardupilot'):
@@ -115,43 +92,15 @@ class BridgeConfig:
                              f'{self.autopilot!r}')
         if self.hover_thrust_source not in ('autopilot', 'config'):
             raise ValueError("hover_thrust_source must be 'autopilot' or 'config'")
-        lo, hi = HOVER_THRUST_RANGE
-        if not lo <= self.configured_hover_thrust <= hi:
+        if not 0.05 <= self.configured_hover_thrust <= 0.95:
             raise ValueError(f'configured hover thrust {self.configured_hover_thrust} outside '
-                             f'[{lo}, {hi}]')
-        positive = ('mass', 'max_thrust_factor', 'param_timeout_s', 'param_retry_s',
-                    'attitude_rate_hz', 'imu_rate_hz', 'interval_retry_s', 'hold_last_s',
-                    'max_force_factor', 'max_tilt_rad', 'shutdown_ramp_s')
-        for name in positive:
+                             '[0.05, 0.95]')
+        for name in ('param_timeout_s', 'param_retry_s', 'attitude_rate_hz', 'imu_rate_hz',
+                     'thrust_rate_hz', 'status_rate_hz', 'heartbeat_request_hz',
+                     'stream_rate_hz'):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
-        if not 0.0 < self.failsafe_thrust_ratio <= 1.0:
-            raise ValueError('failsafe_thrust_ratio must be in (0, 1]')
-        if not (np.isfinite(self.heading_wait_s) and self.heading_wait_s >= 0.0):
-            raise ValueError(f'heading_wait_s must be finite and >= 0, got '
-                             f'{self.heading_wait_s}')
-
-
-@dataclass(frozen=True)
-class AttitudeTarget:
-    """Content of one SET_ATTITUDE_TARGET."""
-
-    time_boot_ms: int
-    q_wxyz: np.ndarray              # body FRD in local NED, unit, (w, x, y, z)
-    thrust: float                   # normalised [0, 1]
-    source: SetpointSource
-    type_mask: int = ATTITUDE_TARGET_IGNORE_BODY_RATES
-
-
-@dataclass(frozen=True)
-class ImuSample:
-    """One imu/data message in ROS conventions (ENU/FLU as MAVROS converts them)."""
-
-    stamp_ns: int                   # ROS time
-    q_wxyz: np.ndarray              # base_link (FLU) in map (ENU), (w, x, y, z)
-    angular_velocity_flu: np.ndarray  # rad/s
-    linear_acceleration_flu: np.ndarray | None  # m/s^2 (specific force), None: no HIGHRES_IMU
 
 
 @dataclass(frozen=True)
@@ -166,306 +115,22 @@ class BridgeStatus:
     engage_state: str
     engage_reason: str
     supervisor_mode: str
-    hover_thrust: float | None
+    streaming: bool
+    arm_requested: bool
+    hover_thrust: float | None           # what the setpoints use now
+    hover_thrust_seed: float | None
     hover_thrust_source: str
+    hover_estimate_std: float | None
     setpoint_source: str
     setpoint_rate_hz: float
     rejected_setpoints: int
+    landed_state: int | None
+    armable: bool | None
+    autopilot_internal_errors: int
+    last_autopilot_reason: str
     counters: dict
     time_sync: TimeSyncStatus
-    imu_dropped_unsynced: int       # ATTITUDE_QUATERNION dropped while the clock was unsynced
-
-
-def yaw_from_heading_quat(q_wxyz_enu_flu: np.ndarray) -> float:
-    """NED yaw (rad) of a heading quaternion (base_link in map, w x y z).
-
-    Raises ValueError if the quaternion is non-finite or not unit within 10 %.
-    """
-    q = np.asarray(q_wxyz_enu_flu, dtype=float)
-    n = np.linalg.norm(q)
-    if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(n - 1.0) > QUAT_NORM_TOLERANCE:
-        raise ValueError(f'heading quaternion {q!r} is not a unit quaternion')
-    return euler_zyx_from_rot(R_IB_from_rot_map_base(rot_from_quat(q)))[2]
-
-
-class HoverThrust:
-    """Hover thrust: the autopilot's parameter if it answers, else the configured value."""
-
-    def __init__(self, configured: float, use_autopilot: bool) -> None:
-        self.configured = configured
-        self.use_autopilot = use_autopilot
-        self.value: float | None = None if use_autopilot else configured
-        self.source = 'pending' if use_autopilot else 'config'
-        self.error = ''
-
-    def on_param(self, name: str, value: float) -> None:
-        """Take the autopilot's answer if it is in range (else keep the configured one)."""
-        lo, hi = HOVER_THRUST_RANGE
-        if not (np.isfinite(value) and lo <= value <= hi):
-            self.error = f'{name} = {value} outside [{lo}, {hi}]: using the configured ' \
-                         f'{self.configured}'
-            self.value, self.source = self.configured, 'config (autopilot value refused)'
-            return
-        self.value, self.source = float(value), f'autopilot {name}'
-
-    def on_timeout(self) -> None:
-        """No answer: fall back to the configured value."""
-        if self.value is None:
-            self.value, self.source = self.configured, 'config (autopilot did not answer)'
-
-
-class SetpointShaper:
-    """Turns (mode, latest valid force/heading, attitude) into the attitude target to send."""
-
-    def __init__(self, config: BridgeConfig) -> None:
-        self.config = config
-        self.rejected = 0
-        self.last_error = ''
-        self._valid: tuple[float, np.ndarray, float] | None = None  # (t_rx, F, NED yaw)
-        self._last_refused = False
-        self._ramp: ShutdownRamp | None = None
-        self._last_thrust: float | None = None
-
-    def check_force(self, F_I: np.ndarray) -> str:
-        """Return '' for a usable force (N, {I}), else the reason it is refused."""
-        F = np.asarray(F_I, dtype=float)
-        if F.shape != (3,) or not np.all(np.isfinite(F)):
-            return f'non-finite force {F!r}'
-        limit = self.config.max_force_factor * self.config.mass * GRAVITY
-        if np.linalg.norm(F) > limit:
-            return f'|F| = {np.linalg.norm(F):.1f} N above {limit:.1f} N'
-        if F[2] <= 0.0:
-            return f'F = {F} has no downward (thrust-up) component'
-        return ''
-
-    def on_force(self, t: float, F_I: np.ndarray, yaw: float) -> str:
-        """Store a force received at monotonic time t with the NED yaw it is flown with.
-
-        Returns '' or the refusal reason (a refused force keeps the last valid one).
-        """
-        reason = self.check_force(F_I)
-        self._last_refused = bool(reason)
-        if reason:
-            self.rejected += 1
-            self.last_error = reason
-            return reason
-        self._valid = (t, np.asarray(F_I, dtype=float).copy(), float(yaw))
-        return ''
-
-    def ramp_done(self, t: float) -> bool:
-        """Whether the SHUTDOWN ramp has reached zero thrust (t: monotonic s)."""
-        return (self._ramp is not None and shutdown_thrust_scale(
-            self._ramp.elapsed(t), self.config.shutdown_ramp_s) <= 0.0)
-
-    def target(self, t: float, mode: Mode, yaw_now: float, hover: float,
-               time_boot_ms: int, t_vehicle: float) -> AttitudeTarget:
-        """Return the attitude target for supervisor ``mode`` at monotonic time t.
-
-        ``yaw_now``: current NED yaw (level setpoints keep it); ``hover``: hover thrust;
-        ``time_boot_ms``: what the target carries; ``t_vehicle``: the latest force's stamp (s,
-        ROS clock: sim time in the sim), the clock of the shutdown ramp.
-        """
-        level_q = quat_from_rot(rot_z(yaw_now))
-        if mode == Mode.SHUTDOWN:
-            if self._ramp is None:
-                start = self._last_thrust if self._last_thrust is not None else hover
-                self._ramp = ShutdownRamp(start, t_vehicle, t)
-            self._ramp.advance(t_vehicle, t)
-            scale = shutdown_thrust_scale(self._ramp.elapsed(t), self.config.shutdown_ramp_s)
-            return self._out(time_boot_ms, level_q, self._ramp.start_thrust * scale,
-                             SetpointSource.SHUTDOWN_RAMP)
-        self._ramp = None
-        if mode == Mode.FAILSAFE:
-            return self._out(time_boot_ms, level_q, self.config.failsafe_thrust_ratio * hover,
-                             SetpointSource.FAILSAFE)
-        if self._valid is not None and t - self._valid[0] <= self.config.hold_last_s:
-            _, F, yaw = self._valid
-            sp = attitude_from_force(F, yaw, self.config.mass, hover,
-                                     self.config.max_thrust_factor, self.config.max_tilt_rad)
-            return self._out(time_boot_ms, sp.q_IB_wxyz, sp.thrust_norm,
-                             SetpointSource.HOLD_LAST if self._last_refused
-                             else SetpointSource.IBVS)
-        return self._out(time_boot_ms, level_q, hover, SetpointSource.LEVEL_HOVER)
-
-    def _out(self, time_boot_ms: int, q: np.ndarray, thrust: float,
-             source: SetpointSource) -> AttitudeTarget:
-        thrust = float(np.clip(thrust, 0.0, 1.0))
-        self._last_thrust = thrust
-        return AttitudeTarget(int(time_boot_ms), np.asarray(q, dtype=float), thrust, source)
-
-
-@dataclass(frozen=True)
-class PairedForce:
-    """A force to send now, with the heading it is flown with."""
-
-    stamp_ns: int                   # the force's stamp (ROS time, ns)
-    F_I: np.ndarray                 # N, {I}
-    t_rx: float                     # monotonic s when the force was received
-    yaw: float | None               # NED yaw to fly; None: no heading yet (the current yaw)
-    paired: bool                    # True: the heading of the same stamp
-
-
-class HeadingPairing:
-    """Pairs each force with the heading of the same stamp (ROS-free, no I/O).
-
-    The controller publishes, per camera frame of stamp S, the heading S and then the force S
-    on two topics, which the node may take in either order. Rules:
-
-    - headings are kept by exact stamp (int ns; the last ``buffer_len``);
-    - a force S whose heading S is there is sent at once with it;
-    - otherwise, if headings are *expected* (a heading was seen and the previous force had its
-      heading S', before or after it was sent), a valid force is held until its heading
-      arrives (then sent at once with it), or until ``wait_s`` has passed (:meth:`expire`), or
-      until a heading newer than S arrives (the topic is ordered: heading S will not come),
-      or until a newer force arrives; it is then sent with the latest heading and counted in
-      ``missing``;
-    - any other force (none expected, or refused: it is not flown anyway) is sent at once with
-      the latest heading (None before any heading);
-    - a heading whose force was already sent is counted in ``late`` and only becomes the
-      latest heading for later forces: what was sent for its stamp never changes.
-
-    Each method returns the forces to send now, in order.
-    """
-
-    def __init__(self, wait_s: float, buffer_len: int = HEADING_BUFFER_LEN) -> None:
-        self.wait_s = wait_s
-        self.latest_yaw: float | None = None    # latest valid heading received (NED yaw)
-        self.late = 0                           # headings that came after their force
-        self.missing = 0                        # held forces sent without their heading
-        self._headings: OrderedDict[int, float | None] = OrderedDict()  # None: refused
-        self._sent: deque = deque(maxlen=buffer_len)    # stamps of forces already sent
-        self._buffer_len = buffer_len
-        self._held: PairedForce | None = None
-        self._any_heading = False
-        self._last_force_stamp: int | None = None
-        self._last_force_had_heading = False
-
-    @property
-    def holding(self) -> bool:
-        """Whether a force is waiting for its heading."""
-        return self._held is not None
-
-    def expected(self) -> bool:
-        """Whether the next force is expected to come with a heading of its stamp."""
-        if not self._any_heading:
-            return False
-        return self._last_force_stamp is None or self._last_force_had_heading
-
-    def on_heading(self, stamp_ns: int, yaw: float | None) -> list[PairedForce]:
-        """Heading of stamp_ns (NED yaw, or None if it was refused as invalid)."""
-        stamp_ns = int(stamp_ns)
-        out = []
-        if self._held is not None and stamp_ns > self._held.stamp_ns:
-            out.append(self._release_unpaired())
-        self._any_heading = True
-        if stamp_ns == self._last_force_stamp:
-            self._last_force_had_heading = True
-        if self._held is not None and stamp_ns == self._held.stamp_ns:
-            held, self._held = self._held, None
-            out.append(PairedForce(held.stamp_ns, held.F_I, held.t_rx,
-                                   self.latest_yaw if yaw is None else yaw, yaw is not None))
-            self._sent.append(stamp_ns)
-        elif stamp_ns in self._sent:
-            self.late += 1
-        else:
-            self._headings[stamp_ns] = yaw
-            self._headings.move_to_end(stamp_ns)
-            while len(self._headings) > self._buffer_len:
-                self._headings.popitem(last=False)
-        if yaw is not None:
-            self.latest_yaw = float(yaw)
-        return out
-
-    def on_force(self, stamp_ns: int, F_I: np.ndarray, t: float,
-                 may_wait: bool = True) -> list[PairedForce]:
-        """Force of stamp_ns received at monotonic time t (``may_wait`` False: refused)."""
-        stamp_ns = int(stamp_ns)
-        out = [self._release_unpaired()] if self._held is not None else []
-        expected = self.expected()
-        self._last_force_stamp = stamp_ns
-        self._last_force_had_heading = stamp_ns in self._headings
-        F = np.asarray(F_I, dtype=float).copy()
-        if self._last_force_had_heading:
-            yaw = self._headings.pop(stamp_ns)
-            out.append(PairedForce(stamp_ns, F, t, self.latest_yaw if yaw is None else yaw,
-                                   yaw is not None))
-        elif expected and may_wait and self.wait_s > 0.0:
-            self._held = PairedForce(stamp_ns, F, t, None, False)
-            return out
-        else:
-            out.append(PairedForce(stamp_ns, F, t, self.latest_yaw, False))
-        self._sent.append(stamp_ns)
-        return out
-
-    def expire(self, t: float) -> list[PairedForce]:
-        """Release a held force whose wait has passed at monotonic time t."""
-        if self._held is not None and t - self._held.t_rx >= self.wait_s:
-            return [self._release_unpaired()]
-        return []
-
-    def _release_unpaired(self) -> PairedForce:
-        held, self._held = self._held, None
-        self.missing += 1
-        self._sent.append(held.stamp_ns)
-        return PairedForce(held.stamp_ns, held.F_I, held.t_rx, self.latest_yaw, False)
-
-
-RAMP_STALL_S = 1.0          # s (wall) without newer setpoint stamps before the ramp uses the wall
-
-
-@dataclass
-class ShutdownRamp:
-    """Elapsed time of the mode-4 thrust ramp, in the VEHICLE's time.
-
-    The ramp runs on the stamps of the forces (the ROS clock: sim time in the sim, where
-    lockstep makes it run slower than the wall clock; the same instants the setpoints'
-    time_boot_ms carry, without depending on the clock sync), so the descent profile is the
-    same whatever the pacing. If the setpoint stamps stop advancing (the controller went
-    silent), it goes on with the wall clock after RAMP_STALL_S, so thrust never hangs.
-    """
-
-    start_thrust: float
-    t_vehicle: float                 # s, last vehicle time seen
-    t_wall: float                    # s, monotonic time when it was seen
-    progress: float = 0.0            # s of vehicle time elapsed up to t_vehicle
-
-    def advance(self, t_vehicle: float, t_wall: float) -> None:
-        """Account for a setpoint at vehicle time t_vehicle, sent at wall time t_wall."""
-        if t_vehicle > self.t_vehicle:
-            self.progress += self._stalled(t_wall) + (t_vehicle - self.t_vehicle)
-            self.t_vehicle, self.t_wall = t_vehicle, t_wall
-
-    def _stalled(self, t_wall: float) -> float:
-        return max(0.0, t_wall - self.t_wall - RAMP_STALL_S)
-
-    def elapsed(self, t_wall: float) -> float:
-        """Return how long the ramp has run (s): vehicle time, plus wall time past a stall."""
-        return self.progress + self._stalled(t_wall)
-
-
-class RateMeter:
-    """Events per second over a sliding window (for the setpoint rate diagnostic)."""
-
-    def __init__(self, window_s: float = 1.0) -> None:
-        self.window_s = window_s
-        self._t: deque = deque()
-
-    def tick(self, t: float) -> None:
-        """Record one event at time t."""
-        self._t.append(t)
-        self._trim(t)
-
-    def rate(self, t: float) -> float:
-        """Events per second in the last window."""
-        self._trim(t)
-        return len(self._t) / self.window_s
-
-    def _trim(self, t: float) -> None:
-        while self._t and self._t[0] < t - self.window_s:
-            self._t.popleft()
-
-
-STATUS_MODES_KEPT = 32      # supervisor modes by stamp kept to pair with forces (0.64 s)
+    imu_dropped_unsynced: int
 
 
 class MavlinkBridge:
@@ -476,40 +141,45 @@ class MavlinkBridge:
         self.config = config
         self._clock = clock
         self.link = MavlinkLink(config.link, clock)
-        self.shaper = SetpointShaper(config)
-        self.pairing = HeadingPairing(config.heading_wait_s)
-        self._reported_missing = 0
-        self.hover = HoverThrust(config.configured_hover_thrust,
-                                 config.hover_thrust_source == 'autopilot')
+        self.time_sync = TimeSync(config.time_sync)
+        self.timesync = TimesyncExchange(self.time_sync, self.link.send_timesync)
+        self.telemetry = Telemetry(self.time_sync, clock, config.px4_events)
+        self.streams: StreamRequests | None = None
+        self.shaper = SetpointShaper(ShaperConfig(
+            config.mass, config.max_thrust_factor, config.max_force_factor,
+            config.max_tilt_rad, config.hold_last_s, config.shutdown_ramp_s))
+        self.pairing = HeadingPairing()
+        self.seed = HoverThrustSeed(config.configured_hover_thrust,
+                                    config.hover_thrust_source == 'autopilot')
+        self.estimator = HoverThrustEstimator(config.estimator)
+        self.safety = SafetyMonitor(replace(
+            config.safety, hold_last_s=config.hold_last_s,
+            disarm_force_after_s=config.sequencer.disarm_force_after_s))
         self.autopilot: Autopilot | None = (None if config.autopilot == 'auto'
                                             else Autopilot(config.autopilot))
         self.sequencer: EngageSequencer | None = None
         self.supervisor_mode = Mode.IDLE
+        self.idle_reports = 0
         self.guid_options: int | None = None
+        self.angle_boost: int | None = None
         self.rate = RateMeter()
         self.setpoint_source = SetpointSource.NONE
         # False: build the targets but send none (the node holds the stream until the IMU's
         # consumers are matched, so that a lockstep sim starts only when they hear every sample)
         self.stream_enabled = True
+        self._arm_pending = bool(config.arm_on_start)
         self._current: AttitudeTarget | None = None
-        self.time_sync = TimeSync(config.time_sync)
-        self._ros_ns: int | None = None           # ROS time of the current poll (ns)
+        self._ros_ns: int | None = None              # latest ROS time given (ns)
         self._setpoint_stamp_ns: int | None = None   # latest stamp of a force sent (ROS ns)
-        self.imu_dropped_unsynced = 0
-        self._imu_drop_reported = 0
-        self._imu_drop_warned_t = -np.inf
-        self.timesync_answered = 0                # the autopilot's requests we answered
-        self._force_stamp_ns: int | None = None   # stamp of the latest force sent
-        self._force_sent_t = -np.inf              # when (monotonic s)
-        self._status_modes: dict[int, Mode] = {}  # stamp ns -> supervisor mode of that frame
+        self._status_modes: dict[int, Mode] = {}     # stamp ns -> supervisor mode of that frame
         self._stream_start: float | None = None
-        self._last_stream_t: float | None = None
+        self._last_send_t: float | None = None
         self._params_since: float | None = None
-        self._last_param_request = -np.inf
-        self._last_seen: dict[int, float] = {}
-        self._last_interval_request: dict[int, float] = {}
-        self._yaw_now = 0.0
-        self._lin_acc_frd: np.ndarray | None = None
+        self._last_param_request = -math.inf
+        self._was_up = False
+        self._sync_resets = 0
+        self._pending_accel: deque = deque(maxlen=PENDING_ACCEL_KEPT)
+        self._reported_missing = 0
         self._events: list[tuple[str, str]] = []
         self._maybe_build_sequencer()
 
@@ -521,6 +191,8 @@ class MavlinkBridge:
         except ValueError:
             self._event('error', f'unknown supervisor mode {mode}: kept {self.supervisor_mode}')
             return
+        if new == Mode.IDLE:
+            self.idle_reports += 1
         if new == self.supervisor_mode:
             return
         self._event('info', f'supervisor mode {self.supervisor_mode.name} -> {new.name}')
@@ -543,103 +215,117 @@ class MavlinkBridge:
             del self._status_modes[min(self._status_modes)]
         return ''
 
-    def content_mode(self, now: float) -> Mode:
-        """Return the mode whose content (F, shutdown ramp, failsafe) the target carries.
+    def content_mode(self) -> Mode:
+        """Return the mode whose content (F, shutdown ramp) the target carries.
 
         The supervisor's mode reported for the stamp of the latest force, so that e.g. the
         shutdown ramp starts on the SHUTDOWN frame itself, not on whichever setpoint follows the
         ``ibvs/mode`` message (lockstep runs then repeat to the end). Without that status, or
         once the forces stopped for ``hold_last_s`` (controller silent: the latest mode must
-        still act, e.g. FAILSAFE), the latest ``ibvs/mode``.
+        still act), the latest ``ibvs/mode``.
         """
-        if self._force_stamp_ns is not None \
-                and now - self._force_sent_t <= self.config.hold_last_s:
-            mode = self._status_modes.get(self._force_stamp_ns)
+        if self._setpoint_stamp_ns is not None and not self.safety.inputs_lost(self._vehicle_s()):
+            mode = self._status_modes.get(self._setpoint_stamp_ns)
             if mode is not None:
                 return mode
         return self.supervisor_mode
 
-    def on_heading(self, stamp_ns: int, q_wxyz_enu_flu: np.ndarray) -> str:
-        """ibvs/heading_setpoint of stamp_ns (base_link in map).
-
-        Sends the force of the same stamp if it is waiting for this heading. Returns '' or the
-        refusal reason (a refused heading is never flown; its force takes the latest one).
-        """
+    def on_heading(self, stamp_ns: int, q_wxyz_enu_flu: np.ndarray,
+                   ros_ns: int | None = None) -> str:
+        """ibvs/heading_setpoint of stamp_ns (base_link in map); '' or the refusal reason."""
+        self._set_ros(ros_ns)
         try:
             yaw: float | None = yaw_from_heading_quat(q_wxyz_enu_flu)
             reason = ''
         except ValueError as exc:
             self.shaper.rejected += 1
             yaw, reason = None, str(exc)
-        self._send_forces(self.pairing.on_heading(stamp_ns, yaw))
+        self.pairing.on_heading(stamp_ns, yaw)
         return reason
 
-    def on_force(self, stamp_ns: int, F_I: np.ndarray) -> str:
-        """ibvs/force_setpoint (already in {I}): send the new setpoint as soon as it is paired.
+    def on_force(self, stamp_ns: int, F_I: np.ndarray, ros_ns: int | None = None) -> str:
+        """ibvs/force_setpoint (already in {I}): sent at once with the heading of its stamp.
 
-        Sent at once if the heading of the same stamp is there or none is expected, else when
-        that heading arrives or ``heading_wait_s`` has passed (:class:`HeadingPairing`).
         Returns '' or why the force was refused (then the held/fallback setpoint is sent at
         once, with the new stamp, so that a lockstep sim keeps advancing).
         """
-        reason = self.shaper.check_force(F_I)
-        self._send_forces(self.pairing.on_force(stamp_ns, F_I, self._clock(),
-                                                may_wait=not reason))
+        self._set_ros(ros_ns)
+        p = self.pairing.on_force(stamp_ns, F_I)
+        yaw = self.telemetry.yaw_now if p.yaw is None else p.yaw
+        reason = self.shaper.on_force(self._vehicle_s() or 0.0, p.F_I, yaw,
+                                      self.hover_for_stamp(p.stamp_ns))
+        if not reason:
+            self.safety.on_force(self._vehicle_s())
+        if self._setpoint_stamp_ns is None or p.stamp_ns > self._setpoint_stamp_ns:
+            self._setpoint_stamp_ns = p.stamp_ns
+        self._send_current(new=True)
         return reason
 
-    def release_expired(self) -> None:
-        """Send a force that waited ``heading_wait_s`` in vain for its heading (timers)."""
-        self._send_forces(self.pairing.expire(self._clock()))
+    def request_arm(self) -> tuple[bool, str]:
+        """ibvs/arm: allow the bridge to arm the vehicle when it engages."""
+        hb = self.link.heartbeat
+        if hb is not None and hb.armed:
+            return True, 'the vehicle is already armed'
+        if self.sequencer is None:
+            self._arm_pending = True
+            return True, ('arm request noted: no autopilot yet; the bridge arms the vehicle once '
+                          'it is in the offboard mode and armable')
+        return self.sequencer.request_arm()
 
     def pop_heading_warning(self) -> str:
-        """Text about forces sent without their heading since the last call, or ''."""
+        """Text about forces flown without their heading since the last call, or ''."""
         n = self.pairing.missing - self._reported_missing
         if n <= 0:
             return ''
         self._reported_missing = self.pairing.missing
-        return (f'{n} force setpoint(s) sent without the heading of their stamp (waited '
-                f'{self.config.heading_wait_s * MS_PER_S:.0f} ms): flown with the latest '
-                f'heading ({self.pairing.missing} in all, {self.pairing.late} late headings)')
+        return (f'{n} force setpoint(s) without the heading of their stamp: flown at once with '
+                f'the latest heading ({self.pairing.missing} in all, {self.pairing.late} late '
+                'headings)')
 
     # --- timers ------------------------------------------------------------------------
     def heartbeat(self) -> None:
         """1 Hz: our HEARTBEAT."""
         self.link.send_heartbeat()
 
-    def stream(self) -> None:
-        """>= 50 Hz: repeat the latest setpoint (recomputed for fallbacks and ramps).
-
-        A force whose heading wait has expired is sent first.
-        """
-        self.release_expired()
+    def stream(self, ros_ns: int | None = None) -> None:
+        """Repeat the latest setpoint if none left for 1 / stream_rate_hz (call it often)."""
+        self._set_ros(ros_ns)
+        period = 1.0 / self.config.stream_rate_hz
+        if self._last_send_t is not None \
+                and self._clock() - self._last_send_t < period - STREAM_EPS_S:
+            return
         self._send_current(new=False)
 
     def poll(self, ros_ns: int | None = None) -> list[ImuSample]:
         """Receive everything pending, run the sequencer, return new IMU samples.
 
-        ``ros_ns``: ROS time now (ns; the node's clock: system time on a vehicle, sim time in
-        the sim). It is the receipt time of the TIMESYNC answers read here, the tc1 of our
-        answers to the autopilot's requests and the ts1 of our requests; None or 0 (no
-        ``/clock`` yet): no clock sync. Also sends a force whose heading wait has expired
-        (:meth:`release_expired`).
+        ``ros_ns``: ROS time now (ns; the node's clock). It is the receipt time of the TIMESYNC
+        answers read here, the tc1 of our answers to the autopilot's requests and the ts1 of
+        our requests; None or 0 (no ``/clock`` yet): no clock sync.
         """
-        self.release_expired()
         now = self._clock()
-        self._ros_ns = None if ros_ns is None else int(ros_ns)
+        self._set_ros(ros_ns, force=True)
         samples = []
         for msg in self.link.poll():
-            sample = self._handle(msg, now)
+            sample = self._handle(msg)
             if sample is not None:
                 samples.append(sample)
         self._maybe_build_sequencer()
-        self._request_timesync(now)
-        self._service_requests(now)
+        self._on_link_state()
+        if self.link.link_up:
+            self.timesync.request(self._ros_ns, now)
+            self._service_requests(now)
         self._run_sequencer(now)
         return samples
 
     def pop_events(self) -> list[tuple[str, str]]:
-        """(level, text) log events since the last call: 'info', 'warn', 'error'."""
+        """(level, text) log events since the last call.
+
+        Levels: 'info', 'warn', 'error'; 'reason-info' / 'reason-warn' / 'reason-error' are the
+        autopilot's own words (STATUSTEXT, EVENT), each text once per 5 s.
+        """
         events, self._events = self._events, []
+        events += self.telemetry.pop_events()
         if self.sequencer is not None:
             events += [('info', f'engage: {e}') for e in self.sequencer.pop_events()]
         return events
@@ -650,54 +336,77 @@ class MavlinkBridge:
         hb = self.link.heartbeat
         seq = self.sequencer
         c = self.link.counters
+        tel = self.telemetry
         return BridgeStatus(
             link_up=self.link.link_up, heartbeat_age_s=self.link.heartbeat_age(),
             autopilot=self.autopilot.value if self.autopilot else 'unknown',
             armed=bool(hb and hb.armed), custom_mode=hb.custom_mode if hb else 0,
             engage_state=seq.state.value if seq else 'no_link',
             engage_reason=seq.last_reason if seq else '',
-            supervisor_mode=self.supervisor_mode.name,
-            hover_thrust=self.hover.value, hover_thrust_source=self.hover.source,
+            supervisor_mode=self.supervisor_mode.name, streaming=self._may_stream(),
+            arm_requested=bool(seq.arm_requested if seq else self._arm_pending),
+            hover_thrust=self.hover_now(), hover_thrust_seed=self.seed.value,
+            hover_thrust_source=self.seed.source + (
+                ' + online estimate' if self.config.estimator.enabled else ''),
+            hover_estimate_std=self.estimator.std,
             setpoint_source=self.setpoint_source.value, setpoint_rate_hz=self.rate.rate(now),
-            rejected_setpoints=self.shaper.rejected,
+            rejected_setpoints=self.shaper.rejected, landed_state=tel.landed_state,
+            armable=tel.armable, autopilot_internal_errors=tel.internal_errors,
+            last_autopilot_reason=tel.last_reason,
             counters={'received': c.received, 'sent': c.sent, 'bad_data': c.bad_data,
-                      'foreign': c.foreign, 'reconnects': c.reconnects,
+                      'foreign': c.foreign, 'reconnects': c.reconnects, 'reopens': c.reopens,
                       'link_losses': c.link_losses, 'send_errors': c.send_errors,
-                      'heading_timeouts': self.pairing.missing,
+                      'headings_missing': self.pairing.missing,
                       'late_headings': self.pairing.late,
-                      'timesync_answered': self.timesync_answered},
-            time_sync=self.time_sync.status(), imu_dropped_unsynced=self.imu_dropped_unsynced)
+                      'timesync_answered': self.timesync.answered,
+                      'hover_estimate_samples': self.estimator.accepted,
+                      'hover_estimate_rejected': self.estimator.rejected,
+                      'autopilot_reasons': tel.reasons,
+                      'streams_refused': len(self.streams.refused) if self.streams else 0},
+            time_sync=self.time_sync.status(), imu_dropped_unsynced=tel.imu_dropped_unsynced)
 
     def close(self) -> None:
         """Close the link."""
         self.link.close()
 
-    # --- time mapping ------------------------------------------------------------------
+    @property
+    def imu_dropped_unsynced(self) -> int:
+        """ATTITUDE_QUATERNION dropped while the clock was unsynced."""
+        return self.telemetry.imu_dropped_unsynced
+
+    # --- hover thrust ------------------------------------------------------------------
+    def hover_now(self) -> float | None:
+        """Hover thrust the setpoints use now (estimate, else seed)."""
+        v = self.estimator.value_at(None)
+        return self.seed.value if v is None else v
+
+    def hover_for_stamp(self, stamp_ns: int | None) -> float:
+        """Hover thrust for the setpoint of ``stamp_ns``: the estimate as of its samples.
+
+        In boot time, the samples at least ``margin_s`` older than the stamp (deterministic in
+        a lockstep sim); unsynced or unknown: the latest; no seed yet: the configured value.
+        """
+        boot = None if stamp_ns is None else self.time_sync.ros_ns_to_boot_ms(stamp_ns)
+        v = self.estimator.value_at(None if boot is None else boot * NS_PER_MS)
+        if v is None:
+            v = self.seed.value
+        return self.config.configured_hover_thrust if v is None else v
+
+    # --- time --------------------------------------------------------------------------
     def stamp_to_boot_ms(self, stamp_ns: int) -> int | None:
         """ROS stamp -> autopilot time_boot_ms (>= 0; None while the clocks are not synced)."""
         ms = self.time_sync.ros_ns_to_boot_ms(stamp_ns)
         return None if ms is None else max(0, ms)
 
-    def _request_timesync(self, now: float) -> None:
-        """Send a TIMESYNC request when the estimator wants one (link up, ROS time > 0)."""
-        if not self.link.link_up:
-            return
-        ts1 = self.time_sync.next_request(self._ros_ns, now)
-        if ts1 is not None:
-            self.link.send_timesync(0, ts1)
+    def _set_ros(self, ros_ns: int | None, force: bool = False) -> None:
+        if ros_ns is not None or force:
+            self._ros_ns = None if ros_ns is None else int(ros_ns)
 
-    def _on_timesync(self, msg) -> None:
-        """Answer the autopilot's request (tc1 == 0), or take the answer to one of ours."""
-        tc1, ts1 = int(msg.tc1), int(msg.ts1)
-        ros = self._ros_ns
-        if ros is None or ros <= 0:
-            return      # no ROS time yet: an answer tc1 = 0 would read as a request
-        if tc1 == 0:
-            if self.link.send_timesync(ros, ts1):
-                self.timesync_answered += 1
-        elif tc1 > 0:
-            for level, text in self.time_sync.on_reply(tc1, ts1, ros):
-                self._event(level, text)
+    def _vehicle_s(self) -> float | None:
+        """Vehicle time: the ROS clock (s), None while unknown (no /clock yet)."""
+        if self._ros_ns is None or self._ros_ns <= 0:
+            return None
+        return self._ros_ns / NS_PER_S
 
     # --- internals ---------------------------------------------------------------------
     def _event(self, level: str, text: str) -> None:
@@ -715,96 +424,125 @@ class MavlinkBridge:
                 return
         if self.autopilot is None:
             return
-        cfg = self.config.sequencer
-        self.sequencer = EngageSequencer(SequencerConfig(
-            self.autopilot, cfg.prestream_s, cfg.command_retry_s, cfg.max_attempts,
-            cfg.disarm_force_after_s))
+        self.sequencer = EngageSequencer(replace(self.config.sequencer, autopilot=self.autopilot))
+        self.sequencer.arm_requested = self._arm_pending
+        c = self.config
+        self.streams = StreamRequests(streams_for(
+            self.autopilot.value, c.attitude_rate_hz, c.imu_rate_hz, c.thrust_rate_hz,
+            c.status_rate_hz, c.heartbeat_request_hz))
 
-    def _handle(self, msg, now: float) -> ImuSample | None:
+    def _on_link_state(self) -> None:
+        """Link back / autopilot reboot: ask for the streams again, forget per-boot state."""
+        up = self.link.link_up
+        rebooted = self.time_sync.resets != self._sync_resets
+        self._sync_resets = self.time_sync.resets
+        if (up and not self._was_up) or rebooted:
+            if self.streams is not None:
+                self.streams.reset()
+            if self._was_up or rebooted:
+                self.telemetry.reset()
+                self.safety.reset_contact()
+        if not up and self._was_up:
+            self.safety.reset_contact()
+        self._was_up = up
+
+    def _handle(self, msg) -> ImuSample | None:
         kind = msg.get_type()
-        if kind == 'ATTITUDE_QUATERNION':
-            self._last_seen[MavMsgId.ATTITUDE_QUATERNION] = now
-            return self._attitude(msg)
-        if kind == 'HIGHRES_IMU':
-            self._last_seen[MavMsgId.HIGHRES_IMU] = now
-            acc = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float)
-            if np.all(np.isfinite(acc)):
-                self._lin_acc_frd = acc
-        elif kind == 'TIMESYNC':
-            self._on_timesync(msg)
+        if kind == 'TIMESYNC':
+            for level, text in self.timesync.on_message(msg.tc1, msg.ts1, self._ros_ns):
+                self._event(level, text)
         elif kind == 'PARAM_VALUE':
             self._param(msg.param_id, float(msg.param_value))
         elif kind == 'COMMAND_ACK':
+            if int(msg.command) == MAV_CMD_SET_MESSAGE_INTERVAL:
+                warning = self.streams.on_ack(msg.result) if self.streams else ''
+                if warning:
+                    self._event('warn', warning)
+                return None
             if self.sequencer is not None:
                 self.sequencer.on_command_ack(msg.command, msg.result)
             if msg.result != 0:
                 self._event('warn', f'command {msg.command} answered with result {msg.result}')
+        else:
+            imu, accel, _ = self.telemetry.on_message(msg, self._ros_ns)
+            if accel is not None:
+                self._on_accel(accel)
+            return imu
         return None
 
-    def _attitude(self, msg) -> ImuSample | None:
-        q = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=float)
-        w = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
-        if (not np.all(np.isfinite(q)) or not np.all(np.isfinite(w))
-                or abs(np.linalg.norm(q) - 1.0) > QUAT_NORM_TOLERANCE):
-            self._event('error', f'ATTITUDE_QUATERNION out of range (q={q}, rates={w}): '
-                                 'dropped')
-            return None
-        self._yaw_now = euler_zyx_from_rot(rot_from_quat(q))[2]
-        boot_ms = int(msg.time_boot_ms)
-        for level, text in self.time_sync.on_boot_time('time_boot_ms', boot_ms * NS_PER_MS):
-            self._event(level, text)
-        stamp_ns = self.time_sync.boot_ms_to_ros_ns(boot_ms)
-        if stamp_ns is None:
-            self._imu_unsynced()
-            return None
-        acc = None if self._lin_acc_frd is None else vec_frd_to_flu(self._lin_acc_frd)
-        return ImuSample(stamp_ns, quat_ned_frd_to_enu_flu(q), vec_frd_to_flu(w), acc)
-
-    def _imu_unsynced(self) -> None:
-        """Count an IMU sample dropped for want of the clock offset; warn now and then."""
-        self.imu_dropped_unsynced += 1
-        now = self._clock()
-        if now - self._imu_drop_warned_t < IMU_DROP_WARN_PERIOD_S:
+    def _on_accel(self, a: AccelSample) -> None:
+        """Take an IMU specific-force sample: touchdown rule, hover-thrust estimator."""
+        hover = self.hover_now() or self.config.configured_hover_thrust
+        thr = self.telemetry.thrust
+        commanded = self._current.thrust if self._current is not None and self._may_stream() \
+            else (thr.thrust if thr is not None else hover)
+        f_norm = float(np.linalg.norm(a.f_frd))
+        self.safety.on_accel(a.boot_ns, f_norm, commanded, hover)
+        if self.estimator.theta is None:
+            self._pending_accel.append((a, thr))     # replayed once the seed is known
             return
-        self._imu_drop_warned_t = now
-        n = self.imu_dropped_unsynced - self._imu_drop_reported
-        self._imu_drop_reported = self.imu_dropped_unsynced
-        ts = self.time_sync
-        why = ('no ROS time yet' if self._ros_ns is None or self._ros_ns <= 0
-               else f'{ts.init_progress} of {ts.config.init_samples} TIMESYNC samples, '
-                    f'{ts.rejected_rtt} rejected for their round trip')
-        self._event('warn', f'imu/data: {n} sample(s) dropped, clock not synced with the '
-                            f'autopilot yet ({why}); {self.imu_dropped_unsynced} in all')
+        self._estimate(a, thr)
+
+    def _estimate(self, a: AccelSample, thr) -> None:
+        if thr is None or abs(a.boot_ns - thr.boot_ns) > \
+                self.config.estimator.max_pairing_s * NS_PER_S:
+            return
+        hb = self.link.heartbeat
+        airborne = bool(hb and hb.armed) and self.telemetry.landed is not True
+        boost = 1.0
+        if self.shaper.tilt_boost_by_autopilot and a.cos_tilt > 0.5:
+            boost = 1.0 / a.cos_tilt
+        self.estimator.update(a.boot_ns, float(a.f_frd[2]), float(np.linalg.norm(a.f_frd)),
+                              thr.thrust, boost, airborne)
 
     def _param(self, raw_name, value: float) -> None:
         name = raw_name.decode('ascii', 'replace') if isinstance(raw_name, bytes) else raw_name
         name = name.rstrip('\x00')
         if self.autopilot is not None and name == HOVER_PARAM[self.autopilot] \
-                and self.hover.use_autopilot:
-            self.hover.on_param(name, value)
-            if self.hover.error:
-                self._event('error', self.hover.error)
+                and self.seed.use_autopilot and self.seed.source == 'pending':
+            self.seed.on_param(name, value)
+            if self.seed.error:
+                self._event('error', self.seed.error)
             else:
-                self._event('info', f'hover thrust {value:.3f} from {name}')
-        elif name == GUID_OPTIONS_PARAM:
-            if np.isfinite(value):
-                self.guid_options = int(value)
+                self._event('info', f'hover thrust seed {value:.3f} from {name}')
+            self._start_estimator()
+        elif name == GUID_OPTIONS_PARAM and np.isfinite(value):
+            self.guid_options = int(value)
+        elif name == ANGLE_BOOST_PARAM and np.isfinite(value) and self.angle_boost is None:
+            self._set_angle_boost(int(value), f'{ANGLE_BOOST_PARAM} = {int(value)}')
+
+    def _set_angle_boost(self, value: int, why: str) -> None:
+        self.angle_boost = value
+        boost = self.autopilot == Autopilot.ARDUPILOT and value != 0
+        self.shaper.tilt_boost_by_autopilot = boost
+        self._event('info', f'{why}: ' + (
+            'ArduPilot boosts the thrust by 1/cos(tilt) itself, the bridge sends the vertical '
+            'component of F' if boost else 'the bridge sends |F|'))
+
+    def _start_estimator(self) -> None:
+        if self.estimator.theta is not None or self.seed.value is None:
+            return
+        self.estimator.start(self.seed.value)
+        pending, self._pending_accel = list(self._pending_accel), deque(
+            maxlen=PENDING_ACCEL_KEPT)
+        for a, thr in pending:
+            self._estimate(a, thr)
 
     def _params_missing(self) -> list[str]:
         missing = []
         if self.autopilot is None:
             return missing
-        if self.hover.value is None:
+        if self.seed.value is None:
             missing.append(HOVER_PARAM[self.autopilot])
-        if self.autopilot == Autopilot.ARDUPILOT and self.guid_options is None:
-            missing.append(GUID_OPTIONS_PARAM)
+        if self.autopilot == Autopilot.ARDUPILOT:
+            if self.guid_options is None:
+                missing.append(GUID_OPTIONS_PARAM)
+            if self.angle_boost is None:
+                missing.append(ANGLE_BOOST_PARAM)
         return missing
 
     def _service_requests(self, now: float) -> None:
-        """Parameter reads and message-interval requests, retried while unanswered."""
-        if not self.link.link_up:
-            self._params_since = None
-            return
+        """Parameter reads (retried while unanswered) and stream requests (one at a time)."""
         if self._params_since is None:
             self._params_since = now
         missing = self._params_missing()
@@ -813,53 +551,56 @@ class MavlinkBridge:
             for name in missing:
                 self.link.request_param(name)
         if missing and now - self._params_since >= self.config.param_timeout_s:
-            self.hover.on_timeout()
-        rates = {MavMsgId.ATTITUDE_QUATERNION: self.config.attitude_rate_hz,
-                 MavMsgId.HIGHRES_IMU: self.config.imu_rate_hz}
-        for msg_id, rate in rates.items():
-            seen = self._last_seen.get(msg_id, -np.inf)
-            asked = self._last_interval_request.get(msg_id, -np.inf)
-            retry = self.config.interval_retry_s
-            if now - seen > retry and now - asked > retry:
-                self._last_interval_request[msg_id] = now
-                self.link.set_message_interval(msg_id, rate)
+            self.seed.on_timeout()
+            self._start_estimator()
+            if self.autopilot == Autopilot.ARDUPILOT and self.angle_boost is None:
+                self._set_angle_boost(ARDUPILOT_ANGLE_BOOST_DEFAULT,
+                                      f'{ANGLE_BOOST_PARAM} unread: assuming ArduPilot\'s '
+                                      f'default {ARDUPILOT_ANGLE_BOOST_DEFAULT}')
+        if self.streams is not None:
+            req = self.streams.step(now)
+            if req is not None:
+                self.link.set_message_interval(*req)
+
+    def _may_stream(self) -> bool:
+        return (self.link.link_up and self.stream_enabled and self.sequencer is not None
+                and self.sequencer.streaming)
 
     def _run_sequencer(self, now: float) -> None:
         if self.sequencer is None:
             return
         hb = self.link.heartbeat
+        vehicle = self._vehicle_s()
         timed_out = (self._params_since is not None
                      and now - self._params_since >= self.config.param_timeout_s)
+        was = self.sequencer.state
         inp = SequencerInputs(
             t=now, link_up=self.link.link_up, supervisor_mode=self.supervisor_mode,
-            armed=bool(hb and hb.armed), custom_mode=hb.custom_mode if hb else 0,
-            streaming_s=self._streaming_s(now), hover_thrust_ready=self.hover.value is not None,
-            guid_options=self.guid_options, params_timed_out=timed_out,
-            ramp_done=self.shaper.ramp_done(now))
+            idle_reports=self.idle_reports, armed=bool(hb and hb.armed),
+            custom_mode=hb.custom_mode if hb else 0, streaming_s=self._streaming_s(now),
+            hover_thrust_ready=self.seed.value is not None, guid_options=self.guid_options,
+            params_timed_out=timed_out, ramp_done=self.shaper.ramp_done(now),
+            armable=self.telemetry.armable, landed=self.telemetry.landed,
+            inputs_lost=self.safety.inputs_lost(vehicle), touchdown=self.safety.touchdown,
+            airborne_at_low_thrust=self.safety.airborne_at_low_thrust)
         for req in self.sequencer.step(inp):
             self._event('info', f'command {req.command.name} {req.params}: {req.reason}')
             self.link.send_command_long(req.command, req.params)
+        if self.sequencer.state != was:
+            if self.sequencer.state == EngageState.SET_MODE:
+                self.safety.start_count(vehicle)     # engaging without any force: counts
+            if not self.sequencer.streaming:
+                self._stream_start = None
 
     def _streaming_s(self, now: float) -> float:
         if self._stream_start is None:
             return 0.0
         return now - self._stream_start
 
-    def _send_forces(self, forces: list[PairedForce]) -> None:
-        """Store and send each paired force at once, in order."""
-        for p in forces:
-            # Before any heading: the current yaw, frozen so that repeats equal what was sent.
-            self.shaper.on_force(p.t_rx, p.F_I, self._yaw_now if p.yaw is None else p.yaw)
-            if self._setpoint_stamp_ns is None or p.stamp_ns > self._setpoint_stamp_ns:
-                self._setpoint_stamp_ns = p.stamp_ns
-            self._force_stamp_ns, self._force_sent_t = p.stamp_ns, self._clock()
-            self._send_current(new=True)
-
     def _send_current(self, new: bool) -> None:
-        """Build the target for the current mode and send it (if the link can)."""
+        """Build the target for the current state and mode; send it if the policy streams."""
         now = self._clock()
-        hover = self.hover.value if self.hover.value is not None \
-            else self.config.configured_hover_thrust
+        seq = self.sequencer
         # Every target carries the stamp of the latest controller output (0 before any), never
         # the autopilot's current time: a fallback (level hover before the first force, hold,
         # shutdown ramp) is not an answer to a newer camera frame, so the sim's lockstep keeps
@@ -867,9 +608,12 @@ class MavlinkBridge:
         # send: a repeat sent once the clocks are synced carries the mapped value (0 before).
         stamp = self._setpoint_stamp_ns
         ms = (self.stamp_to_boot_ms(stamp) if stamp is not None else None) or 0
-        t_vehicle = 0.0 if stamp is None else stamp / NS_PER_S
-        target = self.shaper.target(now, self.content_mode(now), self._yaw_now, hover, ms,
-                                    t_vehicle)
+        t_stamp = 0.0 if stamp is None else stamp / NS_PER_S
+        hover = self.hover_now() or self.config.configured_hover_thrust
+        target = self.shaper.target(
+            self._vehicle_s(), self.content_mode(), self.telemetry.yaw_now, hover, ms, t_stamp,
+            now, engaged=bool(seq and seq.state == EngageState.ENGAGED),
+            level_hold=bool(seq and seq.level_hold))
         if target.source == SetpointSource.HOLD_LAST and new:
             self._event('error', f'force setpoint refused ({self.shaper.last_error}): '
                                  'holding the last valid one')
@@ -879,13 +623,13 @@ class MavlinkBridge:
                         f'{target.source.value}')
             self.setpoint_source = target.source
         self._current = target
-        if not self.link.link_up or not self.stream_enabled:
+        if not self._may_stream():
             self._stream_start = None
             return
         if self.link.send_attitude_target(target.time_boot_ms, target.q_wxyz, target.thrust,
                                           target.type_mask):
             self.rate.tick(now)
-            if self._stream_start is None or (self._last_stream_t is not None
-                                              and now - self._last_stream_t > STREAM_GAP_S):
+            if self._stream_start is None or (self._last_send_t is not None
+                                              and now - self._last_send_t > STREAM_GAP_S):
                 self._stream_start = now
-            self._last_stream_t = now
+            self._last_send_t = now

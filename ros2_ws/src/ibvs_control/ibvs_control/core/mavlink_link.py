@@ -1,12 +1,18 @@
 """MAVLink 2 link of the bridge: connection, signing, heartbeats, sending and receiving.
 
 ROS-free (pymavlink only). The link knows nothing about modes or setpoints: it opens a
-connection by URL (``udpout:host:port``, ``udpin:host:port``, ``tcp:host:port``,
-``/dev/ttyUSB0,921600``), speaks as an onboard computer, signs what it sends when a key is
-configured (and then drops every unsigned or wrongly signed message), learns the autopilot's
-system/component id from its first HEARTBEAT and supervises the link from the autopilot's
-heartbeats. Everything that decides *what* to send lives in :mod:`mavlink_bridge` and
-:mod:`mavlink_sequencer`.
+connection by URL (``udpin:0.0.0.0:14540`` = PX4's companion port, the default;
+``udpout:host:port``, ``tcp:host:port``, serial ``/dev/ttyUSB0,921600``), speaks as an onboard
+computer, signs what it sends when a key is configured (and then drops every unsigned or wrongly
+signed message), learns the autopilot's system/component id from its first HEARTBEAT and
+supervises the link from the autopilot's heartbeats.
+
+A lost link (no HEARTBEAT for ``heartbeat_timeout_s``) does not reopen a UDP or TCP connection:
+the socket, and so our address, is kept, because PX4 answers the first address it heard (a
+udpout socket reopened on a new port was never answered again). UDP needs nothing else; TCP
+reconnects once the peer closes (EOF / reset, then every ``reconnect_period_s``); a serial port is
+reopened every ``reconnect_period_s`` while lost (a USB adapter may have been re-enumerated).
+Everything that decides *what* to send lives in the other ``mavlink_*`` modules.
 """
 from __future__ import annotations
 
@@ -60,9 +66,18 @@ class MavState(IntEnum):
 class MavMsgId(IntEnum):
     """Message ids the bridge requests (MAV_CMD_SET_MESSAGE_INTERVAL) or exchanges."""
 
-    HIGHRES_IMU = 105
+    HEARTBEAT = 0
+    SYS_STATUS = 1
+    SCALED_IMU = 26
     ATTITUDE_QUATERNION = 31
+    ATTITUDE_TARGET = 83
+    HIGHRES_IMU = 105
     TIMESYNC = 111
+    EXTENDED_SYS_STATE = 245
+    EVENT = 410
+
+
+UDP_CLIENT_TIMEOUT_S = 5   # udpin: stop sending to a peer silent this long (one is always kept)
 
 
 # Message types of the autopilot that mean "someone else", never our peer autopilot.
@@ -98,13 +113,14 @@ def load_signing_key(path: str | os.PathLike) -> bytes:
 class LinkConfig:
     """Connection and link-supervision settings (see params.yaml, section mavlink_bridge)."""
 
-    url: str = 'udpout:127.0.0.1:14560'
+    url: str = 'udpin:0.0.0.0:14540'
     source_system: int = 1                   # our system id (same vehicle as the autopilot)
     source_component: int = MavComponent.ONBOARD_COMPUTER
     target_system: int = 0                   # 0: learn from the first autopilot HEARTBEAT
     target_component: int = 0                # 0: learn from the first autopilot HEARTBEAT
-    heartbeat_timeout_s: float = 1.5         # no autopilot HEARTBEAT for this long: link lost
-    reconnect_period_s: float = 1.0          # while lost, reopen the connection this often
+    heartbeat_timeout_s: float = 3.5         # no autopilot HEARTBEAT for this long: link lost
+    #                                          (> 3 periods of PX4's and ArduPilot's 1 Hz)
+    reconnect_period_s: float = 1.0          # serial / broken sockets: reopen this often
     signing_key: bytes | None = None         # 32 bytes: sign outgoing, reject unsigned input
     signing_link_id: int = 0
 
@@ -125,7 +141,8 @@ class LinkCounters:
     sent: int = 0
     bad_data: int = 0             # unparsable or rejected (bad/missing signature) packets
     foreign: int = 0              # valid messages from other systems, ignored
-    reconnects: int = 0
+    reconnects: int = 0           # link up again after a loss
+    reopens: int = 0              # connection (re)opened after an error or a serial loss
     link_losses: int = 0
     send_errors: int = 0
 
@@ -175,10 +192,14 @@ class MavlinkLink:
         self.close()
         self._last_open_t = self._clock()
         self.last_error = ''
+        url = self.config.url
         try:
+            # TCP: one connect attempt, never a blocking retry loop inside a poll (a failed
+            # reconnect raises out of recv; poll() then reopens every reconnect_period_s).
             self._conn = mavutil.mavlink_connection(
-                self.config.url, source_system=self.config.source_system,
-                source_component=self.config.source_component, autoreconnect=True)
+                url, source_system=self.config.source_system,
+                source_component=self.config.source_component, autoreconnect=True,
+                retries=0, udp_timeout=UDP_CLIENT_TIMEOUT_S)
         except Exception as exc:  # OSError, serial errors, bad URL: reported, retried
             self._conn = None
             self.last_error = f'cannot open {self.config.url}: {exc}'
@@ -199,6 +220,12 @@ class MavlinkLink:
             except Exception:  # closing a broken socket/serial port: nothing left to do
                 pass
             self._conn = None
+
+    @property
+    def is_serial(self) -> bool:
+        """Whether the URL is a serial device (``/dev/...,baud``, ``COMn``)."""
+        return not self.config.url.split(':', 1)[0] in ('udpin', 'udpout', 'udp', 'udpbcast',
+                                                        'tcp', 'tcpin')
 
     @property
     def is_open(self) -> bool:
@@ -273,13 +300,18 @@ class MavlinkLink:
               and now - self._last_heartbeat_t <= self.config.heartbeat_timeout_s)
         if self._link_up and not up:
             self.counters.link_losses += 1
+        elif up and not self._link_up and self.counters.link_losses:
+            self.counters.reconnects += 1
         self._link_up = up
-        if not up and now - self._last_open_t >= self.config.reconnect_period_s:
-            if self._last_heartbeat_t is not None or self._conn is None:
-                self.counters.reconnects += 1
-                self.open()
-            else:
-                self._last_open_t = now  # never heard the autopilot: keep the socket
+        if up or now - self._last_open_t < self.config.reconnect_period_s:
+            return
+        # Lost (or never up): a broken connection is reopened; a serial port too once it was
+        # heard; a working UDP/TCP socket is kept (the autopilot answers the address it knows).
+        if self._conn is None or (self.is_serial and self._last_heartbeat_t is not None):
+            self.counters.reopens += 1
+            self.open()
+        else:
+            self._last_open_t = now
 
     # --- sending -----------------------------------------------------------------------
     def _send(self, encode: str, *args) -> bool:

@@ -1,26 +1,28 @@
-"""Arming / flight-mode state machine of the MAVLink bridge (ROS-free, no I/O).
+"""Engage / arm / hand-back state machine of the MAVLink bridge (ROS-free, no I/O).
 
-The sequencer decides *which commands* to send to the autopilot and *when*; the bridge sends
-them. Sequences (docs/mavlink.md):
+The sequencer decides *which commands* to send to the autopilot, *when*, and whether setpoints
+stream at all; the bridge sends them. It carries out the safety policy of
+:mod:`~ibvs_control.core.mavlink_safety` (the table in docs/mavlink.md). Sequences:
 
-PX4
-    stream setpoints for more than ``prestream_s`` (PX4 refuses OFFBOARD without a setpoint
-    stream), then ``MAV_CMD_DO_SET_MODE`` with param1 = MAV_MODE_FLAG_CUSTOM_MODE_ENABLED (1)
-    and param2 = 6 (OFFBOARD main mode; NOT the packed ``6 << 16``, which PX4 acknowledges and
-    ignores); wait for COMMAND_ACK *and* a HEARTBEAT whose custom_mode main mode
-    (bits 16-23) is 6; then ``MAV_CMD_COMPONENT_ARM_DISARM`` (param1 = 1) unless armed.
-ArduPilot (Copter)
-    read ``GUID_OPTIONS`` first and refuse (state REFUSED) unless bit 3 is set (thrust is
-    then read as thrust, not as a climb rate); then ``MAV_CMD_DO_SET_MODE`` (1, 20 =
-    GUIDED_NOGPS), check the HEARTBEAT's custom_mode == 20, then arm.
-
-Engagement starts when the supervisor leaves IDLE for a flying mode; before that the bridge
-streams but does not switch. In SHUTDOWN the bridge ramps the thrust down (see
-:class:`mavlink_bridge.SetpointShaper`) and the sequencer disarms when the ramp has ended
-(``MAV_CMD_COMPONENT_ARM_DISARM`` param1 = 0; if the autopilot refuses - in the air a PX4 or
-ArduPilot does - again with param2 = 21196, the force magic). After a link loss the
-autopilot's own offboard-loss failsafe has the vehicle; the sequencer re-engages only when the
-link is back *and* the supervisor is still in a flying mode.
+Engage (the supervisor leaves IDLE for WINDOW / CROSSING / LANDING; at least one IDLE report
+since the last engagement, so a bridge restarted mid-flight never takes the vehicle by itself)
+    PX4: stream for more than ``prestream_s`` (PX4 refuses OFFBOARD without a setpoint stream),
+    then ``MAV_CMD_DO_SET_MODE`` param1 = 1 (custom mode), param2 = 6 (OFFBOARD; NOT the packed
+    ``6 << 16``, which PX4 acknowledges and ignores); effective when a HEARTBEAT shows main mode
+    6. ArduPilot: read ``GUID_OPTIONS`` first and refuse (REFUSED) unless bit 3 is set (thrust
+    is then thrust, not a climb rate); DO_SET_MODE (1, 20 = GUIDED_NOGPS); setpoints stream from
+    the switch on only (ArduPilot needs no pre-stream, and a GUIDED mode obeys them).
+Arm (only if asked: ``ibvs/arm`` or ``arm_on_start``)
+    In the offboard mode and disarmed: ``MAV_CMD_COMPONENT_ARM_DISARM`` param1 = 1, once the
+    autopilot reports itself armable (SYS_STATUS pre-arm bit), retried with a backoff (doubling
+    from ``command_retry_s`` up to ``arm_backoff_max_s``) until armed or ``arm_timeout_s``.
+    Not asked: WAIT_ARM, nothing sent.
+Hand back
+    The supervisor's SHUTDOWN: thrust ramp (the bridge), then disarm; FAILSAFE, forces lost
+    (ArduPilot; PX4 by default stops streaming), a shutdown in the air, a disarm that does not
+    come: the autopilot's land mode (PX4 AUTO.LAND = DO_SET_MODE 1, 4, 6; ArduPilot LAND =
+    DO_SET_MODE 1, 9), setpoints stop once it shows. A mode the bridge did not ask for, or a
+    lost link: setpoints stop at once (HELD), never taken back by the bridge itself.
 """
 from __future__ import annotations
 
@@ -57,11 +59,16 @@ class Autopilot(Enum):
 
 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
 PX4_MAIN_MODE_OFFBOARD = 6             # PX4 custom main mode (custom_mode bits 16-23)
+PX4_MAIN_MODE_AUTO = 4
+PX4_AUTO_SUB_MODE_LAND = 6             # custom_mode bits 24-31
 PX4_MAIN_MODE_SHIFT = 16
+PX4_SUB_MODE_SHIFT = 24
 ARDUCOPTER_MODE_GUIDED_NOGPS = 20      # ArduCopter custom_mode
+ARDUCOPTER_MODE_LAND = 9
 GUID_OPTIONS_THRUST_BIT = 1 << 3       # ArduPilot GUID_OPTIONS bit 3: "SetAttitudeTarget
 #                                        interprets thrust as thrust" (not climb rate)
 ARM_DISARM_FORCE_MAGIC = 21196         # param2 of COMPONENT_ARM_DISARM: force (dis)arm
+INPUT_LOSS_ACTIONS = ('auto', 'stop', 'land')
 
 
 def px4_main_mode(custom_mode: int) -> int:
@@ -69,32 +76,68 @@ def px4_main_mode(custom_mode: int) -> int:
     return (int(custom_mode) >> PX4_MAIN_MODE_SHIFT) & 0xFF
 
 
+def px4_sub_mode(custom_mode: int) -> int:
+    """PX4 sub mode of a HEARTBEAT custom_mode (bits 24-31)."""
+    return (int(custom_mode) >> PX4_SUB_MODE_SHIFT) & 0xFF
+
+
 class EngageState(Enum):
     """States of :class:`EngageSequencer` (reported on /diagnostics)."""
 
     NO_LINK = 'no_link'              # no autopilot heartbeat (never, or lost)
     PREFLIGHT = 'preflight'          # link up, waiting for the parameters it needs
-    STANDBY = 'standby'              # streaming; supervisor IDLE: do not switch
-    SET_MODE = 'set_mode'            # DO_SET_MODE sent, waiting for ACK + heartbeat mode
-    ARMING = 'arming'                # in the offboard mode, arming
+    STANDBY = 'standby'              # supervisor IDLE (PX4: streaming); not engaged
+    SET_MODE = 'set_mode'            # DO_SET_MODE sent, waiting for the heartbeat's mode
+    WAIT_ARM = 'wait_arm'            # in the offboard mode, disarmed, no arm request
+    ARMING = 'arming'                # in the offboard mode, arming on request
     ENGAGED = 'engaged'              # offboard and armed: the IBVS setpoints fly
     SHUTDOWN_RAMP = 'shutdown_ramp'  # mode 4: thrust ramping down
-    DISARMING = 'disarming'          # ramp ended, disarm sent
-    DONE = 'done'                    # disarmed after the shutdown
-    HELD = 'held'                    # not flying the IBVS setpoints; autopilot in charge
+    DISARMING = 'disarming'          # ramp ended, disarm sent (touchdown rule for the force)
+    LANDING = 'landing'              # the autopilot's land mode asked for / flying
+    DONE = 'done'                    # disarmed after a shutdown or a landing
+    HELD = 'held'                    # not streaming; the pilot / autopilot is in charge
     REFUSED = 'refused'              # configuration forbids flying (e.g. GUID_OPTIONS)
     FAILED = 'failed'                # mode switch or arming failed after all retries
 
 
+# States where the bridge was flying the vehicle (a link loss there hands it to the autopilot).
+_FLIGHT_STATES = (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
+                  EngageState.ENGAGED)
+_SHUTDOWN_STATES = (EngageState.SHUTDOWN_RAMP, EngageState.DISARMING, EngageState.LANDING)
+
+
 @dataclass(frozen=True)
 class SequencerConfig:
-    """Timing of the sequences (s) and the number of command attempts."""
+    """Timing of the sequences (s), command attempts and the input-loss action."""
 
     autopilot: Autopilot = Autopilot.PX4
     prestream_s: float = 1.2         # PX4: setpoint stream length before OFFBOARD (> 1 s)
-    command_retry_s: float = 1.0     # resend an unanswered/refused command after this
-    max_attempts: int = 5            # then FAILED
-    disarm_force_after_s: float = 1.0  # refused or ignored disarm: force after this
+    command_retry_s: float = 1.0     # resend an unanswered / ineffective command after this
+    max_attempts: int = 5            # mode switches: then FAILED (land: then stop streaming)
+    arm_backoff_max_s: float = 8.0   # arming retries back off up to this period
+    arm_timeout_s: float = 60.0      # arming still refused after this long: FAILED
+    disarm_force_after_s: float = 1.0  # touchdown rule: evidence and refusal this long
+    disarm_timeout_s: float = 10.0   # still armed after the ramp this long: land mode
+    input_loss_action: str = 'auto'  # forces lost: 'stop' streaming | 'land' | 'auto'
+    #                                  (PX4: stop, its offboard-loss failsafe; ArduPilot: land)
+
+    def __post_init__(self):
+        if self.input_loss_action not in INPUT_LOSS_ACTIONS:
+            raise ValueError(f'input_loss_action must be one of {INPUT_LOSS_ACTIONS}, not '
+                             f'{self.input_loss_action!r}')
+        for name in ('prestream_s', 'command_retry_s', 'arm_backoff_max_s', 'arm_timeout_s',
+                     'disarm_force_after_s', 'disarm_timeout_s'):
+            if not getattr(self, name) > 0.0:
+                raise ValueError(f'{name} must be > 0')
+        if int(self.max_attempts) < 1:
+            raise ValueError('max_attempts must be >= 1')
+
+    @property
+    def loss_action(self) -> str:
+        """'stop' or 'land' for this autopilot."""
+        if self.input_loss_action != 'auto':
+            return self.input_loss_action
+        return 'stop' if self.autopilot == Autopilot.PX4 else 'land'
 
 
 @dataclass(frozen=True)
@@ -113,13 +156,19 @@ class SequencerInputs:
     t: float                           # monotonic s
     link_up: bool
     supervisor_mode: Mode
+    idle_reports: int = 0              # IDLE reports of the supervisor so far
     armed: bool = False
     custom_mode: int = 0
     streaming_s: float = 0.0           # how long setpoints have been streamed without a gap
     hover_thrust_ready: bool = False
     guid_options: int | None = None    # ArduPilot parameter (None: not read yet)
     params_timed_out: bool = False     # the parameter requests got no answer in time
-    ramp_done: bool = False            # SetpointShaper: the mode-4 ramp has ended
+    ramp_done: bool = False            # the mode-4 ramp has ended
+    armable: bool | None = None        # SYS_STATUS pre-arm bit (None: not reported)
+    landed: bool | None = None         # EXTENDED_SYS_STATE (None: not reported)
+    inputs_lost: bool = False          # safety: no valid force for hold_last_s while engaged
+    touchdown: bool = False            # safety: the touchdown rule holds
+    airborne_at_low_thrust: bool = False  # safety: no ground contact, thrust far below hover
 
 
 @dataclass
@@ -128,19 +177,26 @@ class _Pending:
     sent_t: float
     attempts: int
     ack: MavResult | None = None
+    forced: bool = False
 
 
 @dataclass
 class EngageSequencer:
-    """The arming / mode state machine. Call :meth:`step` periodically, feed ACKs."""
+    """The engage / arm / hand-back state machine. Call :meth:`step` often, feed ACKs."""
 
     config: SequencerConfig = field(default_factory=SequencerConfig)
     state: EngageState = EngageState.NO_LINK
-    engaged_once: bool = False         # were we ever engaged (re-engage after link loss)
     disarm_forced: bool = False
-    _held_for_link_loss: bool = False  # HELD because of a link loss (may re-engage)
+    arm_requested: bool = False        # ibvs/arm or arm_on_start (cleared once used)
     last_reason: str = ''
+    _engaged_at_idle: int = 0          # idle_reports when the last engagement started
+    _lost_in: EngageState | None = None   # state when the link was lost
     _pending: _Pending | None = None
+    _entered_t: float = 0.0
+    _arm_start_t: float | None = None
+    _land_confirmed: bool = False
+    _first_refusal_t: float | None = None
+    _said: set = field(default_factory=set)
     _events: list = field(default_factory=list)
 
     # --- inputs ------------------------------------------------------------------------
@@ -152,18 +208,63 @@ class EngageSequencer:
             except ValueError:
                 self._pending.ack = MavResult.FAILED
 
+    def request_arm(self) -> tuple[bool, str]:
+        """Take an arm request (ibvs/arm): latched until used or the vehicle is handed back."""
+        if self.state in (EngageState.REFUSED, EngageState.FAILED):
+            return False, f'not arming: bridge {self.state.value} ({self.last_reason})'
+        self.arm_requested = True
+        return True, (f'arm request accepted (bridge {self.state.value}): the bridge arms the '
+                      'vehicle once it is in the offboard mode and armable')
+
     def pop_events(self) -> list[str]:
         """Human-readable transitions since the last call (for the node's log)."""
         events, self._events = self._events, []
         return events
 
+    # --- what the bridge does ----------------------------------------------------------
+    @property
+    def streaming(self) -> bool:
+        """Whether setpoints should stream now (the link being up is checked by the bridge)."""
+        s = self.state
+        if s in (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
+                 EngageState.ENGAGED, EngageState.SHUTDOWN_RAMP, EngageState.DISARMING):
+            return True
+        if s == EngageState.LANDING:
+            return not self._land_confirmed
+        return (self.config.autopilot == Autopilot.PX4
+                and s in (EngageState.PREFLIGHT, EngageState.STANDBY))
+
+    @property
+    def level_hold(self) -> bool:
+        """Whether the content is the level hold (until the autopilot's land mode shows)."""
+        return self.state == EngageState.LANDING
+
+    @property
+    def engaged(self) -> bool:
+        """Whether the IBVS setpoints fly the vehicle."""
+        return self.state == EngageState.ENGAGED
+
     # --- helpers -----------------------------------------------------------------------
-    def _go(self, state: EngageState, reason: str) -> None:
+    def _go(self, state: EngageState, reason: str, t: float | None = None) -> None:
         if state != self.state:
             self._events.append(f'{self.state.value} -> {state.value}: {reason}')
             self.state = state
             self.last_reason = reason
             self._pending = None
+            self._said.discard('state')
+            if t is not None:
+                self._entered_t = t
+            if state in (EngageState.HELD, EngageState.DONE, EngageState.FAILED):
+                self.arm_requested = False
+            if state == EngageState.LANDING:
+                self._land_confirmed = False
+            if state == EngageState.DISARMING:
+                self._first_refusal_t = None
+
+    def _say_once(self, key: str, text: str) -> None:
+        if key not in self._said:
+            self._said.add(key)
+            self._events.append(text)
 
     def in_offboard(self, custom_mode: int) -> bool:
         """Whether the HEARTBEAT custom_mode is the bridge's offboard mode."""
@@ -171,22 +272,36 @@ class EngageSequencer:
             return px4_main_mode(custom_mode) == PX4_MAIN_MODE_OFFBOARD
         return int(custom_mode) == ARDUCOPTER_MODE_GUIDED_NOGPS
 
-    def _mode_params(self) -> tuple[float, ...]:
-        mode = (PX4_MAIN_MODE_OFFBOARD if self.config.autopilot == Autopilot.PX4
-                else ARDUCOPTER_MODE_GUIDED_NOGPS)
-        return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(mode))
+    def in_land_mode(self, custom_mode: int) -> bool:
+        """Whether the HEARTBEAT custom_mode is the autopilot's land mode."""
+        if self.config.autopilot == Autopilot.PX4:
+            return (px4_main_mode(custom_mode) == PX4_MAIN_MODE_AUTO
+                    and px4_sub_mode(custom_mode) == PX4_AUTO_SUB_MODE_LAND)
+        return int(custom_mode) == ARDUCOPTER_MODE_LAND
 
-    def _command(self, t: float, command: MavCmd, params: tuple[float, ...],
-                 reason: str) -> list[CommandRequest]:
-        """Send (or resend after command_retry_s) a command; FAILED after max_attempts."""
+    def offboard_params(self) -> tuple[float, ...]:
+        """DO_SET_MODE params of the offboard mode."""
+        if self.config.autopilot == Autopilot.PX4:
+            return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(PX4_MAIN_MODE_OFFBOARD))
+        return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(ARDUCOPTER_MODE_GUIDED_NOGPS))
+
+    def land_params(self) -> tuple[float, ...]:
+        """DO_SET_MODE params of the land mode (PX4 AUTO.LAND, ArduPilot LAND)."""
+        if self.config.autopilot == Autopilot.PX4:
+            return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(PX4_MAIN_MODE_AUTO),
+                    float(PX4_AUTO_SUB_MODE_LAND))
+        return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(ARDUCOPTER_MODE_LAND))
+
+    def _command(self, t: float, command: MavCmd, params: tuple[float, ...], reason: str,
+                 period: float | None = None) -> list[CommandRequest] | None:
+        """Send (or resend after ``period``) a command; None once max_attempts are used."""
+        period = self.config.command_retry_s if period is None else period
         p = self._pending
         if p is not None and p.command == command:
-            if t - p.sent_t < self.config.command_retry_s:
+            if t - p.sent_t < period:
                 return []  # answered or not, the heartbeat tells whether it took effect
             if p.attempts >= self.config.max_attempts:
-                self._go(EngageState.FAILED, f'{command.name} not effective after '
-                         f'{p.attempts} attempts (last ack: {p.ack})')
-                return []
+                return None
             attempts = p.attempts + 1
         else:
             attempts = 1
@@ -198,123 +313,248 @@ class EngageSequencer:
         """Advance the machine; return the commands to send now."""
         s = self.state
         if not inp.link_up:
-            if s not in (EngageState.NO_LINK, EngageState.REFUSED, EngageState.DONE):
-                self._go(EngageState.NO_LINK, 'autopilot heartbeat lost: the autopilot '
-                         'failsafe has the vehicle')
+            if s not in (EngageState.NO_LINK, EngageState.REFUSED, EngageState.DONE,
+                         EngageState.FAILED):
+                self._lost_in = s
+                self._go(EngageState.NO_LINK, 'autopilot heartbeat lost: setpoints stopped, the '
+                         "autopilot's own failsafe has the vehicle", inp.t)
             return []
-        if s in (EngageState.REFUSED, EngageState.DONE, EngageState.FAILED):
+        if s in (EngageState.REFUSED, EngageState.FAILED):
             return []
         if s == EngageState.NO_LINK:
-            self._go(EngageState.PREFLIGHT, 'autopilot heartbeat received')
+            self._go(EngageState.PREFLIGHT, 'autopilot heartbeat received', inp.t)
             s = self.state
-        flying = inp.supervisor_mode in FLYING_MODES
         if s == EngageState.PREFLIGHT:
             return self._preflight(inp)
-        if s in (EngageState.STANDBY, EngageState.HELD):
-            if s == EngageState.STANDBY and flying and not self.engaged_once:
-                self._go(EngageState.SET_MODE, f'supervisor mode {inp.supervisor_mode.name}')
-            elif s == EngageState.HELD and flying and self._held_for_link_loss:
-                self._go(EngageState.SET_MODE, 'link back, supervisor still flying: '
-                         're-engaging')
-            else:
-                return []
-            s = self.state
-        if s in (EngageState.SET_MODE, EngageState.ARMING) and not flying:
-            self._go(EngageState.HELD, f'supervisor mode {inp.supervisor_mode.name} before '
-                     'engagement: not switching')
-            self._held_for_link_loss = False
-            return []
-        if s == EngageState.SET_MODE:
-            return self._set_mode(inp)
-        if s == EngageState.ARMING:
-            return self._arming(inp)
-        if s == EngageState.ENGAGED:
-            return self._engaged(inp)
-        if s == EngageState.SHUTDOWN_RAMP:
-            if not inp.armed:
-                self._go(EngageState.DONE, 'disarmed during the ramp')
-            elif inp.ramp_done:
-                self._go(EngageState.DISARMING, 'thrust ramp ended')
-                return self._disarm(inp)
-            return []
-        if s == EngageState.DISARMING:
-            return self._disarm(inp)
-        return []
+        handler = {EngageState.STANDBY: self._standby, EngageState.HELD: self._idle_again,
+                   EngageState.DONE: self._idle_again, EngageState.SET_MODE: self._set_mode,
+                   EngageState.WAIT_ARM: self._arming, EngageState.ARMING: self._arming,
+                   EngageState.ENGAGED: self._engaged,
+                   EngageState.SHUTDOWN_RAMP: self._shutdown_ramp,
+                   EngageState.DISARMING: self._disarming,
+                   EngageState.LANDING: self._landing}[s]
+        return handler(inp)
 
     def _preflight(self, inp: SequencerInputs) -> list[CommandRequest]:
         if self.config.autopilot == Autopilot.ARDUPILOT:
             if inp.guid_options is None:
                 if inp.params_timed_out:
                     self._go(EngageState.REFUSED, 'GUID_OPTIONS could not be read: refusing '
-                             'to fly (thrust might be read as a climb rate)')
+                             'to fly (thrust might be read as a climb rate)', inp.t)
                 return []
             if not int(inp.guid_options) & GUID_OPTIONS_THRUST_BIT:
                 self._go(EngageState.REFUSED, f'GUID_OPTIONS = {int(inp.guid_options)} lacks '
                          'bit 3 (SET_ATTITUDE_TARGET thrust as thrust): refusing to fly; '
-                         'set GUID_OPTIONS |= 8 on the autopilot')
+                         'set GUID_OPTIONS |= 8 on the autopilot', inp.t)
                 return []
         if not inp.hover_thrust_ready:
             return []
-        if self.engaged_once:
-            self._go(EngageState.HELD, 'link back')
-            self._held_for_link_loss = True
-        else:
-            self._go(EngageState.STANDBY, 'parameters ready; streaming')
+        lost_in, self._lost_in = self._lost_in, None
+        if lost_in in _SHUTDOWN_STATES:
+            return self._resolve_shutdown(inp, 'link back during the shutdown')
+        if lost_in in _FLIGHT_STATES:
+            if inp.armed and self.in_offboard(inp.custom_mode):
+                return self._inputs_lost(inp, 'link back, vehicle still in the offboard mode '
+                                              'without our setpoints')
+            self._go(EngageState.HELD, "link back: the autopilot's failsafe had the vehicle; "
+                     'not taking it back', inp.t)
+            return []
+        self._go(EngageState.STANDBY, 'parameters ready', inp.t)
+        return self._standby(inp)
+
+    def _standby(self, inp: SequencerInputs) -> list[CommandRequest]:
+        if self.in_offboard(inp.custom_mode) and inp.armed:
+            self._go(EngageState.HELD, f'the autopilot is in the offboard mode (custom_mode '
+                     f'{inp.custom_mode}) without the bridge asking: not streaming', inp.t)
+            return []
+        if inp.supervisor_mode in FLYING_MODES and inp.idle_reports > self._engaged_at_idle:
+            self._engaged_at_idle = inp.idle_reports
+            self._go(EngageState.SET_MODE, f'supervisor mode {inp.supervisor_mode.name}', inp.t)
+            return self._set_mode(inp)
+        return []
+
+    def _idle_again(self, inp: SequencerInputs) -> list[CommandRequest]:
+        """HELD / DONE: silent; a new engagement needs the supervisor back in IDLE first."""
+        if inp.supervisor_mode == Mode.IDLE and inp.idle_reports > self._engaged_at_idle:
+            self._go(EngageState.STANDBY, 'supervisor IDLE again: ready for a new engagement',
+                     inp.t)
         return []
 
     def _set_mode(self, inp: SequencerInputs) -> list[CommandRequest]:
+        if inp.supervisor_mode not in FLYING_MODES:
+            self._go(EngageState.HELD, f'supervisor mode {inp.supervisor_mode.name} before '
+                     'engagement: not switching', inp.t)
+            return []
         if self.in_offboard(inp.custom_mode):
-            self._go(EngageState.ARMING, f'autopilot reports custom_mode {inp.custom_mode}')
-            return self._arming(inp)
+            self._go(EngageState.ARMING if not inp.armed else EngageState.ENGAGED,
+                     f'autopilot reports custom_mode {inp.custom_mode}', inp.t)
+            return self._arming(inp) if not inp.armed else []
         if (self.config.autopilot == Autopilot.PX4
                 and inp.streaming_s <= self.config.prestream_s):
             return []  # PX4 needs a setpoint stream of > 1 s before OFFBOARD
-        return self._command(inp.t, MavCmd.DO_SET_MODE, self._mode_params(),
-                             'switch to the offboard mode')
+        out = self._command(inp.t, MavCmd.DO_SET_MODE, self.offboard_params(),
+                            'switch to the offboard mode')
+        if out is None:
+            self._go(EngageState.FAILED, f'offboard mode not effective after '
+                     f'{self.config.max_attempts} attempts (last ack: {self._pending.ack})',
+                     inp.t)
+            return []
+        return out
 
     def _arming(self, inp: SequencerInputs) -> list[CommandRequest]:
-        if not self.in_offboard(inp.custom_mode):
-            self._go(EngageState.SET_MODE, 'autopilot left the offboard mode while arming')
-            return []
-        if inp.armed:
-            self.engaged_once = True
-            self._held_for_link_loss = False
-            self._go(EngageState.ENGAGED, 'offboard and armed')
-            return []
-        return self._command(inp.t, MavCmd.COMPONENT_ARM_DISARM, (1.0,), 'arm')
-
-    def _engaged(self, inp: SequencerInputs) -> list[CommandRequest]:
-        if inp.supervisor_mode == Mode.SHUTDOWN:
-            self._go(EngageState.SHUTDOWN_RAMP, 'supervisor SHUTDOWN: ramping thrust down')
+        if inp.supervisor_mode not in FLYING_MODES:
+            self._go(EngageState.HELD, f'supervisor mode {inp.supervisor_mode.name} before '
+                     'the vehicle was armed: not arming', inp.t)
             return []
         if not self.in_offboard(inp.custom_mode):
             self._go(EngageState.HELD, f'autopilot left the offboard mode (custom_mode '
-                     f'{inp.custom_mode}): pilot or autopilot failsafe in charge')
-            self._held_for_link_loss = False
+                     f'{inp.custom_mode}) before arming: pilot / GCS in charge', inp.t)
             return []
-        if not inp.armed:
-            self._go(EngageState.HELD, 'autopilot disarmed in flight')
-            self._held_for_link_loss = False
-        return []
-
-    def _disarm(self, inp: SequencerInputs) -> list[CommandRequest]:
-        if not inp.armed:
-            self._go(EngageState.DONE, 'disarmed' + (' (forced)' if self.disarm_forced else ''))
+        if inp.armed:
+            self.arm_requested = False
+            self._go(EngageState.ENGAGED, 'offboard and armed', inp.t)
+            return []
+        if not self.arm_requested:
+            self._arm_start_t = None
+            self._go(EngageState.WAIT_ARM, 'vehicle disarmed: waiting for an arm request '
+                     '(ibvs/arm service, or arm_on_start)', inp.t)
+            return []
+        if self.state == EngageState.WAIT_ARM:
+            self._go(EngageState.ARMING, 'arm requested', inp.t)
+        if self._arm_start_t is None:
+            self._arm_start_t = inp.t
+        if inp.t - self._arm_start_t > self.config.arm_timeout_s:
+            self._go(EngageState.FAILED, f'not armed after {self.config.arm_timeout_s:.0f} s '
+                     f'(last ack: {self._pending.ack if self._pending else None})', inp.t)
+            return []
+        if inp.armable is False:
+            self._say_once('state', 'waiting for the autopilot to be armable (pre-arm checks '
+                                    'not passed yet; its reasons are logged)')
             return []
         p = self._pending
-        refused = p is not None and p.ack not in (
-            None, MavResult.ACCEPTED, MavResult.IN_PROGRESS)
-        ignored = p is not None and inp.t - p.sent_t >= self.config.disarm_force_after_s
-        if p is None or not (refused or ignored):
-            if p is None:
-                self._pending = _Pending(MavCmd.COMPONENT_ARM_DISARM, inp.t, 1)
-                return [CommandRequest(MavCmd.COMPONENT_ARM_DISARM, (0.0,), 'disarm')]
+        n = p.attempts if p is not None and p.command == MavCmd.COMPONENT_ARM_DISARM else 0
+        period = min(self.config.command_retry_s * 2 ** max(n - 1, 0),
+                     self.config.arm_backoff_max_s)
+        if p is not None and p.command == MavCmd.COMPONENT_ARM_DISARM \
+                and inp.t - p.sent_t < period:
             return []
-        if p.attempts >= self.config.max_attempts:
-            self._go(EngageState.FAILED, 'disarm not effective, even forced')
+        self._pending = _Pending(MavCmd.COMPONENT_ARM_DISARM, inp.t, n + 1)
+        return [CommandRequest(MavCmd.COMPONENT_ARM_DISARM, (1.0,),
+                               f'arm (attempt {n + 1}'
+                               + (f', last ack {p.ack.name}' if p and p.ack else '') + ')')]
+
+    def _engaged(self, inp: SequencerInputs) -> list[CommandRequest]:
+        if inp.supervisor_mode == Mode.SHUTDOWN:
+            self._go(EngageState.SHUTDOWN_RAMP, 'supervisor SHUTDOWN: ramping thrust down', inp.t)
             return []
-        self.disarm_forced = True
-        self._pending = _Pending(MavCmd.COMPONENT_ARM_DISARM, inp.t, p.attempts + 1)
-        return [CommandRequest(MavCmd.COMPONENT_ARM_DISARM,
-                               (0.0, float(ARM_DISARM_FORCE_MAGIC)),
-                               f'disarm refused or ignored ({p.ack}): forcing')]
+        if inp.supervisor_mode == Mode.FAILSAFE:
+            return self._land(inp, "supervisor FAILSAFE: the autopilot's land mode")
+        if not self.in_offboard(inp.custom_mode):
+            self._go(EngageState.HELD, f'autopilot left the offboard mode (custom_mode '
+                     f'{inp.custom_mode}): pilot / GCS or autopilot failsafe in charge, '
+                     'setpoints stopped', inp.t)
+            return []
+        if not inp.armed:
+            self._go(EngageState.HELD, 'autopilot disarmed in flight', inp.t)
+            return []
+        if inp.inputs_lost:
+            return self._inputs_lost(inp, 'no valid force for hold_last_s')
+        return []
+
+    def _inputs_lost(self, inp: SequencerInputs, why: str) -> list[CommandRequest]:
+        if self.config.loss_action == 'land':
+            return self._land(inp, f"{why}: the autopilot's land mode")
+        self._go(EngageState.HELD, f"{why}: setpoints stopped, the autopilot's offboard-loss "
+                 'failsafe takes the vehicle (PX4 COM_OF_LOSS_T, COM_OBL_RC_ACT)', inp.t)
+        return []
+
+    def _shutdown_ramp(self, inp: SequencerInputs) -> list[CommandRequest]:
+        if not inp.armed:
+            self._go(EngageState.DONE, 'disarmed during the ramp', inp.t)
+        elif not self.in_offboard(inp.custom_mode):
+            self._go(EngageState.HELD, f'autopilot left the offboard mode during the shutdown '
+                     f'(custom_mode {inp.custom_mode})', inp.t)
+        elif inp.airborne_at_low_thrust:
+            return self._land(inp, "shutdown in the air (the IMU shows no ground contact at "
+                                   "low thrust): the autopilot's land mode")
+        elif inp.ramp_done:
+            self._go(EngageState.DISARMING, 'thrust ramp ended', inp.t)
+            return self._disarming(inp)
+        return []
+
+    def _resolve_shutdown(self, inp: SequencerInputs, why: str) -> list[CommandRequest]:
+        if not inp.armed:
+            self._go(EngageState.DONE, f'{why}: disarmed', inp.t)
+            return []
+        if inp.landed:
+            self._go(EngageState.DISARMING, f'{why}: landed, disarming', inp.t)
+            return self._disarming(inp)
+        return self._land(inp, f"{why}: still in the air, the autopilot's land mode")
+
+    def _disarming(self, inp: SequencerInputs) -> list[CommandRequest]:
+        """Plain disarm; forced only by the touchdown rule (docs/mavlink.md)."""
+        if not inp.armed:
+            self._go(EngageState.DONE, 'disarmed' + (' (forced)' if self.disarm_forced else ''),
+                     inp.t)
+            return []
+        if inp.airborne_at_low_thrust:
+            return self._land(inp, "not on the ground after the ramp (IMU): the autopilot's "
+                                   'land mode')
+        if inp.t - self._entered_t > self.config.disarm_timeout_s:
+            return self._land(inp, f'still armed {self.config.disarm_timeout_s:.0f} s after the '
+                                   "ramp: the autopilot's land mode (it disarms on touchdown)")
+        p = self._pending
+        if p is not None and p.ack not in (None, MavResult.ACCEPTED, MavResult.IN_PROGRESS) \
+                and self._first_refusal_t is None:
+            self._first_refusal_t = inp.t
+        if p is not None and inp.t - p.sent_t < self.config.command_retry_s:
+            return []        # one disarm per command_retry_s, refused or not: never two at once
+        refused_long = (self._first_refusal_t is not None
+                        and inp.t - self._first_refusal_t >= self.config.disarm_force_after_s)
+        force = refused_long and inp.touchdown
+        if force:
+            self.disarm_forced = True
+        n = 1 if p is None else p.attempts + 1
+        self._pending = _Pending(MavCmd.COMPONENT_ARM_DISARM, inp.t, n, forced=force)
+        if force:
+            return [CommandRequest(MavCmd.COMPONENT_ARM_DISARM,
+                                   (0.0, float(ARM_DISARM_FORCE_MAGIC)),
+                                   'disarm refused for '
+                                   f'{inp.t - self._first_refusal_t:.1f} s while the touchdown '
+                                   'rule holds: forcing')]
+        if inp.landed is False:
+            self._say_once('state', 'disarm: the autopilot says in the air; waiting for its '
+                                    'landed state or the touchdown rule')
+        return [CommandRequest(MavCmd.COMPONENT_ARM_DISARM, (0.0,), 'disarm')]
+
+    def _land(self, inp: SequencerInputs, why: str) -> list[CommandRequest]:
+        self._go(EngageState.LANDING, why, inp.t)
+        return self._landing(inp)
+
+    def _landing(self, inp: SequencerInputs) -> list[CommandRequest]:
+        if not inp.armed:
+            self._go(EngageState.DONE, 'disarmed (landed by the autopilot)', inp.t)
+            return []
+        if self.in_land_mode(inp.custom_mode):
+            if not self._land_confirmed:
+                self._land_confirmed = True
+                self._pending = None
+                self._events.append(f'autopilot in its land mode (custom_mode {inp.custom_mode})'
+                                    ': setpoints stopped')
+            if inp.landed:
+                out = self._command(inp.t, MavCmd.COMPONENT_ARM_DISARM, (0.0,),
+                                    'landed in the land mode: disarm')
+                return out or []
+            return []
+        if self._land_confirmed:
+            self._go(EngageState.HELD, f'the land mode was left (custom_mode {inp.custom_mode})'
+                     ': pilot / GCS in charge', inp.t)
+            return []
+        out = self._command(inp.t, MavCmd.DO_SET_MODE, self.land_params(),
+                            "switch to the autopilot's land mode")
+        if out is None:
+            self._go(EngageState.HELD, f'land mode not effective after '
+                     f'{self.config.max_attempts} attempts: setpoints stopped, the autopilot\'s '
+                     'offboard-loss failsafe acts', inp.t)
+            return []
+        return out

@@ -314,3 +314,39 @@ class TimeSync:
         self._init: list[tuple[int, int]] = []
         self._outlier_streak = 0
         self._last_request_ros_ns = None
+
+
+class TimesyncExchange:
+    """The TIMESYNC message exchange around a :class:`TimeSync` (no I/O of its own).
+
+    ``send(tc1, ts1)`` sends one TIMESYNC (ns) and returns whether it left. :meth:`request` sends
+    our requests when the estimator wants one; :meth:`on_message` answers the autopilot's own
+    requests (``tc1 = 0``; PX4 sends them at ~10 Hz) with ``tc1`` = our ROS time, ``ts1`` echoed,
+    as MAVROS does, and hands the answers to ours (``tc1 > 0``) to the estimator. Nothing is
+    sent or used while the ROS time is unknown (None or 0: no ``/clock`` yet under
+    use_sim_time), since ``tc1 = 0`` would read as a request.
+    """
+
+    def __init__(self, sync: TimeSync, send) -> None:
+        self.sync = sync
+        self._send = send
+        self.answered = 0                  # the autopilot's requests we answered
+
+    def request(self, ros_ns: int | None, steady_s: float) -> None:
+        """Send a request if the estimator wants one now."""
+        ts1 = self.sync.next_request(ros_ns, steady_s)
+        if ts1 is not None:
+            self._send(0, ts1)
+
+    def on_message(self, tc1: int, ts1: int, ros_ns: int | None) -> list[tuple[str, str]]:
+        """Take one TIMESYNC received at ROS time ``ros_ns``; return (level, text) events."""
+        tc1, ts1 = int(tc1), int(ts1)
+        if ros_ns is None or ros_ns <= 0:
+            return []
+        if tc1 == 0:
+            if self._send(int(ros_ns), ts1):
+                self.answered += 1
+            return []
+        if tc1 > 0:
+            return self.sync.on_reply(tc1, ts1, int(ros_ns))
+        return []
