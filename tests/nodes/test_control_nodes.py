@@ -242,6 +242,10 @@ def test_supervisor_stale_input_failsafe_and_abort(ctx):
     # inputs stop: the IMU goes stale after 0.2 s -> FAILSAFE (5), logged with its reason
     assert spin_until(executor, lambda: feed.modes[-1:] == [5], 3.0)
     assert feed.modes == [0, 1, 5]
+    # a transition without a frame still gets a status (stamped now): the controller answers
+    # it and every later stamp's mode is known
+    assert spin_until(executor, lambda: feed.statuses
+                      and mode_from_status(feed.statuses[-1])[1] == 5, 2.0)
     res = call(executor, feed.node, 'ibvs/abort')
     assert not res.success and 'FAILSAFE' in res.message
 

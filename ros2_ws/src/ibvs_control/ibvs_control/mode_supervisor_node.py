@@ -275,9 +275,16 @@ class ModeSupervisorNode(Node):
         return response
 
     def _on_timer(self) -> None:
-        """Staleness when inputs stop (frames are evaluated as they are released)."""
-        if self._core.update(self._now()):
+        """Staleness when inputs stop (frames are evaluated as they are released).
+
+        A transition made here has no frame: its status is stamped with the transition time,
+        so that the controller answers it (in FAILSAFE: level, the bridge hands over) and the
+        mode of every later stamp is known.
+        """
+        now_ns = self.get_clock().now().nanoseconds
+        if self._core.update(now_ns / NS_PER_S):
             self._publish_mode()
+            self._publish_status(now_ns)
 
 
 def main(args=None) -> None:
