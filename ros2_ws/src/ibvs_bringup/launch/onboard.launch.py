@@ -1,12 +1,16 @@
 """Onboard IBVS nodes only (no sim), against a vehicle's MAVLink URL: nodes from graph.py.
 
-Usage: ros2 launch ibvs_bringup onboard.launch.py mavlink_url:=udpout:192.168.1.10:14540
+Usage: ros2 launch ibvs_bringup onboard.launch.py [mavlink_url:=udpin:0.0.0.0:14540]
+(default: PX4's companion port; ArduPilot: udpin on its SERIALn UDP port, or a serial port in
+pymavlink's format, e.g. /dev/ttyUSB0,921600; docs/mavlink.md).
 """
 from ibvs_bringup import graph
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration as Lc
 from launch_ros.actions import Node
+
+DEFAULT_MAVLINK_URL = 'udpin:0.0.0.0:14540'     # PX4's onboard (companion) MAVLink port
 
 
 def _nodes(context):
@@ -26,7 +30,8 @@ def _nodes(context):
 def generate_launch_description():
     """Declare the arguments and build the node list of graph.onboard_graph()."""
     return LaunchDescription([
-        DeclareLaunchArgument('mavlink_url', description="the autopilot's MAVLink URL"),
+        DeclareLaunchArgument('mavlink_url', default_value=DEFAULT_MAVLINK_URL,
+                              description="the autopilot's MAVLink URL (pymavlink format)"),
         DeclareLaunchArgument('params_file', default_value='',
                               description='parameter file (empty: installed params.yaml)'),
         DeclareLaunchArgument('use_sim_time', default_value='false'),
