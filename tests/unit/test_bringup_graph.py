@@ -62,7 +62,11 @@ def test_flight_path_of_the_sim_graph_is_the_onboard_graph_on_another_clock():
         assert spec.param_files() == onboard[name].param_files() == [PARAMS]
         a, b = spec.overrides(), onboard[name].overrides()
         differing = {k for k in set(a) | set(b) if a.get(k) != b.get(k)}
-        assert differing <= {'use_sim_time', graph.BRIDGE_URL}, (name, differing)
+        # the sim scenario also asks the bridge to arm; onboard only the ibvs/arm service does
+        assert differing <= {'use_sim_time', graph.BRIDGE_URL, graph.BRIDGE_ARM_ON_START}, \
+            (name, differing)
+    assert sim['mavlink_bridge'].overrides()[graph.BRIDGE_ARM_ON_START] is True
+    assert graph.BRIDGE_ARM_ON_START not in onboard['mavlink_bridge'].overrides()
 
 
 def test_mavlink_port_and_options_reach_the_right_nodes():

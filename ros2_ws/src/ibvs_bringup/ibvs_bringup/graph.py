@@ -36,6 +36,7 @@ SIM_PACING = 'pacing'                         # 'lockstep' | 'realtime' (free-ru
 SIM_REAL_TIME_FACTOR = 'real_time_factor'     # free-running: sim s per wall s
 MAVLINK_URL = 'mavlink_url'                   # sim: its MAVLink endpoint
 BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's URL
+BRIDGE_ARM_ON_START = 'arm_on_start'          # mavlink_bridge: arm without ibvs/arm (sim only)
 CROSSING_LAW = 'crossing_law'                 # force_controller: mode-2 law
 SUPERVISOR_AUTO_START = 'auto_start_at_s'     # mode_supervisor: start by itself at this time
 # Perception nodes are restarted when they die (launch_ros ``respawn``; the runner with
@@ -174,7 +175,8 @@ def _floats(values: Sequence[float], n: int, what: str) -> list[float]:
     return out
 
 
-def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url: str) -> list:
+def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url: str,
+                   bridge: dict | None = None) -> list:
     law = {}
     if opts.crossing_law is not None:
         if opts.crossing_law not in CROSSING_LAWS:
@@ -200,7 +202,8 @@ def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url:
         node('ibvs_control', 'force_controller', 'force_controller', law),
         node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {
             BRIDGE_URL: mavlink_url,
-            BRIDGE_MIN_IMU_SUBSCRIBERS: IMU_SUBSCRIBERS + int(opts.extra_imu_subscribers)}),
+            BRIDGE_MIN_IMU_SUBSCRIBERS: IMU_SUBSCRIBERS + int(opts.extra_imu_subscribers)},
+            bridge or {}),
     ]
 
 
@@ -235,7 +238,9 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     sim = NodeSpec('ibvs_sim', 'sim', 'sim', params + (sim_over,), tuple(opts.extra_remappings),
                    'sim')
-    return [sim] + _onboard_nodes(params, common, opts, bridge_url)
+    # the scenario asks the bridge to arm (on a vehicle only the ibvs/arm service does)
+    return [sim] + _onboard_nodes(params, common, opts, bridge_url,
+                                  {BRIDGE_ARM_ON_START: True})
 
 
 def onboard_graph(opts: GraphOptions = GraphOptions(use_sim_time=False)) -> list[NodeSpec]:
