@@ -401,6 +401,44 @@ def test_set_message_interval_changes_the_rate(rig):
     assert counts['ATTITUDE_QUATERNION'] in (50, 51)
 
 
+def test_thrust_landed_state_and_prearm_telemetry_as_px4_reports_them(rig):
+    # ATTITUDE_TARGET: the reference's thrust (PX4 reports |thrust_body| in any mode), 50 Hz;
+    # EXTENDED_SYS_STATE (landed state) and SYS_STATUS (pre-arm check passed) at 5 Hz.
+    msgs = []
+    for _ in range(1000):                       # 1 s of sim time
+        rig.poll(0.001)
+        msgs += rig.drain()
+    kinds = [m.get_type() for m in msgs]
+    assert kinds.count('ATTITUDE_TARGET') in (50, 51)
+    assert kinds.count('EXTENDED_SYS_STATE') in (5, 6) and kinds.count('SYS_STATUS') in (5, 6)
+    ref = rig.ap.attitude_reference(rig.state())
+    target = [m for m in msgs if m.get_type() == 'ATTITUDE_TARGET'][-1]
+    assert target.thrust == pytest.approx(ref.thrust_norm, abs=1e-6)   # POSCTL hold thrust
+    assert target.thrust == pytest.approx(0.5, abs=0.01)              # hovering at rest
+    ext = [m for m in msgs if m.get_type() == 'EXTENDED_SYS_STATE'][-1]
+    assert ext.landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+    status = [m for m in msgs if m.get_type() == 'SYS_STATUS'][-1]
+    assert status.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    # on the floor (body origin at the floor, still): on ground
+    rig.state_fn = lambda t: hover_state(t, xi=(0.0, 0.0, -0.05))
+    for _ in range(400):
+        rig.poll(0.001)
+    ext = [m for m in rig.drain() if m.get_type() == 'EXTENDED_SYS_STATE'][-1]
+    assert ext.landed_state == mavlink.MAV_LANDED_STATE_ON_GROUND
+
+
+def test_asking_for_the_same_interval_again_keeps_the_streams_phase(rig):
+    # The bridge asks after every link-up: in lockstep that lands at a load-dependent frame,
+    # which must not move the samples' times.
+    for _ in range(7):
+        rig.poll(0.001)
+    before = [m.time_boot_ms for m in rig.drain() if m.get_type() == 'ATTITUDE_QUATERNION']
+    ack = rig.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_ATTITUDE_QUATERNION, 20000)   # = default
+    assert ack.result == RESULT_ACCEPTED
+    _, stamps = count_over_sim_time(rig, 0.1)
+    assert all(ms % 20 == before[0] % 20 for ms in stamps['ATTITUDE_QUATERNION'])
+
+
 def test_telemetry_waits_for_sim_time(rig):
     rig.drain()
     for _ in range(200):              # wall time passes, sim time does not
@@ -614,8 +652,15 @@ def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
     assert bridge.imu_dropped_unsynced == 2
     assert stamps == sorted(stamps)
     assert sorted(set(stamps)) == [k * 20_000_000 for k in range(2, 11)]
-    again, _ = lockstep_with_the_bridge()
+    again, bridge2 = lockstep_with_the_bridge()
     assert sorted(set(again)) == sorted(set(stamps))
+    # the hover-thrust estimate learns from the sim's ATTITUDE_TARGET and HIGHRES_IMU, and the
+    # value a setpoint uses is the same in two runs (samples >= 0.1 s older than its stamp)
+    assert bridge.estimator.accepted > 0
+    for b in (bridge, bridge2):
+        assert b.hover_for_stamp(200_000_000) == pytest.approx(0.5, abs=0.01)
+    assert [bridge.hover_for_stamp(k * 20_000_000) for k in range(11)] == \
+        [bridge2.hover_for_stamp(k * 20_000_000) for k in range(11)]
 
 
 # --- failsafe -----------------------------------------------------------------------------------

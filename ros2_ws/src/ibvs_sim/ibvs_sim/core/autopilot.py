@@ -20,7 +20,8 @@ Behaviour (details, and how it differs from real PX4, in docs/sim_autopilot.md):
   with PX4's results (a refused mode switch or arming change is TEMPORARILY_REJECTED, as
   PX4's commander answers);
 - telemetry ATTITUDE_QUATERNION and HIGHRES_IMU (50 Hz by default, paced in sim time, noisy),
-  HEARTBEAT at 1 Hz wall time;
+  ATTITUDE_TARGET (the reference's thrust, 50 Hz), EXTENDED_SYS_STATE (landed state) and
+  SYS_STATUS (pre-arm check passed) at 5 Hz, HEARTBEAT at 1 Hz wall time;
 - TIMESYNC answered as PX4 does: a request (tc1 = 0) gets tc1 = the boot time in ns (= the sim
   time it is polled at, the clock of time_boot_ms), ts1 echoed; not at time 0 (tc1 = 0 would
   read as a request);
@@ -83,6 +84,13 @@ MAV_SEVERITY_CRITICAL = mavlink.MAV_SEVERITY_CRITICAL
 MSG_ID_HEARTBEAT = mavlink.MAVLINK_MSG_ID_HEARTBEAT
 MSG_ID_ATTITUDE_QUATERNION = mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION
 MSG_ID_HIGHRES_IMU = mavlink.MAVLINK_MSG_ID_HIGHRES_IMU
+MSG_ID_ATTITUDE_TARGET = mavlink.MAVLINK_MSG_ID_ATTITUDE_TARGET
+MSG_ID_EXTENDED_SYS_STATE = mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE
+MSG_ID_SYS_STATUS = mavlink.MAVLINK_MSG_ID_SYS_STATUS
+MAV_LANDED_STATE_ON_GROUND = mavlink.MAV_LANDED_STATE_ON_GROUND
+MAV_LANDED_STATE_IN_AIR = mavlink.MAV_LANDED_STATE_IN_AIR
+MAV_VTOL_STATE_UNDEFINED = mavlink.MAV_VTOL_STATE_UNDEFINED
+MAV_SYS_STATUS_PREARM_CHECK = mavlink.MAV_SYS_STATUS_PREARM_CHECK
 
 TYPEMASK_BODY_RATES_IGNORE = (mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_ROLL_RATE_IGNORE
                               | mavlink.ATTITUDE_TARGET_TYPEMASK_BODY_PITCH_RATE_IGNORE
@@ -209,6 +217,8 @@ class AutopilotConfig:
     start_armed: bool = True                # armed in POSCTL, airborne at the initial condition
     heartbeat_period_wall_s: float = 1.0
     telemetry_default_hz: float = 50.0
+    thrust_telemetry_hz: float = 50.0       # ATTITUDE_TARGET default (= the bridge's request)
+    status_telemetry_hz: float = 5.0        # EXTENDED_SYS_STATE, SYS_STATUS (as PX4 SITL)
     telemetry_max_hz: float = 250.0
     gyro_noise_std: float = 0.005           # rad/s, white, per axis
     accel_noise_std: float = 0.05           # m/s^2, white, per axis
@@ -286,6 +296,9 @@ class AutopilotCounters:
     heartbeats_sent: int = 0
     attitude_quaternion_sent: int = 0
     highres_imu_sent: int = 0
+    attitude_target_sent: int = 0
+    extended_sys_state_sent: int = 0
+    sys_status_sent: int = 0
     state_invalid: int = 0          # non-finite ground truth handed in by the sim
 
 
@@ -381,9 +394,12 @@ class Autopilot:
         self._failsafe_active = False
         self._params = {'MPC_THR_HOVER': float(config.hover_thrust),
                         'COM_OF_LOSS_T': float(config.offboard_timeout_s)}
-        default_interval = 1.0 / config.telemetry_default_hz
-        self._streams = {MSG_ID_ATTITUDE_QUATERNION: _Stream(default_interval, default_interval),
-                         MSG_ID_HIGHRES_IMU: _Stream(default_interval, default_interval)}
+        intervals = {MSG_ID_ATTITUDE_QUATERNION: 1.0 / config.telemetry_default_hz,
+                     MSG_ID_HIGHRES_IMU: 1.0 / config.telemetry_default_hz,
+                     MSG_ID_ATTITUDE_TARGET: 1.0 / config.thrust_telemetry_hz,
+                     MSG_ID_EXTENDED_SYS_STATE: 1.0 / config.status_telemetry_hz,
+                     MSG_ID_SYS_STATUS: 1.0 / config.status_telemetry_hz}
+        self._streams = {i: _Stream(v, v) for i, v in intervals.items()}
         self._setpoint = _Setpoint()
         self._sp_last_t: float | None = None      # sim time of the latest well-formed setpoint
         self._sp_last_wall: float | None = None
@@ -745,19 +761,23 @@ class Autopilot:
             return MAV_RESULT_FAILED  # as PX4 does for a stream it does not have
         interval_us = int(msg.param2)
         if interval_us == SET_INTERVAL_DISABLE:
-            stream.interval_s = None
+            interval = None
         elif interval_us == SET_INTERVAL_DEFAULT:
-            stream.interval_s = stream.default_interval_s
+            interval = stream.default_interval_s
         elif interval_us > 0:
             min_interval = 1.0 / self.config.telemetry_max_hz
             interval = interval_us / US_PER_S
             if interval < min_interval:
                 self.counters.interval_clamped += 1
                 interval = min_interval
-            stream.interval_s = interval
         else:
             return MAV_RESULT_DENIED
-        stream.next_due_t = None
+        # The same interval again (the bridge asks after every link-up) keeps the stream's
+        # phase: in lockstep the request lands at a load-dependent frame, which must not matter.
+        if stream.interval_s is None or interval is None \
+                or abs(interval - stream.interval_s) > 1e-9:
+            stream.interval_s = interval
+            stream.next_due_t = None
         return MAV_RESULT_ACCEPTED
 
     def _cmd_request_message(self, msg, state: VehicleStateView) -> int:
@@ -768,8 +788,8 @@ class Autopilot:
             self._send_heartbeat()
         elif msg_id == MSG_ID_ATTITUDE_QUATERNION:
             self._send_attitude_quaternion(state)
-        elif msg_id == MSG_ID_HIGHRES_IMU:
-            self._send_highres_imu(state)
+        elif msg_id in self._senders():
+            self._senders()[msg_id](state)
         else:
             return MAV_RESULT_UNSUPPORTED
         return MAV_RESULT_ACCEPTED
@@ -910,8 +930,7 @@ class Autopilot:
     def _send_telemetry_if_due(self, state: VehicleStateView) -> None:
         t = float(state.t)
         eps = 1e-9  # s, float slack so a 1 ms physics step hits a 20 ms period exactly
-        senders = {MSG_ID_ATTITUDE_QUATERNION: self._send_attitude_quaternion,
-                   MSG_ID_HIGHRES_IMU: self._send_highres_imu}
+        senders = self._senders()
         for msg_id, stream in self._streams.items():
             if stream.interval_s is None:
                 continue
@@ -924,6 +943,40 @@ class Autopilot:
                 stream.next_due_t = t + stream.interval_s
             if self._peer_known():
                 senders[msg_id](state)
+
+    def _senders(self) -> dict:
+        return {MSG_ID_ATTITUDE_QUATERNION: self._send_attitude_quaternion,
+                MSG_ID_HIGHRES_IMU: self._send_highres_imu,
+                MSG_ID_ATTITUDE_TARGET: self._send_attitude_target,
+                MSG_ID_EXTENDED_SYS_STATE: self._send_extended_sys_state,
+                MSG_ID_SYS_STATUS: self._send_sys_status}
+
+    def _send_attitude_target(self, state: VehicleStateView) -> None:
+        """ATTITUDE_TARGET: the inner-loop reference (attitude, thrust) now, as PX4 reports it.
+
+        PX4 reports |thrust_body| of its attitude setpoint in any mode: the thrust applied.
+        """
+        ref = self.attitude_reference(state)
+        q = [float(x) for x in ref.q_IB_wxyz]
+        self._conn.mav.attitude_target_send(int(round(state.t * MS_PER_S)),
+                                            TYPEMASK_BODY_RATES_IGNORE, q, 0.0, 0.0, 0.0,
+                                            float(ref.thrust_norm))
+        self.counters.attitude_target_sent += 1
+
+    def _send_extended_sys_state(self, state: VehicleStateView) -> None:
+        """EXTENDED_SYS_STATE: landed state from the (ground-truth) land detector."""
+        landed = _finite(state.xi_I, state.v_I) and self._landed(state)
+        self._conn.mav.extended_sys_state_send(
+            MAV_VTOL_STATE_UNDEFINED,
+            MAV_LANDED_STATE_ON_GROUND if landed else MAV_LANDED_STATE_IN_AIR)
+        self.counters.extended_sys_state_sent += 1
+
+    def _send_sys_status(self, state: VehicleStateView) -> None:
+        """SYS_STATUS: only the pre-arm health bit (set: the sim has no pre-arm checks)."""
+        zero = 0
+        self._conn.mav.sys_status_send(zero, zero, MAV_SYS_STATUS_PREARM_CHECK, zero, zero,
+                                       -1, -1, zero, zero, zero, zero, zero, zero)
+        self.counters.sys_status_sent += 1
 
     def _noisy_attitude(self, R_IB: np.ndarray, t: float) -> np.ndarray:
         """Quaternion (w, x, y, z) of R_IB times a small, slowly varying body rotation.
