@@ -66,7 +66,7 @@ def test_the_autopilots_own_tilt_boost_is_part_of_the_model():
 def test_bounded_around_the_seed():
     est = HoverThrustEstimator(EstimatorConfig(max_deviation=0.3))
     est.start(0.5)
-    fly(est, 0.2, 5.0, u_mean=0.3)
+    fly(est, 0.3, 5.0, u_mean=0.35)
     assert est.theta == pytest.approx(0.35)          # 0.5 * (1 - 0.3)
 
 
@@ -125,3 +125,16 @@ def test_seed_from_the_autopilot_or_the_configured_value():
     late.on_timeout()
     assert late.value == 0.5 and 'did not answer' in late.source
     assert HoverThrustSeed(0.45, use_autopilot=False).value == 0.45
+
+
+def test_a_touchdown_at_low_thrust_is_not_learnt():
+    # On the ground the specific force stays g whatever the thrust: far below the estimate,
+    # such samples are not used (the land detector may still say "in the air").
+    est = HoverThrustEstimator()
+    est.start(0.49)
+    fly(est, 0.49, 2.0)
+    theta, n = est.theta, est.accepted
+    for k in range(300):                       # 3 s resting at thrust 0.15 -> 0.05
+        u = 0.15 - 0.1 * k / 300
+        est.update(3 * NS + k * DT_NS, -GRAVITY, GRAVITY, u, 1.0, True)
+    assert est.accepted == n and est.theta == theta

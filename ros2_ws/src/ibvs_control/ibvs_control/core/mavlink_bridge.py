@@ -35,7 +35,7 @@ from ibvs_control.core.mavlink_setpoints import (
     AttitudeTarget, HeadingPairing, RateMeter, SetpointShaper, SetpointSource, ShaperConfig,
     yaw_from_heading_quat)
 from ibvs_control.core.mavlink_telemetry import (
-    AccelSample, ImuSample, StreamRequests, streams_for, Telemetry)
+    AccelSample, ImuSample, LandedState, StreamRequests, streams_for, Telemetry)
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.time_sync import (
     TimeSync, TimeSyncConfig, TimesyncExchange, TimeSyncStatus)
@@ -152,6 +152,8 @@ class MavlinkBridge:
         self.seed = HoverThrustSeed(config.configured_hover_thrust,
                                     config.hover_thrust_source == 'autopilot')
         self.estimator = HoverThrustEstimator(config.estimator)
+        self._pending_accel: deque = deque(maxlen=PENDING_ACCEL_KEPT)
+        self._start_estimator()                  # the configured seed is known at once
         self.safety = SafetyMonitor(replace(
             config.safety, hold_last_s=config.hold_last_s,
             disarm_force_after_s=config.sequencer.disarm_force_after_s))
@@ -178,7 +180,6 @@ class MavlinkBridge:
         self._last_param_request = -math.inf
         self._was_up = False
         self._sync_resets = 0
-        self._pending_accel: deque = deque(maxlen=PENDING_ACCEL_KEPT)
         self._reported_missing = 0
         self._events: list[tuple[str, str]] = []
         self._maybe_build_sequencer()
@@ -488,7 +489,8 @@ class MavlinkBridge:
                 self.config.estimator.max_pairing_s * NS_PER_S:
             return
         hb = self.link.heartbeat
-        airborne = bool(hb and hb.armed) and self.telemetry.landed is not True
+        airborne = bool(hb and hb.armed) and self.telemetry.landed_state in (
+            None, LandedState.UNDEFINED, LandedState.IN_AIR, LandedState.TAKEOFF)
         boost = 1.0
         if self.shaper.tilt_boost_by_autopilot and a.cos_tilt > 0.5:
             boost = 1.0 / a.cos_tilt

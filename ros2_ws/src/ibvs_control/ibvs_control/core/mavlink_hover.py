@@ -44,6 +44,8 @@ from ibvs_control.core.frames import GRAVITY
 
 HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover thrust outside this is refused
 THRUST_VALID_RANGE = (0.1, 0.9)         # applied thrust used by the estimator
+THRUST_RATIO_RANGE = (0.6, 1.6)         # applied thrust / estimate used: far below hover is a
+#                                         touchdown (ground contact carries the rest) or a drop
 MAX_ACCEL_G = 3.0                       # |f| above this many g: not used
 HISTORY_S = 3.0                         # estimates kept for value_at (s of boot time)
 NS_PER_S = 1_000_000_000
@@ -142,7 +144,9 @@ class HoverThrustEstimator:
         c = self.config
         if self.theta is None or not c.enabled or not airborne:
             return False
+        ratio = thrust * boost / self.theta
         if not (THRUST_VALID_RANGE[0] <= thrust <= THRUST_VALID_RANGE[1]) \
+                or not THRUST_RATIO_RANGE[0] <= ratio <= THRUST_RATIO_RANGE[1] \
                 or not math.isfinite(f_z) or f_norm > MAX_ACCEL_G * GRAVITY:
             return False
         if self._t_ns is not None and boot_ns > self._t_ns:
