@@ -1,0 +1,231 @@
+"""The bridge core against ArduCopter 4.5.6 SITL: engage, arm on request, fly, hand back.
+
+Uses ``../shared/ardupilot-sitl`` next to the repository; skips when it is absent (a user's
+clone does not have it). As the PX4 tests (``test_bridge_px4_sitl.py``, whose harness is used
+here): the bridge core runs with the shipped params.yaml on the companion link
+(``udpin:``, ArduPilot's SERIAL1 UDP port), polled like the node with ROS time = system time,
+fed by a test controller (altitude PD on SITL's SIM_STATE ground truth, read on a GCS link,
+which is also where a "pilot" switches modes).
+
+ArduCopter 4.5 takes off once per boot with SET_ATTITUDE_TARGET thrust ("Internal Errors
+0x100000", issue #26865: re-arming refused until reboot), so each test starts its own SITL
+(its pre-arm checks pass ~22 s after start): one flight each.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_bridge_px4_sitl import (  # noqa: E402
+    AP_DIR, angle_diff, check, Flight, free_instance, Run, RUN_S, start, step_response, Truth,
+    VEHICLE_MASS)
+
+pytestmark = pytest.mark.slow
+
+AP_HOVER_SITL = 0.35          # measured thrust to hover (README of ../shared/ardupilot-sitl)
+GUIDED_NOGPS, ALT_HOLD, LAND = 20, 2, 9
+SIM_STATE = 108
+
+
+@pytest.fixture
+def ardupilot(tmp_path):
+    """One ArduCopter SITL per test (stopped at the end, whatever happens)."""
+    script = AP_DIR / 'ardupilot-sitl'
+    if not script.exists():
+        pytest.skip(f'{AP_DIR} not found: the ArduPilot SITL tests need ../shared/ardupilot-sitl '
+                    'next to the repository (not part of it)')
+    i = free_instance()
+    env = start(script, ['-i', str(i), '-w', str(tmp_path / 'ap'), '-p', 'GUID_OPTIONS=8',
+                         '-p', 'SERIAL1_BAUD=921'])
+    state = {'env': env, 'i': i, 't_start': time.monotonic()}
+    try:
+        yield state
+    finally:
+        os.kill(int(env['AP_PID']), signal.SIGCONT)
+        subprocess.run([str(script), 'stop', env['AP_WORKDIR']], timeout=30)
+
+
+def ap_flight(ap) -> Flight:
+    truth = Truth(ap['env']['AP_GCS_TCP_URL'], request=(SIM_STATE, 50.0))
+    return Flight(ap['env']['AP_COMPANION_URL'], truth, VEHICLE_MASS)
+
+
+def gcs_mode(f: Flight, mode: int) -> None:
+    """A pilot / GCS switches the mode (on the GCS link, system 255)."""
+    f.truth.conn.mav.command_long_send(1, 1, 176, 0, 1, mode, 0, 0, 0, 0, 0)
+
+
+def ready(f: Flight) -> None:
+    ok = f.spin(15.0, until=lambda: f.bridge.link.link_up and f.bridge.time_sync.synced
+                and f.bridge.streams is not None and f.bridge.streams.complete
+                and f.truth.z is not None and f.state() == 'standby')
+    assert ok, f'not ready: {f.state()}, {f.bridge.status()}'
+
+
+def vertical_accel(f: Flight, seconds: float) -> float:
+    """Mean vertical acceleration (NED, m/s^2) over ``seconds``, from the truth's vd."""
+    v0, t0 = f.truth.vz, f.truth.t
+    f.spin(seconds)
+    return (f.truth.vz - v0) / (f.truth.t - t0)
+
+
+def test_ardupilot_arms_when_armable_only_on_request_flies_learns_hover_and_lands(ardupilot):
+    run = Run(ardupilot['env']['AP_COMPANION_URL'])         # the clock sync, fresh from boot
+    try:
+        run.spin(RUN_S)
+    finally:
+        run.close()
+    check(run, 'ArduCopter 4.5.6 SITL')
+    f = ap_flight(ardupilot)
+    try:
+        ready(f)
+        assert f.bridge.streams.refused == []                   # every request accepted ...
+        assert not [c for c in f.commands if c[1] == 511 and c[2][0] == 105]   # no HIGHRES_IMU
+        assert f.bridge.angle_boost == 1 and f.bridge.shaper.tilt_boost_by_autopilot
+        # Engaged long before the pre-arm checks pass: GUIDED_NOGPS, waiting for ibvs/arm.
+        f.bridge.on_supervisor_mode(0)
+        f.controller_on = True
+        f.z_ref = f.truth.z
+        f.spin(0.3)
+        assert f.sent == []                         # ArduPilot: no setpoint before the switch
+        f.bridge.on_supervisor_mode(1)
+        assert f.spin(5.0, until=lambda: f.state() == 'wait_arm'), f.bridge.sequencer.last_reason
+        assert f.hb().custom_mode == GUIDED_NOGPS and not f.hb().armed
+        t_req = time.monotonic()
+        assert f.bridge.request_arm()[0]
+        f.z_ref = -3.0
+        assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+        t_armed = time.monotonic()
+        arms = [c for c in f.commands if c[1] == 400 and c[2][0] == 1.0]
+        armable_t = [t for t, m in f.messages('SYS_STATUS', t_req)
+                     if m.onboard_control_sensors_health & (1 << 28)][0]
+        reasons = [t for lv, t in f.events if lv.startswith('reason')]
+        print(f'\nArduPilot: engaged and arm requested {t_req - ardupilot["t_start"]:.1f} s after '
+              f'start; armable {armable_t - ardupilot["t_start"]:.1f} s, armed '
+              f'{t_armed - ardupilot["t_start"]:.1f} s after start with {len(arms)} ARM '
+              f'command(s); {len(reasons)} autopilot reasons logged, e.g. '
+              f'{reasons[-3:] if reasons else None}')
+        assert all(t >= armable_t - 0.3 for t, _, _ in arms)   # never before it is armable
+        assert f.spin(10.0, until=lambda: f.truth.z < -2.6), f'z {f.truth.z}'
+        f.spin(1.5)
+        y0 = f.attitude()[2]
+        errors = {'roll': step_response(f, 'roll', np.radians(10.0))}
+        f.roll = 0.0
+        errors['pitch'] = step_response(f, 'pitch', np.radians(-10.0))
+        f.pitch = 0.0
+        errors['yaw'] = step_response(f, 'yaw', angle_diff(y0 + np.radians(30.0), 0.0),
+                                      settle_s=2.5)
+        f.spin(1.0)
+        # ATC_ANGLE_BOOST = 1: at 20 deg with the same vertical force the vehicle must not
+        # climb (the bridge sends F_z; ArduPilot boosts by 1/cos itself): feed-forward only.
+        f.vz_ref = 0.0
+        a_level = vertical_accel(f, 1.0)
+        f.pitch = np.radians(-20.0)
+        f.spin(0.4)
+        a_tilt = vertical_accel(f, 0.8)
+        f.pitch, f.vz_ref = 0.0, None
+        f.spin(1.5)
+        est, std = f.bridge.hover_now(), f.bridge.estimator.std
+        deg = {k: np.degrees(v) for k, v in errors.items()}
+        print(f'ArduPilot steps, mean error after 1.2 s (yaw 2.5 s): roll 10 deg '
+              f'{deg["roll"]:+.2f}, pitch -10 deg {deg["pitch"]:+.2f}, yaw +30 deg '
+              f'{deg["yaw"]:+.2f} deg; vertical acceleration level {a_level:+.2f}, at 20 deg '
+              f'{a_tilt:+.2f} m/s^2 (NED); hover thrust estimate {est:.4f} (std {std:.4f}, '
+              f'{f.bridge.estimator.accepted} samples; seed MOT_THST_HOVER '
+              f'{f.bridge.seed.value:.3f})')
+        assert abs(errors['roll']) < np.radians(1.5) and abs(errors['pitch']) < np.radians(1.5)
+        assert abs(errors['yaw']) < np.radians(3.0)
+        assert abs(a_tilt - a_level) < 0.35       # double boost: -0.63 m/s^2 (6.4 % of g)
+        assert est == pytest.approx(AP_HOVER_SITL, abs=0.02)
+        # The controller goes silent: hold_last_s, then ArduPilot's LAND, which disarms.
+        f.controller_on = False
+        t_last = f.forces[-1]
+        assert f.spin(3.0, until=lambda: f.hb().custom_mode == LAND)
+        t_land = [t for t, m in f.messages('HEARTBEAT', t_last) if m.custom_mode == LAND][0]
+        assert f.spin(3.0, until=lambda: not f.bridge.status().streaming)
+        assert f.spin(30.0, until=lambda: not f.hb().armed), 'no landing'
+        errs = f.bridge.telemetry.internal_errors
+        print(f'ArduPilot silent controller: LAND shown {t_land - t_last:.2f} s after the last '
+              f'force, last setpoint {f.sent[-1][0] - t_last:+.2f} s; landed and disarmed '
+              f'{time.monotonic() - t_last:.1f} s after; internal errors reported 0x{errs:x}')
+        assert f.state() == 'done'
+        assert errs & 0x100000, 'ArduCopter 4.5 raised no internal error 0x100000 (#26865)?'
+    finally:
+        f.truth.close()
+        f.close()
+
+
+def test_ardupilot_freeze_pilot_takeover_and_touchdown_disarm(ardupilot):
+    f = ap_flight(ardupilot)
+    pid = int(ardupilot['env']['AP_PID'])
+    try:
+        ready(f)
+        # 3 s frozen (SIGSTOP) on the ground: the udpin link comes back by itself.
+        os.kill(pid, signal.SIGSTOP)
+        t_stop = time.monotonic()
+        try:
+            f.spin(3.0)
+        finally:
+            os.kill(pid, signal.SIGCONT)
+        t_cont = time.monotonic()
+        ns_cont = time.time_ns()
+
+        def stamped_again():
+            fresh = [(rx, x) for rx, x in f.imu if rx > ns_cont]
+            return f.bridge.time_sync.synced and len(fresh) >= 50 \
+                and all(abs(rx - x.stamp_ns) < 20_000_000 for rx, x in fresh[-50:])
+        assert f.spin(10.0, until=lambda: f.messages('HEARTBEAT', t_cont)
+                      and f.bridge.link.link_up)
+        t_hb = f.messages('HEARTBEAT', t_cont)[0][0]
+        assert f.spin(10.0, until=stamped_again)
+        print(f'\nArduPilot frozen {t_cont - t_stop:.1f} s: first heartbeat {t_hb - t_cont:.2f} '
+              f's after SIGCONT, IMU stamped on the system clock again '
+              f'{time.monotonic() - t_cont:.2f} s after; reopens '
+              f'{f.bridge.link.counters.reopens}')
+        assert f.bridge.link.counters.reopens == 0
+        # Take off once armable.
+        f.bridge.on_supervisor_mode(0)
+        f.controller_on = True
+        f.z_ref = f.truth.z
+        f.bridge.request_arm()
+        f.bridge.on_supervisor_mode(1)
+        f.z_ref = -2.5
+        assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+        assert f.spin(10.0, until=lambda: f.truth.z < -2.1), f'z {f.truth.z}'
+        f.spin(1.0)
+        # The pilot takes ALT_HOLD: setpoints stop at once (heartbeat at 5 Hz), for good.
+        t_cmd = time.monotonic()
+        gcs_mode(f, ALT_HOLD)
+        assert f.spin(3.0, until=lambda: f.state() == 'held'), f.bridge.sequencer.last_reason
+        t_held = time.monotonic()
+        f.spin(1.0)
+        assert f.hb().custom_mode == ALT_HOLD and f.sent[-1][0] <= t_held + 0.05
+        print(f'ArduPilot ALT_HOLD taken: setpoints stopped {t_held - t_cmd:.2f} s after the '
+              'switch, none since')
+        # A new start engages again (still armed); descend under the controller; SHUTDOWN.
+        f.bridge.on_supervisor_mode(0)
+        f.bridge.on_supervisor_mode(3)
+        f.z_ref = f.truth.z
+        assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+        f.vz_ref = 0.5
+        assert f.spin(15.0, until=lambda: f.truth.z > -0.05), f'z {f.truth.z}'
+        f.spin(0.5)
+        t_sd = time.monotonic()
+        f.bridge.on_supervisor_mode(4)
+        assert f.spin(12.0, until=lambda: f.state() == 'done'), f.bridge.sequencer.last_reason
+        disarms = [c[2] for c in f.commands if c[0] >= t_sd and c[1] == 400]
+        print(f'ArduPilot touchdown: disarmed {time.monotonic() - t_sd:.2f} s after SHUTDOWN '
+              f'(ramp 2 s), disarm commands {disarms}, landed state '
+              f'{f.bridge.telemetry.landed_state}, forced {f.bridge.sequencer.disarm_forced}')
+        assert not f.hb().armed
+    finally:
+        f.truth.close()
+        f.close()
