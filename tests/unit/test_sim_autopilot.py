@@ -593,7 +593,7 @@ def test_timesync_answered_before_the_first_frame_once_time_is_not_zero():
         r.close()
 
 
-def lockstep_with_the_bridge(frames: int = 10) -> tuple[list, object]:
+def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list, object]:
     """The sim's lockstep exchange with the real bridge core, without ROS or physics.
 
     As sim_core / sim_node do: the autopilot is served before frame 0 without telemetry; each
@@ -601,6 +601,7 @@ def lockstep_with_the_bridge(frames: int = 10) -> tuple[list, object]:
     bridge's ROS time (/clock); the controller answers each published frame with a force of
     its stamp; the next 20 ms are simulated once a setpoint with time_boot_ms >= the frame's ms
     arrived. Returns the stamps of the IMU samples the bridge published, and the bridge.
+    ``seed``: the bridge's configured hover thrust (the sim's true one is 0.5).
     """
     from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge
     from ibvs_control.core.mavlink_link import LinkConfig
@@ -608,7 +609,7 @@ def lockstep_with_the_bridge(frames: int = 10) -> tuple[list, object]:
     ap = Autopilot(AutopilotConfig(url=f'udpin:127.0.0.1:{port}'))
     bridge = MavlinkBridge(BridgeConfig(
         link=LinkConfig(url=f'udpout:127.0.0.1:{port}'), mass=1.676, max_thrust_factor=2.0,
-        configured_hover_thrust=0.5, hover_thrust_source='config'))
+        configured_hover_thrust=seed, hover_thrust_source='config'))
     stamps, hover = [], np.array([0.0, 0.0, 1.676 * GRAVITY])
     t_ns, ros_ns, answered_frame = 0, 0, None
     deadline = time.monotonic() + 10.0
@@ -661,6 +662,16 @@ def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
         assert b.hover_for_stamp(200_000_000) == pytest.approx(0.5, abs=0.01)
     assert [bridge.hover_for_stamp(k * 20_000_000) for k in range(11)] == \
         [bridge2.hover_for_stamp(k * 20_000_000) for k in range(11)]
+
+
+def test_hover_thrust_learnt_in_lockstep_from_a_wrong_seed():
+    # The bridge seeded at 0.45 learns the sim's true 0.5 (vehicle.yaml) from the sim
+    # autopilot's ATTITUDE_TARGET thrust and HIGHRES_IMU specific force, as on PX4.
+    _, bridge = lockstep_with_the_bridge(frames=150, seed=0.45)
+    est = bridge.estimator
+    print(f'\nsim autopilot, 3 s in lockstep: hover thrust estimate {est.theta:.4f} (std '
+          f'{est.std:.4f}, {est.accepted} samples) from the seed 0.45; true 0.5')
+    assert est.theta == pytest.approx(0.5, abs=0.005) and est.accepted >= 140
 
 
 # --- failsafe -----------------------------------------------------------------------------------

@@ -24,10 +24,12 @@ Filter
     prediction P += q dt (process noise ``process_noise`` per sqrt(s), PX4's HTE_HT_NOISE);
     measurement h = g u b / theta, H = -g u b / theta^2, innovation y = a - h, S = H^2 P + R
     with R = ``accel_noise``^2; a sample with y^2 > gate^2 S is rejected (counted); otherwise
-    K = P H / S, theta += K y, P -= K H P. Used only airborne (landed state not on the ground,
-    armed), with u in [0.1, 0.9], |f| below 3 g, and a thrust sample at most ``max_pairing_s``
-    older than the IMU sample (the thrust in effect). The estimate is bounded to
-    seed * (1 -/+ ``max_deviation``) within [0.05, 0.95].
+    K = P H / S, theta += K y, P -= K H P. Used only airborne (armed, landed state "in air" or
+    "take-off" or not reported), with u in [0.1, 0.9] and within 0.6 - 1.6 x the estimate
+    (ground contact breaks the model: the ground carries what the thrust does not, and a land
+    detector still says "in the air" for a while after a touchdown at low thrust), |f| below
+    3 g, and a thrust sample at most ``max_pairing_s`` older than the IMU sample. The estimate
+    is bounded to seed * (1 -/+ ``max_deviation``) within [0.05, 0.95].
 Determinism
     :meth:`HoverThrustEstimator.value_at` gives the estimate of the samples at least ``margin_s``
     older than a setpoint's stamp (autopilot boot time): in a lockstep sim those samples have
