@@ -583,12 +583,16 @@ def test_px4_engages_arms_only_on_request_tracks_steps_learns_hover_then_fails_s
         assert f.spin(10.0, until=lambda: f.truth.z < -1.7), f'z {f.truth.z}'
         f.spin(1.0)
         y0 = f.attitude()[2]
+        t_steps = time.monotonic()
         errors = {'roll': step_response(f, 'roll', np.radians(10.0))}
         f.roll = 0.0
         errors['pitch'] = step_response(f, 'pitch', np.radians(-10.0))
         f.pitch = 0.0
         errors['yaw'] = step_response(f, 'yaw', angle_diff(y0 + np.radians(30.0), 0.0),
                                       settle_s=2.5)
+        dt = time.monotonic() - t_steps
+        sp_rate = len([s for s in f.sent if s[0] >= t_steps]) / dt
+        force_rate = len([t for t in f.forces if t >= t_steps]) / dt
         est, std = f.bridge.hover_now(), f.bridge.estimator.std
         n_est = f.bridge.estimator.accepted
         deg = {k: np.degrees(v) for k, v in errors.items()}
@@ -596,7 +600,9 @@ def test_px4_engages_arms_only_on_request_tracks_steps_learns_hover_then_fails_s
               f'{deg["roll"]:+.2f}, pitch -10 deg {deg["pitch"]:+.2f}, yaw +30 deg '
               f'{deg["yaw"]:+.2f} deg; hover thrust estimate '
               f'{est:.4f} (std {std:.4f}, {n_est} samples; SIH {PX4_HOVER_SIH:.4f}, seed '
-              f'MPC_THR_HOVER {f.bridge.seed.value:.3f})')
+              f'MPC_THR_HOVER {f.bridge.seed.value:.3f}); SET_ATTITUDE_TARGET at '
+              f'{sp_rate:.1f} Hz with the forces at {force_rate:.1f} Hz')
+        assert force_rate * 0.97 <= sp_rate <= force_rate * 1.1
         assert abs(errors['roll']) < np.radians(1.5) and abs(errors['pitch']) < np.radians(1.5)
         assert abs(errors['yaw']) < np.radians(3.0)
         assert est == pytest.approx(PX4_HOVER_SIH, abs=0.015) and n_est > 300
