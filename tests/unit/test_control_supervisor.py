@@ -171,3 +171,16 @@ def test_auto_start_is_off_by_default_and_needs_a_finite_time():
             assert 'auto_start_at_s' in str(exc)
         else:
             raise AssertionError(f'auto_start_at_s = {bad} accepted')
+
+
+def test_the_staleness_watchdog_leaves_image_cues_to_the_frames():
+    """A requested transition (an image cue) happens at a frame, never at a watchdog tick."""
+    from ibvs_control.core.modes import Mode
+    from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
+    sup = ModeSupervisor(SupervisorConfig())
+    sup.mode = Mode.WINDOW
+    sup._request(Mode.CROSSING, 'test cue')
+    sup.on_imu(1.0, None)
+    sup._last.update({'window': 1.0, 'front_flow': 1.0})
+    assert sup.update(1.0, apply_requests=False) == [] and sup.mode == Mode.WINDOW
+    assert [tr.to_mode for tr in sup.update(1.0)] == [Mode.CROSSING]

@@ -282,7 +282,7 @@ class ModeSupervisorNode(Node):
         mode of every later stamp is known.
         """
         now_ns = self.get_clock().now().nanoseconds
-        if self._core.update(now_ns / NS_PER_S):
+        if self._core.update(now_ns / NS_PER_S, apply_requests=False):
             self._publish_mode()
             self._publish_status(now_ns)
 

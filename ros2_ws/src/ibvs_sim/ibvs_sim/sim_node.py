@@ -55,8 +55,12 @@ CAMERAS = ('front', 'down')
 LOG_THROTTLE_S = 2.0
 EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
-SUBSCRIBER_SETTLE_S = 0.5     # s (wall), image subscribers and setpoints this long before frame 0
+SUBSCRIBER_SETTLE_S = 2.0     # s (wall), image subscribers and setpoints this long before frame 0:
+#                               the other topics' discovery completes meanwhile (0.5 s lost the
+#                               window detections of frames 0 and 1 in one lockstep start of 6)
 STATS_PERIOD_S = 1.0          # s (wall), sim/stats
+CLOCK_REPEAT_S = 0.1          # s (wall), /clock repeated while sim time stands still: a node
+#                               whose /clock subscription matched late still learns the time
 FAULT_ANSWER_WAIT_S = 0.3     # s (wall), lockstep: wait for the answer to a frame with images off
 
 
@@ -190,6 +194,7 @@ class SimNode(Node):
         self.latency = AnswerLatency()
         self.camera_off_s = cfg.camera_off_s
         self._clock_ns = -1
+        self._clock_wall = 0.0
         self._ended_logged = False
         self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
                                         enabled=cfg.pacing is Pacing.LOCKSTEP)
@@ -328,8 +333,10 @@ class SimNode(Node):
         answers = self.sim.autopilot.new_setpoints
         while answers:
             self.latency.answered(*answers.popleft())
-        if self.sim.config.pacing is Pacing.REALTIME:
-            self._publish_clock(self.sim.t_ns)          # /clock runs on between frames
+        if self.sim.config.pacing is Pacing.REALTIME or self._clock_ns >= 0:
+            # free-running: /clock runs on between frames; lockstep: repeated while it waits
+            self._publish_clock(self.sim.t_ns if self.sim.config.pacing is Pacing.REALTIME
+                                else self._clock_ns)
         if out is not None:
             out = self.imu_hold.hold(out, time.monotonic())
             if out is not None:
@@ -340,8 +347,11 @@ class SimNode(Node):
                                     f'{self.sim.events[-1].to_dict()}')
 
     def _publish_clock(self, t_ns: int) -> None:
-        if t_ns > self._clock_ns:
-            self._clock_ns = t_ns
+        """Publish /clock when time moved, or again after CLOCK_REPEAT_S of wall clock."""
+        now = time.monotonic()
+        if t_ns > self._clock_ns or (t_ns == self._clock_ns
+                                     and now - self._clock_wall >= CLOCK_REPEAT_S):
+            self._clock_ns, self._clock_wall = t_ns, now
             self.clock_pub.publish(ClockMsg(clock=stamp_from_ns(t_ns)))
 
     def _publish_stats(self) -> None:

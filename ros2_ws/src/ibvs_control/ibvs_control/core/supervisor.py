@@ -225,13 +225,19 @@ class ModeSupervisor:
                 self.auto_start_refusal = message
         return done + self.update(t)
 
-    def update(self, t: float) -> list[Transition]:
-        """Apply requested transitions, then the staleness rules; return what changed."""
+    def update(self, t: float, apply_requests: bool = True) -> list[Transition]:
+        """Apply requested transitions, then the staleness rules; return what changed.
+
+        ``apply_requests`` False (the node's staleness watchdog between frames): only the
+        staleness rules; a transition requested by an image cue waits for the next frame, so
+        that it happens at a frame whatever the timing of the watchdog.
+        """
         done = []
-        for to_mode, reason in self._pending:
-            if self._allowed(to_mode):
-                done.append(self._switch(t, to_mode, reason))
-        self._pending.clear()
+        if apply_requests:
+            for to_mode, reason in self._pending:
+                if self._allowed(to_mode):
+                    done.append(self._switch(t, to_mode, reason))
+            self._pending.clear()
         stale = self._stale_input(t)
         if stale is not None and self.mode in FLYING_MODES:
             done.append(self._switch(t, Mode.FAILSAFE, stale))
