@@ -23,7 +23,7 @@ def _nodes(context):
     env = graph.dds_env_overrides()
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
-                 additional_env=env)
+                 additional_env=env, respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)
             for s in graph.onboard_graph(opts)]
 
 
