@@ -91,7 +91,7 @@ class SimNodeConfig:
 
 
 def _window(values, name: str) -> tuple[float, float]:
-    """A [start, end] sim-time window (s) of a fault parameter; [0, 0] = never."""
+    """Return the [start, end] sim-time window (s) of a fault parameter; [0, 0] = never."""
     v = [float(x) for x in values]
     if len(v) != 2 or not all(math.isfinite(x) for x in v) or v[1] < v[0]:
         raise ValueError(f'parameter {name} needs [start, end] with end >= start, got {v}')
