@@ -330,8 +330,8 @@ def main(argv: list | None = None) -> int:
         if len(r['latency_ms']):
             print(f"{r['name']}: median latency {np.median(r['latency_ms']) - base:+.2f} ms "
                   'against all inputs')
-    ok = all(len(r['latency_ms']) > 0 and r.get('started') for r in runs)
-    return 0 if ok else 1
+    # exit 1 only when nothing could be measured; slow figures are figures
+    return 0 if all(len(r['latency_ms']) > 0 for r in runs) else 1
 
 
 if __name__ == '__main__':
