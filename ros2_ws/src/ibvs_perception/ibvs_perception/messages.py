@@ -9,8 +9,7 @@ import numpy as np
 
 from geometry_msgs.msg import Point32, PolygonStamped
 from ibvs_control.core.camera import CameraModel
-from ibvs_control.core.frames import (R_IB_from_rot_map_base, quat_xyzw_to_wxyz, rot_from_quat,
-                                      vec_flu_to_frd)
+from ibvs_control.node_common import imu_sample, NS_PER_S
 from sensor_msgs.msg import CameraInfo, Image, Imu
 
 from ibvs_perception.core.image import image_to_mono8
@@ -39,14 +38,13 @@ def camera_from_info(msg: CameraInfo | None, image: Image) -> CameraModel:
 
 
 def attitude_from_imu(msg: Imu) -> tuple[float, np.ndarray, np.ndarray]:
-    """(stamp s, R_IB, Omega_B FRD) of sensor_msgs/Imu (base_link FLU in map ENU)."""
-    q = quat_xyzw_to_wxyz([msg.orientation.x, msg.orientation.y, msg.orientation.z,
-                           msg.orientation.w])
-    w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
-    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(w)):
-        raise ValueError('IMU message holds NaN or Inf')
-    R_IB = R_IB_from_rot_map_base(rot_from_quat(q))
-    return stamp_to_s(msg.header.stamp), R_IB, vec_flu_to_frd(w)
+    """(stamp s, R_IB, Omega_B FRD) of sensor_msgs/Imu (base_link FLU in map ENU).
+
+    The conversion is ``ibvs_control.node_common.imu_sample`` (one for every node); raises
+    ValueError for NaN/Inf or a non-unit quaternion.
+    """
+    stamp_ns, R_IB, omega_B = imu_sample(msg)
+    return stamp_ns / NS_PER_S, R_IB, omega_B
 
 
 def polygon_from_vectors(header, frame_id: str, vectors: np.ndarray | None) -> PolygonStamped:
