@@ -84,15 +84,28 @@ def run_scenario(root, name: str, *args, timeout: float = RUN_TIMEOUT_S) -> dict
     summary = json.loads(path.read_text())
     summary['_wall_s'] = time.monotonic() - t0
     summary['_output'] = out
+    summary['_log_warnings'] = _log_warnings(root / name / 'logs')
     print(f"{name}: {summary['_wall_s']:.0f} s wall, success={summary['success']}")
     return summary
+
+
+def _log_warnings(logs, per_node: int = 6) -> str:
+    """The last warnings and errors of every node's log (what a failed run is read by)."""
+    out = []
+    for path in sorted(logs.glob('*.log')) if logs.is_dir() else []:
+        lines = [ln[:300] for ln in path.read_text(errors='replace').splitlines()
+                 if '[WARN]' in ln or '[ERROR]' in ln or '[FATAL]' in ln]
+        if lines:
+            out.append(f'--- {path.stem}: {len(lines)} warning/error line(s), last:')
+            out += lines[-per_node:]
+    return '\n'.join(out)
 
 
 def assert_success(summary: dict) -> None:
     """SPEC.md section 5's success, checked field by field for a readable failure."""
     w, ld = summary['window'], summary['landing']
-    info = json.dumps({k: summary[k] for k in ('window', 'landing', 'modes', 'run')},
-                      indent=1)[:3000]
+    info = json.dumps({k: summary[k] for k in ('window', 'landing', 'modes', 'run', 'timing')
+                       if k in summary}, indent=1)[:3000] + '\n' + summary['_log_warnings']
     assert w['crossed'] and w['crossing_speed_mps'] > 0, info
     assert w['min_clearance_m'] > 0, info
     assert ld['landed'] and ld['error_m'] <= 0.10 and ld['touchdown_speed_mps'] <= 0.5, info
@@ -120,6 +133,7 @@ def test_reference_run_succeeds_and_reports(reference):
     timing = summary['timing']                # the harness never had to move on by itself
     assert timing['pacing'] == 'lockstep' and timing['lockstep_timeouts'] == 0, timing
     assert timing['imu_hold_timeouts'] == 0 and timing['frames_dropped'] == 0, timing
+    assert timing['products_given_up'] == 0, timing
     counts = bag.topic_counts(out / 'bag')
     for topic in ('/front_camera/image_raw', '/down_camera/image_raw', '/imu/data',
                   '/window/corners', '/pad/landmarks', '/ibvs/mode', '/sim/ground_truth/odom',
@@ -140,11 +154,11 @@ def test_a_second_run_with_a_perception_node_killed_repeats_bit_for_bit(referenc
     """Lockstep repeats, and a perception node that dies where it is not used changes nothing.
 
     The second run kills the pad detector at 2 s (WINDOW mode: the pad is not waited for); the
-    runner restarts it (1 s backoff) before the landing needs it, as on a vehicle. Two runs of
-    the same configuration are bit-identical (measured: 3 plain runs); this reference records
-    a bag (one more subscriber of every topic) and then differs by ~1e-6 m (measured: clearance
-    0.1683636 vs 0.1683649 m; touchdown speed 3 mm/s), a dependence not yet explained: hence
-    the tolerances below.
+    runner restarts it (1 s backoff) before the landing needs it, as on a vehicle. The
+    reference records a bag (one more subscriber of every topic), this run does not. The sim
+    moves on only once every product of a frame is out (sim_core.GraphProducts) and a frame's
+    evaluation uses only the products its mode needs (timing.FrameAssembler), so the runs are
+    bit-identical (measured: plain, bag-recording and this run with a CPU hog beside it).
     """
     _, first = reference
     second = run_scenario(tmp_path, 'pad-killed', '--kill-node', 'pad_detector',
@@ -160,13 +174,10 @@ def test_a_second_run_with_a_perception_node_killed_repeats_bit_for_bit(referenc
     print('repeat: |difference| of clearance, landing error, touchdown speed, crossing offset '
           'y, z: ' + ', '.join(f'{abs(x - y):.2e}' for x, y in pairs))
     assert_success(second)
-    # measured in a fresh-clone CI run: 1.3e-6 m, 3.1e-5 m, 3.4e-3 m/s, 0, 0
-    tolerances = (1e-4, 1e-3, 0.02, 1e-4, 1e-4)
-    assert all(abs(x - y) <= tol for (x, y), tol in zip(pairs, tolerances)), \
-        (pairs, a['run'], b['run'])
-    assert [m['mode'] for m in a['modes']] == [m['mode'] for m in b['modes']]
-    assert all(abs(m['t_start_s'] - n['t_start_s']) <= 0.021
-               for m, n in zip(a['modes'], b['modes'])), (a['modes'], b['modes'])
+    assert all(x == y for x, y in pairs), (pairs, a['run'], b['run'])
+    assert a['modes'] == b['modes'], (a['modes'], b['modes'])
+    # the dead detector was waited for once (one lockstep timeout), then not until it was back
+    assert b['timing']['lockstep_timeouts'] == 0 and b['timing']['products_given_up'] >= 1
 
 
 def _mode_times(summary: dict) -> dict:

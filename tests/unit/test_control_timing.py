@@ -43,11 +43,23 @@ def test_a_product_the_mode_does_not_need_never_delays_a_frame():
     a.add_input(FD, 100 * MS, 'phi_t')               # no pad detection (a dead detector)
     (frame,) = a.release(now_ns=100 * MS)
     assert frame.missing == () and frame.get(P) is None
-    a.add_input(P, 120 * MS, 'pad')                  # a pad that did come is carried along
+    a.add_input(P, 120 * MS, 'pad')                  # a pad that did come is carried along,
     a.add_input(FD, 120 * MS, 'phi_t')
     a.open(120 * MS, Mode.CROSSING, now_ns=120 * MS)
     (frame,) = a.release(now_ns=120 * MS)
-    assert frame.get(P) == 'pad'
+    assert frame.get(P) is None and frame.extras == {P: 'pad'}   # apart from the inputs
+
+
+def test_a_frame_is_the_same_whether_an_unneeded_product_came_before_or_after_it():
+    """The inputs of a frame do not depend on scheduling: unneeded ones are extras or late."""
+    early, late = assembler(), assembler()
+    early.add_input(P, 100 * MS, 'pad')
+    for a in (early, late):
+        a.open(100 * MS, Mode.CROSSING, now_ns=100 * MS)
+        a.add_input(FD, 100 * MS, 'phi_t')
+    (f_early,), (f_late,) = early.release(100 * MS), late.release(100 * MS)
+    assert f_early.inputs == f_late.inputs == {FD: 'phi_t'}
+    assert f_early.extras == {P: 'pad'} and f_late.extras == {}
 
 
 def test_the_deadline_counts_on_the_given_clock_from_the_frame_stamp():

@@ -6,7 +6,8 @@ from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
 from ibvs_control.core.frames import GRAVITY
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.dynamics import WindConfig
-from ibvs_sim.core.sim_core import EventType, Pacing, SimConfig, Simulation, FirstFrameHold
+from ibvs_sim.core.sim_core import (AnswerLatency, EventType, FirstFrameHold, GraphProducts,
+                                    Pacing, SimConfig, Simulation)
 
 
 class FakeAutopilot:
@@ -42,10 +43,11 @@ def configs():
     return load_world(), load_pad_layout(), load_vehicle()
 
 
-def _sim(configs, ap, clock=None, **kw):
+def _sim(configs, ap, clock=None, products=None, **kw):
     world, pad, vehicle = configs
     cfg = SimConfig(render=kw.pop('render', False), **kw)
-    return Simulation(world, pad, vehicle, ap, cfg, wall_clock=clock or FakeClock())
+    return Simulation(world, pad, vehicle, ap, cfg, wall_clock=clock or FakeClock(),
+                      products=products)
 
 
 def test_first_frame_is_the_initial_condition_with_images(configs):
@@ -250,7 +252,6 @@ def test_lockstep_harness_holds_a_frame_until_imu_data_reached_its_time():
 
 
 def test_answer_latency_pairs_each_setpoint_with_the_frame_of_its_time():
-    from ibvs_sim.core.sim_core import AnswerLatency
     lat = AnswerLatency()
     for k in range(5):                                   # frames at 0, 20, ..., 80 ms
         lat.published(k * 20_000_000, wall=10.0 + 0.08 * k)
@@ -264,3 +265,77 @@ def test_answer_latency_pairs_each_setpoint_with_the_frame_of_its_time():
     assert st['answered_fraction'] == pytest.approx(0.6)
     assert st['latency_median_ms'] == pytest.approx(7.0)
     assert st['latency_max_ms'] == pytest.approx(12.0)
+
+
+def test_answer_latency_takes_the_nearest_frame_within_the_clock_sync_error():
+    """A running TIMESYNC maps an image stamp to time_boot_ms within a few ms, not exactly."""
+    lat = AnswerLatency(tolerance_ms=9)
+    for k in range(3):                                   # frames at 0, 20, 40 ms
+        lat.published(k * 20_000_000, wall=1.0 + 0.02 * k)
+    lat.answered(1, 1.005)                               # frame 0, mapped 1 ms late: 5 ms
+    lat.answered(38, 1.050)                              # frame 40, 2 ms early: 10 ms
+    lat.answered(30, 1.070)                              # 10 ms from both: no frame
+    st = lat.stats()
+    assert st['frames_answered'] == 2
+    assert st['latency_median_ms'] == pytest.approx(7.5)
+    assert st['answer_stamp_error_max_ms'] == 2 and st['answer_stamp_exact_fraction'] == 0.0
+
+
+def test_lockstep_also_waits_for_every_product_of_the_frame_then_gives_up_a_dead_one(configs):
+    """The clock stands still until the graph made all it makes of a frame, not only the answer.
+
+    A product without a publisher, or of a camera whose image did not go out, is not waited
+    for; one that does not come within the lockstep timeout is given up until it comes again.
+    """
+    ap, clock = FakeAutopilot(), FakeClock()
+    products = GraphProducts({'window/corners': 'front', 'pad/landmarks': 'down',
+                              'pad/groups': 'down'}, partners={'pad/groups': 'pad/landmarks'})
+    sim = _sim(configs, ap, clock, products=products, pacing=Pacing.LOCKSTEP,
+               lockstep_timeout_s=1.0)
+    live = {'window/corners': 1, 'pad/landmarks': 1, 'pad/groups': 1}
+    assert sim.tick().t_ns == 0
+    products.expect(0, ['front', 'down'], live)
+    ap.last_setpoint_time_boot_ms = 0                    # answered, but the pad still computes
+    products.note('window/corners', 0)
+    assert sim.tick() is None
+    products.note('pad/groups')                          # before its landmarks: nothing to pair
+    products.note('pad/landmarks', 0)
+    assert products.missing() == ['pad/groups'] and sim.tick() is None
+    products.note('pad/groups')
+    out = sim.tick()
+    assert out.t_ns == 20_000_000 and sim.lockstep_timeouts == 0
+    # the pad detector dies: the next frame waits one timeout, then never again for it
+    products.expect(out.t_ns, ['front', 'down'], live)
+    ap.last_setpoint_time_boot_ms = 20
+    products.note('window/corners', out.t_ns)
+    assert sim.tick() is None
+    clock.now += 1.0
+    out = sim.tick()
+    assert out.t_ns == 40_000_000 and sim.products_given_up == ['pad/groups', 'pad/landmarks']
+    assert sim.lockstep_timeouts == 0                    # the answer itself was there
+    products.expect(out.t_ns, ['front', 'down'], live)
+    ap.last_setpoint_time_boot_ms = 40
+    products.note('window/corners', out.t_ns)
+    assert sim.tick().t_ns == 60_000_000
+    # it restarts and publishes again: waited for again; no publisher or camera off: not
+    products.note('pad/landmarks', 60_000_000)
+    products.expect(60_000_000, ['front', 'down'], live)
+    assert products.missing() == ['window/corners']
+    products.expect(60_000_000, ['front'], live)
+    assert products.missing() == ['window/corners']
+    products.expect(60_000_000, ['front', 'down'], {**live, 'window/corners': 0})
+    assert products.missing() == []
+
+
+def test_a_free_running_collision_is_kept_as_an_event(configs):
+    """Free-running, a collision between two frames ends the run and is still reported."""
+    clock = FakeClock()
+    wind = WindConfig(steady_force_I=(3.0, 0.0, 0.0))
+    sim = _sim(configs, FakeAutopilot(), clock, pacing=Pacing.REALTIME, wind=wind,
+               initial_position_I=(-1.2, 0.0, -0.6))
+    for _ in range(2000):
+        sim.tick()
+        clock.now += 0.005
+        if sim.ended:
+            break
+    assert sim.ended and [e.type for e in sim.events] == [EventType.COLLISION]

@@ -8,10 +8,12 @@ LANDING: pad + down flow; IDLE: window) or when the ROS clock reaches its stamp 
 ``frame_deadline_s``; then its products are converted to {I} (bearings: optical -> body FRD
 by the camera mount R_BC of vehicle.yaml -> {I} by the IMU attitude interpolated at the
 stamp, or propagated to it; flows: map -> {I}), given to the core in a fixed order and the
-frame is closed (``end_frame``: auto-start, triggers, staleness). Products of the other
-camera, and products arriving after their frame was released, are given to the core on
-arrival. So the mode of each frame depends on that frame's inputs, not on the order in which
-DDS delivered them, and an input the mode does not use never delays a frame. A timer on the
+frame is closed (``end_frame``: auto-start, triggers, staleness). The frame's products that
+its mode does not wait for (e.g. the pad in CROSSING) are given to the core after the close;
+products of the other camera, and products arriving after their frame was released, on
+arrival. So the mode of each frame depends on that frame's needed inputs and on what came
+before it, not on the order in which DDS delivered them, and an input the mode does not use
+never delays a frame. A timer on the
 node clock (``update_rate_hz``) applies the staleness rules when inputs stop altogether.
 
 Publishes ``ibvs/mode`` (std_msgs/UInt8, reliable, transient local, depth 1) at start and on
@@ -234,12 +236,20 @@ class ModeSupervisorNode(Node):
             self._core.on_flow(t, 'front' if kind == InputKind.FLOW_FRONT else 'down', value)
 
     def _evaluate(self, frame: Frame) -> None:
-        """Give a released frame's products to the core in a fixed order and close it."""
+        """Give a released frame's needed products to the core in a fixed order, close it.
+
+        Its other products of the same camera (``frame.extras``) are given after the close,
+        as if they had arrived after the release: they count from the next frame on, whatever
+        the order in which they arrived (e.g. the pad seen in CROSSING).
+        """
         t = frame.stamp_ns / NS_PER_S
         for kind, value in frame.inputs.items():      # timing.EVALUATION_ORDER
             self._feed(kind, frame.stamp_ns, value)
+        extras = [(k, v) for k, v in frame.extras.items() if CAMERA_OF[k] == frame.tag]
         if frame.tag != MODE_INPUTS[self._core.mode].camera:
-            return          # the mode moved to the other camera: products only, no frame
+            for kind, value in extras:  # the mode moved to the other camera: products only
+                self._feed(kind, frame.stamp_ns, value)
+            return
         if frame.missing:
             self.get_logger().warning(
                 f'frame {t:.3f} s evaluated at its deadline without '
@@ -250,6 +260,8 @@ class ModeSupervisorNode(Node):
             self._error(f'auto-start refused: {self._core.auto_start_refusal}')
         self._publish_mode()
         self._publish_status(frame.stamp_ns)
+        for kind, value in extras:
+            self._feed(kind, frame.stamp_ns, value)
 
     def _publish_status(self, stamp_ns: int) -> None:
         mode = self._core.mode

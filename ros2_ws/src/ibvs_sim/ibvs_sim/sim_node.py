@@ -12,7 +12,9 @@ In lockstep the node is the test harness's clock, and only it waits: a frame's i
 once ``imu/data`` (the bridge's, from this autopilot's telemetry) has reached the frame's
 time, as a camera-IMU synchronised vehicle delivers them, so that the graph's attitude at the
 stamp is the same in every run (:class:`~ibvs_sim.core.sim_core.ImuBeforeImages`); then the
-next 20 ms are simulated only after the graph answered the frame. Both waits end after
+next 20 ms are simulated only after the graph answered the frame and published all its
+products (:class:`~ibvs_sim.core.sim_core.GraphProducts`: the detections and flows of the
+cameras that went out, including those the mode does not wait for). Both waits end after
 ``lockstep_timeout_s`` of wall clock (a dead node). The flight path has no wait of its own.
 """
 from __future__ import annotations
@@ -32,6 +34,7 @@ from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
 
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, Imu
@@ -43,7 +46,7 @@ from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_
                                       vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.sim_core import (AnswerLatency, FirstFrameHold, FrameOutput,
+from ibvs_sim.core.sim_core import (AnswerLatency, FirstFrameHold, FrameOutput, GraphProducts,
                                     ImuBeforeImages, NS_PER_S, Pacing, SimConfig, Simulation)
 from ibvs_control.spin import spin_guarded
 
@@ -62,6 +65,13 @@ STATS_PERIOD_S = 1.0          # s (wall), sim/stats
 CLOCK_REPEAT_S = 0.1          # s (wall), /clock repeated while sim time stands still: a node
 #                               whose /clock subscription matched late still learns the time
 FAULT_ANSWER_WAIT_S = 0.3     # s (wall), lockstep: wait for the answer to a frame with images off
+# lockstep: what the graph publishes for each camera frame (docs/interfaces.md), by camera
+GRAPH_PRODUCTS = {'window/corners': (PolygonStamped, 'front'),
+                  'front_camera/translational_flow': (Vector3Stamped, 'front'),
+                  'pad/landmarks': (PolygonStamped, 'down'),
+                  'pad/groups': (String, 'down'),
+                  'down_camera/translational_flow': (Vector3Stamped, 'down')}
+UNSTAMPED_PARTNERS = {'pad/groups': 'pad/landmarks'}
 
 
 @dataclass(frozen=True)
@@ -172,12 +182,16 @@ class SimNode(Node):
         wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
-        self.sim = Simulation(world, pad, vehicle, self.autopilot, SimConfig(
+        self.products = GraphProducts({t: cam for t, (_, cam) in GRAPH_PRODUCTS.items()},
+                                      UNSTAMPED_PARTNERS)
+        sim_config = SimConfig(
             pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
             real_time_factor=cfg.real_time_factor,
             camera_rate_hz=self.cameras['down'].rate_hz,
             initial_position_I=cfg.initial_position_I, initial_yaw=cfg.initial_yaw,
-            wind=wind, cameras=CAMERAS))
+            wind=wind, cameras=CAMERAS)
+        self.sim = Simulation(world, pad, vehicle, self.autopilot, sim_config,
+                              products=self.products)
         reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=EVENTS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -196,10 +210,14 @@ class SimNode(Node):
         self._clock_ns = -1
         self._clock_wall = 0.0
         self._ended_logged = False
+        self._events_published = 0
         self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
                                         enabled=cfg.pacing is Pacing.LOCKSTEP)
         if self.imu_hold.enabled:
             self.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
+            for topic, (msg_type, _) in GRAPH_PRODUCTS.items():
+                self.create_subscription(msg_type, topic, self._product_callback(topic),
+                                         qos_profile_sensor_data)
         min_counts = {n: cfg.min_image_subscribers for n in self.image_pubs}
         self.first_frame_hold = FirstFrameHold(
             min_counts, SUBSCRIBER_SETTLE_S, cfg.subscriber_wait_timeout_s, time.monotonic(),
@@ -297,6 +315,13 @@ class SimNode(Node):
     def _on_imu(self, msg: Imu) -> None:
         self.imu_hold.note_imu(msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec)
 
+    def _product_callback(self, topic: str):
+        def note(msg) -> None:
+            header = getattr(msg, 'header', None)
+            self.products.note(topic, None if header is None
+                               else header.stamp.sec * NS_PER_S + header.stamp.nanosec)
+        return note
+
     def _on_tick(self) -> None:
         if not self.first_frame_hold.released and not self._first_frame_may_go():
             return
@@ -311,6 +336,7 @@ class SimNode(Node):
         if self.imu_hold.holding:
             return
         timeouts_before, dropped_before = self.sim.lockstep_timeouts, self.sim.frames_dropped
+        given_up_before = len(self.sim.products_given_up)
         try:
             out = self.sim.tick()
         except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
@@ -325,6 +351,11 @@ class SimNode(Node):
                 f't = {self.sim.t:.3f} s with the last one; {self.sim.lockstep_timeouts} '
                 'time-outs so far (the run no longer repeats exactly)',
                 throttle_duration_sec=LOG_THROTTLE_S)
+        if len(self.sim.products_given_up) > given_up_before:
+            self.get_logger().warning(
+                f'lockstep: {", ".join(self.sim.products_given_up[given_up_before:])} not '
+                f'published within {self.sim.config.lockstep_timeout_s} s (wall) of the frame '
+                f'at t = {self.sim.t:.3f} s: no longer waited for until it comes again')
         if self.sim.frames_dropped > dropped_before:
             self.get_logger().warning(
                 f'free-running: could not render on time at t = {self.sim.t:.3f} s: '
@@ -343,8 +374,11 @@ class SimNode(Node):
                 self._publish(out)
         elif self.sim.ended and not self._ended_logged:
             self._ended_logged = True
-            self.get_logger().error(f'run ended by a collision at t={self.sim.t:.3f} s: '
-                                    f'{self.sim.events[-1].to_dict()}')
+            for event in self.sim.events[self._events_published:]:
+                self._publish_event(event)
+            self.get_logger().error(
+                f'run ended at t = {self.sim.t:.3f} s: '
+                f'{self.sim.events[-1].to_dict() if self.sim.events else "(no event)"}')
 
     def _publish_clock(self, t_ns: int) -> None:
         """Publish /clock when time moved, or again after CLOCK_REPEAT_S of wall clock."""
@@ -360,6 +394,7 @@ class SimNode(Node):
                   'real_time_factor': self.sim.config.real_time_factor,
                   'sim_time_s': self.sim.t, 'frames_dropped': self.sim.frames_dropped,
                   'stalls': self.sim.stalls, 'lockstep_timeouts': self.sim.lockstep_timeouts,
+                  'products_given_up': len(self.sim.products_given_up),
                   'imu_hold_timeouts': self.imu_hold.timeouts, **self.latency.stats()}
         status = DiagnosticStatus(
             level=DiagnosticStatus.WARN if self.sim.frames_dropped else DiagnosticStatus.OK,
@@ -389,8 +424,16 @@ class SimNode(Node):
         self.latency.published(out.t_ns, time.monotonic())
         self.odom_pub.publish(odometry_msg(out.state, stamp))
         for event in out.events:
-            self.events_pub.publish(String(data=json.dumps(event.to_dict())))
-            self.get_logger().info(f'event: {event.to_dict()}')
+            self._publish_event(event)
+        if self.imu_hold.enabled:
+            cameras = [n for n in out.images if n not in withheld] if out.images else []
+            self.products.expect(out.t_ns, cameras,
+                                 {t: self.count_publishers(t) for t in GRAPH_PRODUCTS})
+
+    def _publish_event(self, event) -> None:
+        self._events_published += 1
+        self.events_pub.publish(String(data=json.dumps(event.to_dict())))
+        self.get_logger().info(f'event: {event.to_dict()}')
 
     def destroy_node(self) -> None:
         """Close the MAVLink endpoint, then destroy the node."""

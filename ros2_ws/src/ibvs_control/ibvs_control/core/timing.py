@@ -91,11 +91,13 @@ MODE_INPUTS = {
 
 @dataclass(frozen=True)
 class Frame:
-    """A released frame: its stamp, the tag it was opened with and the inputs it got.
+    """A released frame: its stamp, the tag it was opened with and the products it got.
 
-    ``inputs`` holds every product that arrived with exactly this stamp (needed or not), by
-    kind; ``missing`` the needed ones that had not arrived at release (``expired``: released
-    by its deadline).
+    ``inputs`` holds the needed products that arrived with exactly this stamp, by kind;
+    ``extras`` the other products of this stamp that had arrived by the release (a node that
+    uses them at all uses them only after the frame: see :class:`FrameAssembler`);
+    ``missing`` the needed ones that had not arrived at release (``expired``: released by its
+    deadline).
     """
 
     stamp_ns: int
@@ -103,6 +105,7 @@ class Frame:
     inputs: dict
     missing: tuple = ()
     expired: bool = False
+    extras: dict = field(default_factory=dict)
 
     def get(self, kind: InputKind):
         """Return the value of a product of this frame, or None."""
@@ -123,6 +126,12 @@ class FrameAssembler:
     supervisor from its current mode and the frame's camera, the controller from the mode the
     supervisor reported for the frame). Inputs are kept per kind for the last ``depth``
     stamps; a frame can be opened before or after its products arrive.
+
+    A released frame's ``inputs`` are only its needed products: whether a product the mode
+    does not wait for arrived before or after the release depends on scheduling, so it goes
+    to ``extras``, which a node may apply only after the frame (the supervisor does, as if it
+    had arrived late). The evaluation of a frame then depends on its needed products alone,
+    on a vehicle as in a lockstep simulator.
     """
 
     def __init__(self, deadline_s: float, needed: Callable[[Any], frozenset],
@@ -188,17 +197,20 @@ class FrameAssembler:
         out = []
         while self._pending:
             p = self._pending[0]
+            needed = self.needed(p.tag)
             missing = tuple(k for k in EVALUATION_ORDER
-                            if k in self.needed(p.tag) and not self.has(k, p.stamp_ns))
+                            if k in needed and not self.has(k, p.stamp_ns))
             expired = bool(missing) and int(now_ns) >= p.deadline_ns
             if missing and not expired:
                 break
             self._pending.pop(0)
             self.released_through_ns = p.stamp_ns
             self.expired += int(expired)
-            inputs = {k: self._inputs[k][p.stamp_ns] for k in EVALUATION_ORDER
-                      if p.stamp_ns in self._inputs[k]}
-            out.append(Frame(p.stamp_ns, p.tag, inputs, missing, expired))
+            present = {k: self._inputs[k][p.stamp_ns] for k in EVALUATION_ORDER
+                       if p.stamp_ns in self._inputs[k]}
+            out.append(Frame(p.stamp_ns, p.tag,
+                             {k: v for k, v in present.items() if k in needed}, missing,
+                             expired, {k: v for k, v in present.items() if k not in needed}))
         return out
 
     def next_deadline_ns(self) -> int | None:

@@ -18,7 +18,8 @@ Pacing (:meth:`Simulation.tick`, called often by the node):
   process itself longer than ``MAX_CATCH_UP_S`` of sim time re-phases its clock (``stalls``);
 - ``lockstep``: the next camera period is simulated only after the autopilot received a
   SET_ATTITUDE_TARGET whose time_boot_ms is at least the last frame's time in ms (the graph's
-  answer to that frame), or after ``lockstep_timeout_s`` of wall clock; meanwhile the autopilot
+  answer to that frame) and the graph published every product of that frame
+  (:class:`GraphProducts`), or after ``lockstep_timeout_s`` of wall clock; meanwhile the autopilot
   is polled at the same sim time. MAVLink input is read only there, between frames, never
   during a frame's physics substeps: a datagram that lands while a frame is being computed (a
   stream repeat, a command) takes effect at the next frame boundary, not at whichever substep
@@ -233,16 +234,21 @@ class AnswerLatency:
 
     :meth:`published` notes when each frame's images left (wall s); :meth:`answered` is called
     for every SET_ATTITUDE_TARGET with a new time_boot_ms and the wall time the autopilot read
-    it (``Autopilot.new_setpoints``): the frame of exactly that time is answered, and its
+    it (``Autopilot.new_setpoints``): the published frame nearest that time, within
+    ``tolerance_ms``, is answered (the bridge maps the image stamp to time_boot_ms through its
+    TIMESYNC estimate: exact in lockstep, within a few ms when the clocks run), and its
     latency is the read minus the publication (the autopilot reads at each physics substep of
-    a tick: resolution about the sim node's tick period). Frames whose own answer never came
-    count as unanswered.
+    a tick: resolution about the sim node's tick period). ``stamp_errors_ms`` keeps
+    time_boot_ms minus the frame's time. Frames whose own answer never came count as
+    unanswered.
     """
 
-    def __init__(self, keep: int = 200) -> None:
+    def __init__(self, keep: int = 200, tolerance_ms: int = 9) -> None:
         self._published: dict[int, float] = {}     # frame ms -> wall s
         self._keep = int(keep)
+        self.tolerance_ms = int(tolerance_ms)
         self.latencies_s: list[float] = []
+        self.stamp_errors_ms: list[int] = []
         self.frames = 0
         self._last_ms: int | None = None
 
@@ -258,9 +264,12 @@ class AnswerLatency:
         if time_boot_ms is None or time_boot_ms == self._last_ms:
             return
         self._last_ms = time_boot_ms
-        sent = self._published.pop(int(time_boot_ms), None)
-        if sent is not None:
-            self.latencies_s.append(wall - sent)
+        ms = int(time_boot_ms)
+        near = [k for k in self._published if abs(k - ms) <= self.tolerance_ms]
+        if near:
+            frame_ms = min(near, key=lambda k: abs(k - ms))
+            self.latencies_s.append(wall - self._published.pop(frame_ms))
+            self.stamp_errors_ms.append(ms - frame_ms)
 
     def stats(self) -> dict:
         """Median, p95, p99, max (ms) and the fraction of published frames answered."""
@@ -271,7 +280,63 @@ class AnswerLatency:
             out.update({f'latency_{k}_ms': float(v) for k, v in (
                 ('median', np.median(lat)), ('p95', np.percentile(lat, 95)),
                 ('p99', np.percentile(lat, 99)), ('max', lat.max()))})
+            errors = np.abs(self.stamp_errors_ms)
+            out.update({'answer_stamp_error_max_ms': int(errors.max()),
+                        'answer_stamp_exact_fraction': float(np.mean(errors == 0))})
         return out
+
+
+class GraphProducts:
+    """Lockstep harness: the products the graph makes of a frame, waited for before the next.
+
+    The graph answers a frame (SET_ATTITUDE_TARGET) once the products its mode needs are in;
+    the others (the pad while CROSSING, the flow of the camera the mode does not use) may
+    still be computing. In lockstep, sim time moves on only when, besides the answer, every
+    product of the last frame was published (``products``: topic -> camera), so that no node
+    is still computing when the next frame comes and runs repeat under any load. Only the
+    cameras whose images went out are expected, and only topics with a publisher. A product
+    still missing when the lockstep wait ends (a dead node) is given up: not waited for until
+    it is published again. Unstamped topics (``pad/groups``) are noted with the stamp of
+    their ``partners`` topic (``pad/landmarks``, published just before).
+    """
+
+    def __init__(self, products: dict, partners: dict | None = None) -> None:
+        self.products = dict(products)
+        self.partners = dict(partners or {})
+        self.newest_ns: dict[str, int] = {}
+        self.given_up: set[str] = set()
+        self.expected: set[str] = set()
+        self.frame_ns: int | None = None
+
+    def expect(self, frame_ns: int, cameras, publishers: dict) -> None:
+        """Expect the products of the frame at ``frame_ns`` (images of ``cameras`` went out)."""
+        self.frame_ns = int(frame_ns)
+        self.expected = {t for t, cam in self.products.items()
+                         if cam in cameras and publishers.get(t, 0) > 0
+                         and t not in self.given_up}
+
+    def note(self, topic: str, stamp_ns: int | None = None) -> None:
+        """Note a published product (``stamp_ns`` None for an unstamped topic)."""
+        if stamp_ns is None:
+            stamp_ns = self.newest_ns.get(self.partners.get(topic, ''))
+            if stamp_ns is None:
+                return
+        if stamp_ns > self.newest_ns.get(topic, -1):
+            self.newest_ns[topic] = int(stamp_ns)
+        self.given_up.discard(topic)
+
+    def missing(self) -> list[str]:
+        """Return the expected products of the last frame not yet published."""
+        if self.frame_ns is None:
+            return []
+        return sorted(t for t in self.expected if self.newest_ns.get(t, -1) < self.frame_ns)
+
+    def give_up(self) -> list[str]:
+        """Stop waiting for the missing products (until they come again); return them."""
+        gone = self.missing()
+        self.given_up.update(gone)
+        self.expected.difference_update(gone)
+        return gone
 
 
 class Simulation:
@@ -279,7 +344,8 @@ class Simulation:
 
     def __init__(self, world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                  autopilot: ReferenceSource, config: SimConfig,
-                 wall_clock: Callable[[], float] = time.monotonic) -> None:
+                 wall_clock: Callable[[], float] = time.monotonic,
+                 products: GraphProducts | None = None) -> None:
         self.world, self.vehicle, self.config = world, vehicle, config
         self.autopilot = autopilot
         self.wall_clock = wall_clock
@@ -310,6 +376,8 @@ class Simulation:
             raise ValueError(f'real_time_factor must be in (0, 10], got '
                              f'{config.real_time_factor}')
         self.lockstep_timeouts = 0
+        self.products = products if products is not None else GraphProducts({})
+        self.products_given_up: list[str] = []   # lockstep: products no longer waited for
         self.frames_dropped = 0               # realtime: frames not rendered on time
         self.stalls = 0                       # realtime: re-phased after a stall of the sim
         self.reference: AttitudeReference | None = None
@@ -351,11 +419,13 @@ class Simulation:
             return self._free_run(now)
         self.autopilot.poll(self.state_view())
         answered = self.autopilot.last_setpoint_time_boot_ms
-        if answered is not None and answered >= self.last_frame_ms():
+        answered = answered is not None and answered >= self.last_frame_ms()
+        if answered and not self.products.missing():
             return self.step_frame()
         if now - self._waiting_since_wall >= self.answer_wait_s:
-            if self.answer_wait_s >= self.config.lockstep_timeout_s:
+            if not answered and self.answer_wait_s >= self.config.lockstep_timeout_s:
                 self.lockstep_timeouts += 1
+            self.products_given_up += self.products.give_up()
             return self.step_frame()
         return None
 
@@ -374,6 +444,10 @@ class Simulation:
             event = self._substep(receive=True)
             if event is not None:
                 self._events.append(event)
+                if self.ended:          # a collision ends the run: no frame shows it
+                    self.events.extend(self._events)
+                    self._events = []
+                    return None
             if self.t_ns < self._next_frame_ns:
                 continue
             frame_ns = self._next_frame_ns
