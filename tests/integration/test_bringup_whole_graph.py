@@ -105,7 +105,8 @@ def assert_success(summary: dict) -> None:
     """SPEC.md section 5's success, checked field by field for a readable failure."""
     w, ld = summary['window'], summary['landing']
     info = json.dumps({k: summary[k] for k in ('window', 'landing', 'modes', 'run', 'timing')
-                       if k in summary}, indent=1)[:3000] + '\n' + summary['_log_warnings']
+                       if k in summary}, indent=1)[:3000] + '\n' + summary['_log_warnings'] \
+        + '\nbridge (1 Hz): ' + '\n'.join(json.dumps(r) for r in summary.get('bridge', []))
     assert w['crossed'] and w['crossing_speed_mps'] > 0, info
     assert w['min_clearance_m'] > 0, info
     assert ld['landed'] and ld['error_m'] <= 0.10 and ld['touchdown_speed_mps'] <= 0.5, info

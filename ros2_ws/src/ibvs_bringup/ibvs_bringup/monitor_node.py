@@ -26,6 +26,11 @@ from std_msgs.msg import String
 
 FLOW_TOPICS = {'flow_front': 'front_camera/translational_flow',
                'flow_down': 'down_camera/translational_flow'}
+# the MAVLink bridge's /diagnostics values kept once per message (1 Hz) for summary.json
+BRIDGE_KEYS = ('engage_state', 'setpoint_source', 'hover_thrust', 'hover_estimate_std',
+               'clock_synced', 'clock_offset_ms', 'clock_skew_ppm', 'timesync_resets',
+               'setpoint_rate_hz')
+BRIDGE_HISTORY_LEN = 120
 
 
 def stamp_s(msg) -> float:
@@ -84,6 +89,8 @@ class ScenarioMonitor(Node):
         self.create_subscription(JointState, 'ibvs/features', self._on_features, BEST_EFFORT)
         self.sim_stats: dict = {}
         self.create_subscription(DiagnosticArray, 'sim/stats', self._on_sim_stats, LATCHED)
+        self.bridge_history: list = []
+        self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
 
     def now_s(self) -> float:
         """Return the node's (sim) time in seconds."""
@@ -104,6 +111,16 @@ class ScenarioMonitor(Node):
         """Keep the sim's latest timing figures (frames dropped, image -> setpoint latency)."""
         for status in msg.status:
             self.sim_stats = {kv.key: _number(kv.value) for kv in status.values}
+
+    def _on_diagnostics(self, msg: DiagnosticArray) -> None:
+        """Keep the bridge's state, hover thrust and clock sync once per message (sim time)."""
+        for status in msg.status:
+            if not status.name.endswith(': MAVLink link'):
+                continue
+            values = {kv.key: _number(kv.value) for kv in status.values}
+            row = {'t': round(self.now_s(), 3),
+                   **{k: values[k] for k in BRIDGE_KEYS if k in values}}
+            self.bridge_history = (self.bridge_history + [row])[-BRIDGE_HISTORY_LEN:]
 
     def _on_event(self, msg: String) -> None:
         try:

@@ -327,12 +327,14 @@ def run_graph(opts: RunOptions) -> int:
                 rclpy.spin_once(monitor, timeout_sec=0.0)
         log = monitor.log if monitor is not None else report.RunLog()
         sim_stats = dict(monitor.sim_stats) if monitor is not None else {}
+        bridge = list(monitor.bridge_history) if monitor is not None else []
         if monitor is not None:
             monitor.destroy_node()
         rclpy.try_shutdown()
     print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
     summary['timing'] = sim_stats
+    summary['bridge'] = bridge        # the bridge's /diagnostics, once a second (sim time t)
     summary['run'] = _run_block(opts, xi0, stop_reason=stop_reason, error=error,
                                 wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
                                 node_restarts=restarts,
