@@ -244,3 +244,36 @@ def test_onboard_window_width_agrees_with_the_sim_world():
         section = params[node]['ros__parameters']
         assert 'world_file' not in section
         assert section['window_width_m'] == load_world().window.width
+
+
+def test_the_node_name_table_is_the_graphs_node_list():
+    onboard = graph.onboard_graph(graph.GraphOptions(params_file=PARAMS, use_sim_time=False))
+    assert tuple(s.name for s in onboard) == graph.ONBOARD_NODE_NAMES
+    sim = graph.sim_graph(graph.GraphOptions(params_file=PARAMS))
+    assert tuple(s.name for s in sim) == graph.SIM_NODE_NAMES
+
+
+@pytest.mark.parametrize('content, message', [
+    (None, 'cannot be read'),
+    ('window_detector: [unclosed', 'not valid YAML'),
+    ('some_other_node:\n  ros__parameters:\n    x: 1\n', 'configures none of the nodes'),
+    ('- a list\n', 'configures none of the nodes')])
+def test_a_parameter_file_that_cannot_configure_the_graph_is_refused(tmp_path, content,
+                                                                     message):
+    """launch_ros only warns and runs on code defaults; the graph refuses with the reason."""
+    path = tmp_path / 'params.yaml'
+    if content is not None:
+        path.write_text(content)
+    for build in (graph.sim_graph, graph.onboard_graph):
+        with pytest.raises(ValueError, match=message) as err:
+            build(graph.GraphOptions(params_file=str(path)))
+        assert str(path) in str(err.value)
+
+
+def test_a_parameter_file_for_some_nodes_or_wildcards_is_accepted(tmp_path):
+    path = tmp_path / 'p.yaml'
+    path.write_text('/**:\n  ros__parameters:\n    use_sim_time: false\n')
+    assert graph.checked_params_file(str(path), graph.ONBOARD_NODE_NAMES) == str(path)
+    path.write_text('force_controller:\n  ros__parameters:\n    crossing_law: closed\n')
+    assert graph.checked_params_file(str(path), graph.ONBOARD_NODE_NAMES) == str(path)
+    assert graph.checked_params_file(None, graph.ONBOARD_NODE_NAMES).endswith('params.yaml')

@@ -170,3 +170,15 @@ def test_runner_restarts_a_respawn_node_with_backoff_and_leaves_the_others(tmp_p
         assert 'steady' in runner.running() and 'fatal' not in runner.running()
     finally:
         runner.stop()
+
+
+def test_runner_and_run_scenario_refuse_a_missing_parameter_file(tmp_path, capsys):
+    """Exit 2 with the reason, no traceback and nothing started (launch_ros only warns)."""
+    from ibvs_bringup import run_scenario, runner as runner_cli
+    missing = str(tmp_path / 'typo.yaml')
+    assert runner_cli.main(['onboard', '--params-file', missing]) == 2
+    assert run_scenario.main(['--params-file', missing, '--results-root', str(tmp_path),
+                              '--run-name', 'x']) == 2
+    err = capsys.readouterr().err
+    assert err.count(f"parameter file '{missing}' cannot be read") == 2
+    assert 'Traceback' not in err and not (tmp_path / 'x').exists()

@@ -43,6 +43,11 @@ SUPERVISOR_AUTO_START = 'auto_start_at_s'     # mode_supervisor: start by itself
 # backoff): a detector or flow that comes back is an input that comes back. The supervisor,
 # controller and bridge are not: their death is handled by the safety policy (no statuses ->
 # no forces -> the bridge hands the vehicle back; no bridge -> the autopilot's offboard loss).
+# the names of the graph's nodes, in launch order (the sections of params.yaml)
+ONBOARD_NODE_NAMES = ('window_detector', 'pad_detector', 'front_optical_flow',
+                      'down_optical_flow', 'mode_supervisor', 'force_controller',
+                      'mavlink_bridge')
+SIM_NODE_NAMES = ('sim',) + ONBOARD_NODE_NAMES
 RESPAWN_DELAY_S = 1.0                         # s before the first restart (then doubled)
 
 
@@ -142,6 +147,35 @@ def default_params_file(name: str = PARAMS_FILE_NAME) -> str:
     return os.path.join(get_package_share_directory(CONFIG_PACKAGE), 'config', name)
 
 
+def checked_params_file(path: str | None, node_names: Sequence[str]) -> str:
+    """Return the parameter file to give every node; raise ValueError if it cannot be that.
+
+    ``None`` or '' is the installed params.yaml. launch_ros only warns about a file that does
+    not exist and then runs every node on its code defaults; a flight stack must not start on
+    a typo. Refused: a missing or unreadable file, invalid YAML, and a file that configures
+    none of the graph's nodes (``<node name>: ros__parameters: ...``, as in params.yaml).
+    """
+    import yaml
+    resolved = path or default_params_file()
+    try:
+        with open(resolved, encoding='utf-8') as f:
+            data = yaml.safe_load(f)
+    except OSError as exc:
+        raise ValueError(f'parameter file {resolved!r} cannot be read ({exc.strerror}): give '
+                         f'an existing file as params_file, or none for the installed '
+                         f'{PARAMS_FILE_NAME}') from exc
+    except yaml.YAMLError as exc:
+        raise ValueError(f'parameter file {resolved!r} is not valid YAML: {exc}') from exc
+    sections = set(data) if isinstance(data, dict) else set()
+    configured = {n for n in node_names
+                  if n in sections or f'/{n}' in sections or '/**' in sections}
+    if not configured:
+        raise ValueError(f'parameter file {resolved!r} configures none of the nodes '
+                         f'{sorted(node_names)} (expected "<node name>: ros__parameters:" '
+                         f'sections, as in the installed {PARAMS_FILE_NAME})')
+    return resolved
+
+
 DDS_PROFILE_FILE_NAME = 'fastdds.xml'
 FASTDDS_PROFILE_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'    # read by Fast DDS 2.x (Jazzy)
 RMW_ENV, FASTDDS_RMW = 'RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp'
@@ -214,7 +248,7 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
     path has no simulator-only waits or timeouts; only the per-run overrides below (MAVLink
     port, initial condition, wind, ...) and ``use_sim_time`` differ.
     """
-    params = (opts.params_file or default_params_file(),)
+    params = (checked_params_file(opts.params_file, SIM_NODE_NAMES),)
     sim_url, bridge_url = sim_mavlink_urls(opts.mavlink_port)
     sim_over: dict = {
         MAVLINK_URL: sim_url,
@@ -245,7 +279,7 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
 
 def onboard_graph(opts: GraphOptions = GraphOptions(use_sim_time=False)) -> list[NodeSpec]:
     """Return the onboard nodes only, talking to the vehicle at ``opts.mavlink_url``."""
-    params = (opts.params_file or default_params_file(),)
+    params = (checked_params_file(opts.params_file, ONBOARD_NODE_NAMES),)
     url = opts.mavlink_url or sim_mavlink_urls(opts.mavlink_port)[1]
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     return _onboard_nodes(params, common, opts, url)

@@ -402,6 +402,7 @@ def main(argv: list | None = None) -> int:
     opts = parse_args(argv)
     graph.ensure_ament_prefix_path()
     try:
+        graph.checked_params_file(opts.params_file, graph.SIM_NODE_NAMES)
         prepare_out_dir(opts)
     except (ValueError, OSError) as exc:
         print(f'run_scenario: {exc}', file=sys.stderr)

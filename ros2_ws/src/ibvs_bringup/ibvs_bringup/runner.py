@@ -249,8 +249,12 @@ def main(argv: list | None = None) -> int:
     parser.add_argument('--log-dir', default=None, help='write <node>.log files here')
     args = parser.parse_args(argv)
     graph.ensure_ament_prefix_path()
-    opts = options_from_args(args)
-    specs = graph.sim_graph(opts) if args.graph == 'sim' else graph.onboard_graph(opts)
+    try:
+        opts = options_from_args(args)
+        specs = graph.sim_graph(opts) if args.graph == 'sim' else graph.onboard_graph(opts)
+    except ValueError as exc:          # a bad parameter file or option: nothing is started
+        print(f'runner: {exc}', file=sys.stderr, flush=True)
+        return 2
     raise_on_sigterm()
     runner = ProcessRunner(log_dir=args.log_dir)
     rc = 0
