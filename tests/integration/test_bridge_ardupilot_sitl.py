@@ -13,6 +13,7 @@ ArduCopter 4.5 takes off once per boot with SET_ATTITUDE_TARGET thrust ("Interna
 """
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 import signal
@@ -25,8 +26,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bridge_px4_sitl import (  # noqa: E402
-    AP_DIR, angle_diff, check, Flight, free_instance, Run, RUN_S, start, step_response, Truth,
-    VEHICLE_MASS)
+    AP_DIR, angle_diff, check, Flight, free_instance, Run, RUN_S, shipped_parameters, start,
+    step_response, Truth, VEHICLE_MASS)
 
 pytestmark = pytest.mark.slow
 
@@ -35,22 +36,37 @@ GUIDED_NOGPS, ALT_HOLD, LAND = 20, 2, 9
 SIM_STATE = 108
 
 
-@pytest.fixture
-def ardupilot(tmp_path):
-    """One ArduCopter SITL per test (stopped at the end, whatever happens)."""
+@contextlib.contextmanager
+def ardupilot_sitl(tmp_path, *params: str):
+    """One ArduCopter SITL with GUID_OPTIONS=8 and these NAME=VALUE defaults (always stopped)."""
     script = AP_DIR / 'ardupilot-sitl'
     if not script.exists():
         pytest.skip(f'{AP_DIR} not found: the ArduPilot SITL tests need ../shared/ardupilot-sitl '
                     'next to the repository (not part of it)')
     i = free_instance()
-    env = start(script, ['-i', str(i), '-w', str(tmp_path / 'ap'), '-p', 'GUID_OPTIONS=8',
-                         '-p', 'SERIAL1_BAUD=921'])
+    args = ['-i', str(i), '-w', str(tmp_path / 'ap')]
+    for p in ('GUID_OPTIONS=8', 'SERIAL1_BAUD=921') + params:
+        args += ['-p', p]
+    env = start(script, args)
     state = {'env': env, 'i': i, 't_start': time.monotonic()}
     try:
         yield state
     finally:
         os.kill(int(env['AP_PID']), signal.SIGCONT)
         subprocess.run([str(script), 'stop', env['AP_WORKDIR']], timeout=30)
+
+
+@pytest.fixture
+def ardupilot(tmp_path):
+    """One ArduCopter SITL per test (stopped at the end, whatever happens)."""
+    with ardupilot_sitl(tmp_path) as state:
+        yield state
+
+
+# docs/mavlink.md "Autopilot set-up": ArduPilot's GCS failsafe on the bridge's HEARTBEAT
+BRIDGE_SYSID = shipped_parameters()['source_system']
+GCS_FAILSAFE_PARAMS = ('FS_GCS_ENABLE=5', f'SYSID_MYGCS={BRIDGE_SYSID}')   # 5: always LAND
+FS_GCS_TIMEOUT_S = 5.0        # ArduCopter 4.5's default
 
 
 def ap_flight(ap) -> Flight:
@@ -229,3 +245,51 @@ def test_ardupilot_freeze_pilot_takeover_and_touchdown_disarm(ardupilot):
     finally:
         f.truth.close()
         f.close()
+
+
+def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
+    """The bridge process dies in flight; ArduPilot set up as docs/mavlink.md says lands.
+
+    GUIDED_NOGPS alone only levels the vehicle after GUID_TIMEOUT and keeps the last thrust
+    (measured before: hovering armed at 32 m). With FS_GCS_ENABLE = 5 and SYSID_MYGCS = the
+    bridge's source_system, the loss of the bridge's HEARTBEAT is ArduPilot's GCS failsafe:
+    LAND after FS_GCS_TIMEOUT, then the land detector disarms.
+    """
+    with ardupilot_sitl(tmp_path, *GCS_FAILSAFE_PARAMS) as ap:
+        f = ap_flight(ap)
+        try:
+            ready(f)
+            f.bridge.on_supervisor_mode(0)
+            f.controller_on = True
+            f.z_ref = f.truth.z
+            f.bridge.request_arm()
+            f.bridge.on_supervisor_mode(1)
+            f.z_ref = -2.5
+            assert f.spin(60.0, until=lambda: f.state() == 'engaged'), \
+                f.bridge.sequencer.last_reason
+            assert f.spin(10.0, until=lambda: f.truth.z < -2.1), f'z {f.truth.z}'
+            f.spin(1.0)
+            t_kill = time.monotonic()
+            f.close()                              # dead: no poll, no send, socket closed
+            modes, z_kill = [], f.truth.z
+            deadline = t_kill + FS_GCS_TIMEOUT_S + 25.0
+            disarmed = None
+            while time.monotonic() < deadline and disarmed is None:
+                m = f.truth.conn.recv_match(blocking=True, timeout=0.1)
+                f.truth.poll()
+                if m is None or m.get_type() != 'HEARTBEAT' or m.autopilot != 3:
+                    continue
+                now = time.monotonic() - t_kill
+                if not modes or modes[-1][1] != m.custom_mode:
+                    modes.append((round(now, 2), m.custom_mode))
+                if not m.base_mode & 128:
+                    disarmed = now
+            print(f'\nArduPilot, bridge killed at z = {z_kill:.2f} m: heartbeat modes (s after, '
+                  f'custom_mode) {modes}; disarmed {disarmed} s after; z now {f.truth.z:.2f} m')
+            land = [t for t, mode in modes if mode == LAND]
+            # the timeout runs from the bridge's last HEARTBEAT (1 Hz): up to 1 s before the kill
+            assert land and FS_GCS_TIMEOUT_S - 1.2 <= land[0] <= FS_GCS_TIMEOUT_S + 1.5, modes
+            assert disarmed is not None, 'ArduPilot did not land and disarm'
+        finally:
+            f.truth.close()
+            f.close()
