@@ -21,6 +21,9 @@ pytestmark = pytest.mark.slow
 RUN_TIMEOUT_S = 420          # wall clock per run (2 shared cores)
 RANDOM_SEEDS = (1, 2, 3)
 REPLAY_TOLERANCE_PX = 0.1
+REPLAY_HISTORY = 10           # frames before a compared frame that the replay must have had:
+#                               one frame left out moved the window corners of the 3rd frame
+#                               after it by 0.12 px, the 4th by 0.08, the 7th by 0.003
 REPLAY_MIN_COVERAGE = 0.6
 REPLAY_QUIET_S = 20.0
 
@@ -291,14 +294,21 @@ def test_replaying_the_bag_reproduces_the_detections(reference, tmp_path):
         rclpy.try_shutdown()
     for topic in recorded:
         common = sorted(set(recorded[topic]) & set(replayed[topic]))
+        # the detectors refine from their previous output: a frame the replay dropped gives
+        # the next ones another starting point, so only frames after REPLAY_HISTORY frames
+        # seen as in the recording are compared exactly
+        order = sorted(recorded[topic])
+        same_history = {s for i, s in enumerate(order) if i >= REPLAY_HISTORY and all(
+            p in replayed[topic] for p in order[i - REPLAY_HISTORY:i])}
         worst = 0.0
         for stamp in common:
             a, b = recorded[topic][stamp], replayed[topic][stamp]
             assert a.shape == b.shape, (topic, stamp, a.shape, b.shape)
-            if len(a):
+            if len(a) and stamp in same_history:
                 worst = max(worst, _max_pixel_error(a, b, camera[topic]))
-        print(f'replay {topic}: {len(common)} of {n_frames[topic]} frames compared, '
-              f'max difference {worst:.4f} px')
+        print(f'replay {topic}: {len(common)} of {n_frames[topic]} frames replayed, '
+              f'{len(same_history & set(common))} with the same {REPLAY_HISTORY} frames before '
+              f'them: max difference {worst:.4f} px')
         assert worst <= REPLAY_TOLERANCE_PX, (topic, worst, len(common))
         # frames can be dropped (best-effort images on 2 loaded cores), not changed
         assert len(common) >= REPLAY_MIN_COVERAGE * n_frames[topic] and len(common) > 5, \
