@@ -63,7 +63,7 @@ integration: install
 	$(PY) -m pytest -q tests/integration
 
 test: lint install
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q --durations=20 tests
 
 bench: install
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
