@@ -1139,3 +1139,23 @@ def test_code_defaults_equal_params_yaml():
     path = Path(__file__).resolve().parents[2] / 'ros2_ws/src/ibvs_bringup/config/params.yaml'
     section = yaml.safe_load(path.read_text())['mavlink_bridge']['ros__parameters']
     assert section == PARAMETERS
+
+
+@pytest.mark.parametrize('params, expected, says', [
+    ({'FS_GCS_ENABLE': 5, 'SYSID_MYGCS': 1}, True, 'dead-bridge failsafe: FS_GCS_ENABLE = 5'),
+    ({'FS_GCS_ENABLE': 0, 'SYSID_MYGCS': 1}, False, 'no dead-bridge failsafe (FS_GCS_ENABLE = 0)'),
+    ({'FS_GCS_ENABLE': 5, 'SYSID_MYGCS': 255}, False, "SYSID_MYGCS = 255 is not this bridge's"),
+    ({}, None, None)])
+def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params, expected,
+                                                             says):
+    """FS_GCS_ENABLE / SYSID_MYGCS are read and reported, never required to fly."""
+    peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
+        'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.3, 'ATC_ANGLE_BOOST': 1, **params}})
+    wait_link(bridge)
+    spin(bridge, 1.5, until=lambda: bridge.dead_bridge_failsafe is not None)
+    assert bridge.dead_bridge_failsafe is expected
+    assert bridge.status().dead_bridge_failsafe is expected
+    events = [text for _, text in bridge.pop_events()]
+    if says:
+        assert sum(says in t for t in events) == 1, events
+    assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight

@@ -324,6 +324,7 @@ class MavlinkBridgeNode(Node):
                   'armable': fmt(st.armable, '', 'unknown'),
                   'autopilot_internal_errors': f'0x{st.autopilot_internal_errors:x}',
                   'last_autopilot_reason': st.last_autopilot_reason,
+                  'dead_bridge_failsafe': fmt(st.dead_bridge_failsafe, '', 'unknown'),
                   'clock_synced': 'yes' if ts.synced else 'no',
                   'clock_offset_ms': fmt(None if ts.offset_ns is None else ts.offset_ns / 1e6),
                   'clock_skew_ppm': fmt(ts.skew_ppm, '.1f'),

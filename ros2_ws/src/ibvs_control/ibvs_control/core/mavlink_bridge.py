@@ -47,6 +47,9 @@ NS_PER_S = 1_000_000_000
 HOVER_PARAM = {Autopilot.PX4: 'MPC_THR_HOVER', Autopilot.ARDUPILOT: 'MOT_THST_HOVER'}
 GUID_OPTIONS_PARAM = 'GUID_OPTIONS'
 ANGLE_BOOST_PARAM = 'ATC_ANGLE_BOOST'
+# ArduPilot's GCS failsafe: the only thing that lands the vehicle when this bridge dies in
+# GUIDED_NOGPS (GUID_TIMEOUT only levels it and keeps the last thrust); read, never required
+GCS_FAILSAFE_PARAM, MY_GCS_PARAM = 'FS_GCS_ENABLE', 'SYSID_MYGCS'
 ARDUPILOT_ANGLE_BOOST_DEFAULT = 1
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
 STREAM_EPS_S = 1e-3                     # s, slack of the repeat period (timer jitter)
@@ -128,6 +131,7 @@ class BridgeStatus:
     armable: bool | None
     autopilot_internal_errors: int
     last_autopilot_reason: str
+    dead_bridge_failsafe: bool | None       # ArduPilot's GCS failsafe on us; None: unknown
     counters: dict
     time_sync: TimeSyncStatus
     imu_dropped_unsynced: int
@@ -163,6 +167,8 @@ class MavlinkBridge:
         self.supervisor_mode = Mode.IDLE
         self.idle_reports = 0
         self.guid_options: int | None = None
+        self.dead_bridge_params: dict = {}    # ArduPilot FS_GCS_ENABLE, SYSID_MYGCS as read
+        self.dead_bridge_failsafe: bool | None = None   # None: unknown (not read, or PX4)
         self.angle_boost: int | None = None
         self.rate = RateMeter()
         self.setpoint_source = SetpointSource.NONE
@@ -354,6 +360,7 @@ class MavlinkBridge:
             rejected_setpoints=self.shaper.rejected, landed_state=tel.landed_state,
             armable=tel.armable, autopilot_internal_errors=tel.internal_errors,
             last_autopilot_reason=tel.last_reason,
+            dead_bridge_failsafe=self.dead_bridge_failsafe,
             counters={'received': c.received, 'sent': c.sent, 'bad_data': c.bad_data,
                       'foreign': c.foreign, 'reconnects': c.reconnects, 'reopens': c.reopens,
                       'link_losses': c.link_losses, 'send_errors': c.send_errors,
@@ -512,6 +519,30 @@ class MavlinkBridge:
             self.guid_options = int(value)
         elif name == ANGLE_BOOST_PARAM and np.isfinite(value) and self.angle_boost is None:
             self._set_angle_boost(int(value), f'{ANGLE_BOOST_PARAM} = {int(value)}')
+        elif name in (GCS_FAILSAFE_PARAM, MY_GCS_PARAM) and np.isfinite(value) \
+                and name not in self.dead_bridge_params:
+            self.dead_bridge_params[name] = int(value)
+            self._check_dead_bridge_failsafe()
+
+    def _check_dead_bridge_failsafe(self) -> None:
+        """Tell (once) whether ArduPilot will land the vehicle if this bridge dies in flight."""
+        p = self.dead_bridge_params
+        if self.dead_bridge_failsafe is not None or len(p) < 2:
+            return
+        ours = self.link.config.source_system
+        enabled, gcs = p[GCS_FAILSAFE_PARAM], p[MY_GCS_PARAM]
+        self.dead_bridge_failsafe = enabled != 0 and gcs == ours
+        if self.dead_bridge_failsafe:
+            self._event('info', f'dead-bridge failsafe: {GCS_FAILSAFE_PARAM} = {enabled} and '
+                                f'{MY_GCS_PARAM} = {gcs} (this bridge): ArduPilot acts when '
+                                'our HEARTBEAT stops')
+            return
+        why = (f'{GCS_FAILSAFE_PARAM} = 0' if enabled == 0 else
+               f'{MY_GCS_PARAM} = {gcs} is not this bridge\'s system id {ours}')
+        self._event('warn', f'no dead-bridge failsafe ({why}): if this bridge dies in flight, '
+                            'GUIDED_NOGPS levels the vehicle and keeps its last thrust; set '
+                            f'{GCS_FAILSAFE_PARAM} = 5 (land) and {MY_GCS_PARAM} = {ours} '
+                            '(docs/mavlink.md "Autopilot set-up")')
 
     def _set_angle_boost(self, value: int, why: str) -> None:
         self.angle_boost = value
@@ -548,9 +579,12 @@ class MavlinkBridge:
         if self._params_since is None:
             self._params_since = now
         missing = self._params_missing()
-        if missing and now - self._last_param_request >= self.config.param_retry_s:
+        advisory = [n for n in (GCS_FAILSAFE_PARAM, MY_GCS_PARAM)
+                    if self.autopilot == Autopilot.ARDUPILOT and n not in self.dead_bridge_params
+                    and now - self._params_since < self.config.param_timeout_s]
+        if (missing or advisory) and now - self._last_param_request >= self.config.param_retry_s:
             self._last_param_request = now
-            for name in missing:
+            for name in missing + advisory:
                 self.link.request_param(name)
         if missing and now - self._params_since >= self.config.param_timeout_s:
             self.seed.on_timeout()
