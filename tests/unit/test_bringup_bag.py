@@ -52,6 +52,47 @@ def test_round_trip_of_rclpy_bytes_through_an_mcap_bag(tmp_path):
         bag.BagWriter(path)                                # never overwrites
 
 
+def _small_bag(path):
+    with bag.BagWriter(path) as w:
+        w.add_topic('ibvs/mode', 'std_msgs/msg/UInt8', [bag.qos_profile(True, True, 1)])
+        w.write('ibvs/mode', 1_500, serialize_message(UInt8(data=3)))
+
+
+@pytest.mark.parametrize('damage, message', [
+    ('missing', 'does not exist'),
+    ('file', 'is a file'),
+    ('no metadata', 'has no metadata.yaml'),
+    ('bad metadata', 'cannot be read')])
+def test_a_folder_that_is_not_a_bag_gets_the_reason_not_a_traceback(tmp_path, damage, message):
+    path = tmp_path / 'bag'
+    _small_bag(path)
+    if damage == 'missing':
+        path = tmp_path / 'nothing'
+    elif damage == 'file':
+        path = path / 'bag.mcap'
+    elif damage == 'no metadata':
+        (path / 'metadata.yaml').unlink()
+    else:
+        (path / 'metadata.yaml').write_text('rosbag2_bagfile_information: {version: [}\n')
+    for read in (bag.topic_counts, bag.topic_types, lambda p: list(bag.read_messages(p))):
+        with pytest.raises(bag.BagError, match=message) as err:
+            read(path)
+        assert str(path) in str(err.value)
+
+
+def test_the_player_node_exits_1_with_the_reason_for_a_bag_without_metadata(tmp_path):
+    import subprocess
+    import sys
+    path = tmp_path / 'bag'
+    _small_bag(path)
+    (path / 'metadata.yaml').unlink()
+    out = subprocess.run([sys.executable, '-m', 'ibvs_bringup.bag_player_node', '--ros-args',
+                          '-p', f'bag_path:={path}'], capture_output=True, text=True,
+                         timeout=60)
+    assert out.returncode == 1, out.stderr[-2000:]
+    assert 'has no metadata.yaml' in out.stderr and 'Traceback' not in out.stderr, out.stderr
+
+
 def _spin_until(executor, pred, timeout):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and not pred():

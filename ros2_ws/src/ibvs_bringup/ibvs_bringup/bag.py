@@ -7,6 +7,7 @@ read.
 """
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -99,11 +100,47 @@ class BagWriter:
         self.close()
 
 
+class BagError(ValueError):
+    """A path that is not a readable rosbag2 folder (the message says why and what to do)."""
+
+
+def open_reader(path: str | Path) -> Reader:
+    """Return an (unopened) rosbags Reader of a rosbag2 folder; BagError with the reason."""
+    folder = Path(path)
+    if not folder.exists():
+        raise BagError(f'bag {str(folder)!r} does not exist')
+    if not folder.is_dir():
+        raise BagError(f'bag {str(folder)!r} is a file: give the rosbag2 folder that holds it '
+                       'and its metadata.yaml')
+    if not (folder / 'metadata.yaml').is_file():
+        raise BagError(f'bag folder {str(folder)!r} has no metadata.yaml: it is not a rosbag2 '
+                       'bag as recorded (`ros2 bag reindex` rebuilds the file from the storage '
+                       'files on a ROS install)')
+    try:
+        return Reader(folder)
+    except Exception as exc:          # rosbags' ReaderError and YAML errors: one clear type
+        raise BagError(f'bag {str(folder)!r} cannot be read: {exc}') from exc
+
+
+@contextlib.contextmanager
+def _opened(path: str | Path) -> Iterator[Reader]:
+    """Open a bag for reading (BagError with the reason), close it after the block."""
+    reader = open_reader(path)
+    try:
+        reader.open()
+    except Exception as exc:
+        raise BagError(f'bag {str(path)!r} cannot be read: {exc}') from exc
+    try:
+        yield reader
+    finally:
+        reader.close()
+
+
 def read_messages(path: str | Path, topics: Iterable[str] | None = None
                   ) -> Iterator[tuple[str, str, int, bytes]]:
     """Yield (topic, msgtype, bag time ns, CDR bytes) in bag-time order."""
     wanted = None if topics is None else {bag_topic_name(t) for t in topics}
-    with Reader(Path(path)) as reader:
+    with _opened(path) as reader:
         conns = [c for c in reader.connections if wanted is None or c.topic in wanted]
         for conn, t_ns, data in reader.messages(connections=conns):
             yield conn.topic, conn.msgtype, t_ns, bytes(data)
@@ -121,11 +158,11 @@ def serialize(msg, msgtype: str) -> bytes:
 
 def topic_types(path: str | Path) -> dict:
     """Return {topic: msgtype} of a bag."""
-    with Reader(Path(path)) as reader:
+    with _opened(path) as reader:
         return {c.topic: c.msgtype for c in reader.connections}
 
 
 def topic_counts(path: str | Path) -> dict:
     """Return {topic: message count} of a bag (from its metadata)."""
-    with Reader(Path(path)) as reader:
+    with _opened(path) as reader:
         return {c.topic: c.msgcount for c in reader.connections}

@@ -119,7 +119,14 @@ def main(args=None) -> None:
         spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:          # bag.BagError, a missing bag_path: say why, exit 1
+        rclpy.logging.get_logger('bag_player').fatal(f'cannot play: {exc}')
+        raise SystemExit(1) from exc
     finally:
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
