@@ -50,6 +50,7 @@ ANGLE_BOOST_PARAM = 'ATC_ANGLE_BOOST'
 # ArduPilot's GCS failsafe: the only thing that lands the vehicle when this bridge dies in
 # GUIDED_NOGPS (GUID_TIMEOUT only levels it and keeps the last thrust); read, never required
 GCS_FAILSAFE_PARAM, MY_GCS_PARAM = 'FS_GCS_ENABLE', 'SYSID_MYGCS'
+ADVISORY_PARAM_READS = 30     # read requests (every param_retry_s) before giving them up
 ARDUPILOT_ANGLE_BOOST_DEFAULT = 1
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
 STREAM_EPS_S = 1e-3                     # s, slack of the repeat period (timer jitter)
@@ -184,6 +185,7 @@ class MavlinkBridge:
         self._last_send_t: float | None = None
         self._params_since: float | None = None
         self._last_param_request = -math.inf
+        self._advisory_reads = 0                  # requests of the dead-bridge parameters
         self._was_up = False
         self._sync_resets = 0
         self._reported_missing = 0
@@ -581,9 +583,10 @@ class MavlinkBridge:
         missing = self._params_missing()
         advisory = [n for n in (GCS_FAILSAFE_PARAM, MY_GCS_PARAM)
                     if self.autopilot == Autopilot.ARDUPILOT and n not in self.dead_bridge_params
-                    and now - self._params_since < self.config.param_timeout_s]
+                    and self._advisory_reads < ADVISORY_PARAM_READS]
         if (missing or advisory) and now - self._last_param_request >= self.config.param_retry_s:
             self._last_param_request = now
+            self._advisory_reads += bool(advisory)
             for name in missing + advisory:
                 self.link.request_param(name)
         if missing and now - self._params_since >= self.config.param_timeout_s:
