@@ -26,8 +26,8 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bridge_px4_sitl import (  # noqa: E402
-    AP_DIR, angle_diff, check, Flight, free_instance, Run, RUN_S, shipped_parameters, start,
-    step_response, Truth, VEHICLE_MASS)
+    AP_DIR, angle_diff, check, close_flight, Flight, free_instance, Run, RUN_S,
+    shipped_parameters, start, step_response, Truth, VEHICLE_MASS)
 
 pytestmark = pytest.mark.slow
 
@@ -84,6 +84,19 @@ def ready(f: Flight) -> None:
                 and f.bridge.streams is not None and f.bridge.streams.complete
                 and f.truth.z is not None and f.state() == 'standby')
     assert ok, f'not ready: {f.state()}, {f.bridge.status()}'
+
+
+def ap_take_off(f: Flight, z_ref: float = -2.5) -> None:
+    """IDLE, the controller on, arm requested, WINDOW: engaged once armable; climb to z_ref."""
+    f.bridge.on_supervisor_mode(0)
+    f.controller_on = True
+    f.z_ref = f.truth.z
+    f.bridge.request_arm()
+    f.bridge.on_supervisor_mode(1)
+    f.z_ref = z_ref
+    assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+    assert f.spin(10.0, until=lambda: f.truth.z < z_ref + 0.4), f'z {f.truth.z}'
+    f.spin(1.0)
 
 
 def vertical_accel(f: Flight, seconds: float) -> float:
@@ -210,16 +223,7 @@ def test_ardupilot_freeze_pilot_takeover_and_touchdown_disarm(ardupilot):
               f'{time.monotonic() - t_cont:.2f} s after; reopens '
               f'{f.bridge.link.counters.reopens}')
         assert f.bridge.link.counters.reopens == 0
-        # Take off once armable.
-        f.bridge.on_supervisor_mode(0)
-        f.controller_on = True
-        f.z_ref = f.truth.z
-        f.bridge.request_arm()
-        f.bridge.on_supervisor_mode(1)
-        f.z_ref = -2.5
-        assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
-        assert f.spin(10.0, until=lambda: f.truth.z < -2.1), f'z {f.truth.z}'
-        f.spin(1.0)
+        ap_take_off(f)                            # once armable
         # The pilot takes ALT_HOLD: setpoints stop at once (heartbeat at 5 Hz), for good.
         t_cmd = time.monotonic()
         gcs_mode(f, ALT_HOLD)
@@ -270,16 +274,7 @@ def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
             ready(f)
             assert f.spin(5.0, until=lambda: f.bridge.dead_bridge_failsafe is not None)
             assert f.bridge.dead_bridge_failsafe is True     # read from ArduPilot and reported
-            f.bridge.on_supervisor_mode(0)
-            f.controller_on = True
-            f.z_ref = f.truth.z
-            f.bridge.request_arm()
-            f.bridge.on_supervisor_mode(1)
-            f.z_ref = -2.5
-            assert f.spin(60.0, until=lambda: f.state() == 'engaged'), \
-                f.bridge.sequencer.last_reason
-            assert f.spin(10.0, until=lambda: f.truth.z < -2.1), f'z {f.truth.z}'
-            f.spin(1.0)
+            ap_take_off(f)
             t_kill = time.monotonic()
             f.close()                              # dead: no poll, no send, socket closed
             modes, z_kill = [], f.truth.z
@@ -302,7 +297,4 @@ def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
             assert land and FS_GCS_TIMEOUT_S - 1.2 <= land[0] <= FS_GCS_TIMEOUT_S + 1.5, modes
             assert disarmed is not None, 'ArduPilot did not land and disarm'
         finally:
-            f.truth.close()
-            f.close()
-            print('\n--- bridge events (last 40):\n' + '\n'.join(
-                f'{t:.2f} {lv}: {text}' for t, (lv, text) in f.timed_events[-40:]))
+            close_flight(f)

@@ -9,6 +9,7 @@ through ``ibvs_control.core.frames``.
 """
 from __future__ import annotations
 
+from collections import deque
 import json
 
 from geometry_msgs.msg import Vector3Stamped
@@ -89,7 +90,7 @@ class ScenarioMonitor(Node):
         self.create_subscription(JointState, 'ibvs/features', self._on_features, BEST_EFFORT)
         self.sim_stats: dict = {}
         self.create_subscription(DiagnosticArray, 'sim/stats', self._on_sim_stats, LATCHED)
-        self.bridge_history: list = []
+        self.bridge_history: deque = deque(maxlen=BRIDGE_HISTORY_LEN)
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
 
     def now_s(self) -> float:
@@ -120,7 +121,7 @@ class ScenarioMonitor(Node):
             values = {kv.key: _number(kv.value) for kv in status.values}
             row = {'t': round(self.now_s(), 3),
                    **{k: values[k] for k in BRIDGE_KEYS if k in values}}
-            self.bridge_history = (self.bridge_history + [row])[-BRIDGE_HISTORY_LEN:]
+            self.bridge_history.append(row)
 
     def _on_event(self, msg: String) -> None:
         try:

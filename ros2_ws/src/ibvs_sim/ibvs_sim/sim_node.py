@@ -182,8 +182,8 @@ class SimNode(Node):
         wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
-        self.products = GraphProducts({t: cam for t, (_, cam) in GRAPH_PRODUCTS.items()},
-                                      UNSTAMPED_PARTNERS)
+        products = GraphProducts({t: cam for t, (_, cam) in GRAPH_PRODUCTS.items()},
+                                 UNSTAMPED_PARTNERS)
         sim_config = SimConfig(
             pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
             real_time_factor=cfg.real_time_factor,
@@ -191,7 +191,7 @@ class SimNode(Node):
             initial_position_I=cfg.initial_position_I, initial_yaw=cfg.initial_yaw,
             wind=wind, cameras=CAMERAS)
         self.sim = Simulation(world, pad, vehicle, self.autopilot, sim_config,
-                              products=self.products)
+                              products=products)
         reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=EVENTS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -318,8 +318,8 @@ class SimNode(Node):
     def _product_callback(self, topic: str):
         def note(msg) -> None:
             header = getattr(msg, 'header', None)
-            self.products.note(topic, None if header is None
-                               else header.stamp.sec * NS_PER_S + header.stamp.nanosec)
+            self.sim.products.note(topic, None if header is None
+                                   else header.stamp.sec * NS_PER_S + header.stamp.nanosec)
         return note
 
     def _on_tick(self) -> None:
@@ -427,8 +427,8 @@ class SimNode(Node):
             self._publish_event(event)
         if self.imu_hold.enabled:
             cameras = [n for n in out.images if n not in withheld] if out.images else []
-            self.products.expect(out.t_ns, cameras,
-                                 {t: self.count_publishers(t) for t in GRAPH_PRODUCTS})
+            self.sim.products.expect(out.t_ns, cameras,
+                                     {t: self.count_publishers(t) for t in GRAPH_PRODUCTS})
 
     def _publish_event(self, event) -> None:
         self._events_published += 1
