@@ -1159,3 +1159,99 @@ def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params
     if says:
         assert sum(says in t for t in events) == 1, events
     assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight
+
+
+# --- MavlinkReader: input handled as it arrives, no poll timer -------------------------------
+
+def _reader_link():
+    from ibvs_control.core.mavlink_link import MavlinkLink
+    port = free_udp_port()
+    link = MavlinkLink(LinkConfig(url=f'udpin:127.0.0.1:{port}', source_system=1))
+    peer = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1,
+                                      source_component=1)
+    return link, peer
+
+
+def _send_heartbeat(peer):
+    peer.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_QUADROTOR,
+                            mavutil.mavlink.MAV_AUTOPILOT_PX4, 0, 0, 0)
+
+
+def _wait_until(predicate, timeout_s=2.0):
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end and not predicate():
+        time.sleep(0.002)
+    return predicate()
+
+
+def test_reader_wakes_on_input_within_milliseconds_and_holds_the_lock():
+    from ibvs_control.core.mavlink_link import MavlinkReader
+    link, peer = _reader_link()
+    lock = threading.Lock()
+    handled = []                              # (receipt delay s, whether the lock was held)
+
+    def on_readable():
+        handled.append((time.monotonic() - sent[-1], lock.locked()))
+        link.poll()                           # drain, as the bridge's receive step does
+
+    reader = MavlinkReader(link, lock, on_readable, wait_s=0.5)
+    sent = []
+    try:
+        reader.start()
+        time.sleep(0.2)
+        assert handled == []                  # no input: no call (no polling)
+        for _ in range(5):
+            sent.append(time.monotonic())
+            _send_heartbeat(peer)
+            assert _wait_until(lambda: len(handled) == len(sent))
+            time.sleep(0.05)
+        delays = [d for d, _ in handled]
+        # woken by the socket, not by the 0.5 s wait: well under one camera period
+        assert max(delays) < 0.02, delays
+        assert all(held for _, held in handled)
+        assert link.counters.received == 5 and reader.wakeups == 5
+    finally:
+        reader.stop()
+        link.close()
+        peer.close()
+    assert not reader._thread.is_alive()
+
+
+def test_reader_follows_a_reopened_link_and_reports_errors_without_dying():
+    from ibvs_control.core.mavlink_link import MavlinkReader
+    link, peer = _reader_link()
+    lock = threading.Lock()
+    errors, calls = [], []
+
+    def on_readable():
+        calls.append(1)
+        link.poll()
+        if len(calls) == 1:
+            raise RuntimeError('boom')
+
+    reader = MavlinkReader(link, lock, on_readable, wait_s=0.05, on_error=errors.append)
+    try:
+        reader.start()
+        _send_heartbeat(peer)
+        assert _wait_until(lambda: errors == ['RuntimeError: boom'])
+        link.close()                          # closed under the reader: it waits, no error
+        time.sleep(0.2)
+        link.open()                           # the same port again
+        _send_heartbeat(peer)
+        assert _wait_until(lambda: len(calls) >= 2)
+        assert reader.errors == 1 and reader._thread.is_alive()
+    finally:
+        reader.stop()
+        link.close()
+        peer.close()
+
+
+def test_reader_refuses_a_nonpositive_wait():
+    from ibvs_control.core.mavlink_link import MavlinkReader
+    link, peer = _reader_link()
+    try:
+        with pytest.raises(ValueError, match='wait_s'):
+            MavlinkReader(link, threading.Lock(), lambda: None, wait_s=0.0)
+    finally:
+        link.close()
+        peer.close()

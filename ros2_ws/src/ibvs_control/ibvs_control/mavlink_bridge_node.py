@@ -8,11 +8,17 @@ ibvs/supervisor_status (DiagnosticArray, the mode of each frame); publishes imu/
 (sensor_msgs/Imu, base_link in map; stamps = the autopilot's sample times on the ROS clock by
 MAVLink TIMESYNC, nothing before the clocks are synced) and /diagnostics; serves ibvs/arm
 (std_srvs/Trigger: the bridge never arms the vehicle unless asked, here or by arm_on_start).
-One receive timer (poll, then a setpoint repeat when due) and the heartbeat timer run on the
-steady clock: the autopilot's offboard timeout counts in its own time, and a lockstep sim's
-/clock waits for our setpoints. The ROS time goes to the core with every call.
+MAVLink input is handled as it arrives: a reader thread (``MavlinkReader``) waits on the
+link's socket and runs the core's receive step under the node's lock, which every callback
+also holds, so the core is never used from two threads at once. The stream timer (link
+supervision, engage sequencing, a setpoint repeat when due; ``stream_rate_hz``) and the
+heartbeat timer run on the steady clock: the autopilot's offboard timeout counts in its own
+time, and a lockstep sim's /clock waits for our setpoints. The ROS time goes to the core with
+every call.
 """
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 import rclpy
@@ -30,7 +36,8 @@ from ibvs_control.core.config import ConfigError, load_vehicle
 from ibvs_control.core.frames import vec_map_to_I
 from ibvs_control.core.mavlink_bridge import BridgeConfig, BridgeStatus, MavlinkBridge
 from ibvs_control.core.mavlink_hover import EstimatorConfig
-from ibvs_control.core.mavlink_link import LinkConfig, load_signing_key, SigningError
+from ibvs_control.core.mavlink_link import (
+    LinkConfig, load_signing_key, MavlinkReader, SigningError)
 from ibvs_control.core.mavlink_sequencer import SequencerConfig
 from ibvs_control.core.mavlink_telemetry import ImuSample, load_px4_events
 from ibvs_control.core.time_sync import TimeSyncConfig
@@ -43,6 +50,7 @@ DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
 UNKNOWN_COVARIANCE = [-1.0] + [0.0] * 8     # sensor_msgs/Imu: element 0 = -1 "not provided"
 LOG_THROTTLE_S = 2.0
 MIN_HEARTBEAT_TIMEOUT_S = 3.0               # >= 3 periods of the autopilots' 1 Hz heartbeat
+READER_WAIT_S = 0.1     # s (steady clock), the reader looks at a reopened link this often
 PARAMETERS = {
     'url': 'udpin:0.0.0.0:14540',
     'source_system': 1,
@@ -75,7 +83,6 @@ PARAMETERS = {
     'timesync_max_deviation_s': 0.010,
     'timesync_max_consecutive_outliers': 5,
     'stream_rate_hz': 30.0,
-    'poll_rate_hz': 250.0,
     'heartbeat_rate_hz': 1.0,
     'diagnostics_rate_hz': 1.0,
     'hold_last_s': 0.25,
@@ -136,7 +143,7 @@ def config_from_parameters(p: dict) -> BridgeConfig:
                           disarm_force_after_s=p['disarm_force_after_s'],
                           disarm_timeout_s=p['disarm_timeout_s'],
                           input_loss_action=p['input_loss_action'])
-    for k in ('poll_rate_hz', 'heartbeat_rate_hz', 'diagnostics_rate_hz'):
+    for k in ('stream_rate_hz', 'heartbeat_rate_hz', 'diagnostics_rate_hz'):
         if not p[k] > 0.0:
             raise ValueError(f'{k} must be > 0')
     sync = TimeSyncConfig(
@@ -178,6 +185,7 @@ class MavlinkBridgeNode(Node):
             'orientation_covariance', 'angular_velocity_covariance',
             'linear_acceleration_covariance')}
         self._bridge = MavlinkBridge(self._config)
+        self._lock = threading.Lock()           # the core: reader thread vs. executor
         self._min_imu_subscribers = int(p['min_imu_subscribers'])
         if self._min_imu_subscribers < 0:
             raise ValueError(f'min_imu_subscribers must be >= 0, got {self._min_imu_subscribers}')
@@ -196,9 +204,12 @@ class MavlinkBridgeNode(Node):
                                  COMMAND_QOS)
         self.create_service(Trigger, 'ibvs/arm', self._on_arm)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(1.0 / p['poll_rate_hz'], self._on_poll, clock=steady)
-        self.create_timer(1.0 / p['heartbeat_rate_hz'], self._bridge.heartbeat, clock=steady)
+        self.create_timer(1.0 / p['stream_rate_hz'], self._on_stream_tick, clock=steady)
+        self.create_timer(1.0 / p['heartbeat_rate_hz'], self._on_heartbeat_tick, clock=steady)
         self.create_timer(1.0 / p['diagnostics_rate_hz'], self._on_diagnostics, clock=steady)
+        self._reader = MavlinkReader(self._bridge.link, self._lock, self._on_readable,
+                                     READER_WAIT_S, self._on_reader_error)
+        self._reader.start()
         self.get_logger().info(
             f'MAVLink bridge on {self._config.link.url} (autopilot {p["autopilot"]}, '
             f'signing {"on" if self._config.link.signing_key else "off"}, hover thrust '
@@ -213,47 +224,71 @@ class MavlinkBridgeNode(Node):
     def _on_force(self, msg: Vector3Stamped) -> None:
         frame_ok = msg.header.frame_id in ('map', '')
         F_I = vec_map_to_I(vector3(msg.vector)) if frame_ok else np.full(3, np.nan)
-        reason = self._bridge.on_force(stamp_to_ns(msg.header.stamp), F_I, self._ros_ns())
+        with self._lock:
+            reason = self._bridge.on_force(stamp_to_ns(msg.header.stamp), F_I, self._ros_ns())
+            self._log_events()
         if reason or not frame_ok:
             self.get_logger().error(
                 f'force setpoint refused (frame {msg.header.frame_id!r}): {reason}',
                 throttle_duration_sec=LOG_THROTTLE_S)
-        self._log_events()
 
     def _on_heading(self, msg: QuaternionStamped) -> None:
-        reason = self._bridge.on_heading(stamp_to_ns(msg.header.stamp),
-                                         quat_wxyz(msg.quaternion), self._ros_ns())
+        with self._lock:
+            reason = self._bridge.on_heading(stamp_to_ns(msg.header.stamp),
+                                             quat_wxyz(msg.quaternion), self._ros_ns())
+            self._log_events()
         if reason:
             self.get_logger().error(f'heading setpoint refused: {reason}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
-        self._log_events()
 
     def _on_arm(self, request, response):
         """ibvs/arm: allow the bridge to arm the vehicle when it engages."""
-        response.success, response.message = self._bridge.request_arm()
+        with self._lock:
+            response.success, response.message = self._bridge.request_arm()
+            self._log_events()
         self.get_logger().info(f'ibvs/arm: {response.message}')
-        self._log_events()
         return response
 
     def _on_mode(self, msg: UInt8) -> None:
-        self._bridge.on_supervisor_mode(msg.data)
-        self._log_events()
+        with self._lock:
+            self._bridge.on_supervisor_mode(msg.data)
+            self._log_events()
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         """Give the supervisor's mode of one frame to the core (the content of its force)."""
         stamp_ns, mode, err = mode_from_status(msg)
-        err = err or self._bridge.on_supervisor_status(stamp_ns, mode)
+        with self._lock:
+            err = err or self._bridge.on_supervisor_status(stamp_ns, mode)
         if err:
             self.get_logger().error(f'ibvs/supervisor_status refused: {err}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
 
-    def _on_poll(self) -> None:
-        ros_ns = self._ros_ns()
+    def _on_readable(self) -> None:
+        """Reader thread, lock held: handle the pending messages, publish the IMU samples."""
+        self._receive(self._ros_ns())
+
+    def _on_reader_error(self, text: str) -> None:
+        self.get_logger().error(f'MAVLink receive step failed: {text}',
+                                throttle_duration_sec=LOG_THROTTLE_S)
+
+    def _on_stream_tick(self) -> None:
+        """Supervise the link and the sequencer; repeat the setpoint when none left."""
+        with self._lock:
+            ros_ns = self._ros_ns()
+            self._receive(ros_ns)
+            if not self._bridge.stream_enabled:
+                self._check_imu_consumers()
+            self._bridge.stream(ros_ns)    # a repeat if no setpoint left for 1 / stream_rate_hz
+            self._log_events()
+
+    def _on_heartbeat_tick(self) -> None:
+        with self._lock:
+            self._bridge.heartbeat()
+
+    def _receive(self, ros_ns: int) -> None:
+        """Lock held: read what is pending, run the sequencer, publish new IMU samples."""
         for sample in self._bridge.poll(ros_ns):
             self._imu_pub.publish(self._imu_msg(sample))
-        if not self._bridge.stream_enabled:
-            self._check_imu_consumers()
-        self._bridge.stream(ros_ns)        # a repeat if no setpoint left for 1 / stream_rate_hz
         self._log_events()
 
     def _check_imu_consumers(self) -> None:
@@ -268,7 +303,9 @@ class MavlinkBridgeNode(Node):
                 f'{self._min_imu_subscribers} subscribers', throttle_duration_sec=LOG_THROTTLE_S)
 
     def _on_diagnostics(self) -> None:
-        self._diag_pub.publish(self._diagnostics(self._bridge.status()))
+        with self._lock:
+            status = self._bridge.status()
+        self._diag_pub.publish(self._diagnostics(status))
 
     # --- message building ------------------------------------------------------------------
     def _imu_msg(self, s: ImuSample) -> Imu:
@@ -335,7 +372,9 @@ class MavlinkBridgeNode(Node):
                   'timesync_resets': str(ts.resets),
                   'timesync_last_rtt_ms': fmt(None if ts.last_rtt_ns is None
                                               else ts.last_rtt_ns / 1e6, '.3f', 'none'),
-                  'imu_dropped_unsynced': str(st.imu_dropped_unsynced)}
+                  'imu_dropped_unsynced': str(st.imu_dropped_unsynced),
+                  'reader_wakeups': str(self._reader.wakeups),
+                  'reader_errors': str(self._reader.errors)}
         values.update({k: str(v) for k, v in st.counters.items()})
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray()
@@ -361,8 +400,10 @@ class MavlinkBridgeNode(Node):
                 log.info(text)
 
     def destroy_node(self) -> None:
-        """Close the MAVLink connection with the node."""
-        self._bridge.close()
+        """Stop the reader and close the MAVLink connection with the node."""
+        self._reader.stop()
+        with self._lock:
+            self._bridge.close()
         super().destroy_node()
 
 

@@ -20,6 +20,8 @@ from dataclasses import dataclass
 from enum import IntEnum
 import os
 from pathlib import Path
+import select
+import threading
 import time
 from typing import Callable
 
@@ -237,6 +239,11 @@ class MavlinkLink:
         """Whether an autopilot HEARTBEAT arrived within heartbeat_timeout_s."""
         return self._link_up
 
+    def fileno(self) -> int | None:
+        """File descriptor of the connection (socket or serial port), None while closed."""
+        fd = getattr(self._conn, 'fd', None)
+        return fd if isinstance(fd, int) and fd >= 0 else None
+
     def heartbeat_age(self) -> float:
         """Seconds since the autopilot's last HEARTBEAT (inf if none)."""
         if self._last_heartbeat_t is None:
@@ -372,3 +379,77 @@ class MavlinkLink:
         interval_us = 1e6 / rate_hz if rate_hz > 0.0 else -1.0
         return self.send_command_long(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL,
                                       (float(msg_id), interval_us))
+
+
+class MavlinkReader:
+    """Handle MAVLink input as it arrives: a thread waits on the link, then calls back.
+
+    The thread blocks in ``select`` on the link's file descriptor (no poll timer) and, when
+    input is pending, calls ``on_readable()`` with ``lock`` held; the owner takes the same lock
+    around every other use of the link and of what it feeds, so that ``on_readable`` (which
+    reads and handles every pending message) never runs beside them. While the link is closed,
+    or after a wait of ``wait_s`` (steady clock) without input, it looks at the link's
+    descriptor again: a reopened link is followed within ``wait_s``. It never reopens or
+    supervises the link itself (the owner's timer does). MAVROS's libmavconn reads in its own
+    I/O thread in the same way.
+    """
+
+    def __init__(self, link: MavlinkLink, lock: threading.Lock,
+                 on_readable: Callable[[], None], wait_s: float = 0.1,
+                 on_error: Callable[[str], None] | None = None) -> None:
+        if not wait_s > 0.0:
+            raise ValueError(f'wait_s must be > 0, got {wait_s}')
+        self._link = link
+        self._lock = lock
+        self._on_readable = on_readable
+        self._on_error = on_error
+        self._wait_s = wait_s
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.wakeups = 0                    # times on_readable was called
+        self.errors = 0                     # exceptions of on_readable, given to on_error
+        self.last_error = ''
+
+    def start(self) -> None:
+        """Start the reader thread (once)."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name='mavlink_reader',
+                                            daemon=True)
+            self._thread.start()
+
+    def stop(self, timeout_s: float = 1.0) -> None:
+        """Stop the thread and wait for it (at most ``timeout_s``, steady clock)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+
+    def _readable(self) -> bool:
+        fd = self._link.fileno()
+        if fd is None:
+            self._stop.wait(self._wait_s)
+            return False
+        try:
+            ready, _, _ = select.select([fd], [], [], self._wait_s)
+        except (OSError, ValueError):       # closed under us (reopen): look again
+            self._stop.wait(self._wait_s)
+            return False
+        return bool(ready)
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            if not self._readable():
+                continue
+            error = ''
+            with self._lock:
+                if self._stop.is_set():
+                    return
+                self.wakeups += 1
+                try:
+                    self._on_readable()
+                except Exception as exc:    # a bug must not end the reading: reported
+                    self.errors += 1
+                    error = self.last_error = f'{type(exc).__name__}: {exc}'
+            if error:
+                if self._on_error is not None:
+                    self._on_error(error)
+                self._stop.wait(self._wait_s)   # not a busy loop on a persistent error
