@@ -1,16 +1,15 @@
 """The bridge core against PX4 v1.16 SITL (SIH): clock sync, engage, arm on request, hand back.
 
-Uses ``../shared/px4-sitl`` (PX4 v1.16.0 SITL with its SIH simulator) next to the repository;
-the tests SKIP when it is absent (a user's clone does not have it). A fresh PX4 for every test
-(started in ~5 s, stopped at its end), so no test inherits another's vehicle state. No ROS: the
-bridge core (:class:`~ibvs_control.core.mavlink_bridge.MavlinkBridge`) runs with the shipped
-params.yaml (:func:`shipped_parameters`) on PX4's companion port (``udpin:``), polled at 250 Hz
-like the node, with ROS time = ``time.time_ns()`` (the system time a camera driver stamps
-images in). In the flights a test controller sends, per 20 ms frame, a heading then a force: an
-altitude PD on SIH's ground truth (HIL_STATE_QUATERNION on port 19410 + i) and commanded roll /
-pitch / yaw (:class:`Flight`). Run with ``-s`` to see the figures (docs/mavlink.md "Measured
-against real autopilots"). ``test_bridge_ardupilot_sitl.py`` uses this harness against
-ArduCopter.
+Uses ``../shared/px4-sitl`` (PX4 v1.16.0 SITL with its SIH simulator) next to the repository; the
+tests SKIP when it is absent (a user's clone does not have it). A fresh PX4 for every test (started
+in ~5 s, stopped at its end), so no test inherits another's vehicle state. No ROS: the bridge core
+(:class:`~ibvs_control.core.mavlink_bridge.MavlinkBridge`) runs with the shipped params.yaml
+(:func:`shipped_parameters`) on PX4's companion port (``udpin:``), polled every 4 ms (the node
+reads on arrival, MavlinkReader), with ROS time = ``time.time_ns()`` (the system time a camera
+driver stamps images in). In the flights a test controller sends, per 20 ms frame, a heading then a
+force: an altitude PD on SIH's ground truth (HIL_STATE_QUATERNION on port 19410 + i) and commanded
+roll / pitch / yaw (:class:`Flight`). Run with ``-s`` to see the figures (docs/mavlink.md "Measured
+against real autopilots"). ``test_bridge_ardupilot_sitl.py`` uses this harness against ArduCopter.
 
 Clock sync: the offset converges (synced, no reset, many accepted samples); every IMU sample's
 stamp is close to the system time at which the bridge received it; the imu/data attitude and
@@ -52,7 +51,7 @@ REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / 'shared'
 PX4_DIR = SHARED / 'px4-sitl'
 AP_DIR = SHARED / 'ardupilot-sitl'
-POLL_PERIOD_S = 0.004              # the node's poll_rate_hz 250
+POLL_PERIOD_S = 0.004              # the test polls the core (the node reads on arrival)
 RUN_S = 6.0                        # s of listening after the start
 SYNC_WITHIN_S = 2.0                # s after the first HEARTBEAT
 MAX_AGE_MS = 20.0                  # receipt - stamp at most this for 90 % of the samples
@@ -335,10 +334,11 @@ class Truth:
 
 
 class Flight:
-    """The bridge core configured from the shipped params.yaml, polled like the node (poll +
-    repeat check at 250 Hz, HEARTBEAT at 1 Hz) with ROS time = system time, and a test
-    controller that sends a heading and then a force per frame at 50 Hz: an altitude PD on the
-    simulator's ground truth and the commanded roll / pitch / yaw (the force's direction).
+    """The bridge core configured from the shipped params.yaml, polled every 4 ms (poll +
+    repeat check; the node reads on arrival), HEARTBEAT at 1 Hz, with ROS time = system time,
+    and a test controller that sends a heading and then a force per frame at 50 Hz: an
+    altitude PD on the simulator's ground truth and the commanded roll / pitch / yaw (the
+    force's direction).
     """
 
     def __init__(self, url: str, truth: Truth, mass: float, **overrides) -> None:

@@ -10,8 +10,9 @@
 - :mod:`~ibvs_control.core.mavlink_sequencer`: engage / arm / hand-back state machine.
 
 The node feeds :class:`MavlinkBridge` the force and heading setpoints, the supervisor's mode
-and arm requests, and calls :meth:`MavlinkBridge.poll` (receive, 250 Hz), then
-:meth:`MavlinkBridge.stream` (repeat the latest setpoint when none left for 1 / stream_rate_hz)
+and arm requests, and calls :meth:`MavlinkBridge.poll` (receive: when input is pending, from
+its reader thread, and at the stream rate), :meth:`MavlinkBridge.stream` (repeat the latest
+setpoint when none left for 1 / stream_rate_hz)
 and :meth:`MavlinkBridge.heartbeat` (1 Hz), with the ROS time (system time on a vehicle, sim
 time in the sim): the clock of the stamps, of the clock sync and of the safety's hold.
 """
