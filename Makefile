@@ -22,6 +22,9 @@ PKG_DATA := $(shell find $(PKG_DIRS) -name setup.py -o -name setup.cfg -o -name 
 export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV):$(AMENT_PREFIX_PATH)
 export PYTHONDONTWRITEBYTECODE := 1
 RUN_ARGS ?=
+# make test: pytest workers (pytest-xdist). The whole-graph runs and the SITL flights are two
+# groups (xdist_group marks) that run beside each other, each on one worker.
+PYTEST_WORKERS ?= 2
 
 .PHONY: run test lint unit integration bench venv install clean
 
@@ -63,7 +66,7 @@ integration: install
 	$(PY) -m pytest -q tests/integration
 
 test: lint install
-	$(PY) -m pytest -q --durations=20 tests
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=20 tests
 
 bench: install
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done

@@ -29,7 +29,8 @@ from test_bridge_px4_sitl import (  # noqa: E402
     AP_DIR, angle_diff, check, close_flight, Flight, free_instance, Run, RUN_S,
     shipped_parameters, start, step_response, Truth, VEHICLE_MASS)
 
-pytestmark = pytest.mark.slow
+# one SITL at a time (instance 9's ports), on one pytest-xdist worker
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 
 AP_HOVER_SITL = 0.35          # measured thrust to hover (README of ../shared/ardupilot-sitl)
 GUIDED_NOGPS, ALT_HOLD, LAND = 20, 2, 9

@@ -69,7 +69,8 @@ R_FRD_FLU = np.diag([1.0, -1.0, -1.0])
 # One PX4 per test (fixture ``px4``): in session 6 the tests shared one PX4 SIH, and in 2 of 2
 # fresh-clone CI runs a test inherited the state the previous one had left (a failsafe, a mode)
 # and its setpoint stream stopped (the bridge honours a mode change as a takeover).
-pytestmark = pytest.mark.slow
+# one SITL at a time (instance 9's ports), on one pytest-xdist worker
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 
 
 def rotmat(q):

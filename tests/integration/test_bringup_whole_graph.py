@@ -17,7 +17,11 @@ from ibvs_bringup.run_scenario import random_initial_position
 import numpy as np
 import pytest
 
-pytestmark = pytest.mark.slow
+# the whole-graph runs share the module's reference run: one pytest-xdist worker for all
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('whole_graph')]
+RUN_NICENESS = 5             # under pytest-xdist: the lockstep runs yield the CPU to the SITL
+#                              flights beside them, which run on the wall clock (lockstep
+#                              results do not depend on the CPU they get)
 RUN_TIMEOUT_S = 420          # wall clock per run (2 shared cores)
 RANDOM_SEEDS = (1, 2, 3)
 REPLAY_TOLERANCE_PX = 0.1
@@ -39,6 +43,8 @@ def graph_available():
     missing = _missing()
     if missing:
         pytest.skip('graph incomplete: ' + '; '.join(missing))
+    if os.environ.get('PYTEST_XDIST_WORKER'):
+        os.nice(RUN_NICENESS)            # this worker and the graphs it starts from now on
 
 
 def _session_pids(sid: int) -> list:
