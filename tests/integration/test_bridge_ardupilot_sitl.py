@@ -35,6 +35,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 AP_HOVER_SITL = 0.35          # measured thrust to hover (README of ../shared/ardupilot-sitl)
 GUIDED_NOGPS, ALT_HOLD, LAND = 20, 2, 9
 SIM_STATE = 108
+AP_TCP_BASE = 5760            # ArduPilot SITL's SERIAL0 TCP server: 5760 + 10 i
 
 
 @contextlib.contextmanager
@@ -44,7 +45,7 @@ def ardupilot_sitl(tmp_path, *params: str):
     if not script.exists():
         pytest.skip(f'{AP_DIR} not found: the ArduPilot SITL tests need ../shared/ardupilot-sitl '
                     'next to the repository (not part of it)')
-    i = free_instance()
+    i = free_instance(tcp_bases=(AP_TCP_BASE,))
     args = ['-i', str(i), '-w', str(tmp_path / 'ap')]
     for p in ('GUID_OPTIONS=8', 'SERIAL1_BAUD=921') + params:
         args += ['-p', p]

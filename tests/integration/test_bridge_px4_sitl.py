@@ -80,14 +80,22 @@ def rotmat(q):
                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
-def free_instance(*bases: int) -> int:
-    """An instance number whose UDP ports 14540 + i (and base + i for each base) are free."""
+def free_instance(*bases: int, tcp_bases: tuple = ()) -> int:
+    """An instance number whose UDP ports 14540 + i (and base + i for each base) are free.
+
+    ``tcp_bases``: TCP ports base + 10 i (ArduPilot's SERIAL0 server 5760 + 10 i) that must be
+    free too, bound without SO_REUSEADDR as ArduPilot does: a port the previous SITL left in
+    TIME_WAIT is taken (measured: "bind failed on port 5850" when a test started right after
+    another).
+    """
     for i in range(9, -1, -1):
         free = True
-        for base in (14540,) + bases:
-            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        ports = [(socket.SOCK_DGRAM, base + i) for base in (14540,) + bases]
+        ports += [(socket.SOCK_STREAM, base + 10 * i) for base in tcp_bases]
+        for kind, port in ports:
+            with socket.socket(socket.AF_INET, kind) as s:
                 try:
-                    s.bind(('127.0.0.1', base + i))
+                    s.bind(('0.0.0.0' if kind == socket.SOCK_STREAM else '127.0.0.1', port))
                 except OSError:
                     free = False
         if free:
