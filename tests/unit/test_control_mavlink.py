@@ -17,6 +17,7 @@ AUTO.LAND = main 4 / sub 6, ArduCopter LAND = 9).
 import os
 import select
 import socket
+import struct
 import threading
 import time
 
@@ -179,8 +180,12 @@ class FakeAutopilot:
         elif kind == 'PARAM_REQUEST_READ':
             name = msg.param_id
             if name in self.params:
-                self.conn.mav.param_value_send(name.encode(), float(self.params[name]), 9,
-                                               len(self.params), 0)
+                value, kind = float(self.params[name]), 9                  # REAL32
+                if isinstance(self.params[name], int) and self.kind == 'px4':
+                    # PX4: an INT32 parameter's bytes in the float field (bytewise encoding)
+                    value = struct.unpack('<f', struct.pack('<i', self.params[name]))[0]
+                    kind = 6
+                self.conn.mav.param_value_send(name.encode(), value, kind, len(self.params), 0)
         elif kind == 'COMMAND_LONG':
             self.commands.append((now, msg))
             self.conn.mav.command_ack_send(msg.command, self._command(msg, now))
@@ -1158,6 +1163,42 @@ def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params
     events = [text for _, text in bridge.pop_events()]
     if says:
         assert sum(says in t for t in events) == 1, events
+    assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight
+
+
+def test_param_value_decodes_px4_bytewise_integers_and_keeps_casts():
+    from ibvs_control.core.mavlink_bridge import param_value
+    as_float = struct.unpack('<f', struct.pack('<i', 4))[0]        # PX4's INT32 4 on the wire
+    assert as_float != 4.0 and as_float > 0.0                     # a denormal, not 4.0
+    assert param_value(as_float, 6, bytewise=True) == 4.0
+    minus_one = struct.unpack('<f', struct.pack('<i', -1))[0]     # a NaN pattern
+    assert param_value(minus_one, 6, bytewise=True) == -1.0
+    assert param_value(0.49, 9, bytewise=True) == 0.49             # REAL32: as sent
+    assert param_value(5.0, 2, bytewise=False) == 5.0              # ArduPilot: cast
+
+
+@pytest.mark.parametrize('params, expected, says', [
+    ({'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 4}, True,
+     'dead-bridge failsafe: COM_OBL_RC_ACT = 4 (Land mode), COM_OF_LOSS_T = 1 s'),
+    ({'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 0}, False,
+     'Position mode needs a position estimate'),
+    ({'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 7}, False, 'Disarm stops the motors in the air'),
+    ({'COM_OF_LOSS_T': 5.0, 'COM_OBL_RC_ACT': 4}, True,
+     'COM_OF_LOSS_T = 5 s: the vehicle flies the last setpoint'),
+    ({}, None, None)])
+def test_px4_offboard_loss_failsafe_is_read_and_reported(peer_bridge, params, expected, says):
+    """COM_OF_LOSS_T / COM_OBL_RC_ACT (INT32, bytewise) are read and reported, never required."""
+    px4_params = {'MPC_THR_HOVER': 0.5, **params}
+    peer, bridge = peer_bridge(peer_kw={'kind': 'px4', 'params': px4_params})
+    wait_link(bridge)
+    spin(bridge, 1.5, until=lambda: bridge.dead_bridge_failsafe is not None)
+    assert bridge.dead_bridge_failsafe is expected
+    assert bridge.status().dead_bridge_failsafe is expected
+    events = [text for _, text in bridge.pop_events()]
+    if says:
+        assert sum(says in t for t in events) == 1, events
+    else:
+        assert not [t for t in events if 'offboard loss' in t or 'dead-bridge' in t], events
     assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight
 
 

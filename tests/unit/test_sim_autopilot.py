@@ -519,6 +519,17 @@ def test_param_request_read_hover_thrust(rig):
     assert pv.param_type == 9                           # MAV_PARAM_TYPE_REAL32
 
 
+def test_param_request_read_offboard_loss_action_is_land_in_px4s_int32_encoding(rig):
+    import struct
+    pv, _ = rig.exchange(
+        lambda: rig.client.mav.param_request_read_send(1, 1, b'COM_OBL_RC_ACT', -1),
+        'PARAM_VALUE')
+    assert pv.param_id == 'COM_OBL_RC_ACT'
+    assert pv.param_type == 6                           # MAV_PARAM_TYPE_INT32
+    # PX4 copies the integer's bytes into the float field (4 = Land mode: the sim's AUTO_LAND)
+    assert struct.unpack('<i', struct.pack('<f', pv.param_value))[0] == 4
+
+
 def test_param_request_read_unknown_name_gets_no_value(rig):
     st, seen = rig.exchange(
         lambda: rig.client.mav.param_request_read_send(1, 1, b'NO_SUCH_PARAM', -1),

@@ -21,6 +21,7 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass, field, replace
 import math
+import struct
 import time
 from typing import Callable
 
@@ -51,6 +52,16 @@ ANGLE_BOOST_PARAM = 'ATC_ANGLE_BOOST'
 # ArduPilot's GCS failsafe: the only thing that lands the vehicle when this bridge dies in
 # GUIDED_NOGPS (GUID_TIMEOUT only levels it and keeps the last thrust); read, never required
 GCS_FAILSAFE_PARAM, MY_GCS_PARAM = 'FS_GCS_ENABLE', 'SYSID_MYGCS'
+# PX4's offboard-loss failsafe: what acts when the bridge stops streaming or dies (read, never
+# required). COM_OBL_RC_ACT (PX4 v1.16; the action with or without RC):
+OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM = 'COM_OF_LOSS_T', 'COM_OBL_RC_ACT'
+PX4_OFFBOARD_LOSS_ACTIONS = {0: 'Position mode', 1: 'Altitude mode', 2: 'Manual', 3: 'Return mode',
+                             4: 'Land mode', 5: 'Hold mode', 6: 'Terminate', 7: 'Disarm'}
+PX4_OFFBOARD_LOSS_LAND = 4
+PX4_OFFBOARD_LOSS_T_MAX_S = 2.0   # s, a longer time-out is warned about (PX4's default: 1 s)
+DEAD_BRIDGE_PARAMS = {Autopilot.ARDUPILOT: (GCS_FAILSAFE_PARAM, MY_GCS_PARAM),
+                      Autopilot.PX4: (OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM)}
+MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32 = 6, 9
 ADVISORY_PARAM_READS = 30     # read requests (every param_retry_s) before giving them up
 ARDUPILOT_ANGLE_BOOST_DEFAULT = 1
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
@@ -133,10 +144,23 @@ class BridgeStatus:
     armable: bool | None
     autopilot_internal_errors: int
     last_autopilot_reason: str
-    dead_bridge_failsafe: bool | None       # ArduPilot's GCS failsafe on us; None: unknown
+    dead_bridge_failsafe: bool | None       # the autopilot lands if we stop; None: unknown
     counters: dict
     time_sync: TimeSyncStatus
     imu_dropped_unsynced: int
+
+
+def param_value(value: float, param_type: int, bytewise: bool) -> float:
+    """Return the value of a PARAM_VALUE's ``param_value`` field of type ``param_type``.
+
+    PX4 copies an integer parameter's bytes into the float field (MAVLink's bytewise parameter
+    encoding, its MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE); ArduPilot casts the integer
+    to a float (C-cast encoding). ``bytewise``: the autopilot's encoding is bytewise.
+    """
+    if not bytewise or param_type == MAV_PARAM_TYPE_REAL32:
+        return value
+    fmt = '<i' if param_type == MAV_PARAM_TYPE_INT32 else '<I'    # PX4: INT32 only
+    return float(struct.unpack(fmt, struct.pack('<f', value))[0])
 
 
 class MavlinkBridge:
@@ -169,8 +193,8 @@ class MavlinkBridge:
         self.supervisor_mode = Mode.IDLE
         self.idle_reports = 0
         self.guid_options: int | None = None
-        self.dead_bridge_params: dict = {}    # ArduPilot FS_GCS_ENABLE, SYSID_MYGCS as read
-        self.dead_bridge_failsafe: bool | None = None   # None: unknown (not read, or PX4)
+        self.dead_bridge_params: dict = {}    # DEAD_BRIDGE_PARAMS of the autopilot, as read
+        self.dead_bridge_failsafe: bool | None = None   # None: unknown (not read yet)
         self.angle_boost: int | None = None
         self.rate = RateMeter()
         self.setpoint_source = SetpointSource.NONE
@@ -463,7 +487,8 @@ class MavlinkBridge:
             for level, text in self.timesync.on_message(msg.tc1, msg.ts1, self._ros_ns):
                 self._event(level, text)
         elif kind == 'PARAM_VALUE':
-            self._param(msg.param_id, float(msg.param_value))
+            self._param(msg.param_id, param_value(float(msg.param_value), int(msg.param_type),
+                                                  self.autopilot == Autopilot.PX4))
         elif kind == 'COMMAND_ACK':
             if int(msg.command) == MAV_CMD_SET_MESSAGE_INTERVAL:
                 warning = self.streams.on_ack(msg.result) if self.streams else ''
@@ -522,16 +547,46 @@ class MavlinkBridge:
             self.guid_options = int(value)
         elif name == ANGLE_BOOST_PARAM and np.isfinite(value) and self.angle_boost is None:
             self._set_angle_boost(int(value), f'{ANGLE_BOOST_PARAM} = {int(value)}')
-        elif name in (GCS_FAILSAFE_PARAM, MY_GCS_PARAM) and np.isfinite(value) \
-                and name not in self.dead_bridge_params:
-            self.dead_bridge_params[name] = int(value)
-            self._check_dead_bridge_failsafe()
+        elif self.autopilot is not None and name in DEAD_BRIDGE_PARAMS[self.autopilot] \
+                and np.isfinite(value) and name not in self.dead_bridge_params:
+            self.dead_bridge_params[name] = value
+            if len(self.dead_bridge_params) == 2 and self.dead_bridge_failsafe is None:
+                if self.autopilot == Autopilot.PX4:
+                    self._check_px4_offboard_loss()
+                else:
+                    self._check_dead_bridge_failsafe()
+
+    def _check_px4_offboard_loss(self) -> None:
+        """Tell (once) what PX4 does when our setpoints stop (bridge dead or forces lost)."""
+        p = self.dead_bridge_params
+        action, timeout = int(p[OFFBOARD_LOSS_ACT_PARAM]), float(p[OFFBOARD_LOSS_T_PARAM])
+        what = PX4_OFFBOARD_LOSS_ACTIONS.get(action, 'unknown')
+        self.dead_bridge_failsafe = action == PX4_OFFBOARD_LOSS_LAND
+        said = f'{OFFBOARD_LOSS_ACT_PARAM} = {action} ({what}), {OFFBOARD_LOSS_T_PARAM} = ' \
+               f'{timeout:g} s'
+        if self.dead_bridge_failsafe:
+            self._event('info', f'dead-bridge failsafe: {said}: PX4 lands when our setpoints '
+                                'stop (the bridge stops them hold_last_s after the last force)')
+        else:
+            why = {0: 'needs a position estimate, which this vehicle does not have',
+                   3: 'needs a position estimate, which this vehicle does not have',
+                   5: 'needs a position estimate, which this vehicle does not have',
+                   1: 'needs a pilot on the sticks', 2: 'needs a pilot on the sticks',
+                   6: 'stops the motors in the air', 7: 'stops the motors in the air'}.get(
+                       action, 'is not an action of PX4 v1.16')
+            self._event('warn', f'PX4 offboard loss: {said}: {what} {why} (without RC PX4 falls '
+                                f'back to its own failsafe); set {OFFBOARD_LOSS_ACT_PARAM} = '
+                                f'{PX4_OFFBOARD_LOSS_LAND} (Land mode) (docs/mavlink.md '
+                                '"Autopilot set-up")')
+        if timeout > PX4_OFFBOARD_LOSS_T_MAX_S:
+            self._event('warn', f'PX4 offboard loss: {OFFBOARD_LOSS_T_PARAM} = {timeout:g} s: the '
+                                'vehicle flies the last setpoint that long after ours stop '
+                                f'(PX4 default 1 s; at most {PX4_OFFBOARD_LOSS_T_MAX_S:g} s '
+                                'advised)')
 
     def _check_dead_bridge_failsafe(self) -> None:
         """Tell (once) whether ArduPilot will land the vehicle if this bridge dies in flight."""
-        p = self.dead_bridge_params
-        if self.dead_bridge_failsafe is not None or len(p) < 2:
-            return
+        p = {k: int(v) for k, v in self.dead_bridge_params.items()}
         ours = self.link.config.source_system
         enabled, gcs = p[GCS_FAILSAFE_PARAM], p[MY_GCS_PARAM]
         self.dead_bridge_failsafe = enabled != 0 and gcs == ours
@@ -582,8 +637,8 @@ class MavlinkBridge:
         if self._params_since is None:
             self._params_since = now
         missing = self._params_missing()
-        advisory = [n for n in (GCS_FAILSAFE_PARAM, MY_GCS_PARAM)
-                    if self.autopilot == Autopilot.ARDUPILOT and n not in self.dead_bridge_params
+        advisory = [n for n in DEAD_BRIDGE_PARAMS.get(self.autopilot, ())
+                    if n not in self.dead_bridge_params
                     and self._advisory_reads < ADVISORY_PARAM_READS]
         if (missing or advisory) and now - self._last_param_request >= self.config.param_retry_s:
             self._last_param_request = now

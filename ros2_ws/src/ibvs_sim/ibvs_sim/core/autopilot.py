@@ -36,6 +36,7 @@ import enum
 import logging
 import math
 import os
+import struct
 import time
 from typing import Callable
 
@@ -77,6 +78,9 @@ MAV_RESULT_UNSUPPORTED = mavlink.MAV_RESULT_UNSUPPORTED
 MAV_RESULT_FAILED = mavlink.MAV_RESULT_FAILED
 
 MAV_PARAM_TYPE_REAL32 = mavlink.MAV_PARAM_TYPE_REAL32
+MAV_PARAM_TYPE_INT32 = mavlink.MAV_PARAM_TYPE_INT32
+# COM_OBL_RC_ACT of what the sim does on an offboard loss: AUTO_LAND at once (PX4's 4, Land mode)
+OFFBOARD_LOSS_ACTION_LAND = 4
 MAV_SEVERITY_INFO = mavlink.MAV_SEVERITY_INFO
 MAV_SEVERITY_WARNING = mavlink.MAV_SEVERITY_WARNING
 MAV_SEVERITY_CRITICAL = mavlink.MAV_SEVERITY_CRITICAL
@@ -393,7 +397,8 @@ class Autopilot:
         self.new_setpoints: deque = deque(maxlen=SETPOINT_LOG_LEN)
         self._failsafe_active = False
         self._params = {'MPC_THR_HOVER': float(config.hover_thrust),
-                        'COM_OF_LOSS_T': float(config.offboard_timeout_s)}
+                        'COM_OF_LOSS_T': float(config.offboard_timeout_s),
+                        'COM_OBL_RC_ACT': OFFBOARD_LOSS_ACTION_LAND}      # INT32, as PX4's
         intervals = {MSG_ID_ATTITUDE_QUATERNION: 1.0 / config.telemetry_default_hz,
                      MSG_ID_HIGHRES_IMU: 1.0 / config.telemetry_default_hz,
                      MSG_ID_ATTITUDE_TARGET: 1.0 / config.thrust_telemetry_hz,
@@ -864,8 +869,10 @@ class Autopilot:
 
     def _send_param(self, name: str) -> None:
         names = self._param_names()
-        self._conn.mav.param_value_send(name.encode('ascii')[:PARAM_ID_LEN],
-                                        float(self._params[name]), MAV_PARAM_TYPE_REAL32,
+        value, kind = self._params[name], MAV_PARAM_TYPE_REAL32
+        if isinstance(value, int):     # PX4's bytewise encoding: the INT32's bytes as a float
+            value, kind = struct.unpack('<f', struct.pack('<i', value))[0], MAV_PARAM_TYPE_INT32
+        self._conn.mav.param_value_send(name.encode('ascii')[:PARAM_ID_LEN], float(value), kind,
                                         len(names), names.index(name))
 
     def _on_param_request_read(self, msg, state: VehicleStateView) -> None:
