@@ -229,6 +229,37 @@ def test_a_long_down_camera_dropout_in_landing_ends_in_failsafe(reference, tmp_p
     assert t0 + 0.5 <= modes[5] <= t0 + 0.5 + 0.2, (t0, summary['modes'])
 
 
+FREEZE_AT_S = 2.0            # WINDOW mode (started at 1.0 s), the window still ~1.5 m away
+FROZEN_AFTER_FRAMES = 3      # params.yaml, perception nodes
+
+
+def test_a_frozen_front_camera_in_window_mode_ends_in_failsafe(tmp_path):
+    """The front camera re-publishes its image of 2.0 s with new stamps: stale, FAILSAFE.
+
+    The perception nodes answer the image and its first 2 repeats (frozen_after_frames 3),
+    then drop every repeat: the window and the front flow are last fresh at 2.04 s and
+    stale 0.5 s later (window_timeout_s, front_flow_timeout_s); the supervisor's clock steps
+    by frames, so FAILSAFE comes at the first frame past 2.54 s (measured: 2.56 s). The run
+    stops at FAILSAFE (~25 s of wall clock).
+    """
+    summary = run_scenario(tmp_path, 'front-frozen', '--front-camera-freeze', str(FREEZE_AT_S),
+                           '60', '--no-bag', '--no-plots')
+    modes, run = _mode_times(summary), summary['run']
+    print(f'front camera frozen at {FREEZE_AT_S:.2f} s, failsafe at {modes.get(5)}: '
+          + '; '.join(run.get('transitions', [])))
+    assert run['stop_reason'] == 'failsafe', run
+    assert list(modes) == [0, 1, 5], summary['modes']
+    last_fresh = FREEZE_AT_S + (FROZEN_AFTER_FRAMES - 1) * 0.02
+    assert last_fresh + 0.5 < modes[5] <= last_fresh + 0.5 + 0.05, summary['modes']
+    assert any('WINDOW -> FAILSAFE' in t and ('window stale' in t or 'front_flow stale' in t)
+               for t in run['transitions']), run['transitions']
+    for node in ('window_detector', 'front_optical_flow'):
+        log = (tmp_path / 'front-frozen' / 'logs' / f'{node}.log').read_text()
+        assert 'front camera frozen' in log, node
+    # the dropped frames' products were given up by the lockstep harness, never answered late
+    assert summary['timing']['products_given_up'] >= 1, summary['timing']
+
+
 def test_free_running_reference_on_the_onboard_parameters(tmp_path):
     """Off lockstep: sim time runs at 0.25 x wall and the graph keeps up with it, or drops."""
     summary = run_scenario(tmp_path, 'free-running', '--real-time-factor', '0.25', '--no-bag',

@@ -288,3 +288,61 @@ def test_optical_flow_refuses_a_bad_timing_parameter(ctx, name, value):
     with pytest.raises(ValueError, match=name.removeprefix('imu_')):
         OpticalFlowNode(f'bad_flow_{TAG}', context=context,
                         parameter_overrides=[Parameter(name, value=value)])
+
+
+FROZEN_CASES = {  # node -> (class, overrides, camera, image topic, output topic)
+    'window_detector': (WindowDetectorNode, [], 'front', 'window/corners'),
+    'pad_detector': (PadDetectorNode, [], 'down', 'pad/landmarks'),
+    'front_optical_flow': (OpticalFlowNode, [Parameter('camera', value='front')], 'front',
+                           'front_camera/translational_flow'),
+    'down_optical_flow': (OpticalFlowNode, [Parameter('camera', value='down')], 'down',
+                          'down_camera/translational_flow'),
+}
+OUTPUT_TYPES = {'window/corners': PolygonStamped, 'pad/landmarks': PolygonStamped,
+                'front_camera/translational_flow': Vector3Stamped,
+                'down_camera/translational_flow': Vector3Stamped}
+
+
+@pytest.mark.parametrize('name', sorted(FROZEN_CASES))
+def test_a_frozen_camera_gets_no_output_until_it_is_live_again(ctx, renderers, name):
+    """The same image re-stamped: answered 3 times (frozen_after_frames), then nothing."""
+    cls, overrides, camera, output = FROZEN_CASES[name]
+    context, executor, nodes = ctx
+    node = cls(f'{name}_frozen_{TAG}', context=context, parameter_overrides=overrides)
+    nodes.append(node)
+    prefix = f'{camera}_camera'
+    helper, pubs, got = harness(context, nodes, {f'{prefix}/image_raw': Image,
+                                                 f'{prefix}/camera_info': CameraInfo},
+                                {output: OUTPUT_TYPES[output]})
+    for n in (node, helper):
+        executor.add_node(n)
+    assert node.frozen.check.frozen_after_frames == 3          # params.yaml's default
+    pubs[f'{prefix}/camera_info'].publish(info_msg(camera))
+    assert spin_until(executor, lambda: node.camera_info is not None)
+    xi = START if camera == 'front' else np.array([0.0, 0.0, -1.0])
+    img = renderers[camera].render(np.eye(3), xi)
+    stamps = [30.0 + DT * k for k in range(7)]
+    for k in range(3):           # the image and 2 repeats: processed and answered
+        pubs[f'{prefix}/image_raw'].publish(image_msg(img, stamps[k]))
+        assert spin_until(executor, lambda: len(got[output]) == k + 1), (k, len(got[output]))
+    for k in range(3, 6):        # 3, 4, 5 repeats: frozen, dropped, nothing published
+        pubs[f'{prefix}/image_raw'].publish(image_msg(img, stamps[k]))
+        assert spin_until(executor, lambda: node.frozen.dropped == k - 2), k
+    spin_until(executor, lambda: False, 0.3)
+    assert [round(stamp_s(m), 6) for m in got[output]] == [round(t, 6) for t in stamps[:3]]
+    assert node.frozen.check.identical_frames == 5
+    live = img.copy()
+    live[240, 376] ^= 1          # one grey level of one pixel: a live frame again
+    pubs[f'{prefix}/image_raw'].publish(image_msg(live, stamps[6]))
+    assert spin_until(executor, lambda: len(got[output]) == 4)
+    assert stamp_s(got[output][-1]) == pytest.approx(stamps[6])
+    assert not node.frozen.check.frozen and node.frozen.dropped == 3
+
+
+@pytest.mark.parametrize('name', sorted(FROZEN_CASES))
+def test_frozen_after_frames_is_validated(ctx, name):
+    cls, overrides, _, _ = FROZEN_CASES[name]
+    context, _, _ = ctx
+    with pytest.raises(ValueError, match='frozen_after_frames'):
+        cls(f'{name}_bad_frozen_{TAG}', context=context,
+            parameter_overrides=overrides + [Parameter('frozen_after_frames', value=0)])

@@ -187,3 +187,41 @@ def test_sim_node_lockstep_advances_on_answers_only(ros_context):
     frames = sorted(set(stamps))
     assert np.array_equal(np.diff(frames), np.full(len(frames) - 1, 20_000_000))
     assert sim.sim.lockstep_timeouts == 0
+
+
+def test_sim_node_read_noise_and_frozen_front_camera(ros_context):
+    """Noise: no two consecutive frames alike; a frozen camera repeats one image re-stamped."""
+    tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
+    params = [Parameter('pacing', value='realtime'),
+              Parameter('start_on_setpoints', value=False),
+              Parameter('real_time_factor', value=0.25),
+              Parameter('mavlink_url', value=f'udpin:127.0.0.1:{_free_udp_port()}'),
+              Parameter('fault_front_camera_freeze_s', value=[0.04, 100.0])]
+    sim = SimNode(node_name=f'sim_freeze_{tag}', parameter_overrides=params, context=ros_context)
+    probe = rclpy.create_node(f'sim_freeze_probe_{tag}', context=ros_context)
+    got = {cam: [] for cam in CAMERAS}
+    for cam in CAMERAS:
+        probe.create_subscription(Image, f'{cam}_camera/image_raw', got[cam].append,
+                                  qos_profile_sensor_data)
+    executor = SingleThreadedExecutor(context=ros_context)
+    executor.add_node(sim)
+    executor.add_node(probe)
+    try:
+        assert _spin_until(executor, lambda: all(len(v) >= 6 for v in got.values()), 30.0), \
+            {k: len(v) for k, v in got.items()}
+    finally:
+        executor.shutdown()
+        probe.destroy_node()
+        sim.destroy_node()
+    assert sim.sim.config.read_noise_std == 1.5               # params.yaml's default
+    for cam in CAMERAS:
+        msgs = sorted(got[cam], key=lambda m: _stamp_ns(m.header))
+        stamps = [_stamp_ns(m.header) for m in msgs]
+        assert len(set(stamps)) == len(stamps)                  # new stamps every frame
+        data = {s: bytes(m.data) for s, m in zip(stamps, msgs)}
+        if cam == 'down':   # live (a still vehicle's frames differ too: test_sim_sensor_noise)
+            assert all(data[a] != data[b] for a, b in zip(stamps, stamps[1:]))
+        else:               # frozen from 0.04 s: the image of 0.04 s, re-stamped
+            frozen = [d for s, d in data.items() if s >= 40_000_000]
+            assert len(frozen) >= 4 and len(set(frozen)) == 1
+            assert all(d != frozen[0] for s, d in data.items() if s < 40_000_000)

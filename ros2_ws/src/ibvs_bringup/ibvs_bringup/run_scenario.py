@@ -56,6 +56,7 @@ class RunOptions:
     kill_node: str | None = None        # fault injection: SIGKILL this node ...
     kill_at_s: float = 2.0              # ... at this sim time (perception nodes come back)
     camera_off: dict = field(default_factory=dict)   # fault injection: camera -> [start, end]
+    camera_freeze: dict = field(default_factory=dict)   # fault injection: camera -> [start, end]
     plots: bool = True
     extra: dict = field(default_factory=dict)
 
@@ -186,8 +187,11 @@ def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
                                wind=opts.wind, crossing_law=opts.crossing_law,
                                auto_start_at_s=START_AT_SIM_S,
                                real_time_factor=opts.real_time_factor,
-                               sim_overrides=tuple((f'fault_{cam}_camera_off_s', list(w))
-                                                   for cam, w in opts.camera_off.items()),
+                               sim_overrides=tuple(
+                                   [(f'fault_{cam}_camera_off_s', list(w))
+                                    for cam, w in opts.camera_off.items()]
+                                   + [(f'fault_{cam}_camera_freeze_s', list(w))
+                                      for cam, w in opts.camera_freeze.items()]),
                                extra_image_subscribers=1 if opts.bag else 0,
                                extra_imu_subscribers=1 if opts.bag else 0)
     specs = graph.sim_graph(gopts)
@@ -373,6 +377,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
     for cam in ('front', 'down'):
         p.add_argument(f'--{cam}-camera-off', type=float, nargs=2, metavar=('START', 'END'),
                        help=f'fault injection: no {cam} images in this sim-time window (s)')
+        p.add_argument(f'--{cam}-camera-freeze', type=float, nargs=2, metavar=('START', 'END'),
+                       help=f'fault injection: in this sim-time window (s) the {cam} camera '
+                            f're-publishes its image of START with new stamps (a hung driver)')
     p.add_argument('--real-time-factor', type=float, default=None, metavar='RTF',
                    help='free-running sim (not lockstep): sim time runs at RTF x the wall '
                         'clock, frames it cannot render on time are dropped (e.g. 0.25)')
@@ -394,7 +401,10 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       real_time_factor=a.real_time_factor, kill_node=a.kill_node,
                       kill_at_s=a.kill_at_s,
                       camera_off={cam: tuple(w) for cam, w in (
-                          ('front', a.front_camera_off), ('down', a.down_camera_off)) if w})
+                          ('front', a.front_camera_off), ('down', a.down_camera_off)) if w},
+                      camera_freeze={cam: tuple(w) for cam, w in (
+                          ('front', a.front_camera_freeze), ('down', a.down_camera_freeze))
+                          if w})
 
 
 def main(argv: list | None = None) -> int:

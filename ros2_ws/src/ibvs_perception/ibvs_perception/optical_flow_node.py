@@ -8,7 +8,9 @@ aperture excluded) for the front camera. Publishes `<camera>_camera/translationa
 enough inliers, else all three components NaN, "no valid flow at this stamp" (first image, too
 few inliers, no window, no attitude), so that the supervisor and the controller know per stamp
 whether a flow is coming; and `<camera>_camera/translational_flow_quality` (Float32 inlier
-ratio) for every estimate tried.
+ratio) for every estimate tried. The images of a frozen camera (``frozen_after_frames``
+bit-identical images in a row, :mod:`~ibvs_perception.frozen_guard`) are not processed and
+get no message at all, as if the camera had delivered nothing.
 
 Each image is processed on arrival (timing layer, docs/design.md "Time"): its attitude is
 the IMU's interpolated at the image stamp, or propagated to it with the gyro for at most
@@ -37,6 +39,7 @@ from std_msgs.msg import Float32
 
 from ibvs_perception.core.derotation import GyroDerotation
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
+from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_control.node_common import IMAGE_QOS
@@ -75,6 +78,7 @@ class OpticalFlowNode(Node):
             self.get_logger().fatal(f'optical_flow: cannot load the camera mount: {exc}')
             raise
         self.flow_config = FlowConfig(**flow_values)
+        self.frozen = FrozenCameraGuard(self, self.camera_name, 'optical_flow')
         self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
         self.derotation = GyroDerotation(self.attitudes)
         self.estimator: FlowEstimator | None = None
@@ -120,6 +124,8 @@ class OpticalFlowNode(Node):
         except ValueError as exc:
             self.get_logger().error(f'optical_flow: image dropped: {exc}',
                                     throttle_duration_sec=THROTTLE_S)
+            return
+        if self.frozen.drop(gray, msg.header.stamp):
             return
         key = (camera.width, camera.height, camera.distortion_model, tuple(camera.K.ravel()),
                tuple(camera.D.ravel()))

@@ -2,7 +2,9 @@
 
 Publishes one `pad/landmarks` (PolygonStamped, down optical frame, image stamp: unit bearings
 of the marker centres of every complete group, largest group first, layout id order; empty
-when no group is complete) and one `pad/groups` (std_msgs/String, e.g. "A,B") per image.
+when no group is complete) and one `pad/groups` (std_msgs/String, e.g. "A,B") per image;
+nothing for the images of a frozen camera (``frozen_after_frames`` bit-identical images in a
+row, :mod:`~ibvs_perception.frozen_guard`), as if the camera had delivered nothing.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
 from ibvs_perception.core.pad import PadConfigError, PadDetector, PadDetectorConfig
+from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
 from ibvs_control.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
@@ -43,6 +46,7 @@ class PadDetectorNode(Node):
         except (ConfigError, PadConfigError) as exc:
             self.get_logger().fatal(f'pad_detector: cannot load the pad layout: {exc}')
             raise
+        self.frozen = FrozenCameraGuard(self, 'down', 'pad_detector')
         self.camera_info: CameraInfo | None = None
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
         self.pub_groups = self.create_publisher(String, 'pad/groups', 10)
@@ -57,9 +61,11 @@ class PadDetectorNode(Node):
     def on_image(self, msg: Image) -> None:
         bearings, names = None, ()
         try:
+            gray = mono8_from_image(msg)
+            if self.frozen.drop(gray, msg.header.stamp):
+                return
             camera = camera_from_info(self.camera_info, msg)
-            detection = self.detector.process(mono8_from_image(msg), camera,
-                                              stamp_to_s(msg.header.stamp))
+            detection = self.detector.process(gray, camera, stamp_to_s(msg.header.stamp))
             if len(detection.bearings_C):
                 bearings, names = detection.bearings_C, detection.group_names
         except ValueError as exc:
@@ -78,6 +84,9 @@ def main(args=None) -> None:
         spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:                     # a bad parameter: say which, exit
+        rclpy.logging.get_logger('pad_detector').fatal(f'cannot start: {exc}')
+        raise SystemExit(1) from exc
     finally:
         if node is not None:
             node.destroy_node()

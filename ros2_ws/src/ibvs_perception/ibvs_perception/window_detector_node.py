@@ -2,7 +2,9 @@
 
 Publishes one `window/corners` and one `window/edge_normals` (PolygonStamped, optical frame,
 stamp of the image) for EVERY image: 4 unit bearings TL, TR, BR, BL / 4 unit normals h_i, or
-empty polygons when the window is not (fully) detected or its track was lost.
+empty polygons when the window is not (fully) detected or its track was lost. Except for the
+images of a frozen camera (``frozen_after_frames`` bit-identical images in a row,
+:mod:`~ibvs_perception.frozen_guard`): nothing at all, as if the camera had delivered nothing.
 """
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from geometry_msgs.msg import PolygonStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
+from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
 from ibvs_control.node_common import IMAGE_QOS
 from ibvs_control.spin import spin_guarded
@@ -39,6 +42,7 @@ class WindowDetectorNode(Node):
         self.frame_id = self.declare_parameter('frame_id', 'front_camera_optical_frame').value
         self.publish_debug = bool(self.declare_parameter('publish_debug_image', False).value)
         self.detector = WindowDetector(WindowDetectorConfig(**values))
+        self.frozen = FrozenCameraGuard(self, 'front', 'window_detector')
         self.camera_info: CameraInfo | None = None
         self.pub_corners = self.create_publisher(PolygonStamped, 'window/corners', 10)
         self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)
@@ -55,8 +59,10 @@ class WindowDetectorNode(Node):
     def on_image(self, msg: Image) -> None:
         corners = normals = gray = detection = None
         try:
-            camera = camera_from_info(self.camera_info, msg)
             gray = mono8_from_image(msg)
+            if self.frozen.drop(gray, msg.header.stamp):
+                return
+            camera = camera_from_info(self.camera_info, msg)
             detection = self.detector.process(gray, camera).detection
             if detection is not None:
                 corners, normals = detection.bearings_C, detection.edge_normals_C
@@ -99,6 +105,9 @@ def main(args=None) -> None:
         spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:                     # a bad parameter: say which, exit
+        rclpy.logging.get_logger('window_detector').fatal(f'cannot start: {exc}')
+        raise SystemExit(1) from exc
     finally:
         if node is not None:
             node.destroy_node()

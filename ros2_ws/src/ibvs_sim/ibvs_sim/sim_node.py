@@ -6,7 +6,9 @@ all stamped with the capture time: ``/clock``, ``front_camera/image_raw``,
 ``down_camera/image_raw`` (mono8, sensor-data QoS), their ``camera_info``,
 ``sim/ground_truth/odom`` (evaluation only) and, when they happen, contact events on
 ``sim/events`` (JSON in std_msgs/String, transient local). The autopilot speaks MAVLink on
-``mavlink_url``. Pacing, wind and the initial condition are parameters (docs/interfaces.md).
+``mavlink_url``. Pacing, wind, the cameras' read noise (``camera_read_noise_std``: no two
+frames are bit-identical, as with a real sensor) and the initial condition are parameters
+(docs/interfaces.md); so are the test-only camera faults (off, frozen: ``fault_*``).
 
 In lockstep the node is the test harness's clock, and only it waits: a frame's images leave
 once ``imu/data`` (the bridge's, from this autopilot's telemetry) has reached the frame's
@@ -46,8 +48,9 @@ from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_
                                       vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.sim_core import (AnswerLatency, FirstFrameHold, FrameOutput, GraphProducts,
-                                    ImuBeforeImages, NS_PER_S, Pacing, SimConfig, Simulation)
+from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
+                                    GraphProducts, ImuBeforeImages, NS_PER_S, Pacing, SimConfig,
+                                    Simulation)
 from ibvs_control.spin import spin_guarded
 
 NODE_NAME = 'sim'
@@ -64,7 +67,8 @@ SUBSCRIBER_SETTLE_S = 2.0     # s (wall), image subscribers and setpoints this l
 STATS_PERIOD_S = 1.0          # s (wall), sim/stats
 CLOCK_REPEAT_S = 0.1          # s (wall), /clock repeated while sim time stands still: a node
 #                               whose /clock subscription matched late still learns the time
-FAULT_ANSWER_WAIT_S = 0.3     # s (wall), lockstep: wait for the answer to a frame with images off
+FAULT_ANSWER_WAIT_S = 0.3     # s (wall), lockstep: wait for the answer to (and the products of)
+#                               a frame with images off or frozen (the graph may not answer it)
 # lockstep: what the graph publishes for each camera frame (docs/interfaces.md), by camera
 GRAPH_PRODUCTS = {'window/corners': (PolygonStamped, 'front'),
                   'front_camera/translational_flow': (Vector3Stamped, 'front'),
@@ -98,6 +102,8 @@ class SimNodeConfig:
     start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
     telemetry_default_hz: float = 100.0
     camera_off_s: dict = None                # fault injection: camera -> (start, end) sim s
+    camera_frozen_s: dict = None             # fault injection: camera -> (start, end) sim s
+    read_noise_std: float = 0.0              # grey levels, the cameras' read noise (0: off)
 
 
 def _window(values, name: str) -> tuple[float, float]:
@@ -189,7 +195,8 @@ class SimNode(Node):
             real_time_factor=cfg.real_time_factor,
             camera_rate_hz=self.cameras['down'].rate_hz,
             initial_position_I=cfg.initial_position_I, initial_yaw=cfg.initial_yaw,
-            wind=wind, cameras=CAMERAS)
+            wind=wind, cameras=CAMERAS, read_noise_std=cfg.read_noise_std,
+            noise_seed=cfg.seed)
         self.sim = Simulation(world, pad, vehicle, self.autopilot, sim_config,
                               products=products)
         reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -206,7 +213,7 @@ class SimNode(Node):
             depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.latency = AnswerLatency()
-        self.camera_off_s = cfg.camera_off_s
+        self.faults = CameraFaults(cfg.camera_off_s, cfg.camera_frozen_s)
         self._clock_ns = -1
         self._clock_wall = 0.0
         self._ended_logged = False
@@ -248,12 +255,15 @@ class SimNode(Node):
             'pad_layout_file': '',
             'vehicle_file': '',
             'seed': 0,
+            'camera_read_noise_std': 1.5,
             'min_image_subscribers': 0,
             'subscriber_wait_timeout_s': 30.0,
             'start_on_setpoints': True,
             'telemetry_default_hz': 100.0,
             'fault_front_camera_off_s': [0.0, 0.0],
             'fault_down_camera_off_s': [0.0, 0.0],
+            'fault_front_camera_freeze_s': [0.0, 0.0],
+            'fault_down_camera_freeze_s': [0.0, 0.0],
         }
         v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
         try:
@@ -277,6 +287,9 @@ class SimNode(Node):
                              f"> 0, got {v['min_image_subscribers']}, "
                              f"{v['subscriber_wait_timeout_s']}")
         telemetry_hz = float(v['telemetry_default_hz'])
+        noise = float(v['camera_read_noise_std'])
+        if not (math.isfinite(noise) and noise >= 0.0):
+            raise ValueError(f'camera_read_noise_std must be >= 0 grey levels, got {noise}')
         if not (math.isfinite(telemetry_hz) and telemetry_hz > 0):
             raise ValueError(f'telemetry_default_hz must be > 0, got {telemetry_hz}')
         return SimNodeConfig(
@@ -295,8 +308,11 @@ class SimNode(Node):
             subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']),
             start_on_setpoints=bool(v['start_on_setpoints']),
             telemetry_default_hz=telemetry_hz,
+            read_noise_std=noise,
             camera_off_s={cam: _window(v[f'fault_{cam}_camera_off_s'], f'fault_{cam}_camera_off_s')
-                          for cam in CAMERAS})
+                          for cam in CAMERAS},
+            camera_frozen_s={cam: _window(v[f'fault_{cam}_camera_freeze_s'],
+                                          f'fault_{cam}_camera_freeze_s') for cam in CAMERAS})
 
     def _first_frame_may_go(self) -> bool:
         """Ask the hold (core) with the subscriber counts; log the wait and a timeout."""
@@ -354,8 +370,9 @@ class SimNode(Node):
         if len(self.sim.products_given_up) > given_up_before:
             self.get_logger().warning(
                 f'lockstep: {", ".join(self.sim.products_given_up[given_up_before:])} not '
-                f'published within {self.sim.config.lockstep_timeout_s} s (wall) of the frame '
-                f'at t = {self.sim.t:.3f} s: no longer waited for until it comes again')
+                f'published within {self.sim.answer_wait_s} s (wall) of the frame at t = '
+                f'{(self.sim.products.frame_ns or 0) / NS_PER_S:.3f} s: no longer waited for '
+                'until it comes again')
         if self.sim.frames_dropped > dropped_before:
             self.get_logger().warning(
                 f'free-running: could not render on time at t = {self.sim.t:.3f} s: '
@@ -408,16 +425,20 @@ class SimNode(Node):
     def _publish(self, out: FrameOutput) -> None:
         stamp = stamp_from_ns(out.t_ns)
         self._publish_clock(out.t_ns)
-        withheld = [n for n, (a, b) in self.camera_off_s.items() if a <= out.t < b]
-        # lockstep: the graph may have nothing to answer (its mode's camera is off)
-        self.sim.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld
+        images, withheld, frozen = self.faults.apply(out.t, out.images)
+        # lockstep: the graph may have nothing to answer (its mode's camera is off), or drop
+        # a frozen camera's images (its products are then given up after this short wait)
+        self.sim.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld or frozen
                                   else self.sim.config.lockstep_timeout_s)
         if withheld:
             self.get_logger().warning(f'fault injection: {", ".join(withheld)} camera off at '
                                       f't = {out.t:.3f} s', throttle_duration_sec=LOG_THROTTLE_S)
-        for name, img in out.images.items():
-            if name in withheld:
-                continue
+        if frozen:
+            self.get_logger().warning(
+                f'fault injection: {", ".join(frozen)} camera frozen at t = {out.t:.3f} s: '
+                f'its image of t = {self.faults.held[frozen[0]][0]:.3f} s again, new stamp',
+                throttle_duration_sec=LOG_THROTTLE_S)
+        for name, img in images.items():
             cam = self.cameras[name]
             self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
             self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))
@@ -426,7 +447,7 @@ class SimNode(Node):
         for event in out.events:
             self._publish_event(event)
         if self.imu_hold.enabled:
-            cameras = [n for n in out.images if n not in withheld] if out.images else []
+            cameras = list(images)
             self.sim.products.expect(out.t_ns, cameras,
                                      {t: self.count_publishers(t) for t in GRAPH_PRODUCTS})
 

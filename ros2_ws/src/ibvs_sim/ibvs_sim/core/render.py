@@ -51,7 +51,8 @@ footprint at its nearest visible point (the floor is cut into strips along x_I f
 Finally one precomputed ``cv2.remap`` per camera applies the lens distortion: output pixel
 (u, v) samples the virtual image at ``K_v [x_n, y_n, 1]`` where ``(x_n, y_n) =
 CameraModel.pixels_to_normalized(u, v)``, the same model the detectors invert, so a 3-D point
-lands where ``CameraModel.bearings_to_pixels`` predicts. Output: mono8 (H, W), noise-free.
+lands where ``CameraModel.bearings_to_pixels`` predicts. Output: mono8 (H, W), noise-free
+(the simulation adds the sensor's read noise: ``sensor_noise.py``).
 """
 from __future__ import annotations
 

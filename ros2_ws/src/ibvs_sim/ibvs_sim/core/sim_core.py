@@ -5,7 +5,9 @@ multiples of the camera period and a frame's time in milliseconds (what the grap
 SET_ATTITUDE_TARGET.time_boot_ms) is exact. One :meth:`Simulation.step_frame` advances one
 camera period (20 ms at 50 Hz) in physics substeps (``PlantParams.physics_rate_hz``); at every
 substep the autopilot is polled with the ground truth and its attitude reference is tracked by
-the inner loop; contacts are checked at every substep; then both cameras render the new pose.
+the inner loop; contacts are checked at every substep; then both cameras render the new pose
+and add their sensor's read noise (``read_noise_std``, :mod:`~ibvs_sim.core.sensor_noise`:
+deterministic per seed, camera and frame, so that no two frames are bit-identical).
 The initial frame (t = 0) shows the initial condition.
 
 Pacing (:meth:`Simulation.tick`, called often by the node):
@@ -46,6 +48,7 @@ from ibvs_sim.core.contacts import FLOOR, min_clearance
 from ibvs_sim.core.dynamics import (AttitudeController, PlantParams, QuadrotorPlant, State,
                                     Wind, WindConfig, hover_state)
 from ibvs_sim.core.render import SceneRenderer
+from ibvs_sim.core.sensor_noise import ReadNoise
 
 NS_PER_S = 1_000_000_000
 NS_PER_MS = 1_000_000
@@ -91,6 +94,8 @@ class SimConfig:
     wind: WindConfig = field(default_factory=WindConfig)
     render: bool = True                              # False: physics only (tests)
     cameras: tuple[str, ...] = ('front', 'down')
+    read_noise_std: float = 0.0                      # grey levels, camera read noise (0: off)
+    noise_seed: int = 0                              # read noise draws (with camera, frame)
 
 
 @dataclass
@@ -339,6 +344,45 @@ class GraphProducts:
         return gone
 
 
+class CameraFaults:
+    """Fault injection on the published camera images (test harness), by sim-time window.
+
+    ``off_s`` and ``frozen_s`` map a camera name to its [start, end) window in sim seconds
+    (start == end: never). Off: the camera's images are withheld. Frozen: the camera keeps
+    delivering the image of the first frame in the window with the new frames' stamps, as a
+    hung camera driver that re-publishes its last buffer (read noise included: the very same
+    bytes). :meth:`apply` gives each frame's images to publish.
+    """
+
+    def __init__(self, off_s: dict | None = None, frozen_s: dict | None = None) -> None:
+        self.off_s = {k: (float(a), float(b)) for k, (a, b) in (off_s or {}).items()}
+        self.frozen_s = {k: (float(a), float(b)) for k, (a, b) in (frozen_s or {}).items()}
+        for name, (a, b) in list(self.off_s.items()) + list(self.frozen_s.items()):
+            if not (math.isfinite(a) and math.isfinite(b) and b >= a):
+                raise ValueError(f'fault window of {name} needs start <= end, got [{a}, {b}]')
+        self.held: dict[str, tuple[float, np.ndarray]] = {}   # frozen camera -> (t, image)
+
+    @staticmethod
+    def _active(window: tuple | None, t: float) -> bool:
+        return window is not None and window[0] <= t < window[1]
+
+    def apply(self, t: float, images: dict) -> tuple[dict, list, list]:
+        """Return (images to publish, cameras withheld, cameras frozen) of the frame at ``t``."""
+        withheld = [n for n in images if self._active(self.off_s.get(n), t)]
+        frozen = [n for n in images if n not in withheld
+                  and self._active(self.frozen_s.get(n), t)]
+        out = {}
+        for name, img in images.items():
+            if name in withheld:
+                continue
+            if name in frozen:
+                img = self.held.setdefault(name, (t, img))[1]
+            else:
+                self.held.pop(name, None)
+            out[name] = img
+        return out, withheld, frozen
+
+
 class Simulation:
     """Compose plant, inner loop, autopilot, renderers, contacts and wind (see module doc)."""
 
@@ -361,6 +405,10 @@ class Simulation:
         self.substeps = self.period_ns // self.dt_ns
         self.renderers = ({name: SceneRenderer(world, pad, vehicle.cameras[name])
                            for name in config.cameras} if config.render else {})
+        self.read_noise = {name: ReadNoise(
+            config.read_noise_std, (vehicle.cameras[name].model.height,
+                                    vehicle.cameras[name].model.width),
+            config.noise_seed, name) for name in self.renderers}
         xi0 = np.asarray(config.initial_position_I if config.initial_position_I is not None
                          else world.initial_position_I, float)
         yaw0 = world.initial_yaw if config.initial_yaw is None else float(config.initial_yaw)
@@ -515,7 +563,8 @@ class Simulation:
     def _emit(self, new_events: list) -> FrameOutput:
         self.frame_index += 1
         self._waiting_since_wall = self.wall_clock()
-        images = {name: r.render(self.state.R_IB, self.state.xi_I)
+        images = {name: self.read_noise[name].apply(r.render(self.state.R_IB, self.state.xi_I),
+                                                    self.frame_index)
                   for name, r in self.renderers.items()}
         self.events.extend(new_events)
         return FrameOutput(self.t_ns, images, self.state.copy(), new_events)

@@ -1,0 +1,53 @@
+"""The frozen-camera guard of the perception nodes (parameter, check, log; no maths).
+
+Every node that consumes a camera's images declares ``frozen_after_frames`` and asks
+:meth:`FrozenCameraGuard.drop` before processing an image: an image of a frozen stream
+(:class:`~ibvs_perception.core.freeze.FrozenImageCheck`) is neither processed nor answered, as
+if the camera had delivered nothing, so that the supervisor's frame deadline and staleness
+timeouts treat the camera as the dead camera it is (docs/design.md "Failure behaviour").
+"""
+from __future__ import annotations
+
+import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+
+from ibvs_perception.core.freeze import FrozenImageCheck
+from ibvs_perception.messages import stamp_to_s
+
+PARAMETER = 'frozen_after_frames'
+DEFAULT_FROZEN_AFTER_FRAMES = 3
+DESCRIPTION = ('frames: a camera whose consecutive images are bit-identical to their '
+               'predecessor this many times in a row is frozen (a hung driver re-stamping its '
+               "last buffer: a live sensor's read noise never repeats); its images are then "
+               'dropped, nothing is published for them; integer >= 1')
+THROTTLE_S = 2.0
+
+
+class FrozenCameraGuard:
+    """Declare the parameter, check each image, log and count the dropped ones."""
+
+    def __init__(self, node: Node, camera: str, log_prefix: str) -> None:
+        value = node.declare_parameter(PARAMETER, DEFAULT_FROZEN_AFTER_FRAMES,
+                                       ParameterDescriptor(description=DESCRIPTION)).value
+        self.check = FrozenImageCheck(value)        # ValueError for a bad value
+        self.camera = camera
+        self.prefix = log_prefix
+        self.logger = node.get_logger()
+        self.dropped = 0              # images dropped as frozen since the start
+
+    def drop(self, gray: np.ndarray, stamp) -> bool:
+        """Check the image of ``stamp`` (builtin_interfaces/Time); True: drop it (frozen)."""
+        was_frozen = self.check.frozen
+        if not self.check.check(gray):
+            if was_frozen:
+                self.logger.warning(f'{self.prefix}: {self.camera} camera live again '
+                                    f'(image stamped {stamp_to_s(stamp):.3f} s)')
+            return False
+        self.dropped += 1
+        self.logger.error(
+            f'{self.prefix}: {self.camera} camera frozen: {self.check.identical_frames} '
+            f'consecutive images bit-identical to their predecessor (the last stamped '
+            f'{stamp_to_s(stamp):.3f} s): dropped, nothing published ({self.dropped} '
+            'dropped so far)', throttle_duration_sec=THROTTLE_S)
+        return True
