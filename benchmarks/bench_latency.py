@@ -6,7 +6,9 @@ Setup (issue 12, item 5):
 - both cameras replayed at 50 Hz and stamped with the system time at publication, as a camera
   driver does; the frames are rendered by the sim's renderer along the window approach of the
   feature-level reference run (t = 1.0 ... 3.8 s, slowed down 4 x so that 10 s of frames stay
-  in WINDOW mode, with a small roll/pitch sway);
+  in WINDOW mode, with a small roll/pitch sway), with the sim's sensor read noise
+  (params.yaml ``sim.camera_read_noise_std``): without it consecutive frames of the slow
+  approach can be bit-identical, which the perception rightly takes for a frozen camera;
 - a PX4-like MAVLink stand-in on UDP loopback: the sim's autopilot (ibvs_sim.core.autopilot),
   in its own process on the wall clock, serving the same trajectory's attitude at 100 Hz and
   answering TIMESYNC; it wakes on each datagram (select) and notes when each
@@ -75,15 +77,31 @@ def approach_track(n_frames: int) -> tuple[np.ndarray, np.ndarray]:
     return r, np.stack([np.interp(t_run, t, xi[:, i]) for i in range(3)], axis=1)
 
 
+def read_noise_std() -> float:
+    """The sim's camera read noise (grey levels) from the installed params.yaml."""
+    import yaml
+    from ibvs_bringup.graph import default_params_file
+    with open(default_params_file()) as f:
+        return float(yaml.safe_load(f)['sim']['ros__parameters']['camera_read_noise_std'])
+
+
 def render(r: np.ndarray, xi: np.ndarray) -> dict:
-    """Both cameras' mono8 images of every frame (position xi, attitude of the sway at r)."""
+    """Both cameras' mono8 images of every frame (position xi, attitude of the sway at r).
+
+    Each frame gets the sim's read noise (seed 0), as a real sensor's frames do.
+    """
     from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
     from ibvs_sim.core.render import SceneRenderer
+    from ibvs_sim.core.sensor_noise import ReadNoise
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    sigma = read_noise_std()
     out = {}
     for cam in ('front', 'down'):
+        model = vehicle.cameras[cam].model
         renderer = SceneRenderer(world, pad, vehicle.cameras[cam])
-        out[cam] = [renderer.render(sway(r[k])[0], xi[k]) for k in range(len(xi))]
+        noise = ReadNoise(sigma, (model.height, model.width), 0, cam)
+        out[cam] = [noise.apply(renderer.render(sway(r[k])[0], xi[k]), k)
+                    for k in range(len(xi))]
     return out
 
 
