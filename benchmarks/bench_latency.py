@@ -78,7 +78,7 @@ def approach_track(n_frames: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_noise_std() -> float:
-    """The sim's camera read noise (grey levels) from the installed params.yaml."""
+    """Return the sim's camera read noise (grey levels) from the installed params.yaml."""
     import yaml
     from ibvs_bringup.graph import default_params_file
     with open(default_params_file()) as f:
