@@ -46,6 +46,7 @@ from ibvs_control.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
     parse_pad_groups, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
 from ibvs_control.spin import spin_guarded
+from ibvs_control.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
 
@@ -86,6 +87,7 @@ class ForceControllerNode(Node):
 
     def __init__(self, node_name: str = 'force_controller', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         for name, default in {**GAIN_PARAMETERS, **PARAMETERS}.items():
             self.declare_parameter(name, default)
         p = {name: self.get_parameter(name).value
@@ -159,8 +161,7 @@ class ForceControllerNode(Node):
             stamp_ns, R_IB, omega_B = imu_sample(msg)
             self._attitudes.add(stamp_ns / NS_PER_S, R_IB, omega_B)
         except ValueError as exc:
-            self.get_logger().error(f'imu/data refused: {exc}',
-                                    throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.error(f'imu/data refused: {exc}', LOG_THROTTLE_S)
             return
         self._release()
 
@@ -172,21 +173,19 @@ class ForceControllerNode(Node):
             self._refused('ibvs/supervisor_status', err)
             return
         if not self._frames.open(stamp_ns, mode, self.get_clock().now().nanoseconds):
-            self.get_logger().warning(f'status of {stamp_ns} ns is a duplicate or older than '
-                                      'a frame already answered: dropped',
-                                      throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.warning(f'status of {stamp_ns} ns is a duplicate or older than '
+                             'a frame already answered: dropped', LOG_THROTTLE_S)
         self._release()
 
     def _refused(self, what: str, err: str) -> None:
-        self.get_logger().error(f'{what} refused: {err}', throttle_duration_sec=LOG_THROTTLE_S)
+        self.log.error(f'{what} refused: {err}', LOG_THROTTLE_S)
 
     def _add(self, kind: InputKind, stamp, value, err: str) -> None:
         """Keep one product (a bad one counts as 'not detected') and answer what it completes."""
         if err:
             self._refused(kind.value, err)
         if not self._frames.add_input(kind, stamp_to_ns(stamp), value):
-            self.get_logger().warning(f'duplicate {kind.value}: dropped',
-                                      throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.warning(f'duplicate {kind.value}: dropped', LOG_THROTTLE_S)
         self._release()
 
     def _release(self) -> None:
@@ -197,15 +196,14 @@ class ForceControllerNode(Node):
     # --- output ----------------------------------------------------------------------------
     def _answer(self, frame: Frame) -> None:
         if frame.missing:
-            self.get_logger().warning(
+            self.log.warning(
                 f'frame {frame.stamp_ns / NS_PER_S:.3f} s answered at its deadline without '
-                f'{", ".join(k.value for k in frame.missing)} (late or lost)',
-                throttle_duration_sec=LOG_THROTTLE_S)
+                f'{", ".join(k.value for k in frame.missing)} (late or lost)', LOG_THROTTLE_S)
         out, F_I = step_controller(self._controller, frame.tag, frame,
                                    self._attitudes.attitude_at(frame.stamp_ns / NS_PER_S))
         if out is None:
-            self.get_logger().warning('no IMU attitude (or no valid output): answering with '
-                                      'hover', throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.warning('no IMU attitude (or no valid output): answering with hover',
+                             LOG_THROTTLE_S)
         else:
             heading = QuaternionStamped()
             ns_to_stamp(frame.stamp_ns, heading.header.stamp)

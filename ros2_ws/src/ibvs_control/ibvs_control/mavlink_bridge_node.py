@@ -45,6 +45,7 @@ from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
     stamp_to_ns, vector3)
 from ibvs_control.spin import spin_guarded
+from ibvs_control.throttled_log import ThrottledLog
 
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
 UNKNOWN_COVARIANCE = [-1.0] + [0.0] * 8     # sensor_msgs/Imu: element 0 = -1 "not provided"
@@ -176,6 +177,7 @@ class MavlinkBridgeNode(Node):
 
     def __init__(self, node_name: str = 'mavlink_bridge', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         for name, default in PARAMETERS.items():
             self.declare_parameter(name, default)
         p = {name: self.get_parameter(name).value for name in PARAMETERS}
@@ -228,9 +230,8 @@ class MavlinkBridgeNode(Node):
             reason = self._bridge.on_force(stamp_to_ns(msg.header.stamp), F_I, self._ros_ns())
             self._log_events()
         if reason or not frame_ok:
-            self.get_logger().error(
-                f'force setpoint refused (frame {msg.header.frame_id!r}): {reason}',
-                throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.error(f'force setpoint refused (frame {msg.header.frame_id!r}): {reason}',
+                           LOG_THROTTLE_S)
 
     def _on_heading(self, msg: QuaternionStamped) -> None:
         with self._lock:
@@ -238,8 +239,7 @@ class MavlinkBridgeNode(Node):
                                              quat_wxyz(msg.quaternion), self._ros_ns())
             self._log_events()
         if reason:
-            self.get_logger().error(f'heading setpoint refused: {reason}',
-                                    throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.error(f'heading setpoint refused: {reason}', LOG_THROTTLE_S)
 
     def _on_arm(self, request, response):
         """ibvs/arm: allow the bridge to arm the vehicle when it engages."""
@@ -260,16 +260,14 @@ class MavlinkBridgeNode(Node):
         with self._lock:
             err = err or self._bridge.on_supervisor_status(stamp_ns, mode)
         if err:
-            self.get_logger().error(f'ibvs/supervisor_status refused: {err}',
-                                    throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.error(f'ibvs/supervisor_status refused: {err}', LOG_THROTTLE_S)
 
     def _on_readable(self) -> None:
         """Reader thread, lock held: handle the pending messages, publish the IMU samples."""
         self._receive(self._ros_ns())
 
     def _on_reader_error(self, text: str) -> None:
-        self.get_logger().error(f'MAVLink receive step failed: {text}',
-                                throttle_duration_sec=LOG_THROTTLE_S)
+        self.log.error(f'MAVLink receive step failed: {text}', LOG_THROTTLE_S)
 
     def _on_stream_tick(self) -> None:
         """Supervise the link and the sequencer; repeat the setpoint when none left."""
@@ -298,9 +296,9 @@ class MavlinkBridgeNode(Node):
             self._bridge.stream_enabled = True
             self.get_logger().info(f'imu/data matched {matched} subscribers: setpoint stream on')
         else:
-            self.get_logger().info(
+            self.log.info(
                 f'setpoint stream held: imu/data matched {matched} of '
-                f'{self._min_imu_subscribers} subscribers', throttle_duration_sec=LOG_THROTTLE_S)
+                f'{self._min_imu_subscribers} subscribers', LOG_THROTTLE_S)
 
     def _on_diagnostics(self) -> None:
         with self._lock:
@@ -386,12 +384,12 @@ class MavlinkBridgeNode(Node):
         log = self.get_logger()
         heading_warning = self._bridge.pop_heading_warning()
         if heading_warning:     # own call site: its throttle is not shared with the events'
-            log.warning(heading_warning, throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.warning(heading_warning, LOG_THROTTLE_S)
         for level, text in self._bridge.pop_events():
             if level == 'error':
-                log.error(text, throttle_duration_sec=LOG_THROTTLE_S)
+                self.log.error(text, LOG_THROTTLE_S)
             elif level == 'warn':
-                log.warning(text, throttle_duration_sec=LOG_THROTTLE_S)
+                self.log.warning(text, LOG_THROTTLE_S)
             elif level == 'reason-error':          # the autopilot's words: each one logged
                 log.error(text)                    # (the core repeats a text once per 5 s)
             elif level == 'reason-warn':

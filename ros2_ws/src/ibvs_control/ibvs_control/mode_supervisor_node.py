@@ -52,6 +52,7 @@ from ibvs_control.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, parse_pad_groups,
     polygon_points, SENSOR_QOS, stamp_to_ns, supervisor_status_msg, vector3)
 from ibvs_control.spin import spin_guarded
+from ibvs_control.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
 LANDMARKS_PER_GROUP = 4
@@ -82,6 +83,7 @@ class ModeSupervisorNode(Node):
 
     def __init__(self, node_name: str = 'mode_supervisor', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         core_params = _core_defaults()
         for name, default in {**core_params, **PARAMETERS}.items():
             self.declare_parameter(name, default)
@@ -128,7 +130,7 @@ class ModeSupervisorNode(Node):
         return self.get_clock().now().nanoseconds / NS_PER_S
 
     def _error(self, text: str) -> None:
-        self.get_logger().error(text, throttle_duration_sec=LOG_THROTTLE_S)
+        self.log.error(text, LOG_THROTTLE_S)
 
     def _publish_mode(self) -> None:
         """Log the core's new transitions and publish the mode when it changed."""
@@ -202,8 +204,7 @@ class ModeSupervisorNode(Node):
             self._error(f'{kind.value} refused: {err}')
         stamp_ns = stamp_to_ns(stamp)
         if not self._frames.add_input(kind, stamp_ns, value):
-            self.get_logger().warning(f'duplicate {kind.value} at {stamp_ns} ns: dropped',
-                                      throttle_duration_sec=LOG_THROTTLE_S)
+            self.log.warning(f'duplicate {kind.value} at {stamp_ns} ns: dropped', LOG_THROTTLE_S)
             return
         camera = CAMERA_OF[kind]
         now_ns = self.get_clock().now().nanoseconds
@@ -251,10 +252,9 @@ class ModeSupervisorNode(Node):
                 self._feed(kind, frame.stamp_ns, value)
             return
         if frame.missing:
-            self.get_logger().warning(
+            self.log.warning(
                 f'frame {t:.3f} s evaluated at its deadline without '
-                f'{", ".join(k.value for k in frame.missing)} (late or lost)',
-                throttle_duration_sec=LOG_THROTTLE_S)
+                f'{", ".join(k.value for k in frame.missing)} (late or lost)', LOG_THROTTLE_S)
         self._core.end_frame(t)
         if self._core.auto_start_refusal:
             self._error(f'auto-start refused: {self._core.auto_start_refusal}')

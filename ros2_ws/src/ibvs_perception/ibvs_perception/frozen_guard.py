@@ -14,6 +14,7 @@ from rclpy.node import Node
 
 from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_perception.messages import stamp_to_s
+from ibvs_control.throttled_log import ThrottledLog
 
 PARAMETER = 'frozen_after_frames'
 DEFAULT_FROZEN_AFTER_FRAMES = 3
@@ -34,6 +35,7 @@ class FrozenCameraGuard:
         self.camera = camera
         self.prefix = log_prefix
         self.logger = node.get_logger()
+        self.log = ThrottledLog(self.logger)
         self.dropped = 0              # images dropped as frozen since the start
 
     def drop(self, gray: np.ndarray, stamp) -> bool:
@@ -45,9 +47,9 @@ class FrozenCameraGuard:
                                     f'(image stamped {stamp_to_s(stamp):.3f} s)')
             return False
         self.dropped += 1
-        self.logger.error(
+        self.log.error(
             f'{self.prefix}: {self.camera} camera frozen: {self.check.identical_frames} '
             f'consecutive images bit-identical to their predecessor (the last stamped '
             f'{stamp_to_s(stamp):.3f} s): dropped, nothing published ({self.dropped} '
-            'dropped so far)', throttle_duration_sec=THROTTLE_S)
+            'dropped so far)', THROTTLE_S)
         return True

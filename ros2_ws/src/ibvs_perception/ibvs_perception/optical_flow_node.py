@@ -44,6 +44,7 @@ from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_control.node_common import IMAGE_QOS
 from ibvs_control.spin import spin_guarded
+from ibvs_control.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
 FRONT, DOWN = 'front', 'down'
@@ -57,6 +58,7 @@ class OpticalFlowNode(Node):
 
     def __init__(self, node_name: str = 'optical_flow', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         self.camera_name = self.declare_parameter('camera', DOWN).value
         if self.camera_name not in (FRONT, DOWN):
             raise ValueError(f"parameter camera must be 'front' or 'down', "
@@ -109,8 +111,7 @@ class OpticalFlowNode(Node):
         try:
             self.attitudes.add(*attitude_from_imu(msg))
         except ValueError as exc:
-            self.get_logger().error(f'optical_flow: IMU message dropped: {exc}',
-                                    throttle_duration_sec=THROTTLE_S)
+            self.log.error(f'optical_flow: IMU message dropped: {exc}', THROTTLE_S)
 
     def window_before(self, stamp: float) -> PolygonStamped | None:
         """Return the newest window detection strictly older than ``stamp``, or None."""
@@ -122,8 +123,7 @@ class OpticalFlowNode(Node):
             camera = camera_from_info(self.camera_info, msg)
             gray = mono8_from_image(msg)
         except ValueError as exc:
-            self.get_logger().error(f'optical_flow: image dropped: {exc}',
-                                    throttle_duration_sec=THROTTLE_S)
+            self.log.error(f'optical_flow: image dropped: {exc}', THROTTLE_S)
             return
         if self.frozen.drop(gray, msg.header.stamp):
             return
@@ -135,8 +135,7 @@ class OpticalFlowNode(Node):
         stamp = stamp_to_s(msg.header.stamp)
         R_IB = self.derotation.at_frame(stamp)
         if R_IB is None:
-            self.get_logger().warn('optical_flow: no IMU attitude at the image stamp',
-                                   throttle_duration_sec=THROTTLE_S)
+            self.log.warning('optical_flow: no IMU attitude at the image stamp', THROTTLE_S)
         eta_I, exclude_I = self.plane(stamp)
         result = self.estimator.process(gray, stamp, R_IB, eta_I, exclude_I)
         if result is not None:
@@ -173,8 +172,7 @@ class OpticalFlowNode(Node):
                     return wall_normal_from_corners(vectors_from_polygon(msg), R_IB, self.R_BC)
                 except ValueError as exc:
                     reason = f'degenerate window corners ({exc})'
-        self.get_logger().info(f'optical_flow: no front flow (NaN published): {reason}',
-                               throttle_duration_sec=THROTTLE_S)
+        self.log.info(f'optical_flow: no front flow (NaN published): {reason}', THROTTLE_S)
         return None, None
 
 

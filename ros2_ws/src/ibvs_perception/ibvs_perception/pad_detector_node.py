@@ -26,6 +26,7 @@ from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygo
                                       stamp_to_s)
 from ibvs_control.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
 from ibvs_control.spin import spin_guarded
+from ibvs_control.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
 
@@ -35,6 +36,7 @@ class PadDetectorNode(Node):
 
     def __init__(self, node_name: str = 'pad_detector', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         defaults = PadDetectorConfig()
         values = {f.name: self.declare_parameter(f.name, getattr(defaults, f.name)).value
                   for f in fields(PadDetectorConfig)}
@@ -69,8 +71,7 @@ class PadDetectorNode(Node):
             if len(detection.bearings_C):
                 bearings, names = detection.bearings_C, detection.group_names
         except ValueError as exc:
-            self.get_logger().error(f'pad_detector: image dropped: {exc}',
-                                    throttle_duration_sec=THROTTLE_S)
+            self.log.error(f'pad_detector: image dropped: {exc}', THROTTLE_S)
         self.pub_landmarks.publish(polygon_from_vectors(msg.header, self.frame_id, bearings))
         self.pub_groups.publish(String(data=PAD_GROUP_SEPARATOR.join(names)))
 

@@ -25,6 +25,7 @@ from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
 from ibvs_control.node_common import IMAGE_QOS
 from ibvs_control.spin import spin_guarded
+from ibvs_control.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
 DEBUG_AXIS_PX = 40      # length of the drawn image axes, px
@@ -36,6 +37,7 @@ class WindowDetectorNode(Node):
 
     def __init__(self, node_name: str = 'window_detector', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
+        self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         defaults = WindowDetectorConfig()
         values = {f.name: self.declare_parameter(f.name, getattr(defaults, f.name)).value
                   for f in fields(WindowDetectorConfig)}
@@ -67,8 +69,7 @@ class WindowDetectorNode(Node):
             if detection is not None:
                 corners, normals = detection.bearings_C, detection.edge_normals_C
         except ValueError as exc:
-            self.get_logger().error(f'window_detector: image dropped: {exc}',
-                                    throttle_duration_sec=THROTTLE_S)
+            self.log.error(f'window_detector: image dropped: {exc}', THROTTLE_S)
         self.pub_corners.publish(polygon_from_vectors(msg.header, self.frame_id, corners))
         self.pub_normals.publish(polygon_from_vectors(msg.header, self.frame_id, normals))
         if self.pub_debug is not None and gray is not None:
