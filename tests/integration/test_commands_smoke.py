@@ -17,6 +17,7 @@ import pytest
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('whole_graph')]
 ROOT = Path(__file__).resolve().parents[2]
 BENCH_ARGS = {'bench_perception.py': ['--frames', '5'], 'bench_sim.py': ['--frames', '10'],
+              'bench_log_throttle.py': ['--calls', '50'], 'bench_gc_pause.py': ['--repeats', '3'],
               'bench_latency.py': ['--smoke']}
 
 

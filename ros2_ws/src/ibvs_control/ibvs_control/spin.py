@@ -15,9 +15,17 @@ Under load, a best-effort sample can reach rclpy in a state its Python message c
 object`` from inside ``spin`` (ros2/rclpy#848), which would end the node. For flight software
 one bad sample must cost one sample, not the node: the error is logged (throttled) and spinning
 resumes. KeyboardInterrupt and ExternalShutdownException still end the spin as usual.
+
+Garbage collector: before spinning, ``gc.freeze()`` moves every object built at start-up
+(modules, parameters, buffers: some 45,000 in the supervisor, controller, window detector
+and flow nodes) out of the collector's reach. A full collection, which Python runs now and
+then in the middle of a callback, then scans only what the nodes allocated since:
+``benchmarks/bench_gc_pause.py`` measured 5.0 ms median, 14.5 ms max before, under 0.01 ms
+after, against a 20 ms frame budget.
 """
 from __future__ import annotations
 
+import gc
 import os
 
 import rclpy
@@ -52,6 +60,7 @@ def spin_guarded_nodes(nodes: list) -> int:
     executor = make_executor(context)
     for node in nodes:
         executor.add_node(node)
+    gc.freeze()                 # start-up objects: never scanned again by a full collection
     try:
         while rclpy.ok(context=context):
             try:
