@@ -3,14 +3,21 @@
 Algorithm (paper section Experiments: "ArUco border detection", made sub-pixel):
 
 1. Candidates. Adaptive threshold (dark = foreground) of a down-scaled image, then
-   ``findContours`` with a two-level hierarchy. The window is a dark *ring* (the frame band on
-   the wall face): an outer contour (band/wall border) with one large hole (the aperture).
+   ``findContours`` with a two-level hierarchy, every boundary pixel kept
+   (``CHAIN_APPROX_NONE``: with ``CHAIN_APPROX_SIMPLE`` an axis-aligned side, as in a level
+   hover, shrinks to its two end points and no line can be fitted to it). The window is a
+   dark *ring* (the frame band on the wall face): an outer contour (band/wall border) with
+   one large hole (the aperture).
    Both are approximated by convex quadrilaterals (``approxPolyDP``); area, aspect-ratio and
    hole/outer area-ratio checks reject markers, door-like shapes and texture.
 2. Sub-pixel refinement. A straight 3-D edge is straight only in *undistorted* coordinates,
    so each aperture side is parametrised in undistorted pixels (the ideal pinhole image
    ``K [x/z, y/z, 1]``), sampled, projected into the distorted image, and searched for the
    dark-to-light step along the local image normal (centroid of the intensity gradient).
+   The step must lead into the band: its dark side reaches the band's level (the darkest of
+   the profile) within ``_BAND_REACH_PX``. A texture step beside the band (a brick row, a
+   mortar joint parallel to the side, as in a level view of a brick wall) is steeper than the
+   band's blurred edge but does not, and is not taken for it.
    The edge points are undistorted again, a line is fitted to each side (Huber, then
    residual gating) and adjacent lines are intersected. Two passes.
 3. Tracking. The same window is followed frame to frame: a corner displacement above
@@ -52,6 +59,9 @@ _RISING = 1
 _FALLING = -1
 #: |sin| of the angle between two edges below which their intersection is refused
 _MIN_SIN_EDGE_ANGLE = 0.2
+#: a band edge's dark side reaches the band's level within this distance of the step, px
+#: (a blurred edge spans ~2 px; a texture step beside the band does not lead into it)
+_BAND_REACH_PX = 2.0
 
 
 class WindowStatus(enum.Enum):
@@ -165,7 +175,7 @@ class WindowDetector:
         binary = cv2.adaptiveThreshold(small, _DARK, cv2.ADAPTIVE_THRESH_MEAN_C,
                                        cv2.THRESH_BINARY_INV, cfg.threshold_block_px,
                                        cfg.threshold_offset)
-        contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_SIMPLE)
+        contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
         if hierarchy is None:
             return []
         hierarchy = hierarchy[0]
@@ -339,7 +349,10 @@ class WindowDetector:
         samples_u, inward = self._quad_samples(corners_u)
         profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
         grad = polarity * np.diff(profile, axis=1)
-        pos, ok = self._step_positions(grad, offsets, np.argmax(grad, axis=1))
+        into_band = _steps_into_band(profile, polarity, 0.5 * self.config.min_edge_contrast)
+        peak = np.argmax(np.where(into_band, grad, -np.inf), axis=1)
+        pos, ok = self._step_positions(grad, offsets, peak)
+        ok &= into_band.any(axis=1)
         return self._fit_sides(camera, base, normal_d, pos, ok, inward)
 
     def _find_inner_quad(self, gray: np.ndarray, camera: CameraModel,
@@ -386,6 +399,25 @@ class WindowDetector:
         if line is None:
             return None
         return line if np.dot(line[:2], inward) >= 0.0 else -line
+
+
+def _steps_into_band(profile: np.ndarray, polarity: int, margin: float) -> np.ndarray:
+    """Mask (n, m - 1) of the steps between profile samples j, j+1 that lead into the band.
+
+    The dark side of a step is inwards (samples j+1 ...) for a falling step, outwards
+    (... j) for a rising one. It leads into the band when the darkest sample within
+    ``_BAND_REACH_PX`` on that side is within ``margin`` grey levels of the profile's darkest.
+    """
+    reach = max(1, int(round(_BAND_REACH_PX / _PROFILE_STEP_PX)))
+    n, m = profile.shape
+    padded = np.pad(profile, ((0, 0), (reach, reach)), mode='edge')
+    windows = np.lib.stride_tricks.sliding_window_view(padded, reach, axis=1)
+    # windows[:, i] covers profile samples i - reach ... i - 1
+    if polarity == _FALLING:
+        side_min = windows[:, reach + 1:reach + m].min(axis=2)     # samples j+1 ... j+reach
+    else:
+        side_min = windows[:, 1:m].min(axis=2)                      # samples j-reach+1 ... j
+    return side_min <= profile.min(axis=1, keepdims=True) + margin
 
 
 def _children_area(contours, hierarchy, child: int) -> float:
