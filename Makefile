@@ -22,11 +22,14 @@ PKG_DATA := $(shell find $(PKG_DIRS) -name setup.py -o -name setup.cfg -o -name 
 export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV):$(AMENT_PREFIX_PATH)
 export PYTHONDONTWRITEBYTECODE := 1
 RUN_ARGS ?=
+# Second environment: Ubuntu 24.04's OpenCV 4.6 and numpy 1.26 (requirements-cv46.txt).
+VENV46 ?= .venv-cv46
+PY46 := $(VENV46)/bin/python
 # make test: pytest workers (pytest-xdist). The whole-graph runs and the SITL flights are two
 # groups (xdist_group marks) that run beside each other, each on one worker.
 PYTEST_WORKERS ?= 2
 
-.PHONY: run test lint unit integration bench venv install clean
+.PHONY: run test lint unit unit-cv46 integration bench venv install clean
 
 $(VENV)/.deps: requirements.txt requirements-ros.txt
 	$(PYTHON) -m venv $(VENV_FLAGS) $(VENV)
@@ -51,6 +54,16 @@ $(VENV)/.workspace: $(VENV)/.deps $(PKG_DATA) Makefile
 venv: $(VENV)/.deps
 install: $(VENV)/.workspace
 
+# The same packages (editable) on OpenCV 4.6 / numpy 1.26, every other pin from requirements.txt.
+$(VENV46)/.deps: requirements.txt requirements-ros.txt requirements-cv46.txt $(PKG_DATA) Makefile
+	$(PYTHON) -m venv $(VENV_FLAGS) $(VENV46)
+	$(PY46) -m pip install --quiet --upgrade pip setuptools wheel
+	grep -v -E '^(numpy|opencv-python-headless)==' requirements.txt > $(VENV46)/requirements-shared.txt
+	$(PY46) -m pip install --quiet -r $(VENV46)/requirements-shared.txt -r requirements-cv46.txt \
+		$(ROS_REQS)
+	$(PY46) -m pip install --quiet --no-deps --no-build-isolation $(addprefix -e ,$(PKG_DIRS))
+	touch $@
+
 run: install
 	$(PY) -m ibvs_bringup.run_scenario $(RUN_ARGS)
 
@@ -62,14 +75,20 @@ lint: install
 unit: install
 	$(PY) -m pytest -q tests/unit
 
+# Unit tests on OpenCV 4.6 / numpy 1.26 (the config and launch files come from .venv's share).
+unit-cv46: install $(VENV46)/.deps
+	$(PY46) -c 'import cv2, numpy; print("OpenCV", cv2.__version__, "numpy", numpy.__version__)'
+	$(PY46) -m pytest -q -n $(PYTEST_WORKERS) tests/unit
+
 integration: install
 	$(PY) -m pytest -q tests/integration
 
 test: lint install
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=20 tests
+	$(MAKE) unit-cv46
 
 bench: install
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) build install log
+	rm -rf $(VENV) $(VENV46) build install log

@@ -57,6 +57,16 @@ def test_dockerfile_skips_and_installs_every_key_rosdep_lacks():
         assert pip_name in run, f'{key} skipped but {pip_name} not installed'
 
 
+def test_dockerfile_uses_the_systems_opencv():
+    """rosdep's python3-opencv (OpenCV 4.6 on Ubuntu 24.04) is what the image runs on.
+
+    The code supports it through ibvs_control/core/cv_compat.py; `make unit-cv46` tests it.
+    """
+    run = ' '.join(a for op, a in _instructions() if op == 'RUN')
+    skipped = set(re.search(r'--skip-keys "([^"]+)"', run).group(1).split())
+    assert 'python3-opencv' not in skipped and 'opencv' not in run.replace('--skip-keys', '')
+
+
 def _launch_files(package: str) -> set:
     return {p.name for p in (SRC / package / 'launch').glob('*.launch.py')}
 

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.cv_compat import aruco_parameters, ArucoMarkerDetector
 from ibvs_control.core.frames import bearings_I_to_C, rot_from_euler_zyx
 from ibvs_sim.core.render import RenderError, SceneRenderer, TexturedPlane
 
@@ -111,11 +112,10 @@ def test_floor_seen_through_aperture(front_probe):
 
 
 def _detect(img):
-    params = cv2.aruco.DetectorParameters()
+    params = aruco_parameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    det = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50),
-                                  params)
-    corners, ids, _ = det.detectMarkers(img)
+    det = ArucoMarkerDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), params)
+    corners, ids = det.detect(img)
     found = {} if ids is None else {int(i): c.reshape(4, 2) for i, c in zip(ids.ravel(),
                                                                             corners)}
     return found

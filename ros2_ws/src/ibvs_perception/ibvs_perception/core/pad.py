@@ -36,6 +36,7 @@ import numpy as np
 
 from ibvs_control.core.camera import CameraModel
 from ibvs_control.core.config import PadLayout
+from ibvs_control.core.cv_compat import aruco_parameters, ArucoMarkerDetector
 
 MARKER_CORNERS = 4
 #: smallest |cross| of the two diagonals (normalised coordinates) accepted as a centre
@@ -134,7 +135,7 @@ class PadDetector:
         self._roi_stamp: float | None = None
         self._frames_since_full = 0
         self.last_search = ''
-        params = cv2.aruco.DetectorParameters()
+        params = aruco_parameters()
         params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
         params.adaptiveThreshWinSizeMax = config.adaptive_thresh_win_size_max
         params.adaptiveThreshWinSizeStep = config.adaptive_thresh_win_size_step
@@ -148,7 +149,7 @@ class PadDetector:
         params.cornerRefinementMaxIterations = config.corner_refinement_max_iterations
         params.cornerRefinementMinAccuracy = config.corner_refinement_min_accuracy
         self._params = params
-        self._detector = cv2.aruco.ArucoDetector(aruco_dictionary(layout.dictionary), params)
+        self._detector = ArucoMarkerDetector(aruco_dictionary(layout.dictionary), params)
 
     def reset(self) -> None:
         """Forget the tracked region: the next frame is searched whole."""
@@ -169,8 +170,8 @@ class PadDetector:
         rate = self.config.min_marker_perimeter_rate * max(gray.shape) / side
         if rate != self._params.minMarkerPerimeterRate:
             self._params.minMarkerPerimeterRate = rate
-            self._detector.setDetectorParameters(self._params)
-        corners, ids, _ = self._detector.detectMarkers(image)
+            self._detector.set_parameters(self._params)
+        corners, ids = self._detector.detect(image)
         if ids is None:
             return {}
         found: dict[int, np.ndarray] = {}

@@ -9,13 +9,13 @@ World (paper frame {I}, z down, metres)
   ``world.window`` and a dark frame band ``window.frame_band`` wide around it on the wall face;
 - the back wall ``x = back_wall_x`` of the second room (textured, seed ``'back_wall'``); the
   floor continues behind the window plane;
-- the landing pad: the ArUco markers of ``pad_layout.yaml`` (``cv2.aruco.generateImageMarker``,
+- the landing pad: the ArUco markers of ``pad_layout.yaml`` (``cv_compat.aruco_marker_image``,
   black border of one cell, white quiet zone of ``quiet_zone`` x side around each marker), lying
   on the floor with centres ``MarkerGroup.marker_centres_I()``.
 
 Marker orientation: a marker's image columns run along +y_I and its rows along -x_I, i.e. the
 marker's top edge faces +x_I (the direction of travel through the window). A level down camera
-with yaw 0 (default mount) therefore sees each marker upright, as ``generateImageMarker`` drew it.
+with yaw 0 (default mount) therefore sees each marker upright, as ``aruco_marker_image`` drew it.
 The wall and back-wall textures are upright when seen from the approach side (columns along
 +y_I, rows along +z_I).
 
@@ -62,6 +62,7 @@ import cv2
 import numpy as np
 
 from ibvs_control.core.config import CameraConfig, PadLayout, WorldConfig
+from ibvs_control.core.cv_compat import aruco_marker_image
 
 # Virtual undistorted camera: focal length relative to the real one and margin (px).
 VIRTUAL_FOCAL_SCALE = 1.0
@@ -179,7 +180,7 @@ def make_marker_texture(dictionary: str, marker_id: int, quiet_zone: float) -> n
     d = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARIES[dictionary])
     cells = d.markerSize + 2
     side_px = cells * MARKER_CELL_PX
-    marker = cv2.aruco.generateImageMarker(d, int(marker_id), side_px, borderBits=1)
+    marker = aruco_marker_image(d, marker_id, side_px, border_bits=1)
     q = int(round(quiet_zone * side_px))
     return cv2.copyMakeBorder(marker, q, q, q, q, cv2.BORDER_CONSTANT, value=255)
 
