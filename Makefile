@@ -37,31 +37,27 @@ $(VENV)/.deps: requirements.txt requirements-ros.txt
 	$(PY) -m pip install --quiet -r requirements.txt $(ROS_REQS)
 	touch $@
 
-# Like `colcon build --symlink-install`: editable Python, share/<pkg> data symlinked into the
-# venv prefix (which is on AMENT_PREFIX_PATH), so ament_index finds config and launch files.
-$(VENV)/.workspace: $(VENV)/.deps $(PKG_DATA) Makefile
+# Like `colcon build --symlink-install`: editable Python, then the layout the ros2 CLI reads
+# (scripts/ament_layout.py: ament index markers, share/<pkg> files as per-file symlinks,
+# lib/<pkg>/<executable>) under the venv prefix, which is on AMENT_PREFIX_PATH.
+$(VENV)/.workspace: $(VENV)/.deps $(PKG_DATA) Makefile scripts/ament_layout.py
 	$(PY) -m pip install --quiet --no-deps --no-build-isolation $(addprefix -e ,$(PKG_DIRS))
-	for p in $(PKGS); do \
-	  mkdir -p $(VENV)/share/$$p $(VENV)/share/ament_index/resource_index/packages && \
-	  touch $(VENV)/share/ament_index/resource_index/packages/$$p && \
-	  ln -sfn $(CURDIR)/ros2_ws/src/$$p/package.xml $(VENV)/share/$$p/package.xml && \
-	  for d in config launch; do \
-	    if [ -d ros2_ws/src/$$p/$$d ]; then ln -sfn $(CURDIR)/ros2_ws/src/$$p/$$d $(VENV)/share/$$p/$$d; fi; \
-	  done; \
-	done
+	$(PY) scripts/ament_layout.py --prefix $(VENV) $(PKG_DIRS)
 	touch $@
 
 venv: $(VENV)/.deps
 install: $(VENV)/.workspace
 
 # The same packages (editable) on OpenCV 4.6 / numpy 1.26, every other pin from requirements.txt.
-$(VENV46)/.deps: requirements.txt requirements-ros.txt requirements-cv46.txt $(PKG_DATA) Makefile
+$(VENV46)/.deps: requirements.txt requirements-ros.txt requirements-cv46.txt $(PKG_DATA) Makefile \
+		scripts/ament_layout.py
 	$(PYTHON) -m venv $(VENV_FLAGS) $(VENV46)
 	$(PY46) -m pip install --quiet --upgrade pip setuptools wheel
 	grep -v -E '^(numpy|opencv-python-headless)==' requirements.txt > $(VENV46)/requirements-shared.txt
 	$(PY46) -m pip install --quiet -r $(VENV46)/requirements-shared.txt -r requirements-cv46.txt \
 		$(ROS_REQS)
 	$(PY46) -m pip install --quiet --no-deps --no-build-isolation $(addprefix -e ,$(PKG_DIRS))
+	$(PY46) scripts/ament_layout.py --prefix $(VENV46) $(PKG_DIRS)
 	touch $@
 
 run: install
@@ -75,10 +71,10 @@ lint: install
 unit: install
 	$(PY) -m pytest -q tests/unit
 
-# Unit tests on OpenCV 4.6 / numpy 1.26 (the config and launch files come from .venv's share).
-unit-cv46: install $(VENV46)/.deps
+# Unit tests on OpenCV 4.6 / numpy 1.26, with .venv-cv46 as the only install prefix.
+unit-cv46: $(VENV46)/.deps
 	$(PY46) -c 'import cv2, numpy; print("OpenCV", cv2.__version__, "numpy", numpy.__version__)'
-	$(PY46) -m pytest -q -n $(PYTEST_WORKERS) tests/unit
+	AMENT_PREFIX_PATH=$(CURDIR)/$(VENV46) $(PY46) -m pytest -q -n $(PYTEST_WORKERS) tests/unit
 
 integration: install
 	$(PY) -m pytest -q tests/integration
