@@ -9,11 +9,11 @@ timeouts treat the camera as the dead camera it is (docs/design.md "Failure beha
 from __future__ import annotations
 
 import numpy as np
-from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.node import Node
 
 from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_perception.messages import stamp_to_s
+from ibvs_control.param_descriptors import declare
 from ibvs_control.throttled_log import ThrottledLog
 
 PARAMETER = 'frozen_after_frames'
@@ -22,6 +22,7 @@ DESCRIPTION = ('frames: a camera whose consecutive images are bit-identical to t
                'predecessor this many times in a row is frozen (a hung driver re-stamping its '
                "last buffer: a live sensor's read noise never repeats); its images are then "
                'dropped, nothing is published for them; integer >= 1')
+SPEC = (DESCRIPTION, 1, None)
 THROTTLE_S = 2.0
 
 
@@ -29,8 +30,7 @@ class FrozenCameraGuard:
     """Declare the parameter, check each image, log and count the dropped ones."""
 
     def __init__(self, node: Node, camera: str, log_prefix: str) -> None:
-        value = node.declare_parameter(PARAMETER, DEFAULT_FROZEN_AFTER_FRAMES,
-                                       ParameterDescriptor(description=DESCRIPTION)).value
+        value = declare(node, PARAMETER, DEFAULT_FROZEN_AFTER_FRAMES, SPEC)  # ValueError: bad
         self.check = FrozenImageCheck(value)        # ValueError for a bad value
         self.camera = camera
         self.prefix = log_prefix
