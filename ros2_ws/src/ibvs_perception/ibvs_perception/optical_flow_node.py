@@ -22,8 +22,6 @@ recorded data, so lockstep runs repeat and bag replays reproduce.
 """
 from __future__ import annotations
 
-from dataclasses import fields
-
 import numpy as np
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -33,16 +31,19 @@ from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from ibvs_control.core.config import ConfigError, load_vehicle
 from ibvs_control.core.frames import e3, MAP_FRAME, vec_I_to_map
-from ibvs_control.core.timing import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_control.core.timing import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
+                                      AttitudeBufferConfig)
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32
 
 from ibvs_perception.core.derotation import GyroDerotation
-from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
+from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, PARAMETER_SPECS,
+                                       wall_normal_from_corners)
 from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_control.node_common import IMAGE_QOS
+from ibvs_control.param_descriptors import dataclass_defaults, declare, declare_all
 from ibvs_control.spin import spin_guarded
 from ibvs_control.throttled_log import ThrottledLog
 
@@ -51,6 +52,14 @@ FRONT, DOWN = 'front', 'down'
 N_WINDOW_CORNERS = 4
 NO_FLOW = (float('nan'),) * 3    # the "no valid flow at this stamp" vector (docs/interfaces.md)
 WINDOW_HISTORY = 10          # recent window detections kept (newest last)
+NODE_SPECS = {
+    'camera': ("'front' (the wall plane, needs window/corners) | 'down' (the floor): the "
+               'camera, its topics and its mount R_BC',),
+    'vehicle_file': ("vehicle YAML (camera mounts R_BC); '' = the installed vehicle.yaml",),
+    'max_window_age_s': ('s (stamps, ROS clock), front: the wall plane comes from the newest '
+                         'window corners older than the image, at most this older, > 0',
+                         0.0, None),
+}
 
 
 class OpticalFlowNode(Node):
@@ -59,27 +68,25 @@ class OpticalFlowNode(Node):
     def __init__(self, node_name: str = 'optical_flow', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        self.camera_name = self.declare_parameter('camera', DOWN).value
+        self.camera_name = declare(self, 'camera', DOWN, NODE_SPECS['camera'])
         if self.camera_name not in (FRONT, DOWN):
             raise ValueError(f"parameter camera must be 'front' or 'down', "
                              f'got {self.camera_name!r}')
-        vehicle_file = self.declare_parameter('vehicle_file', '').value
-        self.max_window_age_s = float(self.declare_parameter('max_window_age_s', 0.1).value)
+        vehicle_file = declare(self, 'vehicle_file', '', NODE_SPECS['vehicle_file'])
+        self.max_window_age_s = float(declare(self, 'max_window_age_s', 0.1,
+                                              NODE_SPECS['max_window_age_s']))
         if not self.max_window_age_s > 0.0:
             raise ValueError(f'parameter max_window_age_s must be > 0, '
                              f'got {self.max_window_age_s}')
-        flow_defaults, buffer_defaults = FlowConfig(), AttitudeBufferConfig()
-        flow_values = {f.name: self.declare_parameter(f.name, getattr(flow_defaults, f.name)).value
-                       for f in fields(FlowConfig)}
-        buffer_values = {f.name: self.declare_parameter(f'imu_{f.name}',
-                                                        getattr(buffer_defaults, f.name)).value
-                         for f in fields(AttitudeBufferConfig)}
+        flow_values = declare_all(self, dataclass_defaults(FlowConfig), PARAMETER_SPECS)
+        buffer_values = declare_all(self, dataclass_defaults(AttitudeBufferConfig),
+                                    ATTITUDE_BUFFER_SPECS, prefix='imu_')
         try:
             self.R_BC = load_vehicle(vehicle_file or None).cameras[self.camera_name].R_BC
         except (ConfigError, KeyError) as exc:
             self.get_logger().fatal(f'optical_flow: cannot load the camera mount: {exc}')
             raise
-        self.flow_config = FlowConfig(**flow_values)
+        self.flow_config = FlowConfig(**flow_values)   # ValueError: what a range cannot check
         self.frozen = FrozenCameraGuard(self, self.camera_name, 'optical_flow')
         self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
         self.derotation = GyroDerotation(self.attitudes)

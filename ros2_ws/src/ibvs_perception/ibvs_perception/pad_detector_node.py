@@ -8,8 +8,6 @@ row, :mod:`~ibvs_perception.frozen_guard`), as if the camera had delivered nothi
 """
 from __future__ import annotations
 
-from dataclasses import fields
-
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -20,15 +18,22 @@ from ibvs_control.core.config import ConfigError, load_pad_layout
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
-from ibvs_perception.core.pad import PadConfigError, PadDetector, PadDetectorConfig
+from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
+                                      PARAMETER_SPECS)
 from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
 from ibvs_control.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
+from ibvs_control.param_descriptors import dataclass_defaults, declare, declare_all
 from ibvs_control.spin import spin_guarded
 from ibvs_control.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
+NODE_SPECS = {
+    'pad_layout_file': ("pad layout YAML (ArUco dictionary, groups, marker sizes); '' = the "
+                        'installed pad_layout.yaml',),
+    'frame_id': ('frame of the published bearings (the down camera optical frame)',),
+}
 
 
 class PadDetectorNode(Node):
@@ -37,14 +42,13 @@ class PadDetectorNode(Node):
     def __init__(self, node_name: str = 'pad_detector', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        defaults = PadDetectorConfig()
-        values = {f.name: self.declare_parameter(f.name, getattr(defaults, f.name)).value
-                  for f in fields(PadDetectorConfig)}
-        layout_file = self.declare_parameter('pad_layout_file', '').value
-        self.frame_id = self.declare_parameter('frame_id', 'down_camera_optical_frame').value
+        values = declare_all(self, dataclass_defaults(PadDetectorConfig), PARAMETER_SPECS)
+        layout_file = declare(self, 'pad_layout_file', '', NODE_SPECS['pad_layout_file'])
+        self.frame_id = declare(self, 'frame_id', 'down_camera_optical_frame',
+                                NODE_SPECS['frame_id'])
+        config = PadDetectorConfig(**values)     # ValueError: a parameter a range cannot check
         try:
-            self.detector = PadDetector(load_pad_layout(layout_file or None),
-                                        PadDetectorConfig(**values))
+            self.detector = PadDetector(load_pad_layout(layout_file or None), config)
         except (ConfigError, PadConfigError) as exc:
             self.get_logger().fatal(f'pad_detector: cannot load the pad layout: {exc}')
             raise

@@ -57,6 +57,44 @@ class FlowConfig:
     min_frame_gap_s: float = 1e-4           # consecutive image stamps: accepted gap
     max_frame_gap_s: float = 0.1
 
+    def __post_init__(self) -> None:
+        """Raise ValueError naming the parameter for what a range cannot check."""
+        if not self.quality_level > 0.0:        # cv2.goodFeaturesToTrack asserts it
+            raise ValueError(f'parameter quality_level must be > 0, got {self.quality_level}')
+        if not self.min_frame_gap_s <= self.max_frame_gap_s:
+            raise ValueError(f'parameter min_frame_gap_s ({self.min_frame_gap_s}) must be <= '
+                             f'max_frame_gap_s ({self.max_frame_gap_s})')
+
+
+#: spec of each FlowConfig field as a ROS parameter (description with unit, inclusive range;
+#: ibvs_control.param_descriptors); pixels are distorted image pixels
+PARAMETER_SPECS = {
+    'grid_cols': ('columns of the feature replenishment grid', 1, 1000),
+    'grid_rows': ('rows of the feature replenishment grid', 1, 1000),
+    'min_tracks_per_cell': ('tracks: a grid cell with fewer gets new features', 0, None),
+    'features_per_cell': ('goodFeaturesToTrack budget per replenished cell', 1, None),
+    'replenish_every_n_frames': ('frames: replenishment period', 1, None),
+    'min_tracks': ('tracks: fewer, replenish at once', 0, None),
+    'quality_level': ('goodFeaturesToTrack quality, fraction of the best corner, (0, 1]',
+                      0.0, 1.0),
+    'min_distance_px': ('px, least distance between features', 0.0, None),
+    'lk_window_px': ('px, side of the Lucas-Kanade window, >= 3', 3, 1001),
+    'lk_pyramid_levels': ('Lucas-Kanade pyramid levels above the base image', 0, 20),
+    'lk_max_error': ('grey levels (of 255), largest LK mean absolute patch error', 0.0, None),
+    'border_px': ('px, tracks closer to the image border are dropped', 0.0, None),
+    'inlier_threshold_px': ('px over one frame, residual of an inlier track', 0.0, None),
+    'huber_iterations': ('IRLS (Huber) iterations before the inlier gate', 0, 1000),
+    'min_inliers': ('inliers: fewer, no flow published (NaN)', 0, None),
+    'min_inlier_ratio': ('inliers / tracks below this: no flow published (NaN)', 0.0, 1.0),
+    'min_cos_plane': ('eta^T p below this: the point is not on the plane (dropped)',
+                      -1.0, 1.0),
+    'exclusion_margin_rad': ('rad, widening of the excluded window aperture', 0.0, None),
+    'min_frame_gap_s': ('s (image stamps, ROS clock), smallest accepted gap between '
+                        'consecutive images', 0.0, None),
+    'max_frame_gap_s': ('s (image stamps, ROS clock), largest accepted gap between '
+                        'consecutive images', 0.0, None),
+}
+
 
 @dataclass(frozen=True)
 class FlowResult:

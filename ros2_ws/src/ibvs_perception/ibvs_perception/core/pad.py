@@ -71,6 +71,52 @@ class PadDetectorConfig:
     use_ipp: bool = False     # OpenCV's Intel IPP paths inside process() (module docstring)
     opencv_threads: int = 1   # OpenCV threads inside process(); 0: leave OpenCV's setting
 
+    def __post_init__(self) -> None:
+        """Raise ValueError naming the parameter for what a range cannot check (OpenCV)."""
+        if not 3 <= self.adaptive_thresh_win_size_min <= self.adaptive_thresh_win_size_max:
+            raise ValueError(
+                'parameters adaptive_thresh_win_size_min/_max: need 3 <= min <= max, got '
+                f'{self.adaptive_thresh_win_size_min}, {self.adaptive_thresh_win_size_max}')
+        if not self.adaptive_thresh_win_size_step > 0:
+            raise ValueError('parameter adaptive_thresh_win_size_step must be > 0, got '
+                             f'{self.adaptive_thresh_win_size_step}')
+
+
+#: spec of each PadDetectorConfig field as a ROS parameter (description with unit, inclusive
+#: range; ibvs_control.param_descriptors)
+PARAMETER_SPECS = {
+    'adaptive_thresh_win_size_min': ('px: smallest ArUco adaptive threshold window, >= 3 '
+                                     '(min = max: one pass, fastest)', 3, 1001),
+    'adaptive_thresh_win_size_max': ('px: largest ArUco adaptive threshold window, >= min',
+                                     3, 1001),
+    'adaptive_thresh_win_size_step': ('px: step between adaptive threshold windows, > 0',
+                                      1, 1000),
+    'adaptive_thresh_constant': ('grey levels (of 255) below the local mean counted as black',
+                                 0.0, 255.0),
+    'min_marker_perimeter_rate': ('marker perimeter / largest side of the whole image, lower '
+                                  'bound (the same px in the tracked region)', 0.0, 4.0),
+    'min_corner_distance_rate': ("candidate's min corner distance / its perimeter", 0.0, 1.0),
+    'corner_refinement_win_size': ('px: sub-pixel corner refinement window', 1, 100),
+    'corner_refinement_max_iterations': ('iterations of the sub-pixel corner refinement',
+                                         1, 10000),
+    'corner_refinement_min_accuracy': ('px: the corner refinement stops below this change',
+                                       0.0, None),
+    'relative_corner_refinement_win_size': ('corner refinement window / marker module size',
+                                            0.0, None),
+    'roi_margin_fraction': ("tracking: the next frame's search region is the last markers' "
+                            'bounding box grown by this fraction of its larger side',
+                            0.0, None),
+    'roi_margin_px': ('px added to the tracking region margin', 0, None),
+    'full_search_every_n_frames': ('frames: whole-image search at least this often (0: only '
+                                   'on a loss)', 0, None),
+    'roi_max_age_s': ('s (image stamps, ROS clock): a tracking region older than this (frames '
+                      'skipped) is not used', 0.0, None),
+    'use_ipp': ("OpenCV's Intel IPP inside the detector (off: its CPU dispatch traps to the "
+                'hypervisor on VMs)',),
+    'opencv_threads': ('OpenCV threads inside the detector (0: leave OpenCV\'s setting)',
+                       0, 1024),
+}
+
 
 @dataclass(frozen=True)
 class PadDetection:
