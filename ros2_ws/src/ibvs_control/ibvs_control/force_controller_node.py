@@ -33,7 +33,7 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String
 
 from ibvs_control.core.config import load_pad_layout, load_vehicle
-from ibvs_control.core.control_laws import CrossingGains, LandingGains, WindowGains
+from ibvs_control.core.control_laws import CrossingGains, GAIN_SPECS, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
 from ibvs_control.core.frame_io import (
     check_bearings, check_flow, feature_vector, heading_quat_enu_flu, PadPairing,
@@ -41,10 +41,12 @@ from ibvs_control.core.frame_io import (
 from ibvs_control.core.frames import MAP_FRAME, vec_I_to_map
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.timing import (
-    AttitudeBuffer, AttitudeBufferConfig, Frame, FrameAssembler, InputKind, MODE_INPUTS)
+    ATTITUDE_BUFFER_SPECS, AttitudeBuffer, AttitudeBufferConfig, Frame, FrameAssembler,
+    InputKind, MODE_INPUTS)
 from ibvs_control.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
     parse_pad_groups, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
+from ibvs_control.param_descriptors import declare_all
 from ibvs_control.spin import spin_guarded
 from ibvs_control.throttled_log import ThrottledLog
 
@@ -80,6 +82,19 @@ PARAMETERS = {
     'window_width_m': 1.2,
     'pad_layout_file': '',
 }
+# description with unit, inclusive range (ibvs_control.param_descriptors)
+GAIN_PARAMETER_SPECS = {f'{prefix}.{name}': spec for prefix, specs in GAIN_SPECS.items()
+                        for name, spec in specs.items()}
+PARAMETER_SPECS = {
+    'crossing_law': ('mode 2 law: closed | intended | seed (SPEC.md section 3)',),
+    'frame_deadline_s': ('s (ROS clock, from the frame stamp): a frame waits at most this for '
+                         'the products its mode needs', 0.0, None),
+    **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
+    'vehicle_file': ("vehicle YAML (mass, camera mounts); '' = the installed vehicle.yaml",),
+    'window_width_m': ("m, r_w: the window's known width (gain condition), > 0", 0.0, None),
+    'pad_layout_file': ("pad layout YAML (group sizes, height cue); '' = the installed "
+                        'pad_layout.yaml',),
+}
 
 
 class ForceControllerNode(Node):
@@ -88,10 +103,8 @@ class ForceControllerNode(Node):
     def __init__(self, node_name: str = 'force_controller', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        for name, default in {**GAIN_PARAMETERS, **PARAMETERS}.items():
-            self.declare_parameter(name, default)
-        p = {name: self.get_parameter(name).value
-             for name in {**GAIN_PARAMETERS, **PARAMETERS}}
+        p = declare_all(self, {**GAIN_PARAMETERS, **PARAMETERS},
+                        {**GAIN_PARAMETER_SPECS, **PARAMETER_SPECS})
         vehicle = load_vehicle(p['vehicle_file'] or None)
         r_w = float(p['window_width_m'])
         gains = {k: p[k] for k in GAIN_PARAMETERS}

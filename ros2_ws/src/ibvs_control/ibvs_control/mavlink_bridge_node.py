@@ -18,6 +18,7 @@ every call.
 """
 from __future__ import annotations
 
+import math
 import threading
 
 import numpy as np
@@ -44,6 +45,7 @@ from ibvs_control.core.time_sync import TimeSyncConfig
 from ibvs_control.node_common import (
     COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
     stamp_to_ns, vector3)
+from ibvs_control.param_descriptors import declare_all
 from ibvs_control.spin import spin_guarded
 from ibvs_control.throttled_log import ThrottledLog
 
@@ -105,6 +107,90 @@ PARAMETERS = {
     'orientation_covariance': DEFAULT_COVARIANCE,
     'angular_velocity_covariance': DEFAULT_COVARIANCE,
     'linear_acceleration_covariance': DEFAULT_COVARIANCE,
+}
+# Spec of each parameter: description with unit (and clock: ROS = the node's clock, sim time
+# under use_sim_time; steady = monotonic), inclusive range (ibvs_control.param_descriptors).
+PARAMETER_SPECS = {
+    'url': ("MAVLink endpoint (pymavlink URL): PX4 'udpin:0.0.0.0:14540', serial "
+            "'/dev/ttyUSB0,921600'",),
+    'source_system': ("our MAVLink system id (the vehicle's)", 1, 255),
+    'target_system': ("autopilot system id; 0 = learn from its first HEARTBEAT", 0, 255),
+    'target_component': ("autopilot component id; 0 = learn from its first HEARTBEAT",
+                         0, 255),
+    'heartbeat_timeout_s': ('s (steady clock), no autopilot HEARTBEAT this long: link lost; '
+                            f'>= {MIN_HEARTBEAT_TIMEOUT_S} (3 heartbeat periods)',
+                            MIN_HEARTBEAT_TIMEOUT_S, None),
+    'reconnect_period_s': ('s (steady clock), reopen a broken socket / serial port this often',
+                           0.0, None),
+    'signing_key_file': ("MAVLink 2 signing key file (32 bytes raw or 64 hex); '' = signing "
+                         'off',),
+    'signing_link_id': ('MAVLink 2 signing link id', 0, 255),
+    'autopilot': ('auto (from HEARTBEAT) | px4 | ardupilot',),
+    'hover_thrust_source': ('hover thrust seed: autopilot (MPC_THR_HOVER / MOT_THST_HOVER) | '
+                            'config',),
+    'hover_thrust': ('normalised thrust (0, 1]; <= 0 = the vehicle.yaml hover_thrust',
+                     None, 1.0),
+    'hover_estimator_enabled': ('estimate the hover thrust online (IMU vs applied thrust)',),
+    'hover_estimator_process_noise': ('1/sqrt(s), hover thrust random walk', 0.0, None),
+    'hover_estimator_accel_noise': ('m/s^2, accelerometer noise of one sample', 0.0, None),
+    'hover_estimator_max_deviation': ('the estimate stays within seed * (1 -/+ this)',
+                                      0.0, 1.0),
+    'vehicle_file': ("vehicle YAML (mass, max thrust); '' = the installed vehicle.yaml",),
+    'param_timeout_s': ('s (steady clock), unanswered autopilot parameter reads: fallback / '
+                        'refuse', 0.0, None),
+    'attitude_rate_hz': ('Hz, ATTITUDE_QUATERNION stream asked of the autopilot', 0.0, None),
+    'imu_rate_hz': ('Hz, HIGHRES_IMU (PX4) / SCALED_IMU (ArduPilot) stream asked', 0.0, None),
+    'thrust_rate_hz': ('Hz, ATTITUDE_TARGET stream asked (the thrust applied)', 0.0, None),
+    'status_rate_hz': ('Hz, EXTENDED_SYS_STATE and SYS_STATUS streams asked', 0.0, None),
+    'heartbeat_request_hz': ("Hz, ArduPilot's HEARTBEAT stream asked (PX4's is 1 Hz)",
+                             0.0, None),
+    'timesync_period_s': ('s (ROS clock) between TIMESYNC requests once synced', 0.0, None),
+    'timesync_init_request_period_s': ('s (steady clock) between TIMESYNC requests while '
+                                       'unsynced', 0.0, None),
+    'timesync_init_samples': ('accepted TIMESYNC samples whose median starts the offset',
+                              1, None),
+    'timesync_max_rtt_s': ('s (ROS clock), TIMESYNC round trips above this are rejected',
+                           0.0, None),
+    'timesync_alpha': ('smoothing gain of the clock offset per accepted sample', 0.0, 1.0),
+    'timesync_beta': ('smoothing gain of the clock skew per accepted sample', 0.0, 1.0),
+    'timesync_max_deviation_s': ('s (ROS clock), a sample this far from the offset is an '
+                                 'outlier', 0.0, None),
+    'timesync_max_consecutive_outliers': ('outliers in a row taken as a time jump: reset, '
+                                          're-sync', 0, None),
+    'stream_rate_hz': ('Hz (steady clock timer), setpoint repeat when none left for 1/this, '
+                       'link supervision, engage sequencing; > 0', 0.0, None),
+    'heartbeat_rate_hz': ('Hz (steady clock timer), our HEARTBEAT; > 0', 0.0, None),
+    'diagnostics_rate_hz': ('Hz (steady clock timer), /diagnostics; > 0', 0.0, None),
+    'hold_last_s': ('s (ROS clock, vehicle time), the last valid setpoint is kept this long, '
+                    'then the vehicle is handed back (input_loss_action)', 0.0, None),
+    'max_force_factor': ('|F| above this factor * m g is refused', 0.0, None),
+    'max_tilt_rad': ('rad, tilt limit of the thrust direction', 0.0, math.pi),
+    'shutdown_ramp_s': ('s (ROS clock, force stamps), SHUTDOWN: thrust ramp to 0, then disarm',
+                        0.0, None),
+    'min_imu_subscribers': ('no setpoint stream until imu/data has matched this many '
+                            'subscribers', 0, None),
+    'prestream_s': ('s (steady clock), PX4: setpoint stream before OFFBOARD (> 1 s)',
+                    0.0, None),
+    'command_retry_s': ('s (steady clock), resend an ineffective command after this',
+                        0.0, None),
+    'max_attempts': ('mode-switch attempts before FAILED', 1, None),
+    'arm_on_start': ('true: an arm request from the start (sim scenario only); otherwise only '
+                     'the ibvs/arm service arms',),
+    'arm_backoff_max_s': ('s (steady clock), arming retries back off (doubling) up to this',
+                          0.0, None),
+    'arm_timeout_s': ('s (steady clock), arming refused this long: FAILED', 0.0, None),
+    'disarm_force_after_s': ('s (ROS clock, IMU stamps), touchdown rule: evidence and first '
+                             'refusal this old before a forced disarm', 0.0, None),
+    'disarm_timeout_s': ("s (steady clock), still armed this long after the ramp: the "
+                         "autopilot's land mode", 0.0, None),
+    'input_loss_action': ('forces lost: stop | land | auto (PX4: stop, ArduPilot: land)',),
+    'px4_events_file': ("PX4 all_events.json(.xz) to name EVENT ids; '' = ids only",),
+    'frame_id': ('frame_id of imu/data',),
+    'orientation_covariance': ('rad^2, imu/data orientation covariance (row-major 3x3)',),
+    'angular_velocity_covariance': ('(rad/s)^2, imu/data angular velocity covariance '
+                                    '(row-major 3x3)',),
+    'linear_acceleration_covariance': ('(m/s^2)^2, imu/data linear acceleration covariance '
+                                       '(row-major 3x3)',),
 }
 
 
@@ -178,9 +264,7 @@ class MavlinkBridgeNode(Node):
     def __init__(self, node_name: str = 'mavlink_bridge', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        for name, default in PARAMETERS.items():
-            self.declare_parameter(name, default)
-        p = {name: self.get_parameter(name).value for name in PARAMETERS}
+        p = declare_all(self, PARAMETERS, PARAMETER_SPECS)   # ValueError: bad type or range
         self._config = config_from_parameters(p)
         self._frame_id = p['frame_id']
         self._cov = {k: [float(x) for x in p[k]] for k in (

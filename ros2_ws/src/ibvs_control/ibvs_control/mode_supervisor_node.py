@@ -44,13 +44,15 @@ from ibvs_control.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
 from ibvs_control.core.frames import bearings_C_to_I
 from ibvs_control.core.modes import Mode
-from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
+from ibvs_control.core.supervisor import (
+    ModeSupervisor, PARAMETER_SPECS as CORE_SPECS, SupervisorConfig)
 from ibvs_control.core.timing import (
-    AttitudeBuffer, AttitudeBufferConfig, CAMERA_OF, Frame, FrameAssembler, InputKind,
-    MODE_INPUTS)
+    ATTITUDE_BUFFER_SPECS, AttitudeBuffer, AttitudeBufferConfig, CAMERA_OF, Frame,
+    FrameAssembler, InputKind, MODE_INPUTS)
 from ibvs_control.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, parse_pad_groups,
     polygon_points, SENSOR_QOS, stamp_to_ns, supervisor_status_msg, vector3)
+from ibvs_control.param_descriptors import declare_all
 from ibvs_control.spin import spin_guarded
 from ibvs_control.throttled_log import ThrottledLog
 
@@ -70,6 +72,19 @@ PARAMETERS = {
     'window_width_m': 1.2,
     'pad_layout_file': '',
 }
+# description with unit, inclusive range (ibvs_control.param_descriptors)
+PARAMETER_SPECS = {
+    'update_rate_hz': ('Hz (ROS clock timer): the staleness rules are applied this often '
+                       'when inputs stop, > 0', 0.0, None),
+    'frame_deadline_s': ('s (ROS clock, from the frame stamp): a frame waits at most this for '
+                         'the products its mode needs', 0.0, None),
+    **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
+    'vehicle_file': ("vehicle YAML (camera mounts R_BC); '' = the installed vehicle.yaml",),
+    'window_width_m': ("m, r_w: the window's known width (the sim's world.yaml must agree), "
+                       '> 0', 0.0, None),
+    'pad_layout_file': ("pad layout YAML (group half sides); '' = the installed "
+                        'pad_layout.yaml',),
+}
 
 
 def _core_defaults() -> dict:
@@ -85,9 +100,7 @@ class ModeSupervisorNode(Node):
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         core_params = _core_defaults()
-        for name, default in {**core_params, **PARAMETERS}.items():
-            self.declare_parameter(name, default)
-        p = {name: self.get_parameter(name).value for name in {**core_params, **PARAMETERS}}
+        p = declare_all(self, {**core_params, **PARAMETERS}, {**CORE_SPECS, **PARAMETER_SPECS})
         vehicle = load_vehicle(p['vehicle_file'] or None)
         pad = load_pad_layout(p['pad_layout_file'] or None)
         config = SupervisorConfig.from_params(

@@ -101,6 +101,36 @@ class CrossingGains:
             raise GainError(f'crossing gains must be positive: {self}')
 
 
+#: spec of each gain as a ROS parameter ``<prefix>.<field>`` (description with unit, inclusive
+#: range; ibvs_control.param_descriptors); the paper's conditions are checked by validate()
+GAIN_SPECS = {
+    'landing': {
+        'kp_xy': ('1/s^2, K_p^t horizontal (mass-normalised), > 0', 0.0, None),
+        'kp_z': ('1/s^2, K_p^t along eta_t (mass-normalised), > 0', 0.0, None),
+        'kd_xy': ('1/s, K_d^t horizontal (mass-normalised), > 0', 0.0, None),
+        'kd_z': ('1/s, K_d^t along eta_t (mass-normalised), > 0', 0.0, None),
+        'phi_t_star': ('1/s, phi*_t: eq:FT2 robust variant when > 0', 0.0, None),
+        'lateral_schedule_height_m': ('m, below this pad-image height the lateral gains scale '
+                                      'with the height (0: off)', 0.0, None),
+        'lateral_scale_min': ('lower bound of that lateral gain scale, (0, 1]', 0.0, 1.0),
+    },
+    'window': {
+        'kp': ('1/s^2, k_p^w (k_d^w^2 / k_p^w > r_w / 2: Proposition prop:window)', 0.0, None),
+        'kd': ('1/s, k_d^w, > 0', 0.0, None),
+        'k_phi': ('1/s, k_phi^w, > 0', 0.0, None),
+        'phi_star': ('1/s, phi*_w, > 0', 0.0, None),
+        'eps': ('alpha_w threshold epsilon (dimensionless), > 0', 0.0, None),
+        'delta': ('alpha_w threshold delta (dimensionless), > 0', 0.0, None),
+    },
+    'crossing': {
+        'kv': ('1/s, mode 2 flow damping (as K_d^t), > 0', 0.0, None),
+        'ks': ('1/s^2, mode 2 flow-integral stiffness, > 0', 0.0, None),
+        'kf': ('1/s, mode 2 forward-flow tracking, > 0', 0.0, None),
+        'phi_fwd_min': ('1/s, minimum forward flow through the window, > 0', 0.0, None),
+    },
+}
+
+
 def gain_matrix(k_xy: float, k_z: float, eta: np.ndarray = e3) -> np.ndarray:
     """K = k_xy pi_eta + k_z eta eta^T (Theorem th:landing's form)."""
     eta = np.asarray(eta, dtype=float)

@@ -77,6 +77,37 @@ class SupervisorConfig:
         return cfg
 
 
+#: spec of each SupervisorConfig field declared as a ROS parameter (description with unit,
+#: inclusive range; ibvs_control.param_descriptors); r_w and group_half_sides come from files.
+#: Times are on the ROS clock (sim time under use_sim_time); from_params checks > 0.
+PARAMETER_SPECS = {
+    'imu_timeout_s': ('s (ROS clock), IMU older than this: failsafe (flying modes), > 0',
+                      0.0, None),
+    'window_timeout_s': ('s (ROS clock), mode 1: window lost far away this long -> failsafe, '
+                         '> 0', 0.0, None),
+    'front_flow_timeout_s': ('s (ROS clock), mode 1: no wall flow this long -> failsafe, > 0',
+                             0.0, None),
+    'down_flow_timeout_s': ('s (ROS clock), modes 2-3: no floor flow this long -> failsafe, '
+                            '> 0', 0.0, None),
+    'pad_timeout_s': ('s (ROS clock), mode 3: no pad this long -> failsafe, > 0', 0.0, None),
+    'crossing_min_angular_height_rad': ('rad, window lost while its angular height is this '
+                                        'big -> mode 2 (crossing), > 0', 0.0, None),
+    'window_jump_rad': ('rad, a corner jump this big between frames = window lost, > 0',
+                        0.0, None),
+    'window_jump_max_gap_s': ('s (stamps, ROS clock), jumps are judged only across shorter '
+                              'gaps, > 0', 0.0, None),
+    'crossing_margin_m': ('m, travel past the wall plane before mode 3, > 0', 0.0, None),
+    'crossing_fallback_travel': ('travel / height (dimensionless) when the height is '
+                                 'unknown, > 0', 0.0, None),
+    'crossing_timeout_s': ('s (ROS clock), mode 2 without a pad this long -> failsafe, > 0',
+                           0.0, None),
+    'shutdown_height_m': ('m, pad-image height of the 3 -> 4 (shutdown) switch, > 0',
+                          0.0, None),
+    'auto_start_at_s': ('s (ROS clock); >= 0: start by itself at the first frame at or after '
+                        'this time (sim runs), < 0: only ibvs/start starts', None, None),
+}
+
+
 @dataclass(frozen=True)
 class Transition:
     """One mode change, with the reason logged by the node."""

@@ -233,6 +233,17 @@ class AttitudeBufferConfig:
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
 
 
+#: spec of each AttitudeBufferConfig field as a ROS parameter, declared as ``imu_<field>``
+#: (description with unit, inclusive range; ibvs_control.param_descriptors)
+ATTITUDE_BUFFER_SPECS = {
+    'history_s': ('s (IMU stamps, ROS clock), IMU attitudes kept, > 0', 0.0, None),
+    'max_extrapolation_s': ('s (IMU stamps, ROS clock), the attitude is propagated with the '
+                            'gyro at most this far beyond the newest sample, > 0', 0.0, None),
+    'max_interpolation_gap_s': ('s (IMU stamps, ROS clock), two IMU samples farther apart are '
+                                'not interpolated, > 0', 0.0, None),
+}
+
+
 @dataclass
 class AttitudeBuffer:
     """Time-ordered IMU attitudes R_IB with interpolation or propagation to any stamp.
