@@ -20,10 +20,18 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from ibvs_control.param_descriptors import declare
 from ibvs_control.spin import spin_guarded
 from rosgraph_msgs.msg import Clock
 
 INFO_SUFFIX = 'camera_info'
+PARAMETER_SPECS = {   # description with unit, range (ibvs_control.param_descriptors)
+    'bag_path': ('rosbag2 folder to play; required',),
+    'topics': ('relative topic names to play',),
+    'rate': ('bag time / wall time (0: 1.0)', 0.0, None),
+    'clock': ('publish /clock from the bag time',),
+    'start_delay': ('s (wall, steady clock) before the first message', 0.0, None),
+}
 PRIME_LEAD_S = 0.5            # s (wall) before playback: first CameraInfo of each camera
 REPLAY_TOPICS = ('front_camera/image_raw', 'down_camera/image_raw', 'front_camera/camera_info',
                  'down_camera/camera_info', 'imu/data')
@@ -65,13 +73,13 @@ class BagPlayerNode(Node):
         self.get_logger().info(f'playing {sorted(self.pubs)} of {self.config.bag_path}')
 
     def _declare_config(self) -> PlayerConfig:
-        path = self.declare_parameter('bag_path', '').value
+        path = declare(self, 'bag_path', '', PARAMETER_SPECS['bag_path'])
         if not path:
             raise ValueError('parameter bag_path is required')
-        topics = self.declare_parameter('topics', list(REPLAY_TOPICS)).value
-        rate = float(self.declare_parameter('rate', 1.0).value)
-        clock = bool(self.declare_parameter('clock', True).value)
-        delay = float(self.declare_parameter('start_delay', 1.0).value)
+        topics = declare(self, 'topics', list(REPLAY_TOPICS), PARAMETER_SPECS['topics'])
+        rate = float(declare(self, 'rate', 1.0, PARAMETER_SPECS['rate']))
+        clock = bool(declare(self, 'clock', True, PARAMETER_SPECS['clock']))
+        delay = float(declare(self, 'start_delay', 1.0, PARAMETER_SPECS['start_delay']))
         return PlayerConfig(str(path), tuple(topics), rate if rate > 0 else 1.0, clock, delay)
 
     def _tick(self) -> None:

@@ -19,8 +19,15 @@ from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from ibvs_control.param_descriptors import declare
 from ibvs_control.spin import spin_guarded
 
+PARAMETER_SPECS = {   # description with unit, range (ibvs_control.param_descriptors)
+    'bag_path': ('new directory of the bag (must not exist); required',),
+    'image_every': ('record every N-th message of the image_raw topics (0 or 1: every one)',
+                    0, None),
+    'topics': ('relative topic names to record (default: all of bag.RUN_TOPICS)',),
+}
 DISCOVERY_PERIOD_S = 0.2      # s (steady clock), how often new publishers are looked for
 
 
@@ -73,12 +80,12 @@ class RecorderNode(Node):
         self.get_logger().info(f'recording {len(self.specs)} topics to {self.config.bag_path}')
 
     def _declare_config(self) -> RecorderConfig:
-        bag_path = self.declare_parameter('bag_path', '').value
+        bag_path = declare(self, 'bag_path', '', PARAMETER_SPECS['bag_path'])
         if not bag_path:
             raise ValueError('parameter bag_path is required')
-        every = max(1, int(self.declare_parameter('image_every', 1).value))
+        every = max(1, int(declare(self, 'image_every', 1, PARAMETER_SPECS['image_every'])))
         default = [t.topic for t in bag.RUN_TOPICS]
-        topics = self.declare_parameter('topics', default).value
+        topics = declare(self, 'topics', default, PARAMETER_SPECS['topics'])
         return RecorderConfig(str(bag_path), every, tuple(topics))
 
     def _discover(self) -> None:
@@ -119,6 +126,9 @@ def main(args=None) -> None:
         spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:          # a missing bag_path, a bad parameter: say why, exit 1
+        rclpy.logging.get_logger('recorder').fatal(f'cannot record: {exc}')
+        raise SystemExit(1) from exc
     finally:
         if node is not None:
             node.destroy_node()

@@ -51,6 +51,7 @@ from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
                                     GraphProducts, ImuBeforeImages, NS_PER_S, Pacing, SimConfig,
                                     Simulation)
+from ibvs_control.param_descriptors import declare_all
 from ibvs_control.spin import spin_guarded
 
 NODE_NAME = 'sim'
@@ -76,6 +77,74 @@ GRAPH_PRODUCTS = {'window/corners': (PolygonStamped, 'front'),
                   'pad/groups': (String, 'down'),
                   'down_camera/translational_flow': (Vector3Stamped, 'down')}
 UNSTAMPED_PARTNERS = {'pad/groups': 'pad/landmarks'}
+PARAMETERS = {
+    'pacing': Pacing.LOCKSTEP.value,
+    'lockstep_timeout_s': 5.0,
+    'real_time_factor': 1.0,
+    'tick_period_s': 0.002,
+    'initial_override': False,
+    'initial_position_I': [-2.0, 0.1, -1.82],
+    'initial_yaw': 0.0,
+    'wind_force_map': [0.0, 0.0, 0.0],
+    'wind_gust_amplitude_N': 0.0,
+    'wind_gust_frequency_hz': 0.5,
+    'mavlink_url': 'udpin:127.0.0.1:14560',
+    'signing_key_file': '',
+    'world_file': '',
+    'pad_layout_file': '',
+    'vehicle_file': '',
+    'seed': 0,
+    'camera_read_noise_std': 1.5,
+    'min_image_subscribers': 0,
+    'subscriber_wait_timeout_s': 30.0,
+    'start_on_setpoints': True,
+    'telemetry_default_hz': 100.0,
+    'fault_front_camera_off_s': [0.0, 0.0],
+    'fault_down_camera_off_s': [0.0, 0.0],
+    'fault_front_camera_freeze_s': [0.0, 0.0],
+    'fault_down_camera_freeze_s': [0.0, 0.0],
+}
+# description with unit (times: sim = the sim's own clock, published on /clock; wall = steady
+# clock), inclusive range (ibvs_control.param_descriptors)
+_FAULT = ' [start, end) s (sim time), fault injection (tests only); [0, 0] = never'
+PARAMETER_SPECS = {
+    'pacing': ("'lockstep': the next 20 ms only once the graph answered the last frame (or "
+               "after lockstep_timeout_s); 'realtime': free-running, late frames dropped",),
+    'lockstep_timeout_s': ('s (wall, steady clock), lockstep wait before simulating anyway, '
+                           '> 0', 0.0, None),
+    'real_time_factor': ('realtime pacing: sim s per wall s, (0, 10]', 0.0, 10.0),
+    'tick_period_s': ('s (wall, steady clock), how often the node checks the pacing, > 0',
+                      0.0, None),
+    'initial_override': ('true: start at initial_position_I / initial_yaw; false: world.yaml '
+                         'initial_condition',),
+    'initial_position_I': ('m, start position in the paper frame {I} (NED-type, z down), '
+                           '3 numbers',),
+    'initial_yaw': ('rad, start yaw about z_I (0: the front camera faces the wall)',
+                    -2.0 * math.pi, 2.0 * math.pi),
+    'wind_force_map': ('N, steady disturbance force in map (ENU), 3 numbers',),
+    'wind_gust_amplitude_N': ('N, gust amplitude per horizontal axis (half vertically)',
+                              0.0, None),
+    'wind_gust_frequency_hz': ('Hz (sim time), base gust frequency', 0.0, None),
+    'mavlink_url': ("the autopilot's MAVLink endpoint (pymavlink URL)",),
+    'signing_key_file': ("MAVLink 2 signing key file; '' = signing off",),
+    'world_file': ("world YAML; '' = the installed world.yaml",),
+    'pad_layout_file': ("pad layout YAML; '' = the installed pad_layout.yaml",),
+    'vehicle_file': ("vehicle YAML; '' = the installed vehicle.yaml",),
+    'seed': ('seed of the gust phases, autopilot sensor noise, camera read noise', 0, None),
+    'camera_read_noise_std': ('grey levels (of 255), std of the cameras\' Gaussian read '
+                              'noise; 0 = noise-free', 0.0, 255.0),
+    'min_image_subscribers': ('frame 0 waits until each camera has this many image '
+                              'subscribers', 0, None),
+    'subscriber_wait_timeout_s': ('s (wall, steady clock), then frame 0 starts anyway, > 0',
+                                  0.0, None),
+    'start_on_setpoints': ('frame 0 also waits until the bridge streams setpoints',),
+    'telemetry_default_hz': ('Hz (sim time), IMU/attitude stream rate before any '
+                             'SET_MESSAGE_INTERVAL, > 0', 0.0, None),
+    'fault_front_camera_off_s': ('no front images in' + _FAULT,),
+    'fault_down_camera_off_s': ('no down images in' + _FAULT,),
+    'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULT,),
+    'fault_down_camera_freeze_s': ('the down camera re-publishes one image in' + _FAULT,),
+}
 
 
 @dataclass(frozen=True)
@@ -238,34 +307,7 @@ class SimNode(Node):
             f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {cfg.wind_force_map} N (map)')
 
     def _read_parameters(self) -> SimNodeConfig:
-        p = {
-            'pacing': Pacing.LOCKSTEP.value,
-            'lockstep_timeout_s': 5.0,
-            'real_time_factor': 1.0,
-            'tick_period_s': 0.002,
-            'initial_override': False,
-            'initial_position_I': [-2.0, 0.1, -1.82],
-            'initial_yaw': 0.0,
-            'wind_force_map': [0.0, 0.0, 0.0],
-            'wind_gust_amplitude_N': 0.0,
-            'wind_gust_frequency_hz': 0.5,
-            'mavlink_url': 'udpin:127.0.0.1:14560',
-            'signing_key_file': '',
-            'world_file': '',
-            'pad_layout_file': '',
-            'vehicle_file': '',
-            'seed': 0,
-            'camera_read_noise_std': 1.5,
-            'min_image_subscribers': 0,
-            'subscriber_wait_timeout_s': 30.0,
-            'start_on_setpoints': True,
-            'telemetry_default_hz': 100.0,
-            'fault_front_camera_off_s': [0.0, 0.0],
-            'fault_down_camera_off_s': [0.0, 0.0],
-            'fault_front_camera_freeze_s': [0.0, 0.0],
-            'fault_down_camera_freeze_s': [0.0, 0.0],
-        }
-        v = {name: self.declare_parameter(name, default).value for name, default in p.items()}
+        v = declare_all(self, PARAMETERS, PARAMETER_SPECS)    # ValueError: bad type or range
         try:
             pacing = Pacing(v['pacing'])
         except ValueError as exc:
