@@ -8,8 +8,9 @@ import pytest
 
 from ibvs_control.core import frames
 from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_control.core.cv_compat import aruco_marker_image
 from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
-                                      aruco_dictionary, marker_centre_normalized)
+                                      aruco_dictionary, layout_errors, marker_centre_normalized)
 from ibvs_sim.core.render import SceneRenderer
 
 
@@ -129,3 +130,54 @@ def test_replay_is_exact_and_opencv_settings_are_restored(setup):
     for a, b in zip(*runs):
         assert a.group_names == b.group_names != ()
         assert np.array_equal(a.bearings_C, b.bearings_C)
+
+
+def test_layout_errors_of_an_exact_view_are_zero_and_a_moved_centre_is_seen():
+    """layout_errors against an independent projection of the group's squares."""
+    group = load_pad_layout().groups[1]                     # B: side 0.10 m, c 0.20 m
+    R, t, f = frames.rot_x(0.3) @ frames.rot_z(0.4), np.array([0.05, -0.1, 1.5]), 400.0
+    h = 0.5 * group.side
+    corners = []
+    for c in group.marker_centres_I():
+        P = (c + np.array([[-h, h, 0], [h, h, 0], [h, -h, 0], [-h, -h, 0]])) @ R.T + t
+        corners.append(P[:, :2] / P[:, 2:])                  # other corner order than the test
+    centres = np.array([marker_centre_normalized(xy) for xy in corners])
+    errors, sides = layout_errors(group, corners, centres, f)
+    assert np.all(errors < 1e-3) and np.all(sides > 20.0)     # px (float32 homography)
+    moved = [xy + (np.array([0.05, 0.0]) if k == 2 else 0.0) for k, xy in enumerate(corners)]
+    centres = np.array([marker_centre_normalized(xy) for xy in moved])
+    errors, _ = layout_errors(group, moved, centres, f)
+    assert errors.max() > 5.0                                # 0.05 x 400 = 20 px moved
+
+
+def test_a_foreign_marker_with_a_pad_id_does_not_complete_its_group(setup):
+    """Group B's marker 5 covered, a marker 5 of another size pasted beside the pad.
+
+    Without the layout check the foreign marker completes B and moves the landmarks'
+    centroid; with it, B is rejected (and named) and A's landmarks are unchanged.
+    """
+    layout, cam, renderer = setup
+    img = renderer.render(np.eye(3), np.array([0.0, 0.0, -1.3]))
+    detector = PadDetector(layout, PadDetectorConfig())
+    clean = detector.process(img, cam.model)
+    assert {'A', 'B'} <= set(clean.group_names) and not clean.rejected_groups
+    corners = detector.detect_markers(img)[5]
+    centre, radius = corners.mean(axis=0), 0.6 * np.ptp(corners, axis=0).max()
+    cv2.rectangle(img, tuple(int(v) for v in centre - radius),
+                  tuple(int(v) for v in centre + radius), 255, -1)         # marker 5 covered
+    side = int(round(0.6 * np.ptp(corners, axis=0).max()))
+    foreign = cv2.copyMakeBorder(aruco_marker_image(aruco_dictionary(layout.dictionary), 5,
+                                                    side), side // 3, side // 3, side // 3,
+                                 side // 3, cv2.BORDER_CONSTANT, value=255)
+    y0, x0 = 20, 20                                           # top-left corner of the frame
+    img[y0:y0 + foreign.shape[0], x0:x0 + foreign.shape[1]] = foreign
+    assert 5 in PadDetector(layout, PadDetectorConfig()).detect_markers(img)
+    unchecked = PadDetector(layout, PadDetectorConfig(max_layout_error=1e9)).process(
+        img, cam.model)
+    assert 'B' in unchecked.group_names                       # what the check prevents
+    checked = PadDetector(layout, PadDetectorConfig()).process(img, cam.model)
+    assert 'B' not in checked.group_names and checked.rejected_groups == ('B',)
+    a_clean = clean.bearings_C[:4]
+    np.testing.assert_allclose(checked.bearings_C[:4], a_clean, atol=1e-5)
+    shift = angle_deg(unchecked.bearings_C.mean(axis=0), clean.bearings_C.mean(axis=0))
+    assert shift > 1.0, shift                                 # the centroid it would move

@@ -74,6 +74,10 @@ class PadDetectorNode(Node):
             detection = self.detector.process(gray, camera, stamp_to_s(msg.header.stamp))
             if len(detection.bearings_C):
                 bearings, names = detection.bearings_C, detection.group_names
+            if detection.rejected_groups:
+                self.log.warning(f'pad_detector: group(s) {", ".join(detection.rejected_groups)} '
+                                 "complete but off the pad layout (a foreign marker with a pad "
+                                 'id?): not used', THROTTLE_S)
         except ValueError as exc:
             self.log.error(f'pad_detector: image dropped: {exc}', THROTTLE_S)
         self.pub_landmarks.publish(polygon_from_vectors(msg.header, self.frame_id, bearings))

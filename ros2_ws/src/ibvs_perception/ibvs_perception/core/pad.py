@@ -35,7 +35,7 @@ import cv2
 import numpy as np
 
 from ibvs_control.core.camera import CameraModel
-from ibvs_control.core.config import PadLayout
+from ibvs_control.core.config import MarkerGroup, PadLayout
 from ibvs_control.core.cv_compat import aruco_parameters, ArucoMarkerDetector
 
 MARKER_CORNERS = 4
@@ -68,6 +68,8 @@ class PadDetectorConfig:
     roi_margin_px: int = 12               # px, added to the ROI margin
     full_search_every_n_frames: int = 50  # whole-image search at least this often; 0: only on loss
     roi_max_age_s: float = 0.03           # s, an older region (frames skipped) is not trusted
+    max_layout_error: float = 0.1   # group check: corner error allowed / marker side ...
+    max_layout_error_px: float = 3.0  # px ... plus this (small markers' corner noise)
     use_ipp: bool = False     # OpenCV's Intel IPP paths inside process() (module docstring)
     opencv_threads: int = 1   # OpenCV threads inside process(); 0: leave OpenCV's setting
 
@@ -111,6 +113,12 @@ PARAMETER_SPECS = {
                                    'on a loss)', 0, None),
     'roi_max_age_s': ('s (image stamps, ROS clock): a tracking region older than this (frames '
                       'skipped) is not used', 0.0, None),
+    'max_layout_error': ("a complete group whose marker corners miss the group's layout "
+                         '(the homography of its 4 marker centres) by more than this '
+                         "fraction of a marker's side in the image plus max_layout_error_px "
+                         'is rejected (a foreign marker carrying a pad id)', 0.0, None),
+    'max_layout_error_px': ('px (undistorted): added to the allowed corner error of the '
+                            'layout check (corner noise of small markers)', 0.0, None),
     'use_ipp': ("OpenCV's Intel IPP inside the detector (off: its CPU dispatch traps to the "
                 'hypervisor on VMs)',),
     'opencv_threads': ('OpenCV threads inside the detector (0: leave OpenCV\'s setting)',
@@ -125,6 +133,7 @@ class PadDetection:
     bearings_C: np.ndarray          # (N, 3) unit bearings of the marker centres, N = 4 k
     group_names: tuple[str, ...]    # the complete groups used, same order
     centres_px: np.ndarray          # (N, 2) distorted pixels of the centres (debug)
+    rejected_groups: tuple[str, ...] = ()   # complete groups that failed the layout check
 
 
 def aruco_dictionary(name: str) -> 'cv2.aruco.Dictionary':
@@ -145,6 +154,35 @@ def marker_centre_normalized(corners_xy: np.ndarray) -> np.ndarray | None:
     if abs(centre[2]) < _MIN_DIAGONAL_CROSS:
         return None
     return centre[:2] / centre[2]
+
+
+def layout_errors(group: MarkerGroup, corners_xy: list[np.ndarray], centres_xy: np.ndarray,
+                  focal_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Corner errors of a complete group against its layout: (error px, side px) per marker.
+
+    The pad is a plane, so its image is a homography of it. The homography H is fixed by the
+    group's 4 marker centres (layout, pad-plane metres -> detected centres, undistorted
+    normalised coordinates); each marker's square (``group.side``, axis-aligned on the pad)
+    mapped by H must then land on its 4 detected corners. A marker's error is its largest
+    corner distance for the best of the 4 cyclic corner orders in either direction (ArUco's
+    corner order is the marker's own), its side the mean of its 4 detected sides, both in
+    undistorted pixels (normalised x ``focal_px``). A foreign marker carrying a pad id moves
+    one centre: H bends to it and the squares miss their corners; a correct group misses by
+    the corner noise only (sim renders: <= 0.9 px for markers > 40 px, <= 2.6 px at 12 px).
+    """
+    plane = group.marker_centres_I()[:, :2]
+    H = cv2.getPerspectiveTransform(plane.astype(np.float32), centres_xy.astype(np.float32))
+    h = 0.5 * group.side
+    square = np.array([[-h, -h], [h, -h], [h, h], [-h, h]])
+    errors, sides = [], []
+    for centre, detected in zip(plane, corners_xy):
+        pts = np.column_stack([centre + square, np.ones(MARKER_CORNERS)]) @ H.T
+        predicted = pts[:, :2] / pts[:, 2:3]
+        errors.append(min(np.max(np.linalg.norm(np.roll(order, k, axis=0) - detected, axis=1))
+                          for order in (predicted, predicted[::-1])
+                          for k in range(MARKER_CORNERS)))
+        sides.append(np.mean(np.linalg.norm(detected - np.roll(detected, -1, axis=0), axis=1)))
+    return focal_px * np.asarray(errors), focal_px * np.asarray(sides)
 
 
 @contextmanager
@@ -309,23 +347,25 @@ class PadDetector:
         """
         with opencv_settings(self.config.use_ipp, self.config.opencv_threads):
             markers = self._track(gray, stamp_s)
-        bearings, names, centres = [], [], []
+        bearings, names, rejected = [], [], []
         for group in self.layout.groups:
             if not all(i in markers for i in group.ids):
                 continue
-            group_b = []
-            for marker_id in group.ids:
-                xy = camera.pixels_to_normalized(markers[marker_id])
-                centre = marker_centre_normalized(xy)
-                if centre is None or not np.all(np.isfinite(centre)):
-                    break
-                group_b.append([centre[0], centre[1], 1.0])
-            else:
-                names.append(group.name)
-                bearings.extend(group_b)
+            corners_xy = [camera.pixels_to_normalized(markers[i]) for i in group.ids]
+            centres_xy = [marker_centre_normalized(xy) for xy in corners_xy]
+            if any(c is None or not np.all(np.isfinite(c)) for c in centres_xy):
+                continue
+            centres_xy = np.asarray(centres_xy)
+            errors_px, sides_px = layout_errors(group, corners_xy, centres_xy, camera.K[0, 0])
+            if not np.all(errors_px <= self.config.max_layout_error * sides_px
+                          + self.config.max_layout_error_px):
+                rejected.append(group.name)
+                continue
+            names.append(group.name)
+            bearings.extend(np.column_stack([centres_xy, np.ones(len(centres_xy))]))
         if not bearings:
-            return PadDetection(np.zeros((0, 3)), (), np.zeros((0, 2)))
+            return PadDetection(np.zeros((0, 3)), (), np.zeros((0, 2)), tuple(rejected))
         b = np.asarray(bearings)
         b /= np.linalg.norm(b, axis=1, keepdims=True)
         centres, _ = camera.bearings_to_pixels(b)
-        return PadDetection(b, tuple(names), centres)
+        return PadDetection(b, tuple(names), centres, tuple(rejected))
