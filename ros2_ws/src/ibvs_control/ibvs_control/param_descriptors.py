@@ -68,8 +68,9 @@ def declare(node: Node, name: str, default: Any, spec: tuple | str) -> Any:
     """
     try:
         return node.declare_parameter(name, default, descriptor(name, default, spec)).value
-    except ParameterException as exc:
-        raise ValueError(f'parameter {name}: {exc}') from exc
+    except ParameterException as exc:     # str: '<message>: <name>', the name said first
+        text = str(exc).removesuffix(f': {name}')
+        raise ValueError(f'parameter {name}: {text}') from exc
 
 
 def declare_all(node: Node, defaults: dict, specs: dict, prefix: str = '') -> dict:

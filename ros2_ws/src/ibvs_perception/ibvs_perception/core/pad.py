@@ -77,8 +77,9 @@ class PadDetectorConfig:
         """Raise ValueError naming the parameter for what a range cannot check (OpenCV)."""
         if not 3 <= self.adaptive_thresh_win_size_min <= self.adaptive_thresh_win_size_max:
             raise ValueError(
-                'parameters adaptive_thresh_win_size_min/_max: need 3 <= min <= max, got '
-                f'{self.adaptive_thresh_win_size_min}, {self.adaptive_thresh_win_size_max}')
+                'parameters adaptive_thresh_win_size_min '
+                f'({self.adaptive_thresh_win_size_min}) and adaptive_thresh_win_size_max '
+                f'({self.adaptive_thresh_win_size_max}): need 3 <= min <= max')
         if not self.adaptive_thresh_win_size_step > 0:
             raise ValueError('parameter adaptive_thresh_win_size_step must be > 0, got '
                              f'{self.adaptive_thresh_win_size_step}')
