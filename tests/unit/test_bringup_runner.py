@@ -113,7 +113,10 @@ def test_runner_cli_stops_its_nodes_on_sigterm(tmp_path):
         proc.wait(timeout=5)
 
 
-def test_resolver_finds_console_scripts_and_reports_unknown_ones():
+def test_resolver_finds_console_scripts_and_reports_unknown_ones(monkeypatch, tmp_path):
+    res = ros2run.resolve('ibvs_bringup', 'runner')          # make install: lib/<pkg>/<exe>
+    assert res.module == 'ibvs_bringup.runner' or res.source.endswith('lib/ibvs_bringup/runner')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(tmp_path))   # no colcon layout: entry point
     res = ros2run.resolve('ibvs_bringup', 'runner')
     assert res.module == 'ibvs_bringup.runner'
     assert ros2run.unavailable_reason('ibvs_bringup', 'runner') is None
