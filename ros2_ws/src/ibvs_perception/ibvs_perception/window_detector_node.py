@@ -18,7 +18,7 @@ from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PolygonStamped
 from sensor_msgs.msg import CameraInfo, Image
 
-from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
+from ibvs_perception.core.window import PARAMETER_SPECS, WindowDetector, WindowDetectorConfig
 from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
 from ibvs_control.node_common import IMAGE_QOS
@@ -29,57 +29,10 @@ from ibvs_control.throttled_log import ThrottledLog
 THROTTLE_S = 2.0
 DEBUG_AXIS_PX = 40      # length of the drawn image axes, px
 DEBUG_COLOUR = (0, 255, 0)
-# Spec of each WindowDetectorConfig field (description with unit, inclusive range; see
-# ibvs_control.param_descriptors); pixels are full-resolution image pixels unless noted.
-CONFIG_SPECS = {
-    'detection_scale': ('image scale of the contour search, (0, 1]', 0.01, 1.0),
-    'threshold_block_px': ('px at detection scale, odd, >= 3: adaptive threshold window',
-                           3, 1001),
-    'threshold_offset': ('grey levels (of 255) below the local mean counted as dark',
-                         0.0, 255.0),
-    'min_area_fraction': ('outer band quad area / image area, lower bound', 0.0, 1.0),
-    'max_area_fraction': ('outer band quad area / image area, upper bound', 0.0, 1.0),
-    'min_aspect_ratio': ('width / height of the quad in the image, lower bound', 0.0, None),
-    'max_aspect_ratio': ('width / height of the quad in the image, upper bound', 0.0, None),
-    'min_hole_area_ratio': ('aperture area / outer band area, lower bound', 0.0, 1.0),
-    'max_hole_area_ratio': ('aperture area / outer band area, upper bound', 0.0, 1.0),
-    'min_holes_fraction': ('light area inside a dark ring / its area (search), lower bound',
-                           0.0, 1.0),
-    'max_band_fraction': ('band width / shortest outer side, upper bound', 0.0, 1.0),
-    'approx_tolerance': ('approxPolyDP tolerance / contour perimeter', 0.0, 1.0),
-    'border_margin_px': ('px: the whole band must be this far inside the image', 0.0, None),
-    'samples_per_side': ('edge points searched per aperture side, >= 2', 2, 10000),
-    'search_half_width_px': ('px: first-pass search range along the edge normal', 0.0, None),
-    'refine_half_width_px': ('px: second-pass search range along the edge normal', 0.0, None),
-    'min_edge_contrast': ('grey levels (of 255): step of a valid edge point', 0.0, 255.0),
-    'min_edge_inlier_fraction': ('valid edge points per side / samples_per_side', 0.0, 1.0),
-    'line_inlier_px': ('px (undistorted): residual gate of the line fit', 0.0, None),
-    'max_corner_jump_px': ('px: a larger corner motion between frames is a loss', 0.0, None),
-    'reacquire_after_frames': ('frames without the tracked window before a new search',
-                               0, None),
-}
 NODE_SPECS = {
     'frame_id': ('frame of the published bearings (the front camera optical frame)',),
     'publish_debug_image': ('publish window/debug_image (bgr8, the detection drawn)',),
 }
-
-
-def checked_config(values: dict) -> WindowDetectorConfig:
-    """Return the detector configuration; ValueError naming a parameter a range cannot check.
-
-    (The checks live here, not in WindowDetectorConfig.__post_init__, only because
-    core/window.py is being edited elsewhere; they belong there.)
-    """
-    block = values['threshold_block_px']
-    if block % 2 != 1:      # cv2.adaptiveThreshold: odd, else cv2.error at the first image
-        raise ValueError(f'parameter threshold_block_px must be odd and >= 3, got {block}')
-    for low, high in (('min_area_fraction', 'max_area_fraction'),
-                      ('min_aspect_ratio', 'max_aspect_ratio'),
-                      ('min_hole_area_ratio', 'max_hole_area_ratio')):
-        if not values[low] <= values[high]:
-            raise ValueError(f'parameter {low} ({values[low]}) must be <= {high} '
-                             f'({values[high]})')
-    return WindowDetectorConfig(**values)
 
 
 class WindowDetectorNode(Node):
@@ -88,12 +41,12 @@ class WindowDetectorNode(Node):
     def __init__(self, node_name: str = 'window_detector', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        values = declare_all(self, dataclass_defaults(WindowDetectorConfig), CONFIG_SPECS)
+        values = declare_all(self, dataclass_defaults(WindowDetectorConfig), PARAMETER_SPECS)
         self.frame_id = declare(self, 'frame_id', 'front_camera_optical_frame',
                                 NODE_SPECS['frame_id'])
         self.publish_debug = bool(declare(self, 'publish_debug_image', False,
                                           NODE_SPECS['publish_debug_image']))
-        self.detector = WindowDetector(checked_config(values))
+        self.detector = WindowDetector(WindowDetectorConfig(**values))
         self.frozen = FrozenCameraGuard(self, 'front', 'window_detector')
         self.camera_info: CameraInfo | None = None
         self.pub_corners = self.create_publisher(PolygonStamped, 'window/corners', 10)

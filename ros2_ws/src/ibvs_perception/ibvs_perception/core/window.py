@@ -98,6 +98,49 @@ class WindowDetectorConfig:
     max_corner_jump_px: float = 30.0        # largest corner displacement between frames
     reacquire_after_frames: int = 10        # frames without the tracked window before a search
 
+    def __post_init__(self) -> None:
+        """Raise ValueError naming the parameter for what a range cannot check."""
+        block = self.threshold_block_px
+        if block % 2 != 1 or block < 3:    # cv2.adaptiveThreshold: else cv2.error per image
+            raise ValueError(f'parameter threshold_block_px must be odd and >= 3, got {block}')
+        for low, high in (('min_area_fraction', 'max_area_fraction'),
+                          ('min_aspect_ratio', 'max_aspect_ratio'),
+                          ('min_hole_area_ratio', 'max_hole_area_ratio')):
+            if not getattr(self, low) <= getattr(self, high):
+                raise ValueError(f'parameter {low} ({getattr(self, low)}) must be <= {high} '
+                                 f'({getattr(self, high)})')
+
+
+#: spec of each WindowDetectorConfig field as a ROS parameter (description with unit, inclusive
+#: range; ibvs_control.param_descriptors); pixels are full-resolution pixels unless noted
+PARAMETER_SPECS = {
+    'detection_scale': ('image scale of the contour search, (0, 1]', 0.01, 1.0),
+    'threshold_block_px': ('px at detection scale, odd, >= 3: adaptive threshold window',
+                           3, 1001),
+    'threshold_offset': ('grey levels (of 255) below the local mean counted as dark',
+                         0.0, 255.0),
+    'min_area_fraction': ('outer band quad area / image area, lower bound', 0.0, 1.0),
+    'max_area_fraction': ('outer band quad area / image area, upper bound', 0.0, 1.0),
+    'min_aspect_ratio': ('width / height of the quad in the image, lower bound', 0.0, None),
+    'max_aspect_ratio': ('width / height of the quad in the image, upper bound', 0.0, None),
+    'min_hole_area_ratio': ('aperture area / outer band area, lower bound', 0.0, 1.0),
+    'max_hole_area_ratio': ('aperture area / outer band area, upper bound', 0.0, 1.0),
+    'min_holes_fraction': ('light area inside a dark ring / its area (search), lower bound',
+                           0.0, 1.0),
+    'max_band_fraction': ('band width / shortest outer side, upper bound', 0.0, 1.0),
+    'approx_tolerance': ('approxPolyDP tolerance / contour perimeter', 0.0, 1.0),
+    'border_margin_px': ('px: the whole band must be this far inside the image', 0.0, None),
+    'samples_per_side': ('edge points searched per aperture side, >= 2', 2, 10000),
+    'search_half_width_px': ('px: first-pass search range along the edge normal', 0.0, None),
+    'refine_half_width_px': ('px: second-pass search range along the edge normal', 0.0, None),
+    'min_edge_contrast': ('grey levels (of 255): step of a valid edge point', 0.0, 255.0),
+    'min_edge_inlier_fraction': ('valid edge points per side / samples_per_side', 0.0, 1.0),
+    'line_inlier_px': ('px (undistorted): residual gate of the line fit', 0.0, None),
+    'max_corner_jump_px': ('px: a larger corner motion between frames is a loss', 0.0, None),
+    'reacquire_after_frames': ('frames without the tracked window before a new search',
+                               0, None),
+}
+
 
 @dataclass(frozen=True)
 class WindowDetection:
