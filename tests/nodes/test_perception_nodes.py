@@ -147,6 +147,40 @@ def test_window_detector_node(ctx, renderers):
     assert all(len(m.polygon.points) == 0 for m in got['window/corners'][2:])
 
 
+def test_window_detector_node_tracks_through_a_fast_yaw_with_the_imu(ctx, renderers):
+    """imu/data in, images of a 5 rad/s yaw swing: every frame detected (the gyro moves the
+    tracked window before the 30 px gate); the node's rotation matches the attitudes sent."""
+    context, executor, nodes = ctx
+    node = WindowDetectorNode(f'window_detector_gyro_{TAG}', context=context)
+    nodes.append(node)
+    helper, pubs, got = harness(context, nodes,
+                                {'front_camera/image_raw': Image,
+                                 'front_camera/camera_info': CameraInfo, 'imu/data': Imu},
+                                {'window/corners': PolygonStamped})
+    for n in (node, helper):
+        executor.add_node(n)
+    pubs['front_camera/camera_info'].publish(info_msg('front'))
+    spin_until(executor, lambda: node.camera_info is not None)
+    R_BC = VEHICLE.cameras['front'].R_BC
+    yaw = [0.0, 0.1, 0.2, 0.3, 0.4]               # rad per 20 ms frame: 5 rad/s, ~37 px
+    for k, psi in enumerate(yaw):
+        t = 1.0 + 0.02 * k
+        R_IB = frames.rot_z(psi)
+        pubs['imu/data'].publish(imu_msg(t, R_IB, np.array([0.0, 0.0, 5.0])))
+        assert spin_until(executor, lambda: (node.attitudes.newest_stamp or 0.0) >= t - 1e-9)
+        if k:                                        # the rotation the node will apply
+            d = np.array([0.3, -0.4, 0.87])          # a fixed direction in {I}
+            b_prev = (frames.rot_z(yaw[k - 1]) @ R_BC).T @ d
+            b_now = (R_IB @ R_BC).T @ d
+            R_IC = node.attitudes.attitude_at(t) @ R_BC
+            np.testing.assert_allclose((R_IC.T @ node.R_IC_prev) @ b_prev, b_now, atol=1e-9)
+        pubs['front_camera/image_raw'].publish(
+            image_msg(renderers['front'].render(R_IB, START), t))
+        assert spin_until(executor, lambda: len(got['window/corners']) >= k + 1)
+    assert all(len(m.polygon.points) == 4 for m in got['window/corners']), \
+        [len(m.polygon.points) for m in got['window/corners']]
+
+
 def test_pad_detector_node(ctx, renderers):
     context, executor, nodes = ctx
     node = PadDetectorNode(f'pad_detector_{TAG}', context=context)

@@ -1,10 +1,16 @@
-"""window_detector: front image + CameraInfo -> window corners and edge normals (bearings).
+"""window_detector: front image + CameraInfo + IMU -> window corners and edge normals (bearings).
 
 Publishes one `window/corners` and one `window/edge_normals` (PolygonStamped, optical frame,
 stamp of the image) for EVERY image: 4 unit bearings TL, TR, BR, BL / 4 unit normals h_i, or
 empty polygons when the window is not (fully) detected or its track was lost. Except for the
 images of a frozen camera (``frozen_after_frames`` bit-identical images in a row,
 :mod:`~ibvs_perception.frozen_guard`): nothing at all, as if the camera had delivered nothing.
+
+Tracking with the gyro: the attitude at each image stamp (``imu/data``, interpolated or
+propagated, :class:`~ibvs_control.core.timing.AttitudeBuffer`) gives the camera's rotation
+since the previous image, and the detector moves the tracked window by it before searching
+and gating (``WindowDetector.process``). Without an attitude at either stamp the frame is
+processed without the prediction (as before), never dropped.
 """
 from __future__ import annotations
 
@@ -16,11 +22,15 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped
-from sensor_msgs.msg import CameraInfo, Image
+from sensor_msgs.msg import CameraInfo, Image, Imu
 
 from ibvs_perception.core.window import PARAMETER_SPECS, WindowDetector, WindowDetectorConfig
 from ibvs_perception.frozen_guard import FrozenCameraGuard
-from ibvs_perception.messages import camera_from_info, mono8_from_image, polygon_from_vectors
+from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
+                                      polygon_from_vectors, stamp_to_s)
+from ibvs_control.core.config import ConfigError, load_vehicle
+from ibvs_control.core.timing import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
+                                      AttitudeBufferConfig)
 from ibvs_control.node_common import IMAGE_QOS
 from ibvs_control.param_descriptors import dataclass_defaults, declare, declare_all
 from ibvs_control.spin import spin_guarded
@@ -32,6 +42,8 @@ DEBUG_COLOUR = (0, 255, 0)
 NODE_SPECS = {
     'frame_id': ('frame of the published bearings (the front camera optical frame)',),
     'publish_debug_image': ('publish window/debug_image (bgr8, the detection drawn)',),
+    'vehicle_file': ("vehicle YAML (the front camera's mount R_BC, for the gyro prediction); "
+                     "'' = the installed vehicle.yaml",),
 }
 
 
@@ -46,6 +58,16 @@ class WindowDetectorNode(Node):
                                 NODE_SPECS['frame_id'])
         self.publish_debug = bool(declare(self, 'publish_debug_image', False,
                                           NODE_SPECS['publish_debug_image']))
+        vehicle_file = declare(self, 'vehicle_file', '', NODE_SPECS['vehicle_file'])
+        buffer_values = declare_all(self, dataclass_defaults(AttitudeBufferConfig),
+                                    ATTITUDE_BUFFER_SPECS, prefix='imu_')
+        try:
+            self.R_BC = load_vehicle(vehicle_file or None).cameras['front'].R_BC
+        except (ConfigError, KeyError) as exc:
+            self.get_logger().fatal(f'window_detector: cannot load the camera mount: {exc}')
+            raise
+        self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
+        self.R_IC_prev: np.ndarray | None = None    # camera attitude at the previous image
         self.detector = WindowDetector(WindowDetectorConfig(**values))
         self.frozen = FrozenCameraGuard(self, 'front', 'window_detector')
         self.camera_info: CameraInfo | None = None
@@ -53,6 +75,8 @@ class WindowDetectorNode(Node):
         self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)
         self.pub_debug = self.create_publisher(Image, 'window/debug_image', 1) \
             if self.publish_debug else None
+        # IMU first: at one wake-up rclpy takes it before an image
+        self.create_subscription(Imu, 'imu/data', self.on_imu, qos_profile_sensor_data)
         self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
         self.create_subscription(Image, 'front_camera/image_raw', self.on_image,
@@ -61,6 +85,20 @@ class WindowDetectorNode(Node):
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg
 
+    def on_imu(self, msg: Imu) -> None:
+        try:
+            self.attitudes.add(*attitude_from_imu(msg))
+        except ValueError as exc:
+            self.log.error(f'window_detector: IMU message dropped: {exc}', THROTTLE_S)
+
+    def camera_rotation(self, stamp_s: float) -> np.ndarray | None:
+        """Camera rotation since the previous image (WindowDetector.process), or None."""
+        R_IB = self.attitudes.attitude_at(stamp_s)
+        R_IC = None if R_IB is None else R_IB @ self.R_BC
+        rotation = None if R_IC is None or self.R_IC_prev is None else R_IC.T @ self.R_IC_prev
+        self.R_IC_prev = R_IC
+        return rotation
+
     def on_image(self, msg: Image) -> None:
         corners = normals = gray = detection = None
         try:
@@ -68,7 +106,8 @@ class WindowDetectorNode(Node):
             if self.frozen.drop(gray, msg.header.stamp):
                 return
             camera = camera_from_info(self.camera_info, msg)
-            detection = self.detector.process(gray, camera).detection
+            rotation = self.camera_rotation(stamp_to_s(msg.header.stamp))
+            detection = self.detector.process(gray, camera, rotation).detection
             if detection is not None:
                 corners, normals = detection.bearings_C, detection.edge_normals_C
         except ValueError as exc:

@@ -180,19 +180,33 @@ class WindowDetector:
     def __init__(self, config: WindowDetectorConfig) -> None:
         self.config = config
         self._last_px: np.ndarray | None = None
+        self._last_bearings: np.ndarray | None = None
         self._last_outer_u: np.ndarray | None = None
         self._frames_since_seen = 0
 
     def reset(self) -> None:
         """Forget the tracked window."""
         self._last_px = None
+        self._last_bearings = None
         self._last_outer_u = None
         self._frames_since_seen = 0
 
     # --- public ---------------------------------------------------------------------------
 
-    def process(self, gray: np.ndarray, camera: CameraModel) -> WindowResult:
-        """Detect the window in a grey image (uint8, camera.height x camera.width)."""
+    def process(self, gray: np.ndarray, camera: CameraModel,
+                rotation_C: np.ndarray | None = None) -> WindowResult:
+        """Detect the window in a grey image (uint8, camera.height x camera.width).
+
+        ``rotation_C``: the camera's rotation since the previous image, as the matrix M that
+        maps a fixed direction's bearing in the previous optical frame to the current one,
+        ``b_now = M b_prev`` (from the IMU: ``M = R_IC(now)^T R_IC(prev)``,
+        ``R_IC = R_IB R_BC``). The tracked window (the outline the fast path starts from and
+        the corners the jump gate compares with) is moved by it first: exact for a pure
+        rotation, so the search and the ``max_corner_jump_px`` gate are left with the motion
+        that translation causes. None: no prediction (the window is assumed still).
+        """
+        if rotation_C is not None and self._last_bearings is not None:
+            self._predict(camera, np.asarray(rotation_C, dtype=float))
         if self._last_outer_u is not None:
             # fast path: refine the tracked window from its last outline, no contour search
             refined = self._refine(gray, camera, self._last_outer_u)
@@ -269,8 +283,26 @@ class WindowDetector:
                 self._last_outer_u = None
                 return WindowResult(WindowStatus.JUMP)
         self._last_px, self._last_outer_u = best.corners_px, outer_u
+        self._last_bearings = best.bearings_C
         self._frames_since_seen = 0
         return WindowResult(WindowStatus.DETECTED, best)
+
+    def _predict(self, camera: CameraModel, M: np.ndarray) -> None:
+        """Move the tracked corners and outline by the camera rotation M (see process)."""
+        b = self._last_bearings @ M.T
+        uv, valid = camera.bearings_to_pixels(b)
+        if not np.all(valid):                    # rotated out of view: search the image
+            self.reset()
+            return
+        self._last_bearings, self._last_px = b, uv
+        if self._last_outer_u is not None:
+            K = camera.K
+            rays = np.column_stack([(self._last_outer_u - K[:2, 2]) / np.diag(K)[:2],
+                                    np.ones(N_CORNERS)]) @ M.T
+            if np.all(rays[:, 2] > 0.0):
+                self._last_outer_u = rays[:, :2] / rays[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+            else:
+                self._last_outer_u = None
 
     def _outer_quad_u(self, contour: np.ndarray, camera: CameraModel,
                       scale: float) -> np.ndarray | None:
