@@ -182,6 +182,7 @@ class WindowDetector:
         self._last_px: np.ndarray | None = None
         self._last_bearings: np.ndarray | None = None
         self._last_outer_u: np.ndarray | None = None
+        self._rotation_since = np.eye(3)      # camera rotation not yet applied to the track
         self._frames_since_seen = 0
 
     def reset(self) -> None:
@@ -189,6 +190,7 @@ class WindowDetector:
         self._last_px = None
         self._last_bearings = None
         self._last_outer_u = None
+        self._rotation_since = np.eye(3)
         self._frames_since_seen = 0
 
     # --- public ---------------------------------------------------------------------------
@@ -284,16 +286,30 @@ class WindowDetector:
                 return WindowResult(WindowStatus.JUMP)
         self._last_px, self._last_outer_u = best.corners_px, outer_u
         self._last_bearings = best.bearings_C
+        self._rotation_since = np.eye(3)
         self._frames_since_seen = 0
         return WindowResult(WindowStatus.DETECTED, best)
 
     def _predict(self, camera: CameraModel, M: np.ndarray) -> None:
-        """Move the tracked corners and outline by the camera rotation M (see process)."""
+        """Move the tracked corners and outline by the camera rotation M (see process).
+
+        Only when the rotation moves a corner by more than half the first-pass search range
+        (``search_half_width_px``): below that the search finds the edges from the unmoved
+        outline, and the result, whose sub-pixel noise depends on where the search starts,
+        stays what it was without the IMU (a replayed bag then reproduces it whatever the
+        order in which an IMU sample and the image of the same stamp arrived).
+        """
+        M = M @ self._rotation_since             # with the rotations not applied yet
         b = self._last_bearings @ M.T
         uv, valid = camera.bearings_to_pixels(b)
         if not np.all(valid):                    # rotated out of view: search the image
             self.reset()
             return
+        if np.max(np.linalg.norm(uv - self._last_px, axis=1)) \
+                <= 0.5 * self.config.search_half_width_px:
+            self._rotation_since = M             # kept for when it adds up
+            return
+        self._rotation_since = np.eye(3)
         self._last_bearings, self._last_px = b, uv
         if self._last_outer_u is not None:
             K = camera.K
