@@ -202,6 +202,18 @@ def test_dds_profile_is_added_unless_the_user_chose_one():
         graph.FASTDDS_PROFILE_ENV: path}
 
 
+def test_an_image_publisher_started_alone_takes_the_profile_itself(monkeypatch):
+    """bag_player's main() calls use_dds_profile_here() before rclpy.init (plain ros2 run)."""
+    monkeypatch.delenv(graph.FASTDDS_PROFILE_ENV, raising=False)
+    monkeypatch.delenv(graph.RMW_ENV, raising=False)
+    set_here = graph.use_dds_profile_here()
+    assert os.environ[graph.FASTDDS_PROFILE_ENV] == set_here[graph.FASTDDS_PROFILE_ENV]
+    assert set_here[graph.FASTDDS_PROFILE_ENV].endswith('fastdds.xml')
+    monkeypatch.setenv(graph.FASTDDS_PROFILE_ENV, '/mine.xml')     # the user's choice stays
+    assert graph.use_dds_profile_here() == {} and os.environ[graph.FASTDDS_PROFILE_ENV] == \
+        '/mine.xml'
+
+
 def test_free_running_option_changes_only_the_sim():
     plain = graph.sim_graph(graph.GraphOptions(params_file=PARAMS))
     free = graph.sim_graph(graph.GraphOptions(params_file=PARAMS, real_time_factor=0.25))

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import time
 
 from builtin_interfaces.msg import Time
-from ibvs_bringup import bag
+from ibvs_bringup import bag, graph
 from ibvs_bringup.recorder_node import msg_class
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -120,6 +120,8 @@ def _qos(topic: str) -> QoSProfile:
 
 def main(args=None) -> None:
     """Play the bag once, then keep the node alive until Ctrl-C / SIGTERM."""
+    # the images' shared-memory segment is the player's: lossless under a plain `ros2 run` too
+    graph.use_dds_profile_here()
     rclpy.init(args=args)
     node = None
     try:

@@ -195,6 +195,19 @@ def dds_env_overrides(environ=None) -> dict:
                                               'config', DDS_PROFILE_FILE_NAME)}
 
 
+def use_dds_profile_here() -> dict:
+    """Give this process the project's Fast DDS profile unless one is set; return what was set.
+
+    For an image publisher started alone (``ros2 run ibvs_bringup bag_player``, no runner or
+    launch file to set the environment): Fast DDS reads the profile when the process's first
+    participant is created, so call this before ``rclpy.init``. The shared-memory segment that
+    matters is the publisher's own: it holds the samples it sends (config/fastdds.xml).
+    """
+    env = dds_env_overrides()
+    os.environ.update(env)
+    return env
+
+
 def sim_mavlink_urls(port: int) -> tuple[str, str]:
     """Return (sim URL, bridge URL) of the lockstep MAVLink link on 127.0.0.1:port."""
     if not 0 < int(port) < 65536:
