@@ -80,7 +80,8 @@ integration: install
 	$(PY) -m pytest -q tests/integration
 
 test: lint install
-	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=20 tests
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=20 tests \
+		$(addsuffix /test,$(PKG_DIRS))
 	$(MAKE) unit-cv46
 
 bench: install

@@ -38,6 +38,7 @@ def test_paper_initial_condition():
     assert np.allclose(q[-1], [-1.0, 0.0, 0.0], atol=0.15)
 
 
+@pytest.mark.slow                 # ~36 s: 50 closed loops at feature level
 def test_fifty_random_initial_conditions():
     rng = np.random.default_rng(2026)
     box = WORLD.random_box
