@@ -635,7 +635,10 @@ def test_px4_engages_arms_only_on_request_tracks_steps_learns_hover_then_fails_s
         assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
         arms = [c for c in f.commands if c[1] == 400 and c[2][0] == 1.0]
         assert len(arms) == 1 and arms[0][0] >= t_req
-        assert f.spin(10.0, until=lambda: f.truth.z < -1.7), f'z {f.truth.z}'
+        climbed = f.spin(10.0, until=lambda: f.truth.z < -1.7)
+        if not climbed:
+            f.skip_if_stalled(t_req)
+        assert climbed, (f'z {f.truth.z}', f.state(), f.stalls)
         f.spin(1.0)
         y0 = f.attitude()[2]
         t_steps = time.monotonic()
@@ -657,7 +660,11 @@ def test_px4_engages_arms_only_on_request_tracks_steps_learns_hover_then_fails_s
               f'{est:.4f} (std {std:.4f}, {n_est} samples; SIH {PX4_HOVER_SIH:.4f}, seed '
               f'MPC_THR_HOVER {f.bridge.seed.value:.3f}); SET_ATTITUDE_TARGET at '
               f'{sp_rate:.1f} Hz with the forces at {force_rate:.1f} Hz')
-        assert force_rate * 0.97 <= sp_rate <= force_rate * 1.1
+        if f.state() != 'engaged' or not force_rate * 0.97 <= sp_rate:
+            # the xfail's signature (setpoints stopped mid-flight): a stall of this harness
+            # >= hold_last_s rightly hands the vehicle back; say so (SKIPPED names the stall)
+            f.skip_if_stalled(t_req)
+        assert force_rate * 0.97 <= sp_rate <= force_rate * 1.1, (sp_rate, force_rate, f.stalls)
         assert abs(errors['roll']) < np.radians(1.5) and abs(errors['pitch']) < np.radians(1.5)
         assert abs(errors['yaw']) < np.radians(3.0)
         assert est == pytest.approx(PX4_HOVER_SIH, abs=0.015) and n_est > 300
