@@ -49,13 +49,15 @@ venv: $(VENV)/.deps
 install: $(VENV)/.workspace
 
 # The same packages (editable) on OpenCV 4.6 / numpy 1.26, every other pin from requirements.txt.
-$(VENV46)/.deps: requirements.txt requirements-ros.txt requirements-cv46.txt $(PKG_DATA) Makefile \
-		scripts/ament_layout.py
+$(VENV46)/.deps: requirements.txt requirements-ros.txt requirements-cv46.txt
 	$(PYTHON) -m venv $(VENV_FLAGS) $(VENV46)
 	$(PY46) -m pip install --quiet --upgrade pip setuptools wheel
 	grep -v -E '^(numpy|opencv-python-headless)==' requirements.txt > $(VENV46)/requirements-shared.txt
 	$(PY46) -m pip install --quiet -r $(VENV46)/requirements-shared.txt -r requirements-cv46.txt \
 		$(ROS_REQS)
+	touch $@
+
+$(VENV46)/.workspace: $(VENV46)/.deps $(PKG_DATA) Makefile scripts/ament_layout.py
 	$(PY46) -m pip install --quiet --no-deps --no-build-isolation $(addprefix -e ,$(PKG_DIRS))
 	$(PY46) scripts/ament_layout.py --prefix $(VENV46) $(PKG_DIRS)
 	touch $@
@@ -72,7 +74,7 @@ unit: install
 	$(PY) -m pytest -q tests/unit
 
 # Unit tests on OpenCV 4.6 / numpy 1.26, with .venv-cv46 as the only install prefix.
-unit-cv46: $(VENV46)/.deps
+unit-cv46: $(VENV46)/.workspace
 	$(PY46) -c 'import cv2, numpy; print("OpenCV", cv2.__version__, "numpy", numpy.__version__)'
 	AMENT_PREFIX_PATH=$(CURDIR)/$(VENV46) $(PY46) -m pytest -q -n $(PYTEST_WORKERS) tests/unit
 

@@ -9,7 +9,6 @@ from pathlib import Path
 import time
 
 import pytest
-import rclpy
 import yaml
 
 from ibvs_perception.optical_flow_node import OpticalFlowNode
@@ -29,14 +28,6 @@ NODES = [('window_detector', WindowDetectorNode), ('pad_detector', PadDetectorNo
          ('front_optical_flow', OpticalFlowNode), ('down_optical_flow', OpticalFlowNode),
          ('mode_supervisor', ModeSupervisorNode), ('force_controller', ForceControllerNode),
          ('sim', SimNode)]
-
-
-@pytest.fixture()
-def context():
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 @pytest.mark.parametrize('section, cls', NODES, ids=[n for n, _ in NODES])

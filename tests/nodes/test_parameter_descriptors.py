@@ -6,7 +6,6 @@ node reads a parameter after start). A value out of range or of the wrong type s
 with an error naming the parameter; a runtime set_parameters is refused.
 """
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -18,6 +17,7 @@ from rclpy.parameter import Parameter
 
 from ibvs_bringup.bag_player_node import PARAMETER_SPECS as PLAYER_SPECS
 from ibvs_bringup.recorder_node import RecorderNode
+from ibvs_bringup.run_scenario import free_udp_port
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
@@ -29,12 +29,6 @@ from ibvs_sim.sim_node import SimNode
 
 TAG = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
 ROS_OWN = {'use_sim_time', 'start_type_description_service'}   # declared by rclpy itself
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
 
 
 def bridge_overrides():
@@ -53,14 +47,6 @@ NODES = {  # name -> (class, overrides factory)
     'sim': (SimNode, lambda: [Parameter('mavlink_url',
                                         value=f'udpin:127.0.0.1:{free_udp_port()}')]),
 }
-
-
-@pytest.fixture()
-def context():
-    ctx = rclpy.context.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
 
 
 def make(name, context, extra=()):

@@ -181,6 +181,31 @@ def test_window_detector_node_tracks_through_a_fast_yaw_with_the_imu(ctx, render
         [len(m.polygon.points) for m in got['window/corners']]
 
 
+def test_window_detector_node_refuses_a_nan_imu_sample_and_keeps_detecting(ctx, renderers):
+    """A NaN attitude is dropped (throttled error), not buffered; the next image is answered."""
+    context, executor, nodes = ctx
+    node = WindowDetectorNode(f'window_detector_nan_{TAG}', context=context)
+    nodes.append(node)
+    helper, pubs, got = harness(context, nodes,
+                                {'front_camera/image_raw': Image,
+                                 'front_camera/camera_info': CameraInfo, 'imu/data': Imu},
+                                {'window/corners': PolygonStamped})
+    for n in (node, helper):
+        executor.add_node(n)
+    pubs['front_camera/camera_info'].publish(info_msg('front'))
+    spin_until(executor, lambda: node.camera_info is not None)
+    pubs['imu/data'].publish(imu_msg(1.0, np.eye(3)))
+    assert spin_until(executor, lambda: len(node.attitudes) == 1)
+    bad = imu_msg(1.01, np.eye(3))
+    bad.orientation.w = float('nan')
+    pubs['imu/data'].publish(bad)
+    pubs['front_camera/image_raw'].publish(
+        image_msg(renderers['front'].render(np.eye(3), START), 1.02))
+    assert spin_until(executor, lambda: len(got['window/corners']) >= 1)
+    assert len(node.attitudes) == 1                          # the NaN sample was not kept
+    assert len(got['window/corners'][0].polygon.points) == 4
+
+
 def test_pad_detector_node(ctx, renderers):
     context, executor, nodes = ctx
     node = PadDetectorNode(f'pad_detector_{TAG}', context=context)
