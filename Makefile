@@ -6,7 +6,7 @@ SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-PKGS := ibvs_control ibvs_perception ibvs_sim ibvs_bringup
+PKGS := ibvs_common ibvs_control ibvs_perception ibvs_sim ibvs_bringup
 PKG_DIRS := $(addprefix ros2_ws/src/,$(PKGS))
 # A sourced ROS 2 Jazzy (/opt/ros/jazzy) provides rclpy and the messages: use it, skip the wheels.
 ifeq ($(ROS_DISTRO),jazzy)

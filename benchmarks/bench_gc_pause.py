@@ -2,7 +2,7 @@
 
 Python runs a full (generation 2) collection now and then, in the middle of whatever callback
 allocates at that moment; it scans every tracked object. A node of this graph holds tens of
-thousands of them after start-up (modules, parameters, buffers). ``ibvs_control.spin`` calls
+thousands of them after start-up (modules, parameters, buffers). ``ibvs_common.spin`` calls
 ``gc.freeze()`` before spinning, which takes those out of every later collection.
 
 Builds, in one process, the nodes of the flight path that run Python callbacks per frame

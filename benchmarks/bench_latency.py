@@ -48,7 +48,7 @@ CLK_TCK = os.sysconf('SC_CLK_TCK')
 
 def sway(r: float) -> tuple[np.ndarray, np.ndarray]:
     """(R_IB, Omega_B) of the replayed sway at replay time r (s): ZYX roll, pitch; yaw 0."""
-    from ibvs_control.core import frames
+    from ibvs_common.core import frames
     roll, roll_dot = 0.03 * np.sin(np.pi * r), 0.03 * np.pi * np.cos(np.pi * r)
     pitch, pitch_dot = 0.02 * np.sin(2.3 * r), 0.02 * 2.3 * np.cos(2.3 * r)
     # body rates of R = R_y(pitch) R_x(roll) (yaw fixed): [roll', cos(roll) pitch',
@@ -60,7 +60,8 @@ def sway(r: float) -> tuple[np.ndarray, np.ndarray]:
 def approach_track(n_frames: int) -> tuple[np.ndarray, np.ndarray]:
     """(replay times (s), xi_I (N, 3)) of the replayed frames, 50 Hz, from the reference run."""
     from ibvs_bringup.run_scenario import MAX_SIM_TIME_S
-    from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+    from ibvs_common.core.config import load_pad_layout, load_vehicle
+    from ibvs_sim.core.world import load_world
     from ibvs_control.core.controller import ControllerConfig
     from ibvs_control.core.supervisor import SupervisorConfig
     from ibvs_sim.core import feature_sim
@@ -90,7 +91,8 @@ def render(r: np.ndarray, xi: np.ndarray) -> dict:
 
     Each frame gets the sim's read noise (seed 0), as a real sensor's frames do.
     """
-    from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+    from ibvs_common.core.config import load_pad_layout, load_vehicle
+    from ibvs_sim.core.world import load_world
     from ibvs_sim.core.render import SceneRenderer
     from ibvs_sim.core.sensor_noise import ReadNoise
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
@@ -168,7 +170,7 @@ class Replayer:
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import CameraInfo, Image, Imu
         from std_srvs.srv import Trigger
-        from ibvs_control.core.config import load_vehicle
+        from ibvs_common.core.config import load_vehicle
         self.rclpy = rclpy
         self.image_msg, self.info_msg = image_msg, camera_info_msg
         self.node = rclpy.create_node('bench_latency_replayer')

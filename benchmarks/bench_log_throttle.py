@@ -5,7 +5,7 @@ window for the front flow) pays for each call, even when the throttle drops it. 
 median, p95 and max per call (microseconds) of:
 
 - rclpy: ``node.get_logger().warning(text, throttle_duration_sec=2.0)``;
-- ThrottledLog: ``ibvs_control.throttled_log.ThrottledLog(node.get_logger()).warning(text,
+- ThrottledLog: ``ibvs_common.throttled_log.ThrottledLog(node.get_logger()).warning(text,
   2.0)``;
 
 with the text formatted per call as the nodes do, and what one such call per frame costs at
@@ -19,7 +19,7 @@ import time
 import rclpy
 from rclpy.node import Node
 
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.throttled_log import ThrottledLog
 
 FRAME_HZ = 50.0
 

@@ -12,8 +12,9 @@ import time
 import cv2
 import numpy as np
 
-from ibvs_control.core import frames
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_common.core import frames
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator
 from ibvs_perception.core.pad import PadDetector, PadDetectorConfig
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig

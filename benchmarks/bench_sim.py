@@ -9,8 +9,9 @@ import time
 
 import numpy as np
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
-from ibvs_control.core.frames import rot_from_euler_zyx
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.frames import rot_from_euler_zyx
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.sim_core import SimConfig, Simulation
 

@@ -42,8 +42,8 @@ import yaml
 os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
 
-from ibvs_control.core.config import load_vehicle  # noqa: E402
-from ibvs_control.core.frames import GRAVITY  # noqa: E402
+from ibvs_common.core.config import load_vehicle  # noqa: E402
+from ibvs_common.core.frames import GRAVITY  # noqa: E402
 from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge  # noqa: E402
 from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
 from ibvs_control.core.mavlink_sequencer import px4_main_mode  # noqa: E402

@@ -323,7 +323,7 @@ def test_replaying_the_bag_reproduces_the_detections(reference, tmp_path):
     import rclpy
     from geometry_msgs.msg import PolygonStamped
     from ibvs_bringup.runner import ProcessRunner
-    from ibvs_control.core.config import load_vehicle
+    from ibvs_common.core.config import load_vehicle
     from rclpy.qos import QoSProfile, ReliabilityPolicy
 
     root, _ = reference

@@ -23,14 +23,15 @@ from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String, UInt8
 from std_srvs.srv import Trigger
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
 from ibvs_control.core.control_laws import GainError
-from ibvs_control.core.frames import (
+from ibvs_common.core.frames import (
     bearings_I_to_C, GRAVITY, quat_ned_frd_to_enu_flu, vec_I_to_map)
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
-from ibvs_control.node_common import (
+from ibvs_common.node_common import (
     COMMAND_QOS, mode_from_status, MODE_QOS, SENSOR_QOS, supervisor_status_msg)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'unit'))

@@ -1,6 +1,6 @@
 """Parameters are declared with descriptors, read-only, and validated at start.
 
-Every flight-path node declares its parameters through ibvs_control.param_descriptors: a
+Every flight-path node declares its parameters through ibvs_common.param_descriptors: a
 description (unit, clock), a range for every integer and double (step 0) and read_only (no
 node reads a parameter after start). A value out of range or of the wrong type stops the node
 with an error naming the parameter; a runtime set_parameters is refused.
@@ -21,7 +21,7 @@ from ibvs_bringup.run_scenario import free_udp_port
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
-from ibvs_control.param_descriptors import declare, declare_all, descriptor
+from ibvs_common.param_descriptors import declare, declare_all, descriptor
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
 from ibvs_perception.window_detector_node import WindowDetectorNode

@@ -19,8 +19,9 @@ from geometry_msgs.msg import Point32, PolygonStamped, Vector3Stamped
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32, String
 
-from ibvs_control.core import frames
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_common.core import frames
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
 from ibvs_control.core.frame_io import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode

@@ -16,8 +16,9 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
-from ibvs_control.core.config import load_vehicle, load_world
-from ibvs_control.core.frames import vec_I_to_map
+from ibvs_common.core.config import load_vehicle
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.frames import vec_I_to_map
 from ibvs_sim.sim_node import SimNode
 
 CAMERAS = ('front', 'down')

@@ -8,7 +8,7 @@ import pytest
 from ibvs_bringup import ros2run
 
 ROOT = Path(__file__).resolve().parents[2]
-PACKAGES = ('ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup')
+PACKAGES = ('ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup')
 
 
 def load_script():

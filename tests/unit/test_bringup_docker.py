@@ -9,7 +9,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 DOCKER = ROOT / 'docker'
 SRC = ROOT / 'ros2_ws' / 'src'
-PACKAGES = ('ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup')
+PACKAGES = ('ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup')
 # Keys checked against ros/rosdistro rosdep/python.yaml (2026-08): present for Ubuntu ...
 ROSDEP_PYTHON_KEYS = {'python3-numpy', 'python3-opencv', 'python3-yaml', 'python3-matplotlib',
                       'python3-pytest', 'python3-pymavlink-pip', 'python3-rosbags-pip'}
@@ -60,7 +60,7 @@ def test_dockerfile_skips_and_installs_every_key_rosdep_lacks():
 def test_dockerfile_uses_the_systems_opencv():
     """rosdep's python3-opencv (OpenCV 4.6 on Ubuntu 24.04) is what the image runs on.
 
-    The code supports it through ibvs_control/core/cv_compat.py; `make unit-cv46` tests it.
+    The code supports it through ibvs_common/core/cv_compat.py; `make unit-cv46` tests it.
     """
     run = ' '.join(a for op, a in _instructions() if op == 'RUN')
     skipped = set(re.search(r'--skip-keys "([^"]+)"', run).group(1).split())

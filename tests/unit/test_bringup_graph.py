@@ -250,7 +250,7 @@ def test_the_venv_prefix_is_found_without_ament_prefix_path(tmp_path, monkeypatc
 def test_onboard_window_width_agrees_with_the_sim_world():
     """The controller and supervisor know r_w from params.yaml, never from the sim's world."""
     import yaml
-    from ibvs_control.core.config import load_world
+    from ibvs_sim.core.world import load_world
     params = yaml.safe_load(Path(PARAMS).read_text())
     for node in ('mode_supervisor', 'force_controller'):
         section = params[node]['ros__parameters']

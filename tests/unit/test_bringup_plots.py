@@ -1,6 +1,7 @@
 """Plots and ground-truth features from a synthetic trajectory (no ROS)."""
 from ibvs_bringup import plots, report
-from ibvs_control.core.config import load_pad_layout, load_world
+from ibvs_common.core.config import load_pad_layout
+from ibvs_sim.core.world import load_world
 import numpy as np
 import pytest
 

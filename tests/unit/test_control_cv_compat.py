@@ -2,8 +2,8 @@
 import cv2
 import numpy as np
 
-from ibvs_control.core.cv_compat import (aruco_marker_image, aruco_parameters,
-                                         ArucoMarkerDetector, has_aruco_detector)
+from ibvs_common.core.cv_compat import (aruco_marker_image, aruco_parameters,
+                                        ArucoMarkerDetector, has_aruco_detector)
 
 SIDE_PX = 120
 MARGIN_PX = 40

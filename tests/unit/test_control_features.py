@@ -2,9 +2,10 @@
 import numpy as np
 import pytest
 
-from ibvs_control.core import features as ft
-from ibvs_control.core.config import load_pad_layout, load_world
-from ibvs_control.core.frames import (
+from ibvs_common.core import features as ft
+from ibvs_common.core.config import load_pad_layout
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.frames import (
     bearings_C_to_I, bearings_I_to_C, proj_orth, R_BC_FRONT_DEFAULT, rot_from_euler_zyx)
 
 WORLD = load_world()

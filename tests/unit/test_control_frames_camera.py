@@ -3,8 +3,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ibvs_control.core import frames as fr
-from ibvs_control.core.camera import CameraModel, CameraModelError
+from ibvs_common.core import frames as fr
+from ibvs_common.core.camera import CameraModel, CameraModelError
 
 RNG = np.random.default_rng(7)
 

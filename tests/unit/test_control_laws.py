@@ -5,7 +5,7 @@ import pytest
 from ibvs_control.core import control_laws as cl
 from ibvs_control.core.attitude import (
     attitude_from_force, limit_tilt, shutdown_thrust_scale, yaw_facing)
-from ibvs_control.core.frames import e3, euler_zyx_from_rot, GRAVITY, rot_x, rot_z
+from ibvs_common.core.frames import e3, euler_zyx_from_rot, GRAVITY, rot_x, rot_z
 
 M = 1.676
 ETA_W = np.array([1.0, 0.0, 0.0])

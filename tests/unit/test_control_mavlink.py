@@ -27,7 +27,7 @@ import pytest
 os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
 
-from ibvs_control.core.frames import GRAVITY, quat_multiply  # noqa: E402
+from ibvs_common.core.frames import GRAVITY, quat_multiply  # noqa: E402
 from ibvs_control.core.mavlink_bridge import (  # noqa: E402
     BridgeConfig, MavlinkBridge, SetpointSource)
 from ibvs_control.core.mavlink_hover import EstimatorConfig  # noqa: E402

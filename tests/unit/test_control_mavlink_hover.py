@@ -7,7 +7,7 @@ accelerometer noise, sampled at 100 Hz. The estimator must recover theta_true fr
 import numpy as np
 import pytest
 
-from ibvs_control.core.frames import GRAVITY
+from ibvs_common.core.frames import GRAVITY
 from ibvs_control.core.mavlink_hover import (
     EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
 

@@ -3,7 +3,7 @@ from pathlib import Path
 
 import pytest
 
-from ibvs_control.core.frames import GRAVITY
+from ibvs_common.core.frames import GRAVITY
 from ibvs_control.core.mavlink_safety import POLICY, SafetyConfig, SafetyMonitor
 
 DOC = Path(__file__).resolve().parents[2] / 'docs' / 'mavlink.md'

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from ibvs_control.core.frames import GRAVITY
+from ibvs_common.core.frames import GRAVITY
 from ibvs_control.core.mavlink_setpoints import (
     HeadingPairing, RAMP_STALL_S, SetpointShaper, SetpointSource, ShaperConfig, ShutdownRamp)
 from ibvs_control.core.modes import Mode

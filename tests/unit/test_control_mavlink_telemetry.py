@@ -15,7 +15,7 @@ import pytest
 os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
 
-from ibvs_control.core.frames import GRAVITY  # noqa: E402
+from ibvs_common.core.frames import GRAVITY  # noqa: E402
 from ibvs_control.core.mavlink_telemetry import (  # noqa: E402
     decode_event, load_px4_events, StreamRequests, streams_for, Telemetry)
 from ibvs_control.core.time_sync import TimeSync  # noqa: E402

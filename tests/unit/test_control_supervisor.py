@@ -1,7 +1,8 @@
 """Mode supervisor as a pure state machine: triggers, once-only switch, staleness, abort."""
 import numpy as np
 
-from ibvs_control.core.config import load_pad_layout, load_world
+from ibvs_common.core.config import load_pad_layout
+from ibvs_sim.core.world import load_world
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 

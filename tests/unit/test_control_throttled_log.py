@@ -1,5 +1,5 @@
 """ThrottledLog: one message per call site per period, decided before rclpy is called."""
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.throttled_log import ThrottledLog
 
 
 class FakeLogger:

@@ -2,7 +2,7 @@
 import cv2
 import numpy as np
 
-from ibvs_control.core.timing import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
 from ibvs_perception.core.derotation import GyroDerotation
 
 

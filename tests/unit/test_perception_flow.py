@@ -6,9 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from ibvs_control.core import frames
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
-from ibvs_control.core.timing import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_common.core import frames
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
 from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, inside_spherical_polygon,
                                        solve_translational_flow, wall_normal_from_corners)
 from ibvs_perception.core.image import ImageFormatError, image_to_mono8

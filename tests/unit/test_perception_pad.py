@@ -6,9 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from ibvs_control.core import frames
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
-from ibvs_control.core.cv_compat import aruco_marker_image
+from ibvs_common.core import frames
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.cv_compat import aruco_marker_image
 from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
                                       aruco_dictionary, layout_errors, marker_centre_normalized)
 from ibvs_sim.core.render import SceneRenderer

@@ -7,9 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from ibvs_control.core import features, frames
-from ibvs_control.core.camera import CameraModel
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_common.core import features, frames
+from ibvs_common.core.camera import CameraModel
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
 from ibvs_perception.core.window import (WindowDetector, WindowDetectorConfig, WindowStatus,
                                          order_corners_clockwise)
 from ibvs_sim.core.render import SceneRenderer

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
-from ibvs_control.core.frames import GRAVITY, rot_from_euler_zyx  # noqa: E402
+from ibvs_common.core.frames import GRAVITY, rot_from_euler_zyx  # noqa: E402
 from ibvs_sim.core.autopilot import (Autopilot, AutopilotConfig,  # noqa: E402
                                      VehicleStateView)
 from pymavlink import mavutil  # noqa: E402

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from ibvs_control.core.config import load_world
+from ibvs_sim.core.world import load_world
 from ibvs_sim.core.contacts import min_clearance, obstacle_clearance, cylinder_sdf
 from ibvs_sim.core.evaluation import evaluate_run
 

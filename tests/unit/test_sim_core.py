@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
-from ibvs_control.core.frames import GRAVITY
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.frames import GRAVITY
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.dynamics import WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, EventType, FirstFrameHold, GraphProducts,

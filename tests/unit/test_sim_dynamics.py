@@ -4,9 +4,9 @@ import math
 import numpy as np
 import pytest
 
-from ibvs_control.core.config import load_vehicle
-from ibvs_control.core.frames import (GRAVITY, euler_zyx_from_rot, quat_from_rot,
-                                      rot_from_euler_zyx)
+from ibvs_common.core.config import load_vehicle
+from ibvs_common.core.frames import (GRAVITY, euler_zyx_from_rot, quat_from_rot,
+                                     rot_from_euler_zyx)
 from ibvs_sim.core.dynamics import (AttitudeController, Mixer, PlantParams, QuadrotorPlant,
                                     State, Wind, WindConfig, hover_state)
 

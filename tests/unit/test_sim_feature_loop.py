@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
 from ibvs_control.core.control_laws import CrossingLaw
 from ibvs_control.core.controller import ControllerConfig
 from ibvs_control.core.modes import Mode

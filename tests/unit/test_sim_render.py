@@ -3,9 +3,10 @@ import cv2
 import numpy as np
 import pytest
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
-from ibvs_control.core.cv_compat import aruco_parameters, ArucoMarkerDetector
-from ibvs_control.core.frames import bearings_I_to_C, rot_from_euler_zyx
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.cv_compat import aruco_parameters, ArucoMarkerDetector
+from ibvs_common.core.frames import bearings_I_to_C, rot_from_euler_zyx
 from ibvs_sim.core.render import RenderError, SceneRenderer, TexturedPlane
 
 DOT_SIGMA_M = 0.008

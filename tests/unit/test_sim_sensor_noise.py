@@ -4,7 +4,8 @@ import time
 import numpy as np
 import pytest
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
 from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.sensor_noise import BANK_MARGIN_PX, ReadNoise

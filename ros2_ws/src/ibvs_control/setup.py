@@ -20,9 +20,9 @@ setup(
     maintainer='IBVS team',
     maintainer_email='ibvs-team@example.com',
     description=(
-        'IBVS core (frames, camera model, paper features and control laws, mode state '
-        'machine) and the control nodes: mode supervisor, outer-loop force controller, '
-        'MAVLink bridge.'
+        'IBVS control core (the paper\'s control laws, mode state machine, timing model, '
+        'MAVLink pieces) and the control nodes: mode supervisor, outer-loop force '
+        'controller, MAVLink bridge.'
     ),
     license='Apache-2.0',
     entry_points={

@@ -20,12 +20,12 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
-from ibvs_control.param_descriptors import declare
-from ibvs_control.spin import spin_guarded
+from ibvs_common.param_descriptors import declare
+from ibvs_common.spin import spin_guarded
 from rosgraph_msgs.msg import Clock
 
 INFO_SUFFIX = 'camera_info'
-PARAMETER_SPECS = {   # description with unit, range (ibvs_control.param_descriptors)
+PARAMETER_SPECS = {   # description with unit, range (ibvs_common.param_descriptors)
     'bag_path': ('rosbag2 folder to play; required',),
     'topics': ('relative topic names to play',),
     'rate': ('bag time / wall time (0: 1.0)', 0.0, None),

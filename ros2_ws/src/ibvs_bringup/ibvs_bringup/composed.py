@@ -56,7 +56,7 @@ def main(argv: list | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.utilities import remove_ros_args
-    from ibvs_control.spin import spin_guarded_nodes
+    from ibvs_common.spin import spin_guarded_nodes
     argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--mavlink-url', default=None, help="the autopilot's MAVLink URL")

@@ -13,7 +13,7 @@ import os
 import sys
 from typing import Sequence
 
-from ibvs_control.core import frames
+from ibvs_common.core import frames
 import numpy as np
 
 CONFIG_PACKAGE = 'ibvs_bringup'

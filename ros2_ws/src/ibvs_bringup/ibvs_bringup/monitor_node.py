@@ -5,7 +5,7 @@ It fills a ``report.RunLog`` ({I}, sim time) from the ground truth, modes (from
 not when the monitor heard it), events, force setpoint, flows and features, and carries the
 preflight ``GraphHealth`` checks (the supervisor starts by itself: graph option
 ``auto_start_at_s``). All frame conversions go
-through ``ibvs_control.core.frames``.
+through ``ibvs_common.core.frames``.
 """
 from __future__ import annotations
 
@@ -16,8 +16,8 @@ from geometry_msgs.msg import Vector3Stamped
 from ibvs_bringup.preflight import BEST_EFFORT, GraphHealth, LATCHED
 from ibvs_bringup.report import FEATURE_VECTORS, named_vector, RunLog
 from diagnostic_msgs.msg import DiagnosticArray
-from ibvs_control.core import frames
-from ibvs_control.node_common import COMMAND_QOS, mode_from_status, NS_PER_S
+from ibvs_common.core import frames
+from ibvs_common.node_common import COMMAND_QOS, mode_from_status, NS_PER_S
 from nav_msgs.msg import Odometry
 import numpy as np
 from rclpy.node import Node

@@ -19,10 +19,10 @@ from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from ibvs_control.param_descriptors import declare
-from ibvs_control.spin import spin_guarded
+from ibvs_common.param_descriptors import declare
+from ibvs_common.spin import spin_guarded
 
-PARAMETER_SPECS = {   # description with unit, range (ibvs_control.param_descriptors)
+PARAMETER_SPECS = {   # description with unit, range (ibvs_common.param_descriptors)
     'bag_path': ('new directory of the bag (must not exist); required',),
     'image_every': ('record every N-th message of the image_raw topics (0 or 1: every one)',
                     0, None),

@@ -14,8 +14,9 @@ import json
 import os
 
 from ibvs_bringup.plots import RunData, TimeSeries
-from ibvs_control.core import features
-from ibvs_control.core.config import PadLayout, WorldConfig
+from ibvs_common.core import features
+from ibvs_common.core.config import PadLayout
+from ibvs_sim.core.world import WorldConfig
 import numpy as np
 
 FEATURE_VECTORS = ('q_w_bar', 'q_t', 'q_w', 'phi_w', 'phi_t')

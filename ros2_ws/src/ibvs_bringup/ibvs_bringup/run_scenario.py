@@ -25,7 +25,8 @@ import time
 
 from ibvs_bringup import graph, plots, report
 from ibvs_bringup.runner import ProcessRunner, raise_on_sigterm, Terminated
-from ibvs_control.core.config import load_pad_layout, load_vehicle, load_world
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
 import numpy as np
 
 MAX_SIM_TIME_S = 60.0

@@ -32,23 +32,23 @@ from geometry_msgs.msg import PolygonStamped, QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 from std_msgs.msg import String
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle
+from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.control_laws import CrossingGains, GAIN_SPECS, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
 from ibvs_control.core.frame_io import (
     check_bearings, check_flow, feature_vector, heading_quat_enu_flu, PadPairing,
     step_controller)
-from ibvs_control.core.frames import MAP_FRAME, vec_I_to_map
+from ibvs_common.core.frames import MAP_FRAME, vec_I_to_map
 from ibvs_control.core.modes import Mode
-from ibvs_control.core.timing import (
-    ATTITUDE_BUFFER_SPECS, AttitudeBuffer, AttitudeBufferConfig, Frame, FrameAssembler,
-    InputKind, MODE_INPUTS)
-from ibvs_control.node_common import (
+from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
+                                              AttitudeBufferConfig)
+from ibvs_control.core.timing import Frame, FrameAssembler, InputKind, MODE_INPUTS
+from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
     parse_pad_groups, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
-from ibvs_control.param_descriptors import declare_all
-from ibvs_control.spin import spin_guarded
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.param_descriptors import declare_all
+from ibvs_common.spin import spin_guarded
+from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
 
@@ -82,7 +82,7 @@ PARAMETERS = {
     'window_width_m': 1.2,
     'pad_layout_file': '',
 }
-# description with unit, inclusive range (ibvs_control.param_descriptors)
+# description with unit, inclusive range (ibvs_common.param_descriptors)
 GAIN_PARAMETER_SPECS = {f'{prefix}.{name}': spec for prefix, specs in GAIN_SPECS.items()
                         for name, spec in specs.items()}
 PARAMETER_SPECS = {

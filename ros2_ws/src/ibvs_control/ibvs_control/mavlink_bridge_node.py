@@ -33,8 +33,8 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
-from ibvs_control.core.config import ConfigError, load_vehicle
-from ibvs_control.core.frames import vec_map_to_I
+from ibvs_common.core.config import ConfigError, load_vehicle
+from ibvs_common.core.frames import vec_map_to_I
 from ibvs_control.core.mavlink_bridge import BridgeConfig, BridgeStatus, MavlinkBridge
 from ibvs_control.core.mavlink_hover import EstimatorConfig
 from ibvs_control.core.mavlink_link import (
@@ -42,12 +42,12 @@ from ibvs_control.core.mavlink_link import (
 from ibvs_control.core.mavlink_sequencer import SequencerConfig
 from ibvs_control.core.mavlink_telemetry import ImuSample, load_px4_events
 from ibvs_control.core.time_sync import TimeSyncConfig
-from ibvs_control.node_common import (
+from ibvs_common.node_common import (
     COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
     stamp_to_ns, vector3)
-from ibvs_control.param_descriptors import declare_all
-from ibvs_control.spin import spin_guarded
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.param_descriptors import declare_all
+from ibvs_common.spin import spin_guarded
+from ibvs_common.throttled_log import ThrottledLog
 
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
 UNKNOWN_COVARIANCE = [-1.0] + [0.0] * 8     # sensor_msgs/Imu: element 0 = -1 "not provided"
@@ -109,7 +109,7 @@ PARAMETERS = {
     'linear_acceleration_covariance': DEFAULT_COVARIANCE,
 }
 # Spec of each parameter: description with unit (and clock: ROS = the node's clock, sim time
-# under use_sim_time; steady = monotonic), inclusive range (ibvs_control.param_descriptors).
+# under use_sim_time; steady = monotonic), inclusive range (ibvs_common.param_descriptors).
 PARAMETER_SPECS = {
     'url': ("MAVLink endpoint (pymavlink URL): PX4 'udpin:0.0.0.0:14540', serial "
             "'/dev/ttyUSB0,921600'",),

@@ -40,21 +40,21 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import String, UInt8
 from std_srvs.srv import Trigger
 
-from ibvs_control.core.config import load_pad_layout, load_vehicle
+from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
-from ibvs_control.core.frames import bearings_C_to_I
+from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.supervisor import (
     ModeSupervisor, PARAMETER_SPECS as CORE_SPECS, SupervisorConfig)
-from ibvs_control.core.timing import (
-    ATTITUDE_BUFFER_SPECS, AttitudeBuffer, AttitudeBufferConfig, CAMERA_OF, Frame,
-    FrameAssembler, InputKind, MODE_INPUTS)
-from ibvs_control.node_common import (
+from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
+                                              AttitudeBufferConfig)
+from ibvs_control.core.timing import CAMERA_OF, Frame, FrameAssembler, InputKind, MODE_INPUTS
+from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, parse_pad_groups,
     polygon_points, SENSOR_QOS, stamp_to_ns, supervisor_status_msg, vector3)
-from ibvs_control.param_descriptors import declare_all
-from ibvs_control.spin import spin_guarded
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.param_descriptors import declare_all
+from ibvs_common.spin import spin_guarded
+from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
 LANDMARKS_PER_GROUP = 4
@@ -72,7 +72,7 @@ PARAMETERS = {
     'window_width_m': 1.2,
     'pad_layout_file': '',
 }
-# description with unit, inclusive range (ibvs_control.param_descriptors)
+# description with unit, inclusive range (ibvs_common.param_descriptors)
 PARAMETER_SPECS = {
     'update_rate_hz': ('Hz (ROS clock timer): the staleness rules are applied this often '
                        'when inputs stop, > 0', 0.0, None),

@@ -13,8 +13,8 @@ from rclpy.node import Node
 
 from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_perception.messages import stamp_to_s
-from ibvs_control.param_descriptors import declare
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.param_descriptors import declare
+from ibvs_common.throttled_log import ThrottledLog
 
 PARAMETER = 'frozen_after_frames'
 DEFAULT_FROZEN_AFTER_FRAMES = 3

@@ -8,8 +8,8 @@ from __future__ import annotations
 import numpy as np
 
 from geometry_msgs.msg import Point32, PolygonStamped
-from ibvs_control.core.camera import CameraModel
-from ibvs_control.node_common import imu_sample, NS_PER_S
+from ibvs_common.core.camera import CameraModel
+from ibvs_common.node_common import imu_sample, NS_PER_S
 from sensor_msgs.msg import CameraInfo, Image, Imu
 
 from ibvs_perception.core.image import image_to_mono8
@@ -40,7 +40,7 @@ def camera_from_info(msg: CameraInfo | None, image: Image) -> CameraModel:
 def attitude_from_imu(msg: Imu) -> tuple[float, np.ndarray, np.ndarray]:
     """(stamp s, R_IB, Omega_B FRD) of sensor_msgs/Imu (base_link FLU in map ENU).
 
-    The conversion is ``ibvs_control.node_common.imu_sample`` (one for every node); raises
+    The conversion is ``ibvs_common.node_common.imu_sample`` (one for every node); raises
     ValueError for NaN/Inf or a non-unit quaternion.
     """
     stamp_ns, R_IB, omega_B = imu_sample(msg)

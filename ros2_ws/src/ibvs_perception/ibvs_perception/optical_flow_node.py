@@ -29,10 +29,10 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
-from ibvs_control.core.config import ConfigError, load_vehicle
-from ibvs_control.core.frames import e3, MAP_FRAME, vec_I_to_map
-from ibvs_control.core.timing import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
-                                      AttitudeBufferConfig)
+from ibvs_common.core.config import ConfigError, load_vehicle
+from ibvs_common.core.frames import e3, MAP_FRAME, vec_I_to_map
+from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
+                                              AttitudeBufferConfig)
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32
 
@@ -42,10 +42,10 @@ from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, PARAMETER_SPEC
 from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
-from ibvs_control.node_common import IMAGE_QOS
-from ibvs_control.param_descriptors import dataclass_defaults, declare, declare_all
-from ibvs_control.spin import spin_guarded
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.node_common import IMAGE_QOS
+from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
+from ibvs_common.spin import spin_guarded
+from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
 FRONT, DOWN = 'front', 'down'

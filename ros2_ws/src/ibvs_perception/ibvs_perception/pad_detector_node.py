@@ -14,7 +14,7 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped
-from ibvs_control.core.config import ConfigError, load_pad_layout
+from ibvs_common.core.config import ConfigError, load_pad_layout
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
@@ -23,10 +23,10 @@ from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorCo
 from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
-from ibvs_control.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
-from ibvs_control.param_descriptors import dataclass_defaults, declare, declare_all
-from ibvs_control.spin import spin_guarded
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
+from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
+from ibvs_common.spin import spin_guarded
+from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
 NODE_SPECS = {

@@ -7,7 +7,7 @@ images of a frozen camera (``frozen_after_frames`` bit-identical images in a row
 :mod:`~ibvs_perception.frozen_guard`): nothing at all, as if the camera had delivered nothing.
 
 Tracking with the gyro: the attitude at each image stamp (``imu/data``, interpolated or
-propagated, :class:`~ibvs_control.core.timing.AttitudeBuffer`) gives the camera's rotation
+propagated, :class:`~ibvs_common.core.attitude_buffer.AttitudeBuffer`) gives the camera's rotation
 since the previous image, and the detector moves the tracked window by it before searching
 and gating (``WindowDetector.process``). Without an attitude at either stamp the frame is
 processed without the prediction (as before), never dropped.
@@ -28,13 +28,13 @@ from ibvs_perception.core.window import PARAMETER_SPECS, WindowDetector, WindowD
 from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       polygon_from_vectors, stamp_to_s)
-from ibvs_control.core.config import ConfigError, load_vehicle
-from ibvs_control.core.timing import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
-                                      AttitudeBufferConfig)
-from ibvs_control.node_common import IMAGE_QOS
-from ibvs_control.param_descriptors import dataclass_defaults, declare, declare_all
-from ibvs_control.spin import spin_guarded
-from ibvs_control.throttled_log import ThrottledLog
+from ibvs_common.core.config import ConfigError, load_vehicle
+from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
+                                              AttitudeBufferConfig)
+from ibvs_common.node_common import IMAGE_QOS
+from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
+from ibvs_common.spin import spin_guarded
+from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
 DEBUG_AXIS_PX = 40      # length of the drawn image axes, px

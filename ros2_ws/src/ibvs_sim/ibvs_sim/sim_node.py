@@ -42,17 +42,18 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import String
 
-from ibvs_control.core.camera import CameraModel
-from ibvs_control.core.config import (ConfigError, load_pad_layout, load_vehicle, load_world)
-from ibvs_control.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_base_from_R_IB,
-                                      vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
+from ibvs_common.core.camera import CameraModel
+from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
+from ibvs_sim.core.world import load_world
+from ibvs_common.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_base_from_R_IB,
+                                     vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
                                     GraphProducts, ImuBeforeImages, NS_PER_S, Pacing, SimConfig,
                                     Simulation)
-from ibvs_control.param_descriptors import declare_all
-from ibvs_control.spin import spin_guarded
+from ibvs_common.param_descriptors import declare_all
+from ibvs_common.spin import spin_guarded
 
 NODE_NAME = 'sim'
 MAP_FRAME = 'map'
@@ -105,7 +106,7 @@ PARAMETERS = {
     'fault_down_camera_freeze_s': [0.0, 0.0],
 }
 # description with unit (times: sim = the sim's own clock, published on /clock; wall = steady
-# clock), inclusive range (ibvs_control.param_descriptors)
+# clock), inclusive range (ibvs_common.param_descriptors)
 _FAULT = ' [start, end) s (sim time), fault injection (tests only); [0, 0] = never'
 PARAMETER_SPECS = {
     'pacing': ("'lockstep': the next 20 ms only once the graph answered the last frame (or "

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ibvs_control.core.frames import GRAVITY, e3, quat_from_rot
+from ibvs_common.core.frames import GRAVITY, e3, quat_from_rot
 
 MIN_FORCE_N = 1e-3          # below this |F| carries no direction: keep the body z axis vertical
 DEFAULT_MAX_TILT_RAD = 0.6  # ~34 deg: tilt limit of the thrust direction (vertical part kept)

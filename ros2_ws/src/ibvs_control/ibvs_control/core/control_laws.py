@@ -11,7 +11,7 @@ from enum import Enum
 
 import numpy as np
 
-from ibvs_control.core.frames import GRAVITY, e3, proj_orth
+from ibvs_common.core.frames import GRAVITY, e3, proj_orth
 
 
 class GainError(ValueError):
@@ -102,7 +102,7 @@ class CrossingGains:
 
 
 #: spec of each gain as a ROS parameter ``<prefix>.<field>`` (description with unit, inclusive
-#: range; ibvs_control.param_descriptors); the paper's conditions are checked by validate()
+#: range; ibvs_common.param_descriptors); the paper's conditions are checked by validate()
 GAIN_SPECS = {
     'landing': {
         'kp_xy': ('1/s^2, K_p^t horizontal (mass-normalised), > 0', 0.0, None),

@@ -11,14 +11,14 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ibvs_control.core.attitude import yaw_facing
-from ibvs_control.core.config import PadLayout, VehicleConfig
+from ibvs_common.core.config import PadLayout, VehicleConfig
 from ibvs_control.core.control_laws import (
     CrossingGains, CrossingLaw, force_crossing_closed, force_crossing_intended,
     force_crossing_seed, force_landing, force_window, GainError, LandingGains, WindowGains)
-from ibvs_control.core.features import (
+from ibvs_common.core.features import (
     centroid_feature, compute_window_features, pad_height_estimate, window_flow,
     WindowFeatures)
-from ibvs_control.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
+from ibvs_common.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
 from ibvs_control.core.modes import Mode
 
 MAX_INTEGRATION_STEP_S = 0.1   # a longer gap between frames is not integrated as flow

@@ -11,7 +11,7 @@ import numpy as np
 
 from ibvs_control.core.controller import (
     ControlOutput, FeatureSnapshot, IbvsController, Measurements)
-from ibvs_control.core.frames import (
+from ibvs_common.core.frames import (
     e3, GRAVITY, MAP_FRAME, quat_from_rot, quat_ned_frd_to_enu_flu, rot_z, vec_map_to_I)
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.timing import Frame, InputKind, NS_PER_S

@@ -42,7 +42,7 @@ from collections import deque
 from dataclasses import dataclass
 import math
 
-from ibvs_control.core.frames import GRAVITY
+from ibvs_common.core.frames import GRAVITY
 
 HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover thrust outside this is refused
 THRUST_VALID_RANGE = (0.1, 0.9)         # applied thrust used by the estimator

@@ -20,7 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
-from ibvs_control.core.frames import GRAVITY
+from ibvs_common.core.frames import GRAVITY
 
 NS_PER_S = 1_000_000_000
 

@@ -33,7 +33,7 @@ from enum import Enum
 import numpy as np
 
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
-from ibvs_control.core.frames import (
+from ibvs_common.core.frames import (
     euler_zyx_from_rot, GRAVITY, quat_from_rot, R_IB_from_rot_map_base, rot_from_quat, rot_z)
 from ibvs_control.core.modes import Mode
 

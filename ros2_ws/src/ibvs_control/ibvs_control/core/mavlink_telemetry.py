@@ -31,7 +31,7 @@ import struct
 
 import numpy as np
 
-from ibvs_control.core.frames import (
+from ibvs_common.core.frames import (
     euler_zyx_from_rot, GRAVITY, quat_ned_frd_to_enu_flu, rot_from_quat, vec_frd_to_flu)
 from ibvs_control.core.mavlink_link import MavMsgId
 from ibvs_control.core.time_sync import TimeSync

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from ibvs_control.core.features import (
+from ibvs_common.core.features import (
     centroid_feature, distance_to_window_plane, edge_normals, pad_height_estimate,
     window_axes, window_normal)
 from ibvs_control.core.modes import FLYING_MODES, Mode
@@ -78,7 +78,7 @@ class SupervisorConfig:
 
 
 #: spec of each SupervisorConfig field declared as a ROS parameter (description with unit,
-#: inclusive range; ibvs_control.param_descriptors); r_w and group_half_sides come from files.
+#: inclusive range; ibvs_common.param_descriptors); r_w and group_half_sides come from files.
 #: Times are on the ROS clock (sim time under use_sim_time); from_params checks > 0.
 PARAMETER_SPECS = {
     'imu_timeout_s': ('s (ROS clock), IMU older than this: failsafe (flying modes), > 0',

@@ -1,15 +1,15 @@
 """Attitude of each camera frame for derotating the optical flow (paper section 3.3).
 
-The IMU attitudes come from :class:`ibvs_control.core.timing.AttitudeBuffer` (interpolated at
-an image stamp, or propagated with the gyro for a bounded time: a frame never waits for a
-later IMU sample).
+The IMU attitudes come from :class:`ibvs_common.core.attitude_buffer.AttitudeBuffer`
+(interpolated at an image stamp, or propagated with the gyro for a bounded time: a frame never
+waits for a later IMU sample).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from ibvs_control.core.frames import exp_so3, log_so3
-from ibvs_control.core.timing import AttitudeBuffer
+from ibvs_common.core.frames import exp_so3, log_so3
+from ibvs_common.core.attitude_buffer import AttitudeBuffer
 
 
 class GyroDerotation:

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ibvs_control.core.camera import CameraModel
-from ibvs_control.core.features import (centroid_feature, edge_normals, window_axes,
-                                        window_normal)
-from ibvs_control.core.frames import bearings_C_to_I
+from ibvs_common.core.camera import CameraModel
+from ibvs_common.core.features import (centroid_feature, edge_normals, window_axes,
+                                       window_normal)
+from ibvs_common.core.frames import bearings_C_to_I
 
 #: largest condition number of the normal equations accepted (a degenerate point spread)
 _MAX_CONDITION = 1e8
@@ -67,7 +67,7 @@ class FlowConfig:
 
 
 #: spec of each FlowConfig field as a ROS parameter (description with unit, inclusive range;
-#: ibvs_control.param_descriptors); pixels are distorted image pixels
+#: ibvs_common.param_descriptors); pixels are distorted image pixels
 PARAMETER_SPECS = {
     'grid_cols': ('columns of the feature replenishment grid', 1, 1000),
     'grid_rows': ('rows of the feature replenishment grid', 1, 1000),

@@ -34,9 +34,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ibvs_control.core.camera import CameraModel
-from ibvs_control.core.config import MarkerGroup, PadLayout
-from ibvs_control.core.cv_compat import aruco_parameters, ArucoMarkerDetector
+from ibvs_common.core.camera import CameraModel
+from ibvs_common.core.config import MarkerGroup, PadLayout
+from ibvs_common.core.cv_compat import aruco_parameters, ArucoMarkerDetector
 
 MARKER_CORNERS = 4
 #: smallest |cross| of the two diagonals (normalised coordinates) accepted as a centre
@@ -86,7 +86,7 @@ class PadDetectorConfig:
 
 
 #: spec of each PadDetectorConfig field as a ROS parameter (description with unit, inclusive
-#: range; ibvs_control.param_descriptors)
+#: range; ibvs_common.param_descriptors)
 PARAMETER_SPECS = {
     'adaptive_thresh_win_size_min': ('px: smallest ArUco adaptive threshold window, >= 3 '
                                      '(min = max: one pass, fastest)', 3, 1001),

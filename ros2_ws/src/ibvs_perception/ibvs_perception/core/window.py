@@ -36,8 +36,8 @@ import enum
 import cv2
 import numpy as np
 
-from ibvs_control.core.camera import CameraModel
-from ibvs_control.core.features import edge_normals
+from ibvs_common.core.camera import CameraModel
+from ibvs_common.core.features import edge_normals
 
 N_CORNERS = 4
 #: binary value of "dark" pixels after the inverted adaptive threshold
@@ -112,7 +112,7 @@ class WindowDetectorConfig:
 
 
 #: spec of each WindowDetectorConfig field as a ROS parameter (description with unit, inclusive
-#: range; ibvs_control.param_descriptors); pixels are full-resolution pixels unless noted
+#: range; ibvs_common.param_descriptors); pixels are full-resolution pixels unless noted
 PARAMETER_SPECS = {
     'detection_scale': ('image scale of the contour search, (0, 1]', 0.01, 1.0),
     'threshold_block_px': ('px at detection scale, odd, >= 3: adaptive threshold window',

@@ -42,8 +42,8 @@ from typing import Callable
 
 import numpy as np
 
-from ibvs_control.core.frames import (GRAVITY, euler_zyx_from_rot, quat_from_rot, quat_multiply,
-                                      rot_from_euler_zyx, rot_z)
+from ibvs_common.core.frames import (GRAVITY, euler_zyx_from_rot, quat_from_rot, quat_multiply,
+                                     rot_from_euler_zyx, rot_z)
 
 # MAVLink 2 must be chosen before pymavlink.mavutil is imported (it picks the wire version then).
 os.environ['MAVLINK20'] = '1'

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ibvs_control.core.config import WorldConfig
+from ibvs_sim.core.world import WorldConfig
 
 FLOOR = 'floor'
 WALL = 'wall'

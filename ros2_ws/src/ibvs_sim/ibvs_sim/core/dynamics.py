@@ -37,8 +37,8 @@ import math
 
 import numpy as np
 
-from ibvs_control.core.config import VehicleConfig
-from ibvs_control.core.frames import GRAVITY, e3, rot_from_quat, skew
+from ibvs_common.core.config import VehicleConfig
+from ibvs_common.core.frames import GRAVITY, e3, rot_from_quat, skew
 
 SIM_PLANT_KEY = 'sim_plant'
 N_ROTORS = 4

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ibvs_control.core.config import WorldConfig
+from ibvs_sim.core.world import WorldConfig
 from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
 
 MAX_DURATION_S = 60.0

@@ -14,11 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
-from ibvs_control.core.config import CameraConfig, PadLayout, VehicleConfig, WorldConfig
+from ibvs_common.core.config import CameraConfig, PadLayout, VehicleConfig
+from ibvs_sim.core.world import WorldConfig
 from ibvs_control.core.control_laws import CrossingLaw
 from ibvs_control.core.controller import (
     ControllerConfig, IbvsController, Measurements, with_crossing_law)
-from ibvs_control.core.frames import (
+from ibvs_common.core.frames import (
     bearings_C_to_I, bearings_I_to_C, e3, exp_so3, GRAVITY, log_so3, rot_z)
 from ibvs_control.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig

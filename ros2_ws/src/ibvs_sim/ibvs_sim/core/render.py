@@ -61,8 +61,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from ibvs_control.core.config import CameraConfig, PadLayout, WorldConfig
-from ibvs_control.core.cv_compat import aruco_marker_image
+from ibvs_common.core.config import CameraConfig, PadLayout
+from ibvs_sim.core.world import WorldConfig
+from ibvs_common.core.cv_compat import aruco_marker_image
 
 # Virtual undistorted camera: focal length relative to the real one and margin (px).
 VIRTUAL_FOCAL_SCALE = 1.0

@@ -41,8 +41,9 @@ from typing import Callable, Protocol
 
 import numpy as np
 
-from ibvs_control.core.config import PadLayout, VehicleConfig, WorldConfig
-from ibvs_control.core.frames import rot_z, vec_I_to_map
+from ibvs_common.core.config import PadLayout, VehicleConfig
+from ibvs_sim.core.world import WorldConfig
+from ibvs_common.core.frames import rot_z, vec_I_to_map
 from ibvs_sim.core.autopilot import AttitudeReference, VehicleStateView
 from ibvs_sim.core.contacts import FLOOR, min_clearance
 from ibvs_sim.core.dynamics import (AttitudeController, PlantParams, QuadrotorPlant, State,

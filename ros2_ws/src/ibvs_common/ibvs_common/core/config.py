@@ -1,4 +1,4 @@
-"""Typed views of the shared YAML files: world, pad layout, vehicle and cameras.
+"""Typed views of the shared YAML files: pad layout, vehicle and cameras.
 
 These files live in ``ibvs_bringup/config`` (installed to ``share/ibvs_bringup/config``) and are
 the one source of truth for the sim, perception and control. Loaders raise ``ConfigError`` with
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from ibvs_control.core.camera import CameraModel, CameraModelError
-from ibvs_control.core.frames import is_rotation
+from ibvs_common.core.camera import CameraModel, CameraModelError
+from ibvs_common.core.frames import is_rotation
 
 CONFIG_PACKAGE = 'ibvs_bringup'
 
@@ -35,7 +35,7 @@ def default_config_path(file_name: str) -> str:
     return os.path.join(share, 'config', file_name)
 
 
-def _load_yaml(path: str | os.PathLike) -> dict:
+def load_yaml(path: str | os.PathLike) -> dict:
     try:
         with open(path, encoding='utf-8') as f:
             data = yaml.safe_load(f)
@@ -46,7 +46,7 @@ def _load_yaml(path: str | os.PathLike) -> dict:
     return data
 
 
-def _get(data: dict, key: str, path: str | os.PathLike):
+def get_key(data: dict, key: str, path: str | os.PathLike):
     node = data
     for part in key.split('.'):
         if not isinstance(node, dict) or part not in node:
@@ -91,10 +91,10 @@ class PadLayout:
 def load_pad_layout(path: str | os.PathLike | None = None) -> PadLayout:
     """Load the pad layout YAML (default: the installed ``pad_layout.yaml``)."""
     path = path or default_config_path('pad_layout.yaml')
-    data = _load_yaml(path)
+    data = load_yaml(path)
     groups = []
     seen: set[int] = set()
-    for i, g in enumerate(_get(data, 'groups', path)):
+    for i, g in enumerate(get_key(data, 'groups', path)):
         try:
             ids = tuple(int(x) for x in g['ids'])
             group = MarkerGroup(str(g['name']), ids, float(g['side']), float(g['c']))
@@ -105,87 +105,8 @@ def load_pad_layout(path: str | os.PathLike | None = None) -> PadLayout:
         seen.update(ids)
         groups.append(group)
     groups.sort(key=lambda g: -g.side)
-    return PadLayout(str(_get(data, 'dictionary', path)), float(data.get('quiet_zone', 0.25)),
+    return PadLayout(str(get_key(data, 'dictionary', path)), float(data.get('quiet_zone', 0.25)),
                      tuple(groups))
-
-
-# --- World -------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class WindowGeometry:
-    """The rectangular window aperture in the wall, paper frame {I}."""
-
-    center_I: np.ndarray    # m
-    width: float            # m, r_w (along y_I)
-    height: float           # m (along z_I)
-    frame_band: float       # m, dark border around the aperture on the wall face
-
-    def corners_I(self) -> np.ndarray:
-        """Aperture corners (4, 3) in {I}: top-left, top-right, bottom-right, bottom-left.
-
-        As seen from the approach side (looking along +x_I): left is -y_I, top is -z_I.
-        """
-        cx, cy, cz = self.center_I
-        hw, hh = self.width / 2.0, self.height / 2.0
-        return np.array([[cx, cy - hw, cz - hh], [cx, cy + hw, cz - hh],
-                         [cx, cy + hw, cz + hh], [cx, cy - hw, cz + hh]])
-
-    def outer_corners_I(self) -> np.ndarray:
-        """Outer corners (4, 3) of the dark frame band in {I}, same order as corners_I."""
-        grown = WindowGeometry(self.center_I, self.width + 2.0 * self.frame_band,
-                               self.height + 2.0 * self.frame_band, 0.0)
-        return grown.corners_I()
-
-
-@dataclass(frozen=True)
-class WorldConfig:
-    """Reference scenario of SPEC.md section 2."""
-
-    floor_z: float
-    floor_extent_x: tuple[float, float]
-    floor_extent_y: tuple[float, float]
-    wall_x: float
-    wall_z_range: tuple[float, float]
-    wall_y_range: tuple[float, float]
-    window: WindowGeometry
-    back_wall_x: float
-    texture_seeds: dict
-    initial_position_I: np.ndarray
-    initial_yaw: float
-    random_box: dict
-
-
-def load_world(path: str | os.PathLike | None = None) -> WorldConfig:
-    """Load the world YAML (default: the installed ``world.yaml``)."""
-    path = path or default_config_path('world.yaml')
-    d = _load_yaml(path)
-    try:
-        window = WindowGeometry(np.array(_get(d, 'window.center', path), dtype=float),
-                                float(_get(d, 'window.width', path)),
-                                float(_get(d, 'window.height', path)),
-                                float(_get(d, 'window.frame_band', path)))
-        world = WorldConfig(
-            floor_z=float(_get(d, 'floor.z', path)),
-            floor_extent_x=tuple(_get(d, 'floor.extent_x', path)),
-            floor_extent_y=tuple(_get(d, 'floor.extent_y', path)),
-            wall_x=float(_get(d, 'wall.x', path)),
-            wall_z_range=tuple(_get(d, 'wall.z_range', path)),
-            wall_y_range=tuple(_get(d, 'wall.y_range', path)),
-            window=window,
-            back_wall_x=float(_get(d, 'back_wall.x', path)),
-            texture_seeds={'floor': int(d['floor'].get('texture_seed', 1)),
-                           'wall': int(d['wall'].get('texture_seed', 2)),
-                           'back_wall': int(d['back_wall'].get('texture_seed', 3))},
-            initial_position_I=np.array(_get(d, 'initial_condition.position', path),
-                                        dtype=float),
-            initial_yaw=float(_get(d, 'initial_condition.yaw', path)),
-            random_box={k: tuple(map(float, v))
-                        for k, v in _get(d, 'random_initial_box', path).items()})
-    except (TypeError, ValueError) as exc:
-        raise ConfigError(f'{path}: {exc}') from exc
-    if window.width <= 0 or window.height <= 0 or window.center_I.shape != (3,):
-        raise ConfigError(f'{path}: window needs a 3-vector centre and positive size')
-    return world
 
 
 # --- Vehicle and cameras -----------------------------------------------------------------
@@ -218,9 +139,9 @@ class VehicleConfig:
 def load_vehicle(path: str | os.PathLike | None = None) -> VehicleConfig:
     """Load the vehicle YAML (default: the installed ``vehicle.yaml``)."""
     path = path or default_config_path('vehicle.yaml')
-    d = _load_yaml(path)
+    d = load_yaml(path)
     cameras = {}
-    for name, c in _get(d, 'cameras', path).items():
+    for name, c in get_key(d, 'cameras', path).items():
         try:
             R_BC = np.array(c['R_BC'], dtype=float)
             model = CameraModel.from_camera_info(int(c['width']), int(c['height']), c['K'],
@@ -232,11 +153,11 @@ def load_vehicle(path: str | os.PathLike | None = None) -> VehicleConfig:
             raise ConfigError(f'{path}: cameras.{name}.R_BC is not a rotation matrix')
         cameras[name] = cam
     try:
-        v = VehicleConfig(float(_get(d, 'mass', path)), float(_get(d, 'arm_length', path)),
-                          float(_get(d, 'max_thrust_factor', path)),
-                          float(_get(d, 'hover_thrust', path)),
-                          float(_get(d, 'envelope.radius', path)),
-                          float(_get(d, 'envelope.height', path)), cameras, d)
+        v = VehicleConfig(float(get_key(d, 'mass', path)), float(get_key(d, 'arm_length', path)),
+                          float(get_key(d, 'max_thrust_factor', path)),
+                          float(get_key(d, 'hover_thrust', path)),
+                          float(get_key(d, 'envelope.radius', path)),
+                          float(get_key(d, 'envelope.height', path)), cameras, d)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f'{path}: {exc}') from exc
     if v.mass <= 0 or not 0.0 < v.hover_thrust < 1.0 or v.max_thrust_factor <= 1.0:

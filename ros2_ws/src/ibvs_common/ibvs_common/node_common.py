@@ -1,4 +1,4 @@
-"""Message <-> numpy helpers and QoS profiles shared by the ibvs_control nodes.
+"""Message <-> numpy helpers and QoS profiles shared by the nodes of every IBVS package.
 
 Only conversions of message fields (frames.py does the frame conversions, no maths), and
 :class:`DeadlineTimer`, the one-shot ROS-clock timer of the timing layer's frame deadlines.
@@ -11,7 +11,7 @@ from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 
-from ibvs_control.core.frames import R_IB_from_rot_map_base, rot_from_quat, vec_flu_to_frd
+from ibvs_common.core.frames import R_IB_from_rot_map_base, rot_from_quat, vec_flu_to_frd
 
 NS_PER_S = 1_000_000_000
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
