@@ -11,7 +11,7 @@ import pytest
 from ibvs_control.core.mavlink_sequencer import (
     Autopilot, EngageSequencer, EngageState, MavCmd, MavResult, SequencerConfig,
     SequencerInputs)
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 
 OFFBOARD, POSCTL, AUTO_LAND = 6 << 16, 3 << 16, (4 << 16) | (6 << 24)
 GUIDED_NOGPS, GUIDED, LAND = 20, 4, 9

@@ -5,7 +5,7 @@ import pytest
 from ibvs_common.core.frames import GRAVITY
 from ibvs_control.core.mavlink_setpoints import (
     HeadingPairing, RAMP_STALL_S, SetpointShaper, SetpointSource, ShaperConfig, ShutdownRamp)
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 
 MASS = 1.676
 HOVER_F = np.array([0.0, 0.0, MASS * GRAVITY])

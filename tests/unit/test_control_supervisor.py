@@ -3,7 +3,7 @@ import numpy as np
 
 from ibvs_common.core.config import load_pad_layout
 from ibvs_sim.core.world import load_world
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 
 WORLD = load_world()
@@ -176,7 +176,7 @@ def test_auto_start_is_off_by_default_and_needs_a_finite_time():
 
 def test_the_staleness_watchdog_leaves_image_cues_to_the_frames():
     """A requested transition (an image cue) happens at a frame, never at a watchdog tick."""
-    from ibvs_control.core.modes import Mode
+    from ibvs_common.core.modes import Mode
     from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
     sup = ModeSupervisor(SupervisorConfig())
     sup.mode = Mode.WINDOW

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 
 from ibvs_control.core.frame_io import check_flow, PadPairing
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
-from ibvs_control.core.timing import Camera, FrameAssembler, InputKind, MODE_INPUTS
+from ibvs_common.core.modes import Camera, InputKind, MODE_INPUTS
+from ibvs_control.core.timing import FrameAssembler
 
 W, P, FF, FD = InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT, InputKind.FLOW_DOWN
 MS = 1_000_000

@@ -6,7 +6,7 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_control.core.control_laws import CrossingLaw
 from ibvs_control.core.controller import ControllerConfig
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import SupervisorConfig
 from ibvs_sim.core.feature_sim import FeatureSimConfig, run_feature_scenario
 

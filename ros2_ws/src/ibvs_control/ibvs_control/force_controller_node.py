@@ -39,10 +39,10 @@ from ibvs_control.core.frame_io import (
     check_bearings, check_flow, feature_vector, heading_quat_enu_flu, PadPairing,
     step_controller)
 from ibvs_common.core.frames import MAP_FRAME, vec_I_to_map
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import InputKind, Mode, MODE_INPUTS
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
-from ibvs_control.core.timing import Frame, FrameAssembler, InputKind, MODE_INPUTS
+from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
     parse_pad_groups, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)

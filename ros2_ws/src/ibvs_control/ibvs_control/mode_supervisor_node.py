@@ -43,12 +43,12 @@ from std_srvs.srv import Trigger
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
 from ibvs_common.core.frames import bearings_C_to_I
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import CAMERA_OF, InputKind, Mode, MODE_INPUTS
 from ibvs_control.core.supervisor import (
     ModeSupervisor, PARAMETER_SPECS as CORE_SPECS, SupervisorConfig)
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
-from ibvs_control.core.timing import CAMERA_OF, Frame, FrameAssembler, InputKind, MODE_INPUTS
+from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, parse_pad_groups,
     polygon_points, SENSOR_QOS, stamp_to_ns, supervisor_status_msg, vector3)

@@ -19,7 +19,7 @@ from ibvs_common.core.features import (
     centroid_feature, compute_window_features, pad_height_estimate, window_flow,
     WindowFeatures)
 from ibvs_common.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 
 MAX_INTEGRATION_STEP_S = 0.1   # a longer gap between frames is not integrated as flow
 

@@ -13,8 +13,9 @@ from ibvs_control.core.controller import (
     ControlOutput, FeatureSnapshot, IbvsController, Measurements)
 from ibvs_common.core.frames import (
     e3, GRAVITY, MAP_FRAME, quat_from_rot, quat_ned_frd_to_enu_flu, rot_z, vec_map_to_I)
-from ibvs_control.core.modes import Mode
-from ibvs_control.core.timing import Frame, InputKind, NS_PER_S
+from ibvs_common.core.modes import Mode
+from ibvs_common.core.modes import InputKind
+from ibvs_control.core.timing import Frame, NS_PER_S
 
 
 class PadPairing:

@@ -38,7 +38,7 @@ from ibvs_control.core.mavlink_setpoints import (
     yaw_from_heading_quat)
 from ibvs_control.core.mavlink_telemetry import (
     AccelSample, ImuSample, LandedState, StreamRequests, streams_for, Telemetry)
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 from ibvs_control.core.time_sync import (
     TimeSync, TimeSyncConfig, TimesyncExchange, TimeSyncStatus)
 

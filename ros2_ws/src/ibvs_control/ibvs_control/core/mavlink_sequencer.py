@@ -29,7 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 
-from ibvs_control.core.modes import FLYING_MODES, Mode
+from ibvs_common.core.modes import FLYING_MODES, Mode
 
 
 class MavCmd(IntEnum):

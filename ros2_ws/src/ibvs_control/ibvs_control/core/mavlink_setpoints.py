@@ -35,7 +35,7 @@ import numpy as np
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
 from ibvs_common.core.frames import (
     euler_zyx_from_rot, GRAVITY, quat_from_rot, R_IB_from_rot_map_base, rot_from_quat, rot_z)
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 
 ATTITUDE_TARGET_IGNORE_BODY_RATES = 7   # type_mask bits 0-2: roll, pitch, yaw rate ignored
 QUAT_NORM_TOLERANCE = 0.1               # heading |q| in [0.9, 1.1], else refused

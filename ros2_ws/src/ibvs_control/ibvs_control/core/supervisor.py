@@ -33,7 +33,7 @@ import numpy as np
 from ibvs_common.core.features import (
     centroid_feature, distance_to_window_plane, edge_normals, pad_height_estimate,
     window_axes, window_normal)
-from ibvs_control.core.modes import FLYING_MODES, Mode
+from ibvs_common.core.modes import FLYING_MODES, Mode
 
 __all__ = ['Mode', 'ModeSupervisor', 'SupervisorConfig', 'Transition']
 

@@ -6,7 +6,7 @@ Clocks
     sim time in the simulator. Stamps are integer nanoseconds here. A lockstep simulator is
     only a ROS clock that stands still while the graph computes: nothing below knows about it.
 
-Frames and the inputs a mode needs (:data:`MODE_INPUTS`)
+Frames and the inputs a mode needs (:data:`ibvs_common.core.modes.MODE_INPUTS`)
     A frame is one image of one camera, named by its stamp. Its products are the window
     detection and the wall flow (front camera), the pad landmarks and the floor flow (down
     camera). Each mode is evaluated on the frames of one camera and names the products it
@@ -34,12 +34,11 @@ from __future__ import annotations
 import bisect
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from enum import Enum
 from typing import Any, Callable
 
 import numpy as np
 
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import InputKind
 
 NS_PER_S = 1_000_000_000
 
@@ -49,43 +48,7 @@ def s_to_ns(t_s: float) -> int:
     return int(round(float(t_s) * NS_PER_S))
 
 
-class Camera(str, Enum):
-    """The two cameras whose frames the modes are evaluated on."""
-
-    FRONT = 'front'
-    DOWN = 'down'
-
-
-class InputKind(Enum):
-    """The products of one camera frame."""
-
-    WINDOW = 'window'             # window/corners (front)
-    PAD = 'pad'                   # pad/landmarks + pad/groups (down)
-    FLOW_FRONT = 'flow_front'     # front_camera/translational_flow
-    FLOW_DOWN = 'flow_down'       # down_camera/translational_flow
-
-
-CAMERA_OF = {InputKind.WINDOW: Camera.FRONT, InputKind.FLOW_FRONT: Camera.FRONT,
-             InputKind.PAD: Camera.DOWN, InputKind.FLOW_DOWN: Camera.DOWN}
 EVALUATION_ORDER = (InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT, InputKind.FLOW_DOWN)
-
-
-@dataclass(frozen=True)
-class ModeInputs:
-    """The camera whose frames a mode is evaluated on and the products it waits for."""
-
-    camera: Camera
-    needed: frozenset
-
-
-MODE_INPUTS = {
-    Mode.IDLE: ModeInputs(Camera.FRONT, frozenset({InputKind.WINDOW})),
-    Mode.WINDOW: ModeInputs(Camera.FRONT, frozenset({InputKind.WINDOW, InputKind.FLOW_FRONT})),
-    Mode.CROSSING: ModeInputs(Camera.DOWN, frozenset({InputKind.FLOW_DOWN})),
-    Mode.LANDING: ModeInputs(Camera.DOWN, frozenset({InputKind.PAD, InputKind.FLOW_DOWN})),
-    Mode.SHUTDOWN: ModeInputs(Camera.DOWN, frozenset()),
-    Mode.FAILSAFE: ModeInputs(Camera.DOWN, frozenset()),
-}
 
 
 @dataclass(frozen=True)

@@ -21,7 +21,7 @@ from ibvs_control.core.controller import (
     ControllerConfig, IbvsController, Measurements, with_crossing_law)
 from ibvs_common.core.frames import (
     bearings_C_to_I, bearings_I_to_C, e3, exp_so3, GRAVITY, log_so3, rot_z)
-from ibvs_control.core.modes import Mode
+from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
 from ibvs_sim.core.evaluation import evaluate_run, GroundTruthLog
