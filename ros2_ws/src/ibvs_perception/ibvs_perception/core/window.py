@@ -2,7 +2,8 @@
 
 Algorithm (paper section Experiments: "ArUco border detection", made sub-pixel):
 
-1. Candidates. Adaptive threshold (dark = foreground) of a down-scaled image, then
+1. Candidates. Adaptive threshold (dark = foreground) of a down-scaled image, the offset
+   below the local mean a fraction of the local contrast (so it follows the exposure), then
    ``findContours`` with a two-level hierarchy, every boundary pixel kept
    (``CHAIN_APPROX_NONE``: with ``CHAIN_APPROX_SIMPLE`` an axis-aligned side, as in a level
    hover, shrinks to its two end points and no line can be fitted to it). The window is a
@@ -14,15 +15,26 @@ Algorithm (paper section Experiments: "ArUco border detection", made sub-pixel):
    so each aperture side is parametrised in undistorted pixels (the ideal pinhole image
    ``K [x/z, y/z, 1]``), sampled, projected into the distorted image, and searched for the
    dark-to-light step along the local image normal (centroid of the intensity gradient).
+   Each profile is the mean of 3 parallel ones (noise), and a motion-blurred step's centroid
+   spans its whole ramp. Valid steps exceed a fraction of the band's contrast to the wall.
    The step must lead into the band: its dark side reaches the band's level (the darkest of
    the profile) within ``_BAND_REACH_PX``. A texture step beside the band (a brick row, a
    mortar joint parallel to the side, as in a level view of a brick wall) is steeper than the
    band's blurred edge but does not, and is not taken for it.
    The edge points are undistorted again, a line is fitted to each side (Huber, then
    residual gating) and adjacent lines are intersected. Two passes.
+   The aperture (inner) edges: the band and the aperture are one known rectangle pair
+   (``window_*_m``, ``frame_band_m``), so the outer quad predicts the aperture by a
+   homography. Inwards of each outer side the band's level is read and the inner edge is the
+   first departure from it, lighter *or darker* (the room beyond may be dim). A side with too
+   few points or off its predicted line by more than ``max_band_deviation`` band widths (a post
+   beyond the window beside the band) is taken from the prediction, if the outer quad is a true
+   perspective view of the band's rectangle (``max_shape_error``).
 3. Tracking. The same window is followed frame to frame: a corner displacement above
    ``max_corner_jump_px`` is reported as a loss (``JUMP``), not followed. After
-   ``reacquire_after_frames`` frames without a consistent window the tracker searches again.
+   ``reacquire_after_frames`` frames without a consistent window the tracker searches again;
+   until then a frame that fails (noise, blur) keeps the tracked outline for the next one.
+   Every frame without a window says why (``WindowResult.reason``, a :class:`Reject`).
 
 Outputs are in the camera optical frame (x right, y down, z along the optical axis); corners
 are ordered top-left, top-right, bottom-right, bottom-left as seen in the image (clockwise in
@@ -62,6 +74,17 @@ _MIN_SIN_EDGE_ANGLE = 0.2
 #: a band edge's dark side reaches the band's level within this distance of the step, px
 #: (a blurred edge spans ~2 px; a texture step beside the band does not lead into it)
 _BAND_REACH_PX = 2.0
+#: tangential offsets of the parallel profiles averaged per edge sample, px (noise / sqrt(3);
+#: +-2 px measured 0.02 px worse median on clean sim frames)
+_TANGENT_OFFSETS_PX = (-1.0, 0.0, 1.0)
+#: a blurred step's centroid window extends while the gradient stays above this fraction of
+#: its peak, up to _MAX_EDGE_HALF_WIDTH profile steps on either side (lower fractions let
+#: texture gradients beside a sharp edge in: 0.25 gave 0.17 px median on clean frames)
+_EDGE_RUN_FRACTION = 0.7
+_MAX_EDGE_HALF_WIDTH = 12
+#: where the band's level is read between the outer and the predicted inner edge (fractions
+#: of the predicted band width, from the outer edge)
+_BAND_LEVEL_SPAN = (0.25, 0.5)
 
 
 class WindowStatus(enum.Enum):
@@ -72,13 +95,28 @@ class WindowStatus(enum.Enum):
     JUMP = 'jump'                # a window, but too far from the tracked one: reported as lost
 
 
+class Reject:
+    """Why a frame gave no window (``WindowResult.reason``): the furthest stage reached."""
+
+    NO_CANDIDATE = 'no candidate'        # no dark convex quad of plausible size and shape
+    OUTER_EDGES = 'outer edges'          # too few wall -> band edge points on a side
+    OUTSIDE = 'outside image'            # the band is not fully border_margin_px inside
+    INNER_EDGES = 'inner edges'          # aperture edges unusable and no band geometry fallback
+    BAND_SHAPE = 'band shape'            # aperture / outer area ratio or proportions out of range
+    JUMP = 'jump'                        # farther than max_corner_jump_px from the tracked one
+    # the order of the stages, a reason later in it wins over an earlier one
+    ORDER = (NO_CANDIDATE, OUTER_EDGES, OUTSIDE, INNER_EDGES, BAND_SHAPE)
+
+
 @dataclass(frozen=True)
 class WindowDetectorConfig:
     """Tuning of :class:`WindowDetector` (pixels are full-resolution pixels unless noted)."""
 
     detection_scale: float = 0.5            # image scale of the contour search, (0, 1]
     threshold_block_px: int = 31            # adaptive threshold window at detection scale, odd
-    threshold_offset: float = 30.0          # grey levels below the local mean counted as dark
+    threshold_offset: float = 4.0           # grey levels, floor of the offset below
+    #                                         the local mean counted as dark
+    threshold_contrast_fraction: float = 0.15  # offset / local contrast (max - min in a block)
     min_area_fraction: float = 0.01         # outer quad area / image area, lower bound
     max_area_fraction: float = 0.98         # outer quad area / image area, upper bound
     min_aspect_ratio: float = 0.35          # aperture width / height (image), lower bound
@@ -92,11 +130,18 @@ class WindowDetectorConfig:
     samples_per_side: int = 40              # edge points searched per aperture side
     search_half_width_px: float = 8.0       # first-pass search range along the edge normal
     refine_half_width_px: float = 3.0       # second-pass search range
-    min_edge_contrast: float = 25.0         # grey-level step of a valid edge point
+    min_edge_contrast: float = 6.0          # grey levels, floor of a valid edge step
+    edge_contrast_fraction: float = 0.2     # valid edge step / the band's contrast to the wall
     min_edge_inlier_fraction: float = 0.5   # valid points per side, fraction of samples
     line_inlier_px: float = 1.0             # residual gate of the line fit, undistorted px
     max_corner_jump_px: float = 30.0        # largest corner displacement between frames
     reacquire_after_frames: int = 10        # frames without the tracked window before a search
+    window_width_m: float = 1.2             # aperture width (world.yaml window.width), m
+    window_height_m: float = 1.0            # aperture height, m
+    frame_band_m: float = 0.08              # band width around the aperture, m
+    max_band_deviation: float = 0.5         # measured inner side off its predicted line / band
+    max_shape_error: float = 0.02           # band quad vs a view of its rectangle (fallback;
+    #                                         sim views <= 0.003, a floor patch 0.097)
 
     def __post_init__(self) -> None:
         """Raise ValueError naming the parameter for what a range cannot check."""
@@ -117,8 +162,10 @@ PARAMETER_SPECS = {
     'detection_scale': ('image scale of the contour search, (0, 1]', 0.01, 1.0),
     'threshold_block_px': ('px at detection scale, odd, >= 3: adaptive threshold window',
                            3, 1001),
-    'threshold_offset': ('grey levels (of 255) below the local mean counted as dark',
-                         0.0, 255.0),
+    'threshold_offset': ('grey levels (of 255): floor of the offset below the local mean '
+                         'counted as dark', 0.0, 255.0),
+    'threshold_contrast_fraction': ('offset below the local mean counted as dark / the local '
+                                    'contrast (max - min in the threshold window)', 0.0, 1.0),
     'min_area_fraction': ('outer band quad area / image area, lower bound', 0.0, 1.0),
     'max_area_fraction': ('outer band quad area / image area, upper bound', 0.0, 1.0),
     'min_aspect_ratio': ('width / height of the quad in the image, lower bound', 0.0, None),
@@ -133,12 +180,24 @@ PARAMETER_SPECS = {
     'samples_per_side': ('edge points searched per aperture side, >= 2', 2, 10000),
     'search_half_width_px': ('px: first-pass search range along the edge normal', 0.0, None),
     'refine_half_width_px': ('px: second-pass search range along the edge normal', 0.0, None),
-    'min_edge_contrast': ('grey levels (of 255): step of a valid edge point', 0.0, 255.0),
+    'min_edge_contrast': ('grey levels (of 255): floor of the step of a valid edge point',
+                          0.0, 255.0),
+    'edge_contrast_fraction': ('step of a valid edge point / the band contrast to the wall',
+                               0.0, 1.0),
     'min_edge_inlier_fraction': ('valid edge points per side / samples_per_side', 0.0, 1.0),
     'line_inlier_px': ('px (undistorted): residual gate of the line fit', 0.0, None),
     'max_corner_jump_px': ('px: a larger corner motion between frames is a loss', 0.0, None),
     'reacquire_after_frames': ('frames without the tracked window before a new search',
                                0, None),
+    'window_width_m': ('m: aperture width (the world\'s window), for the band proportions',
+                       0.0, None),
+    'window_height_m': ('m: aperture height, for the band proportions', 0.0, None),
+    'frame_band_m': ('m: width of the dark band around the aperture', 0.0, None),
+    'max_band_deviation': ('measured aperture side off its line predicted from the band '
+                           'proportions / predicted band width, upper bound', 0.0, None),
+    'max_shape_error': ('band quad vs a perspective view of its known rectangle (relative); '
+                        'checked when an aperture side is taken from the proportions',
+                        0.0, None),
 }
 
 
@@ -157,6 +216,7 @@ class WindowResult:
 
     status: WindowStatus
     detection: WindowDetection | None = None
+    reason: str = ''            # why not DETECTED (a Reject constant), '' when detected
 
 
 def order_corners_clockwise(quad_px: np.ndarray) -> np.ndarray:
@@ -184,6 +244,7 @@ class WindowDetector:
         self._last_outer_u: np.ndarray | None = None
         self._rotation_since = np.eye(3)      # camera rotation not yet applied to the track
         self._frames_since_seen = 0
+        self._reject = Reject.NO_CANDIDATE    # furthest stage a candidate of this frame reached
 
     def reset(self) -> None:
         """Forget the tracked window."""
@@ -207,6 +268,7 @@ class WindowDetector:
         rotation, so the search and the ``max_corner_jump_px`` gate are left with the motion
         that translation causes. None: no prediction (the window is assumed still).
         """
+        self._reject = Reject.NO_CANDIDATE
         if rotation_C is not None and self._last_bearings is not None:
             self._predict(camera, np.asarray(rotation_C, dtype=float))
         if self._last_outer_u is not None:
@@ -231,17 +293,19 @@ class WindowDetector:
         scale = cfg.detection_scale
         small = gray if scale >= 1.0 else cv2.resize(gray, None, fx=scale, fy=scale,
                                                      interpolation=cv2.INTER_AREA)
-        binary = cv2.adaptiveThreshold(small, _DARK, cv2.ADAPTIVE_THRESH_MEAN_C,
-                                       cv2.THRESH_BINARY_INV, cfg.threshold_block_px,
-                                       cfg.threshold_offset)
+        binary = _dark_mask(small, cfg.threshold_block_px, cfg.threshold_contrast_fraction,
+                            cfg.threshold_offset)
         contours, hierarchy = cv2.findContours(binary, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
         if hierarchy is None:
             return []
         hierarchy = hierarchy[0]
         image_area = float(small.shape[0] * small.shape[1])
+        # a contour keeps every boundary pixel: one shorter than the perimeter of the smallest
+        # admissible square cannot pass the area check (noise makes thousands of such specks)
+        min_points = 4.0 * np.sqrt(cfg.min_area_fraction * image_area)
         quads = []
         for i, (_, _, child, parent) in enumerate(hierarchy):
-            if parent != -1 or child == -1:
+            if parent != -1 or child == -1 or len(contours[i]) < min_points:
                 continue
             outer = contours[i]
             outer_area = cv2.contourArea(outer)
@@ -271,9 +335,10 @@ class WindowDetector:
         if self._last_px is not None and self._frames_since_seen >= cfg.reacquire_after_frames:
             self.reset()
         if not refined:
+            # the tracked outline is kept: the fast path tries it again next frame (a noisy or
+            # blurred frame loses one frame, not the track) until reacquire_after_frames
             self._frames_since_seen += 1
-            self._last_outer_u = None       # search the whole image next time
-            return WindowResult(WindowStatus.NOT_FOUND)
+            return WindowResult(WindowStatus.NOT_FOUND, reason=self._reject)
         if self._last_px is None:
             best, outer_u = max(refined, key=lambda r: _quad_area(r[1]))
         else:
@@ -283,7 +348,7 @@ class WindowDetector:
             if min(jumps) > cfg.max_corner_jump_px:
                 self._frames_since_seen += 1
                 self._last_outer_u = None
-                return WindowResult(WindowStatus.JUMP)
+                return WindowResult(WindowStatus.JUMP, reason=Reject.JUMP)
         self._last_px, self._last_outer_u = best.corners_px, outer_u
         self._last_bearings = best.bearings_C
         self._rotation_since = np.eye(3)
@@ -361,27 +426,68 @@ class WindowDetector:
         All fits are straight lines in undistorted pixels.
         """
         cfg = self.config
+        threshold = None
         for half_width in (cfg.search_half_width_px, cfg.refine_half_width_px):
-            outer_u = self._fit_quad(gray, camera, outer_u, half_width, _FALLING)
+            outer_u, threshold = self._fit_quad(gray, camera, outer_u, half_width, _FALLING,
+                                                threshold)
             if outer_u is None:
-                return None
+                return self._rejected(Reject.OUTER_EDGES)
         if not self._inside_image(camera, outer_u):
-            return None
-        inner_u = self._find_inner_quad(gray, camera, outer_u)
+            return self._rejected(Reject.OUTSIDE)
+        predicted = self._predicted_inner(outer_u)
+        inner_u = self._find_inner_quad(gray, camera, outer_u, predicted, threshold)
         if inner_u is None:
-            return None
-        inner_u = self._fit_quad(gray, camera, inner_u, cfg.refine_half_width_px, _RISING)
-        if inner_u is None or not cv2.isContourConvex(inner_u.astype(np.float32)):
-            return None
+            return self._rejected(Reject.INNER_EDGES)
+        if not cv2.isContourConvex(inner_u.astype(np.float32)):
+            return self._rejected(Reject.BAND_SHAPE)
         ratio = _quad_area(inner_u) / _quad_area(outer_u)
         if not cfg.min_hole_area_ratio <= ratio <= cfg.max_hole_area_ratio:
-            return None
+            return self._rejected(Reject.BAND_SHAPE)
         K = camera.K
         normalized = (inner_u - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
         bearings = np.column_stack([normalized, np.ones(N_CORNERS)])
         bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
         corners_px = _distort_px(camera, inner_u)
         return WindowDetection(corners_px, bearings, edge_normals(bearings)), outer_u
+
+    def _rejected(self, reason: str) -> None:
+        """Note why a candidate failed (the furthest stage of the frame wins); return None."""
+        if Reject.ORDER.index(reason) >= Reject.ORDER.index(self._reject):
+            self._reject = reason
+        return None
+
+    def _band_homography(self, outer_u: np.ndarray) -> np.ndarray:
+        """Homography (3, 3): band plane (m, origin at the band's outer top-left) -> undist. px."""
+        cfg = self.config
+        w = cfg.window_width_m + 2 * cfg.frame_band_m
+        h = cfg.window_height_m + 2 * cfg.frame_band_m
+        rect = np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]], np.float32)
+        return cv2.getPerspectiveTransform(rect, outer_u.astype(np.float32))
+
+    def _predicted_inner(self, outer_u: np.ndarray) -> np.ndarray:
+        """Aperture quad (4, 2) undistorted px predicted from the outer quad and the proportions.
+
+        The band and the aperture are one planar rectangle pair: the homography of the outer
+        rectangle (``window_*_m + 2 frame_band_m``) onto the outer quad maps the aperture.
+        """
+        cfg = self.config
+        b = cfg.frame_band_m
+        w, h = cfg.window_width_m + b, cfg.window_height_m + b
+        inner = np.array([[[b, b], [w, b], [w, h], [b, h]]], np.float32)
+        return cv2.perspectiveTransform(inner, self._band_homography(outer_u))[0].astype(float)
+
+    def _shape_error(self, camera: CameraModel, outer_u: np.ndarray) -> float:
+        """How far the outer quad is from a perspective view of the band's rectangle.
+
+        With H = K [s r1, s r2, s t] (band plane metres -> undistorted px), K^-1 H's first two
+        columns are orthogonal and of equal norm for a true view: returns the larger of |cos|
+        of their angle and their relative norm difference (0 for an exact view).
+        """
+        cols = np.linalg.solve(camera.K, self._band_homography(outer_u))[:, :2]
+        n1, n2 = np.linalg.norm(cols, axis=0)
+        if min(n1, n2) <= 0.0:
+            return float('inf')
+        return max(abs(float(cols[:, 0] @ cols[:, 1])) / (n1 * n2), abs(n1 / n2 - 1.0))
 
     def _inside_image(self, camera: CameraModel, quad_u: np.ndarray) -> bool:
         """Whether the whole (curved) outline of a quad lies border_margin_px inside."""
@@ -412,74 +518,162 @@ class WindowDetector:
             normals.append(np.repeat(inward[None, :], n, axis=0))
         return np.concatenate(samples), np.concatenate(normals)
 
-    def _fit_sides(self, camera: CameraModel, base: np.ndarray, normal_d: np.ndarray,
-                   pos: np.ndarray, ok: np.ndarray, inward: np.ndarray) -> np.ndarray | None:
-        """Fit the 4 sides' lines to their edge points and intersect them (undistorted px)."""
+    def _side_lines(self, camera: CameraModel, base: np.ndarray, normal_d: np.ndarray,
+                    pos: np.ndarray, ok: np.ndarray, inward: np.ndarray) -> list:
+        """Line of each of the 4 sides through its valid edge points (undistorted px) or None.
+
+        None for a side with fewer than min_edge_inlier_fraction valid points or no line fit.
+        """
         cfg = self.config
         n = cfg.samples_per_side
-        if np.any(ok.reshape(N_CORNERS, n).sum(axis=1) < cfg.min_edge_inlier_fraction * n):
-            return None
         edge_u = np.full((len(ok), 2), np.nan)
-        edge_u[ok] = _undistorted_px(camera, base[ok] + pos[ok, None] * normal_d[ok])
+        if ok.any():
+            edge_u[ok] = _undistorted_px(camera, base[ok] + pos[ok, None] * normal_d[ok])
         lines = []
         for side in range(N_CORNERS):
             sel = slice(side * n, (side + 1) * n)
-            line = self._fit_side(edge_u[sel][ok[sel]], inward[side * n])
-            if line is None:
-                return None
-            lines.append(line)
-        return _intersect_consecutive(lines)
+            enough = ok[sel].sum() >= cfg.min_edge_inlier_fraction * n
+            lines.append(self._fit_side(edge_u[sel][ok[sel]], inward[side * n])
+                         if enough else None)
+        return lines
 
-    def _fit_quad(self, gray: np.ndarray, camera: CameraModel, corners_u: np.ndarray,
-                  half_width: float, polarity: int) -> np.ndarray | None:
-        """Refit the 4 sides of a quad (undistorted px) to the strongest step of ``polarity``.
+    def _fit_lines(self, gray: np.ndarray, camera: CameraModel, corners_u: np.ndarray,
+                   half_width: float, polarity, threshold: float | None,
+                   band_level: np.ndarray | None = None) -> tuple[list, float]:
+        """Refit the 4 side lines of a quad (undistorted px) to the strongest step into the band.
 
-        polarity +1: intensity rises inwards (band -> aperture); -1: falls (wall -> band).
+        ``polarity``: +1 intensity rises inwards (band -> lighter aperture), -1 falls (wall ->
+        band, or band -> darker aperture); one for all sides or one per side (4,).
+        ``threshold``: the least valid step, grey levels; None: from these profiles' contrast
+        (:meth:`_edge_threshold`). ``band_level``: None for the outer edges (the band lies
+        inwards, its level is the profile's darkest); for the aperture edges the band's level
+        per sample (4 samples_per_side,), the band lying outwards.
+        Returns (the 4 lines or None per side, threshold).
         """
         offsets = np.arange(-half_width, half_width + 1e-9, _PROFILE_STEP_PX)
         samples_u, inward = self._quad_samples(corners_u)
         profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
-        grad = polarity * np.diff(profile, axis=1)
-        into_band = _steps_into_band(profile, polarity, 0.5 * self.config.min_edge_contrast)
+        if threshold is None:
+            threshold = self._edge_threshold(profile)
+        sign = np.repeat(np.broadcast_to(np.asarray(polarity, dtype=float), (N_CORNERS,)),
+                         self.config.samples_per_side)
+        grad = sign[:, None] * np.diff(profile, axis=1)
+        if band_level is None:
+            into_band = _steps_into_band(profile, _RISING, profile.min(axis=1), 0.5 * threshold)
+        else:
+            into_band = _steps_into_band(profile, _FALLING, band_level, 0.5 * threshold)
         peak = np.argmax(np.where(into_band, grad, -np.inf), axis=1)
-        pos, ok = self._step_positions(grad, offsets, peak)
+        pos, ok = self._step_positions(grad, offsets, peak, threshold)
         ok &= into_band.any(axis=1)
-        return self._fit_sides(camera, base, normal_d, pos, ok, inward)
+        return self._side_lines(camera, base, normal_d, pos, ok, inward), threshold
 
-    def _find_inner_quad(self, gray: np.ndarray, camera: CameraModel,
-                         outer_u: np.ndarray) -> np.ndarray | None:
-        """Aperture quad: per side, the first dark -> light step inwards of the outer edge."""
+    def _fit_quad(self, gray: np.ndarray, camera: CameraModel, corners_u: np.ndarray,
+                  half_width: float, polarity: int,
+                  threshold: float | None) -> tuple[np.ndarray | None, float]:
+        """Refit a quad's 4 sides (:meth:`_fit_lines`) and intersect them: (quad, threshold)."""
+        lines, threshold = self._fit_lines(gray, camera, corners_u, half_width, polarity,
+                                           threshold)
+        if any(line is None for line in lines):
+            return None, threshold
+        return _intersect_consecutive(lines), threshold
+
+    def _edge_threshold(self, profile: np.ndarray) -> float:
+        """Least valid edge step, grey levels, relative to the band's contrast to the wall.
+
+        ``edge_contrast_fraction`` of the median range (max - min) of the outer-edge profiles
+        (wall to band), at least ``min_edge_contrast``: an underexposed image lowers it.
+        """
         cfg = self.config
+        contrast = float(np.median(profile.max(axis=1) - profile.min(axis=1)))
+        return max(cfg.min_edge_contrast, cfg.edge_contrast_fraction * contrast)
+
+    def _find_inner_quad(self, gray: np.ndarray, camera: CameraModel, outer_u: np.ndarray,
+                         predicted: np.ndarray, threshold: float) -> np.ndarray | None:
+        """Aperture quad (undistorted px): the band's inner edge, brighter or darker beyond.
+
+        Inwards along each sample of the outer sides the band's level is read over
+        ``_BAND_LEVEL_SPAN`` of the band width predicted from the proportions, and the aperture
+        edge is the first step beyond where the profile leaves that level by half the threshold,
+        up or down (one polarity per side, by majority), then refined in a narrow band. The
+        aperture may be lighter or darker than the band. A side with too few points, or whose
+        line lies more than ``max_band_deviation`` band widths off the predicted one (a post or
+        texture beside the band beyond the window), is taken from the prediction, provided the
+        outer quad is a true view of the band's rectangle (``max_shape_error``). Else None.
+        """
+        cfg = self.config
+        n = cfg.samples_per_side
+        outer_lines = [_line_through(outer_u[k], outer_u[(k + 1) % N_CORNERS])
+                       for k in range(N_CORNERS)]
+        pred_lines = [_line_through(predicted[k], predicted[(k + 1) % N_CORNERS])
+                      for k in range(N_CORNERS)]
+        mid = 0.5 * (predicted + np.roll(predicted, -1, axis=0))
+        band = np.array([abs(float(line @ np.append(m, 1.0)))
+                         for line, m in zip(outer_lines, mid)])
         sides = np.linalg.norm(outer_u - np.roll(outer_u, -1, axis=0), axis=1)
-        depth = cfg.max_band_fraction * float(sides.min())
-        offsets = np.arange(0.0, depth + 1e-9, _PROFILE_STEP_PX)
-        first = int(round(_BAND_PROBE_PX / _PROFILE_STEP_PX))
-        if len(offsets) < first + 2 * _CENTROID_HALF_WIDTH:
+        if not np.all(np.isfinite(band)) or band.min() < 2 * _BAND_PROBE_PX \
+                or band.max() > cfg.max_band_fraction * float(sides.min()):
             return None
+        offsets = np.arange(0.0, band.max() * (1.0 + cfg.max_band_deviation) + _BAND_REACH_PX
+                            + 1e-9, _PROFILE_STEP_PX)
         samples_u, inward = self._quad_samples(outer_u)
         profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
-        dark = profile[:, first:first + _CENTROID_HALF_WIDTH].mean(axis=1)
-        above = profile > (dark + 0.5 * cfg.min_edge_contrast)[:, None]
-        above[:, :first] = False
-        crossing = np.argmax(above, axis=1) - 1
-        grad = np.diff(profile, axis=1)
-        pos, ok = self._step_positions(grad, offsets, crossing)
-        ok &= above.any(axis=1)
-        return self._fit_sides(camera, base, normal_d, pos, ok, inward)
+        level, crossing, sign = _band_departure(profile, offsets, np.repeat(band, n),
+                                                0.5 * threshold, cfg.max_band_deviation)
+        side_sign = np.sign(sign.reshape(N_CORNERS, n).sum(axis=1))
+        side_sign[side_sign == 0] = _RISING
+        grad = np.repeat(side_sign, n)[:, None] * np.diff(profile, axis=1)
+        hi = np.clip(crossing + 2 * _CENTROID_HALF_WIDTH, 0, grad.shape[1] - 1)
+        window = np.clip(crossing[:, None] - 1 + np.arange(2 * _CENTROID_HALF_WIDTH + 2)[None, :],
+                         0, hi[:, None])
+        peak = np.take_along_axis(window, np.argmax(np.take_along_axis(grad, window, axis=1),
+                                                    axis=1)[:, None], axis=1)[:, 0]
+        pos, ok = self._step_positions(grad, offsets, peak, threshold)
+        ok &= (sign == np.repeat(side_sign, n)) & (crossing > 0)
+        lines = self._side_lines(camera, base, normal_d, pos, ok, inward)
+        lines = [_near_or_none(line, pred, p, dev)
+                 for line, pred, p, dev in zip(lines, pred_lines, _sides(predicted),
+                                               cfg.max_band_deviation * band)]
+        if any(line is None for line in lines) \
+                and self._shape_error(camera, outer_u) > cfg.max_shape_error:
+            return None
+        first = _intersect_consecutive([p if m is None else m
+                                        for m, p in zip(lines, pred_lines)])
+        if first is None:
+            return None
+        refined, _ = self._fit_lines(gray, camera, first, cfg.refine_half_width_px, side_sign,
+                                     threshold, band_level=level)
+        final = []
+        for line, again, pred, p, dev in zip(lines, refined, pred_lines, _sides(predicted),
+                                             cfg.max_band_deviation * band):
+            again = None if line is None else _near_or_none(again, pred, p, dev)
+            final.append(pred if line is None else (line if again is None else again))
+        return _intersect_consecutive(final)
 
-    def _step_positions(self, grad: np.ndarray, offsets: np.ndarray,
-                        peak: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _step_positions(self, grad: np.ndarray, offsets: np.ndarray, peak: np.ndarray,
+                        threshold: float) -> tuple[np.ndarray, np.ndarray]:
         """Sub-pixel step offsets: centroid of the positive gradient around ``peak``.
 
-        Gradient sample j sits between profile samples j and j+1. Returns (offset, valid).
+        Gradient sample j sits between profile samples j and j+1. The centroid window is
+        +-_CENTROID_HALF_WIDTH steps, widened while the gradient stays above
+        _EDGE_RUN_FRACTION of the peak's (a motion-blurred edge is a ramp several px long:
+        its whole ramp is weighed, not its start). Valid: the summed step >= ``threshold``.
+        Returns (offset, valid).
         """
-        window = np.arange(-_CENTROID_HALF_WIDTH, _CENTROID_HALF_WIDTH + 1)
-        idx = np.clip(peak[:, None] + window[None, :], 0, grad.shape[1] - 1)
-        g = np.clip(np.take_along_axis(grad, idx, axis=1), 0.0, None)
+        half = _MAX_EDGE_HALF_WIDTH
+        window = np.arange(-half, half + 1)
+        raw = peak[:, None] + window[None, :]
+        idx = np.clip(raw, 0, grad.shape[1] - 1)
+        g = np.where((raw >= 0) & (raw < grad.shape[1]),
+                     np.clip(np.take_along_axis(grad, idx, axis=1), 0.0, None), 0.0)
+        run = g >= _EDGE_RUN_FRACTION * g[:, half:half + 1]
+        right = np.cumprod(run[:, half:], axis=1)
+        left = np.cumprod(run[:, half::-1], axis=1)[:, :0:-1]
+        use = np.concatenate([left, right], axis=1).astype(bool) \
+            | (np.abs(window) <= _CENTROID_HALF_WIDTH)[None, :]
+        g = g * use
         step = g.sum(axis=1)
         pos = (g * (offsets[idx] + 0.5 * _PROFILE_STEP_PX)).sum(axis=1) / np.maximum(step, 1e-9)
-        ok = (step >= self.config.min_edge_contrast) & (peak > 0) \
-            & (peak < grad.shape[1] - 1)
+        ok = (step >= threshold) & (peak > 0) & (peak < grad.shape[1] - 1)
         return pos, ok
 
     def _fit_side(self, edge_u: np.ndarray, inward: np.ndarray) -> np.ndarray | None:
@@ -492,23 +686,83 @@ class WindowDetector:
         return line if np.dot(line[:2], inward) >= 0.0 else -line
 
 
-def _steps_into_band(profile: np.ndarray, polarity: int, margin: float) -> np.ndarray:
+def _steps_into_band(profile: np.ndarray, band_side: int, level: np.ndarray,
+                     margin: float) -> np.ndarray:
     """Mask (n, m - 1) of the steps between profile samples j, j+1 that lead into the band.
 
-    The dark side of a step is inwards (samples j+1 ...) for a falling step, outwards
-    (... j) for a rising one. It leads into the band when the darkest sample within
-    ``_BAND_REACH_PX`` on that side is within ``margin`` grey levels of the profile's darkest.
+    ``band_side`` +1: the band lies inwards of the step (samples j+1 ...), -1: outwards
+    (... j). The step leads into the band when a sample within ``_BAND_REACH_PX`` on that side
+    is within ``margin`` grey levels of the band's ``level`` (n,).
     """
     reach = max(1, int(round(_BAND_REACH_PX / _PROFILE_STEP_PX)))
     n, m = profile.shape
-    padded = np.pad(profile, ((0, 0), (reach, reach)), mode='edge')
+    dev = np.abs(profile - np.asarray(level, dtype=float).reshape(-1, 1))
+    padded = np.pad(dev, ((0, 0), (reach, reach)), mode='edge')
     windows = np.lib.stride_tricks.sliding_window_view(padded, reach, axis=1)
     # windows[:, i] covers profile samples i - reach ... i - 1
-    if polarity == _FALLING:
+    if band_side == _RISING:
         side_min = windows[:, reach + 1:reach + m].min(axis=2)     # samples j+1 ... j+reach
     else:
         side_min = windows[:, 1:m].min(axis=2)                      # samples j-reach+1 ... j
-    return side_min <= profile.min(axis=1, keepdims=True) + margin
+    return side_min <= margin
+
+
+def _band_departure(profile: np.ndarray, offsets: np.ndarray, band_px: np.ndarray,
+                    margin: float, deviation: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Band level and the first departure from it, on profiles inwards from the outer edge.
+
+    ``band_px`` (n,): the predicted band width per profile, px. The level is the median over
+    ``_BAND_LEVEL_SPAN`` of it (at least from ``_BAND_PROBE_PX``); the departure is the first
+    sample beyond both that span and ``(1 - deviation) band_px`` that differs from the level by
+    more than ``margin``. Returns (level (n,), its index (n,), 0 where none, sign (n,) of the
+    difference, +1 lighter beyond, -1 darker, 0 none).
+    """
+    lo = np.maximum(_BAND_PROBE_PX, _BAND_LEVEL_SPAN[0] * band_px)
+    hi = np.maximum(lo + 2 * _PROFILE_STEP_PX, _BAND_LEVEL_SPAN[1] * band_px)
+    span = (offsets[None, :] >= lo[:, None]) & (offsets[None, :] <= hi[:, None])
+    level = np.nanmedian(np.where(span, profile, np.nan), axis=1)
+    beyond = offsets[None, :] > np.maximum(hi, (1.0 - deviation) * band_px)[:, None]
+    diff = profile - level[:, None]
+    away = beyond & (np.abs(diff) > margin)
+    crossing = np.where(away.any(axis=1), np.argmax(away, axis=1), 0)
+    sign = np.where(crossing > 0, np.sign(diff[np.arange(len(diff)), crossing]), 0.0)
+    return level, crossing, sign
+
+
+def _dark_mask(small: np.ndarray, block: int, fraction: float, floor: float) -> np.ndarray:
+    """Mask (_DARK / 0) of the pixels darker than their block's mean by a relative offset.
+
+    The offset is ``fraction`` of the local contrast (max - min over the ``block`` x ``block``
+    window), at least ``floor`` grey levels: it follows the exposure (gain) instead of a fixed
+    grey level, and the band stays dark beside a bright aperture or a dark one.
+    """
+    mean = cv2.blur(small.astype(np.float32), (block, block), borderType=cv2.BORDER_REPLICATE)
+    kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (block, block))
+    contrast = cv2.subtract(cv2.dilate(small, kernel), cv2.erode(small, kernel))
+    offset = np.maximum(fraction * contrast.astype(np.float32), floor)
+    return np.where(small <= mean - offset, _DARK, 0).astype(np.uint8)
+
+
+def _line_through(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Line (nx, ny, c) through two points, |n| = 1 (nan for coincident points)."""
+    line = np.cross(np.append(a, 1.0), np.append(b, 1.0))
+    with np.errstate(invalid='ignore', divide='ignore'):
+        return line / np.linalg.norm(line[:2])
+
+
+def _sides(quad: np.ndarray) -> list[np.ndarray]:
+    """End points (2, 2) of the 4 sides of a quad: side i joins corner i and i+1."""
+    return [np.array([quad[k], quad[(k + 1) % N_CORNERS]]) for k in range(N_CORNERS)]
+
+
+def _near_or_none(line: np.ndarray | None, reference: np.ndarray, ends: np.ndarray,
+                  tolerance: float) -> np.ndarray | None:
+    """``line`` if both ``ends`` of the reference side lie within ``tolerance`` px of it."""
+    if line is None or not np.all(np.isfinite(reference)):
+        return line
+    distance = np.abs(ends @ line[:2] + line[2]) / max(np.linalg.norm(line[:2]), 1e-12)
+    return line if float(distance.max()) <= tolerance else None
 
 
 def _children_area(contours, hierarchy, child: int) -> float:
@@ -539,10 +793,15 @@ def _profiles(gray: np.ndarray, camera: CameraModel, samples_u: np.ndarray,
     probe = _distort_px(camera, samples_u + _NORMAL_PROBE_PX * inward_u)
     normal_d = probe - base
     normal_d /= np.linalg.norm(normal_d, axis=1, keepdims=True)
-    grid = base[:, None, :] + offsets[None, :, None] * normal_d[:, None, :]
-    profile = cv2.remap(gray, grid[..., 0].astype(np.float32), grid[..., 1].astype(np.float32),
-                        cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    return profile.astype(float), base, normal_d
+    tangent = np.column_stack([-normal_d[:, 1], normal_d[:, 0]])
+    along = np.asarray(_TANGENT_OFFSETS_PX)
+    grid = (base[:, None, None, :] + offsets[None, None, :, None] * normal_d[:, None, None, :]
+            + along[None, :, None, None] * tangent[:, None, None, :])
+    n, m = len(base), len(offsets)
+    grid = grid.reshape(n * len(along), m, 2).astype(np.float32)
+    profile = cv2.remap(gray, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_REPLICATE)
+    return profile.reshape(n, len(along), m).astype(float).mean(axis=1), base, normal_d
 
 
 def _undistorted_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:

@@ -1,0 +1,170 @@
+"""Window detector (issue 15 items 2, 3) on degraded renders of the project's own scene.
+
+Frames: ``ibvs_sim.core.render.SceneRenderer`` at random approach poses, with the scenes and
+image degradations of ``benchmarks/bench_window_robustness.py`` (imported from there, so that
+the tests and the documented table use the same frames): a dim room beyond the window (as
+dark as the band), a bright object across one side of the aperture, dark and light posts
+beyond the aperture, a high-contrast light-mortar brick wall, noise, motion blur, gain 0.3.
+"""
+import importlib.util
+from pathlib import Path
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from ibvs_common.core.camera import CameraModel
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_perception.core.window import (Reject, WindowDetector, WindowDetectorConfig,
+                                         WindowStatus)
+from ibvs_sim.core.render import SceneRenderer
+from ibvs_sim.core.world import load_world
+
+BENCH = Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_window_robustness.py'
+N_POSES = 15
+WRONG_PX = 2.0
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location('bench_window_robustness', BENCH)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+bench = _bench()
+
+
+@pytest.fixture(scope='module')
+def scene():
+    world, cam = load_world(), load_vehicle().cameras['front']
+    base = SceneRenderer(world, load_pad_layout(), cam)
+    poses = bench.random_poses(world, cam, N_POSES, np.random.default_rng(3))
+    return world, cam, base, poses
+
+
+def fresh_results(scene, name, kind=None, value=0.0, seed=0):
+    """(found, wrong, corner errors px) of a fresh detector per pose, one scene/degradation."""
+    world, cam, base, poses = scene
+    renderer, rng = bench.make_scene(base, name), np.random.default_rng(seed)
+    found, wrong, errors = 0, 0, []
+    for R_IB, xi in poses:
+        img = bench.degrade(renderer.render(R_IB, xi), kind, value, rng)
+        result = WindowDetector(WindowDetectorConfig()).process(img, cam.model)
+        if result.status != WindowStatus.DETECTED:
+            assert result.reason in Reject.ORDER, result.reason
+            continue
+        found += 1
+        err = np.linalg.norm(result.detection.corners_px
+                             - bench.true_corners_px(world, cam, R_IB, xi), axis=1)
+        wrong += bool(err.max() > WRONG_PX)
+        errors.extend(err)
+    return found, wrong, np.array(errors)
+
+
+def test_dark_aperture_dim_room_is_found(scene):
+    """Beyond the window as dark as the band: no inner edge; the band's proportions give it.
+
+    Before: 0 of 60 (bench). The aperture corners come from the outer edges and the known band
+    rectangle (a homography), checked to be a true view of it.
+    """
+    found, wrong, errors = fresh_results(scene, 'dim room')
+    assert found == N_POSES and wrong == 0
+    assert np.median(errors) <= 0.2
+
+
+def test_bright_object_across_one_side_of_the_aperture(scene):
+    found, wrong, errors = fresh_results(scene, 'bright side')
+    assert found >= N_POSES - 2 and wrong <= 1
+    assert np.median(errors) <= 0.3
+
+
+def test_partly_occluded_aperture_posts_beyond(scene):
+    """Dark and light posts across the aperture: a post beside the band is not its edge.
+
+    Before: 14 of 60 detections had a corner off by up to 21 px (the inner edge taken at the
+    far side of a dark post). A measured side that is off its predicted line is replaced.
+    """
+    found, wrong, errors = fresh_results(scene, 'occluded')
+    assert found == N_POSES and wrong == 0
+    assert np.median(errors) <= 0.3
+
+
+def test_underexposed_gain_0_3(scene):
+    """Gain 0.3 (band 5, wall ~30 grey levels): thresholds follow the contrast. Before: 0 %."""
+    found, wrong, errors = fresh_results(scene, 'sim', 'gain', 0.3)
+    assert found == N_POSES and wrong == 0
+    assert np.median(errors) <= 0.3
+
+
+@pytest.mark.parametrize('sigma', [10.0, 15.0])
+def test_noise_fresh_detection(scene, sigma):
+    """Before: 85 % at sigma 10 and 8 % at 15 (bench, 60 poses)."""
+    found, wrong, errors = fresh_results(scene, 'sim', 'noise', sigma, seed=int(sigma))
+    assert found >= N_POSES - 1 and wrong == 0
+    assert np.median(errors) <= 0.3
+
+
+def test_light_mortar_brick_wall_no_wrong_window(scene):
+    """High-contrast light-mortar bricks: no wrong corners on a tracked approach.
+
+    Not solved: the fresh search still misses ~40 % (bench; the band merges with dark bricks
+    in the contour search). On this 30-frame approach 19 frames were found before, 21 after;
+    the guard is that none is wrong and the rate does not fall back.
+    """
+    world, cam, base, _ = scene
+    renderer = bench.make_scene(base, 'brick')
+    detector, found, poses = WindowDetector(WindowDetectorConfig()), 0, \
+        bench.approach(world, cam, 30)
+    for R_IB, xi in poses:
+        result = detector.process(renderer.render(R_IB, xi), cam.model)
+        if result.detection is not None:
+            found += 1
+            err = np.linalg.norm(result.detection.corners_px
+                                 - bench.true_corners_px(world, cam, R_IB, xi), axis=1)
+            assert err.max() <= WRONG_PX
+    assert found >= 0.65 * len(poses)
+
+
+@pytest.mark.parametrize('kind, value', [('noise', 15.0), ('blur', 8.0)])
+def test_tracking_is_kept_under_noise_and_motion_blur(scene, kind, value):
+    """One detector along an approach: a bad frame is rejected, the track is kept.
+
+    Before: 8 % (sigma 15) and 80 % (blur 8) of the approach frames. A frame the fast path
+    cannot refine keeps the tracked outline for the next (until reacquire_after_frames).
+    """
+    world, cam, base, _ = scene
+    rng, detector = np.random.default_rng(5), WindowDetector(WindowDetectorConfig())
+    poses = bench.approach(world, cam, 30)
+    statuses = [detector.process(bench.degrade(base.render(R_IB, xi), kind, value, rng),
+                                 cam.model).status for R_IB, xi in poses]
+    assert statuses.count(WindowStatus.DETECTED) >= 0.9 * len(poses)
+
+
+def _flat_camera() -> CameraModel:
+    return CameraModel.from_camera_info(752, 480, [366.667, 0, 375.5, 0, 366.667, 239.5, 0, 0,
+                                                   1], [0.0] * 5, 'plumb_bob')
+
+
+def test_a_filled_dark_quad_is_not_a_window():
+    """No aperture edge and not a view of the band's rectangle: rejected with a reason.
+
+    A dark square on a lighter wall is a ring to the contour search (its flat inside is not
+    darker than its own mean), but its inner edge is absent and a square is no perspective
+    view of the 1.36 x 1.16 band rectangle, so the proportions may not stand in for it.
+    """
+    img = np.full((480, 752), 140, np.uint8)
+    cv2.rectangle(img, (226, 90), (526, 390), 20, -1)
+    result = WindowDetector(WindowDetectorConfig()).process(img, _flat_camera())
+    assert result.status == WindowStatus.NOT_FOUND and result.reason == Reject.INNER_EDGES
+
+
+@pytest.mark.parametrize('fill', ['zeros', 'white', 'noise'])
+def test_featureless_or_random_frames_give_a_reason_and_no_window(fill):
+    img = {'zeros': np.zeros((480, 752), np.uint8),
+           'white': np.full((480, 752), 255, np.uint8),
+           'noise': np.random.default_rng(0).integers(0, 256, (480, 752)).astype(np.uint8)}[fill]
+    result = WindowDetector(WindowDetectorConfig()).process(img, _flat_camera())
+    assert result.detection is None and result.reason in Reject.ORDER
