@@ -23,7 +23,7 @@ def pad_groups(xi, names=('A', 'B')):
         [g.name for g in groups]
 
 
-def feed(sup, t, xi, v, window=True, pad=None, imu=True):
+def feed(sup, t, xi, v, window=True, pad=None, imu=True, down=True):
     if imu:
         sup.on_imu(t, R)
     sup.on_window(t, bearings(CORNERS, xi) if window else None)
@@ -31,7 +31,8 @@ def feed(sup, t, xi, v, window=True, pad=None, imu=True):
         sup.on_pad(t, *pad)
     if xi[0] < WORLD.wall_x:
         sup.on_flow(t, 'front', v / (WORLD.wall_x - xi[0]))
-    sup.on_flow(t, 'down', v / -xi[2])
+    if down:
+        sup.on_flow(t, 'down', v / -xi[2])
     return sup.update(t)
 
 
@@ -96,6 +97,28 @@ def test_whole_sequence_with_crossing_length_from_images():
     assert sup.mode == Mode.SHUTDOWN and abs(-xi[2] - 0.14) < 0.01
     assert [tr.to_mode for tr in sup.transitions] == [Mode.WINDOW, Mode.CROSSING,
                                                       Mode.LANDING, Mode.SHUTDOWN]
+
+
+def test_the_crossing_length_waits_for_the_first_floor_flow_of_crossing():
+    # mode gating: the floor flow is computed only from the switch on; the first one of
+    # CROSSING (stamped T2) gives d_t(T2), and the switch to LANDING comes d_o + margin
+    # after T2 as when the floor flow was there all along (the fallback would be 1.6 m)
+    sup = started()
+    v = np.array([0.25, 0.0, 0.0])
+    xi = np.array([-1.5, 0.0, -1.6])
+    t = 0.0
+    while sup.mode == Mode.WINDOW:
+        t += 0.02
+        xi = xi + v * 0.02
+        feed(sup, t, xi, v, window=xi[0] < -1.2, down=False)
+    t_cross = t
+    while sup.mode == Mode.CROSSING:
+        t += 0.02
+        xi = xi + v * 0.02
+        feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
+    travelled = v[0] * (t - t_cross)
+    assert sup.mode == Mode.LANDING
+    assert abs(travelled - (0.7 + sup.config.crossing_margin_m)) < 0.03
 
 
 def test_landing_switch_happens_only_once_and_stale_flow_is_failsafe():

@@ -5,10 +5,11 @@ import pytest
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_common.core.frames import GRAVITY
+from ibvs_common.core.modes import Mode
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.dynamics import WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, EventType, FirstFrameHold, GraphProducts,
-                                    Pacing, SimConfig, Simulation)
+                                    Pacing, SimConfig, Simulation, STATUS_TOPIC)
 
 
 class FakeAutopilot:
@@ -340,3 +341,42 @@ def test_a_free_running_collision_is_kept_as_an_event(configs):
         if sim.ended:
             break
     assert sim.ended and [e.type for e in sim.events] == [EventType.COLLISION]
+
+
+def test_lockstep_waits_for_the_frame_status_and_only_the_products_its_mode_uses():
+    """Mode gating: a perception node computes its product only in the modes that use it.
+
+    The harness waits for the supervisor's status of the frame, then for the products of the
+    frame's mode; before any status, for all (the nodes compute all). A status that does not
+    come (a dead supervisor) is given up with what its mode would have needed.
+    """
+    used_in = {'window/corners': {Mode.IDLE, Mode.WINDOW},
+               'down_camera/translational_flow': {Mode.CROSSING, Mode.LANDING}}
+    products = GraphProducts({'window/corners': 'front',
+                              'down_camera/translational_flow': 'down'}, used_in=used_in)
+    live = {'window/corners': 1, 'down_camera/translational_flow': 1, STATUS_TOPIC: 1}
+    both = ['front', 'down']
+    products.expect(0, both, live)
+    assert products.missing() == [STATUS_TOPIC]
+    products.note_status(0, Mode.WINDOW)
+    assert products.missing() == ['window/corners']           # the floor flow is not made
+    products.note('window/corners', 0)
+    assert products.missing() == []
+    # the switch to CROSSING at 20 ms: the floor flow of that frame is made, not the window
+    products.expect(20_000_000, both, live)
+    products.note_status(20_000_000, Mode.CROSSING)
+    assert products.missing() == ['down_camera/translational_flow']
+    products.note('down_camera/translational_flow', 20_000_000)
+    assert products.missing() == []
+    # no status at all (no supervisor publishing): every product, as the nodes make them all
+    fresh = GraphProducts({'window/corners': 'front'}, used_in=used_in)
+    fresh.expect(0, both, {'window/corners': 1, STATUS_TOPIC: 0})
+    assert fresh.missing() == ['window/corners']
+    # the supervisor dies: the status and the products its last mode uses are given up
+    products.expect(40_000_000, both, live)
+    assert products.give_up() == [STATUS_TOPIC, 'down_camera/translational_flow']
+    products.expect(60_000_000, both, live)
+    assert products.missing() == []
+    products.note_status(60_000_000, Mode.CROSSING)       # it comes back: waited for again
+    products.expect(80_000_000, both, live)
+    assert products.missing() == [STATUS_TOPIC]

@@ -39,7 +39,9 @@ from std_msgs.msg import Float32
 from ibvs_perception.core.derotation import GyroDerotation
 from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, PARAMETER_SPECS,
                                        wall_normal_from_corners)
+from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_guard import FrozenCameraGuard
+from ibvs_perception.mode_gating import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_common.node_common import IMAGE_QOS
@@ -88,6 +90,9 @@ class OpticalFlowNode(Node):
             raise
         self.flow_config = FlowConfig(**flow_values)   # ValueError: what a range cannot check
         self.frozen = FrozenCameraGuard(self, self.camera_name, 'optical_flow')
+        self.gated = GatedImages(
+            self, InputKind.FLOW_FRONT if self.camera_name == FRONT else InputKind.FLOW_DOWN,
+            self.process, f'{self.camera_name}_optical_flow')
         self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
         self.derotation = GyroDerotation(self.attitudes)
         self.estimator: FlowEstimator | None = None
@@ -105,7 +110,7 @@ class OpticalFlowNode(Node):
                                      qos_profile_sensor_data)
         self.create_subscription(CameraInfo, f'{prefix}/camera_info', self.on_info,
                                  qos_profile_sensor_data)
-        self.create_subscription(Image, f'{prefix}/image_raw', self.process,
+        self.create_subscription(Image, f'{prefix}/image_raw', self.gated.on_image,
                                  IMAGE_QOS)
 
     def on_info(self, msg: CameraInfo) -> None:
@@ -125,7 +130,8 @@ class OpticalFlowNode(Node):
         older = [m for m in self.window_msgs if stamp_to_s(m.header.stamp) < stamp]
         return max(older, key=lambda m: stamp_to_s(m.header.stamp)) if older else None
 
-    def process(self, msg: Image) -> None:
+    def process(self, msg: Image, publish: bool = True) -> None:
+        """Track into one image and publish its flow (a mode-gating primer: track only)."""
         try:
             camera = camera_from_info(self.camera_info, msg)
             gray = mono8_from_image(msg)
@@ -145,6 +151,8 @@ class OpticalFlowNode(Node):
             self.log.warning('optical_flow: no IMU attitude at the image stamp', THROTTLE_S)
         eta_I, exclude_I = self.plane(stamp)
         result = self.estimator.process(gray, stamp, R_IB, eta_I, exclude_I)
+        if not publish:
+            return
         if result is not None:
             self.pub_quality.publish(Float32(data=float(result.inlier_ratio)))
         valid = result is not None and result.phi_I is not None

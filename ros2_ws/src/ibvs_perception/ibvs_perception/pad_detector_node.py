@@ -20,7 +20,9 @@ from std_msgs.msg import String
 
 from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
                                       PARAMETER_SPECS)
+from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_guard import FrozenCameraGuard
+from ibvs_perception.mode_gating import GatedImages
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
 from ibvs_common.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
@@ -53,18 +55,22 @@ class PadDetectorNode(Node):
             self.get_logger().fatal(f'pad_detector: cannot load the pad layout: {exc}')
             raise
         self.frozen = FrozenCameraGuard(self, 'down', 'pad_detector')
+        self.gated = GatedImages(self, InputKind.PAD, self.process, 'pad_detector')
         self.camera_info: CameraInfo | None = None
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
         self.pub_groups = self.create_publisher(String, 'pad/groups', 10)
         self.create_subscription(CameraInfo, 'down_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
-        self.create_subscription(Image, 'down_camera/image_raw', self.on_image,
+        self.create_subscription(Image, 'down_camera/image_raw', self.gated.on_image,
                                  IMAGE_QOS)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg
 
-    def on_image(self, msg: Image) -> None:
+    def process(self, msg: Image, publish: bool = True) -> None:
+        """Detect the pad in one image and publish (a mode-gating primer: nothing to do)."""
+        if not publish:
+            return
         bearings, names = None, ()
         try:
             gray = mono8_from_image(msg)

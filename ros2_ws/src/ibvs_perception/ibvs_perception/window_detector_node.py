@@ -25,7 +25,9 @@ from geometry_msgs.msg import PolygonStamped
 from sensor_msgs.msg import CameraInfo, Image, Imu
 
 from ibvs_perception.core.window import PARAMETER_SPECS, WindowDetector, WindowDetectorConfig
+from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_guard import FrozenCameraGuard
+from ibvs_perception.mode_gating import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       polygon_from_vectors, stamp_to_s)
 from ibvs_common.core.config import ConfigError, load_vehicle
@@ -70,6 +72,7 @@ class WindowDetectorNode(Node):
         self.R_IC_prev: np.ndarray | None = None    # camera attitude at the previous image
         self.detector = WindowDetector(WindowDetectorConfig(**values))
         self.frozen = FrozenCameraGuard(self, 'front', 'window_detector')
+        self.gated = GatedImages(self, InputKind.WINDOW, self.process, 'window_detector')
         self.camera_info: CameraInfo | None = None
         self.pub_corners = self.create_publisher(PolygonStamped, 'window/corners', 10)
         self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)
@@ -79,7 +82,7 @@ class WindowDetectorNode(Node):
         self.create_subscription(Imu, 'imu/data', self.on_imu, qos_profile_sensor_data)
         self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
-        self.create_subscription(Image, 'front_camera/image_raw', self.on_image,
+        self.create_subscription(Image, 'front_camera/image_raw', self.gated.on_image,
                                  IMAGE_QOS)
 
     def on_info(self, msg: CameraInfo) -> None:
@@ -99,7 +102,10 @@ class WindowDetectorNode(Node):
         self.R_IC_prev = R_IC
         return rotation
 
-    def on_image(self, msg: Image) -> None:
+    def process(self, msg: Image, publish: bool = True) -> None:
+        """Detect the window in one image and publish (a mode-gating primer: nothing to do)."""
+        if not publish:
+            return
         corners = normals = gray = detection = None
         try:
             gray = mono8_from_image(msg)

@@ -15,8 +15,9 @@ once ``imu/data`` (the bridge's, from this autopilot's telemetry) has reached th
 time, as a camera-IMU synchronised vehicle delivers them, so that the graph's attitude at the
 stamp is the same in every run (:class:`~ibvs_sim.core.sim_core.ImuBeforeImages`); then the
 next 20 ms are simulated only after the graph answered the frame and published all its
-products (:class:`~ibvs_sim.core.sim_core.GraphProducts`: the detections and flows of the
-cameras that went out, including those the mode does not wait for). Both waits end after
+products (:class:`~ibvs_sim.core.sim_core.GraphProducts`: the supervisor's status of the
+frame, then the detections and flows of the cameras that went out that the frame's mode
+uses, including those it does not wait for). Both waits end after
 ``lockstep_timeout_s`` of wall clock (a dead node). The flight path has no wait of its own.
 """
 from __future__ import annotations
@@ -51,7 +52,9 @@ from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
                                     GraphProducts, ImuBeforeImages, NS_PER_S, Pacing, SimConfig,
-                                    Simulation)
+                                    Simulation, STATUS_TOPIC)
+from ibvs_common.core.modes import InputKind, modes_using
+from ibvs_common.node_common import mode_from_status
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 
@@ -78,6 +81,11 @@ GRAPH_PRODUCTS = {'window/corners': (PolygonStamped, 'front'),
                   'pad/groups': (String, 'down'),
                   'down_camera/translational_flow': (Vector3Stamped, 'down')}
 UNSTAMPED_PARTNERS = {'pad/groups': 'pad/landmarks'}
+# the product behind each topic: its node computes it only in the modes that use it
+PRODUCT_KINDS = {'window/corners': InputKind.WINDOW,
+                 'front_camera/translational_flow': InputKind.FLOW_FRONT,
+                 'pad/landmarks': InputKind.PAD, 'pad/groups': InputKind.PAD,
+                 'down_camera/translational_flow': InputKind.FLOW_DOWN}
 PARAMETERS = {
     'pacing': Pacing.LOCKSTEP.value,
     'lockstep_timeout_s': 5.0,
@@ -259,7 +267,8 @@ class SimNode(Node):
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
         products = GraphProducts({t: cam for t, (_, cam) in GRAPH_PRODUCTS.items()},
-                                 UNSTAMPED_PARTNERS)
+                                 UNSTAMPED_PARTNERS,
+                                 {t: modes_using(k) for t, k in PRODUCT_KINDS.items()})
         sim_config = SimConfig(
             pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
             real_time_factor=cfg.real_time_factor,
@@ -295,6 +304,7 @@ class SimNode(Node):
             for topic, (msg_type, _) in GRAPH_PRODUCTS.items():
                 self.create_subscription(msg_type, topic, self._product_callback(topic),
                                          qos_profile_sensor_data)
+            self.create_subscription(DiagnosticArray, STATUS_TOPIC, self._on_status, reliable)
         min_counts = {n: cfg.min_image_subscribers for n in self.image_pubs}
         self.first_frame_hold = FirstFrameHold(
             min_counts, SUBSCRIBER_SETTLE_S, cfg.subscriber_wait_timeout_s, time.monotonic(),
@@ -373,6 +383,11 @@ class SimNode(Node):
 
     def _on_imu(self, msg: Imu) -> None:
         self.imu_hold.note_imu(msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec)
+
+    def _on_status(self, msg: DiagnosticArray) -> None:
+        stamp_ns, mode, err = mode_from_status(msg)
+        if not err:
+            self.sim.products.note_status(stamp_ns, mode)
 
     def _product_callback(self, topic: str):
         def note(msg) -> None:
@@ -492,7 +507,8 @@ class SimNode(Node):
         if self.imu_hold.enabled:
             cameras = list(images)
             self.sim.products.expect(out.t_ns, cameras,
-                                     {t: self.count_publishers(t) for t in GRAPH_PRODUCTS})
+                                     {t: self.count_publishers(t)
+                                      for t in (*GRAPH_PRODUCTS, STATUS_TOPIC)})
 
     def _publish_event(self, event) -> None:
         self._events_published += 1

@@ -5,7 +5,9 @@ every frame it evaluates (``ibvs/supervisor_status``), the supervisor and the co
 for the products a mode *needs* (docs/design.md, "Time"), and each perception node computes
 its product only for the frames of a mode that *uses* it (docs/interfaces.md, "Mode gating").
 A mode uses what it needs, plus the products it takes as cues without waiting for them (the
-pad seen in CROSSING is the cue for LANDING).
+pad seen in CROSSING is the cue for LANDING), plus its frame clock: the supervisor opens a
+frame when a product of the mode's camera arrives, so SHUTDOWN and FAILSAFE, which need
+nothing, are clocked by the floor flow and still evaluate, and answer, every frame.
 """
 from __future__ import annotations
 
@@ -53,7 +55,7 @@ class ModeInputs:
 
     camera: Camera
     needed: frozenset
-    cues: frozenset = frozenset()     # used when present, never waited for
+    cues: frozenset = frozenset()     # used when present (or as the frame clock), not waited for
 
     @property
     def used(self) -> frozenset:
@@ -67,8 +69,9 @@ MODE_INPUTS = {
     Mode.CROSSING: ModeInputs(Camera.DOWN, frozenset({InputKind.FLOW_DOWN}),
                               frozenset({InputKind.PAD})),
     Mode.LANDING: ModeInputs(Camera.DOWN, frozenset({InputKind.PAD, InputKind.FLOW_DOWN})),
-    Mode.SHUTDOWN: ModeInputs(Camera.DOWN, frozenset()),
-    Mode.FAILSAFE: ModeInputs(Camera.DOWN, frozenset()),
+    # no product needed; the floor flow clocks their frames
+    Mode.SHUTDOWN: ModeInputs(Camera.DOWN, frozenset(), frozenset({InputKind.FLOW_DOWN})),
+    Mode.FAILSAFE: ModeInputs(Camera.DOWN, frozenset(), frozenset({InputKind.FLOW_DOWN})),
 }
 
 

@@ -11,7 +11,9 @@ Transitions and their image cues (no position or velocity estimate is used):
           crossed by ``crossing_margin_m``. The crossing length is measured from images only:
           d_o(T2) from the last corners and the known width r_w, the height d_t(T2) from the
           ratio of the wall and floor flows (same v: d_t = d_o |phi_w| / |phi_t|), then the
-          travel d_t * integral(eta_w^T phi_t dt).
+          travel d_t * integral(eta_w^T phi_t dt). phi_w is the last wall flow of WINDOW,
+          phi_t the first floor flow of CROSSING (stamped T2 when it is valid: the floor flow
+          is computed only from the switch on, docs/interfaces.md "Mode gating").
 - 3 -> 4  the height estimated from the smallest complete pad group (known size c) is below
           ``shutdown_height_m`` (SPEC: an image criterion, -eta_t^T q_t of that group).
 - any flying mode -> 5 (failsafe) when an input it needs is stale (timeouts), on ``abort``,
@@ -139,8 +141,8 @@ class ModeSupervisor:
         self._window_close = False
         self._eta_w: np.ndarray | None = None
         self._d_o_T2: float | None = None
+        self._phi_front_T2: np.ndarray | None = None    # wall flow at T2, until phi_t comes
         self._phi_front: np.ndarray | None = None
-        self._phi_down: np.ndarray | None = None
         self._travel_norm = 0.0                         # integral of eta_w^T phi_t dt
         self._travel_needed: float | None = None        # same units
         self._t_flow_down: float | None = None
@@ -231,10 +233,12 @@ class ModeSupervisor:
             self._phi_front = phi
             self._last['front_flow'] = t
         elif camera == 'down':
+            if self.mode == Mode.CROSSING and self._phi_front_T2 is not None:
+                self._measure_crossing(self._phi_front_T2, phi)
+                self._phi_front_T2 = None
             if self.mode == Mode.CROSSING and self._eta_w is not None \
                     and self._t_flow_down is not None:
                 self._travel_norm += float(self._eta_w @ phi) * max(t - self._t_flow_down, 0.0)
-            self._phi_down = phi
             self._t_flow_down = t
             self._last['down_flow'] = t
 
@@ -305,23 +309,28 @@ class ModeSupervisor:
         return tr
 
     def _enter_crossing(self) -> None:
-        """Measure the blind-crossing length at T2 from the last corners and the flows."""
+        """At T2: d_o from the last corners; the travel waits for the first floor flow."""
         self._travel_norm = 0.0
         self._travel_needed = self.config.crossing_fallback_travel
+        self._t_flow_down = None          # the travel integral starts at the first floor flow
+        self._phi_front_T2 = None
         if self._corners is None or self._eta_w is None:
             return
         try:
-            d_o = distance_to_window_plane(self._corners, self._eta_w, self.config.r_w)
+            self._d_o_T2 = distance_to_window_plane(self._corners, self._eta_w, self.config.r_w)
         except (ValueError, ZeroDivisionError, FloatingPointError):
             return
-        self._d_o_T2 = d_o
-        if self._phi_front is None or self._phi_down is None:
+        self._phi_front_T2 = self._phi_front
+
+    def _measure_crossing(self, phi_front: np.ndarray | None, phi_down: np.ndarray) -> None:
+        """Blind-crossing length from d_o(T2) and the two flows (same v at T2)."""
+        if phi_front is None or self._d_o_T2 is None:
             return
-        n_front, n_down = np.linalg.norm(self._phi_front), np.linalg.norm(self._phi_down)
+        n_front, n_down = np.linalg.norm(phi_front), np.linalg.norm(phi_down)
         if n_front < 1e-3 or n_down < 1e-3:
             return
-        d_t = d_o * n_front / n_down          # same velocity seen by both cameras
-        self._travel_needed = (d_o + self.config.crossing_margin_m) / d_t
+        d_t = self._d_o_T2 * n_front / n_down          # same velocity seen by both cameras
+        self._travel_needed = (self._d_o_T2 + self.config.crossing_margin_m) / d_t
 
     def _crossed(self) -> bool:
         return self._travel_needed is not None and self._travel_norm >= self._travel_needed

@@ -55,6 +55,8 @@ NS_PER_S = 1_000_000_000
 NS_PER_MS = 1_000_000
 DEFAULT_CAMERA_RATE_HZ = 50.0
 MAX_CATCH_UP_S = 0.5          # s of sim time: a longer stall of the sim process re-phases it
+STATUS_TOPIC = 'ibvs/supervisor_status'   # lockstep: the mode of each evaluated frame
+STATUS_HISTORY = 8            # statuses kept by GraphProducts
 
 
 class Pacing(str, enum.Enum):
@@ -296,23 +298,32 @@ class GraphProducts:
     """Lockstep harness: the products the graph makes of a frame, waited for before the next.
 
     The graph answers a frame (SET_ATTITUDE_TARGET) once the products its mode needs are in;
-    the others (the pad while CROSSING, the flow of the camera the mode does not use) may
-    still be computing. In lockstep, sim time moves on only when, besides the answer, every
-    product of the last frame was published (``products``: topic -> camera), so that no node
-    is still computing when the next frame comes and runs repeat under any load. Only the
-    cameras whose images went out are expected, and only topics with a publisher. A product
-    still missing when the lockstep wait ends (a dead node) is given up: not waited for until
-    it is published again. Unstamped topics (``pad/groups``) are noted with the stamp of
-    their ``partners`` topic (``pad/landmarks``, published just before).
+    the others (the pad while CROSSING) may still be computing. In lockstep, sim time moves on
+    only when, besides the answer, every product of the last frame was published
+    (``products``: topic -> camera), so that no node is still computing when the next frame
+    comes and runs repeat under any load. Only the cameras whose images went out are
+    expected, and only topics with a publisher. A perception node computes its product only
+    in the modes that use it (mode gating, ``used_in``: topic -> modes; a topic not in it is
+    made in every mode): so the harness also waits for the supervisor's status of the frame
+    (``ibvs/supervisor_status``, published before the answer) and expects the products the
+    frame's mode uses (all of them before any status, as the nodes make them). A product or
+    the status still missing when the lockstep wait ends (a dead node) is given up: not
+    waited for until it is published again. Unstamped topics (``pad/groups``) are noted with
+    the stamp of their ``partners`` topic (``pad/landmarks``, published just before).
     """
 
-    def __init__(self, products: dict, partners: dict | None = None) -> None:
+    def __init__(self, products: dict, partners: dict | None = None,
+                 used_in: dict | None = None) -> None:
         self.products = dict(products)
         self.partners = dict(partners or {})
+        self.used_in = {t: frozenset(int(m) for m in modes)
+                        for t, modes in (used_in or {}).items()}
         self.newest_ns: dict[str, int] = {}
         self.given_up: set[str] = set()
         self.expected: set[str] = set()
         self.frame_ns: int | None = None
+        self.status_expected = False
+        self.statuses: list[tuple[int, int]] = []     # (stamp ns, mode), newest last
 
     def expect(self, frame_ns: int, cameras, publishers: dict) -> None:
         """Expect the products of the frame at ``frame_ns`` (images of ``cameras`` went out)."""
@@ -320,6 +331,18 @@ class GraphProducts:
         self.expected = {t for t, cam in self.products.items()
                          if cam in cameras and publishers.get(t, 0) > 0
                          and t not in self.given_up}
+        self.status_expected = bool(self.used_in) and publishers.get(STATUS_TOPIC, 0) > 0 \
+            and STATUS_TOPIC not in self.given_up
+
+    def note_status(self, stamp_ns: int, mode: int) -> None:
+        """Note the supervisor's mode of the frame at ``stamp_ns``."""
+        self.statuses = self.statuses[-(STATUS_HISTORY - 1):] + [(int(stamp_ns), int(mode))]
+        self.given_up.discard(STATUS_TOPIC)
+
+    def mode_at(self, stamp_ns: int) -> int | None:
+        """Mode of the newest status stamped at or before ``stamp_ns``, or None."""
+        older = [mode for t, mode in self.statuses if t <= stamp_ns]
+        return older[-1] if older else None
 
     def note(self, topic: str, stamp_ns: int | None = None) -> None:
         """Note a published product (``stamp_ns`` None for an unstamped topic)."""
@@ -332,16 +355,27 @@ class GraphProducts:
         self.given_up.discard(topic)
 
     def missing(self) -> list[str]:
-        """Return the expected products of the last frame not yet published."""
+        """Return the expected products of the last frame not yet published.
+
+        The frame's status first, when one is expected; then the products its mode uses.
+        """
         if self.frame_ns is None:
             return []
-        return sorted(t for t in self.expected if self.newest_ns.get(t, -1) < self.frame_ns)
+        if self.status_expected and not any(t >= self.frame_ns for t, _ in self.statuses):
+            return [STATUS_TOPIC]
+        mode = self.mode_at(self.frame_ns)
+        return sorted(t for t in self.expected if self.newest_ns.get(t, -1) < self.frame_ns
+                      and (mode is None or t not in self.used_in or mode in self.used_in[t]))
 
     def give_up(self) -> list[str]:
-        """Stop waiting for the missing products (until they come again); return them."""
-        gone = self.missing()
-        self.given_up.update(gone)
-        self.expected.difference_update(gone)
+        """Stop waiting for the missing status and products (until they come again)."""
+        gone: list[str] = []
+        while (now_missing := self.missing()):
+            gone += now_missing
+            self.given_up.update(now_missing)
+            self.expected.difference_update(now_missing)
+            if STATUS_TOPIC in now_missing:
+                self.status_expected = False
         return gone
 
 
