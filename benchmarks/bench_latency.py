@@ -19,6 +19,8 @@ the supervisor started, the fraction of those frames answered, CPU per node (% o
 while replaying, and (first run) the CPU of the idle graph (linked, no images). Runs again with
 the pad detector killed and with the down camera stopped (inputs WINDOW mode does not use),
 and once more with the same nodes composed in one process (``ibvs_bringup.composed``).
+The frames are all of WINDOW mode: with mode gating (params.yaml ``mode_gating``) the pad
+detector and the floor flow only keep their images; ``--gating-ab`` compares with gating off.
 Needs a quiet machine for meaningful figures (the load average is printed).
 
 Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
@@ -32,6 +34,7 @@ import os
 import select
 import socket
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -215,10 +218,11 @@ class Replayer:
 
 def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
              kill: str | None = None, cameras: tuple = ('front', 'down'),
-             composed: bool = False) -> dict:
+             composed: bool = False, params_file: str | None = None) -> dict:
     """One replay through a fresh onboard graph; return its figures.
 
     ``composed``: the same nodes in one process (ibvs_bringup.composed) instead of seven.
+    ``params_file``: another params.yaml (None: the installed one).
     """
     from ibvs_bringup import graph
     from ibvs_bringup.runner import ProcessRunner
@@ -228,7 +232,7 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
     ap = ctx.Process(target=stand_in, args=(port, track, start_mono, stop, results))
     ap.start()
     specs = graph.onboard_graph(graph.GraphOptions(
-        use_sim_time=False, mavlink_url=f'udpout:127.0.0.1:{port}'))
+        params_file=params_file, use_sim_time=False, mavlink_url=f'udpout:127.0.0.1:{port}'))
     runner = ProcessRunner(log_dir=os.path.join('results', 'bench_latency', name))
     rep = Replayer()
     out = {'name': name}
@@ -294,6 +298,19 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
     return out
 
 
+def params_without_gating() -> str:
+    """Write the installed params.yaml with every ``mode_gating: true`` off; return its path."""
+    from ibvs_bringup.graph import default_params_file
+    with open(default_params_file()) as f:
+        text = f.read()
+    if 'mode_gating: true' not in text:
+        raise RuntimeError('params.yaml has no mode_gating: true to turn off')
+    path = os.path.join(tempfile.mkdtemp(prefix='bench_latency_'), 'params.yaml')
+    with open(path, 'w') as f:
+        f.write(text.replace('mode_gating: true', 'mode_gating: false'))
+    return path
+
+
 def report(r: dict) -> None:
     lat = r['latency_ms']
     line = f"{r['name']:22s} answered {len(lat)}/{r['frames']} " \
@@ -320,6 +337,9 @@ def main(argv: list | None = None) -> int:
                    help='CI: one short run of the separate-process graph (figures mean little)')
     p.add_argument('--no-composed', action='store_true',
                    help='skip the single-process layout (ibvs_bringup.composed)')
+    p.add_argument('--gating-ab', action='store_true',
+                   help='only: all inputs with mode gating on, then off (params.yaml '
+                        'mode_gating: false), same frames')
     a = p.parse_args(argv)
     n = max(a.frames if not a.smoke else 110, START_AT_FRAME + WARMUP_FRAMES + 10)
     idle_s = 1.0 if a.smoke else a.idle_s
@@ -333,7 +353,10 @@ def main(argv: list | None = None) -> int:
     rclpy.init()
     try:
         runs = [run_once('all inputs', images, track, n, idle_s)]
-        if not a.smoke:                 # CI's smoke run: the whole path once is enough
+        if a.gating_ab:
+            runs.append(run_once('all inputs, no gating', images, track, n, idle_s,
+                                 params_file=params_without_gating()))
+        elif not a.smoke:               # CI's smoke run: the whole path once is enough
             runs += [run_once('pad detector killed', images, track, n, 0.0,
                               kill='pad_detector'),
                      run_once('down camera stopped', images, track, n, 0.0,
@@ -346,7 +369,7 @@ def main(argv: list | None = None) -> int:
     for r in runs:
         report(r)
     base = np.median(runs[0]['latency_ms']) if len(runs[0]['latency_ms']) else np.nan
-    for r in runs[1:3]:
+    for r in runs[1:3] if not a.gating_ab else ():
         if len(r['latency_ms']):
             print(f"{r['name']}: median latency {np.median(r['latency_ms']) - base:+.2f} ms "
                   'against all inputs')

@@ -397,6 +397,8 @@ def test_replaying_the_bag_reproduces_the_detections(reference, tmp_path):
               f'{len(same_history & set(common))} with the same {REPLAY_HISTORY} frames before '
               f'them: max difference {worst:.4f} px')
         assert worst <= REPLAY_TOLERANCE_PX, (topic, worst, len(common))
-        # frames can be dropped (best-effort images on 2 loaded cores), not changed
-        assert len(common) >= REPLAY_MIN_COVERAGE * n_frames[topic] and len(common) > 5, \
-            (topic, len(common), n_frames[topic])
+        # frames can be dropped (best-effort images on 2 loaded cores), not changed; the live
+        # run made each product only in the modes that use it (mode gating), the replay (no
+        # supervisor) makes it for every image: coverage counts the frames the live run made
+        assert len(common) >= REPLAY_MIN_COVERAGE * len(recorded[topic]) and len(common) > 5, \
+            (topic, len(common), len(recorded[topic]), n_frames[topic])

@@ -15,12 +15,15 @@ from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 
 from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PolygonStamped, Vector3Stamped
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32, String
 
 from ibvs_common.core import frames
 from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_common.core.modes import Mode
+from ibvs_common.node_common import supervisor_status_msg
 from ibvs_sim.core.world import load_world
 from ibvs_control.core.frame_io import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
@@ -311,6 +314,49 @@ def test_down_optical_flow_node(ctx, renderers):
                       == n_before + 2)
     for msg in got['down_camera/translational_flow'][n_before:]:
         assert is_no_flow([msg.vector.x, msg.vector.y, msg.vector.z])
+
+
+def test_down_flow_is_computed_only_from_a_mode_that_uses_it(ctx, renderers):
+    """Mode gating with real rclpy: no floor flow in WINDOW, then the images from T2 on.
+
+    The switch to CROSSING at T2 releases the kept images stamped from T2 on at once; the
+    one before primes the tracker, so the flow at T2 is already valid.
+    """
+    context, executor, nodes = ctx
+    node, helper, pubs, got = flow_node(context, nodes, 'down')
+    status_pub = helper.create_publisher(DiagnosticArray, 'ibvs/supervisor_status', 10)
+    flows = got['down_camera/translational_flow']
+    for n in (node, helper):
+        executor.add_node(n)
+    pubs['down_camera/camera_info'].publish(info_msg('down'))
+    v = np.array([0.3, -0.2, 0.1])
+    xi0 = np.array([0.0, 0.1, -1.2])
+    R = frames.rot_from_euler_zyx(0.05, -0.03, 0.4)
+    send_imu(executor, node, pubs, [(9.99 + 0.01 * k, R) for k in range(10)])
+
+    def status(t, mode):
+        n = len(node.gated.gate._changes)
+        status_pub.publish(supervisor_status_msg(round(t * 1e9), int(mode), mode.name,
+                                                 DiagnosticStatus.OK, {}))
+        return spin_until(executor, lambda: len(node.gated.gate._changes) > n, 2.0)
+
+    def image(k):
+        pubs['down_camera/image_raw'].publish(
+            image_msg(renderers['down'].render(R, xi0 + v * DT * k), 10.0 + DT * k))
+
+    assert status(9.98, Mode.WINDOW)
+    for k in range(3):                                  # 10.00, 10.02, 10.04: kept only
+        image(k)
+        spin_until(executor, lambda: False, 0.3)
+    assert flows == [] and node.estimator is None
+    assert status(10.04, Mode.CROSSING)                 # T2 at 10.04: 10.04 goes out at once
+    assert spin_until(executor, lambda: len(flows) >= 1)
+    image(3)
+    assert spin_until(executor, lambda: len(flows) >= 2)
+    assert [round(stamp_s(m), 2) for m in flows] == [10.04, 10.06]
+    truth = frames.vec_I_to_map(v / (-(xi0[2] + v[2] * 1.5 * DT)))   # between 10.02, 10.04
+    first = np.array([flows[0].vector.x, flows[0].vector.y, flows[0].vector.z])
+    assert np.linalg.norm(first - truth) <= 0.1 * np.linalg.norm(truth)
 
 
 def test_front_optical_flow_node_needs_a_window(ctx, renderers):

@@ -247,15 +247,23 @@ def test_the_venv_prefix_is_found_without_ament_prefix_path(tmp_path, monkeypatc
     assert os.environ[graph.AMENT_ENV] == str(tmp_path)
 
 
-def test_onboard_window_width_agrees_with_the_sim_world():
-    """The controller and supervisor know r_w from params.yaml, never from the sim's world."""
+def test_onboard_window_size_agrees_with_the_sim_world():
+    """The onboard nodes know the window from params.yaml, never from the sim's world.
+
+    r_w for the controller and supervisor, the aperture and band size for the window
+    detector's band proportions: the same mission facts, which world.yaml must match.
+    """
     import yaml
     from ibvs_sim.core.world import load_world
     params = yaml.safe_load(Path(PARAMS).read_text())
-    for node in ('mode_supervisor', 'force_controller'):
+    window = load_world().window
+    for node in ('mode_supervisor', 'force_controller', 'window_detector'):
         section = params[node]['ros__parameters']
         assert 'world_file' not in section
-        assert section['window_width_m'] == load_world().window.width
+        assert section['window_width_m'] == window.width, node
+    detector = params['window_detector']['ros__parameters']
+    assert detector['window_height_m'] == window.height
+    assert detector['frame_band_m'] == window.frame_band
 
 
 def test_the_node_name_table_is_the_graphs_node_list():

@@ -113,9 +113,13 @@ class WindowDetectorNode(Node):
                 return
             camera = camera_from_info(self.camera_info, msg)
             rotation = self.camera_rotation(stamp_to_s(msg.header.stamp))
-            detection = self.detector.process(gray, camera, rotation).detection
+            result = self.detector.process(gray, camera, rotation)
+            detection = result.detection
             if detection is not None:
                 corners, normals = detection.bearings_C, detection.edge_normals_C
+            else:
+                self.log.info(f'window_detector: no window ({result.status.value}): '
+                              f'{result.reason}', THROTTLE_S)
         except ValueError as exc:
             self.log.error(f'window_detector: image dropped: {exc}', THROTTLE_S)
         self.pub_corners.publish(polygon_from_vectors(msg.header, self.frame_id, corners))
