@@ -218,11 +218,13 @@ class Replayer:
 
 def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
              kill: str | None = None, cameras: tuple = ('front', 'down'),
-             composed: bool = False, params_file: str | None = None) -> dict:
+             composed: bool = False, params_file: str | None = None,
+             grouped: bool = False) -> dict:
     """One replay through a fresh onboard graph; return its figures.
 
     ``composed``: the same nodes in one process (ibvs_bringup.composed) instead of seven.
-    ``params_file``: another params.yaml (None: the installed one).
+    ``params_file``: another params.yaml (None: the installed one). ``grouped``: three
+    processes (ibvs_bringup.composed.GROUPS: front camera, down camera, control).
     """
     from ibvs_bringup import graph
     from ibvs_bringup.runner import ProcessRunner
@@ -239,6 +241,12 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
     try:
         if composed:
             runner.start('composed (7 nodes)', [sys.executable, '-m', 'ibvs_bringup.composed',
+                                                '--mavlink-url', f'udpout:127.0.0.1:{port}'])
+        elif grouped:
+            from ibvs_bringup.composed import GROUPS
+            for group, names in GROUPS.items():
+                runner.start(f'group {group}', [sys.executable, '-m', 'ibvs_bringup.composed',
+                                                '--nodes', ','.join(names),
                                                 '--mavlink-url', f'udpout:127.0.0.1:{port}'])
         else:
             runner.start_graph(specs)
@@ -337,6 +345,8 @@ def main(argv: list | None = None) -> int:
                    help='CI: one short run of the separate-process graph (figures mean little)')
     p.add_argument('--no-composed', action='store_true',
                    help='skip the single-process layout (ibvs_bringup.composed)')
+    p.add_argument('--grouped', action='store_true',
+                   help='also: the graph as three processes (composed.GROUPS)')
     p.add_argument('--gating-ab', action='store_true',
                    help='only: all inputs with mode gating on, then off (params.yaml '
                         'mode_gating: false), same frames')
@@ -364,6 +374,9 @@ def main(argv: list | None = None) -> int:
         if not (a.no_composed or a.smoke):
             runs.append(run_once('composed, all inputs', images, track, n, idle_s,
                                  composed=True))
+        if a.grouped:
+            runs.append(run_once('grouped, all inputs', images, track, n, idle_s,
+                                 grouped=True))
     finally:
         rclpy.try_shutdown()
     for r in runs:

@@ -11,7 +11,11 @@ A node whose construction fails (bad parameter) ends the process with status 1, 
 node's own ``main``. A node cannot die alone here: the process is the unit that a supervisor
 (systemd, launch) restarts.
 
-Usage: ``composed [--mavlink-url URL] [--params-file FILE] [--use-sim-time]
+``--nodes a,b`` runs only those onboard nodes (by name), so that the graph can also be
+split into a few processes, e.g. one per camera plus one for control (GROUPS), each one
+container of several nodes (docs/performance.md measures it).
+
+Usage: ``composed [--nodes NAMES] [--mavlink-url URL] [--params-file FILE] [--use-sim-time]
 [--ros-args ...]``.
 """
 from __future__ import annotations
@@ -20,6 +24,11 @@ import argparse
 import sys
 
 from ibvs_bringup import graph
+
+#: a split of the onboard graph into three containers: one per camera, one for control
+GROUPS = {'front': ('window_detector', 'front_optical_flow'),
+          'down': ('pad_detector', 'down_optical_flow'),
+          'control': ('mode_supervisor', 'force_controller', 'mavlink_bridge')}
 
 NODE_CLASSES = {
     ('ibvs_perception', 'window_detector'):
@@ -62,10 +71,20 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--mavlink-url', default=None, help="the autopilot's MAVLink URL")
     p.add_argument('--params-file', default=None, help='default: installed params.yaml')
     p.add_argument('--use-sim-time', action='store_true')
+    p.add_argument('--nodes', default='', help='comma-separated onboard node names (default: '
+                   'all of them)')
     a = p.parse_args(remove_ros_args(['composed'] + argv)[1:])
     graph.ensure_ament_prefix_path()
     specs = graph.onboard_graph(graph.GraphOptions(
         params_file=a.params_file, use_sim_time=a.use_sim_time, mavlink_url=a.mavlink_url))
+    if a.nodes:
+        wanted = [n for n in a.nodes.split(',') if n]
+        unknown = sorted(set(wanted) - {s.name for s in specs})
+        if unknown:
+            print(f'composed: unknown node name(s) {unknown}; onboard nodes: '
+                  f'{[s.name for s in specs]}', file=sys.stderr)
+            return 2
+        specs = [s for s in specs if s.name in wanted]
     ros_args = ['--ros-args'] + [x for f in specs[0].param_files() for x in ('--params-file', f)]
     user_ros_args = argv[argv.index('--ros-args') + 1:] if '--ros-args' in argv else []
     rclpy.init(args=['composed'] + ros_args + user_ros_args)
