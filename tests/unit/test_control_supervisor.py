@@ -62,29 +62,34 @@ def test_window_lost_far_away_is_failsafe_not_crossing():
     assert 'window stale' in sup.transitions[-1].reason
 
 
-def test_whole_sequence_with_crossing_length_from_images():
-    sup = started()
+def fly_through_the_window(sup, floor_flow_in_window=True):
+    """Approach at 0.25 m/s until the window is lost up close, cross until LANDING.
+
+    Returns (t, xi, v, travelled after T2). The pad is visible through the window long before
+    the vehicle is through: the mode must stay CROSSING until the crossing length is flown.
+    """
     v = np.array([0.25, 0.0, 0.0])
     xi = np.array([-1.5, 0.0, -1.6])
     t = 0.0
-    while sup.mode == Mode.WINDOW:            # approach until the window is lost up close
+    while sup.mode == Mode.WINDOW:
         t += 0.02
         xi = xi + v * 0.02
-        feed(sup, t, xi, v, window=xi[0] < -1.2)
+        feed(sup, t, xi, v, window=xi[0] < -1.2, down=floor_flow_in_window)
     assert sup.mode == Mode.CROSSING and xi[0] < -1.19
     t_cross = t
-    # the pad is visible through the window long before the vehicle is through: no switch
-    while xi[0] < WORLD.wall_x + sup.config.crossing_margin_m - 0.1:
-        t += 0.02
-        xi = xi + v * 0.02
-        feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
-        assert sup.mode == Mode.CROSSING
-    # d_o(T2) = 0.7 m plus the margin: the switch comes that far after T2 (+- one frame)
     while sup.mode == Mode.CROSSING:
         t += 0.02
         xi = xi + v * 0.02
         feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
-    travelled = v[0] * (t - t_cross)
+        assert sup.mode == Mode.CROSSING or \
+            xi[0] >= WORLD.wall_x + sup.config.crossing_margin_m - 0.1
+    return t, xi, v, v[0] * (t - t_cross)
+
+
+def test_whole_sequence_with_crossing_length_from_images():
+    sup = started()
+    t, xi, v, travelled = fly_through_the_window(sup)
+    # d_o(T2) = 0.7 m plus the margin: the switch comes that far after T2 (+- one frame)
     assert sup.mode == Mode.LANDING
     assert abs(travelled - (0.7 + sup.config.crossing_margin_m)) < 0.02
     # descend over the pad: mode 4 below 0.14 m from the smallest complete group
@@ -104,19 +109,7 @@ def test_the_crossing_length_waits_for_the_first_floor_flow_of_crossing():
     # CROSSING (stamped T2) gives d_t(T2), and the switch to LANDING comes d_o + margin
     # after T2 as when the floor flow was there all along (the fallback would be 1.6 m)
     sup = started()
-    v = np.array([0.25, 0.0, 0.0])
-    xi = np.array([-1.5, 0.0, -1.6])
-    t = 0.0
-    while sup.mode == Mode.WINDOW:
-        t += 0.02
-        xi = xi + v * 0.02
-        feed(sup, t, xi, v, window=xi[0] < -1.2, down=False)
-    t_cross = t
-    while sup.mode == Mode.CROSSING:
-        t += 0.02
-        xi = xi + v * 0.02
-        feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
-    travelled = v[0] * (t - t_cross)
+    _, _, _, travelled = fly_through_the_window(sup, floor_flow_in_window=False)
     assert sup.mode == Mode.LANDING
     assert abs(travelled - (0.7 + sup.config.crossing_margin_m)) < 0.03
 
