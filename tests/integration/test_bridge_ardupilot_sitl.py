@@ -119,11 +119,11 @@ def test_ardupilot_arms_when_armable_only_on_request_flies_learns_hover_and_land
     try:
         ready(f)
         # stock ArduCopter (FS_GCS_ENABLE = 0): the bridge warns that nothing lands a dead bridge
-        assert f.spin(5.0, until=lambda: f.bridge.dead_bridge_failsafe is not None)
-        assert f.bridge.dead_bridge_failsafe is False
+        assert f.spin(5.0, until=lambda: f.bridge.params.dead_bridge_failsafe is not None)
+        assert f.bridge.params.dead_bridge_failsafe is False
         assert f.bridge.streams.refused == []                   # every request accepted ...
         assert not [c for c in f.commands if c[1] == 511 and c[2][0] == 105]   # no HIGHRES_IMU
-        assert f.bridge.angle_boost == 1 and f.bridge.shaper.tilt_boost_by_autopilot
+        assert f.bridge.params.angle_boost == 1 and f.bridge.shaper.tilt_boost_by_autopilot
         # Engaged long before the pre-arm checks pass: GUIDED_NOGPS, waiting for ibvs/arm.
         f.bridge.on_supervisor_mode(0)
         f.controller_on = True
@@ -280,8 +280,8 @@ def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
         f = ap_flight(ap)
         try:
             ready(f)
-            assert f.spin(5.0, until=lambda: f.bridge.dead_bridge_failsafe is not None)
-            assert f.bridge.dead_bridge_failsafe is True     # read from ArduPilot and reported
+            assert f.spin(5.0, until=lambda: f.bridge.params.dead_bridge_failsafe is not None)
+            assert f.bridge.params.dead_bridge_failsafe is True     # read from ArduPilot and reported
             ap_take_off(f)
             t_kill = time.monotonic()
             f.close()                              # dead: no poll, no send, socket closed

@@ -604,9 +604,9 @@ def test_px4_imu_and_clock_sync_on_the_system_clock(px4):
     # PX4's offboard-loss failsafe read and reported (INT32 decoded from PX4's bytewise
     # encoding): SITL's defaults, Position mode after 1 s, are not a dead-bridge landing
     said = [t for _, t in run.events if 'offboard loss' in t or 'dead-bridge' in t]
-    print(f'PX4 offboard-loss parameters {run.bridge.dead_bridge_params}: {said}')
-    assert run.bridge.dead_bridge_params == {'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 0.0}
-    assert run.bridge.dead_bridge_failsafe is False
+    print(f'PX4 offboard-loss parameters {run.bridge.params.dead_bridge_params}: {said}')
+    assert run.bridge.params.dead_bridge_params == {'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 0.0}
+    assert run.bridge.params.dead_bridge_failsafe is False
     assert len(said) == 1 and 'COM_OBL_RC_ACT = 0 (Position mode)' in said[0], said
 
 

@@ -456,7 +456,7 @@ def test_ardupilot_angle_boost_means_the_vertical_component_is_sent(peer_bridge,
     peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
         'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.4, 'ATC_ANGLE_BOOST': boost}},
         bridge_kw={'source': 'autopilot'})
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.angle_boost is not None
+    ok, _ = spin(bridge, 3.0, until=lambda: bridge.params.angle_boost is not None
                  and bridge.sequencer.state == EngageState.STANDBY)
     assert ok
     tilt = np.radians(20.0)
@@ -1157,8 +1157,8 @@ def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params
     peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
         'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.3, 'ATC_ANGLE_BOOST': 1, **params}})
     wait_link(bridge)
-    spin(bridge, 1.5, until=lambda: bridge.dead_bridge_failsafe is not None)
-    assert bridge.dead_bridge_failsafe is expected
+    spin(bridge, 1.5, until=lambda: bridge.params.dead_bridge_failsafe is not None)
+    assert bridge.params.dead_bridge_failsafe is expected
     assert bridge.status().dead_bridge_failsafe is expected
     events = [text for _, text in bridge.pop_events()]
     if says:
@@ -1191,8 +1191,8 @@ def test_px4_offboard_loss_failsafe_is_read_and_reported(peer_bridge, params, ex
     px4_params = {'MPC_THR_HOVER': 0.5, **params}
     peer, bridge = peer_bridge(peer_kw={'kind': 'px4', 'params': px4_params})
     wait_link(bridge)
-    spin(bridge, 1.5, until=lambda: bridge.dead_bridge_failsafe is not None)
-    assert bridge.dead_bridge_failsafe is expected
+    spin(bridge, 1.5, until=lambda: bridge.params.dead_bridge_failsafe is not None)
+    assert bridge.params.dead_bridge_failsafe is expected
     assert bridge.status().dead_bridge_failsafe is expected
     events = [text for _, text in bridge.pop_events()]
     if says:

@@ -6,6 +6,7 @@
   force, applied thrust, landed state, armability, the autopilot's reasons; stream requests;
 - :mod:`~ibvs_control.core.mavlink_setpoints`: force / heading pairing and SET_ATTITUDE_TARGET;
 - :mod:`~ibvs_control.core.mavlink_hover`: hover thrust seed and online estimate;
+- :mod:`~ibvs_control.core.mavlink_params`: the autopilot parameters read and what they imply;
 - :mod:`~ibvs_control.core.mavlink_safety`: the safety policy's table and detectors;
 - :mod:`~ibvs_control.core.mavlink_sequencer`: engage / arm / hand-back state machine.
 
@@ -20,7 +21,6 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field, replace
-import math
 import struct
 import time
 from typing import Callable
@@ -30,6 +30,7 @@ import numpy as np
 from ibvs_control.core.mavlink_hover import (
     EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
 from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink
+from ibvs_control.core.mavlink_params import AutopilotParams, Changed
 from ibvs_control.core.mavlink_safety import SafetyConfig, SafetyMonitor
 from ibvs_control.core.mavlink_sequencer import (
     Autopilot, EngageSequencer, EngageState, SequencerConfig, SequencerInputs)
@@ -46,24 +47,7 @@ __all__ = ['BridgeConfig', 'BridgeStatus', 'ImuSample', 'MavlinkBridge', 'Setpoi
 
 NS_PER_MS = 1_000_000
 NS_PER_S = 1_000_000_000
-HOVER_PARAM = {Autopilot.PX4: 'MPC_THR_HOVER', Autopilot.ARDUPILOT: 'MOT_THST_HOVER'}
-GUID_OPTIONS_PARAM = 'GUID_OPTIONS'
-ANGLE_BOOST_PARAM = 'ATC_ANGLE_BOOST'
-# ArduPilot's GCS failsafe: the only thing that lands the vehicle when this bridge dies in
-# GUIDED_NOGPS (GUID_TIMEOUT only levels it and keeps the last thrust); read, never required
-GCS_FAILSAFE_PARAM, MY_GCS_PARAM = 'FS_GCS_ENABLE', 'SYSID_MYGCS'
-# PX4's offboard-loss failsafe: what acts when the bridge stops streaming or dies (read, never
-# required). COM_OBL_RC_ACT (PX4 v1.16; the action with or without RC):
-OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM = 'COM_OF_LOSS_T', 'COM_OBL_RC_ACT'
-PX4_OFFBOARD_LOSS_ACTIONS = {0: 'Position mode', 1: 'Altitude mode', 2: 'Manual', 3: 'Return mode',
-                             4: 'Land mode', 5: 'Hold mode', 6: 'Terminate', 7: 'Disarm'}
-PX4_OFFBOARD_LOSS_LAND = 4
-PX4_OFFBOARD_LOSS_T_MAX_S = 2.0   # s, a longer time-out is warned about (PX4's default: 1 s)
-DEAD_BRIDGE_PARAMS = {Autopilot.ARDUPILOT: (GCS_FAILSAFE_PARAM, MY_GCS_PARAM),
-                      Autopilot.PX4: (OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM)}
 MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32 = 6, 9
-ADVISORY_PARAM_READS = 30     # read requests (every param_retry_s) before giving them up
-ARDUPILOT_ANGLE_BOOST_DEFAULT = 1
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
 STREAM_EPS_S = 1e-3                     # s, slack of the repeat period (timer jitter)
 AUTOPILOT_OF_HEARTBEAT = {MavAutopilot.PX4: Autopilot.PX4,
@@ -192,10 +176,9 @@ class MavlinkBridge:
         self.sequencer: EngageSequencer | None = None
         self.supervisor_mode = Mode.IDLE
         self.idle_reports = 0
-        self.guid_options: int | None = None
-        self.dead_bridge_params: dict = {}    # DEAD_BRIDGE_PARAMS of the autopilot, as read
-        self.dead_bridge_failsafe: bool | None = None   # None: unknown (not read yet)
-        self.angle_boost: int | None = None
+        self.params = AutopilotParams(self.seed, config.link.source_system,
+                                      config.param_retry_s, config.param_timeout_s)
+        self.params.autopilot = self.autopilot
         self.rate = RateMeter()
         self.setpoint_source = SetpointSource.NONE
         # False: build the targets but send none (the node holds the stream until the IMU's
@@ -208,9 +191,6 @@ class MavlinkBridge:
         self._status_modes: dict[int, Mode] = {}     # stamp ns -> supervisor mode of that frame
         self._stream_start: float | None = None
         self._last_send_t: float | None = None
-        self._params_since: float | None = None
-        self._last_param_request = -math.inf
-        self._advisory_reads = 0                  # requests of the dead-bridge parameters
         self._was_up = False
         self._sync_resets = 0
         self._reported_missing = 0
@@ -387,7 +367,7 @@ class MavlinkBridge:
             rejected_setpoints=self.shaper.rejected, landed_state=tel.landed_state,
             armable=tel.armable, autopilot_internal_errors=tel.internal_errors,
             last_autopilot_reason=tel.last_reason,
-            dead_bridge_failsafe=self.dead_bridge_failsafe,
+            dead_bridge_failsafe=self.params.dead_bridge_failsafe,
             counters={'received': c.received, 'sent': c.sent, 'bad_data': c.bad_data,
                       'foreign': c.foreign, 'reconnects': c.reconnects, 'reopens': c.reopens,
                       'link_losses': c.link_losses, 'send_errors': c.send_errors,
@@ -459,6 +439,7 @@ class MavlinkBridge:
                 return
         if self.autopilot is None:
             return
+        self.params.autopilot = self.autopilot
         self.sequencer = EngageSequencer(replace(self.config.sequencer, autopilot=self.autopilot))
         self.sequencer.arm_requested = self._arm_pending
         c = self.config
@@ -533,82 +514,16 @@ class MavlinkBridge:
                               thr.thrust, boost, airborne)
 
     def _param(self, raw_name, value: float) -> None:
-        name = raw_name.decode('ascii', 'replace') if isinstance(raw_name, bytes) else raw_name
-        name = name.rstrip('\x00')
-        if self.autopilot is not None and name == HOVER_PARAM[self.autopilot] \
-                and self.seed.use_autopilot and self.seed.source == 'pending':
-            self.seed.on_param(name, value)
-            if self.seed.error:
-                self._event('error', self.seed.error)
-            else:
-                self._event('info', f'hover thrust seed {value:.3f} from {name}')
+        self._apply(self.params.on_param(raw_name, value))
+
+    def _apply(self, changed: Changed) -> None:
+        """Apply what the autopilot's parameters changed; pass their events on."""
+        for level, text in self.params.pop_events():
+            self._event(level, text)
+        if Changed.SEED in changed:
             self._start_estimator()
-        elif name == GUID_OPTIONS_PARAM and np.isfinite(value):
-            self.guid_options = int(value)
-        elif name == ANGLE_BOOST_PARAM and np.isfinite(value) and self.angle_boost is None:
-            self._set_angle_boost(int(value), f'{ANGLE_BOOST_PARAM} = {int(value)}')
-        elif self.autopilot is not None and name in DEAD_BRIDGE_PARAMS[self.autopilot] \
-                and np.isfinite(value) and name not in self.dead_bridge_params:
-            self.dead_bridge_params[name] = value
-            if len(self.dead_bridge_params) == 2 and self.dead_bridge_failsafe is None:
-                if self.autopilot == Autopilot.PX4:
-                    self._check_px4_offboard_loss()
-                else:
-                    self._check_dead_bridge_failsafe()
-
-    def _check_px4_offboard_loss(self) -> None:
-        """Tell (once) what PX4 does when our setpoints stop (bridge dead or forces lost)."""
-        p = self.dead_bridge_params
-        action, timeout = int(p[OFFBOARD_LOSS_ACT_PARAM]), float(p[OFFBOARD_LOSS_T_PARAM])
-        what = PX4_OFFBOARD_LOSS_ACTIONS.get(action, 'unknown')
-        self.dead_bridge_failsafe = action == PX4_OFFBOARD_LOSS_LAND
-        said = f'{OFFBOARD_LOSS_ACT_PARAM} = {action} ({what}), {OFFBOARD_LOSS_T_PARAM} = ' \
-               f'{timeout:g} s'
-        if self.dead_bridge_failsafe:
-            self._event('info', f'dead-bridge failsafe: {said}: PX4 lands when our setpoints '
-                                'stop (the bridge stops them hold_last_s after the last force)')
-        else:
-            why = {0: 'needs a position estimate, which this vehicle does not have',
-                   3: 'needs a position estimate, which this vehicle does not have',
-                   5: 'needs a position estimate, which this vehicle does not have',
-                   1: 'needs a pilot on the sticks', 2: 'needs a pilot on the sticks',
-                   6: 'stops the motors in the air', 7: 'stops the motors in the air'}.get(
-                       action, 'is not an action of PX4 v1.16')
-            self._event('warn', f'PX4 offboard loss: {said}: {what} {why} (without RC PX4 falls '
-                                f'back to its own failsafe); set {OFFBOARD_LOSS_ACT_PARAM} = '
-                                f'{PX4_OFFBOARD_LOSS_LAND} (Land mode) (docs/mavlink.md '
-                                '"Autopilot set-up")')
-        if timeout > PX4_OFFBOARD_LOSS_T_MAX_S:
-            self._event('warn', f'PX4 offboard loss: {OFFBOARD_LOSS_T_PARAM} = {timeout:g} s: the '
-                                'vehicle flies the last setpoint that long after ours stop '
-                                f'(PX4 default 1 s; at most {PX4_OFFBOARD_LOSS_T_MAX_S:g} s '
-                                'advised)')
-
-    def _check_dead_bridge_failsafe(self) -> None:
-        """Tell (once) whether ArduPilot will land the vehicle if this bridge dies in flight."""
-        p = {k: int(v) for k, v in self.dead_bridge_params.items()}
-        ours = self.link.config.source_system
-        enabled, gcs = p[GCS_FAILSAFE_PARAM], p[MY_GCS_PARAM]
-        self.dead_bridge_failsafe = enabled != 0 and gcs == ours
-        if self.dead_bridge_failsafe:
-            self._event('info', f'dead-bridge failsafe: {GCS_FAILSAFE_PARAM} = {enabled} and '
-                                f'{MY_GCS_PARAM} = {gcs} (this bridge): ArduPilot acts when '
-                                'our HEARTBEAT stops')
-            return
-        why = (f'{GCS_FAILSAFE_PARAM} = 0' if enabled == 0 else
-               f'{MY_GCS_PARAM} = {gcs} is not this bridge\'s system id {ours}')
-        self._event('warn', f'no dead-bridge failsafe ({why}): if this bridge dies in flight, '
-                            'GUIDED_NOGPS levels the vehicle and keeps its last thrust; set '
-                            f'{GCS_FAILSAFE_PARAM} = 5 (land) and {MY_GCS_PARAM} = {ours} '
-                            '(docs/mavlink.md "Autopilot set-up")')
-
-    def _set_angle_boost(self, value: int, why: str) -> None:
-        self.angle_boost = value
-        boost = self.autopilot == Autopilot.ARDUPILOT and value != 0
-        self.shaper.tilt_boost_by_autopilot = boost
-        self._event('info', f'{why}: ' + (
-            'ArduPilot boosts the thrust by 1/cos(tilt) itself, the bridge sends the vertical '
-            'component of F' if boost else 'the bridge sends |F|'))
+        if Changed.TILT_BOOST in changed:
+            self.shaper.tilt_boost_by_autopilot = self.params.tilt_boosted_by_autopilot
 
     def _start_estimator(self) -> None:
         if self.estimator.theta is not None or self.seed.value is None:
@@ -619,39 +534,12 @@ class MavlinkBridge:
         for a, thr in pending:
             self._estimate(a, thr)
 
-    def _params_missing(self) -> list[str]:
-        missing = []
-        if self.autopilot is None:
-            return missing
-        if self.seed.value is None:
-            missing.append(HOVER_PARAM[self.autopilot])
-        if self.autopilot == Autopilot.ARDUPILOT:
-            if self.guid_options is None:
-                missing.append(GUID_OPTIONS_PARAM)
-            if self.angle_boost is None:
-                missing.append(ANGLE_BOOST_PARAM)
-        return missing
-
     def _service_requests(self, now: float) -> None:
         """Parameter reads (retried while unanswered) and stream requests (one at a time)."""
-        if self._params_since is None:
-            self._params_since = now
-        missing = self._params_missing()
-        advisory = [n for n in DEAD_BRIDGE_PARAMS.get(self.autopilot, ())
-                    if n not in self.dead_bridge_params
-                    and self._advisory_reads < ADVISORY_PARAM_READS]
-        if (missing or advisory) and now - self._last_param_request >= self.config.param_retry_s:
-            self._last_param_request = now
-            self._advisory_reads += bool(advisory)
-            for name in missing + advisory:
-                self.link.request_param(name)
-        if missing and now - self._params_since >= self.config.param_timeout_s:
-            self.seed.on_timeout()
-            self._start_estimator()
-            if self.autopilot == Autopilot.ARDUPILOT and self.angle_boost is None:
-                self._set_angle_boost(ARDUPILOT_ANGLE_BOOST_DEFAULT,
-                                      f'{ANGLE_BOOST_PARAM} unread: assuming ArduPilot\'s '
-                                      f'default {ARDUPILOT_ANGLE_BOOST_DEFAULT}')
+        reads, changed = self.params.due(now)
+        for name in reads:
+            self.link.request_param(name)
+        self._apply(changed)
         if self.streams is not None:
             req = self.streams.step(now)
             if req is not None:
@@ -666,14 +554,14 @@ class MavlinkBridge:
             return
         hb = self.link.heartbeat
         vehicle = self._vehicle_s()
-        timed_out = (self._params_since is not None
-                     and now - self._params_since >= self.config.param_timeout_s)
+        timed_out = self.params.timed_out(now)
         was = self.sequencer.state
         inp = SequencerInputs(
             t=now, link_up=self.link.link_up, supervisor_mode=self.supervisor_mode,
             idle_reports=self.idle_reports, armed=bool(hb and hb.armed),
             custom_mode=hb.custom_mode if hb else 0, streaming_s=self._streaming_s(now),
-            hover_thrust_ready=self.seed.value is not None, guid_options=self.guid_options,
+            hover_thrust_ready=self.seed.value is not None,
+            guid_options=self.params.guid_options,
             params_timed_out=timed_out, ramp_done=self.shaper.ramp_done(now),
             armable=self.telemetry.armable, landed=self.telemetry.landed,
             inputs_lost=self.safety.inputs_lost(vehicle), touchdown=self.safety.touchdown,
