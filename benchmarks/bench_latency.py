@@ -353,8 +353,8 @@ def main(argv: list | None = None) -> int:
     a = p.parse_args(argv)
     n = max(a.frames if not a.smoke else 110, START_AT_FRAME + WARMUP_FRAMES + 10)
     idle_s = 1.0 if a.smoke else a.idle_s
-    from ibvs_bringup import graph
-    os.environ.update(graph.dds_env_overrides())     # the graph's shared-memory profile
+    from ibvs_common.dds_profile import use_dds_profile_here
+    use_dds_profile_here()                           # the graph's shared-memory profile
     import rclpy
     print(f'bench_latency: {n} frames per run, load average {os.getloadavg()[0]:.2f} '
           f'on {os.cpu_count()} cores; rendering...', flush=True)

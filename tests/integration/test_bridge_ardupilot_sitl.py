@@ -281,7 +281,7 @@ def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
         try:
             ready(f)
             assert f.spin(5.0, until=lambda: f.bridge.params.dead_bridge_failsafe is not None)
-            assert f.bridge.params.dead_bridge_failsafe is True     # read from ArduPilot and reported
+            assert f.bridge.params.dead_bridge_failsafe is True    # read from ArduPilot, reported
             ap_take_off(f)
             t_kill = time.monotonic()
             f.close()                              # dead: no poll, no send, socket closed

@@ -6,7 +6,6 @@ from pathlib import Path
 import re
 import sys
 import types
-import xml.etree.ElementTree as ET
 
 from ibvs_bringup import graph
 import pytest
@@ -188,30 +187,6 @@ def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
         assert urls['sim'] == 'udpin:127.0.0.1:14999'
     else:
         assert urls['mavlink_bridge'] == 'udpout:10.0.0.2:14540'
-
-
-def test_dds_profile_is_added_unless_the_user_chose_one():
-    path = graph.dds_env_overrides({})[graph.FASTDDS_PROFILE_ENV]
-    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
-    root = ET.parse(path).getroot()
-    segment = int(root.find('.//p:transport_descriptor/p:segment_size', ns).text)
-    assert segment >= 10 * 752 * 480        # room for several image pairs in flight
-    assert graph.dds_env_overrides({graph.FASTDDS_PROFILE_ENV: '/mine.xml'}) == {}
-    assert graph.dds_env_overrides({graph.RMW_ENV: 'rmw_cyclonedds_cpp'}) == {}
-    assert graph.dds_env_overrides({graph.RMW_ENV: graph.FASTDDS_RMW}) == {
-        graph.FASTDDS_PROFILE_ENV: path}
-
-
-def test_an_image_publisher_started_alone_takes_the_profile_itself(monkeypatch):
-    """bag_player's main() calls use_dds_profile_here() before rclpy.init (plain ros2 run)."""
-    monkeypatch.delenv(graph.FASTDDS_PROFILE_ENV, raising=False)
-    monkeypatch.delenv(graph.RMW_ENV, raising=False)
-    set_here = graph.use_dds_profile_here()
-    assert os.environ[graph.FASTDDS_PROFILE_ENV] == set_here[graph.FASTDDS_PROFILE_ENV]
-    assert set_here[graph.FASTDDS_PROFILE_ENV].endswith('fastdds.xml')
-    monkeypatch.setenv(graph.FASTDDS_PROFILE_ENV, '/mine.xml')     # the user's choice stays
-    assert graph.use_dds_profile_here() == {} and os.environ[graph.FASTDDS_PROFILE_ENV] == \
-        '/mine.xml'
 
 
 def test_free_running_option_changes_only_the_sim():

@@ -14,12 +14,13 @@ from dataclasses import dataclass
 import time
 
 from builtin_interfaces.msg import Time
-from ibvs_bringup import bag, graph
+from ibvs_bringup import bag
 from ibvs_bringup.recorder_node import msg_class
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
+from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.param_descriptors import declare
 from ibvs_common.spin import spin_guarded
 from rosgraph_msgs.msg import Clock
@@ -121,7 +122,7 @@ def _qos(topic: str) -> QoSProfile:
 def main(args=None) -> None:
     """Play the bag once, then keep the node alive until Ctrl-C / SIGTERM."""
     # the images' shared-memory segment is the player's: lossless under a plain `ros2 run` too
-    graph.use_dds_profile_here()
+    use_dds_profile_here()
     rclpy.init(args=args)
     node = None
     try:

@@ -176,38 +176,6 @@ def checked_params_file(path: str | None, node_names: Sequence[str]) -> str:
     return resolved
 
 
-DDS_PROFILE_FILE_NAME = 'fastdds.xml'
-FASTDDS_PROFILE_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'    # read by Fast DDS 2.x (Jazzy)
-RMW_ENV, FASTDDS_RMW = 'RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp'
-
-
-def dds_env_overrides(environ=None) -> dict:
-    """Return the environment to add for the graph's processes: the project's Fast DDS profile.
-
-    config/fastdds.xml enlarges the shared-memory segment so that camera images are not lost
-    (see the file). Nothing is added when a profile is already set or another RMW is chosen.
-    """
-    env = os.environ if environ is None else environ
-    if env.get(FASTDDS_PROFILE_ENV) or env.get(RMW_ENV, FASTDDS_RMW) != FASTDDS_RMW:
-        return {}
-    from ament_index_python.packages import get_package_share_directory
-    return {FASTDDS_PROFILE_ENV: os.path.join(get_package_share_directory(CONFIG_PACKAGE),
-                                              'config', DDS_PROFILE_FILE_NAME)}
-
-
-def use_dds_profile_here() -> dict:
-    """Give this process the project's Fast DDS profile unless one is set; return what was set.
-
-    For an image publisher started alone (``ros2 run ibvs_bringup bag_player``, no runner or
-    launch file to set the environment): Fast DDS reads the profile when the process's first
-    participant is created, so call this before ``rclpy.init``. The shared-memory segment that
-    matters is the publisher's own: it holds the samples it sends (config/fastdds.xml).
-    """
-    env = dds_env_overrides()
-    os.environ.update(env)
-    return env
-
-
 def sim_mavlink_urls(port: int) -> tuple[str, str]:
     """Return (sim URL, bridge URL) of the lockstep MAVLink link on 127.0.0.1:port."""
     if not 0 < int(port) < 65536:

@@ -27,6 +27,7 @@ from typing import Iterable
 
 from ibvs_bringup import graph
 from ibvs_bringup.ros2run import command_for
+from ibvs_common.dds_profile import dds_env_overrides
 
 STDERR_TAIL_LINES = 20
 RESPAWN_MAX_DELAY_S = 16.0    # s, longest wait before a restart
@@ -106,7 +107,7 @@ class ProcessRunner:
     def __init__(self, env: dict | None = None, log_dir: str | None = None,
                  stop_timeouts: tuple = (5.0, 3.0, 2.0)) -> None:
         # default: the caller's environment plus the project's DDS profile (graph.py)
-        self.env = {**os.environ, **graph.dds_env_overrides()} if env is None else dict(env)
+        self.env = {**os.environ, **dds_env_overrides()} if env is None else dict(env)
         self.log_dir = log_dir
         self.stop_timeouts = stop_timeouts     # after SIGINT, after SIGTERM, after SIGKILL
         self.children: list[_Child] = []

@@ -5,6 +5,7 @@ Usage: ros2 launch ibvs_bringup onboard.launch.py [mavlink_url:=udpin:0.0.0.0:14
 pymavlink's format, e.g. /dev/ttyUSB0,921600; docs/mavlink.md).
 """
 from ibvs_bringup import graph
+from ibvs_common.dds_profile import dds_env_overrides
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration as Lc
@@ -20,7 +21,7 @@ def _nodes(context):
     use_sim_time = get(Lc('use_sim_time')).lower() in ('1', 'true', 'yes')
     opts = graph.GraphOptions(params_file=params, use_sim_time=use_sim_time,
                               mavlink_url=get(Lc('mavlink_url')), crossing_law=law)
-    env = graph.dds_env_overrides()
+    env = dds_env_overrides()
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
                  additional_env=env, respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)

@@ -4,6 +4,7 @@ Usage: ros2 launch ibvs_bringup sim.launch.py [mavlink_port:=14560] [crossing_la
        [params_file:=/path/params.yaml]
 """
 from ibvs_bringup import graph
+from ibvs_common.dds_profile import dds_env_overrides
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration as Lc
@@ -16,7 +17,7 @@ def _nodes(context):
     law = get(Lc('crossing_law')) or None
     opts = graph.GraphOptions(params_file=params, use_sim_time=True,
                               mavlink_port=int(get(Lc('mavlink_port'))), crossing_law=law)
-    env = graph.dds_env_overrides()
+    env = dds_env_overrides()
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
                  additional_env=env, respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)

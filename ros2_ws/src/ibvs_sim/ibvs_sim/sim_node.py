@@ -54,6 +54,7 @@ from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold,
                                     GraphProducts, ImuBeforeImages, NS_PER_S, Pacing, SimConfig,
                                     Simulation, STATUS_TOPIC)
 from ibvs_common.core.modes import InputKind, modes_using
+from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.node_common import mode_from_status
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
@@ -523,6 +524,8 @@ class SimNode(Node):
 
 def main(args=None) -> None:
     """Run the sim node until Ctrl-C (demo_nodes_py pattern)."""
+    # the images' shared-memory segment is the sim's: lossless under a plain `ros2 run` too
+    use_dds_profile_here()
     rclpy.init(args=args)
     node = None
     try:
