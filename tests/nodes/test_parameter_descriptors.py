@@ -25,6 +25,7 @@ from ibvs_common.param_descriptors import declare, declare_all, descriptor
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
 from ibvs_perception.window_detector_node import WindowDetectorNode
+from ibvs_sim.px4_sim_node import Px4SimNode
 from ibvs_sim.sim_node import SimNode
 
 TAG = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
@@ -46,6 +47,8 @@ NODES = {  # name -> (class, overrides factory)
     'mavlink_bridge': (MavlinkBridgeNode, bridge_overrides),
     'sim': (SimNode, lambda: [Parameter('mavlink_url',
                                         value=f'udpin:127.0.0.1:{free_udp_port()}')]),
+    'px4_sim': (Px4SimNode, lambda: [Parameter('state_url',
+                                               value=f'udpin:127.0.0.1:{free_udp_port()}')]),
 }
 
 

@@ -25,6 +25,7 @@ setup(
     entry_points={
         'console_scripts': [
             'sim = ibvs_sim.sim_node:main',
+            'px4_sim = ibvs_sim.px4_sim_node:main',
         ],
     },
 )

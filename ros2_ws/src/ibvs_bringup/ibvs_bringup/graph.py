@@ -258,6 +258,46 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
                                   {BRIDGE_ARM_ON_START: True})
 
 
+PX4_SIM_NAME = 'px4_sim'                      # px4-sih mode: the renderer of PX4's truth
+PX4_SIM_STATE_URL = 'state_url'               # px4_sim: where PX4 SIH sends its ground truth
+PX4_SIH_NODE_NAMES = (PX4_SIM_NAME,) + ONBOARD_NODE_NAMES
+
+
+def px4_urls(instance: int) -> tuple[str, str]:
+    """Return (px4_sim's ground-truth URL, the bridge's URL) of PX4 SITL instance ``instance``.
+
+    PX4 SIH sends HIL_STATE_QUATERNION to 127.0.0.1:19410 + i and the companion link to
+    127.0.0.1:14540 + i (the documented PX4 companion URL is ``udpin`` on that port).
+    """
+    i = int(instance)
+    if not 0 <= i <= 9:
+        raise ValueError(f'PX4 instance must be 0-9, got {instance}')
+    return f'udpin:127.0.0.1:{19410 + i}', f'udpin:127.0.0.1:{14540 + i}'
+
+
+def px4_sih_graph(opts: GraphOptions, instance: int, px4_sim_overrides: dict | None = None
+                  ) -> list[NodeSpec]:
+    """Return the whole graph against PX4 SIH: px4_sim (renderer), then the onboard nodes.
+
+    The onboard nodes run exactly as on a vehicle: the shipped params.yaml, the system clock
+    (``opts.use_sim_time`` must be False: PX4 runs in real time), no auto start (the scenario
+    calls ibvs/start), and the bridge arms only on ibvs/arm (not asked: the scenario harness,
+    acting as the pilot's GCS, has armed PX4 and taken off).
+    """
+    if opts.use_sim_time:
+        raise ValueError('the px4-sih graph runs on the system clock: use_sim_time false')
+    params = (checked_params_file(opts.params_file, PX4_SIH_NODE_NAMES),)
+    state_url, bridge_url = px4_urls(instance)
+    over: dict = {PX4_SIM_STATE_URL: state_url}
+    if opts.initial_position is not None:
+        over[SIM_INITIAL_OVERRIDE] = True
+        over[SIM_INITIAL_POSITION] = _floats(opts.initial_position, 3, 'initial position')
+    over.update(px4_sim_overrides or {})
+    sim = NodeSpec('ibvs_sim', 'px4_sim', PX4_SIM_NAME, params + (over,),
+                   tuple(opts.extra_remappings), 'sim')
+    return [sim] + _onboard_nodes(params, {}, opts, bridge_url)
+
+
 def onboard_graph(opts: GraphOptions = GraphOptions(use_sim_time=False)) -> list[NodeSpec]:
     """Return the onboard nodes only, talking to the vehicle at ``opts.mavlink_url``."""
     params = (checked_params_file(opts.params_file, ONBOARD_NODE_NAMES),)

@@ -70,9 +70,12 @@ def odom_to_I(msg: Odometry) -> tuple:
 class ScenarioMonitor(Node):
     """Subscribe to what a run reports; log it in {I}; expose the health checks."""
 
-    def __init__(self, **kwargs) -> None:
+    def __init__(self, use_sim_time: bool = True, **kwargs) -> None:
         super().__init__('scenario_monitor', parameter_overrides=[
-            Parameter('use_sim_time', value=True)], **kwargs)
+            Parameter('use_sim_time', value=use_sim_time)], **kwargs)
+        # s on the ROS clock, subtracted from every time logged (px4-sih: the system time of
+        # ibvs/start, see reset_log); 0 with the sim (its clock starts at 0)
+        self.time_origin_s = 0.0
         self.log = RunLog()
         self.touchdown = None
         self.collision = None
@@ -94,18 +97,24 @@ class ScenarioMonitor(Node):
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
 
     def now_s(self) -> float:
-        """Return the node's (sim) time in seconds."""
-        return self.get_clock().now().nanoseconds * 1e-9
+        """Return the node's (sim) time in seconds, from ``time_origin_s``."""
+        return self.get_clock().now().nanoseconds * 1e-9 - self.time_origin_s
+
+    def reset_log(self, origin_s: float) -> None:
+        """Start a new log whose times count from ``origin_s`` (s, ROS clock); drop events."""
+        self.time_origin_s = float(origin_s)
+        self.log = RunLog()
+        self.touchdown = self.collision = None
 
     def _on_odom(self, msg: Odometry) -> None:
-        self.log.add_truth(stamp_s(msg), *odom_to_I(msg))
+        self.log.add_truth(stamp_s(msg) - self.time_origin_s, *odom_to_I(msg))
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         """Record a mode change at the stamp of the frame where the supervisor made it."""
         stamp_ns, mode, err = mode_from_status(msg)
         if err or mode is None:
             return
-        if self.log.add_mode(stamp_ns / NS_PER_S, mode):
+        if self.log.add_mode(stamp_ns / NS_PER_S - self.time_origin_s, mode):
             self.get_logger().info(f'mode {mode} at t = {stamp_ns / NS_PER_S:.2f} s')
 
     def _on_sim_stats(self, msg: DiagnosticArray) -> None:
@@ -129,6 +138,11 @@ class ScenarioMonitor(Node):
         except ValueError:
             self.get_logger().error(f'sim/events: not JSON: {msg.data[:80]!r}')
             return
+        if self.time_origin_s and isinstance(event, dict) and 't' in event:
+            try:
+                event['t'] = float(event['t']) - self.time_origin_s
+            except (TypeError, ValueError):
+                pass
         self.log.events.append(event)
         if event.get('type') == 'touchdown' and self.touchdown is None:
             self.touchdown = event
@@ -136,10 +150,11 @@ class ScenarioMonitor(Node):
             self.collision = event
 
     def _on_map_vector(self, name: str, msg: Vector3Stamped) -> None:
-        self.log.add_vector(name, stamp_s(msg), frames.vec_map_to_I(_vec(msg.vector)))
+        self.log.add_vector(name, stamp_s(msg) - self.time_origin_s,
+                            frames.vec_map_to_I(_vec(msg.vector)))
 
     def _on_features(self, msg: JointState) -> None:
         for name in FEATURE_VECTORS:
             v = named_vector(list(msg.name), list(msg.position), name)
             if v is not None:
-                self.log.add_vector(name, stamp_s(msg), v)
+                self.log.add_vector(name, stamp_s(msg) - self.time_origin_s, v)

@@ -35,6 +35,7 @@ IDLE_MODE = 0
 FAILSAFE_MODE = 5
 SHUTDOWN_MODE = 4
 DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
+AUTOPILOTS = ('sim', 'px4-sih')   # --autopilot: the first is the default
 
 
 @dataclass
@@ -60,6 +61,9 @@ class RunOptions:
     camera_freeze: dict = field(default_factory=dict)   # fault injection: camera -> [start, end]
     plots: bool = True
     extra: dict = field(default_factory=dict)
+    autopilot: str = 'sim'              # 'sim' | 'px4-sih' (PX4 SITL is plant and autopilot)
+    px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
+    px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
 
     @property
     def out_dir(self) -> str:
@@ -384,6 +388,15 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--real-time-factor', type=float, default=None, metavar='RTF',
                    help='free-running sim (not lockstep): sim time runs at RTF x the wall '
                         'clock, frames it cannot render on time are dropped (e.g. 0.25)')
+    p.add_argument('--autopilot', choices=AUTOPILOTS, default=AUTOPILOTS[0],
+                   help="'sim': the simulator's plant and autopilot emulation (lockstep); "
+                        "'px4-sih': PX4 SITL with SIH is plant and autopilot, real time on "
+                        'the system clock, needs ../shared/px4-sitl (docs/px4_sih.md)')
+    p.add_argument('--px4-instance', type=int, default=None, choices=range(10),
+                   metavar='I', help='px4-sih: PX4 instance 0-9 (default: a free one >= 5)')
+    p.add_argument('--px4-flight-s', type=float, default=None, metavar='S',
+                   help='px4-sih: stop S s (system clock) after ibvs/start (default 60, as a '
+                        'sim run)')
     a = p.parse_args(argv)
     xi0 = tuple(a.initial_position) if a.initial_position else None
     extra = {}
@@ -405,7 +418,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                           ('front', a.front_camera_off), ('down', a.down_camera_off)) if w},
                       camera_freeze={cam: tuple(w) for cam, w in (
                           ('front', a.front_camera_freeze), ('down', a.down_camera_freeze))
-                          if w})
+                          if w},
+                      autopilot=a.autopilot, px4_instance=a.px4_instance,
+                      px4_flight_s=a.px4_flight_s)
 
 
 def main(argv: list | None = None) -> int:
@@ -419,6 +434,9 @@ def main(argv: list | None = None) -> int:
         print(f'run_scenario: {exc}', file=sys.stderr)
         return 2
     raise_on_sigterm()
+    if opts.autopilot == 'px4-sih' and not opts.feature_level:
+        from ibvs_bringup.px4_scenario import run_px4_sih
+        return run_px4_sih(opts)
     return run_feature_level(opts) if opts.feature_level else run_graph(opts)
 
 

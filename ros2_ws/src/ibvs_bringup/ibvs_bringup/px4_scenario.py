@@ -1,0 +1,267 @@
+"""``run_scenario --autopilot px4-sih``: the whole graph flies the scenario on the real PX4.
+
+PX4 v1.16 SITL with SIH is the plant and the autopilot (docs/px4_sih.md). Sequence, all on
+the system clock (PX4 runs in real time; every node has use_sim_time false):
+
+1. PX4 SIH starts with the Pelican's parameters (vehicle.yaml), the home ``px4_sim`` maps from
+   and MIS_TAKEOFF_ALT = the start height above the take-off point
+   (:mod:`ibvs_bringup.px4_sih`);
+2. the graph starts: ``px4_sim`` (cameras rendered from PX4's ground truth) and the onboard
+   nodes with the shipped params.yaml, the bridge on PX4's companion port (udpin 14540 + i);
+3. the harness, as the pilot's GCS, arms PX4 and commands its take-off; PX4 climbs and holds
+   (AUTO.LOITER); the harness waits until the ground truth is still (``SETTLE_S``);
+4. the preflight checks pass (window in view), the harness calls ``ibvs/start``; the
+   supervisor leaves IDLE and the bridge engages OFFBOARD (the vehicle is already armed: the
+   bridge never arms, nothing asked it to);
+5. stop on touchdown + mode 4 (disarm), collision, failsafe, ``MAX_FLIGHT_S`` after the start
+   or the wall timeout; PX4 is stopped whatever happens.
+
+summary.json and the plots are written as for a sim run, from the start on (times in s since
+ibvs/start); ``timing`` holds px4_sim's frames published / dropped and the image stamp ->
+force setpoint latency, ``run`` the PX4 instance, its SIH parameters and the start pose
+reached.
+"""
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import numpy as np
+
+from ibvs_bringup import graph, report
+from ibvs_bringup.px4_sih import free_instance, Pilot, px4_boot_parameters, Px4Sitl
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_sim.core.px4_plant import find_px4_sitl, NedToI, sih_parameters
+from ibvs_sim.core.world import load_world
+
+TAKEOFF_TIMEOUT_S = 60.0      # s (steady), PX4's take-off until it holds (AUTO.LOITER)
+TAKEOFF_REACHED = 0.8          # PX4's altitude estimate at this fraction of MIS_TAKEOFF_ALT
+SETTLE_S = 1.0                # s (steady), ground truth still (speed < SETTLE_SPEED) this long
+SETTLE_SPEED_MPS = 0.3        # m/s
+SETTLE_TIMEOUT_S = 15.0       # s (steady), then start anyway from where it holds
+GRAPH_UP_TIMEOUT_S = 60.0     # s (steady), ground truth must flow from px4_sim by then
+START_WAIT_S = 20.0           # s (steady), ibvs/start retried (1 s apart) until accepted
+MAX_FLIGHT_S = 60.0           # s (system clock) after ibvs/start
+SHUTDOWN_GRACE_S = 3.0        # s after touchdown in mode 4 to wait for the disarm
+FAILSAFE_MODE, SHUTDOWN_MODE, IDLE_MODE = 5, 4, 0
+
+
+class _Stop(Exception):
+    pass
+
+
+def px4_sim_section(params_file: str | None) -> dict:
+    """Return the ``px4_sim`` parameters of the params file (code defaults under them)."""
+    import yaml
+    from ibvs_sim.px4_sim_node import PARAMETERS
+    with open(params_file or graph.default_params_file(), encoding='utf-8') as f:
+        data = yaml.safe_load(f) or {}
+    return {**PARAMETERS, **((data.get('px4_sim') or {}).get('ros__parameters') or {})}
+
+
+def _error_summary(opts, world, xi0, error: str) -> dict:
+    from ibvs_bringup.run_scenario import _run_block
+    summary = report.summarize(report.RunLog(), world, 0.0, 0.0)
+    summary['run'] = _run_block(opts, xi0, autopilot='px4-sih', error=error)
+    return summary
+
+
+def run_px4_sih(opts) -> int:
+    """Fly the whole graph against PX4 SIH once; write results/<run>/ (exit code as run_graph)."""
+    from ibvs_bringup.run_scenario import _finish, _run_block, missing_executables
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    xi0 = opts.initial_position or tuple(float(x) for x in world.initial_position_I)
+    try:
+        sitl_dir = find_px4_sitl()
+    except FileNotFoundError as exc:
+        print(f'--autopilot px4-sih: {exc}', file=sys.stderr)
+        return _finish(opts, _error_summary(opts, world, xi0, str(exc)), None)
+    p = px4_sim_section(opts.params_file)
+    home = (float(p['home_lat_deg']), float(p['home_lon_deg']), float(p['home_alt_m']))
+    frame = NedToI.from_start(xi0, world.floor_z, float(p['rest_height_m']))
+    sih = sih_parameters(vehicle)
+    boot = px4_boot_parameters(sih, frame.takeoff_altitude(xi0), home)
+    try:
+        instance = opts.px4_instance if opts.px4_instance is not None else free_instance()
+    except RuntimeError as exc:
+        return _finish(opts, _error_summary(opts, world, xi0, str(exc)), None)
+    gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=False,
+                               initial_position=opts.initial_position,
+                               crossing_law=opts.crossing_law,
+                               extra_image_subscribers=1 if opts.bag else 0,
+                               extra_imu_subscribers=1 if opts.bag else 0)
+    specs = graph.px4_sih_graph(gopts, instance, {'home_lat_deg': home[0],
+                                                  'home_lon_deg': home[1],
+                                                  'home_alt_m': home[2]})
+    if opts.bag:
+        specs.append(graph.tool_node('recorder', 'recorder', ({
+            'use_sim_time': False,
+            'bag_path': os.path.abspath(os.path.join(opts.out_dir, 'bag')),
+            'image_every': int(opts.image_every)},)))
+    missing = missing_executables(specs)
+    if missing:
+        return _finish(opts, _error_summary(opts, world, xi0,
+                                            'nodes missing: ' + '; '.join(missing)), None)
+    return _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs,
+                    _finish, _run_block)
+
+
+def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, finish,
+             run_block) -> int:
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+    from rclpy.signals import SignalHandlerOptions
+    from ibvs_bringup.monitor_node import ScenarioMonitor
+    from ibvs_bringup.run_scenario import supervisor_transitions
+    from ibvs_bringup.runner import ProcessRunner, Terminated
+
+    t_wall0 = time.monotonic()
+    px4 = Px4Sitl(instance, boot, sitl_dir)
+    runner = ProcessRunner(log_dir=os.path.join(opts.out_dir, 'logs'))
+    rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
+    monitor = pilot = None
+    stop_reason = error = None
+    info: dict = {'px4_instance': instance, 'px4_parameters': boot}
+    codes = {}
+    try:
+        t = time.monotonic()
+        px4.start()
+        info['px4_start_s'] = round(time.monotonic() - t, 2)
+        print(f'run {opts.run_name}: PX4 SIH instance {instance} up in '
+              f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")})', flush=True)
+        monitor = ScenarioMonitor(use_sim_time=False)
+        runner.start_graph(specs)
+        pilot = Pilot(instance)
+        stop_reason = _flight(opts, monitor, runner, pilot, xi0, t_wall0, info,
+                              {s.name for s in specs if s.respawn},
+                              float(boot['MIS_TAKEOFF_ALT']))
+    except _Stop as exc:
+        error = str(exc)
+    except RuntimeError as exc:               # PX4 did not start
+        error = str(exc)
+    except (KeyboardInterrupt, Terminated, ExternalShutdownException):
+        error = 'interrupted'
+    finally:
+        codes = runner.stop()
+        if monitor is not None and rclpy.ok():
+            for _ in range(20):
+                rclpy.spin_once(monitor, timeout_sec=0.0)
+        if pilot is not None:
+            pilot.close()
+        tail = px4.log_tail() if error else ''
+        px4.stop()
+        log = monitor.log if monitor is not None else report.RunLog()
+        sim_stats = dict(monitor.sim_stats) if monitor is not None else {}
+        bridge = list(monitor.bridge_history) if monitor is not None else []
+        if monitor is not None:
+            monitor.destroy_node()
+        rclpy.try_shutdown()
+    print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
+    if tail:
+        print('PX4 log tail:\n' + tail, flush=True)
+    if log.xi:
+        info['end_pose_I'] = [round(float(x), 3) for x in log.xi[-1]]
+    summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
+    summary['timing'] = sim_stats
+    summary['bridge'] = bridge
+    summary['run'] = run_block(opts, xi0, autopilot='px4-sih', stop_reason=stop_reason,
+                               error=error, wall_time_s=time.monotonic() - t_wall0,
+                               events=log.events, **info,
+                               transitions=supervisor_transitions(
+                                   os.path.join(opts.out_dir, 'logs', 'mode_supervisor.log')))
+    return finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
+
+
+def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
+            takeoff_alt_m: float) -> str:
+    """Take off, settle, preflight, ibvs/start, watch; return the stop reason."""
+    import rclpy
+    from std_srvs.srv import Trigger
+    from ibvs_bringup.preflight import format_checklist
+
+    def spin(dt: float) -> None:
+        rclpy.spin_once(monitor, timeout_sec=dt)
+        pilot.poll()
+        for event in runner.supervise():
+            print(f'runner: {event}', flush=True)
+            if 'died' in event and not any(f"'{n}'" in event for n in respawning):
+                raise _Stop(event)
+        if time.monotonic() - t_wall0 > opts.timeout_s:
+            raise _Stop(f'wall-clock timeout {opts.timeout_s:.0f} s')
+
+    deadline = time.monotonic() + GRAPH_UP_TIMEOUT_S
+    while not monitor.log.t:
+        if time.monotonic() > deadline:
+            raise _Stop(f'no ground truth from px4_sim within {GRAPH_UP_TIMEOUT_S:.0f} s '
+                        '(see logs/px4_sim.log)')
+        spin(0.05)
+    t = time.monotonic()
+    why = pilot.take_off(TAKEOFF_TIMEOUT_S, TAKEOFF_REACHED * takeoff_alt_m, spin)
+    if why:
+        raise _Stop(why)
+    info['takeoff_s'] = round(time.monotonic() - t, 2)
+    still_since, deadline = None, time.monotonic() + SETTLE_TIMEOUT_S
+    while time.monotonic() < deadline:
+        spin(0.05)
+        v = monitor.log.v[-1] if monitor.log.v else np.full(3, np.inf)
+        if np.linalg.norm(v) < SETTLE_SPEED_MPS:
+            still_since = still_since or time.monotonic()
+            if time.monotonic() - still_since >= SETTLE_S:
+                break
+        else:
+            still_since = None
+    xi = monitor.log.xi[-1]
+    info['start_pose_I'] = [round(float(x), 3) for x in xi]
+    print(f'PX4 holds after its take-off ({info["takeoff_s"]} s) at xi_I = '
+          f'({xi[0]:+.2f}, {xi[1]:+.2f}, {xi[2]:+.2f}); scenario start '
+          f'{tuple(round(x, 2) for x in xi0)}', flush=True)
+    deadline = time.monotonic() + opts.preflight_timeout_s
+    while not monitor.health.healthy() and time.monotonic() < deadline:
+        spin(0.05)
+    print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
+    if not monitor.health.healthy():
+        raise _Stop(f'preflight failed after {opts.preflight_timeout_s:.0f} s')
+    client = monitor.create_client(Trigger, 'ibvs/start')
+    deadline = time.monotonic() + START_WAIT_S
+    answer = None
+    while True:
+        if time.monotonic() > deadline:
+            raise _Stop(f'ibvs/start not accepted within {START_WAIT_S:.0f} s: '
+                        f'{answer.message if answer else "no answer"}')
+        if client.service_is_ready():
+            t_call = monitor.get_clock().now().nanoseconds * 1e-9
+            future = client.call_async(Trigger.Request())
+            until = time.monotonic() + 1.0
+            while not future.done() and time.monotonic() < until:
+                spin(0.02)
+            answer = future.result() if future.done() else None
+            if answer is not None and answer.success:
+                break
+        spin(0.2)
+    monitor.reset_log(t_call)
+    print(f'ibvs/start: {answer.message}', flush=True)
+    limit_s = opts.px4_flight_s if opts.px4_flight_s is not None else MAX_FLIGHT_S
+    next_print = time.monotonic()
+    while True:
+        spin(0.02)
+        t_run, mode = monitor.now_s(), monitor.log.mode
+        if time.monotonic() >= next_print:
+            next_print += 1.0
+            xi = monitor.log.xi[-1] if monitor.log.xi else np.full(3, np.nan)
+            st = monitor.sim_stats
+            print(f'  t = {t_run:6.2f} s  mode {mode}  xi_I = ({xi[0]:+.2f}, {xi[1]:+.2f}, '
+                  f'{xi[2]:+.2f})  PX4 main mode {pilot.main_mode}  frames '
+                  f'{st.get("frames_published")} published / {st.get("frames_dropped")} '
+                  'dropped', flush=True)
+        if monitor.collision is not None:
+            return f"collision with {monitor.collision.get('surface')}"
+        if mode == FAILSAFE_MODE:
+            return 'failsafe'
+        if monitor.touchdown is not None and mode == SHUTDOWN_MODE:
+            if monitor.health.armed is False or not pilot.armed:
+                return 'touchdown, mode 4, disarmed'
+            if t_run - float(monitor.touchdown.get('t', t_run)) > SHUTDOWN_GRACE_S:
+                return 'touchdown, mode 4 (no disarm report)'
+        if t_run > limit_s:
+            return f'{limit_s:g} s after ibvs/start'

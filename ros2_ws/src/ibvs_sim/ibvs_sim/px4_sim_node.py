@@ -1,0 +1,299 @@
+"""ROS 2 node ``px4_sim``: both cameras rendered from PX4 SIH's ground truth (``px4-sih`` mode).
+
+PX4 v1.16 SITL with its SIH simulator is the plant and the autopilot (docs/px4_sih.md); this
+node integrates no physics and emulates no autopilot. It reads SIH's HIL_STATE_QUATERNION on
+``state_url`` (127.0.0.1:19410 + i; rate raised to ``state_rate_hz`` with
+SET_MESSAGE_INTERVAL on that link), maps it to the paper frame {I}
+(:class:`~ibvs_sim.core.px4_plant.NedToI`: the take-off point is the scenario's start
+projected on the floor) and publishes, on the system clock (use_sim_time false, no
+``/clock``): ``sim/ground_truth/odom`` at every sample (stamp = receipt), and on the cameras'
+50 Hz grid ``front_camera/image_raw``, ``down_camera/image_raw`` and their ``camera_info``,
+rendered from the latest sample moved ahead to the frame time (constant velocity and rates;
+a frame is not rendered from a sample older than ``state_timeout_s``); a frame the node
+reaches a whole period late is dropped and counted. Contact events go to ``sim/events``
+(once airborne), timing to ``sim/stats``: frames published / dropped / stale, the
+ground-truth rate and the latency image stamp -> ``ibvs/force_setpoint`` receipt (the force
+the bridge turns into SET_ATTITUDE_TARGET at once), all on the system clock.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import json
+import math
+import time
+
+import numpy as np
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
+                       qos_profile_sensor_data)
+
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Vector3Stamped
+from nav_msgs.msg import Odometry
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
+from ibvs_common.param_descriptors import declare_all
+from ibvs_common.spin import spin_guarded
+from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample, NedToI,
+                                     PositionFilter, px4_home, Px4PlantError,
+                                     SIH_DEFAULT_HOME, StateLink)
+from ibvs_sim.core.render import SceneRenderer
+from ibvs_sim.core.sensor_noise import ReadNoise
+from ibvs_sim.core.sim_core import AnswerLatency, NS_PER_S
+from ibvs_sim.core.world import load_world
+from ibvs_sim.sim_node import CAMERAS, camera_info_msg, image_msg, odometry_msg, stamp_from_ns
+
+NODE_NAME = 'px4_sim'
+LOG_THROTTLE_S = 2.0
+EVENTS_DEPTH = 20
+RELIABLE_DEPTH = 10
+STATS_PERIOD_S = 1.0          # s (steady clock), sim/stats
+PARAMETERS = {
+    'state_url': 'udpin:127.0.0.1:19410',
+    'state_rate_hz': 100.0,
+    'state_timeout_s': 0.2,
+    'tick_period_s': 0.002,
+    'home_lat_deg': SIH_DEFAULT_HOME[0],
+    'home_lon_deg': SIH_DEFAULT_HOME[1],
+    'home_alt_m': SIH_DEFAULT_HOME[2],
+    'rest_height_m': 0.1,
+    'initial_override': False,
+    'initial_position_I': [-2.0, 0.1, -1.82],
+    'position_filter_tau_s': 0.2,
+    'airborne_clearance_m': 0.3,
+    'world_file': '',
+    'pad_layout_file': '',
+    'vehicle_file': '',
+    'seed': 0,
+    'camera_read_noise_std': 1.5,
+}
+PARAMETER_SPECS = {
+    'state_url': ("where PX4 SIH sends HIL_STATE_QUATERNION (pymavlink URL, "
+                  "udpin:127.0.0.1:<19410 + instance>)",),
+    'state_rate_hz': ('Hz (PX4 boot clock), HIL_STATE_QUATERNION rate asked with '
+                      'SET_MESSAGE_INTERVAL, > 0', 0.0, 1000.0),
+    'state_timeout_s': ('s (system clock), a frame is not rendered from a ground-truth sample '
+                        'older than this, > 0', 0.0, None),
+    'tick_period_s': ('s (steady clock), how often the node reads the link and checks the '
+                      'frame grid, > 0', 0.0, None),
+    'home_lat_deg': ('deg, PX4 home latitude (SIH_LOC_LAT0 PX4 was started with; used as '
+                     'PX4 stores it, float32)',
+                     -90.0, 90.0),
+    'home_lon_deg': ('deg, PX4 home longitude (SIH_LOC_LON0)', -180.0, 180.0),
+    'home_alt_m': ('m AMSL, PX4 home altitude (SIH_LOC_H0): the ground', -1000.0, 10000.0),
+    'rest_height_m': ('m, body origin above the floor when PX4 rests on the ground at home '
+                      '(the envelope half height)', 0.0, 10.0),
+    'initial_override': ('true: the take-off point is below initial_position_I; false: below '
+                         'world.yaml initial_condition',),
+    'initial_position_I': ('m, scenario start in {I} (only x, y: the take-off point), '
+                           '3 numbers',),
+    'position_filter_tau_s': ('s (system clock), time constant pulling the integrated '
+                              'velocity to the 1e-7 deg quantised fix; 0 = raw fix',
+                              0.0, 10.0),
+    'airborne_clearance_m': ('m, contact events only after the envelope was this high above '
+                             'the floor', 0.0, None),
+    'world_file': ("world YAML; '' = the installed world.yaml",),
+    'pad_layout_file': ("pad layout YAML; '' = the installed pad_layout.yaml",),
+    'vehicle_file': ("vehicle YAML; '' = the installed vehicle.yaml",),
+    'seed': ('seed of the camera read noise', 0, None),
+    'camera_read_noise_std': ("grey levels (of 255), std of the cameras' Gaussian read "
+                              'noise; 0 = noise-free', 0.0, 255.0),
+}
+
+
+@dataclass(frozen=True)
+class Px4SimConfig:
+    """Everything the node reads from its parameters."""
+
+    state_url: str
+    state_rate_hz: float
+    state_timeout_s: float
+    tick_period_s: float
+    home: tuple
+    rest_height_m: float
+    start_I: tuple | None
+    filter_tau_s: float
+    airborne_m: float
+    world_file: str
+    pad_layout_file: str
+    vehicle_file: str
+    seed: int
+    read_noise_std: float
+
+
+def read_config(v: dict) -> Px4SimConfig:
+    """Check the declared parameter values; raise ValueError naming a bad one."""
+    pos = [float(x) for x in v['initial_position_I']]
+    if len(pos) != 3 or not all(math.isfinite(x) for x in pos):
+        raise ValueError(f'initial_position_I needs 3 finite numbers, got {pos}')
+    for key in ('state_rate_hz', 'state_timeout_s', 'tick_period_s'):
+        if not (math.isfinite(v[key]) and v[key] > 0.0):
+            raise ValueError(f'{key} must be > 0, got {v[key]}')
+    return Px4SimConfig(
+        state_url=str(v['state_url']), state_rate_hz=float(v['state_rate_hz']),
+        state_timeout_s=float(v['state_timeout_s']), tick_period_s=float(v['tick_period_s']),
+        home=px4_home(float(v['home_lat_deg']), float(v['home_lon_deg']),
+                      float(v['home_alt_m'])),
+        rest_height_m=float(v['rest_height_m']),
+        start_I=tuple(pos) if v['initial_override'] else None,
+        filter_tau_s=float(v['position_filter_tau_s']),
+        airborne_m=float(v['airborne_clearance_m']), world_file=str(v['world_file']),
+        pad_layout_file=str(v['pad_layout_file']), vehicle_file=str(v['vehicle_file']),
+        seed=int(v['seed']), read_noise_std=float(v['camera_read_noise_std']))
+
+
+class Px4SimNode(Node):
+    """Render both cameras from PX4 SIH's ground truth; publish it, contacts and timing."""
+
+    def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
+        super().__init__(node_name, **kwargs)
+        cfg = read_config(declare_all(self, PARAMETERS, PARAMETER_SPECS))
+        self.cfg = cfg
+        world = load_world(cfg.world_file or None)
+        pad = load_pad_layout(cfg.pad_layout_file or None)
+        vehicle = load_vehicle(cfg.vehicle_file or None)
+        self.cameras = {name: vehicle.cameras[name] for name in CAMERAS}
+        start = cfg.start_I if cfg.start_I is not None else tuple(world.initial_position_I)
+        self.frame = NedToI.from_start(start, world.floor_z, cfg.rest_height_m)
+        self.renderers = {n: SceneRenderer(world, pad, vehicle.cameras[n]) for n in CAMERAS}
+        self.read_noise = {n: ReadNoise(cfg.read_noise_std, (vehicle.cameras[n].model.height,
+                                                             vehicle.cameras[n].model.width),
+                                        cfg.seed, n) for n in CAMERAS}
+        self.filter = PositionFilter(cfg.filter_tau_s)
+        self.contacts = ContactWatch(world, vehicle.envelope_radius, vehicle.envelope_height,
+                                     cfg.airborne_m)
+        self.link = StateLink(cfg.state_url, cfg.state_rate_hz)
+        self.frames = FrameClock(self.cameras['down'].rate_hz, time.time_ns())
+        self.latency = AnswerLatency()
+        self.latest = None              # (TruthSample, receipt ns, system clock)
+        self.frames_published = 0
+        self.frames_stale = 0
+        self.bad_samples = 0
+        self.render_s: list[float] = []
+        reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=EVENTS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.image_pubs = {n: self.create_publisher(Image, f'{n}_camera/image_raw',
+                                                    qos_profile_sensor_data) for n in CAMERAS}
+        self.info_pubs = {n: self.create_publisher(CameraInfo, f'{n}_camera/camera_info',
+                                                   reliable) for n in CAMERAS}
+        self.odom_pub = self.create_publisher(Odometry, 'sim/ground_truth/odom', reliable)
+        self.events_pub = self.create_publisher(String, 'sim/events', latched)
+        self.stats_pub = self.create_publisher(DiagnosticArray, 'sim/stats', QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE,
+            durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        self.create_subscription(Vector3Stamped, 'ibvs/force_setpoint', self._on_force,
+                                 qos_profile_sensor_data)
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(cfg.tick_period_s, self._on_tick, clock=steady)
+        self.create_timer(STATS_PERIOD_S, self._publish_stats, clock=steady)
+        self.get_logger().info(
+            f'px4_sim: ground truth from {cfg.state_url} at {cfg.state_rate_hz:g} Hz; PX4 '
+            f'home {cfg.home} = {{I}} {list(self.frame.origin_I)} (take-off point below the '
+            f'start {list(start)}); system clock, no /clock')
+
+    def _on_force(self, msg: Vector3Stamped) -> None:
+        stamp_ns = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        self.latency.answered(stamp_ns // 1_000_000, time.time_ns() / NS_PER_S)
+
+    def _on_tick(self) -> None:
+        for m in self.link.poll(time.monotonic()):
+            self._on_state(m, time.time_ns())
+        now_ns = time.time_ns()
+        frame_ns = self.frames.due(now_ns)
+        if frame_ns is None:
+            return
+        if self.latest is None or now_ns - self.latest[1] > self.cfg.state_timeout_s * 1e9:
+            self.frames_stale += 1
+            self.get_logger().warning(
+                f'no ground truth from PX4 for {self.cfg.state_timeout_s} s: frame not '
+                f'rendered ({self.frames_stale} so far; is PX4 SIH running on '
+                f'{self.cfg.state_url}?)', throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        sample, receipt_ns = self.latest
+        state = sample.extrapolated((frame_ns - receipt_ns) / NS_PER_S)
+        t0 = time.perf_counter()
+        stamp = stamp_from_ns(frame_ns)
+        for name, renderer in self.renderers.items():
+            try:
+                img = self.read_noise[name].apply(renderer.render(state.R_IB, state.xi_I),
+                                                  self.frames_published)
+            except ValueError as exc:           # RenderError: a pose the renderer refuses
+                self.get_logger().error(f'frame not rendered: {exc}',
+                                        throttle_duration_sec=LOG_THROTTLE_S)
+                return
+            cam = self.cameras[name]
+            self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
+            self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))
+        self.render_s = (self.render_s + [time.perf_counter() - t0])[-500:]
+        self.frames_published += 1
+        self.latency.published(frame_ns, frame_ns / NS_PER_S)
+
+    def _on_state(self, msg, receipt_ns: int) -> None:
+        try:
+            raw = hil_state_sample(msg, self.cfg.home, self.frame)
+            p = self.filter.update(receipt_ns / NS_PER_S, raw.p_ned_raw, raw.v_I)
+            sample = hil_state_sample(msg, self.cfg.home, self.frame, p_ned=p)
+        except (Px4PlantError, AttributeError, TypeError) as exc:
+            self.bad_samples += 1
+            self.get_logger().warning(f'HIL_STATE_QUATERNION ignored: {exc}',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+            return
+        self.latest = (sample, receipt_ns)
+        self.odom_pub.publish(odometry_msg(sample.state(), stamp_from_ns(receipt_ns)))
+        event = self.contacts.check(receipt_ns / NS_PER_S, sample.xi_I, sample.v_I)
+        if event is not None:
+            self.events_pub.publish(String(data=json.dumps(event.to_dict())))
+            self.get_logger().info(f'event: {event.to_dict()}')
+
+    def _publish_stats(self) -> None:
+        """sim/stats: frames published, dropped, stale; ground-truth rate; latency."""
+        render = np.asarray(self.render_s) * 1e3
+        values = {'pacing': 'px4_sih', 'frames_due': self.frames.due_count,
+                  'frames_dropped': self.frames.dropped, 'frames_stale': self.frames_stale,
+                  'ground_truth_rate_hz': round(self.link.measured_rate_hz(), 2),
+                  'ground_truth_samples': self.link.received,
+                  'ground_truth_bad': self.bad_samples,
+                  'interval_requests': self.link.requests,
+                  'render_median_ms': float(np.median(render)) if render.size else None,
+                  **self.latency.stats()}
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if self.frames.dropped else DiagnosticStatus.OK,
+            name='sim: timing', message=f'{self.frames_published} frames published, '
+            f'{self.frames.dropped} dropped',
+            values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = stamp_from_ns(time.time_ns())
+        self.stats_pub.publish(msg)
+
+    def destroy_node(self) -> None:
+        """Close the ground-truth socket, then destroy the node."""
+        self.link.close()
+        super().destroy_node()
+
+
+def main(args=None) -> None:
+    """Run the node until Ctrl-C."""
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = Px4SimNode()
+        spin_guarded(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (ConfigError, ValueError, OSError) as exc:    # OSError: the state port is taken
+        rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
+        raise SystemExit(1) from exc
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+if __name__ == '__main__':
+    main()
