@@ -266,3 +266,11 @@ def test_hold_tilt_is_limited_to_35_degrees():
     assert tilt == pytest.approx(math.radians(35.0), abs=1e-9)
     # thrust: lift g, horizontal g tan 35 deg -> g / cos 35 deg
     assert ref.thrust_norm == pytest.approx(0.5 / math.cos(math.radians(35.0)))
+
+
+def test_imu_fault_windows_are_half_open_in_sim_time():
+    from ibvs_sim.core.autopilot import AutopilotConfig
+    cfg = AutopilotConfig(imu_off_s=(2.0, 3.0), imu_nan_s=(5.0, 5.1))
+    assert [cfg.imu_fault_at(t) for t in (1.99, 2.0, 2.99, 3.0, 5.05, 5.1)] == \
+        ['', 'off', 'off', '', 'nan', '']
+    assert AutopilotConfig().imu_fault_at(0.0) == ''       # [0, 0]: never

@@ -59,6 +59,8 @@ class RunOptions:
     kill_at_s: float = 2.0              # ... at this sim time (perception nodes come back)
     camera_off: dict = field(default_factory=dict)   # fault injection: camera -> [start, end]
     camera_freeze: dict = field(default_factory=dict)   # fault injection: camera -> [start, end]
+    imu_off: tuple | None = None        # fault injection: [start, end] sim s without IMU
+    imu_nan: tuple | None = None        # fault injection: [start, end] sim s of NaN IMU
     plots: bool = True
     extra: dict = field(default_factory=dict)
     autopilot: str = 'sim'              # 'sim' | 'px4-sih' (PX4 SITL is plant and autopilot)
@@ -196,7 +198,9 @@ def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
                                    [(f'fault_{cam}_camera_off_s', list(w))
                                     for cam, w in opts.camera_off.items()]
                                    + [(f'fault_{cam}_camera_freeze_s', list(w))
-                                      for cam, w in opts.camera_freeze.items()]),
+                                      for cam, w in opts.camera_freeze.items()]
+                                   + [(f'fault_imu_{kind}_s', list(w)) for kind, w in (
+                                       ('off', opts.imu_off), ('nan', opts.imu_nan)) if w]),
                                extra_image_subscribers=1 if opts.bag else 0,
                                extra_imu_subscribers=1 if opts.bag else 0)
     specs = graph.sim_graph(gopts)
@@ -385,6 +389,12 @@ def parse_args(argv: list | None = None) -> RunOptions:
         p.add_argument(f'--{cam}-camera-freeze', type=float, nargs=2, metavar=('START', 'END'),
                        help=f'fault injection: in this sim-time window (s) the {cam} camera '
                             f're-publishes its image of START with new stamps (a hung driver)')
+    p.add_argument('--imu-off', type=float, nargs=2, metavar=('START', 'END'),
+                   help='fault injection: the autopilot sends no attitude/IMU in this sim-time '
+                        'window (s)')
+    p.add_argument('--imu-nan', type=float, nargs=2, metavar=('START', 'END'),
+                   help='fault injection: the autopilot sends attitude/IMU full of NaN in this '
+                        'sim-time window (s)')
     p.add_argument('--real-time-factor', type=float, default=None, metavar='RTF',
                    help='free-running sim (not lockstep): sim time runs at RTF x the wall '
                         'clock, frames it cannot render on time are dropped (e.g. 0.25)')
@@ -419,6 +429,8 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       camera_freeze={cam: tuple(w) for cam, w in (
                           ('front', a.front_camera_freeze), ('down', a.down_camera_freeze))
                           if w},
+                      imu_off=tuple(a.imu_off) if a.imu_off else None,
+                      imu_nan=tuple(a.imu_nan) if a.imu_nan else None,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
                       px4_flight_s=a.px4_flight_s)
 

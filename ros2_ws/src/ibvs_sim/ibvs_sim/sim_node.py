@@ -8,7 +8,8 @@ all stamped with the capture time: ``/clock``, ``front_camera/image_raw``,
 ``sim/events`` (JSON in std_msgs/String, transient local). The autopilot speaks MAVLink on
 ``mavlink_url``. Pacing, wind, the cameras' read noise (``camera_read_noise_std``: no two
 frames are bit-identical, as with a real sensor) and the initial condition are parameters
-(docs/interfaces.md); so are the test-only camera faults (off, frozen: ``fault_*``).
+(docs/interfaces.md); so are the test-only faults (camera off or frozen, IMU off or NaN:
+``fault_*``).
 
 In lockstep the node is the test harness's clock, and only it waits: a frame's images leave
 once ``imu/data`` (the bridge's, from this autopilot's telemetry) has reached the frame's
@@ -113,6 +114,8 @@ PARAMETERS = {
     'fault_down_camera_off_s': [0.0, 0.0],
     'fault_front_camera_freeze_s': [0.0, 0.0],
     'fault_down_camera_freeze_s': [0.0, 0.0],
+    'fault_imu_off_s': [0.0, 0.0],
+    'fault_imu_nan_s': [0.0, 0.0],
 }
 # description with unit (times: sim = the sim's own clock, published on /clock; wall = steady
 # clock), inclusive range (ibvs_common.param_descriptors)
@@ -154,6 +157,10 @@ PARAMETER_SPECS = {
     'fault_down_camera_off_s': ('no down images in' + _FAULT,),
     'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULT,),
     'fault_down_camera_freeze_s': ('the down camera re-publishes one image in' + _FAULT,),
+    'fault_imu_off_s': ('the autopilot sends no ATTITUDE_QUATERNION / HIGHRES_IMU in'
+                        + _FAULT,),
+    'fault_imu_nan_s': ('the autopilot sends ATTITUDE_QUATERNION / HIGHRES_IMU full of NaN in'
+                        + _FAULT,),
 }
 
 
@@ -182,6 +189,8 @@ class SimNodeConfig:
     telemetry_default_hz: float = 100.0
     camera_off_s: dict = None                # fault injection: camera -> (start, end) sim s
     camera_frozen_s: dict = None             # fault injection: camera -> (start, end) sim s
+    imu_off_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
+    imu_nan_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
     read_noise_std: float = 0.0              # grey levels, the cameras' read noise (0: off)
 
 
@@ -263,7 +272,8 @@ class SimNode(Node):
             url=cfg.mavlink_url, hover_thrust=vehicle.hover_thrust,
             signing_key_file=cfg.signing_key_file or None, noise_seed=cfg.seed,
             mass=vehicle.mass, floor_z=world.floor_z,
-            telemetry_default_hz=cfg.telemetry_default_hz))
+            telemetry_default_hz=cfg.telemetry_default_hz, imu_off_s=cfg.imu_off_s,
+            imu_nan_s=cfg.imu_nan_s))
         wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
@@ -366,7 +376,9 @@ class SimNode(Node):
             camera_off_s={cam: _window(v[f'fault_{cam}_camera_off_s'], f'fault_{cam}_camera_off_s')
                           for cam in CAMERAS},
             camera_frozen_s={cam: _window(v[f'fault_{cam}_camera_freeze_s'],
-                                          f'fault_{cam}_camera_freeze_s') for cam in CAMERAS})
+                                          f'fault_{cam}_camera_freeze_s') for cam in CAMERAS},
+            imu_off_s=_window(v['fault_imu_off_s'], 'fault_imu_off_s'),
+            imu_nan_s=_window(v['fault_imu_nan_s'], 'fault_imu_nan_s'))
 
     def _first_frame_may_go(self) -> bool:
         """Ask the hold (core) with the subscriber counts; log the wait and a timeout."""
@@ -445,7 +457,9 @@ class SimNode(Node):
             self._publish_clock(self.sim.t_ns if self.sim.config.pacing is Pacing.REALTIME
                                 else self._clock_ns)
         if out is not None:
-            out = self.imu_hold.hold(out, time.monotonic())
+            # an injected IMU fault: imu/data will not reach the frame, do not wait for it
+            if not self.autopilot.config.imu_fault_at(out.t):
+                out = self.imu_hold.hold(out, time.monotonic())
             if out is not None:
                 self._publish(out)
         elif self.sim.ended and not self._ended_logged:
@@ -487,8 +501,12 @@ class SimNode(Node):
         images, withheld, frozen = self.faults.apply(out.t, out.images)
         # lockstep: the graph may have nothing to answer (its mode's camera is off), or drop
         # a frozen camera's images (its products are then given up after this short wait)
-        self.sim.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld or frozen
+        imu_fault = self.autopilot.config.imu_fault_at(out.t)
+        self.sim.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld or frozen or imu_fault
                                   else self.sim.config.lockstep_timeout_s)
+        if imu_fault:
+            self.get_logger().warning(f'fault injection: IMU {imu_fault} at t = {out.t:.3f} s',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
         if withheld:
             self.get_logger().warning(f'fault injection: {", ".join(withheld)} camera off at '
                                       f't = {out.t:.3f} s', throttle_duration_sec=LOG_THROTTLE_S)

@@ -67,6 +67,18 @@ class AutopilotConfig:
     quat_norm_tol: float = 1e-2             # |‖q‖ - 1| accepted in SET_ATTITUDE_TARGET
     max_messages_per_poll: int = 2000
     log_period_wall_s: float = 5.0          # rate limit of repeated warnings
+    # fault injection (tests only), [start, end) in sim s, start == end: never. Off: no
+    # ATTITUDE_QUATERNION / HIGHRES_IMU (an attitude estimator that stopped); NaN: they carry
+    # NaN (a broken estimator or sensor driver)
+    imu_off_s: tuple = (0.0, 0.0)
+    imu_nan_s: tuple = (0.0, 0.0)
+
+    def imu_fault_at(self, t: float) -> str:
+        """Return 'off', 'nan' or '' (no IMU fault) at sim time ``t`` (s)."""
+        for name, (start, end) in (('off', self.imu_off_s), ('nan', self.imu_nan_s)):
+            if start <= t < end:
+                return name
+        return ''
 
 
 @dataclass
@@ -123,6 +135,7 @@ class AutopilotCounters:
     attitude_quaternion_sent: int = 0
     highres_imu_sent: int = 0
     attitude_target_sent: int = 0
+    imu_faulted: int = 0            # IMU messages withheld or sent as NaN (fault injection)
     extended_sys_state_sent: int = 0
     sys_status_sent: int = 0
     state_invalid: int = 0          # non-finite ground truth handed in by the sim

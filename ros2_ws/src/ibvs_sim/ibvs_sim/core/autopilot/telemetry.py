@@ -195,7 +195,21 @@ class Telemetry:
                                        -1, -1, zero, zero, zero, zero, zero, zero)
         self.counters.sys_status_sent += 1
 
+    def _imu_fault(self, t: float) -> str:
+        """Return the IMU fault injected at ``t`` ('off', 'nan', ''), counted."""
+        fault = self.config.imu_fault_at(t)
+        self.counters.imu_faulted += bool(fault)
+        return fault
+
     def _send_attitude_quaternion(self, state: VehicleStateView) -> None:
+        fault = self._imu_fault(state.t)
+        if fault == 'off':
+            return
+        if fault == 'nan':
+            nan = float('nan')
+            self._link.mav.attitude_quaternion_send(int(round(state.t * MS_PER_S)),
+                                                    *([nan] * 7))
+            return
         if not finite(state.R_IB, state.Omega_B):
             self.counters.state_invalid += 1
             self._warn.warning('state', 'non-finite attitude at t=%.3f: not sent', state.t)
@@ -207,6 +221,15 @@ class Telemetry:
         self.counters.attitude_quaternion_sent += 1
 
     def _send_highres_imu(self, state: VehicleStateView) -> None:
+        fault = self._imu_fault(state.t)
+        if fault == 'off':
+            return
+        if fault == 'nan':
+            nan, zero = float('nan'), 0.0
+            self._link.mav.highres_imu_send(int(round(state.t * US_PER_S)), *([nan] * 6),
+                                            zero, zero, zero, zero, zero, zero, zero,
+                                            HIGHRES_IMU_FIELDS_ACC_GYRO)
+            return
         if not finite(state.accel_B_specific, state.Omega_B):
             self.counters.state_invalid += 1
             self._warn.warning('state', 'non-finite IMU at t=%.3f: not sent', state.t)
