@@ -789,8 +789,10 @@ def _profiles(gray: np.ndarray, camera: CameraModel, samples_u: np.ndarray,
     curved); returns (profiles (n, m) bilinear, base points (n, 2) and unit normals (n, 2)
     in distorted pixels).
     """
-    base = _distort_px(camera, samples_u)
-    probe = _distort_px(camera, samples_u + _NORMAL_PROBE_PX * inward_u)
+    # one projection for the samples and their probes (each point on its own: same values)
+    both = _distort_px(camera, np.concatenate([samples_u,
+                                               samples_u + _NORMAL_PROBE_PX * inward_u]))
+    base, probe = both[:len(samples_u)], both[len(samples_u):]
     normal_d = probe - base
     normal_d /= np.linalg.norm(normal_d, axis=1, keepdims=True)
     tangent = np.column_stack([-normal_d[:, 1], normal_d[:, 0]])
