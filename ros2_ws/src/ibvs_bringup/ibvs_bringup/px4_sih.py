@@ -26,7 +26,7 @@ import subprocess
 import tempfile
 import time
 
-from ibvs_sim.core.px4_plant import find_px4_sitl, SIH_DEFAULT_HOME
+from ibvs_sim.core.px4_plant import EARTH_RADIUS_M, find_px4_sitl, SIH_DEFAULT_HOME
 
 START_TIMEOUT_S = 90.0          # s (steady), px4-sih start (it waits for "Ready for takeoff")
 STOP_TIMEOUT_S = 30.0           # s (steady), px4-sih stop
@@ -36,6 +36,9 @@ PX4_INSTANCE_PORT_BASES = (14540, 14580, 18570, 19410, 19450)   # UDP, + i
 MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_NAV_LAND = 21
+MAV_CMD_DO_REPOSITION = 192
+MAV_DO_REPOSITION_FLAGS_CHANGE_MODE = 1
+MAV_FRAME_GLOBAL = 0
 MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_AUTOPILOT_PX4 = 12
 PX4_MAIN_AUTO, PX4_SUB_LOITER, PX4_SUB_TAKEOFF = 4, 3, 2
@@ -112,6 +115,27 @@ class Px4Sitl:
         self._script = script
         return env
 
+    def renice(self, nice: int) -> str:
+        """Set the nice value of every thread of this PX4 (Linux); return what was done.
+
+        On a vehicle PX4 runs on its own flight controller; here it shares the cores with the
+        graph, and SIH's lockstep clock slips when PX4 is starved (docs/px4_sih.md). A
+        permission error is reported, not raised.
+        """
+        pid = int(self.env['PX4_PID'])
+        done, failed = 0, 0
+        try:
+            tids = os.listdir(f'/proc/{pid}/task')
+        except OSError as exc:
+            return f'not reniced: {exc}'
+        for tid in tids:
+            try:
+                os.setpriority(os.PRIO_PROCESS, int(tid), int(nice))
+                done += 1
+            except OSError:
+                failed += 1
+        return f'{done} threads at nice {nice}' + (f', {failed} refused' if failed else '')
+
     def stop(self) -> None:
         """Stop this instance (by its work directory: only its own PID)."""
         if self.env is None:
@@ -155,6 +179,8 @@ class Pilot:
         self.main_mode = self.sub_mode = None
         self.relative_alt_m: float | None = None     # GLOBAL_POSITION_INT (PX4's estimate)
         self.target: tuple[int, int] | None = None   # PX4's ids (MAV_SYS_ID = 1 + instance)
+        self.position_est = None      # PX4's own (lat, lon deg, alt m AMSL): its estimate
+        self.yaw_est: float | None = None             # rad, PX4's own heading (ATTITUDE)
         self.acks: dict = {}
         self.statustext: list[str] = []
         self._beat = -math.inf
@@ -178,8 +204,11 @@ class Pilot:
                 self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
                 self.main_mode = (m.custom_mode >> 16) & 0xFF
                 self.sub_mode = (m.custom_mode >> 24) & 0xFF
+            elif kind == 'ATTITUDE':
+                self.yaw_est = float(m.yaw)
             elif kind == 'GLOBAL_POSITION_INT':
                 self.relative_alt_m = m.relative_alt * 1e-3
+                self.position_est = (m.lat * 1e-7, m.lon * 1e-7, m.alt * 1e-3)
             elif kind == 'COMMAND_ACK':
                 self.acks[int(m.command)] = int(m.result)
             elif kind == 'STATUSTEXT':
@@ -228,6 +257,28 @@ class Pilot:
                 f'{self.armed}, main mode {self.main_mode}, sub mode {self.sub_mode}, '
                 f'altitude {self.relative_alt_m} m, acks '
                 f'{self.acks}, last texts {self.statustext[-3:]}')
+
+    def reposition_by(self, d_ned, d_yaw_rad: float = 0.0) -> bool:
+        """Move PX4's hold point by ``d_ned`` (m, NED) and its heading by ``d_yaw_rad``.
+
+        MAV_CMD_DO_REPOSITION (COMMAND_INT, global frame, AMSL altitude) to PX4's own
+        estimate plus the offset (the map of ``geodetic_to_ned`` to first order), heading
+        (param 4, rad in PX4) its ATTITUDE yaw plus ``d_yaw_rad``. False before PX4's
+        HEARTBEAT, position and attitude.
+        """
+        if self.target is None or self.position_est is None or self.yaw_est is None:
+            return False
+        lat, lon, alt = self.position_est
+        m_per_deg = EARTH_RADIUS_M * math.pi / 180.0
+        lat_t = lat + float(d_ned[0]) / m_per_deg
+        lon_t = lon + float(d_ned[1]) / (m_per_deg * math.cos(math.radians(lat)))
+        self.acks.pop(MAV_CMD_DO_REPOSITION, None)
+        self.conn.mav.command_int_send(*self.target, MAV_FRAME_GLOBAL, MAV_CMD_DO_REPOSITION,
+                                       0, 0, -1.0, MAV_DO_REPOSITION_FLAGS_CHANGE_MODE, 0.0,
+                                       math.remainder(self.yaw_est + d_yaw_rad, 2 * math.pi),
+                                       int(round(lat_t * 1e7)),
+                                       int(round(lon_t * 1e7)), alt - float(d_ned[2]))
+        return True
 
     def close(self) -> None:
         """Close the GCS socket."""
