@@ -126,6 +126,9 @@ def test_position_filter_beats_the_quantisation():
     assert max(flt_err) < q
     jump = flt.update(4.01, [5.0, 0.0, -1.0], [0.3, 0.0, 0.0])
     assert jump == pytest.approx([5.0, 0.0, -1.0])          # a jump restarts at the fix
+    # the altitude (mm resolution) is never filtered: a body SIH stopped on the ground is there
+    landed = flt.update(4.02, [5.0, 0.0, -0.004], [0.0, 0.0, 0.0])
+    assert landed[2] == -0.004 and landed[0] == pytest.approx(5.0)
 
 
 def test_frame_clock_drops_whole_late_periods():
@@ -205,3 +208,34 @@ def test_px4_sih_run_without_px4_fails_clearly(tmp_path, monkeypatch, capsys):
     import json
     summary = json.loads((tmp_path / 'nopx4' / 'summary.json').read_text())
     assert summary['success'] is False and 'PX4 SITL not found' in summary['run']['error']
+
+
+def test_state_link_stamps_on_arrival_and_asks_the_sender_for_the_rate():
+    import time
+    from pymavlink import mavutil
+    from ibvs_bringup.run_scenario import free_udp_port
+    from ibvs_sim.core.px4_plant import StateLink
+    port = free_udp_port()
+    link = StateLink(f'udpin:127.0.0.1:{port}', 100.0, request_period_s=0.0, threaded=True)
+    sim = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=6,
+                                     source_component=1)
+    try:
+        sent = []
+        for k in range(3):                                # 20 Hz, as SIH's default 25 Hz
+            sent.append(time.time_ns())
+            sim.mav.hil_state_quaternion_send(0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                              473977432, 85455942, 489400, 0, 0, 0, 0, 0,
+                                              0, 0, 0)
+            time.sleep(0.05)
+        got = link.poll()
+        assert len(got) == 3 and link.target == (6, 1)       # PX4's id learnt (1 + instance)
+        for (msg, receipt_ns), t_sent in zip(got, sent):
+            assert msg.get_type() == 'HIL_STATE_QUATERNION'
+            assert 0 <= receipt_ns - t_sent < 40_000_000        # stamped on arrival
+        ask = sim.recv_match(type='COMMAND_LONG', blocking=True, timeout=1.0)
+        assert ask is not None and ask.command == 511          # SET_MESSAGE_INTERVAL
+        assert (ask.target_system, ask.param1, ask.param2) == (6, 115, 10000)
+        assert link.poll() == []
+    finally:
+        link.close()
+        sim.close()

@@ -167,7 +167,7 @@ class Px4SimNode(Node):
         self.filter = PositionFilter(cfg.filter_tau_s)
         self.contacts = ContactWatch(world, vehicle.envelope_radius, vehicle.envelope_height,
                                      cfg.airborne_m)
-        self.link = StateLink(cfg.state_url, cfg.state_rate_hz)
+        self.link = StateLink(cfg.state_url, cfg.state_rate_hz, threaded=True)
         self.frames = FrameClock(self.cameras['down'].rate_hz, time.time_ns())
         self.latency = AnswerLatency()
         self.latest = None              # (TruthSample, receipt ns, system clock)
@@ -207,8 +207,8 @@ class Px4SimNode(Node):
         if time.monotonic() >= self._stats_due:
             self._stats_due = time.monotonic() + STATS_PERIOD_S
             self._publish_stats()
-        for m in self.link.poll(time.monotonic()):
-            self._on_state(m, time.time_ns())
+        for m, receipt_ns in self.link.poll():
+            self._on_state(m, receipt_ns)
         now_ns = time.time_ns()
         frame_ns = self.frames.due(now_ns)
         if frame_ns is None:

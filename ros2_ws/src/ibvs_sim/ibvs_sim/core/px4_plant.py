@@ -37,9 +37,12 @@ clock (``time.time_ns()``, ROS time with use_sim_time false), taken at the datag
 """
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass
 import math
 import os
+import threading
+import time
 
 import numpy as np
 
@@ -206,13 +209,17 @@ class PositionFilter:
     receipt clock: PX4 v1.16 SIH sends time_usec = 0), then move a fraction dt / tau_s of
     the way to the fix. Steady error for a constant velocity: zero; quantisation noise:
     reduced by about sqrt(dt / (2 tau)). A gap longer than ``reset_after_s`` or a step
-    larger than ``reset_jump_m`` restarts at the fix.
+    larger than ``reset_jump_m`` restarts at the fix. Only the ``filtered`` axes are smoothed
+    (default north and east: the altitude comes in mm, and a filtered one lags the ground
+    contact: measured, a 0.6 m/s touchdown reported as 0.0 because the filtered height
+    reached the floor after SIH had stopped the body); the others are the fix.
     """
 
-    def __init__(self, tau_s: float, reset_after_s: float = 0.5, reset_jump_m: float = 0.5
-                 ) -> None:
+    def __init__(self, tau_s: float, reset_after_s: float = 0.5, reset_jump_m: float = 0.5,
+                 filtered: tuple = (True, True, False)) -> None:
         if not tau_s >= 0.0:
             raise Px4PlantError(f'position filter tau must be >= 0 s, got {tau_s}')
+        self.filtered = np.asarray(filtered, dtype=bool)
         self.tau_s = float(tau_s)
         self.reset_after_s = float(reset_after_s)
         self.reset_jump_m = float(reset_jump_m)
@@ -231,6 +238,7 @@ class PositionFilter:
             self.p = pred + min(1.0, dt / self.tau_s) * (fix - pred)
             if np.linalg.norm(self.p - fix) > self.reset_jump_m:
                 self.p = fix.copy()
+        self.p = np.where(self.filtered, self.p, fix)
         self._t = float(t_s)
         return self.p.copy()
 
@@ -342,9 +350,17 @@ class StateLink:
     ``url``: where SIH sends (``udpin:127.0.0.1:<19410 + i>``). SET_MESSAGE_INTERVAL goes back
     on the same socket, i.e. to the PX4 mavlink instance that streams it (the address the
     datagrams came from), every ``request_period_s`` (steady clock) until ``rate_hz`` is seen.
+    Each message is stamped with the system time of its receipt (ns). ``threaded``: a reader
+    thread waits on the socket and stamps a datagram as it arrives (the node's tick renders
+    for 20-30 ms on a loaded machine: read from the tick, a sample would be stamped that
+    much late, and a frame drawn from an older pose than its stamp says); otherwise
+    :meth:`poll` reads and stamps.
     """
 
-    def __init__(self, url: str, rate_hz: float, request_period_s: float = 1.0) -> None:
+    READ_WAIT_S = 0.05          # s (steady), the reader thread looks at its stop flag this often
+
+    def __init__(self, url: str, rate_hz: float, request_period_s: float = 1.0,
+                 threaded: bool = False) -> None:
         os.environ.setdefault('MAVLINK20', '1')
         from pymavlink import mavutil
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
@@ -358,27 +374,37 @@ class StateLink:
         self.requests = 0
         self.target: tuple[int, int] | None = None   # PX4's (system, component): MAV_SYS_ID
         #                                              is 1 + instance in SITL, so learnt
+        self._queue: collections.deque = collections.deque()
+        self._stop = threading.Event()
+        self._thread = None
+        if threaded:
+            self._thread = threading.Thread(target=self._read_loop, name='px4_state_link',
+                                            daemon=True)
+            self._thread.start()
 
     def measured_rate_hz(self) -> float:
         """Return the rate of the last samples (Hz, steady clock), 0 before two."""
         t = self._times
         return (len(t) - 1) / (t[-1] - t[0]) if len(t) > 1 and t[-1] > t[0] else 0.0
 
-    def poll(self, now_steady_s: float) -> list:
-        """Return the HIL_STATE_QUATERNION messages that arrived (never blocks)."""
-        out = []
-        while True:
-            try:
-                m = self.conn.recv_match(blocking=False)
-            except (OSError, ValueError):      # a malformed datagram: skipped
-                continue
-            if m is None:
-                break
-            if m.get_type() == 'HIL_STATE_QUATERNION':
-                self.target = (m.get_srcSystem(), m.get_srcComponent())
-                out.append(m)
-                self.received += 1
-                self._times = (self._times + [now_steady_s])[-50:]
+    def _receive(self, blocking: bool) -> bool:
+        """Read one datagram's message; queue it stamped if it is ours; False when none."""
+        try:
+            m = self.conn.recv_match(blocking=blocking, timeout=self.READ_WAIT_S)
+        except (OSError, ValueError):      # a malformed datagram: skipped
+            return True
+        if m is None:
+            return False
+        receipt_ns, now = time.time_ns(), time.monotonic()
+        if m.get_type() == 'HIL_STATE_QUATERNION':
+            self.target = (m.get_srcSystem(), m.get_srcComponent())
+            self._queue.append((m, receipt_ns))
+            self.received += 1
+            self._times = (self._times + [now])[-50:]
+        self._maybe_request(now)
+        return True
+
+    def _maybe_request(self, now_steady_s: float) -> None:
         if (self.received and self.measured_rate_hz() < 0.8 * self.rate_hz
                 and now_steady_s - self._asked_at >= self.request_period_s):
             self._asked_at = now_steady_s
@@ -386,8 +412,30 @@ class StateLink:
             self.conn.mav.command_long_send(*self.target, MAV_CMD_SET_MESSAGE_INTERVAL, 0,
                                             HIL_STATE_QUATERNION_ID, 1e6 / self.rate_hz,
                                             0, 0, 0, 0, 0)
+
+    def _read_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self._receive(blocking=True)
+            except Exception:      # noqa: BLE001  a reader that dies would freeze the cameras
+                time.sleep(self.READ_WAIT_S)
+
+    def poll(self) -> list:
+        """Return the (HIL_STATE_QUATERNION, receipt ns on the system clock) since the last call.
+
+        Never blocks; reads the socket itself when not threaded.
+        """
+        if self._thread is None:
+            while self._receive(blocking=False):
+                pass
+        out = []
+        while self._queue:
+            out.append(self._queue.popleft())
         return out
 
     def close(self) -> None:
-        """Close the socket."""
+        """Stop the reader thread, close the socket."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2 * self.READ_WAIT_S + 1.0)
         self.conn.close()
