@@ -227,7 +227,10 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
         err = target - frame.to_ned(monitor.log.xi[-1])
         yaw_err = math.remainder(yaw0 - float(monitor.log.euler[-1][2]), 2.0 * math.pi)
         there = np.linalg.norm(err) < START_TOLERANCE_M and abs(yaw_err) < START_YAW_TOL_RAD
-        if there and monitor.health.healthy():
+        # PX4 has flown to its last hold point (not merely passing through the tolerance on
+        # its way: measured, runs then started at the tolerance's edge, y = +0.29)
+        arrived = time.monotonic() - moved_at >= REPOSITION_WAIT_S
+        if there and arrived and monitor.health.healthy():
             break
         if time.monotonic() > deadline:
             print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
