@@ -88,6 +88,27 @@ def test_never_arms_unless_asked_then_waits_for_armable_and_backs_off():
     assert r.seq.state == EngageState.ENGAGED and not r.seq.arm_requested
 
 
+def test_an_accepted_arm_is_not_sent_again_before_the_heartbeat_can_show_it():
+    # PX4 SITL acknowledged ARM at once but its 1 Hz HEARTBEAT showed armed only 1.0-1.5 s
+    # later: a retry after command_retry_s sent a second ARM; ACCEPTED waits the longest backoff
+    r = Rig(arm_backoff_max_s=4.0)
+    r.step(armed=False)
+    r.step(supervisor_mode=Mode.WINDOW)
+    r.step(custom_mode=OFFBOARD)
+    assert r.seq.request_arm()[0]
+    r.step(t=r.inp.t + 0.01)
+    t0 = r.inp.t
+    assert len(r.commands(MavCmd.COMPONENT_ARM_DISARM, 1.0)) == 1
+    r.seq.on_command_ack(400, MavResult.ACCEPTED)
+    r.run(3.9)                                   # not armed yet: no second ARM before 4 s
+    assert len(r.commands(MavCmd.COMPONENT_ARM_DISARM, 1.0)) == 1
+    r.run(0.2)                                   # accepted but never armed: sent again at 4 s
+    times = [t - t0 for t, _ in r.commands(MavCmd.COMPONENT_ARM_DISARM, 1.0)]
+    assert times == pytest.approx([0.0, 4.0], abs=0.011)
+    r.step(t=r.inp.t + 0.01, armed=True)
+    assert r.seq.state == EngageState.ENGAGED
+
+
 def test_arming_gives_up_after_arm_timeout():
     r = Rig(arm_timeout_s=3.0)
     r.step(armed=False)

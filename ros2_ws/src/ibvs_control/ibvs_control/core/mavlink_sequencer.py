@@ -435,6 +435,11 @@ class EngageSequencer:
         n = p.attempts if p is not None and p.command == MavCmd.COMPONENT_ARM_DISARM else 0
         period = min(self.config.command_retry_s * 2 ** max(n - 1, 0),
                      self.config.arm_backoff_max_s)
+        if p is not None and p.ack == MavResult.ACCEPTED:
+            # accepted: the armed flag comes with the next HEARTBEAT (PX4: 1 Hz), which can be
+            # later than command_retry_s; a second ARM then is noise (issue 13: "ARM is sent
+            # twice", measured again on PX4 SITL): wait the longest backoff before resending
+            period = self.config.arm_backoff_max_s
         if p is not None and p.command == MavCmd.COMPONENT_ARM_DISARM \
                 and inp.t - p.sent_t < period:
             return []
