@@ -725,6 +725,10 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     peer, bridge = peer_bridge()
     engage(bridge, peer)
     n_modes = len(peer.set_mode_commands())
+    # the bridge's sending port (peer.sources can also hold strays: another test's bridge
+    # still sending to a port number reused here, seen once in CI with 17 sources)
+    own_port = bridge.link._conn.port.getsockname()[1]
+    assert own_port in {port for _, port in peer.sources}
     peer.heartbeats_on = False
     ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up, force_fn=feeder(bridge))
     t_lost = time.monotonic()
@@ -733,7 +737,7 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     assert max(t for t, _ in peer.setpoints) <= t_lost + 0.05     # nothing while lost
     assert bridge.link.counters.link_losses == 1
     assert bridge.link.counters.reopens == 0       # the udpout socket is kept ...
-    assert len(peer.sources) == 1                  # ... one source address all along
+    assert bridge.link._conn.port.getsockname()[1] == own_port   # ... one source address
     peer.custom_mode = PX4_POSCTL                  # the autopilot's failsafe took over
     peer.heartbeats_on = True
     ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
@@ -741,7 +745,8 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     assert ok, bridge.sequencer.last_reason
     spin(bridge, 1.0, force_fn=feeder(bridge))
     assert len(peer.set_mode_commands()) == n_modes
-    assert bridge.link.counters.reconnects == 1 and len(peer.sources) == 1
+    assert bridge.link.counters.reconnects == 1
+    assert bridge.link._conn.port.getsockname()[1] == own_port
 
 
 def test_link_back_still_offboard_applies_the_input_loss_action(peer_bridge):
