@@ -36,6 +36,7 @@ from nav_msgs.msg import Odometry
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
+from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
@@ -284,6 +285,8 @@ class Px4SimNode(Node):
 
 def main(args=None) -> None:
     """Run the node until Ctrl-C."""
+    # an image publisher like the sim: its shared-memory segment holds the images it sends
+    use_dds_profile_here()
     rclpy.init(args=args)
     node = None
     try:
