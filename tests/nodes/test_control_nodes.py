@@ -20,7 +20,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PolygonStamped, QuaternionStamped, Vector3Stamped
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import String, UInt8
+from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle
@@ -32,7 +32,7 @@ from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
 from ibvs_common.node_common import (
-    COMMAND_QOS, mode_from_status, MODE_QOS, SENSOR_QOS, supervisor_status_msg)
+    COMMAND_QOS, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS, supervisor_status_msg)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'unit'))
 from test_control_mavlink import FakeAutopilot, free_udp_port, same_rotation  # noqa: E402
@@ -95,7 +95,7 @@ def landmarks_C(xi, names, R_IB=np.eye(3)):
     groups = [g for g in PAD.groups if g.name in names]
     pts = np.vstack([g.marker_centres_I() for g in groups])
     return (bearings_I_to_C(unit_rows(pts - xi), R_IB, VEHICLE.cameras['down'].R_BC),
-            ','.join(g.name for g in groups))
+            [g.name for g in groups])
 
 
 def imu_msg(t, yaw=0.0):
@@ -125,7 +125,7 @@ class Feeder:
         self.imu = n.create_publisher(Imu, 'imu/data', SENSOR_QOS)
         self.corners = n.create_publisher(PolygonStamped, 'window/corners', SENSOR_QOS)
         self.landmarks = n.create_publisher(PolygonStamped, 'pad/landmarks', SENSOR_QOS)
-        self.groups = n.create_publisher(String, 'pad/groups', SENSOR_QOS)
+        self.groups = n.create_publisher(JointState, 'pad/groups', SENSOR_QOS)
         self.front = n.create_publisher(Vector3Stamped, 'front_camera/translational_flow',
                                         SENSOR_QOS)
         self.down = n.create_publisher(Vector3Stamped, 'down_camera/translational_flow',
@@ -146,15 +146,21 @@ class Feeder:
         self.status = n.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
                                          COMMAND_QOS)
 
-    def frame(self, t, xi, window=True, pad=None, front_flow=None, down_flow=None):
-        """Publish everything one camera frame at time t would produce at position xi."""
+    def frame(self, t, xi, window=True, pad=None, front_flow=None, down_flow=None,
+              groups_first=False):
+        """Publish everything one camera frame at time t would produce at position xi.
+
+        ``groups_first``: pad/groups before pad/landmarks (two topics are not ordered).
+        """
         self.clock.publish(Clock(clock=stamp(t)))
         self.imu.publish(imu_msg(t))
         self.corners.publish(polygon(t, corners_C(xi) if window else [],
                                      'front_camera_optical_frame'))
-        lm, names = landmarks_C(xi, pad) if pad else ([], '')
-        self.landmarks.publish(polygon(t, lm, 'down_camera_optical_frame'))
-        self.groups.publish(String(data=names))
+        lm, names = landmarks_C(xi, pad) if pad else ([], [])
+        pad_msgs = [self.landmarks, polygon(t, lm, 'down_camera_optical_frame')], \
+            [self.groups, pad_groups_msg(stamp(t), 'down_camera_optical_frame', names)]
+        for pub, msg in (pad_msgs[::-1] if groups_first else pad_msgs):
+            pub.publish(msg)
         if front_flow is not None:
             self.front.publish(flow_msg(t, front_flow))
         if down_flow is not None:
@@ -211,7 +217,8 @@ def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
     xi = np.array([0.0, 0.0, xi[2]])
     while feed.modes[-1] != 4 and xi[2] < -0.05:  # mode 3: descend over the pad
         xi = xi + [0, 0, 0.75 * dt]
-        step(window=False, pad=('A', 'B', 'C', 'D'), down_flow=np.array([0, 0, 0.75 / -xi[2]]))
+        step(window=False, pad=('A', 'B', 'C', 'D'), down_flow=np.array([0, 0, 0.75 / -xi[2]]),
+             groups_first=len(fed) % 2 == 1)     # pairing is by stamp, not by arrival
     spin_for(executor, 0.1)
     assert feed.modes == [0, 1, 2, 3, 4]
     assert -xi[2] < 0.2
@@ -460,7 +467,7 @@ def test_controller_flies_the_mode_reported_for_each_stamp(ctx):
         feed.imu.publish(imu_msg(t))
         feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
         feed.landmarks.publish(polygon(t, [], 'down_camera_optical_frame'))
-        feed.groups.publish(String(data=''))
+        feed.groups.publish(pad_groups_msg(stamp(t), 'down_camera_optical_frame', []))
         feed.front.publish(flow_msg(t, np.zeros(3)))
         assert spin_until(executor, lambda: len(feed.forces) > n, 2.0)
         f = feed.forces[-1]

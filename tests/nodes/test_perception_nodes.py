@@ -17,8 +17,8 @@ from rclpy.qos import qos_profile_sensor_data
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PolygonStamped, Vector3Stamped
-from sensor_msgs.msg import CameraInfo, Image, Imu
-from std_msgs.msg import Float32, String
+from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
+from std_msgs.msg import Float32
 
 from ibvs_common.core import frames
 from ibvs_common.core.config import load_pad_layout, load_vehicle
@@ -217,7 +217,7 @@ def test_pad_detector_node(ctx, renderers):
     helper, pubs, got = harness(context, nodes,
                                 {'down_camera/image_raw': Image,
                                  'down_camera/camera_info': CameraInfo},
-                                {'pad/landmarks': PolygonStamped, 'pad/groups': String})
+                                {'pad/landmarks': PolygonStamped, 'pad/groups': JointState})
     for n in (node, helper):
         executor.add_node(n)
     pubs['down_camera/camera_info'].publish(info_msg('down'))
@@ -228,7 +228,9 @@ def test_pad_detector_node(ctx, renderers):
                       and len(got['pad/landmarks']) >= 1)
     msg = got['pad/landmarks'][-1]
     assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (7, 250_000_000)
-    names = got['pad/groups'][-1].data.split(',')
+    groups = got['pad/groups'][-1]           # stamped and framed like its landmarks
+    assert groups.header == msg.header
+    names = list(groups.name)
     assert names[0] == 'A' and len(msg.polygon.points) == 4 * len(names)
     # a wrong-size CameraInfo: empty landmarks, empty group list
     wrong = info_msg('down')
@@ -238,7 +240,8 @@ def test_pad_detector_node(ctx, renderers):
     pubs['down_camera/image_raw'].publish(image_msg(img, 8.0))
     assert spin_until(executor, lambda: len(got['pad/groups']) >= 2)
     assert len(got['pad/landmarks'][-1].polygon.points) == 0
-    assert got['pad/groups'][-1].data == ''
+    assert list(got['pad/groups'][-1].name) == []
+    assert got['pad/groups'][-1].header == got['pad/landmarks'][-1].header
 
 
 def flow_node(context, nodes, camera):

@@ -104,6 +104,31 @@ def test_whole_sequence_with_crossing_length_from_images():
                                                       Mode.LANDING, Mode.SHUTDOWN]
 
 
+def test_one_wrong_pad_frame_in_the_air_does_not_shut_down():
+    """A group's bearings labelled with a smaller group's size read too low for one frame.
+
+    At 0.6 m, A's bearings read as D (c 0.36 -> 0.045 m) give a height 8 times too small
+    (0.075 m, below the 0.14 m shutdown height): one such frame must not cut the motors;
+    the same reading on two consecutive frames (shutdown_confirm_s 0.02 s) does.
+    """
+    sup = started()
+    t, xi, v, _ = fly_through_the_window(sup)
+    assert sup.mode == Mode.LANDING
+    xi, v = np.array([0.0, 0.0, -0.6]), np.zeros(3)
+    a_bearings, _ = pad_groups(xi, ('A',))
+    for k in range(3):                          # right, wrong, right, ...
+        t += 0.02
+        feed(sup, t, xi, v, window=False, pad=(a_bearings, ['D']) if k == 1 else
+             pad_groups(xi, ('A', 'B')))
+        assert sup.mode == Mode.LANDING
+    assert sup.height_estimate > 0.5
+    for k in range(2):                          # wrong twice in a row: confirmed
+        t += 0.02
+        feed(sup, t, xi, v, window=False, pad=(a_bearings, ['D']))
+        assert sup.mode == (Mode.LANDING if k == 0 else Mode.SHUTDOWN)
+    assert abs(sup.height_estimate - 0.6 * 0.045 / 0.36) < 0.01
+
+
 def test_the_crossing_length_waits_for_the_first_floor_flow_of_crossing():
     # mode gating: the floor flow is computed only from the switch on; the first one of
     # CROSSING (stamped T2) gives d_t(T2), and the switch to LANDING comes d_o + margin

@@ -130,20 +130,49 @@ def test_attitude_at_a_stamp_is_interpolated_or_propagated_never_waited_for():
         buf.add(1.1, np.full((3, 3), np.nan), w)
 
 
-def test_pad_pairing_pairs_landmarks_with_the_groups_that_follow():
+def test_pad_pairing_pairs_by_stamp_in_either_order():
     pairing = PadPairing()
     b8 = np.tile([0.0, 0.0, 1.0], (8, 1))
-    pairing.add_landmarks(5, b8)
-    stamp, bearings, groups = pairing.add_groups(('A', 'B'))
+    assert pairing.add_landmarks(5, b8) is None
+    stamp, bearings, groups = pairing.add_groups(5, ['A', 'B'])
     assert stamp == 5 and bearings is b8 and groups == ('A', 'B')
-    # groups alone (their landmarks were refused) are dropped, never kept for later landmarks
-    assert pairing.add_groups(('B', 'C')) is None
-    pairing.add_landmarks(6, None)
-    assert pairing.add_groups(()) == (6, None, ())
+    assert pairing.add_groups(6, ()) is None                 # groups first
+    assert pairing.add_landmarks(6, None) == (6, None, ())
     # a count mismatch is not a pair
     pairing.add_landmarks(7, b8[:4])
-    assert pairing.add_groups(('A', 'B')) is None
-    assert pairing.unpaired == 2
+    assert pairing.add_groups(7, ('A', 'B')) is None
+    assert pairing.unpaired == 1
+
+
+def test_pad_pairing_never_labels_landmarks_with_another_images_groups():
+    """The executor-lag order at a group switch: frame k+1's landmarks before frame k's groups.
+
+    Pairing by arrival (the held landmarks with the next groups) labelled frame k+1's A,B
+    bearings with frame k's B,C (same count): the supervisor's pad-image height then used a
+    group's bearings with another group's size.
+    """
+    pairing = PadPairing()
+    ab, bc = np.tile([0.0, 0.0, 1.0], (8, 1)), np.tile([0.0, 0.1, 0.995], (8, 1))
+    assert pairing.add_landmarks(20, bc) is None             # frame k: B, C
+    assert pairing.add_landmarks(40, ab) is None             # frame k+1: A, B (taken first)
+    stamp, bearings, groups = pairing.add_groups(20, ('B', 'C'))
+    assert stamp == 20 and bearings is bc and groups == ('B', 'C')
+    stamp, bearings, groups = pairing.add_groups(40, ('A', 'B'))
+    assert stamp == 40 and bearings is ab and groups == ('A', 'B')
+    assert pairing.unpaired == 0
+    # a lost half: the other one is dropped once a newer pair completes, never mispaired
+    pairing.add_landmarks(60, bc)                            # its groups are lost
+    assert pairing.add_groups(80, ('A', 'B')) is None        # its landmarks are late
+    assert pairing.add_landmarks(80, ab) == (80, ab, ('A', 'B'))
+    assert pairing.unpaired == 1
+    # refused landmarks: their groups are forgotten
+    pairing.add_groups(100, ('A', 'B'))
+    pairing.drop(100)
+    assert pairing.add_landmarks(100, ab) is None
+    # halves that never pair are bounded by depth
+    for k in range(10):
+        pairing.add_groups(200 + k, ('A',))
+    assert pairing.unpaired == 1 + 10 - pairing.depth
 
 
 def test_check_flow_converts_map_to_the_paper_frame_and_refuses_bad_input():

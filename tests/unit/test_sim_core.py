@@ -291,7 +291,7 @@ def test_lockstep_also_waits_for_every_product_of_the_frame_then_gives_up_a_dead
     """
     ap, clock = FakeAutopilot(), FakeClock()
     products = GraphProducts({'window/corners': 'front', 'pad/landmarks': 'down',
-                              'pad/groups': 'down'}, partners={'pad/groups': 'pad/landmarks'})
+                              'pad/groups': 'down'})
     sim = _sim(configs, ap, clock, products=products, pacing=Pacing.LOCKSTEP,
                lockstep_timeout_s=1.0)
     live = {'window/corners': 1, 'pad/landmarks': 1, 'pad/groups': 1}
@@ -300,10 +300,10 @@ def test_lockstep_also_waits_for_every_product_of_the_frame_then_gives_up_a_dead
     ap.last_setpoint_time_boot_ms = 0                    # answered, but the pad still computes
     products.note('window/corners', 0)
     assert sim.tick() is None
-    products.note('pad/groups')                          # before its landmarks: nothing to pair
+    products.note('pad/groups', -20_000_000)             # an older frame's: not this one's
     products.note('pad/landmarks', 0)
     assert products.missing() == ['pad/groups'] and sim.tick() is None
-    products.note('pad/groups')
+    products.note('pad/groups', 0)
     out = sim.tick()
     assert out.t_ns == 20_000_000 and sim.lockstep_timeouts == 0
     # the pad detector dies: the next frame waits one timeout, then never again for it

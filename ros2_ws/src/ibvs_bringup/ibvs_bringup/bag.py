@@ -44,7 +44,7 @@ RUN_TOPICS: tuple = tuple(
        TopicSpec('window/corners', 'geometry_msgs/msg/PolygonStamped'),
        TopicSpec('window/edge_normals', 'geometry_msgs/msg/PolygonStamped'),
        TopicSpec('pad/landmarks', 'geometry_msgs/msg/PolygonStamped'),
-       TopicSpec('pad/groups', 'std_msgs/msg/String'),
+       TopicSpec('pad/groups', 'sensor_msgs/msg/JointState'),
        TopicSpec('ibvs/features', 'sensor_msgs/msg/JointState'),
        TopicSpec('ibvs/force_setpoint', 'geometry_msgs/msg/Vector3Stamped'),
        TopicSpec('ibvs/heading_setpoint', 'geometry_msgs/msg/QuaternionStamped'),

@@ -10,13 +10,12 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
+from sensor_msgs.msg import JointState
 
 from ibvs_common.core.frames import R_IB_from_rot_map_base, rot_from_quat, vec_flu_to_frd
 
 NS_PER_S = 1_000_000_000
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
-# pad/groups (std_msgs/String): group names of the pad/landmarks message, e.g. "A,B"
-PAD_GROUP_SEPARATOR = ','
 
 # ibvs/mode: latched state (the last mode reaches late joiners).
 MODE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -127,9 +126,21 @@ def set_vector3(v_msg, v: np.ndarray) -> None:
     v_msg.x, v_msg.y, v_msg.z = (float(x) for x in v)
 
 
-def parse_pad_groups(text: str) -> tuple[str, ...]:
-    """Group names of a ``pad/groups`` message ("A,B" -> ('A', 'B'); "" -> ())."""
-    return tuple(g.strip() for g in text.split(PAD_GROUP_SEPARATOR) if g.strip())
+# pad/groups (sensor_msgs/JointState): the stamp and frame of its pad/landmarks (the image's)
+# and the names of the groups whose landmarks pad/landmarks carries, in the same order; the
+# value arrays are empty. Stamped, so that a subscriber pairs the two by stamp: two topics are
+# not ordered with respect to each other (an executor that fell behind takes the next
+# landmarks before the last groups).
+def pad_groups_msg(stamp, frame_id: str, groups) -> JointState:
+    """Build the ``pad/groups`` message of one image (``stamp``: builtin_interfaces/Time)."""
+    msg = JointState(name=[str(g) for g in groups])
+    msg.header.stamp, msg.header.frame_id = stamp, frame_id
+    return msg
+
+
+def pad_group_names(msg: JointState) -> tuple[str, ...]:
+    """Group names of a ``pad/groups`` message, in the order of the landmarks."""
+    return tuple(str(g) for g in msg.name)
 
 
 # ibvs/supervisor_status (diagnostic_msgs/DiagnosticArray): one per frame the supervisor

@@ -30,7 +30,6 @@ from rclpy.node import Node
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PolygonStamped, QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import String
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.control_laws import CrossingGains, GAIN_SPECS, LandingGains, WindowGains
@@ -45,7 +44,7 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
-    parse_pad_groups, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
+    pad_group_names, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -129,7 +128,7 @@ class ForceControllerNode(Node):
         self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'pad/landmarks', self._on_pad, SENSOR_QOS)
-        self.create_subscription(String, 'pad/groups', self._on_groups, SENSOR_QOS)
+        self.create_subscription(JointState, 'pad/groups', self._on_groups, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'front_camera/translational_flow',
                                  self._on_front_flow, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'down_camera/translational_flow',
@@ -143,21 +142,24 @@ class ForceControllerNode(Node):
     # --- inputs ----------------------------------------------------------------------------
     def _on_window(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg), expected=4)
-        self._add(InputKind.WINDOW, msg.header.stamp, bearings, err)
+        self._add(InputKind.WINDOW, stamp_to_ns(msg.header.stamp), bearings, err)
 
     def _on_pad(self, msg: PolygonStamped) -> None:
+        stamp_ns = stamp_to_ns(msg.header.stamp)
         bearings, err = check_bearings(polygon_points(msg))
-        if err:                                  # answered as "no pad" for this stamp
-            self._pad_pairing.drop_landmarks()
-            self._add(InputKind.PAD, msg.header.stamp, None, err)
+        if err:                                  # "no pad" for this stamp
+            self._pad_pairing.drop(stamp_ns)
+            self._add(InputKind.PAD, stamp_ns, None, err)
         else:                                    # the PAD input waits for its groups
-            self._pad_pairing.add_landmarks(msg.header.stamp, bearings)
+            self._add_pad(self._pad_pairing.add_landmarks(stamp_ns, bearings))
 
-    def _on_groups(self, msg: String) -> None:
-        pair = self._pad_pairing.add_groups(parse_pad_groups(msg.data))
-        if pair is not None:
-            stamp, bearings, groups = pair
-            self._add(InputKind.PAD, stamp, (bearings, groups), '')
+    def _on_groups(self, msg: JointState) -> None:
+        self._add_pad(self._pad_pairing.add_groups(stamp_to_ns(msg.header.stamp),
+                                                   pad_group_names(msg)))
+
+    def _add_pad(self, pair: tuple | None) -> None:
+        if pair is not None:                     # (stamp_ns, bearings, groups)
+            self._add(InputKind.PAD, pair[0], pair[1:], '')
 
     def _on_front_flow(self, msg: Vector3Stamped) -> None:
         self._add_flow(InputKind.FLOW_FRONT, msg)
@@ -167,7 +169,7 @@ class ForceControllerNode(Node):
 
     def _add_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:
         phi_I, err = check_flow(vector3(msg.vector), msg.header.frame_id)
-        self._add(kind, msg.header.stamp, phi_I, err)
+        self._add(kind, stamp_to_ns(msg.header.stamp), phi_I, err)
 
     def _on_imu(self, msg: Imu) -> None:
         try:
@@ -193,11 +195,11 @@ class ForceControllerNode(Node):
     def _refused(self, what: str, err: str) -> None:
         self.log.error(f'{what} refused: {err}', LOG_THROTTLE_S)
 
-    def _add(self, kind: InputKind, stamp, value, err: str) -> None:
+    def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
         """Keep one product (a bad one counts as 'not detected') and answer what it completes."""
         if err:
             self._refused(kind.value, err)
-        if not self._frames.add_input(kind, stamp_to_ns(stamp), value):
+        if not self._frames.add_input(kind, stamp_ns, value):
             self.log.warning(f'duplicate {kind.value}: dropped', LOG_THROTTLE_S)
         self._release()
 

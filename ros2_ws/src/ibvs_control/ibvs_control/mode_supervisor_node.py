@@ -22,8 +22,8 @@ every transition (each logged with its reason), and ``ibvs/supervisor_status``
 force controller flies that frame in that mode. Serves ``ibvs/start`` and ``ibvs/abort``
 (std_srvs/Trigger, success + message from the core).
 
-``pad/groups`` (std_msgs/String "A,B") has no header: it is paired with the ``pad/landmarks``
-message just before it (PadPairing).
+``pad/groups`` (sensor_msgs/JointState, the group names) is paired with the ``pad/landmarks``
+of the same stamp (PadPairing): the two topics are not ordered with respect to each other.
 """
 from __future__ import annotations
 
@@ -36,8 +36,8 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
-from sensor_msgs.msg import Imu
-from std_msgs.msg import String, UInt8
+from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle
@@ -50,7 +50,7 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
                                               AttitudeBufferConfig)
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, parse_pad_groups,
+    COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, pad_group_names,
     polygon_points, SENSOR_QOS, stamp_to_ns, supervisor_status_msg, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
@@ -126,7 +126,7 @@ class ModeSupervisorNode(Node):
         self.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
         self.create_subscription(PolygonStamped, 'pad/landmarks', self._on_landmarks,
                                  SENSOR_QOS)
-        self.create_subscription(String, 'pad/groups', self._on_groups, SENSOR_QOS)
+        self.create_subscription(JointState, 'pad/groups', self._on_groups, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'front_camera/translational_flow',
                                  self._on_front_flow, SENSOR_QOS)
         self.create_subscription(Vector3Stamped, 'down_camera/translational_flow',
@@ -185,21 +185,24 @@ class ModeSupervisorNode(Node):
 
     def _on_window(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg), expected=4)
-        self._add(InputKind.WINDOW, msg.header.stamp, bearings, err)
+        self._add(InputKind.WINDOW, stamp_to_ns(msg.header.stamp), bearings, err)
 
     def _on_landmarks(self, msg: PolygonStamped) -> None:
+        stamp_ns = stamp_to_ns(msg.header.stamp)
         bearings, err = check_bearings(polygon_points(msg))
-        if err:                                  # evaluated as "no pad" for this stamp
-            self._pad_pairing.drop_landmarks()
-            self._add(InputKind.PAD, msg.header.stamp, None, err)
+        if err:                                  # "no pad" for this stamp
+            self._pad_pairing.drop(stamp_ns)
+            self._add(InputKind.PAD, stamp_ns, None, err)
         else:                                    # the PAD input waits for its groups
-            self._pad_pairing.add_landmarks(msg.header.stamp, bearings)
+            self._add_pad(self._pad_pairing.add_landmarks(stamp_ns, bearings))
 
-    def _on_groups(self, msg: String) -> None:
-        pair = self._pad_pairing.add_groups(parse_pad_groups(msg.data))
-        if pair is not None:
-            stamp, bearings, groups = pair
-            self._add(InputKind.PAD, stamp, (bearings, groups), '')
+    def _on_groups(self, msg: JointState) -> None:
+        self._add_pad(self._pad_pairing.add_groups(stamp_to_ns(msg.header.stamp),
+                                                   pad_group_names(msg)))
+
+    def _add_pad(self, pair: tuple | None) -> None:
+        if pair is not None:                     # (stamp_ns, bearings, groups)
+            self._add(InputKind.PAD, pair[0], pair[1:], '')
 
     def _on_front_flow(self, msg: Vector3Stamped) -> None:
         self._on_flow(InputKind.FLOW_FRONT, msg)
@@ -209,13 +212,12 @@ class ModeSupervisorNode(Node):
 
     def _on_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:
         phi_I, err = check_flow(vector3(msg.vector), msg.header.frame_id)
-        self._add(kind, msg.header.stamp, phi_I, err)
+        self._add(kind, stamp_to_ns(msg.header.stamp), phi_I, err)
 
-    def _add(self, kind: InputKind, stamp, value, err: str) -> None:
+    def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
         """Route one product: into its frame, or to the core at once (see the module doc)."""
         if err:
             self._error(f'{kind.value} refused: {err}')
-        stamp_ns = stamp_to_ns(stamp)
         if not self._frames.add_input(kind, stamp_ns, value):
             self.log.warning(f'duplicate {kind.value} at {stamp_ns} ns: dropped', LOG_THROTTLE_S)
             return

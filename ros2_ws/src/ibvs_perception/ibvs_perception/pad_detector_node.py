@@ -2,7 +2,8 @@
 
 Publishes one `pad/landmarks` (PolygonStamped, down optical frame, image stamp: unit bearings
 of the marker centres of every complete group, largest group first, layout id order; empty
-when no group is complete) and one `pad/groups` (std_msgs/String, e.g. "A,B") per image;
+when no group is complete) and one `pad/groups` (sensor_msgs/JointState: same stamp and
+frame, ``name`` = the groups in the landmarks' order, e.g. ['A', 'B']) per image;
 nothing for the images of a frozen camera (``frozen_after_frames`` bit-identical images in a
 row, :mod:`~ibvs_perception.frozen_guard`), as if the camera had delivered nothing.
 """
@@ -15,8 +16,7 @@ from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped
 from ibvs_common.core.config import ConfigError, load_pad_layout
-from sensor_msgs.msg import CameraInfo, Image
-from std_msgs.msg import String
+from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
                                       PARAMETER_SPECS)
@@ -25,7 +25,7 @@ from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.mode_gating import GatedImages
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
-from ibvs_common.node_common import IMAGE_QOS, PAD_GROUP_SEPARATOR
+from ibvs_common.node_common import IMAGE_QOS, pad_groups_msg
 from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -58,7 +58,7 @@ class PadDetectorNode(Node):
         self.gated = GatedImages(self, InputKind.PAD, self.process, 'pad_detector')
         self.camera_info: CameraInfo | None = None
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
-        self.pub_groups = self.create_publisher(String, 'pad/groups', 10)
+        self.pub_groups = self.create_publisher(JointState, 'pad/groups', 10)
         self.create_subscription(CameraInfo, 'down_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
         self.create_subscription(Image, 'down_camera/image_raw', self.gated.on_image,
@@ -87,7 +87,7 @@ class PadDetectorNode(Node):
         except ValueError as exc:
             self.log.error(f'pad_detector: image dropped: {exc}', THROTTLE_S)
         self.pub_landmarks.publish(polygon_from_vectors(msg.header, self.frame_id, bearings))
-        self.pub_groups.publish(String(data=PAD_GROUP_SEPARATOR.join(names)))
+        self.pub_groups.publish(pad_groups_msg(msg.header.stamp, self.frame_id, names))
 
 
 def main(args=None) -> None:

@@ -41,7 +41,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock as ClockMsg
-from sensor_msgs.msg import CameraInfo, Image, Imu
+from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
 from std_msgs.msg import String
 
 from ibvs_common.core.camera import CameraModel
@@ -80,9 +80,8 @@ FAULT_ANSWER_WAIT_S = 0.3     # s (wall), lockstep: wait for the answer to (and 
 GRAPH_PRODUCTS = {'window/corners': (PolygonStamped, 'front'),
                   'front_camera/translational_flow': (Vector3Stamped, 'front'),
                   'pad/landmarks': (PolygonStamped, 'down'),
-                  'pad/groups': (String, 'down'),
+                  'pad/groups': (JointState, 'down'),
                   'down_camera/translational_flow': (Vector3Stamped, 'down')}
-UNSTAMPED_PARTNERS = {'pad/groups': 'pad/landmarks'}
 # the product behind each topic: its node computes it only in the modes that use it
 PRODUCT_KINDS = {'window/corners': InputKind.WINDOW,
                  'front_camera/translational_flow': InputKind.FLOW_FRONT,
@@ -278,7 +277,6 @@ class SimNode(Node):
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
         products = GraphProducts({t: cam for t, (_, cam) in GRAPH_PRODUCTS.items()},
-                                 UNSTAMPED_PARTNERS,
                                  {t: modes_using(k) for t, k in PRODUCT_KINDS.items()})
         sim_config = SimConfig(
             pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
@@ -404,9 +402,8 @@ class SimNode(Node):
 
     def _product_callback(self, topic: str):
         def note(msg) -> None:
-            header = getattr(msg, 'header', None)
-            self.sim.products.note(topic, None if header is None
-                                   else header.stamp.sec * NS_PER_S + header.stamp.nanosec)
+            self.sim.products.note(topic, msg.header.stamp.sec * NS_PER_S
+                                   + msg.header.stamp.nanosec)
         return note
 
     def _on_tick(self) -> None:

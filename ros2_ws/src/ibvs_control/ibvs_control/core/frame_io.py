@@ -19,42 +19,61 @@ from ibvs_control.core.timing import Frame, NS_PER_S
 
 
 class PadPairing:
-    """Pair each ``pad/landmarks`` with the ``pad/groups`` message that follows it.
+    """Pair each ``pad/landmarks`` with the ``pad/groups`` of the same image, by stamp.
 
-    The pad detector publishes both for every image, landmarks first; ``pad/groups`` has no
-    stamp, so a pair is made only in that order and only when the counts agree (4 landmarks
-    per group, 0 for none). Group names are never kept for a later landmarks message: that
-    could label frame k's landmarks with frame k-1's groups at a group switch. A groups
-    message without its landmarks is dropped (counted in ``unpaired``).
+    The pad detector publishes both for every image, stamped with the image. Two topics are
+    not ordered with respect to each other (an executor that fell behind takes frame k+1's
+    landmarks before frame k's groups), so halves are matched only by equal stamps, in
+    either order, never by arrival: a landmarks message is never labelled with another
+    image's groups. A pair must agree in count (4 landmarks per group, none for no group).
+    Halves still waiting when a newer pair completes can never be completed (each topic is
+    in order), nor can the oldest beyond ``depth`` per topic: they are dropped and counted in
+    ``unpaired``. Stamps are integers (ns).
     """
 
-    def __init__(self, landmarks_per_group: int = 4) -> None:
+    def __init__(self, landmarks_per_group: int = 4, depth: int = 4) -> None:
         self.landmarks_per_group = landmarks_per_group
+        self.depth = depth
         self.unpaired = 0
-        self._landmarks: tuple | None = None     # (stamp, bearings or None)
+        self._landmarks: dict[int, np.ndarray | None] = {}
+        self._groups: dict[int, tuple] = {}
 
-    def add_landmarks(self, stamp, bearings: np.ndarray | None) -> None:
-        """Hold a landmarks message (it replaces one whose groups never came)."""
-        if self._landmarks is not None:
-            self.unpaired += 1
-        self._landmarks = (stamp, bearings)
+    def add_landmarks(self, stamp_ns: int, bearings: np.ndarray | None) -> tuple | None:
+        """Hold a landmarks message; return (stamp_ns, bearings, groups) if it completes a pair."""
+        self._landmarks[int(stamp_ns)] = bearings
+        return self._pair(int(stamp_ns))
 
-    def drop_landmarks(self) -> None:
-        """Forget the held landmarks (e.g. the message was refused)."""
-        self._landmarks = None
+    def add_groups(self, stamp_ns: int, groups) -> tuple | None:
+        """Hold a groups message; return (stamp_ns, bearings, groups) if it completes a pair."""
+        self._groups[int(stamp_ns)] = tuple(groups)
+        return self._pair(int(stamp_ns))
 
-    def add_groups(self, groups: tuple) -> tuple | None:
-        """Return (stamp, bearings, groups) if these groups complete the held landmarks."""
-        held, self._landmarks = self._landmarks, None
-        if held is None:
-            self.unpaired += 1
-            return None
-        stamp, bearings = held
-        n = 0 if bearings is None else len(bearings)
-        if n != self.landmarks_per_group * len(groups):
-            self.unpaired += 1
-            return None
-        return stamp, bearings, tuple(groups)
+    def drop(self, stamp_ns: int) -> None:
+        """Forget both halves at ``stamp_ns`` (its landmarks were refused, for instance)."""
+        self._landmarks.pop(int(stamp_ns), None)
+        self._groups.pop(int(stamp_ns), None)
+
+    def _pair(self, stamp_ns: int) -> tuple | None:
+        if stamp_ns in self._landmarks and stamp_ns in self._groups:
+            bearings = self._landmarks.pop(stamp_ns)
+            groups = self._groups.pop(stamp_ns)
+            self._forget_before(stamp_ns)
+            n = 0 if bearings is None else len(bearings)
+            if n != self.landmarks_per_group * len(groups):
+                self.unpaired += 1
+                return None
+            return stamp_ns, bearings, groups
+        for held in (self._landmarks, self._groups):
+            while len(held) > self.depth:
+                del held[min(held)]
+                self.unpaired += 1
+        return None
+
+    def _forget_before(self, stamp_ns: int) -> None:
+        for held in (self._landmarks, self._groups):
+            for t in [t for t in held if t < stamp_ns]:
+                del held[t]
+                self.unpaired += 1
 
 
 BEARING_NORM_TOLERANCE = 0.05   # |b| of a unit bearing must be within 5 % of 1

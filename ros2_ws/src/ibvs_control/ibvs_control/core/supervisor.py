@@ -15,7 +15,8 @@ Transitions and their image cues (no position or velocity estimate is used):
           phi_t the first floor flow of CROSSING (stamped T2 when it is valid: the floor flow
           is computed only from the switch on, docs/interfaces.md "Mode gating").
 - 3 -> 4  the height estimated from the smallest complete pad group (known size c) is below
-          ``shutdown_height_m`` (SPEC: an image criterion, -eta_t^T q_t of that group).
+          ``shutdown_height_m`` (SPEC: an image criterion, -eta_t^T q_t of that group) on
+          every pad frame for ``shutdown_confirm_s`` (one wrong frame cannot shut down).
 - any flying mode -> 5 (failsafe) when an input it needs is stale (timeouts), on ``abort``,
           or when the crossing does not find the pad within ``crossing_timeout_s``.
 All times are seconds of the node clock (sim time in simulation).
@@ -57,6 +58,7 @@ class SupervisorConfig:
     crossing_fallback_travel: float = 1.0          # d-normalised travel if d_t is unknown
     crossing_timeout_s: float = 10.0               # mode 2 without a pad -> failsafe
     shutdown_height_m: float = 0.14                # body height of the 3 -> 4 switch
+    shutdown_confirm_s: float = 0.02               # ... on every pad frame for this long
     auto_start_at_s: float = -1.0                  # s; >= 0: start at the first frame then
     group_half_sides: dict = field(default_factory=lambda: {
         'A': 0.36, 'B': 0.20, 'C': 0.10, 'D': 0.045})   # from pad_layout.yaml (c per group)
@@ -105,6 +107,11 @@ PARAMETER_SPECS = {
                            0.0, None),
     'shutdown_height_m': ('m, pad-image height of the 3 -> 4 (shutdown) switch, > 0',
                           0.0, None),
+    'shutdown_confirm_s': ('s (frame stamps, ROS clock): the pad-image height must stay at '
+                           'or below shutdown_height_m on every pad frame for this long '
+                           '(0.02: two 50 Hz frames) before the 3 -> 4 switch, so that one '
+                           'wrong frame cannot shut the motors down in the air, > 0',
+                           0.0, None),
     'auto_start_at_s': ('s (ROS clock); >= 0: start by itself at the first frame at or after '
                         'this time (sim runs), < 0: only ibvs/start starts', None, None),
 }
@@ -150,6 +157,7 @@ class ModeSupervisor:
         self._pad_seen = False
         self._landing_entered = False
         self._height_est: float | None = None
+        self._t_below_shutdown: float | None = None     # first frame of the current run below
         self.auto_start_refusal = ''                    # why the last auto-start was refused
 
     # --- commands ---------------------------------------------------------------------------
@@ -219,10 +227,20 @@ class ModeSupervisor:
             self._height_est = pad_height_estimate(p[4 * i:4 * i + 4], c)
         if self.mode == Mode.CROSSING and not self._landing_entered and self._crossed():
             self._request(Mode.LANDING, 'pad group seen after crossing the window plane')
-        if self.mode == Mode.LANDING and self._height_est is not None \
-                and self._height_est <= self.config.shutdown_height_m:
+        if self.mode == Mode.LANDING and self._height_est is not None:
+            self._check_shutdown(t)
+
+    def _check_shutdown(self, t: float) -> None:
+        """3 -> 4 once the height stayed <= shutdown_height_m for shutdown_confirm_s."""
+        if self._height_est > self.config.shutdown_height_m:
+            self._t_below_shutdown = None
+            return
+        if self._t_below_shutdown is None:
+            self._t_below_shutdown = t
+        if t - self._t_below_shutdown >= self.config.shutdown_confirm_s - 1e-9:
             self._request(Mode.SHUTDOWN,
-                          f'pad-image height {self._height_est:.3f} m <= shutdown height')
+                          f'pad-image height {self._height_est:.3f} m <= shutdown height '
+                          f'since {self._t_below_shutdown:.3f} s')
 
     def on_flow(self, t: float, camera: str, phi_I: np.ndarray | None) -> None:
         """Note the translational flow of 'front' (wall) or 'down' (floor) in {I}, or None."""

@@ -308,14 +308,11 @@ class GraphProducts:
     (``ibvs/supervisor_status``, published before the answer) and expects the products the
     frame's mode uses (all of them before any status, as the nodes make them). A product or
     the status still missing when the lockstep wait ends (a dead node) is given up: not
-    waited for until it is published again. Unstamped topics (``pad/groups``) are noted with
-    the stamp of their ``partners`` topic (``pad/landmarks``, published just before).
+    waited for until it is published again. Every product is stamped with its image.
     """
 
-    def __init__(self, products: dict, partners: dict | None = None,
-                 used_in: dict | None = None) -> None:
+    def __init__(self, products: dict, used_in: dict | None = None) -> None:
         self.products = dict(products)
-        self.partners = dict(partners or {})
         self.used_in = {t: frozenset(int(m) for m in modes)
                         for t, modes in (used_in or {}).items()}
         self.newest_ns: dict[str, int] = {}
@@ -344,12 +341,8 @@ class GraphProducts:
         older = [mode for t, mode in self.statuses if t <= stamp_ns]
         return older[-1] if older else None
 
-    def note(self, topic: str, stamp_ns: int | None = None) -> None:
-        """Note a published product (``stamp_ns`` None for an unstamped topic)."""
-        if stamp_ns is None:
-            stamp_ns = self.newest_ns.get(self.partners.get(topic, ''))
-            if stamp_ns is None:
-                return
+    def note(self, topic: str, stamp_ns: int) -> None:
+        """Note a published product stamped ``stamp_ns``."""
         if stamp_ns > self.newest_ns.get(topic, -1):
             self.newest_ns[topic] = int(stamp_ns)
         self.given_up.discard(topic)
