@@ -28,23 +28,22 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PolygonStamped, QuaternionStamped, Vector3Stamped
+from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.control_laws import CrossingGains, GAIN_SPECS, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
-from ibvs_control.core.frame_io import (
-    check_bearings, check_flow, feature_vector, heading_quat_enu_flu, PadPairing,
-    step_controller)
+from ibvs_control.core.frame_io import feature_vector, heading_quat_enu_flu, step_controller
 from ibvs_common.core.frames import MAP_FRAME, vec_I_to_map
 from ibvs_common.core.modes import InputKind, Mode, MODE_INPUTS
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
 from ibvs_control.core.timing import Frame, FrameAssembler
+from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
-    pad_group_names, polygon_points, SENSOR_QOS, set_quat, set_vector3, stamp_to_ns, vector3)
+    SENSOR_QOS, set_quat, set_vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -117,7 +116,6 @@ class ForceControllerNode(Node):
         # a frame = one supervisor status (tag: its mode), waiting for that mode's products
         self._frames = FrameAssembler(float(p['frame_deadline_s']),
                                       lambda mode: MODE_INPUTS[mode].needed)
-        self._pad_pairing = PadPairing()
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
                                                 COMMAND_QOS)
@@ -126,13 +124,7 @@ class ForceControllerNode(Node):
         self._features_pub = self.create_publisher(JointState, 'ibvs/features', COMMAND_QOS)
         # products and IMU first: at one wake-up rclpy takes them before a status
         self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
-        self.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
-        self.create_subscription(PolygonStamped, 'pad/landmarks', self._on_pad, SENSOR_QOS)
-        self.create_subscription(JointState, 'pad/groups', self._on_groups, SENSOR_QOS)
-        self.create_subscription(Vector3Stamped, 'front_camera/translational_flow',
-                                 self._on_front_flow, SENSOR_QOS)
-        self.create_subscription(Vector3Stamped, 'down_camera/translational_flow',
-                                 self._on_down_flow, SENSOR_QOS)
+        self._products = FrameProductSubscriptions(self, self._add)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
                                  COMMAND_QOS)
         self._deadline = DeadlineTimer(self, self._release)
@@ -140,37 +132,6 @@ class ForceControllerNode(Node):
                                f'{config.crossing}, crossing law {config.crossing_law.value}')
 
     # --- inputs ----------------------------------------------------------------------------
-    def _on_window(self, msg: PolygonStamped) -> None:
-        bearings, err = check_bearings(polygon_points(msg), expected=4)
-        self._add(InputKind.WINDOW, stamp_to_ns(msg.header.stamp), bearings, err)
-
-    def _on_pad(self, msg: PolygonStamped) -> None:
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        bearings, err = check_bearings(polygon_points(msg))
-        if err:                                  # "no pad" for this stamp
-            self._pad_pairing.drop(stamp_ns)
-            self._add(InputKind.PAD, stamp_ns, None, err)
-        else:                                    # the PAD input waits for its groups
-            self._add_pad(self._pad_pairing.add_landmarks(stamp_ns, bearings))
-
-    def _on_groups(self, msg: JointState) -> None:
-        self._add_pad(self._pad_pairing.add_groups(stamp_to_ns(msg.header.stamp),
-                                                   pad_group_names(msg)))
-
-    def _add_pad(self, pair: tuple | None) -> None:
-        if pair is not None:                     # (stamp_ns, bearings, groups)
-            self._add(InputKind.PAD, pair[0], pair[1:], '')
-
-    def _on_front_flow(self, msg: Vector3Stamped) -> None:
-        self._add_flow(InputKind.FLOW_FRONT, msg)
-
-    def _on_down_flow(self, msg: Vector3Stamped) -> None:
-        self._add_flow(InputKind.FLOW_DOWN, msg)
-
-    def _add_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:
-        phi_I, err = check_flow(vector3(msg.vector), msg.header.frame_id)
-        self._add(kind, stamp_to_ns(msg.header.stamp), phi_I, err)
-
     def _on_imu(self, msg: Imu) -> None:
         try:
             stamp_ns, R_IB, omega_B = imu_sample(msg)

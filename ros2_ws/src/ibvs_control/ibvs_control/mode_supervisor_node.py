@@ -35,13 +35,11 @@ import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
-from geometry_msgs.msg import PolygonStamped, Vector3Stamped
-from sensor_msgs.msg import Imu, JointState
+from sensor_msgs.msg import Imu
 from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle
-from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.modes import CAMERA_OF, InputKind, Mode, MODE_INPUTS
 from ibvs_control.core.supervisor import (
@@ -49,15 +47,15 @@ from ibvs_control.core.supervisor import (
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
 from ibvs_control.core.timing import Frame, FrameAssembler
+from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, pad_group_names,
-    polygon_points, SENSOR_QOS, stamp_to_ns, supervisor_status_msg, vector3)
+    COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, SENSOR_QOS,
+    supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
-LANDMARKS_PER_GROUP = 4
 CAMERA_NAME = {InputKind.WINDOW: 'front', InputKind.PAD: 'down'}
 # Core parameters not declared under their core names: r_w is the node's window_width_m, the
 # group sizes come from pad_layout.yaml.
@@ -113,7 +111,6 @@ class ModeSupervisorNode(Node):
         self._attitudes = AttitudeBuffer(AttitudeBufferConfig(
             float(p['imu_history_s']), float(p['imu_max_extrapolation_s']),
             float(p['imu_max_interpolation_gap_s'])))
-        self._pad_pairing = PadPairing(LANDMARKS_PER_GROUP)
         # frames of the current mode's camera wait for the products that mode needs
         self._frames = FrameAssembler(float(p['frame_deadline_s']), self._needed)
         self._n_reported = 0
@@ -123,14 +120,7 @@ class ModeSupervisorNode(Node):
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
                                                  COMMAND_QOS)
         self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
-        self.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
-        self.create_subscription(PolygonStamped, 'pad/landmarks', self._on_landmarks,
-                                 SENSOR_QOS)
-        self.create_subscription(JointState, 'pad/groups', self._on_groups, SENSOR_QOS)
-        self.create_subscription(Vector3Stamped, 'front_camera/translational_flow',
-                                 self._on_front_flow, SENSOR_QOS)
-        self.create_subscription(Vector3Stamped, 'down_camera/translational_flow',
-                                 self._on_down_flow, SENSOR_QOS)
+        self._products = FrameProductSubscriptions(self, self._add)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
         self.create_timer(1.0 / p['update_rate_hz'], self._on_timer)   # node clock
@@ -182,37 +172,6 @@ class ModeSupervisorNode(Node):
             return
         self._core.on_imu(stamp_ns / NS_PER_S, R_IB)
         self._release()
-
-    def _on_window(self, msg: PolygonStamped) -> None:
-        bearings, err = check_bearings(polygon_points(msg), expected=4)
-        self._add(InputKind.WINDOW, stamp_to_ns(msg.header.stamp), bearings, err)
-
-    def _on_landmarks(self, msg: PolygonStamped) -> None:
-        stamp_ns = stamp_to_ns(msg.header.stamp)
-        bearings, err = check_bearings(polygon_points(msg))
-        if err:                                  # "no pad" for this stamp
-            self._pad_pairing.drop(stamp_ns)
-            self._add(InputKind.PAD, stamp_ns, None, err)
-        else:                                    # the PAD input waits for its groups
-            self._add_pad(self._pad_pairing.add_landmarks(stamp_ns, bearings))
-
-    def _on_groups(self, msg: JointState) -> None:
-        self._add_pad(self._pad_pairing.add_groups(stamp_to_ns(msg.header.stamp),
-                                                   pad_group_names(msg)))
-
-    def _add_pad(self, pair: tuple | None) -> None:
-        if pair is not None:                     # (stamp_ns, bearings, groups)
-            self._add(InputKind.PAD, pair[0], pair[1:], '')
-
-    def _on_front_flow(self, msg: Vector3Stamped) -> None:
-        self._on_flow(InputKind.FLOW_FRONT, msg)
-
-    def _on_down_flow(self, msg: Vector3Stamped) -> None:
-        self._on_flow(InputKind.FLOW_DOWN, msg)
-
-    def _on_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:
-        phi_I, err = check_flow(vector3(msg.vector), msg.header.frame_id)
-        self._add(kind, stamp_to_ns(msg.header.stamp), phi_I, err)
 
     def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
         """Route one product: into its frame, or to the core at once (see the module doc)."""

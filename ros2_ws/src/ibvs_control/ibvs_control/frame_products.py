@@ -1,0 +1,73 @@
+"""The perception products of a camera frame, subscribed once for the supervisor and controller.
+
+:class:`FrameProductSubscriptions` subscribes ``window/corners``, ``pad/landmarks`` +
+``pad/groups`` and both ``<camera>_camera/translational_flow`` (sensor QoS), validates each
+message (:func:`~ibvs_control.core.frame_io.check_bearings`,
+:func:`~ibvs_control.core.frame_io.check_flow`), pairs the two pad halves by stamp
+(:class:`~ibvs_control.core.frame_io.PadPairing`) and hands every product to the node's
+``add(kind, stamp_ns, value, err)``:
+
+- WINDOW: the 4 corner bearings (optical frame, rows) or None (not detected / refused);
+- PAD: (landmark bearings or None, group names), or None when the landmarks were refused;
+- FLOW_FRONT / FLOW_DOWN: the flow phi = v/d in {I} (1/s) or None (no flow at that stamp /
+  refused).
+
+``err`` is '' or why the message was refused (the product then counts as "not detected").
+What a product means for a frame is the node's business; this piece only converts messages.
+"""
+from __future__ import annotations
+
+from typing import Callable
+
+from geometry_msgs.msg import PolygonStamped, Vector3Stamped
+from rclpy.node import Node
+from sensor_msgs.msg import JointState
+
+from ibvs_common.core.modes import InputKind
+from ibvs_common.node_common import (
+    pad_group_names, polygon_points, SENSOR_QOS, stamp_to_ns, vector3)
+from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
+
+LANDMARKS_PER_GROUP = 4
+AddProduct = Callable[[InputKind, int, object, str], None]
+
+
+class FrameProductSubscriptions:
+    """Subscriptions of the frame products, each handed to ``add`` (see the module doc)."""
+
+    def __init__(self, node: Node, add: AddProduct) -> None:
+        self._add = add
+        self.pad_pairing = PadPairing(LANDMARKS_PER_GROUP)
+        node.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
+        node.create_subscription(PolygonStamped, 'pad/landmarks', self._on_landmarks,
+                                 SENSOR_QOS)
+        node.create_subscription(JointState, 'pad/groups', self._on_groups, SENSOR_QOS)
+        for kind, camera in ((InputKind.FLOW_FRONT, 'front'), (InputKind.FLOW_DOWN, 'down')):
+            node.create_subscription(Vector3Stamped, f'{camera}_camera/translational_flow',
+                                     lambda msg, kind=kind: self._on_flow(kind, msg),
+                                     SENSOR_QOS)
+
+    def _on_window(self, msg: PolygonStamped) -> None:
+        bearings, err = check_bearings(polygon_points(msg), expected=4)
+        self._add(InputKind.WINDOW, stamp_to_ns(msg.header.stamp), bearings, err)
+
+    def _on_landmarks(self, msg: PolygonStamped) -> None:
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        bearings, err = check_bearings(polygon_points(msg))
+        if err:                                  # "no pad" for this stamp
+            self.pad_pairing.drop(stamp_ns)
+            self._add(InputKind.PAD, stamp_ns, None, err)
+        else:                                    # the PAD input waits for its groups
+            self._add_pad(self.pad_pairing.add_landmarks(stamp_ns, bearings))
+
+    def _on_groups(self, msg: JointState) -> None:
+        self._add_pad(self.pad_pairing.add_groups(stamp_to_ns(msg.header.stamp),
+                                                  pad_group_names(msg)))
+
+    def _add_pad(self, pair: tuple | None) -> None:
+        if pair is not None:                     # (stamp_ns, bearings, groups)
+            self._add(InputKind.PAD, pair[0], pair[1:], '')
+
+    def _on_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:
+        phi_I, err = check_flow(vector3(msg.vector), msg.header.frame_id)
+        self._add(kind, stamp_to_ns(msg.header.stamp), phi_I, err)
