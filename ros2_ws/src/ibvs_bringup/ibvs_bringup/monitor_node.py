@@ -158,3 +158,24 @@ class ScenarioMonitor(Node):
             v = named_vector(list(msg.name), list(msg.position), name)
             if v is not None:
                 self.log.add_vector(name, stamp_s(msg) - self.time_origin_s, v)
+
+
+DRAIN_SPINS = 20      # spins without waiting: what arrived while the graph was being stopped
+
+
+def close_monitor(monitor: ScenarioMonitor | None) -> tuple[RunLog, dict, list]:
+    """Take what arrived while the graph stopped, destroy the monitor; return its products.
+
+    Returns (run log, the sim's timing stats, the bridge's diagnostics history); empty ones
+    when the monitor was never created. Call after the graph is stopped, before
+    ``rclpy.try_shutdown``.
+    """
+    import rclpy
+    if monitor is None:
+        return RunLog(), {}, []
+    if rclpy.ok():
+        for _ in range(DRAIN_SPINS):
+            rclpy.spin_once(monitor, timeout_sec=0.0)
+    products = monitor.log, dict(monitor.sim_stats), list(monitor.bridge_history)
+    monitor.destroy_node()
+    return products

@@ -117,7 +117,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
-    from ibvs_bringup.monitor_node import ScenarioMonitor
+    from ibvs_bringup.monitor_node import close_monitor, ScenarioMonitor
     from ibvs_bringup.run_scenario import supervisor_transitions
     from ibvs_bringup.runner import ProcessRunner, Terminated
 
@@ -151,20 +151,14 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
         error = 'interrupted'
     finally:
         codes = runner.stop()
-        if monitor is not None and rclpy.ok():
-            for _ in range(20):
-                rclpy.spin_once(monitor, timeout_sec=0.0)
+        log, sim_stats, bridge = close_monitor(monitor)
         if pilot is not None:
             pilot.close()
         tail = px4.log_tail() if error else ''
         px4.stop()
-        # nothing is evaluated before ibvs/start (the take-off is the harness's, not the run)
-        log = monitor.log if monitor is not None and info.get('started') else report.RunLog()
-        sim_stats = dict(monitor.sim_stats) if monitor is not None else {}
-        bridge = list(monitor.bridge_history) if monitor is not None else []
-        if monitor is not None:
-            monitor.destroy_node()
         rclpy.try_shutdown()
+    if not info.get('started'):   # nothing is evaluated before ibvs/start (the take-off is
+        log = report.RunLog()     # the harness's, not the run)
     print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
     if tail:
         print('PX4 log tail:\n' + tail, flush=True)

@@ -301,7 +301,7 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner
 def run_graph(opts: RunOptions) -> int:
     """Fly the whole graph once; write results/<run>/."""
     import rclpy
-    from ibvs_bringup.monitor_node import ScenarioMonitor
+    from ibvs_bringup.monitor_node import close_monitor, ScenarioMonitor
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
@@ -335,14 +335,7 @@ def run_graph(opts: RunOptions) -> int:
         error = 'interrupted'
     finally:
         codes = runner.stop()
-        if monitor is not None and rclpy.ok():
-            for _ in range(20):               # drain what arrived meanwhile
-                rclpy.spin_once(monitor, timeout_sec=0.0)
-        log = monitor.log if monitor is not None else report.RunLog()
-        sim_stats = dict(monitor.sim_stats) if monitor is not None else {}
-        bridge = list(monitor.bridge_history) if monitor is not None else []
-        if monitor is not None:
-            monitor.destroy_node()
+        log, sim_stats, bridge = close_monitor(monitor)
         rclpy.try_shutdown()
     print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
