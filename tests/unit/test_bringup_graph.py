@@ -223,22 +223,24 @@ def test_the_venv_prefix_is_found_without_ament_prefix_path(tmp_path, monkeypatc
 
 
 def test_onboard_window_size_agrees_with_the_sim_world():
-    """The onboard nodes know the window from params.yaml, never from the sim's world.
+    """The onboard nodes know the window from window_layout.yaml, never from the sim's world.
 
     r_w for the controller and supervisor, the aperture and band size for the window
-    detector's band proportions: the same mission facts, which world.yaml must match.
+    detector's band proportions: one file, the vehicle's belief, which world.yaml (the sim's
+    truth) must match by default; no node keeps a size of its own in params.yaml.
     """
     import yaml
+    from ibvs_common.core.config import load_window_layout
     from ibvs_sim.core.world import load_world
     params = yaml.safe_load(Path(PARAMS).read_text())
-    window = load_world().window
+    truth, belief = load_world().window, load_window_layout()
+    assert (belief.width, belief.height, belief.frame_band) == \
+        (truth.width, truth.height, truth.frame_band)
     for node in ('mode_supervisor', 'force_controller', 'window_detector'):
         section = params[node]['ros__parameters']
         assert 'world_file' not in section
-        assert section['window_width_m'] == window.width, node
-    detector = params['window_detector']['ros__parameters']
-    assert detector['window_height_m'] == window.height
-    assert detector['frame_band_m'] == window.frame_band
+        assert section['window_layout_file'] == '', node
+        assert not {'window_width_m', 'window_height_m', 'frame_band_m'} & set(section), node
 
 
 def test_the_node_name_table_is_the_graphs_node_list():
@@ -272,3 +274,18 @@ def test_a_parameter_file_for_some_nodes_or_wildcards_is_accepted(tmp_path):
     path.write_text('force_controller:\n  ros__parameters:\n    crossing_law: closed\n')
     assert graph.checked_params_file(str(path), graph.ONBOARD_NODE_NAMES) == str(path)
     assert graph.checked_params_file(None, graph.ONBOARD_NODE_NAMES).endswith('params.yaml')
+
+
+@pytest.mark.parametrize('content, fault', [
+    ('width: 1.2\nheight: 1.0\n', "missing key 'frame_band'"),
+    ('width: -1.2\nheight: 1.0\nframe_band: 0.08\n', 'must be > 0'),
+    ('width: .nan\nheight: 1.0\nframe_band: 0.08\n', 'must be > 0'),
+    ('width: wide\nheight: 1.0\nframe_band: 0.08\n', 'could not convert'),
+])
+def test_a_bad_window_layout_is_refused_with_the_file_and_the_reason(tmp_path, content, fault):
+    from ibvs_common.core.config import ConfigError, load_window_layout
+    path = tmp_path / 'window_layout.yaml'
+    path.write_text(content)
+    with pytest.raises(ConfigError, match=fault) as info:
+        load_window_layout(path)
+    assert str(path) in str(info.value)

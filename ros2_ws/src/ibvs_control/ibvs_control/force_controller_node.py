@@ -31,7 +31,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 
-from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_control.core.control_laws import CrossingGains, GAIN_SPECS, LandingGains, WindowGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController
 from ibvs_control.core.frame_io import feature_vector, heading_quat_enu_flu, step_controller
@@ -77,7 +77,7 @@ PARAMETERS = {
     'imu_max_extrapolation_s': 0.05,
     'imu_max_interpolation_gap_s': 0.2,
     'vehicle_file': '',
-    'window_width_m': 1.2,
+    'window_layout_file': '',
     'pad_layout_file': '',
 }
 # description with unit, inclusive range (ibvs_common.param_descriptors)
@@ -89,7 +89,8 @@ PARAMETER_SPECS = {
                          'the products its mode needs', 0.0, None),
     **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
     'vehicle_file': ("vehicle YAML (mass, camera mounts); '' = the installed vehicle.yaml",),
-    'window_width_m': ("m, r_w: the window's known width (gain condition), > 0", 0.0, None),
+    'window_layout_file': ("window layout YAML (r_w, the window's known width: gain "
+                           "condition); '' = the installed window_layout.yaml",),
     'pad_layout_file': ("pad layout YAML (group sizes, height cue); '' = the installed "
                         'pad_layout.yaml',),
 }
@@ -104,7 +105,7 @@ class ForceControllerNode(Node):
         p = declare_all(self, {**GAIN_PARAMETERS, **PARAMETERS},
                         {**GAIN_PARAMETER_SPECS, **PARAMETER_SPECS})
         vehicle = load_vehicle(p['vehicle_file'] or None)
-        r_w = float(p['window_width_m'])
+        r_w = load_window_layout(p['window_layout_file'] or None).width
         gains = {k: p[k] for k in GAIN_PARAMETERS}
         gains['crossing_law'] = p['crossing_law']
         pad = load_pad_layout(p['pad_layout_file'] or None)

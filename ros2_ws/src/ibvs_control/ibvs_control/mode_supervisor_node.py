@@ -39,7 +39,7 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
-from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.modes import CAMERA_OF, InputKind, Mode, MODE_INPUTS
 from ibvs_control.core.supervisor import (
@@ -57,8 +57,8 @@ from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
 CAMERA_NAME = {InputKind.WINDOW: 'front', InputKind.PAD: 'down'}
-# Core parameters not declared under their core names: r_w is the node's window_width_m, the
-# group sizes come from pad_layout.yaml.
+# Core parameters from files, not parameters: r_w from window_layout.yaml, the group sizes
+# from pad_layout.yaml.
 FROM_FILES = ('r_w', 'group_half_sides')
 PARAMETERS = {
     'update_rate_hz': 20.0,
@@ -67,7 +67,7 @@ PARAMETERS = {
     'imu_max_extrapolation_s': 0.05,
     'imu_max_interpolation_gap_s': 0.2,
     'vehicle_file': '',
-    'window_width_m': 1.2,
+    'window_layout_file': '',
     'pad_layout_file': '',
 }
 # description with unit, inclusive range (ibvs_common.param_descriptors)
@@ -78,8 +78,8 @@ PARAMETER_SPECS = {
                          'the products its mode needs', 0.0, None),
     **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
     'vehicle_file': ("vehicle YAML (camera mounts R_BC); '' = the installed vehicle.yaml",),
-    'window_width_m': ("m, r_w: the window's known width (the sim's world.yaml must agree), "
-                       '> 0', 0.0, None),
+    'window_layout_file': ("window layout YAML (r_w, the window's known width); '' = the "
+                           'installed window_layout.yaml',),
     'pad_layout_file': ("pad layout YAML (group half sides); '' = the installed "
                         'pad_layout.yaml',),
 }
@@ -101,8 +101,9 @@ class ModeSupervisorNode(Node):
         p = declare_all(self, {**core_params, **PARAMETERS}, {**CORE_SPECS, **PARAMETER_SPECS})
         vehicle = load_vehicle(p['vehicle_file'] or None)
         pad = load_pad_layout(p['pad_layout_file'] or None)
+        window = load_window_layout(p['window_layout_file'] or None)
         config = SupervisorConfig.from_params(
-            {**{k: float(p[k]) for k in core_params}, 'r_w': float(p['window_width_m']),
+            {**{k: float(p[k]) for k in core_params}, 'r_w': window.width,
              'group_half_sides': {g.name: g.c for g in pad.groups}})
         if not float(p['update_rate_hz']) > 0.0:
             raise ValueError(f"update_rate_hz must be > 0, got {p['update_rate_hz']}")

@@ -11,6 +11,10 @@ propagated, :class:`~ibvs_common.core.attitude_buffer.AttitudeBuffer`) gives the
 since the previous image, and the detector moves the tracked window by it before searching
 and gating (``WindowDetector.process``). Without an attitude at either stamp the frame is
 processed without the prediction (as before), never dropped.
+
+The window's size (the frame band's proportions) comes from the window layout file
+(``window_layout_file``, default the installed window_layout.yaml), as for the supervisor and
+the controller.
 """
 from __future__ import annotations
 
@@ -30,7 +34,7 @@ from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.mode_gating import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       polygon_from_vectors, stamp_to_s)
-from ibvs_common.core.config import ConfigError, load_vehicle
+from ibvs_common.core.config import ConfigError, load_vehicle, load_window_layout
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
 from ibvs_common.node_common import IMAGE_QOS
@@ -46,7 +50,11 @@ NODE_SPECS = {
     'publish_debug_image': ('publish window/debug_image (bgr8, the detection drawn)',),
     'vehicle_file': ("vehicle YAML (the front camera's mount R_BC, for the gyro prediction); "
                      "'' = the installed vehicle.yaml",),
+    'window_layout_file': ("window layout YAML (aperture size and frame band: the band's "
+                           "proportions); '' = the installed window_layout.yaml",),
 }
+# WindowDetectorConfig fields that come from the window layout file, not from parameters
+LAYOUT_FIELDS = ('window_width_m', 'window_height_m', 'frame_band_m')
 
 
 class WindowDetectorNode(Node):
@@ -55,19 +63,25 @@ class WindowDetectorNode(Node):
     def __init__(self, node_name: str = 'window_detector', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        values = declare_all(self, dataclass_defaults(WindowDetectorConfig), PARAMETER_SPECS)
+        values = declare_all(self, dataclass_defaults(WindowDetectorConfig, LAYOUT_FIELDS),
+                             {k: v for k, v in PARAMETER_SPECS.items() if k not in LAYOUT_FIELDS})
         self.frame_id = declare(self, 'frame_id', 'front_camera_optical_frame',
                                 NODE_SPECS['frame_id'])
         self.publish_debug = bool(declare(self, 'publish_debug_image', False,
                                           NODE_SPECS['publish_debug_image']))
         vehicle_file = declare(self, 'vehicle_file', '', NODE_SPECS['vehicle_file'])
+        layout_file = declare(self, 'window_layout_file', '', NODE_SPECS['window_layout_file'])
         buffer_values = declare_all(self, dataclass_defaults(AttitudeBufferConfig),
                                     ATTITUDE_BUFFER_SPECS, prefix='imu_')
         try:
             self.R_BC = load_vehicle(vehicle_file or None).cameras['front'].R_BC
+            layout = load_window_layout(layout_file or None)
         except (ConfigError, KeyError) as exc:
-            self.get_logger().fatal(f'window_detector: cannot load the camera mount: {exc}')
+            self.get_logger().fatal(f'window_detector: cannot load the camera mount or the '
+                                    f'window layout: {exc}')
             raise
+        values.update(window_width_m=layout.width, window_height_m=layout.height,
+                      frame_band_m=layout.frame_band)
         self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
         self.R_IC_prev: np.ndarray | None = None    # camera attitude at the previous image
         self.detector = WindowDetector(WindowDetectorConfig(**values))

@@ -1,4 +1,4 @@
-"""Typed views of the shared YAML files: pad layout, vehicle and cameras.
+"""Typed views of the shared YAML files: pad layout, window layout, vehicle and cameras.
 
 These files live in ``ibvs_bringup/config`` (installed to ``share/ibvs_bringup/config``) and are
 the one source of truth for the sim, perception and control. Loaders raise ``ConfigError`` with
@@ -107,6 +107,32 @@ def load_pad_layout(path: str | os.PathLike | None = None) -> PadLayout:
     groups.sort(key=lambda g: -g.side)
     return PadLayout(str(get_key(data, 'dictionary', path)), float(data.get('quiet_zone', 0.25)),
                      tuple(groups))
+
+
+# --- Window ------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class WindowLayout:
+    """The window's known size (the vehicle's belief; the sim's world.yaml holds the truth)."""
+
+    width: float           # m, r_w: aperture width (horizontal)
+    height: float          # m, aperture height
+    frame_band: float      # m, dark band on the wall face around the aperture
+
+
+def load_window_layout(path: str | os.PathLike | None = None) -> WindowLayout:
+    """Load the window layout YAML (default: the installed ``window_layout.yaml``)."""
+    path = path or default_config_path('window_layout.yaml')
+    data = load_yaml(path)
+    try:
+        layout = WindowLayout(*(float(get_key(data, k, path))
+                                for k in ('width', 'height', 'frame_band')))
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f'{path}: {exc}') from exc
+    if not all(np.isfinite(v) and v > 0 for v in (layout.width, layout.height,
+                                                  layout.frame_band)):
+        raise ConfigError(f'{path}: width, height and frame_band must be > 0, got {layout}')
+    return layout
 
 
 # --- Vehicle and cameras -----------------------------------------------------------------
