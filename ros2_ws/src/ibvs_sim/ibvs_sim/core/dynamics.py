@@ -21,7 +21,10 @@ with ``R = R_IB``. Additions of the simulator (documented in docs/sim.md):
   ``F_max = max_thrust_factor m g`` (hover at u = 1 / max_thrust_factor = 0.5);
 - rotor drag ``-k_D v_B_horizontal`` (body frame, horizontal components of the body velocity),
   the linear "rotor drag" of the RotorS model;
-- ``Delta`` (N, {I}): steady wind force plus gusts, see :class:`Wind`;
+- ``Delta`` (N, {I}: x north = window normal, y east, z down): steady wind force plus gusts,
+  ``Delta(t) = Delta_s + g(t)``, ``g_j(t) = A w_j / sqrt(K) sum_k sin(2 pi f r_j c_k t + p_jk)``
+  (a seeded sum of sines per axis; symbols, mean 0 and standard deviation ``A w_j / sqrt(2)``
+  in :class:`Wind`, campaign magnitudes in :meth:`WindConfig.from_level`, docs/sim.md "Wind");
 - the floor: a body whose envelope bottom reaches ``floor_z`` rests on it (vertical speed
   and body rates zeroed, roll and pitch levelled) until the thrust exceeds its weight.
 
@@ -221,20 +224,60 @@ class AttitudeController:
 
 @dataclass(frozen=True)
 class WindConfig:
-    """Disturbance Delta (N, {I}): steady force plus gusts (default: off).
+    """Disturbance Delta (N, {I}): steady force plus gusts (default: off). See :class:`Wind`.
 
-    Gusts: ``A (sin(2 pi f t + p_x), sin(2 pi 1.37 f t + p_y), 0.5 sin(2 pi 0.71 f t + p_z))``
-    with phases drawn from ``seed``: smooth, deterministic, zero mean.
+    ``steady_force_I`` (N, {I}: x north = window normal, y east, z down), ``gust_amplitude_N``
+    (N, the amplitude ``A`` of the gust of each horizontal axis, half of it vertically),
+    ``gust_frequency_hz`` (Hz of sim time, the base frequency ``f``), ``gust_components``
+    (``K``, sines per axis; 1 is the single sine per axis of the first model), ``seed`` (the
+    random phases). Build one from campaign-style magnitudes with :meth:`from_level`.
     """
 
     steady_force_I: tuple[float, float, float] = (0.0, 0.0, 0.0)
     gust_amplitude_N: float = 0.0
     gust_frequency_hz: float = 0.5
     seed: int = 0
+    gust_components: int = 1
+
+    @classmethod
+    def from_level(cls, level_mps2: float, direction_rad: float, mass_kg: float,
+                   vertical_factor: float = 0.0, gust_level: float = 0.0,
+                   gust_frequency_hz: float = 0.5, gust_components: int = 1,
+                   seed: int = 0) -> 'WindConfig':
+        """Wind from a campaign's magnitudes: level, direction, vertical factor, gust level.
+
+        Horizontal magnitude ``level_mps2`` (m/s^2, |Delta_h| / m), blowing TOWARDS
+        ``direction_rad`` (rad from north, +x_I, towards east, +y_I; 0: a force along +x_I,
+        i.e. a wind from the south). Steady force ``m a (cos psi, sin psi, vertical_factor)``
+        (N, {I}; a positive vertical factor pushes down, +z_I), gust amplitude
+        ``A = gust_level m a`` (N).
+        """
+        if not (math.isfinite(level_mps2) and level_mps2 >= 0.0 and mass_kg > 0.0
+                and gust_level >= 0.0 and gust_components >= 1):
+            raise ValueError('wind: level >= 0, mass > 0, gust level >= 0, components >= 1')
+        f = mass_kg * level_mps2
+        return cls(steady_force_I=(f * math.cos(direction_rad), f * math.sin(direction_rad),
+                                   f * vertical_factor),
+                   gust_amplitude_N=gust_level * f, gust_frequency_hz=gust_frequency_hz,
+                   seed=int(seed), gust_components=int(gust_components))
 
 
 class Wind:
-    """Evaluate the disturbance force of :class:`WindConfig` at sim time t."""
+    """Evaluate the disturbance force of :class:`WindConfig` at sim time t (s): N in {I}.
+
+    ``Delta(t) = Delta_s + g(t)``, the steady force ``Delta_s`` plus, on each axis j of {I}
+    (x, y, z), a sum of ``K`` sines::
+
+        g_j(t) = A w_j / sqrt(K) sum_{k=0}^{K-1} sin(2 pi f r_j c_k t + p_jk)
+
+    with axis weights ``w = (1, 1, 0.5)``, axis frequency ratios ``r = (1, 1.37, 0.71)``,
+    component ratios ``c_k = 2^(k - (K - 1) / 2)`` (octaves centred on f; ``c_0 = 1`` for
+    K = 1) and phases ``p_jk`` uniform in [0, 2 pi) from ``numpy.random.default_rng(seed)``
+    (drawn as a (K, 3) array: K = 1 gives the phases of the first model). All frequencies are
+    distinct, so over a long window each ``g_j`` has mean 0 and standard deviation
+    ``A w_j / sqrt(2)`` whatever K (peak ``A w_j`` for K = 1, up to ``A w_j sqrt(K)``).
+    Smooth, deterministic, reproducible from the seed.
+    """
 
     FREQ_RATIOS = np.array([1.0, 1.37, 0.71])
     AXIS_WEIGHTS = np.array([1.0, 1.0, 0.5])
@@ -242,15 +285,19 @@ class Wind:
     def __init__(self, config: WindConfig) -> None:
         self.config = config
         self.steady = np.asarray(config.steady_force_I, float).reshape(3)
-        self.phases = np.random.default_rng(config.seed).uniform(0, 2 * math.pi, 3)
+        K = int(config.gust_components)
+        if K < 1:
+            raise ValueError(f'wind: gust_components must be >= 1, got {K}')
+        self.phases = np.random.default_rng(config.seed).uniform(0, 2 * math.pi, (K, 3))
+        c = 2.0 ** (np.arange(K) - (K - 1) / 2.0)
+        self.omega = 2 * math.pi * config.gust_frequency_hz * c[:, None] * self.FREQ_RATIOS
+        self.amplitude = config.gust_amplitude_N * self.AXIS_WEIGHTS / math.sqrt(K)
 
     def force_I(self, t: float) -> np.ndarray:
         """Delta(t) in {I}, newtons."""
-        c = self.config
-        if c.gust_amplitude_N == 0.0:
+        if self.config.gust_amplitude_N == 0.0:
             return self.steady.copy()
-        arg = 2 * math.pi * c.gust_frequency_hz * self.FREQ_RATIOS * t + self.phases
-        return self.steady + c.gust_amplitude_N * self.AXIS_WEIGHTS * np.sin(arg)
+        return self.steady + self.amplitude * np.sin(self.omega * t + self.phases).sum(axis=0)
 
 
 class QuadrotorPlant:

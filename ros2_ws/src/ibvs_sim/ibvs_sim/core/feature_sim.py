@@ -5,7 +5,15 @@ inner loop and a first-order thrust lag. Sensors: the features the perception wo
 computed from geometry (window corner and pad marker bearings, translational flows v/d), with
 the cameras' fields of view (CameraModel projection with distortion) and the wall's occlusion
 deciding what is seen. Controller and supervisor: the ROS-free IBVS core, exactly as the nodes
-run it. Used by the tests of issue 2 and by ``make run -- --feature-level``.
+run it. Used by the tests of issue 2, by ``make run -- --feature-level`` and by the campaigns
+(``python -m ibvs_bringup.campaign``).
+
+Wind: the image-level simulator's model, :class:`ibvs_sim.core.dynamics.Wind` (steady force
+plus a seeded sum of sines per axis, docs/sim.md "Wind"). The point mass feels
+``a = -F_T R e3 / m + g e3 + Delta(t) / m`` in {I} (x north = window normal, y east, z down),
+with ``Delta(t) = m wind_accel_I + Wind(wind).force_I(t)`` (N), evaluated at the start of each
+physics step: ``wind_accel_I`` (m/s^2) is a constant wind given as an acceleration (kept for
+the callers that set it), ``wind`` a :class:`WindConfig` (newtons), default none.
 """
 from __future__ import annotations
 
@@ -24,6 +32,7 @@ from ibvs_common.core.frames import (
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
+from ibvs_sim.core.dynamics import Wind, WindConfig
 from ibvs_sim.core.evaluation import evaluate_run, GroundTruthLog
 
 MIN_MARKER_PIXELS = 12.0      # a marker smaller than this (side, px) is not detected
@@ -39,6 +48,7 @@ class FeatureSimConfig:
     initial_position_I: np.ndarray
     initial_yaw: float = 0.0
     wind_accel_I: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m/s^2 (Delta/m)
+    wind: WindConfig | None = None     # N, {I}: steady + gusts, added to m wind_accel_I
     crossing_law: CrossingLaw = CrossingLaw.CLOSED
     physics_dt: float = 0.004          # s (250 Hz)
     camera_dt: float = 0.02            # s (50 Hz)
@@ -181,6 +191,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     started = False
     n_sub = int(round(config.camera_dt / config.physics_dt))
     R_BC_front, R_BC_down = vehicle.cameras['front'].R_BC, vehicle.cameras['down'].R_BC
+    wind = Wind(config.wind or WindConfig())
+    wind_accel_steady = np.asarray(config.wind_accel_I, dtype=float).reshape(3)
     while t <= config.max_time_s:
         # --- one camera frame: sense, supervise, control ---------------------------------
         win_C = sensors.window(R, xi)
@@ -219,7 +231,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             dt = config.physics_dt
             R = R @ exp_so3(log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
-            a = -thrust * (R @ e3) / m + g * e3 + config.wind_accel_I
+            a = -thrust * (R @ e3) / m + g * e3 + wind_accel_steady + wind.force_I(t) / m
             v = v + a * dt
             xi = xi + v * dt
             t += dt
