@@ -99,6 +99,11 @@ def test_default_command_and_compose_services_reference_what_exists():
         _check_command([re.sub(r'\$\{(\w+):-[^}]*\}', 'x', c) for c in service['command']])
     onboard = ' '.join(compose['services']['onboard']['command'])
     assert 'mavlink_url:=' in onboard
+    # the onboard service's default link is the launch file's (PX4's companion port, udpin:
+    # a udpout URL to PX4 never links, issue 13)
+    launch = (SRC / 'ibvs_bringup' / 'launch' / 'onboard.launch.py').read_text()
+    default = re.search(r"DEFAULT_MAVLINK_URL = '([^']+)'", launch).group(1)
+    assert re.search(r'\$\{MAVLINK_URL:-([^}]*)\}', onboard).group(1) == default
 
 
 def test_launch_arguments_used_by_compose_are_declared():
