@@ -89,5 +89,12 @@ test: lint install
 bench: install
 	for b in benchmarks/bench_*.py; do $(PY) $$b || exit 1; done
 
+# Monte Carlo campaign under wind at feature level (issue 14; docs/performance.md "Campaign"):
+# results/campaign/<name>/ (resumable), e.g. make mc MC_ARGS='--name feature --runs 500'.
+MC_ARGS ?=
+.PHONY: mc
+mc: install
+	$(PY) -m ibvs_bringup.campaign $(MC_ARGS)
+
 clean:
 	rm -rf $(VENV) $(VENV46) build install log

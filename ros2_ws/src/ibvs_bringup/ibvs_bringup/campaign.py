@@ -1,0 +1,657 @@
+"""Monte Carlo campaigns under wind at feature level (issue 14): ``make mc`` / this module.
+
+``python -m ibvs_bringup.campaign --name NAME [--runs N] [--levels 0 0.2 0.5 0.8] ...``
+
+For every law and wind level, ``runs`` flights of ibvs_sim's feature-level closed loop
+(``feature_sim.run_feature_scenario``: the ROS-free controller and supervisor as the nodes run
+them, params.yaml's gains and thresholds, geometric features, a point-mass plant):
+
+- start: uniform in world.yaml's random box (SPEC.md section 2: x in [-2.6, -1.8],
+  y in [-0.3, 0.3], z in [-1.9, -1.35] m, {I}), at rest, level, the reference yaw;
+- wind (``dynamics.WindConfig.from_level``, docs/sim.md "Wind"): horizontal magnitude
+  ``level`` (m/s^2 = |Delta_h| / m) blowing towards a direction uniform in [0, 2 pi) (rad
+  from north, +x_I, towards east), a steady vertical component ``vertical_factor x level``
+  (positive: down, +z_I), gusts of amplitude ``gust_level x level x m`` (N, a seeded sum of
+  sines per axis);
+- run ``index`` draws its start, wind direction and gust phases from
+  ``numpy.random.SeedSequence([seed, index])`` only: the level and the law do not enter, so
+  every law and every level sees the same starts, directions and phases (paired
+  comparisons, common random numbers), and a run is the same whatever the worker or order.
+
+Output, ``<results-root>/<name>/`` (default results/campaign/<name>/):
+
+- ``runs/<law>/<level>/<index>/summary.json``: SPEC.md section 5's summary (ibvs_sim's
+  ``evaluate_run``, the criteria of every run) plus a ``run`` block (law, wind, start, seed,
+  failure cause, wall time). Resumable: a run whose summary.json exists is not flown again,
+  and a larger ``--runs`` adds runs to a campaign;
+- ``campaign.json`` (the settings every run depends on: a resume with other settings is
+  refused), ``aggregate.json`` and ``table.md`` (per law and level: success rate with its 95 %
+  Wilson interval, clearance, crossing speed, landing error, touchdown speed, failure
+  causes), and PNG plots when matplotlib is importable.
+
+Parallel over processes (``--workers``, default ``os.cpu_count()``). The image-level campaign
+(the whole graph in lockstep) is not here yet (docs/performance.md "Campaign").
+"""
+from __future__ import annotations
+
+import argparse
+from dataclasses import asdict, dataclass
+import functools
+import hashlib
+import json
+import math
+import multiprocessing
+import os
+import sys
+import time
+from typing import Callable, Iterable
+
+import numpy as np
+
+DEFAULT_LEVELS_MPS2 = (0.0, 0.2, 0.5, 0.8)
+DEFAULT_RESULTS_ROOT = os.path.join('results', 'campaign')
+Z_95 = 1.959963984540054          # standard normal quantile of 0.975
+MAX_SIM_TIME_S = 60.0             # SPEC.md section 5
+
+
+# --- settings -------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class LawSpec:
+    """A control law of the campaign: a label and its force_controller parameter overrides.
+
+    ``overrides``: (name, value) pairs applied over params.yaml's ``force_controller``
+    section (e.g. ``(('crossing_law', 'intended'),)``); every name must exist there.
+    """
+
+    label: str
+    overrides: tuple = ()
+
+    @staticmethod
+    def parse(text: str) -> 'LawSpec':
+        """Parse ``LABEL`` or ``LABEL:name=value,name=value`` (values read as YAML scalars).
+
+        A bare label that is a crossing law (closed, intended, seed) sets ``crossing_law``.
+        """
+        import yaml
+        label, _, rest = text.partition(':')
+        label = label.strip()
+        if not label or not all(c.isalnum() or c in '_.+-' for c in label):
+            raise ValueError(f'bad law label {label!r}: use letters, digits, _ . + -')
+        pairs = []
+        for item in filter(None, (s.strip() for s in rest.split(','))):
+            name, eq, value = item.partition('=')
+            if not eq or not name.strip():
+                raise ValueError(f'law {label}: expected name=value, got {item!r}')
+            pairs.append((name.strip(), yaml.safe_load(value)))
+        if not pairs:
+            from ibvs_control.core.control_laws import CrossingLaw
+            if label not in {x.value for x in CrossingLaw}:
+                raise ValueError(f'law {label!r}: not a crossing law '
+                                 f'({[x.value for x in CrossingLaw]}) and no overrides given')
+            pairs = [('crossing_law', label)]
+        return LawSpec(label, tuple(pairs))
+
+
+@dataclass(frozen=True)
+class CampaignConfig:
+    """Everything a campaign's runs depend on (SI; wind levels in m/s^2 of Delta/m)."""
+
+    name: str
+    runs: int = 500
+    levels_mps2: tuple = DEFAULT_LEVELS_MPS2
+    laws: tuple = (LawSpec('closed', (('crossing_law', 'closed'),)),)
+    gust_level: float = 0.3           # gust amplitude / steady horizontal magnitude
+    vertical_factor: float = 0.3      # steady vertical / horizontal magnitude (+: down)
+    gust_frequency_hz: float = 0.5    # Hz, base gust frequency
+    gust_components: int = 1          # sines per axis
+    flow_noise: float = 0.0           # 1/s, white noise on each flow component
+    bearing_noise_rad: float = 0.0    # rad, white noise on each bearing
+    seed: int = 14                    # campaign seed (run i: SeedSequence([seed, i]))
+    params_file: str | None = None    # None: the installed params.yaml
+    results_root: str = DEFAULT_RESULTS_ROOT
+
+    @property
+    def out_dir(self) -> str:
+        """``<results_root>/<name>``."""
+        return os.path.join(self.results_root, self.name)
+
+    def model(self, params_text: str) -> dict:
+        """Return the settings a run's outcome depends on (besides law, level and index)."""
+        return {'gust_level': self.gust_level, 'vertical_factor': self.vertical_factor,
+                'gust_frequency_hz': self.gust_frequency_hz,
+                'gust_components': self.gust_components, 'flow_noise': self.flow_noise,
+                'bearing_noise_rad': self.bearing_noise_rad, 'seed': self.seed,
+                'params_sha256': hashlib.sha256(params_text.encode()).hexdigest()}
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """One run: law, wind level (m/s^2), index, and what the index draws ({I}, rad)."""
+
+    law: LawSpec
+    level_mps2: float
+    index: int
+    initial_position_I: tuple
+    direction_rad: float
+    gust_seed: int
+
+    def run_dir(self, out_dir: str) -> str:
+        """``<out_dir>/runs/<law>/<level>/<index>``."""
+        return os.path.join(out_dir, 'runs', self.law.label, level_name(self.level_mps2),
+                            str(self.index))
+
+
+def level_name(level_mps2: float) -> str:
+    """Directory name of a wind level (m/s^2): '0', '0.2', '0.35'."""
+    return f'{level_mps2:g}'
+
+
+def draw_run(seed: int, index: int, box: dict) -> tuple[tuple, float, int]:
+    """(start in {I} (m), wind direction (rad from north), gust seed) of run ``index``.
+
+    ``box``: {'x': (lo, hi), 'y': ..., 'z': ...} (m, {I}), world.yaml's random box.
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), int(index)]))
+    xi = tuple(float(rng.uniform(*box[k])) for k in ('x', 'y', 'z'))
+    direction = float(rng.uniform(0.0, 2.0 * math.pi))
+    gust_seed = int(rng.integers(0, 2 ** 31 - 1))
+    return xi, direction, gust_seed
+
+
+def run_specs(cfg: CampaignConfig, box: dict) -> list[RunSpec]:
+    """All runs of a campaign, law-major, then level, then index."""
+    draws = [draw_run(cfg.seed, i, box) for i in range(cfg.runs)]
+    return [RunSpec(law, float(level), i, *draws[i])
+            for law in cfg.laws for level in cfg.levels_mps2 for i in range(cfg.runs)]
+
+
+# --- statistics -----------------------------------------------------------------------------
+
+def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion (default 95 %); (0, 1) when n = 0.
+
+    ``(p + z^2/2n -+ z sqrt(p (1 - p) / n + z^2 / 4n^2)) / (1 + z^2 / n)``, p = successes / n.
+    """
+    if n <= 0:
+        return 0.0, 1.0
+    if not 0 <= successes <= n:
+        raise ValueError(f'successes {successes} not in [0, {n}]')
+    p = successes / n
+    denom = 1.0 + z * z / n
+    centre = p + z * z / (2 * n)
+    half = z * math.sqrt(p * (1.0 - p) / n + z * z / (4.0 * n * n))
+    return max(0.0, (centre - half) / denom), min(1.0, (centre + half) / denom)
+
+
+def failure_cause(summary: dict) -> str | None:
+    """Why a run failed SPEC.md section 5 (None: success), from its summary alone.
+
+    In this order: 'collision before crossing' / 'collision after crossing' (envelope touched
+    wall, frame or back wall), 'failsafe' (the supervisor's), 'floor before window' /
+    'stalled before window' (never crossed; landed or not), 'no touchdown' (crossed, still
+    flying at 60 s), 'landing error' (> 0.10 m), 'touchdown speed' (> 0.5 m/s),
+    'duration' (> 60 s).
+    """
+    from ibvs_common.core.modes import Mode
+    from ibvs_sim.core.evaluation import (
+        MAX_DURATION_S, MAX_LANDING_ERROR_M, MAX_TOUCHDOWN_SPEED_MPS)
+    if summary.get('success'):
+        return None
+    w, ld = summary.get('window', {}), summary.get('landing', {})
+    modes = [m.get('mode') for m in summary.get('modes', [])]
+    clearance = w.get('min_clearance_m')
+    if clearance is not None and clearance <= 0.0:
+        return 'collision after crossing' if w.get('crossed') else 'collision before crossing'
+    if modes and modes[-1] == int(Mode.FAILSAFE):
+        return 'failsafe'
+    if not w.get('crossed'):
+        return 'floor before window' if ld.get('landed') else 'stalled before window'
+    if not ld.get('landed'):
+        return 'no touchdown'
+    if ld.get('error_m') is None or ld['error_m'] > MAX_LANDING_ERROR_M:
+        return 'landing error'
+    if ld.get('touchdown_speed_mps') is None or \
+            ld['touchdown_speed_mps'] > MAX_TOUCHDOWN_SPEED_MPS:
+        return 'touchdown speed'
+    if summary.get('duration_s', 0.0) > MAX_DURATION_S:
+        return 'duration'
+    return 'other'
+
+
+def _stat(values: list, fn: Callable) -> float | None:
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    return float(fn(np.asarray(v))) if v else None
+
+
+def aggregate(summaries: Iterable[dict]) -> list[dict]:
+    """Per (law, level) rows of the campaign table from the runs' summary.json dicts.
+
+    Success rate and its 95 % Wilson interval over all runs; clearance (m) min and median over
+    the successes (the target is about every success); crossing speed (m/s) median and min
+    over the runs that crossed; landing error (m) median and p95, touchdown speed (m/s) p95
+    over the runs that touched down (failures included); failure causes counted.
+    Percentiles: numpy's linear interpolation.
+    """
+    groups: dict = {}
+    for s in summaries:
+        r = s['run']
+        groups.setdefault((r['law'], float(r['wind_level_mps2'])), []).append(s)
+    rows = []
+    for (law, level), runs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1])):
+        n = len(runs)
+        ok = [s for s in runs if s.get('success')]
+        crossed = [s for s in runs if s['window'].get('crossed')]
+        landed = [s for s in runs if s['landing'].get('landed')]
+        lo, hi = wilson_interval(len(ok), n)
+        causes: dict = {}
+        for s in runs:
+            c = failure_cause(s)
+            if c is not None:
+                causes[c] = causes.get(c, 0) + 1
+        rows.append({
+            'law': law, 'wind_level_mps2': level, 'runs': n, 'successes': len(ok),
+            'success_rate': len(ok) / n if n else None, 'success_ci95': [lo, hi],
+            'clearance_min_m': _stat([s['window']['min_clearance_m'] for s in ok], np.min),
+            'clearance_median_m': _stat([s['window']['min_clearance_m'] for s in ok],
+                                        np.median),
+            'crossing_speed_median_mps': _stat(
+                [s['window']['crossing_speed_mps'] for s in crossed], np.median),
+            'crossing_speed_min_mps': _stat(
+                [s['window']['crossing_speed_mps'] for s in crossed], np.min),
+            'landing_error_median_m': _stat([s['landing']['error_m'] for s in landed],
+                                            np.median),
+            'landing_error_p95_m': _stat([s['landing']['error_m'] for s in landed],
+                                         lambda a: np.percentile(a, 95)),
+            'touchdown_speed_p95_mps': _stat(
+                [s['landing']['touchdown_speed_mps'] for s in landed],
+                lambda a: np.percentile(a, 95)),
+            'failure_causes': dict(sorted(causes.items(), key=lambda kv: -kv[1])),
+            'wall_time_mean_s': _stat([s['run'].get('wall_time_s') for s in runs], np.mean),
+        })
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    """Format the aggregate rows as a Markdown table (lengths in cm, speeds in m/s)."""
+    def f(x, scale=1.0, digits=2):
+        return '-' if x is None else f'{x * scale:.{digits}f}'
+    lines = ['| law | wind (m/s²) | success | rate [95 % CI] | clearance min / median (cm) '
+             '| crossing speed median [min] (m/s) | landing error median / p95 (cm) '
+             '| touchdown p95 (m/s) | failures |',
+             '|---|---|---|---|---|---|---|---|---|']
+    for r in rows:
+        lo, hi = r['success_ci95']
+        causes = ', '.join(f'{k} {v}' for k, v in r['failure_causes'].items()) or '-'
+        rate = '-' if r['success_rate'] is None else f"{100 * r['success_rate']:.1f} %"
+        lines.append(
+            f"| {r['law']} | {r['wind_level_mps2']:g} | {r['successes']} / {r['runs']} "
+            f"| {rate} [{100 * lo:.1f}, {100 * hi:.1f}] "
+            f"| {f(r['clearance_min_m'], 100, 1)} / {f(r['clearance_median_m'], 100, 1)} "
+            f"| {f(r['crossing_speed_median_mps'])} [{f(r['crossing_speed_min_mps'])}] "
+            f"| {f(r['landing_error_median_m'], 100, 1)} / "
+            f"{f(r['landing_error_p95_m'], 100, 1)} "
+            f"| {f(r['touchdown_speed_p95_mps'])} | {causes} |")
+    return '\n'.join(lines) + '\n'
+
+
+# --- flying ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class _Setup:
+    world: object
+    pad: object
+    vehicle: object
+    controller: object
+    supervisor: object
+
+
+def read_params(params_file: str | None) -> tuple[str, str]:
+    """(path, text) of the params file (None: the installed params.yaml)."""
+    if params_file is None:
+        from ibvs_bringup.graph import default_params_file
+        params_file = default_params_file()
+    with open(params_file, encoding='utf-8') as f:
+        return params_file, f.read()
+
+
+@functools.lru_cache(maxsize=8)
+def load_setup(params_file: str | None, overrides: tuple) -> _Setup:
+    """World, pad, vehicle and the controller/supervisor configs as the nodes build them.
+
+    force_controller: params.yaml's gains and ``crossing_law`` with ``overrides`` applied,
+    ``window_width_m`` as r_w, the pad's group sizes; mode_supervisor: its core thresholds,
+    ``window_width_m`` and the pad's group sizes. Cached per (file, overrides) in a process.
+    """
+    import dataclasses
+    import yaml
+    from ibvs_common.core.config import load_pad_layout, load_vehicle
+    from ibvs_control.core.controller import ControllerConfig
+    from ibvs_control.core.supervisor import SupervisorConfig
+    from ibvs_sim.core.world import load_world
+    _, text = read_params(params_file)
+    params = yaml.safe_load(text) or {}
+
+    def section(name: str) -> dict:
+        return dict((params.get(name) or {}).get('ros__parameters') or {})
+
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    ctrl_p = section('force_controller')
+    for name, value in overrides:
+        if name not in ctrl_p:
+            raise ValueError(f'law override {name!r}: no such force_controller parameter '
+                             f'in {params_file or "params.yaml"}')
+        ctrl_p[name] = value
+    r_w = float(ctrl_p.get('window_width_m', world.window.width))
+    ctrl = ControllerConfig.from_params(ctrl_p, vehicle, r_w, pad)
+    sup_p = section('mode_supervisor')
+    core = {f.name for f in dataclasses.fields(SupervisorConfig)}
+    sup_core = {k: v for k, v in sup_p.items() if k in core}
+    sup_core['r_w'] = float(sup_p.get('window_width_m', world.window.width))
+    if 'group_half_sides' in core:
+        sup_core['group_half_sides'] = {g.name: g.c for g in pad.groups}
+    sup = SupervisorConfig.from_params(sup_core)
+    return _Setup(world, pad, vehicle, ctrl, sup)
+
+
+def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict:
+    """Fly one run, write its summary.json; return the summary."""
+    from ibvs_bringup.report import write_json
+    from ibvs_sim.core import feature_sim
+    from ibvs_sim.core.dynamics import WindConfig
+    setup = load_setup(cfg.params_file, spec.law.overrides)
+    wind = WindConfig.from_level(spec.level_mps2, spec.direction_rad, setup.vehicle.mass,
+                                 cfg.vertical_factor, cfg.gust_level, cfg.gust_frequency_hz,
+                                 cfg.gust_components, spec.gust_seed)
+    sim_cfg = feature_sim.FeatureSimConfig(
+        initial_position_I=np.asarray(spec.initial_position_I, dtype=float),
+        initial_yaw=setup.world.initial_yaw, wind=wind,
+        crossing_law=setup.controller.crossing_law, max_time_s=MAX_SIM_TIME_S,
+        flow_noise=cfg.flow_noise, bearing_noise_rad=cfg.bearing_noise_rad,
+        seed=spec.gust_seed)
+    t0 = time.monotonic()
+    summary, _ = feature_sim.run_feature_scenario(setup.world, setup.pad, setup.vehicle,
+                                                  setup.controller, setup.supervisor, sim_cfg)
+    summary = dict(summary)
+    summary['run'] = {
+        'campaign': cfg.name, 'feature_level': True, 'law': spec.law.label,
+        'law_overrides': {k: v for k, v in spec.law.overrides},
+        'wind_level_mps2': spec.level_mps2, 'wind_direction_rad': spec.direction_rad,
+        'wind': {**asdict(wind), 'steady_force_I': list(wind.steady_force_I)},
+        'index': spec.index, 'seed': cfg.seed, 'gust_seed': spec.gust_seed,
+        'initial_position_I': list(spec.initial_position_I),
+        'failure_cause': failure_cause(summary),
+        'wall_time_s': time.monotonic() - t0}
+    path = os.path.join(spec.run_dir(cfg.out_dir), 'summary.json')
+    tmp = path + '.tmp'
+    write_json(tmp, summary)
+    os.replace(tmp, path)          # atomic: an interrupted campaign leaves no half summary
+    return summary
+
+
+def _fly_task(task: tuple) -> tuple[int, dict]:
+    k, cfg, spec = task
+    return k, fly_run(cfg, spec)
+
+
+def read_summary(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
+    """Return the stored summary.json of a run, or None."""
+    path = os.path.join(spec.run_dir(cfg.out_dir), 'summary.json')
+    try:
+        with open(path, encoding='utf-8') as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return None
+
+
+def check_manifest(cfg: CampaignConfig) -> None:
+    """Write campaign.json, or refuse (ValueError) to resume a campaign of other settings."""
+    _, text = read_params(cfg.params_file)
+    model = cfg.model(text)
+    path = os.path.join(cfg.out_dir, 'campaign.json')
+    if os.path.exists(path):
+        with open(path, encoding='utf-8') as f:
+            old = json.load(f).get('model', {})
+        diff = {k: (old.get(k), v) for k, v in model.items() if old.get(k) != v}
+        if diff:
+            raise ValueError(f'{cfg.out_dir} holds a campaign of other settings '
+                             f'(old, new): {diff}; use another --name or delete it')
+    os.makedirs(cfg.out_dir, exist_ok=True)
+    with open(path, 'w', encoding='utf-8') as f:
+        json.dump({'name': cfg.name, 'model': model,
+                   'laws': [{'label': law.label, 'overrides': dict(law.overrides)}
+                            for law in cfg.laws],
+                   'levels_mps2': list(cfg.levels_mps2), 'runs': cfg.runs}, f, indent=2)
+
+
+def run_campaign(cfg: CampaignConfig, workers: int = 1,
+                 progress: Callable[[str], None] | None = print) -> list[dict]:
+    """Fly the runs that have no summary.json yet (``workers`` processes); return all summaries.
+
+    Raises ValueError for a resume with other settings or a bad law override.
+    """
+    from ibvs_sim.core.world import load_world
+    check_manifest(cfg)
+    for law in cfg.laws:                   # a bad override fails here, not in every worker
+        load_setup(cfg.params_file, law.overrides)
+    specs = run_specs(cfg, load_world().random_box)
+    done = {s: read_summary(cfg, s) for s in specs}
+    pending = [s for s in specs if done[s] is None]
+    if progress:
+        progress(f'campaign {cfg.name}: {len(specs)} runs, {len(specs) - len(pending)} done, '
+                 f'{len(pending)} to fly on {workers} worker(s)')
+    t0 = time.monotonic()
+    tasks = [(k, cfg, s) for k, s in enumerate(pending)]
+    if workers <= 1 or len(tasks) <= 1:
+        results: Iterable = map(_fly_task, tasks)
+        pool = None
+    else:
+        pool = multiprocessing.get_context('fork').Pool(workers)
+        results = pool.imap_unordered(_fly_task, tasks, chunksize=1)
+    try:
+        for k, (i, summary) in enumerate(results, 1):
+            done[pending[i]] = summary
+            if progress and (k % 20 == 0 or k == len(tasks)):
+                progress(f'  {k} / {len(tasks)} flown, {time.monotonic() - t0:.0f} s')
+    finally:
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+    return [done[s] for s in specs]
+
+
+# --- output ---------------------------------------------------------------------------------
+
+def write_outputs(cfg: CampaignConfig, summaries: list[dict], plots: bool = True) -> list[dict]:
+    """aggregate.json, table.md and the plots (if matplotlib imports); return the rows."""
+    rows = aggregate(summaries)
+    with open(os.path.join(cfg.out_dir, 'aggregate.json'), 'w', encoding='utf-8') as f:
+        json.dump({'name': cfg.name, 'rows': rows}, f, indent=2)
+    header = (f'Campaign {cfg.name}: feature level, {cfg.runs} runs per law and level, starts '
+              f'in the SPEC box, wind towards a random horizontal direction, vertical '
+              f'x{cfg.vertical_factor:g} (down), gusts {100 * cfg.gust_level:g} % '
+              f'({cfg.gust_components} sine(s) per axis, {cfg.gust_frequency_hz:g} Hz), '
+              f'seed {cfg.seed}.\n\n')
+    with open(os.path.join(cfg.out_dir, 'table.md'), 'w', encoding='utf-8') as f:
+        f.write(header + format_table(rows))
+    if plots:
+        write_plots(rows, summaries, cfg.out_dir)
+    return rows
+
+
+def write_plots(rows: list[dict], summaries: list[dict], out_dir: str) -> list[str]:
+    """success_vs_wind.png, initial_positions.png, landing_error_cdf.png (empty: no matplotlib).
+
+    Initial positions in a top view of {I} (m): y east to the right, x (the window normal,
+    north) up, an arrow towards where the wind blows.
+    """
+    try:
+        import matplotlib
+        matplotlib.use('Agg')
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return []
+    written = []
+    laws = sorted({r['law'] for r in rows})
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for law in laws:
+        rr = [r for r in rows if r['law'] == law]
+        x = np.array([r['wind_level_mps2'] for r in rr])
+        y = np.array([r['success_rate'] for r in rr]) * 100
+        lo = np.array([r['success_ci95'][0] for r in rr]) * 100
+        hi = np.array([r['success_ci95'][1] for r in rr]) * 100
+        ax.errorbar(x, y, yerr=[y - lo, hi - y], marker='o', capsize=3, label=law)
+    ax.set_xlabel('wind level |Δ_h|/m (m/s²)')
+    ax.set_ylabel('success (%), 95 % Wilson interval')
+    ax.set_ylim(-2, 102)
+    ax.grid(True, alpha=0.3)
+    ax.legend()
+    written.append(_save(fig, out_dir, 'success_vs_wind.png'))
+
+    keys = sorted({(s['run']['law'], s['run']['wind_level_mps2']) for s in summaries})
+    causes = sorted({failure_cause(s) or 'success' for s in summaries},
+                    key=lambda c: (c != 'success', c))
+    colours = {c: plt.get_cmap('tab10')(i) for i, c in enumerate(causes)}
+    ncol = min(4, len(keys))
+    nrow = int(math.ceil(len(keys) / ncol))
+    fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.6 * nrow), squeeze=False)
+    for ax, key in zip(axes.flat, keys):
+        sel = [s for s in summaries if (s['run']['law'], s['run']['wind_level_mps2']) == key]
+        for c in causes:
+            mine = [s for s in sel if (failure_cause(s) or 'success') == c]
+            p = np.array([s['run']['initial_position_I'] for s in mine]).reshape(-1, 3)
+            if not len(p):
+                continue
+            ax.scatter(p[:, 1], p[:, 0], s=10, color=colours[c], label=c)
+            if key[1] > 0.0:        # where the wind blows towards (east right, north up)
+                psi = np.array([s['run']['wind_direction_rad'] for s in mine])
+                ax.quiver(p[:, 1], p[:, 0], np.sin(psi), np.cos(psi), color=colours[c],
+                          angles='xy', scale_units='xy', scale=25.0, width=0.004, alpha=0.6)
+        ax.set_title(f'{key[0]}, {key[1]:g} m/s²', fontsize=9)
+        ax.set_xlabel('y (m, east)')
+        ax.set_ylabel('x (m, window normal)')
+    for ax in list(axes.flat)[len(keys):]:
+        ax.axis('off')
+    handles = [plt.Line2D([], [], marker='o', ls='', color=colours[c]) for c in causes]
+    fig.legend(handles, causes, loc='lower center', ncol=min(4, len(causes)), fontsize=8)
+    fig.suptitle('initial positions (top view) by outcome, arrows: wind direction')
+    fig.tight_layout(rect=(0, 0.08, 1, 0.96))
+    written.append(_save(fig, out_dir, 'initial_positions.png'))
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key in keys:
+        e = np.sort([s['landing']['error_m'] for s in summaries
+                     if (s['run']['law'], s['run']['wind_level_mps2']) == key
+                     and s['landing'].get('landed') and s['landing'].get('error_m') is not None])
+        n = sum(1 for s in summaries if (s['run']['law'], s['run']['wind_level_mps2']) == key)
+        if len(e):
+            ax.step(e * 100, np.arange(1, len(e) + 1) / n, where='post',
+                    label=f'{key[0]}, {key[1]:g} m/s²')
+    ax.axvline(10.0, color='k', ls='--', lw=0.8)
+    ax.set_xlabel('landing error (cm)')
+    ax.set_ylabel('fraction of all runs')
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    written.append(_save(fig, out_dir, 'landing_error_cdf.png'))
+    return written
+
+
+def _save(fig, out_dir: str, name: str) -> str:
+    import matplotlib.pyplot as plt
+    path = os.path.join(out_dir, name)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+# --- command line ---------------------------------------------------------------------------
+
+def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, bool]:
+    """Parse the command line into (config, workers, plots, aggregate_only)."""
+    p = argparse.ArgumentParser(
+        prog='python -m ibvs_bringup.campaign',
+        description='Monte Carlo campaign under wind, feature level (issue 14): N random '
+                    'starts in the SPEC box per law and wind level; resumable.')
+    p.add_argument('--name', default='feature',
+                   help='results/campaign/<name>/ (a resume needs the same settings)')
+    p.add_argument('--runs', type=int, default=500, help='runs per law and wind level')
+    p.add_argument('--levels', type=float, nargs='+', default=list(DEFAULT_LEVELS_MPS2),
+                   metavar='A', help='wind levels, m/s^2 of |Delta_h| / m (default: '
+                   + ' '.join(f'{x:g}' for x in DEFAULT_LEVELS_MPS2) + ')')
+    p.add_argument('--gust-level', type=float, default=0.3,
+                   help='gust amplitude as a fraction of the steady horizontal force')
+    p.add_argument('--vertical-factor', type=float, default=0.3,
+                   help='steady vertical force / horizontal (positive: down, +z_I)')
+    p.add_argument('--gust-frequency', type=float, default=0.5, metavar='HZ')
+    p.add_argument('--gust-components', type=int, default=1, metavar='K',
+                   help='sines per axis (docs/sim.md "Wind")')
+    p.add_argument('--crossing-law', nargs='+', default=None,
+                   choices=('closed', 'intended', 'seed'),
+                   help="mode-2 laws to compare (default: params.yaml's)")
+    p.add_argument('--law', action='append', default=[], metavar='LABEL:NAME=VALUE,...',
+                   help='a law as force_controller parameter overrides, e.g. '
+                        '"intended:crossing_law=intended" (repeatable)')
+    p.add_argument('--workers', type=int, default=os.cpu_count() or 1)
+    p.add_argument('--seed', type=int, default=14, help='campaign seed')
+    p.add_argument('--flow-noise', type=float, default=0.0, help='1/s, per flow component')
+    p.add_argument('--bearing-noise', type=float, default=0.0, help='rad, per bearing')
+    p.add_argument('--params-file', default=None, help='default: the installed params.yaml')
+    p.add_argument('--results-root', default=DEFAULT_RESULTS_ROOT)
+    p.add_argument('--no-plots', action='store_true')
+    p.add_argument('--aggregate-only', action='store_true',
+                   help='fly nothing: aggregate the stored runs')
+    a = p.parse_args(argv)
+    if a.runs < 1 or a.workers < 1 or a.gust_components < 1 or a.gust_level < 0 \
+            or any(x < 0 or not math.isfinite(x) for x in a.levels):
+        p.error('--runs, --workers, --gust-components >= 1; levels and gust level >= 0')
+    if not all(c.isalnum() or c in '_.+-' for c in a.name) or a.name in ('', '.', '..'):
+        p.error(f'bad --name {a.name!r}: use letters, digits, _ . + -')
+    try:
+        laws = [LawSpec.parse(x) for x in (a.crossing_law or [])] + \
+            [LawSpec.parse(x) for x in a.law]
+    except ValueError as exc:
+        p.error(str(exc))
+    if not laws:
+        import yaml
+        _, text = read_params(a.params_file)
+        law = ((yaml.safe_load(text) or {}).get('force_controller', {})
+               .get('ros__parameters', {}).get('crossing_law', 'closed'))
+        laws = [LawSpec.parse(str(law))]
+    if len({law.label for law in laws}) != len(laws):
+        p.error('law labels must be unique')
+    cfg = CampaignConfig(name=a.name, runs=a.runs, levels_mps2=tuple(sorted(set(a.levels))),
+                         laws=tuple(laws), gust_level=a.gust_level,
+                         vertical_factor=a.vertical_factor, gust_frequency_hz=a.gust_frequency,
+                         gust_components=a.gust_components, flow_noise=a.flow_noise,
+                         bearing_noise_rad=a.bearing_noise, seed=a.seed,
+                         params_file=a.params_file, results_root=a.results_root)
+    return cfg, a.workers, not a.no_plots, a.aggregate_only
+
+
+def main(argv: list | None = None) -> int:
+    """Run (or aggregate) a campaign from the command line; 0 on success, 2 on a bad setup."""
+    from ibvs_bringup.graph import ensure_ament_prefix_path
+    ensure_ament_prefix_path()
+    cfg, workers, plots, aggregate_only = parse_args(argv)
+    t0 = time.monotonic()
+    try:
+        if aggregate_only:
+            from ibvs_sim.core.world import load_world
+            summaries = [s for s in (read_summary(cfg, spec) for spec in
+                                     run_specs(cfg, load_world().random_box)) if s]
+            if not summaries:
+                print(f'campaign: no stored runs in {cfg.out_dir}', file=sys.stderr)
+                return 2
+        else:
+            summaries = run_campaign(cfg, workers)
+    except (ValueError, OSError) as exc:
+        print(f'campaign: {exc}', file=sys.stderr)
+        return 2
+    rows = write_outputs(cfg, summaries, plots)
+    print(format_table(rows), end='')
+    print(f'{len(summaries)} runs -> {cfg.out_dir} ({time.monotonic() - t0:.0f} s)')
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

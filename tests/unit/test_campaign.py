@@ -1,0 +1,150 @@
+"""The campaign runner's ROS-free core (issue 14 item 3): statistics, causes, draws, resume."""
+import json
+import math
+import os
+
+import pytest
+
+from ibvs_bringup import campaign
+from ibvs_bringup.campaign import (
+    aggregate, CampaignConfig, draw_run, failure_cause, LawSpec, run_campaign, run_specs,
+    wilson_interval)
+
+BOX = {'x': (-2.6, -1.8), 'y': (-0.3, 0.3), 'z': (-1.9, -1.35)}   # SPEC.md section 2
+
+
+@pytest.mark.parametrize('k, n, lo, hi', [
+    # Newcombe (1998), Statistics in Medicine 17:857-872, Table I, method 3 (Wilson score)
+    (81, 263, 0.2553, 0.3662), (15, 148, 0.0624, 0.1605), (0, 20, 0.0, 0.1611),
+    (1, 29, 0.0061, 0.1718)])
+def test_wilson_interval_matches_newcombe(k, n, lo, hi):
+    got = wilson_interval(k, n)
+    assert got == pytest.approx((lo, hi), abs=5e-5)
+
+
+def test_wilson_interval_edges():
+    # all successes: upper 1, lower n / (n + z^2) (closed form), 50 / 53.84 = 0.9286
+    assert wilson_interval(50, 50) == pytest.approx((50 / (50 + 1.959964 ** 2), 1.0))
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    with pytest.raises(ValueError):
+        wilson_interval(3, 2)
+
+
+def _summary(success=True, crossed=True, clearance=0.15, landed=True, error=0.01,
+             td_speed=0.3, duration=14.0, last_mode=4, law='closed', level=0.2, speed=0.4,
+             xi0=(-2.0, 0.1, -1.8), direction=0.0):
+    return {'success': success,
+            'window': {'crossed': crossed, 'min_clearance_m': clearance,
+                       'crossing_offset_m': [0.0, 0.0] if crossed else None,
+                       'crossing_speed_mps': speed if crossed else None},
+            'landing': {'landed': landed, 'error_m': error if landed else None,
+                        'touchdown_speed_mps': td_speed if landed else None},
+            'modes': [{'mode': m, 't_start_s': float(m)}
+                      for m in ((0, 1, 5) if last_mode == 5 else range(last_mode + 1))],
+            'duration_s': duration,
+            'run': {'law': law, 'wind_level_mps2': level, 'wall_time_s': 1.0,
+                    'initial_position_I': list(xi0), 'wind_direction_rad': direction}}
+
+
+def test_failure_causes():
+    assert failure_cause(_summary()) is None
+    f = dict(success=False)
+    assert failure_cause(_summary(**f, clearance=-0.01, landed=False)) == \
+        'collision after crossing'
+    assert failure_cause(_summary(**f, crossed=False, clearance=0.0, landed=False)) == \
+        'collision before crossing'
+    assert failure_cause(_summary(**f, crossed=False, landed=False, last_mode=5)) == 'failsafe'
+    assert failure_cause(_summary(**f, crossed=False, landed=True)) == 'floor before window'
+    assert failure_cause(_summary(**f, crossed=False, landed=False, last_mode=1)) == \
+        'stalled before window'
+    assert failure_cause(_summary(**f, landed=False, last_mode=3)) == 'no touchdown'
+    assert failure_cause(_summary(**f, error=0.11)) == 'landing error'
+    assert failure_cause(_summary(**f, td_speed=0.6)) == 'touchdown speed'
+    assert failure_cause(_summary(**f, duration=61.0)) == 'duration'
+
+
+def test_aggregate_statistics_by_hand():
+    runs = [_summary(clearance=c, error=e, td_speed=v, speed=sp)
+            for c, e, v, sp in [(0.10, 0.01, 0.20, 0.3), (0.20, 0.02, 0.30, 0.4),
+                                (0.30, 0.03, 0.40, 0.5)]]
+    runs.append(_summary(success=False, error=0.20, td_speed=0.25, speed=0.6))  # landing error
+    runs.append(_summary(success=False, crossed=False, landed=False, last_mode=1))  # stalled
+    runs.append(_summary(law='other', level=0.0))
+    rows = aggregate(runs)
+    assert [(r['law'], r['wind_level_mps2'], r['runs']) for r in rows] == \
+        [('closed', 0.2, 5), ('other', 0.0, 1)]
+    r = rows[0]
+    assert r['successes'] == 3 and r['success_rate'] == pytest.approx(0.6)
+    assert r['success_ci95'] == pytest.approx(wilson_interval(3, 5))
+    assert r['clearance_min_m'] == pytest.approx(0.10)          # successes only
+    assert r['clearance_median_m'] == pytest.approx(0.20)
+    assert r['crossing_speed_median_mps'] == pytest.approx(0.45)  # 4 crossed: (0.4 + 0.5) / 2
+    assert r['crossing_speed_min_mps'] == pytest.approx(0.3)
+    # 4 landed: errors 0.01 0.02 0.03 0.20; median 0.025; p95 (linear) 0.03 + 0.85 x 0.17
+    assert r['landing_error_median_m'] == pytest.approx(0.025)
+    assert r['landing_error_p95_m'] == pytest.approx(0.1745)
+    # touchdown speeds 0.20 0.25 0.30 0.40: p95 = 0.30 + 0.85 x 0.10
+    assert r['touchdown_speed_p95_mps'] == pytest.approx(0.385)
+    assert r['failure_causes'] == {'landing error': 1, 'stalled before window': 1}
+    table = campaign.format_table(rows)
+    assert '| closed | 0.2 | 3 / 5 | 60.0 % [23.1, 88.2] |' in table
+
+
+def test_law_spec_parse():
+    assert LawSpec.parse('intended') == LawSpec('intended', (('crossing_law', 'intended'),))
+    law = LawSpec.parse('stiff:crossing_law=closed, crossing.kf=3.5')
+    assert law == LawSpec('stiff', (('crossing_law', 'closed'), ('crossing.kf', 3.5)))
+    for bad in ('robust', 'a b:x=1', 'x:kf', ''):
+        with pytest.raises(ValueError):
+            LawSpec.parse(bad)
+
+
+def test_draws_are_deterministic_in_the_box_and_shared_by_levels_and_laws():
+    a, b = draw_run(14, 7, BOX), draw_run(14, 7, BOX)
+    assert a == b and a != draw_run(14, 8, BOX) and a != draw_run(15, 7, BOX)
+    xi, psi, _ = a
+    assert all(BOX[k][0] <= v <= BOX[k][1] for k, v in zip('xyz', xi))
+    assert 0.0 <= psi < 2 * math.pi
+    cfg = CampaignConfig(name='t', runs=3, levels_mps2=(0.0, 0.5),
+                         laws=(LawSpec.parse('closed'), LawSpec.parse('intended')))
+    specs = run_specs(cfg, BOX)
+    assert len(specs) == 12
+    by_index = {}
+    for s in specs:
+        by_index.setdefault(s.index, set()).add(
+            (s.initial_position_I, s.direction_rad, s.gust_seed))
+    assert all(len(v) == 1 for v in by_index.values())
+    assert specs[0].run_dir('out') == os.path.join('out', 'runs', 'closed', '0', '0')
+
+
+def test_campaign_resumes_and_refuses_other_settings(tmp_path):
+    """Two feature-level runs (about 1.2 s), then a resume that flies nothing."""
+    cfg = CampaignConfig(name='tiny', runs=2, levels_mps2=(0.2,),
+                         results_root=str(tmp_path))
+    messages = []
+    first = run_campaign(cfg, workers=1, progress=messages.append)
+    assert len(first) == 2 and messages[0].endswith('0 done, 2 to fly on 1 worker(s)')
+    path = os.path.join(cfg.out_dir, 'runs', 'closed', '0.2', '1', 'summary.json')
+    with open(path) as f:
+        stored = json.load(f)
+    assert stored['run']['wind']['steady_force_I'][2] == pytest.approx(0.3 * 0.2 * 1.676)
+    assert stored['run']['failure_cause'] == failure_cause(stored)
+    messages.clear()
+    again = run_campaign(cfg, workers=1, progress=messages.append)
+    assert messages == ['campaign tiny: 2 runs, 2 done, 0 to fly on 1 worker(s)']
+    assert again == first
+    rows = campaign.write_outputs(cfg, again, plots=False)
+    assert rows[0]['runs'] == 2
+    assert os.path.exists(os.path.join(cfg.out_dir, 'table.md'))
+    with pytest.raises(ValueError, match='other settings'):
+        run_campaign(CampaignConfig(name='tiny', runs=2, levels_mps2=(0.2,), gust_level=0.5,
+                                    results_root=str(tmp_path)), workers=1, progress=None)
+
+
+def test_help_and_bad_arguments(capsys):
+    with pytest.raises(SystemExit) as e:
+        campaign.parse_args(['--help'])
+    assert e.value.code == 0 and '--crossing-law' in capsys.readouterr().out
+    with pytest.raises(SystemExit) as e:
+        campaign.parse_args(['--runs', '0'])
+    assert e.value.code == 2
