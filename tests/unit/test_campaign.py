@@ -53,7 +53,12 @@ def test_failure_causes():
         'collision after crossing'
     assert failure_cause(_summary(**f, crossed=False, clearance=0.0, landed=False)) == \
         'collision before crossing'
-    assert failure_cause(_summary(**f, crossed=False, landed=False, last_mode=5)) == 'failsafe'
+    assert failure_cause(_summary(**f, crossed=False, landed=False, last_mode=5)) == \
+        'failsafe in window'
+    stalled = _summary(**f, crossed=False, landed=False)
+    stalled['modes'] = [{'mode': m, 't_start_s': t}
+                        for m, t in ((0, 0.0), (1, 0.0), (2, 5.5), (5, 15.5))]
+    assert failure_cause(stalled) == 'failsafe in crossing'
     assert failure_cause(_summary(**f, crossed=False, landed=True)) == 'floor before window'
     assert failure_cause(_summary(**f, crossed=False, landed=False, last_mode=1)) == \
         'stalled before window'

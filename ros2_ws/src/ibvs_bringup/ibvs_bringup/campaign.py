@@ -188,7 +188,9 @@ def failure_cause(summary: dict) -> str | None:
     """Why a run failed SPEC.md section 5 (None: success), from its summary alone.
 
     In this order: 'collision before crossing' / 'collision after crossing' (envelope touched
-    wall, frame or back wall), 'failsafe' (the supervisor's), 'floor before window' /
+    wall, frame or back wall), 'failsafe in <mode>' (the supervisor's, with the mode it left:
+    'window' approach, 'crossing' (e.g. its timeout: no pad seen), 'landing'), 'floor before
+    window' /
     'stalled before window' (never crossed; landed or not), 'no touchdown' (crossed, still
     flying at 60 s), 'landing error' (> 0.10 m), 'touchdown speed' (> 0.5 m/s),
     'duration' (> 60 s).
@@ -204,7 +206,8 @@ def failure_cause(summary: dict) -> str | None:
     if clearance is not None and clearance <= 0.0:
         return 'collision after crossing' if w.get('crossed') else 'collision before crossing'
     if modes and modes[-1] == int(Mode.FAILSAFE):
-        return 'failsafe'
+        before = Mode(modes[-2]).name.lower() if len(modes) > 1 else 'idle'
+        return f'failsafe in {before}'
     if not w.get('crossed'):
         return 'floor before window' if ld.get('landed') else 'stalled before window'
     if not ld.get('landed'):
