@@ -11,6 +11,7 @@ from ibvs_common.core import features, frames
 from ibvs_common.core.camera import CameraModel
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
+from ibvs_perception.core import window
 from ibvs_perception.core.window import (WindowDetector, WindowDetectorConfig, WindowStatus,
                                          order_corners_clockwise)
 from ibvs_sim.core.render import SceneRenderer
@@ -276,3 +277,54 @@ def test_fast_rotation_is_tracked_with_the_gyro_prediction(world, front, axis):
     lost_plain, _ = run(False)
     assert visible >= 15
     assert lost_gyro == 0 and lost_plain >= visible // 2, (lost_gyro, lost_plain, visible)
+
+
+@pytest.mark.parametrize('d, model', [
+    ([-0.25, 0.06, 0.0, 0.0, 0.0], 'plumb_bob'),
+    ([0.1, -0.02, 0.001, -0.002, 0.003], 'plumb_bob'),
+    ([0.1, -0.02, 0.001, -0.002], 'plumb_bob'),
+    ([0.1, -0.02, 0.001, -0.002, 0.003, 0.05, 0.01, -0.001], 'rational_polynomial'),
+    ([0.1, -0.02, 0.0, 0.0], 'equidistant'),
+])
+def test_distortion_is_the_camera_models_to_the_last_bit(d, model):
+    # the detector's own plumb_bob / rational map (no projectPoints) against the camera model
+    camera = CameraModel.from_camera_info(752, 480, [366.7, 0.3, 375.5, 0.0, 366.7, 239.5,
+                                                     0.0, 0.0, 1.0], d, model)
+    uv_u = np.random.default_rng(1).uniform(-100.0, 850.0, (5000, 2))
+    K = camera.K
+    xy = (uv_u - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+    expected, _ = camera.bearings_to_pixels(np.column_stack([xy, np.ones(len(xy))]))
+    np.testing.assert_array_equal(window._distort_px(camera, uv_u), expected)
+
+
+def test_edge_normals_are_the_features_ones():
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        p = rng.normal(size=(4, 3)) * 0.3 + np.array([0.0, 0.0, 1.0])
+        p /= np.linalg.norm(p, axis=1, keepdims=True)
+        np.testing.assert_array_equal(window._edge_normals(p), features.edge_normals(p))
+
+
+def test_robust_lines_refit_the_inliers_by_total_least_squares():
+    rng = np.random.default_rng(3)
+    n = 40
+    angle = rng.uniform(0.0, np.pi, 4)
+    direction = np.column_stack([np.cos(angle), np.sin(angle)])
+    normal = np.column_stack([-direction[:, 1], direction[:, 0]])
+    t = np.linspace(-100.0, 100.0, n)
+    points = (rng.uniform(100.0, 600.0, (4, 1, 2)) + t[None, :, None] * direction[:, None, :]
+              + rng.normal(0.0, 0.2, (4, n, 1)) * normal[:, None, :])
+    points[:, ::7] += 5.0 * normal[:, None, :]                  # outliers, dropped by the gate
+    valid = np.ones((4, n), bool)
+    valid[1, :25] = False                                       # 15 points: below the minimum
+    lines = window._robust_lines(points, valid, 1.0, 20)
+    assert lines[1] is None
+    for k in (0, 2, 3):
+        inliers = np.ones(n, bool)
+        inliers[::7] = False
+        sel = points[k][inliers]
+        centre = sel.mean(axis=0)
+        h = np.linalg.svd(sel - centre)[2][-1]                  # the least-squares normal
+        expected = np.append(h, -h @ centre)
+        line = lines[k] if lines[k][:2] @ h > 0.0 else -lines[k]
+        np.testing.assert_allclose(line, expected, rtol=0.0, atol=1e-9)

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import enum
+import functools
 
 import cv2
 import numpy as np
@@ -52,6 +53,9 @@ from ibvs_common.core.camera import CameraModel
 from ibvs_common.core.features import edge_normals
 
 N_CORNERS = 4
+#: index of corner i+1 and of corner i-1 (cyclic; np.roll costs ~10 us on 4 rows)
+_NEXT = np.array([1, 2, 3, 0])
+_PREVIOUS = np.array([3, 0, 1, 2])
 #: binary value of "dark" pixels after the inverted adaptive threshold
 _DARK = 255
 #: the step of the intensity profiles along the edge normal, px
@@ -71,6 +75,8 @@ _RISING = 1
 _FALLING = -1
 #: |sin| of the angle between two edges below which their intersection is refused
 _MIN_SIN_EDGE_ANGLE = 0.2
+#: |p_i x p_(i+1)| below which an edge normal is degenerate (features.edge_normals raises)
+_MIN_EDGE_NORMAL = 1e-9
 #: a band edge's dark side reaches the band's level within this distance of the step, px
 #: (a blurred edge spans ~2 px; a texture step beside the band does not lead into it)
 _BAND_REACH_PX = 2.0
@@ -448,7 +454,7 @@ class WindowDetector:
         bearings = np.column_stack([normalized, np.ones(N_CORNERS)])
         bearings /= np.linalg.norm(bearings, axis=1, keepdims=True)
         corners_px = _distort_px(camera, inner_u)
-        return WindowDetection(corners_px, bearings, edge_normals(bearings)), outer_u
+        return WindowDetection(corners_px, bearings, _edge_normals(bearings)), outer_u
 
     def _rejected(self, reason: str) -> None:
         """Note why a candidate failed (the furthest stage of the frame wins); return None."""
@@ -491,10 +497,9 @@ class WindowDetector:
 
     def _inside_image(self, camera: CameraModel, quad_u: np.ndarray) -> bool:
         """Whether the whole (curved) outline of a quad lies border_margin_px inside."""
-        t = np.linspace(0.0, 1.0, _OUTLINE_SAMPLES)[:, None]
-        outline = np.concatenate([a + t * (b - a)
-                                  for a, b in zip(quad_u, np.roll(quad_u, -1, axis=0))])
-        uv = _distort_px(camera, outline)
+        t = np.linspace(0.0, 1.0, _OUTLINE_SAMPLES)[None, :, None]
+        outline = quad_u[:, None, :] + t * (quad_u[_NEXT] - quad_u)[:, None, :]
+        uv = _distort_px(camera, outline.reshape(-1, 2))
         m = self.config.border_margin_px
         return bool(np.all(np.isfinite(uv)) and np.all(uv >= m)
                     and np.all(uv <= np.array([camera.width, camera.height]) - 1 - m))
@@ -505,18 +510,15 @@ class WindowDetector:
         Sides follow each other (n samples each); undistorted px.
         """
         n = self.config.samples_per_side
-        t = np.linspace(_SIDE_MARGIN, 1.0 - _SIDE_MARGIN, n)[:, None]
-        centre = corners_u.mean(axis=0)
-        samples, normals = [], []
-        for side in range(N_CORNERS):
-            a, b = corners_u[side], corners_u[(side + 1) % N_CORNERS]
-            direction = (b - a) / np.linalg.norm(b - a)
-            inward = np.array([-direction[1], direction[0]])
-            if np.dot(inward, centre - a) < 0.0:
-                inward = -inward
-            samples.append(a + t * (b - a))
-            normals.append(np.repeat(inward[None, :], n, axis=0))
-        return np.concatenate(samples), np.concatenate(normals)
+        t = _side_fractions(n)[None, :, None]
+        a = corners_u
+        side = corners_u[_NEXT] - a                   # b - a per side
+        direction = side / np.linalg.norm(side, axis=1, keepdims=True)
+        inward = np.column_stack([-direction[:, 1], direction[:, 0]])
+        to_centre = corners_u.mean(axis=0) - a
+        inward[inward[:, 0] * to_centre[:, 0] + inward[:, 1] * to_centre[:, 1] < 0.0] *= -1.0
+        samples = a[:, None, :] + t * side[:, None, :]
+        return samples.reshape(-1, 2), np.repeat(inward, n, axis=0)
 
     def _side_lines(self, camera: CameraModel, base: np.ndarray, normal_d: np.ndarray,
                     pos: np.ndarray, ok: np.ndarray, inward: np.ndarray) -> list:
@@ -529,13 +531,13 @@ class WindowDetector:
         edge_u = np.full((len(ok), 2), np.nan)
         if ok.any():
             edge_u[ok] = _undistorted_px(camera, base[ok] + pos[ok, None] * normal_d[ok])
-        lines = []
-        for side in range(N_CORNERS):
-            sel = slice(side * n, (side + 1) * n)
-            enough = ok[sel].sum() >= cfg.min_edge_inlier_fraction * n
-            lines.append(self._fit_side(edge_u[sel][ok[sel]], inward[side * n])
-                         if enough else None)
-        return lines
+        enough = ok.reshape(N_CORNERS, n).sum(axis=1) >= cfg.min_edge_inlier_fraction * n
+        lines = _robust_lines(edge_u.reshape(N_CORNERS, n, 2),
+                              ok.reshape(N_CORNERS, n) & enough[:, None], cfg.line_inlier_px,
+                              int(np.ceil(cfg.min_edge_inlier_fraction * n)))
+        # each normal inwards
+        return [None if line is None else (line if line[:2] @ inward[k * n] >= 0.0 else -line)
+                for k, line in enumerate(lines)]
 
     def _fit_lines(self, gray: np.ndarray, camera: CameraModel, corners_u: np.ndarray,
                    half_width: float, polarity, threshold: float | None,
@@ -602,14 +604,13 @@ class WindowDetector:
         """
         cfg = self.config
         n = cfg.samples_per_side
-        outer_lines = [_line_through(outer_u[k], outer_u[(k + 1) % N_CORNERS])
-                       for k in range(N_CORNERS)]
-        pred_lines = [_line_through(predicted[k], predicted[(k + 1) % N_CORNERS])
-                      for k in range(N_CORNERS)]
-        mid = 0.5 * (predicted + np.roll(predicted, -1, axis=0))
-        band = np.array([abs(float(line @ np.append(m, 1.0)))
-                         for line, m in zip(outer_lines, mid)])
-        sides = np.linalg.norm(outer_u - np.roll(outer_u, -1, axis=0), axis=1)
+        outer_lines = _side_lines_through(outer_u)
+        pred_lines = _side_lines_through(predicted)
+        # predicted band width of each side: its outer line to the predicted inner side's middle
+        mid = 0.5 * (predicted + predicted[_NEXT])
+        band = np.abs(outer_lines[:, 0] * mid[:, 0] + outer_lines[:, 1] * mid[:, 1]
+                      + outer_lines[:, 2])
+        sides = np.linalg.norm(outer_u - outer_u[_NEXT], axis=1)
         if not np.all(np.isfinite(band)) or band.min() < 2 * _BAND_PROBE_PX \
                 or band.max() > cfg.max_band_fraction * float(sides.min()):
             return None
@@ -617,8 +618,8 @@ class WindowDetector:
                             + 1e-9, _PROFILE_STEP_PX)
         samples_u, inward = self._quad_samples(outer_u)
         profile, base, normal_d = _profiles(gray, camera, samples_u, inward, offsets)
-        level, crossing, sign = _band_departure(profile, offsets, np.repeat(band, n),
-                                                0.5 * threshold, cfg.max_band_deviation)
+        level, crossing, sign = _band_departure(profile, offsets, band, 0.5 * threshold,
+                                                cfg.max_band_deviation)
         side_sign = np.sign(sign.reshape(N_CORNERS, n).sum(axis=1))
         side_sign[side_sign == 0] = _RISING
         grad = np.repeat(side_sign, n)[:, None] * np.diff(profile, axis=1)
@@ -661,29 +662,22 @@ class WindowDetector:
         """
         half = _MAX_EDGE_HALF_WIDTH
         window = np.arange(-half, half + 1)
+        n, m = grad.shape
+        # the positive gradient, 0 beyond the profile's ends: padded, one gather
+        padded = np.zeros((n, m + 2 * half))
+        np.maximum(grad, 0.0, out=padded[:, half:half + m])
         raw = peak[:, None] + window[None, :]
-        idx = np.clip(raw, 0, grad.shape[1] - 1)
-        g = np.where((raw >= 0) & (raw < grad.shape[1]),
-                     np.clip(np.take_along_axis(grad, idx, axis=1), 0.0, None), 0.0)
+        g = padded[np.arange(n)[:, None], raw + half]
         run = g >= _EDGE_RUN_FRACTION * g[:, half:half + 1]
-        right = np.cumprod(run[:, half:], axis=1)
-        left = np.cumprod(run[:, half::-1], axis=1)[:, :0:-1]
-        use = np.concatenate([left, right], axis=1).astype(bool) \
-            | (np.abs(window) <= _CENTROID_HALF_WIDTH)[None, :]
+        use = np.concatenate([np.logical_and.accumulate(run[:, half::-1], axis=1)[:, :0:-1],
+                              np.logical_and.accumulate(run[:, half:], axis=1)], axis=1)
+        use[:, half - _CENTROID_HALF_WIDTH:half + _CENTROID_HALF_WIDTH + 1] = True
         g = g * use
         step = g.sum(axis=1)
-        pos = (g * (offsets[idx] + 0.5 * _PROFILE_STEP_PX)).sum(axis=1) / np.maximum(step, 1e-9)
-        ok = (step >= threshold) & (peak > 0) & (peak < grad.shape[1] - 1)
+        middle = offsets[np.clip(raw, 0, m - 1)] + 0.5 * _PROFILE_STEP_PX   # of each step
+        pos = (g * middle).sum(axis=1) / np.maximum(step, 1e-9)
+        ok = (step >= threshold) & (peak > 0) & (peak < m - 1)
         return pos, ok
-
-    def _fit_side(self, edge_u: np.ndarray, inward: np.ndarray) -> np.ndarray | None:
-        """Line (nx, ny, c), n.x + c = 0, n inward, through edge points (undistorted px)."""
-        cfg = self.config
-        line = _fit_line(edge_u, cfg.line_inlier_px,
-                         int(np.ceil(cfg.min_edge_inlier_fraction * cfg.samples_per_side)))
-        if line is None:
-            return None
-        return line if np.dot(line[:2], inward) >= 0.0 else -line
 
 
 def _steps_into_band(profile: np.ndarray, band_side: int, level: np.ndarray,
@@ -695,15 +689,16 @@ def _steps_into_band(profile: np.ndarray, band_side: int, level: np.ndarray,
     is within ``margin`` grey levels of the band's ``level`` (n,).
     """
     reach = max(1, int(round(_BAND_REACH_PX / _PROFILE_STEP_PX)))
-    n, m = profile.shape
+    m = profile.shape[1]
     dev = np.abs(profile - np.asarray(level, dtype=float).reshape(-1, 1))
-    padded = np.pad(dev, ((0, 0), (reach, reach)), mode='edge')
-    windows = np.lib.stride_tricks.sliding_window_view(padded, reach, axis=1)
-    # windows[:, i] covers profile samples i - reach ... i - 1
-    if band_side == _RISING:
-        side_min = windows[:, reach + 1:reach + m].min(axis=2)     # samples j+1 ... j+reach
-    else:
-        side_min = windows[:, 1:m].min(axis=2)                      # samples j-reach+1 ... j
+    # profile sample k sits at padded column k + reach (the end samples repeated beyond)
+    padded = np.concatenate([np.repeat(dev[:, :1], reach, axis=1), dev,
+                             np.repeat(dev[:, -1:], reach, axis=1)], axis=1)
+    # step j: samples j+1 ... j+reach (band inwards) or j-reach+1 ... j (outwards)
+    first = reach + 1 if band_side == _RISING else 1
+    side_min = padded[:, first:first + m - 1]
+    for shift in range(1, reach):
+        side_min = np.minimum(side_min, padded[:, first + shift:first + shift + m - 1])
     return side_min <= margin
 
 
@@ -712,22 +707,39 @@ def _band_departure(profile: np.ndarray, offsets: np.ndarray, band_px: np.ndarra
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Band level and the first departure from it, on profiles inwards from the outer edge.
 
-    ``band_px`` (n,): the predicted band width per profile, px. The level is the median over
-    ``_BAND_LEVEL_SPAN`` of it (at least from ``_BAND_PROBE_PX``); the departure is the first
-    sample beyond both that span and ``(1 - deviation) band_px`` that differs from the level by
-    more than ``margin``. Returns (level (n,), its index (n,), 0 where none, sign (n,) of the
-    difference, +1 lighter beyond, -1 darker, 0 none).
+    ``band_px`` (4,): the predicted band width of each side, px; the profiles (n, m) are the
+    sides' in turn, n / 4 each. The level is the median over ``_BAND_LEVEL_SPAN`` of the band
+    width (at least from ``_BAND_PROBE_PX``); the departure is the first sample beyond both that
+    span and ``(1 - deviation) band_px`` that differs from the level by more than ``margin``.
+    Returns (level (n,), its index (n,), 0 where none, sign (n,) of the difference, +1 lighter
+    beyond, -1 darker, 0 none).
     """
+    band_px = np.asarray(band_px, dtype=float)
     lo = np.maximum(_BAND_PROBE_PX, _BAND_LEVEL_SPAN[0] * band_px)
     hi = np.maximum(lo + 2 * _PROFILE_STEP_PX, _BAND_LEVEL_SPAN[1] * band_px)
+    per_side = len(profile) // len(band_px)
+    lo, hi = np.repeat(lo, per_side), np.repeat(hi, per_side)
     span = (offsets[None, :] >= lo[:, None]) & (offsets[None, :] <= hi[:, None])
-    level = np.nanmedian(np.where(span, profile, np.nan), axis=1)
-    beyond = offsets[None, :] > np.maximum(hi, (1.0 - deviation) * band_px)[:, None]
+    level = _row_medians(profile, span)
+    beyond = offsets[None, :] > np.maximum(hi, (1.0 - deviation) * np.repeat(band_px, per_side)
+                                           )[:, None]
     diff = profile - level[:, None]
     away = beyond & (np.abs(diff) > margin)
     crossing = np.where(away.any(axis=1), np.argmax(away, axis=1), 0)
     sign = np.where(crossing > 0, np.sign(diff[np.arange(len(diff)), crossing]), 0.0)
     return level, crossing, sign
+
+
+def _row_medians(values: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median (n,) of each row of ``values`` (n, m) over its ``mask``-ed entries (nan: none).
+
+    The middle of the sorted entries, or the mean of the two middle ones, as np.median.
+    """
+    ordered = np.sort(np.where(mask, values, np.inf), axis=1)
+    count = mask.sum(axis=1)
+    rows = np.arange(len(values))
+    median = (ordered[rows, (count - 1) // 2] + ordered[rows, count // 2]) / 2
+    return np.where(count > 0, median, np.nan)
 
 
 def _dark_mask(small: np.ndarray, block: int, fraction: float, floor: float) -> np.ndarray:
@@ -744,16 +756,29 @@ def _dark_mask(small: np.ndarray, block: int, fraction: float, floor: float) -> 
     return np.where(small <= mean - offset, _DARK, 0).astype(np.uint8)
 
 
-def _line_through(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Line (nx, ny, c) through two points, |n| = 1 (nan for coincident points)."""
-    line = np.cross(np.append(a, 1.0), np.append(b, 1.0))
+def _side_lines_through(quad: np.ndarray) -> np.ndarray:
+    """Lines (4, 3) (nx, ny, c) through the sides of a quad, |n| = 1 (nan for a null side).
+
+    Side i joins corner i and i+1; the line is the cross product (a, 1) x (b, 1) written out.
+    """
+    a, b = quad, quad[_NEXT]
+    lines = np.column_stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0],
+                             a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
     with np.errstate(invalid='ignore', divide='ignore'):
-        return line / np.linalg.norm(line[:2])
+        return lines / np.sqrt(lines[:, 0] * lines[:, 0] + lines[:, 1] * lines[:, 1])[:, None]
 
 
 def _sides(quad: np.ndarray) -> list[np.ndarray]:
     """End points (2, 2) of the 4 sides of a quad: side i joins corner i and i+1."""
     return [np.array([quad[k], quad[(k + 1) % N_CORNERS]]) for k in range(N_CORNERS)]
+
+
+@functools.lru_cache(maxsize=8)
+def _side_fractions(n: int) -> np.ndarray:
+    """Where the n samples of a side lie, fractions of it from corner i (read-only, cached)."""
+    t = np.linspace(_SIDE_MARGIN, 1.0 - _SIDE_MARGIN, n)
+    t.flags.writeable = False
+    return t
 
 
 def _near_or_none(line: np.ndarray | None, reference: np.ndarray, ends: np.ndarray,
@@ -789,21 +814,24 @@ def _profiles(gray: np.ndarray, camera: CameraModel, samples_u: np.ndarray,
     curved); returns (profiles (n, m) bilinear, base points (n, 2) and unit normals (n, 2)
     in distorted pixels).
     """
+    n, m = len(samples_u), len(offsets)
     # one projection for the samples and their probes (each point on its own: same values)
     both = _distort_px(camera, np.concatenate([samples_u,
                                                samples_u + _NORMAL_PROBE_PX * inward_u]))
-    base, probe = both[:len(samples_u)], both[len(samples_u):]
+    base, probe = both[:n], both[n:]
     normal_d = probe - base
     normal_d /= np.linalg.norm(normal_d, axis=1, keepdims=True)
     tangent = np.column_stack([-normal_d[:, 1], normal_d[:, 0]])
     along = np.asarray(_TANGENT_OFFSETS_PX)
-    grid = (base[:, None, None, :] + offsets[None, None, :, None] * normal_d[:, None, None, :]
-            + along[None, :, None, None] * tangent[:, None, None, :])
-    n, m = len(base), len(offsets)
-    grid = grid.reshape(n * len(along), m, 2).astype(np.float32)
-    profile = cv2.remap(gray, grid[..., 0], grid[..., 1], cv2.INTER_LINEAR,
-                        borderMode=cv2.BORDER_REPLICATE)
-    return profile.reshape(n, len(along), m).astype(float).mean(axis=1), base, normal_d
+    # x and y maps (n, len(along), m): base + offset normal + along tangent, in float64 and
+    # then float32 (remap's map type); one coordinate at a time, without an (..., 2) grid
+    map_x, map_y = ((base[:, k, None, None] + offsets[None, None, :] * normal_d[:, k, None, None]
+                     + along[None, :, None] * tangent[:, k, None, None])
+                    .reshape(n * len(along), m).astype(np.float32) for k in (0, 1))
+    profile = cv2.remap(gray, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    # the parallel profiles' mean (an exact integer sum divided once, as ndarray.mean)
+    return (profile.reshape(n, len(along), m).sum(axis=1, dtype=float) / len(along),
+            base, normal_d)
 
 
 def _undistorted_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
@@ -813,42 +841,106 @@ def _undistorted_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
 
 
 def _distort_px(camera: CameraModel, uv_u: np.ndarray) -> np.ndarray:
-    """Ideal pinhole pixels -> distorted pixels."""
-    focal = np.array([camera.K[0, 0], camera.K[1, 1]])
-    xy = (np.asarray(uv_u, dtype=float) - camera.K[:2, 2]) / focal
-    uv, _ = camera.bearings_to_pixels(np.column_stack([xy, np.ones(len(xy))]))
-    return uv
+    """Ideal pinhole pixels (N, 2) -> distorted pixels (N, 2).
 
-
-def _fit_line(points: np.ndarray, inlier_px: float, min_inliers: int) -> np.ndarray | None:
-    """Robust total-least-squares line (nx, ny, c) with n.x + c = 0, |n| = 1, or None.
-
-    Huber fit (cv2.fitLine), then points farther than ``inlier_px`` are dropped and the line
-    is refitted by orthogonal least squares (SVD).
+    ``plumb_bob`` and ``rational_polynomial`` (up to 8 coefficients k1 k2 p1 p2 k3 k4 k5 k6):
+    OpenCV's ``projectPoints`` model written out for the points (x, y, 1) of the normalised
+    plane, the same double operations in the same order, so the same pixels to the last bit
+    (a coefficient that is zero is skipped: its term is an exact +0 or a factor of exactly 1).
+    ``projectPoints`` itself costs ~60 us a call even for 4 points (it always computes the
+    Jacobians); the fisheye model still goes through it (``CameraModel.bearings_to_pixels``).
     """
-    if len(points) < max(2, min_inliers):
-        return None
-    pts = points.astype(np.float32).reshape(-1, 1, 2)
-    vx, vy, x0, y0 = cv2.fitLine(pts, cv2.DIST_HUBER, 0, 0.01, 0.01).reshape(-1)
-    n = np.array([-vy, vx], dtype=float)
-    c = -float(n @ np.array([x0, y0]))
-    inliers = np.abs(points @ n + c) <= inlier_px
-    if inliers.sum() < max(2, min_inliers):
-        return None
-    sel = points[inliers]
-    centre = sel.mean(axis=0)
-    _, _, vt = np.linalg.svd(sel - centre)
-    n = vt[-1]
-    return np.array([n[0], n[1], -float(n @ centre)])
+    uv_u = np.asarray(uv_u, dtype=float)
+    K, D = camera.K, np.asarray(camera.D, dtype=float).reshape(-1)
+    if camera.is_fisheye or len(D) > 8:
+        xy = (uv_u - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+        uv, _ = camera.bearings_to_pixels(np.column_stack([xy, np.ones(len(xy))]))
+        return uv
+    k1, k2, p1, p2, k3, k4, k5, k6 = np.concatenate([D, np.zeros(8 - len(D))]).tolist()
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    x = (uv_u[:, 0] - cx) / fx
+    y = (uv_u[:, 1] - cy) / fy
+    r2 = x * x + y * y
+    r4 = r2 * r2
+    radial = 1 + k1 * r2 + k2 * r4 + k3 * (r4 * r2)
+    xd, yd = x * radial, y * radial
+    if k4 or k5 or k6:
+        inverse = 1. / (1 + k4 * r2 + k5 * r4 + k6 * (r4 * r2))
+        xd, yd = xd * inverse, yd * inverse
+    if p1 or p2:
+        a1 = 2 * x * y
+        xd = xd + p1 * a1 + p2 * (r2 + 2 * x * x)
+        yd = yd + p1 * (r2 + 2 * y * y) + p2 * a1
+    return np.column_stack([xd * fx + cx, yd * fy + cy])
 
 
-def _intersect_consecutive(lines: list[np.ndarray]) -> np.ndarray | None:
-    """Corner i = intersection of line i-1 and line i (homogeneous cross product)."""
-    corners = []
-    for i in range(N_CORNERS):
-        l1, l2 = lines[i - 1], lines[i]
-        if abs(l1[0] * l2[1] - l1[1] * l2[0]) < _MIN_SIN_EDGE_ANGLE:
-            return None
-        x = np.cross(l1, l2)
-        corners.append(x[:2] / x[2])
-    return np.array(corners)
+def _robust_lines(points: np.ndarray, valid: np.ndarray, inlier_px: float,
+                  min_inliers: int) -> list[np.ndarray | None]:
+    """Robust total-least-squares lines (nx, ny, c), n.x + c = 0, |n| = 1, or None per set.
+
+    ``points`` (k, n, 2), ``valid`` (k, n): k point sets (undistorted px), each fitted to its
+    valid points. Huber fit (cv2.fitLine) of each set, then the points farther than
+    ``inlier_px`` from it are dropped and the line refitted by orthogonal least squares, the
+    k sets at once: n is the minor axis of the inliers' 2x2 scatter matrix (closed form, the
+    last singular vector of the centred points). None: fewer than ``max(2, min_inliers)``
+    points or inliers. The sign of n is arbitrary.
+    """
+    least = max(2, min_inliers)
+    k = len(points)
+    huber = np.full((k, 3), np.nan)
+    for i in range(k):
+        if valid[i].sum() >= least:
+            pts = points[i][valid[i]].astype(np.float32).reshape(-1, 1, 2)
+            vx, vy, x0, y0 = cv2.fitLine(pts, cv2.DIST_HUBER, 0, 0.01, 0.01).reshape(-1)
+            vx, vy, x0, y0 = float(vx), float(vy), float(x0), float(y0)
+            huber[i] = -vy, vx, -(-vy * x0 + vx * y0)
+    with np.errstate(invalid='ignore'):
+        inliers = valid & (np.abs(points[..., 0] * huber[:, None, 0]
+                                  + points[..., 1] * huber[:, None, 1] + huber[:, None, 2])
+                           <= inlier_px)
+    count = inliers.sum(axis=1)
+    fitted = count >= least
+    if not fitted.any():
+        return [None] * k
+    weight = inliers[..., None]
+    centre = np.where(weight, points, 0.0).sum(axis=1) / np.maximum(count, 1)[:, None]
+    d = np.where(weight, points - centre[:, None, :], 0.0)
+    sxx = (d[..., 0] * d[..., 0]).sum(axis=1)
+    syy = (d[..., 1] * d[..., 1]).sum(axis=1)
+    sxy = (d[..., 0] * d[..., 1]).sum(axis=1)
+    theta = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)       # the major axis' direction
+    normal = np.column_stack([-np.sin(theta), np.cos(theta)])
+    c = -(normal[:, 0] * centre[:, 0] + normal[:, 1] * centre[:, 1])
+    return [np.array([normal[i, 0], normal[i, 1], c[i]]) if fitted[i] else None
+            for i in range(k)]
+
+
+def _edge_normals(p: np.ndarray) -> np.ndarray:
+    """Edge normals (4, 3) h_i = unit(p_i x p_(i+1)) of corner bearings p (4, 3).
+
+    :func:`ibvs_common.core.features.edge_normals` (the same values) for the 4 edges at once;
+    it is called instead for a degenerate edge, and raises.
+    """
+    q = p[_NEXT]
+    h = np.column_stack([p[:, 1] * q[:, 2] - p[:, 2] * q[:, 1],
+                         p[:, 2] * q[:, 0] - p[:, 0] * q[:, 2],
+                         p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]])
+    norm = np.linalg.norm(h, axis=1)
+    if np.any(~(norm >= _MIN_EDGE_NORMAL)):
+        return edge_normals(p)
+    return h / norm[:, None]
+
+
+def _intersect_consecutive(lines: list[np.ndarray] | np.ndarray) -> np.ndarray | None:
+    """Corners (4, 2): corner i = line i-1 x line i (homogeneous cross product), or None.
+
+    None when two consecutive lines meet at |sin| < _MIN_SIN_EDGE_ANGLE (unit normals).
+    """
+    l2 = np.asarray(lines, dtype=float).reshape(N_CORNERS, 3)
+    l1 = l2[_PREVIOUS]
+    cross_z = l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0]
+    if np.any(np.abs(cross_z) < _MIN_SIN_EDGE_ANGLE):
+        return None
+    x = l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1]
+    y = l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2]
+    return np.column_stack([x / cross_z, y / cross_z])
