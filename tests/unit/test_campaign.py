@@ -153,3 +153,58 @@ def test_help_and_bad_arguments(capsys):
     with pytest.raises(SystemExit) as e:
         campaign.parse_args(['--runs', '0'])
     assert e.value.code == 2
+
+
+def test_image_level_runs_call_run_scenario_in_their_own_domain(tmp_path, monkeypatch):
+    """The whole-graph path with a stand-in for run_scenario (no graph is started)."""
+    import subprocess
+    import yaml
+    calls = []
+
+    def fake_run(cmd, stdout, stderr, env, timeout):
+        args = cmd[cmd.index('ibvs_bringup.run_scenario') + 1:]
+        root = args[args.index('--results-root') + 1]
+        with open(args[args.index('--params-file') + 1]) as f:
+            params = yaml.safe_load(f)
+        calls.append((args, params, env['ROS_DOMAIN_ID']))
+        os.makedirs(os.path.join(root, 'flight'), exist_ok=True)
+        s = _summary(success=False, crossed=False, landed=False, last_mode=5)
+        with open(os.path.join(root, 'flight', 'summary.json'), 'w') as f:
+            json.dump(s, f)
+        return subprocess.CompletedProcess(cmd, 1)
+
+    monkeypatch.setattr(subprocess, 'run', fake_run)
+    cfg = CampaignConfig(name='img', runs=2, levels_mps2=(0.5,), image_level=True,
+                         laws=(LawSpec.parse('stiff:crossing.kf=3.0'),), domain_base=40,
+                         results_root=str(tmp_path))
+    out = run_campaign(cfg, workers=2, progress=None)
+    assert len(out) == 2 and {s['run']['ros_domain_id'] for s in out} <= {'40', '41'}
+    assert all(s['run']['failure_cause'] == 'failsafe in window' for s in out)
+    assert all(s['run']['image_level'] and not s['run']['feature_level'] for s in out)
+    # the calls themselves ran in the pool's workers: read back what each wrote
+    s0 = json.load(open(os.path.join(cfg.out_dir, 'runs', 'stiff', '0.5', '0',
+                                     'summary.json')))
+    params = yaml.safe_load(open(os.path.join(cfg.out_dir, 'runs', 'stiff', '0.5', '0',
+                                              'params.yaml')))
+    wind = s0['run']['wind']
+    assert params['force_controller']['ros__parameters']['crossing.kf'] == 3.0
+    sim = params['sim']['ros__parameters']
+    assert sim['wind_gust_amplitude_N'] == pytest.approx(0.3 * 0.5 * 1.676)
+    assert sim['seed'] == wind['seed'] == s0['run']['gust_seed']
+    assert wind['steady_force_I'][2] == pytest.approx(0.3 * 0.5 * 1.676)
+    # in-process (one worker would fork too: check the command on a direct call)
+    spec = run_specs(cfg, BOX)[0]
+    monkeypatch.setenv('ROS_DOMAIN_ID', '77')
+    calls.clear()
+    campaign.fly_image_run(cfg, spec)
+    args, _, domain = calls[0]
+    assert domain == '77'
+    assert [float(x) for x in args[args.index('--wind') + 1:][:3]] == \
+        pytest.approx(wind['steady_force_I'])
+    assert [float(x) for x in args[args.index('--initial-position') + 1:][:3]] == \
+        pytest.approx(s0['run']['initial_position_I'])
+    assert '--no-bag' in args
+    with pytest.raises(ValueError, match='one gust sine'):
+        campaign.image_run_params(
+            CampaignConfig(name='k', image_level=True, gust_components=3), spec,
+            campaign.run_wind(CampaignConfig(name='k', gust_components=3), spec, 1.676))

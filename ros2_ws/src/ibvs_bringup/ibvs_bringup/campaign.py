@@ -29,8 +29,14 @@ Output, ``<results-root>/<name>/`` (default results/campaign/<name>/):
   Wilson interval, clearance, crossing speed, landing error, touchdown speed, failure
   causes), and PNG plots when matplotlib is importable.
 
-Parallel over processes (``--workers``, default ``os.cpu_count()``). The image-level campaign
-(the whole graph in lockstep) is not here yet (docs/performance.md "Campaign").
+Parallel over processes (``--workers``, default ``os.cpu_count()``).
+
+``--image-level``: the same runs through the whole graph in lockstep, one
+``python -m ibvs_bringup.run_scenario`` subprocess per run (no bag, no plots), each worker on
+its own ROS_DOMAIN_ID (``--domain-base`` + worker). The steady wind goes on its ``--wind``,
+the law's overrides and the gusts (amplitude, frequency, the sim's ``seed`` for the phases)
+in a per-run params.yaml (``--params-file``); the sim node has one gust sine per axis, so
+``--gust-components`` must be 1. About a minute of wall clock per run on this machine.
 """
 from __future__ import annotations
 
@@ -110,6 +116,9 @@ class CampaignConfig:
     seed: int = 14                    # campaign seed (run i: SeedSequence([seed, i]))
     params_file: str | None = None    # None: the installed params.yaml
     results_root: str = DEFAULT_RESULTS_ROOT
+    image_level: bool = False         # True: the whole graph in lockstep (run_scenario)
+    domain_base: int = 100            # image level: worker w uses ROS_DOMAIN_ID base + w
+    run_timeout_s: float = 900.0      # image level: wall-clock limit of one run
 
     @property
     def out_dir(self) -> str:
@@ -122,6 +131,7 @@ class CampaignConfig:
                 'gust_frequency_hz': self.gust_frequency_hz,
                 'gust_components': self.gust_components, 'flow_noise': self.flow_noise,
                 'bearing_noise_rad': self.bearing_noise_rad, 'seed': self.seed,
+                'image_level': self.image_level,
                 'params_sha256': hashlib.sha256(params_text.encode()).hexdigest()}
 
 
@@ -357,15 +367,40 @@ def load_setup(params_file: str | None, overrides: tuple) -> _Setup:
     return _Setup(world, pad, vehicle, ctrl, sup)
 
 
-def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict:
-    """Fly one run, write its summary.json; return the summary."""
-    from ibvs_bringup.report import write_json
-    from ibvs_sim.core import feature_sim
+def run_wind(cfg: CampaignConfig, spec: RunSpec, mass_kg: float):
+    """Return the run's ``dynamics.WindConfig`` (N, {I})."""
     from ibvs_sim.core.dynamics import WindConfig
-    setup = load_setup(cfg.params_file, spec.law.overrides)
-    wind = WindConfig.from_level(spec.level_mps2, spec.direction_rad, setup.vehicle.mass,
+    return WindConfig.from_level(spec.level_mps2, spec.direction_rad, mass_kg,
                                  cfg.vertical_factor, cfg.gust_level, cfg.gust_frequency_hz,
                                  cfg.gust_components, spec.gust_seed)
+
+
+def _run_block(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: float) -> dict:
+    return {'campaign': cfg.name, 'feature_level': not cfg.image_level,
+            'image_level': cfg.image_level, 'law': spec.law.label,
+            'law_overrides': {k: v for k, v in spec.law.overrides},
+            'wind_level_mps2': spec.level_mps2, 'wind_direction_rad': spec.direction_rad,
+            'wind': {**asdict(wind), 'steady_force_I': list(wind.steady_force_I)},
+            'index': spec.index, 'seed': cfg.seed, 'gust_seed': spec.gust_seed,
+            'initial_position_I': list(spec.initial_position_I),
+            'failure_cause': failure_cause(summary), 'wall_time_s': wall_s}
+
+
+def _write_summary(cfg: CampaignConfig, spec: RunSpec, summary: dict) -> None:
+    from ibvs_bringup.report import write_json
+    path = os.path.join(spec.run_dir(cfg.out_dir), 'summary.json')
+    tmp = path + '.tmp'
+    write_json(tmp, summary)
+    os.replace(tmp, path)          # atomic: an interrupted campaign leaves no half summary
+
+
+def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
+    """Fly one run, write its summary.json; return the summary (None: could not be flown)."""
+    if cfg.image_level:
+        return fly_image_run(cfg, spec)
+    from ibvs_sim.core import feature_sim
+    setup = load_setup(cfg.params_file, spec.law.overrides)
+    wind = run_wind(cfg, spec, setup.vehicle.mass)
     sim_cfg = feature_sim.FeatureSimConfig(
         initial_position_I=np.asarray(spec.initial_position_I, dtype=float),
         initial_yaw=setup.world.initial_yaw, wind=wind,
@@ -376,25 +411,87 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict:
     summary, _ = feature_sim.run_feature_scenario(setup.world, setup.pad, setup.vehicle,
                                                   setup.controller, setup.supervisor, sim_cfg)
     summary = dict(summary)
-    summary['run'] = {
-        'campaign': cfg.name, 'feature_level': True, 'law': spec.law.label,
-        'law_overrides': {k: v for k, v in spec.law.overrides},
-        'wind_level_mps2': spec.level_mps2, 'wind_direction_rad': spec.direction_rad,
-        'wind': {**asdict(wind), 'steady_force_I': list(wind.steady_force_I)},
-        'index': spec.index, 'seed': cfg.seed, 'gust_seed': spec.gust_seed,
-        'initial_position_I': list(spec.initial_position_I),
-        'failure_cause': failure_cause(summary),
-        'wall_time_s': time.monotonic() - t0}
-    path = os.path.join(spec.run_dir(cfg.out_dir), 'summary.json')
-    tmp = path + '.tmp'
-    write_json(tmp, summary)
-    os.replace(tmp, path)          # atomic: an interrupted campaign leaves no half summary
+    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0)
+    _write_summary(cfg, spec, summary)
     return summary
 
 
-def _fly_task(task: tuple) -> tuple[int, dict]:
+def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind) -> dict:
+    """params.yaml of an image-level run: the law's overrides and the wind's gusts and seed.
+
+    The steady force goes on run_scenario's ``--wind`` ({I}, N; recorded in its summary);
+    the gusts (``wind_gust_amplitude_N``, ``wind_gust_frequency_hz``) and their phases (the
+    sim's ``seed``, which also seeds its sensor and read noise) through the sim's section.
+    The sim node sums one sine per axis (K = 1), so K > 1 is refused here.
+    """
+    import yaml
+    if wind.gust_components != 1:
+        raise ValueError('image level: the sim node takes one gust sine per axis '
+                         '(--gust-components 1)')
+    _, text = read_params(cfg.params_file)
+    params = yaml.safe_load(text) or {}
+    ctrl = params.setdefault('force_controller', {}).setdefault('ros__parameters', {})
+    for name, value in spec.law.overrides:
+        if name not in ctrl:
+            raise ValueError(f'law override {name!r}: no such force_controller parameter')
+        ctrl[name] = value
+    sim = params.setdefault('sim', {}).setdefault('ros__parameters', {})
+    sim['wind_gust_amplitude_N'] = float(wind.gust_amplitude_N)
+    sim['wind_gust_frequency_hz'] = float(wind.gust_frequency_hz)
+    sim['seed'] = int(wind.seed)
+    return params
+
+
+def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
+    """Fly one run through the whole graph (``python -m ibvs_bringup.run_scenario``).
+
+    Lockstep sim time; no bag, no plots; ROS_DOMAIN_ID from this process's environment (set
+    per worker by :func:`run_campaign`). The flight's own directory is ``<run>/flight/``
+    (logs, run_scenario's summary.json); ``<run>/summary.json`` is written only when the run
+    could be flown (run_scenario exit code 0 or 1), so a resume retries the others.
+    """
+    import subprocess
+    import yaml
+    from ibvs_common.core.config import load_vehicle
+    run_dir = spec.run_dir(cfg.out_dir)
+    os.makedirs(run_dir, exist_ok=True)
+    wind = run_wind(cfg, spec, load_vehicle().mass)
+    params_path = os.path.join(run_dir, 'params.yaml')
+    with open(params_path, 'w', encoding='utf-8') as f:
+        yaml.safe_dump(image_run_params(cfg, spec, wind), f, sort_keys=False)
+    cmd = [sys.executable, '-m', 'ibvs_bringup.run_scenario', '--run-name', 'flight',
+           '--results-root', run_dir, '--params-file', params_path, '--no-bag', '--no-plots',
+           '--timeout', f'{cfg.run_timeout_s:g}', '--initial-position',
+           *(f'{x!r}' for x in spec.initial_position_I),
+           '--wind', *(f'{x!r}' for x in wind.steady_force_I)]
+    env = dict(os.environ)
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    t0 = time.monotonic()
+    with open(os.path.join(run_dir, 'run_scenario.log'), 'w', encoding='utf-8') as log:
+        code = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, env=env,
+                              timeout=cfg.run_timeout_s + 120.0).returncode
+    try:
+        with open(os.path.join(run_dir, 'flight', 'summary.json'), encoding='utf-8') as f:
+            summary = json.load(f)
+    except (OSError, ValueError):
+        summary = None
+    if code not in (0, 1) or summary is None:
+        return None
+    summary['flight_run'] = summary.pop('run', {})
+    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0)
+    summary['run']['ros_domain_id'] = env.get('ROS_DOMAIN_ID')
+    _write_summary(cfg, spec, summary)
+    return summary
+
+
+def _fly_task(task: tuple) -> tuple[int, dict | None]:
     k, cfg, spec = task
     return k, fly_run(cfg, spec)
+
+
+def _init_worker(domains) -> None:
+    """Pool initializer: this worker's own ROS_DOMAIN_ID (image level: isolated graphs)."""
+    os.environ['ROS_DOMAIN_ID'] = str(domains.get())
 
 
 def read_summary(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
@@ -431,6 +528,9 @@ def run_campaign(cfg: CampaignConfig, workers: int = 1,
                  progress: Callable[[str], None] | None = print) -> list[dict]:
     """Fly the runs that have no summary.json yet (``workers`` processes); return all summaries.
 
+    Returned: the summaries of every run of the campaign that has one (stored or just flown;
+    an image-level run that could not be flown has none). Image level: each worker process
+    sets its own ROS_DOMAIN_ID (``domain_base`` + worker) before it starts any graph.
     Raises ValueError for a resume with other settings or a bad law override.
     """
     from ibvs_sim.core.world import load_world
@@ -445,22 +545,31 @@ def run_campaign(cfg: CampaignConfig, workers: int = 1,
                  f'{len(pending)} to fly on {workers} worker(s)')
     t0 = time.monotonic()
     tasks = [(k, cfg, s) for k, s in enumerate(pending)]
-    if workers <= 1 or len(tasks) <= 1:
-        results: Iterable = map(_fly_task, tasks)
-        pool = None
-    else:
-        pool = multiprocessing.get_context('fork').Pool(workers)
-        results = pool.imap_unordered(_fly_task, tasks, chunksize=1)
+    ctx = multiprocessing.get_context('fork')
+    pool = None
+    if cfg.image_level:                    # every run in a worker with its own domain
+        domains = ctx.Queue()
+        for w in range(workers):
+            domains.put((cfg.domain_base + w) % 233)
+        pool = ctx.Pool(workers, initializer=_init_worker, initargs=(domains,))
+    elif workers > 1 and len(tasks) > 1:
+        pool = ctx.Pool(workers)
+    results = map(_fly_task, tasks) if pool is None else \
+        pool.imap_unordered(_fly_task, tasks, chunksize=1)
+    every = 1 if cfg.image_level else 20
     try:
         for k, (i, summary) in enumerate(results, 1):
             done[pending[i]] = summary
-            if progress and (k % 20 == 0 or k == len(tasks)):
+            if summary is None and progress:
+                progress(f'  {pending[i].run_dir(cfg.out_dir)}: could not be flown '
+                         '(see its run_scenario.log)')
+            if progress and (k % every == 0 or k == len(tasks)):
                 progress(f'  {k} / {len(tasks)} flown, {time.monotonic() - t0:.0f} s')
     finally:
         if pool is not None:
             pool.terminate()
             pool.join()
-    return [done[s] for s in specs]
+    return [done[s] for s in specs if done[s] is not None]
 
 
 # --- output ---------------------------------------------------------------------------------
@@ -470,7 +579,8 @@ def write_outputs(cfg: CampaignConfig, summaries: list[dict], plots: bool = True
     rows = aggregate(summaries)
     with open(os.path.join(cfg.out_dir, 'aggregate.json'), 'w', encoding='utf-8') as f:
         json.dump({'name': cfg.name, 'rows': rows}, f, indent=2)
-    header = (f'Campaign {cfg.name}: feature level, {cfg.runs} runs per law and level, starts '
+    level = 'image level (whole graph, lockstep)' if cfg.image_level else 'feature level'
+    header = (f'Campaign {cfg.name}: {level}, {cfg.runs} runs per law and level, starts '
               f'in the SPEC box, wind towards a random horizontal direction, vertical '
               f'x{cfg.vertical_factor:g} (down), gusts {100 * cfg.gust_level:g} % '
               f'({cfg.gust_components} sine(s) per axis, {cfg.gust_frequency_hz:g} Hz), '
@@ -601,6 +711,13 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
     p.add_argument('--params-file', default=None, help='default: the installed params.yaml')
     p.add_argument('--results-root', default=DEFAULT_RESULTS_ROOT)
     p.add_argument('--no-plots', action='store_true')
+    p.add_argument('--image-level', action='store_true',
+                   help='fly the whole graph in lockstep (run_scenario subprocesses, one '
+                        'ROS_DOMAIN_ID per worker; minutes per run)')
+    p.add_argument('--domain-base', type=int, default=100,
+                   help='image level: worker w uses ROS_DOMAIN_ID base + w')
+    p.add_argument('--run-timeout', type=float, default=900.0, metavar='S',
+                   help='image level: wall-clock limit of one run')
     p.add_argument('--aggregate-only', action='store_true',
                    help='fly nothing: aggregate the stored runs')
     a = p.parse_args(argv)
@@ -627,7 +744,9 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          vertical_factor=a.vertical_factor, gust_frequency_hz=a.gust_frequency,
                          gust_components=a.gust_components, flow_noise=a.flow_noise,
                          bearing_noise_rad=a.bearing_noise, seed=a.seed,
-                         params_file=a.params_file, results_root=a.results_root)
+                         params_file=a.params_file, results_root=a.results_root,
+                         image_level=a.image_level, domain_base=a.domain_base,
+                         run_timeout_s=a.run_timeout)
     return cfg, a.workers, not a.no_plots, a.aggregate_only
 
 
