@@ -134,6 +134,8 @@ def test_campaign_resumes_and_refuses_other_settings(tmp_path):
         stored = json.load(f)
     assert stored['run']['wind']['steady_force_I'][2] == pytest.approx(0.3 * 0.2 * 1.676)
     assert stored['run']['failure_cause'] == failure_cause(stored)
+    assert stored['run']['transitions'][0] == \
+        '-> WINDOW at t = 0.00 s: start requested, window detected'
     messages.clear()
     again = run_campaign(cfg, workers=1, progress=messages.append)
     assert messages == ['campaign tiny: 2 runs, 2 done, 0 to fly on 1 worker(s)']

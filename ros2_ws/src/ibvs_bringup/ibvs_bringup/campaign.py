@@ -398,6 +398,7 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     """Fly one run, write its summary.json; return the summary (None: could not be flown)."""
     if cfg.image_level:
         return fly_image_run(cfg, spec)
+    from ibvs_common.core.modes import Mode
     from ibvs_sim.core import feature_sim
     setup = load_setup(cfg.params_file, spec.law.overrides)
     wind = run_wind(cfg, spec, setup.vehicle.mass)
@@ -408,10 +409,13 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
         flow_noise=cfg.flow_noise, bearing_noise_rad=cfg.bearing_noise_rad,
         seed=spec.gust_seed)
     t0 = time.monotonic()
-    summary, _ = feature_sim.run_feature_scenario(setup.world, setup.pad, setup.vehicle,
-                                                  setup.controller, setup.supervisor, sim_cfg)
+    summary, flog = feature_sim.run_feature_scenario(setup.world, setup.pad, setup.vehicle,
+                                                     setup.controller, setup.supervisor,
+                                                     sim_cfg)
     summary = dict(summary)
     summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0)
+    summary['run']['transitions'] = [f'-> {Mode(m).name} at t = {t:.2f} s: {why}'
+                                     for m, t, why in flog.transitions]
     _write_summary(cfg, spec, summary)
     return summary
 

@@ -73,6 +73,7 @@ class FeatureSimLog:
     q_t: list = field(default_factory=list)
     phi_t: list = field(default_factory=list)
     phi_w: list = field(default_factory=list)
+    transitions: list = field(default_factory=list)   # the supervisor's: (to mode, t s, reason)
 
 
 class FeatureSensors:
@@ -244,6 +245,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         if done:
             break
     modes = [(int(tr.to_mode), tr.t) for tr in supervisor.transitions]
+    log.transitions = [(int(tr.to_mode), float(tr.t), tr.reason)
+                       for tr in supervisor.transitions]
     tt, xx, vv = log.truth.arrays()
     if len(tt) == 0:
         log.truth.append(t, xi, v)
