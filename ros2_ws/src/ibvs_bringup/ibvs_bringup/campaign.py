@@ -543,7 +543,9 @@ def run_campaign(cfg: CampaignConfig, workers: int = 1,
         load_setup(cfg.params_file, law.overrides)
     specs = run_specs(cfg, load_world().random_box)
     done = {s: read_summary(cfg, s) for s in specs}
-    pending = [s for s in specs if done[s] is None]
+    # index-major: a campaign stopped early has about as many runs at every law and level
+    pending = sorted((s for s in specs if done[s] is None),
+                     key=lambda s: (s.index, s.law.label, s.level_mps2))
     if progress:
         progress(f'campaign {cfg.name}: {len(specs)} runs, {len(specs) - len(pending)} done, '
                  f'{len(pending)} to fly on {workers} worker(s)')
