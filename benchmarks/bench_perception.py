@@ -4,7 +4,8 @@ Prints median and p99 (ms) of: window detection (front camera, approach) and pad
 camera, descent from 1.8 m to 0.15 m), each tracked and with the whole-image search that the
 tracker falls back to on a loss forced on every frame (issue 15 item 7), and translational
 flow (down camera, tracking + solve, frames 20 ms apart with |v| = 0.5 m/s and |Omega| = 1
-rad/s). Rendering is not timed.
+rad/s; front camera along the approach at 1 m/s with the floor as a second plane). Rendering
+is not timed.
 Run: AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python benchmarks/bench_perception.py
 """
 import argparse
@@ -16,7 +17,7 @@ import numpy as np
 from ibvs_common.core import frames
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
-from ibvs_perception.core.flow import FlowConfig, FlowEstimator
+from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
 from ibvs_perception.core.pad import PadDetector, PadDetectorConfig
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
 from ibvs_sim.core.render import SceneRenderer
@@ -29,8 +30,13 @@ WINDOW_CENTRE = np.array([-0.5, 0.0, -1.6])
 
 def report(name: str, seconds: list) -> None:
     ms = 1e3 * np.asarray(seconds)
-    print(f'{name:8s} median {np.median(ms):6.2f} ms   p99 {np.percentile(ms, 99):6.2f} ms   '
+    print(f'{name:10s} median {np.median(ms):6.2f} ms   p99 {np.percentile(ms, 99):6.2f} ms   '
           f'({len(ms)} frames)')
+
+
+def approach_attitude(s: float) -> np.ndarray:
+    """R_IB of the approach sway at the fraction s of the way to the window."""
+    return frames.rot_from_euler_zyx(0.03 * np.sin(s * 9), 0.02, 0.04 * np.sin(s * 5))
 
 
 def timed(fn, frames_):
@@ -52,9 +58,7 @@ def main() -> None:
     r_down = SceneRenderer(world, pad, down)
 
     window = WindowDetector(WindowDetectorConfig())
-    imgs = [r_front.render(frames.rot_from_euler_zyx(0.03 * np.sin(s * 9), 0.02,
-                                                     0.04 * np.sin(s * 5)),
-                           START + s * (WINDOW_CENTRE - START))
+    imgs = [r_front.render(approach_attitude(s), START + s * (WINDOW_CENTRE - START))
             for s in np.linspace(0.0, 0.22, n_frames)]
     report('window', timed(lambda im: window.process(im, front.model), [(im,) for im in imgs]))
 
@@ -84,6 +88,20 @@ def main() -> None:
         R = R @ cv2.Rodrigues(omega * DT * np.sin(k / 10.0))[0]
         xi = xi + v * DT
     report('flow', timed(flow.process, args))
+
+    # front flow along the window-timing approach above (0.11 m/s, the same sway): the wall
+    # plane from each frame's window corners, the floor as a second plane (two-plane model)
+    flow = FlowEstimator(FlowConfig(), front.model, front.R_BC)
+    window.reset()
+    args = []
+    for k, s in enumerate(np.linspace(0.0, 0.22, n_frames)):
+        R = approach_attitude(s)
+        img = r_front.render(R, START + s * (WINDOW_CENTRE - START))
+        detection = window.process(img, front.model).detection
+        if detection is not None:
+            eta, exclude = wall_normal_from_corners(detection.bearings_C, R, front.R_BC)
+            args.append((img, k * DT, R, eta, exclude, frames.e3))
+    report('front flow', timed(flow.process, args))
 
 
 if __name__ == '__main__':

@@ -3,7 +3,9 @@
 One executable, one instance per camera (node names front_optical_flow, down_optical_flow);
 parameter `camera` ('front' | 'down') selects the mount R_BC (vehicle.yaml) and the plane:
 the floor (eta_t = e3) for the down camera, the window wall (eta_w from `window/corners`,
-aperture excluded) for the front camera. Publishes `<camera>_camera/translational_flow`
+aperture excluded) for the front camera, with the floor below it as a second plane
+(``floor_second_plane``: its points are fitted with their own, unknown distance instead of
+biasing the wall's flow). Publishes `<camera>_camera/translational_flow`
 (Vector3Stamped, frame `map`, stamp of the image) for EVERY processed image: the flow when
 enough inliers, else all three components NaN, "no valid flow at this stamp" (first image, too
 few inliers, no window, no attitude), so that the supervisor and the controller know per stamp
@@ -61,6 +63,9 @@ NODE_SPECS = {
     'max_window_age_s': ('s (stamps, ROS clock), front: the wall plane comes from the newest '
                          'window corners older than the image, at most this older, > 0',
                          0.0, None),
+    'floor_second_plane': ('front: the floor (eta = e3) as a second plane that may be in view '
+                           'below the wall, at an unknown distance (two-plane flow model, '
+                           'docs/perception.md); down: unused',),
 }
 
 
@@ -80,6 +85,8 @@ class OpticalFlowNode(Node):
         if not self.max_window_age_s > 0.0:
             raise ValueError(f'parameter max_window_age_s must be > 0, '
                              f'got {self.max_window_age_s}')
+        self.floor_second_plane = bool(declare(self, 'floor_second_plane', True,
+                                               NODE_SPECS['floor_second_plane']))
         flow_values = declare_all(self, dataclass_defaults(FlowConfig), PARAMETER_SPECS)
         buffer_values = declare_all(self, dataclass_defaults(AttitudeBufferConfig),
                                     ATTITUDE_BUFFER_SPECS, prefix='imu_')
@@ -150,7 +157,8 @@ class OpticalFlowNode(Node):
         if R_IB is None:
             self.log.warning('optical_flow: no IMU attitude at the image stamp', THROTTLE_S)
         eta_I, exclude_I = self.plane(stamp)
-        result = self.estimator.process(gray, stamp, R_IB, eta_I, exclude_I)
+        eta2_I = e3 if self.camera_name == FRONT and self.floor_second_plane else None
+        result = self.estimator.process(gray, stamp, R_IB, eta_I, exclude_I, eta2_I)
         if not publish:
             return
         if result is not None:

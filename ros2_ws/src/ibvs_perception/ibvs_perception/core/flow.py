@@ -9,6 +9,17 @@ where p is the unit bearing in {I} (p = R_IB R_BC b_C, frames.bearings_C_to_I) a
 pi_p = I - p p^T (eq:pi). Derotation uses the IMU attitude at each image stamp, so the rotation
 between frames cancels exactly (up to the attitude error).
 
+Two planes (the front camera sees the floor below the wall): with a second plane of known
+normal eta_2 (the floor, e3) at distance d_2, the same v gives a point its nearer surface's
+inverse range, so the model of every point becomes
+
+    p_dot = -c(p) pi_p phi,    c(p) = max(eta^T p, s eta_2^T p),    s = d / d_2,
+
+with one more unknown, the distance ratio s (>= 0; s = 0: the second plane is not in view).
+The point is on the second plane exactly when s eta_2^T p > eta^T p: the assignment is
+geometric, not a residual test. phi and s are fitted alternately (phi by least squares with
+c fixed, s by least squares over the points that the first plane does not explain).
+
 Pipeline per image: pyramidal Lucas-Kanade (cv2.calcOpticalFlowPyrLK) of the tracked features
 from the previous image; each track gives p(t0), p(t1) in {I} (undistorted, derotated);
 p_dot ~ (p1 - p0) / dt at the mid bearing; phi by least squares over all tracks with an
@@ -50,6 +61,7 @@ class FlowConfig:
     border_px: float = 8.0                  # tracks closer to the border are dropped
     inlier_threshold_px: float = 0.5        # residual of an inlier track, px over one frame
     huber_iterations: int = 4               # IRLS iterations before the inlier gate
+    two_plane_iterations: int = 2           # with a second plane: s / phi refits
     min_inliers: int = 20                   # fewer inliers: no flow published
     min_inlier_ratio: float = 0.3           # inliers / tracks below this: no flow
     min_cos_plane: float = 0.05             # eta^T p below this (grazing, or off-plane): dropped
@@ -84,6 +96,8 @@ PARAMETER_SPECS = {
     'border_px': ('px, tracks closer to the image border are dropped', 0.0, None),
     'inlier_threshold_px': ('px over one frame, residual of an inlier track', 0.0, None),
     'huber_iterations': ('IRLS (Huber) iterations before the inlier gate', 0, 1000),
+    'two_plane_iterations': ('refits of the second plane distance ratio s and phi when a '
+                             'second plane may be in view (front camera: the floor)', 0, 100),
     'min_inliers': ('inliers: fewer, no flow published (NaN)', 0, None),
     'min_inlier_ratio': ('inliers / tracks below this: no flow published (NaN)', 0.0, 1.0),
     'min_cos_plane': ('eta^T p below this: the point is not on the plane (dropped)',
@@ -129,17 +143,18 @@ def inside_spherical_polygon(p: np.ndarray, corners: np.ndarray, margin_rad: flo
     return np.all(p @ h.T > -np.sin(margin_rad), axis=1)
 
 
-def solve_translational_flow(p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: np.ndarray,
-                             weights: np.ndarray) -> np.ndarray | None:
-    """Weighted least squares phi of p_dot = -(eta^T p) pi_p phi over tracks (eq:p_t).
-
-    p0, p1: unit bearings (N, 3) in {I} at t0 and t0 + dt; the model is evaluated at the mid
-    bearing. Returns phi (3,) in 1/s or None for a degenerate set.
-    """
+def mid_bearings(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Return the unit mid bearings (N, 3) of tracks from p0 to p1 ({I}): the model's points."""
     p_mid = p0 + p1
-    p_mid /= np.linalg.norm(p_mid, axis=1, keepdims=True)
-    p_dot = (p1 - p0) / dt
-    c = p_mid @ eta_I
+    return p_mid / np.linalg.norm(p_mid, axis=1, keepdims=True)
+
+
+def solve_flow_c(p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray,
+                 weights: np.ndarray) -> np.ndarray | None:
+    """Weighted least squares phi of p_dot = -c_i pi_p phi (c_i = d / range_i, see above).
+
+    Returns phi (3,) in 1/s or None for a degenerate set.
+    """
     # A_i = -c_i pi_i: A_i^T A_i = c_i^2 pi_i, A_i^T y_i = -c_i pi_i y_i
     pi_y = p_dot - p_mid * np.sum(p_mid * p_dot, axis=1, keepdims=True)
     wc2 = weights * c * c
@@ -150,15 +165,103 @@ def solve_translational_flow(p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: n
     return np.linalg.solve(M, b)
 
 
+def residuals_c(p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray, phi: np.ndarray,
+                dt: float) -> np.ndarray:
+    """|p1 - p0 - dt p_dot_model| per track (rad over one frame) for the model c, phi."""
+    pi_phi = phi[None, :] - p_mid * (p_mid @ phi)[:, None]
+    return dt * np.linalg.norm(p_dot + c[:, None] * pi_phi, axis=1)
+
+
+def solve_translational_flow(p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: np.ndarray,
+                             weights: np.ndarray) -> np.ndarray | None:
+    """Weighted least squares phi of p_dot = -(eta^T p) pi_p phi over tracks (eq:p_t).
+
+    p0, p1: unit bearings (N, 3) in {I} at t0 and t0 + dt; the model is evaluated at the mid
+    bearing. Returns phi (3,) in 1/s or None for a degenerate set.
+    """
+    p_mid = mid_bearings(p0, p1)
+    return solve_flow_c(p_mid, (p1 - p0) / dt, p_mid @ eta_I, weights)
+
+
 def flow_residuals(p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: np.ndarray,
                    phi: np.ndarray) -> np.ndarray:
     """|p1 - p0 - dt p_dot_model| per track (rad over one frame)."""
-    p_mid = p0 + p1
-    p_mid /= np.linalg.norm(p_mid, axis=1, keepdims=True)
-    c = p_mid @ eta_I
+    p_mid = mid_bearings(p0, p1)
+    return residuals_c(p_mid, (p1 - p0) / dt, p_mid @ eta_I, phi, dt)
+
+
+#: candidate distance ratios s = d / d_2 of the grid search (0: plane 2 not in view)
+S_GRID = np.concatenate([[0.0], np.geomspace(0.05, 20.0, 40)])
+#: least relative drop of the truncated cost for which a second plane is taken to be in view
+TWO_PLANE_MIN_GAIN = 0.1
+
+
+def second_plane_ratio(p_mid: np.ndarray, p_dot: np.ndarray, c1: np.ndarray, c2: np.ndarray,
+                       phi: np.ndarray, dt: float, threshold: float) -> float:
+    """Distance ratio s = d / d_2 of the two-plane model for a given phi (module doc).
+
+    Grid search of the truncated squared residuals (``threshold``, rad over one frame) over
+    :data:`S_GRID`, then least squares over the points the best s puts on plane 2 and
+    explains. Returns s >= 0 (0: no point is better explained on plane 2).
+    """
     pi_phi = phi[None, :] - p_mid * (p_mid @ phi)[:, None]
-    model = -c[:, None] * pi_phi
-    return np.linalg.norm(p1 - p0 - dt * model, axis=1)
+    # residual_i(s) / dt = |p_dot_i + C_i(s) pi_phi_i|, C_i(s) = max(c1_i, s c2_i)
+    aa = np.sum(p_dot * p_dot, axis=1)[:, None]
+    ab = np.sum(p_dot * pi_phi, axis=1)[:, None]
+    bb = np.sum(pi_phi * pi_phi, axis=1)[:, None]
+    C = np.maximum(c1[:, None], c2[:, None] * S_GRID[None, :])
+    r2 = dt * dt * np.maximum(aa + 2.0 * C * ab + C * C * bb, 0.0)
+    s = float(S_GRID[np.argmin(np.minimum(r2, threshold * threshold).sum(axis=0))])
+    on2 = (s * c2 > c1) & (np.min(r2, axis=1) <= threshold * threshold)
+    # refine: p_dot = -s c2 pi_phi on those points, linear in s
+    a = -c2[on2, None] * pi_phi[on2]
+    den = float(np.sum(a * a))
+    if s > 0.0 and den > 0.0:
+        s_ls = float(np.sum(a * p_dot[on2])) / den
+        if np.isfinite(s_ls) and s_ls > 0.0:
+            s = s_ls
+    return s
+
+
+def joint_grid_start(p_mid: np.ndarray, p_dot: np.ndarray, c1: np.ndarray, c2: np.ndarray,
+                     dt: float, threshold: float) -> float:
+    """Return the starting s of the two-plane fit, by a grid search over s and phi.
+
+    For each s of :data:`S_GRID`, the least squares phi; the s whose (s, phi) has the least
+    truncated squared residuals (``threshold``, rad over one frame) is returned, or 0 when it
+    does not lower the cost by :data:`TWO_PLANE_MIN_GAIN`. Unlike a first fit on plane 1
+    alone, it does not start from a phi biased by the points of plane 2 when these are many
+    (the floor below the wall from a low height).
+    """
+    C = np.maximum(c1[:, None], c2[:, None] * S_GRID[None, :])            # (N, G)
+    pi_y = p_dot - p_mid * np.sum(p_mid * p_dot, axis=1, keepdims=True)   # (N, 3)
+    C2 = C * C
+    # M_g = sum_i C_ig^2 (I - p_i p_i^T), b_g = -sum_i C_ig pi_i y_i
+    ppT = (p_mid[:, :, None] * p_mid[:, None, :]).reshape(-1, 9)
+    M = C2.sum(axis=0)[:, None, None] * np.eye(3) - (C2.T @ ppT).reshape(-1, 3, 3)
+    b = -C.T @ pi_y                                                        # (G, 3)
+    # well conditioned: det >= eps (trace / 3)^3 (a degenerate spread of points is refused)
+    ok = np.linalg.det(M) > 1.0 / _MAX_CONDITION * (np.trace(M, axis1=1, axis2=2) / 3.0) ** 3
+    if not np.any(ok):
+        return 0.0
+    phi = np.zeros((len(S_GRID), 3))
+    phi[ok] = np.linalg.solve(M[ok], b[ok][..., None])[..., 0]
+    # residual_ig / dt = |y_i + C_ig pi_i phi_g| with pi_i phi_g = phi_g - p_i (p_i . phi_g)
+    p_phi = p_mid @ phi.T                                                  # (N, G)
+    y_phi = p_dot @ phi.T                                                  # (N, G)
+    yy = np.sum(p_dot * p_dot, axis=1)[:, None]
+    yp = np.sum(p_dot * p_mid, axis=1)[:, None]
+    phiphi = np.sum(phi * phi, axis=1)[None, :]
+    # |y + C (phi - p (p.phi))|^2 = |y|^2 + 2C (y.phi - (y.p)(p.phi)) + C^2 (|phi|^2 - (p.phi)^2)
+    r2 = dt * dt * np.maximum(yy + 2.0 * C * (y_phi - yp * p_phi)
+                              + C2 * (phiphi - p_phi * p_phi), 0.0)
+    cost = np.where(ok, np.minimum(r2, threshold * threshold).sum(axis=0), np.inf)
+    best = int(np.argmin(cost))
+    # a second plane must explain the data clearly better than none (S_GRID[0] = 0): a small
+    # gain is noise fitted on plane 1's own points
+    if np.isfinite(cost[0]) and cost[best] > (1.0 - TWO_PLANE_MIN_GAIN) * cost[0]:
+        return 0.0
+    return float(S_GRID[best])
 
 
 class FlowEstimator:
@@ -186,14 +289,16 @@ class FlowEstimator:
         return len(self._points)
 
     def process(self, gray: np.ndarray, stamp_s: float, R_IB: np.ndarray | None,
-                eta_I: np.ndarray | None, exclude_I: np.ndarray | None = None
-                ) -> FlowResult | None:
+                eta_I: np.ndarray | None, exclude_I: np.ndarray | None = None,
+                eta2_I: np.ndarray | None = None) -> FlowResult | None:
         """Track into ``gray`` and estimate phi between the previous image and this one.
 
         R_IB: attitude at ``stamp_s`` (None: unknown, no estimate). eta_I: unit plane normal in
         {I} from the camera towards the plane (None: no estimate, tracking continues).
         exclude_I: corner bearings (K, 3) in {I} of a region whose points are not on the plane
-        (the window aperture). Returns None when no estimate was attempted.
+        (the window aperture). eta2_I: unit normal of a second plane that may be in view (the
+        floor for the front camera), at an unknown distance (module doc); phi stays the first
+        plane's. Returns None when no estimate was attempted.
         """
         cfg = self.config
         result = None
@@ -206,7 +311,9 @@ class FlowEstimator:
             if R_IB is not None and self._R_IB is not None and eta_I is not None \
                     and len(cur_pts):
                 result = self._estimate(prev_pts, cur_pts, self._R_IB, R_IB, dt,
-                                        np.asarray(eta_I, dtype=float), exclude_I)
+                                        np.asarray(eta_I, dtype=float), exclude_I,
+                                        None if eta2_I is None
+                                        else np.asarray(eta2_I, dtype=float))
             self._points = cur_pts
         self._frame_count += 1
         if len(self._points) < cfg.min_tracks \
@@ -233,35 +340,59 @@ class FlowEstimator:
 
     def _estimate(self, prev_px: np.ndarray, cur_px: np.ndarray, R0: np.ndarray,
                   R1: np.ndarray, dt: float, eta_I: np.ndarray,
-                  exclude_I: np.ndarray | None) -> FlowResult:
+                  exclude_I: np.ndarray | None, eta2_I: np.ndarray | None) -> FlowResult:
         cfg = self.config
         p0 = bearings_C_to_I(self.camera.pixels_to_bearings(prev_px), R0, self.R_BC)
         p1 = bearings_C_to_I(self.camera.pixels_to_bearings(cur_px), R1, self.R_BC)
-        usable = (p0 @ eta_I > cfg.min_cos_plane) & (p1 @ eta_I > cfg.min_cos_plane)
+        on_plane = (p0 @ eta_I > cfg.min_cos_plane) & (p1 @ eta_I > cfg.min_cos_plane)
+        if eta2_I is not None:       # a point may lie on either plane
+            on_plane |= (p0 @ eta2_I > cfg.min_cos_plane) & (p1 @ eta2_I > cfg.min_cos_plane)
         if exclude_I is not None:
-            usable &= ~inside_spherical_polygon(p1, exclude_I, cfg.exclusion_margin_rad)
-        p0, p1 = p0[usable], p1[usable]
+            on_plane &= ~inside_spherical_polygon(p1, exclude_I, cfg.exclusion_margin_rad)
+        p0, p1 = p0[on_plane], p1[on_plane]
         n = len(p0)
         if n < cfg.min_inliers:
             return FlowResult(None, 0.0, 0, n)
+        p_mid, p_dot = mid_bearings(p0, p1), (p1 - p0) / dt
+        c1 = np.maximum(p_mid @ eta_I, 0.0)
+        c2 = None if eta2_I is None else np.maximum(p_mid @ eta2_I, 0.0)
         threshold = cfg.inlier_threshold_px / float(self.camera.K[0, 0])   # rad
-        weights = np.ones(n)
-        phi = None
-        for _ in range(cfg.huber_iterations):
-            phi = solve_translational_flow(p0, p1, dt, eta_I, weights)
+        s = 0.0 if c2 is None else joint_grid_start(p_mid, p_dot, c1, c2, dt, threshold)
+        c = c1 if c2 is None else np.maximum(c1, s * c2)
+        for _ in range(1 + (cfg.two_plane_iterations if c2 is not None else 0)):
+            phi, weights = self._irls(p_mid, p_dot, c, dt, threshold)
             if phi is None:
                 return FlowResult(None, 0.0, 0, n)
-            r = flow_residuals(p0, p1, dt, eta_I, phi)
-            weights = np.minimum(1.0, threshold / np.maximum(r, 1e-15))
-        inliers = flow_residuals(p0, p1, dt, eta_I, phi) <= threshold
+            if c2 is None or s == 0.0:      # plane 2 not in view: the one-plane fit
+                break
+            s = second_plane_ratio(p_mid, p_dot, c1, c2, phi, dt, threshold)
+            c = np.maximum(c1, s * c2)
+        inliers = residuals_c(p_mid, p_dot, c, phi, dt) <= threshold
         n_in = int(inliers.sum())
         ratio = n_in / n
         if n_in < cfg.min_inliers or ratio < cfg.min_inlier_ratio:
             return FlowResult(None, ratio, n_in, n)
-        phi = solve_translational_flow(p0[inliers], p1[inliers], dt, eta_I, np.ones(n_in))
+        # the final phi from plane 1's own inliers: it does not inherit an error of s
+        on_1 = inliers if c2 is None else inliers & (c1 >= s * c2)
+        if int(on_1.sum()) < cfg.min_inliers:
+            return FlowResult(None, ratio, n_in, n)
+        phi = solve_flow_c(p_mid[on_1], p_dot[on_1], c1[on_1], np.ones(int(on_1.sum())))
         if phi is None or not np.all(np.isfinite(phi)):
             return FlowResult(None, ratio, n_in, n)
         return FlowResult(phi, ratio, n_in, n)
+
+    def _irls(self, p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray, dt: float,
+              threshold: float) -> tuple[np.ndarray | None, np.ndarray]:
+        """Huber-reweighted least squares phi for the model c: (phi or None, last weights)."""
+        weights = np.ones(len(p_mid))
+        phi = None
+        for _ in range(self.config.huber_iterations):
+            phi = solve_flow_c(p_mid, p_dot, c, weights)
+            if phi is None:
+                return None, weights
+            r = residuals_c(p_mid, p_dot, c, phi, dt)
+            weights = np.minimum(1.0, threshold / np.maximum(r, 1e-15))
+        return phi, weights
 
     def _replenish(self, gray: np.ndarray) -> None:
         """Add features (goodFeaturesToTrack) only in grid cells that hold too few tracks."""
