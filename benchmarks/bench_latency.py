@@ -15,7 +15,10 @@ Setup (issue 12, item 5):
   SET_ATTITUDE_TARGET came off the wire.
 
 Prints, per run: median, p95, p99 and max of image stamp -> setpoint (ms) over the frames after
-the supervisor started, the fraction of those frames answered, CPU per node (% of one core)
+the supervisor started, the fraction of those frames answered, where the time goes (median
+image stamp -> arrival at the replayer of the window corners, the wall flow, the supervisor's
+status and the force: the replayer spins between frames, so these include its own wake-up),
+CPU per node (% of one core)
 while replaying, and (first run) the CPU of the idle graph (linked, no images). Runs again with
 the pad detector killed and with the down camera stopped (inputs WINDOW mode does not use),
 and once more with the same nodes composed in one process (``ibvs_bringup.composed``).
@@ -29,6 +32,7 @@ benchmarks/bench_latency.py [--frames N] [--smoke]``.
 from __future__ import annotations
 
 import argparse
+import importlib
 import multiprocessing as mp
 import os
 import select
@@ -47,6 +51,12 @@ WARMUP_FRAMES = 50              # frames after the start not counted (engage, fi
 MATCH_NS = 1_500_000            # a setpoint's time_boot_ms is ms-rounded: match within 1.5 ms
 LINK_TIMEOUT_S = 60.0
 CLK_TCK = os.sysconf('SC_CLK_TCK')
+# Intermediate products on the WINDOW-mode path, in path order: when each reaches the replayer
+# (image stamp -> arrival, system time) says where the latency goes. Stamped with the image.
+STAGES = (('window/corners', 'geometry_msgs.msg.PolygonStamped'),
+          ('front_camera/translational_flow', 'geometry_msgs.msg.Vector3Stamped'),
+          ('ibvs/supervisor_status', 'diagnostic_msgs.msg.DiagnosticArray'),
+          ('ibvs/force_setpoint', 'geometry_msgs.msg.Vector3Stamped'))
 
 
 def sway(r: float) -> tuple[np.ndarray, np.ndarray]:
@@ -174,6 +184,7 @@ class Replayer:
         from sensor_msgs.msg import CameraInfo, Image, Imu
         from std_srvs.srv import Trigger
         from ibvs_common.core.config import load_vehicle
+        from ibvs_common.node_common import COMMAND_QOS
         self.rclpy = rclpy
         self.image_msg, self.info_msg = image_msg, camera_info_msg
         self.node = rclpy.create_node('bench_latency_replayer')
@@ -186,12 +197,26 @@ class Replayer:
                       for c in ('front', 'down')}
         self.imu_count = 0
         self.node.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
+        self.arrivals: dict = {topic: {} for topic, _ in STAGES}   # topic: stamp ns -> rx ns
+        for topic, type_name in STAGES:
+            module, cls = type_name.rsplit('.', 1)
+            msg_type = getattr(importlib.import_module(module), cls)
+            qos = COMMAND_QOS if topic.startswith('ibvs/') else qos_profile_sensor_data
+            self.node.create_subscription(msg_type, topic, self._arrival(topic), qos)
         self.start = self.node.create_client(Trigger, 'ibvs/start')
         self.start_request = Trigger.Request()
         self.start_future = None
 
     def _on_imu(self, msg) -> None:
         self.imu_count += 1
+
+    def _arrival(self, topic: str):
+        seen = self.arrivals[topic]
+
+        def note(msg) -> None:
+            stamp = msg.header.stamp
+            seen.setdefault(stamp.sec * 1_000_000_000 + stamp.nanosec, time.time_ns())
+        return note
 
     def spin(self, seconds: float) -> None:
         end = time.monotonic() + seconds
@@ -303,6 +328,9 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
                 lat.append((rx_ns - counted[j]) / 1e6)
     out['latency_ms'] = np.array(lat)
     out['frames'] = len(counted)
+    out['stages_ms'] = {topic: np.array([(seen[int(t)] - int(t)) / 1e6 for t in counted
+                                         if int(t) in seen])
+                        for topic, seen in rep.arrivals.items()}
     return out
 
 
@@ -327,6 +355,10 @@ def report(r: dict) -> None:
         line += (f"  latency median {np.median(lat):6.2f}  p95 {np.percentile(lat, 95):6.2f}  "
                  f"p99 {np.percentile(lat, 99):6.2f}  max {lat.max():6.2f} ms")
     print(line + ('' if r.get('started') else '  (supervisor did not start)'))
+    stages = [f'{topic} {np.median(v):.1f}' for topic, v in r.get('stages_ms', {}).items()
+              if len(v)]
+    if stages:
+        print('    median image stamp -> arrival at the replayer (ms): ' + ', '.join(stages))
     cpu = r['cpu']
     print('    CPU while replaying (% of one core): ' + ', '.join(
         f'{n} {v:.0f}' for n, v in sorted(cpu.items())) + f'; total {sum(cpu.values()):.0f}')
