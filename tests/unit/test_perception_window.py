@@ -328,3 +328,36 @@ def test_robust_lines_refit_the_inliers_by_total_least_squares():
         expected = np.append(h, -h @ centre)
         line = lines[k] if lines[k][:2] @ h > 0.0 else -lines[k]
         np.testing.assert_allclose(line, expected, rtol=0.0, atol=1e-9)
+
+
+def test_dropping_small_components_keeps_every_candidate_contour():
+    # a dark ring and a larger blob with a hole among hundreds of specks, some inside the holes
+    rng = np.random.default_rng(4)
+    binary = np.where(cv2.GaussianBlur(rng.uniform(0.0, 1.0, (240, 376)), (0, 0), 1.2) > 0.56,
+                      255, 0).astype(np.uint8)
+    cv2.rectangle(binary, (60, 40), (200, 160), 255, 6)
+    cv2.rectangle(binary, (230, 30), (360, 220), 255, -1)
+    cv2.circle(binary, (290, 120), 40, 0, -1)
+    min_area = 0.01 * binary.size
+
+    def candidates(mask):
+        contours, hierarchy = cv2.findContours(mask, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+        out = []
+        for i, (_, _, child, parent) in enumerate(hierarchy[0]):
+            if parent == -1 and cv2.contourArea(contours[i]) >= min_area:
+                holes = []
+                while child != -1:
+                    holes.append(contours[child])
+                    child = hierarchy[0][child][0]
+                out.append((contours[i], holes))
+        return out, len(contours)
+
+    kept, n_kept = candidates(window._without_small_components(binary, min_area))
+    every, n_every = candidates(binary)
+    assert len(every) >= 2 and n_every > 5 * n_kept
+    assert len(kept) == len(every)
+    for (outer, holes), (outer_all, holes_all) in zip(kept, every):
+        np.testing.assert_array_equal(outer, outer_all)
+        assert len(holes) == len(holes_all)
+        for hole, hole_all in zip(holes, holes_all):
+            np.testing.assert_array_equal(hole, hole_all)
