@@ -22,13 +22,19 @@ c fixed, s by least squares over the points that the first plane does not explai
 
 Pipeline per image: pyramidal Lucas-Kanade (cv2.calcOpticalFlowPyrLK) of the tracked features
 from the previous image; each track gives p(t0), p(t1) in {I} (undistorted, derotated);
-p_dot ~ (p1 - p0) / dt at the mid bearing; phi by least squares over all tracks with an
-iterated Huber re-weighting and a final inlier gate (in pixels). Features are replenished
+p_dot ~ (p1 - p0) / dt at the mid bearing. Slow motion (derotated image motion under
+``slow_motion_px`` per frame, e.g. hover or a far wall) gives few pixels of signal against
+the trackers' noise: t0 is then taken up to ``max_baseline_frames`` frames back, on the
+tracks that persisted (each keeps its bearings in {I} per frame), so that the baseline holds
+about ``slow_motion_px``; the estimate is then the mean flow over that interval. phi by
+least squares over all tracks with an iterated Huber re-weighting and a final inlier gate
+(in pixels). Features are replenished
 cheaply: goodFeaturesToTrack only inside grid cells that have too few tracks, and only every
 ``replenish_every_n_frames`` frames (or at once when the tracks run short).
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import cv2
@@ -68,6 +74,8 @@ class FlowConfig:
     exclusion_margin_rad: float = 0.02      # widening of the excluded window aperture
     min_frame_gap_s: float = 1e-4           # consecutive image stamps: accepted gap
     max_frame_gap_s: float = 0.1
+    slow_motion_px: float = 2.0             # derotated motion per frame below this: baseline
+    max_baseline_frames: int = 5            # ... over up to this many frames (>= 1)
 
     def __post_init__(self) -> None:
         """Raise ValueError naming the parameter for what a range cannot check."""
@@ -107,6 +115,11 @@ PARAMETER_SPECS = {
                         'consecutive images', 0.0, None),
     'max_frame_gap_s': ('s (image stamps, ROS clock), largest accepted gap between '
                         'consecutive images', 0.0, None),
+    'slow_motion_px': ('px per frame: when the derotated image motion is slower, phi is '
+                       'estimated over several frames (a longer baseline), up to '
+                       'max_baseline_frames', 0.0, None),
+    'max_baseline_frames': ('frames: the longest baseline of a slow-motion estimate (1: '
+                            'always frame to frame)', 1, 50),
 }
 
 
@@ -279,9 +292,13 @@ class FlowEstimator:
         """Drop the tracks and the previous image."""
         self._previous: np.ndarray | None = None
         self._points = np.zeros((0, 2), np.float32)
+        self._ids = np.zeros(0, np.int64)          # one id per track, kept while tracked
+        self._next_id = 0
         self._stamp: float | None = None
-        self._R_IB: np.ndarray | None = None
+        # past frames with an attitude, newest last: (stamp, track ids, bearings in {I})
+        self._history: deque = deque(maxlen=self.config.max_baseline_frames)
         self._frame_count = 0
+        self.last_baseline_frames = 0              # baseline of the last estimate (frames)
 
     @property
     def n_points(self) -> int:
@@ -305,25 +322,66 @@ class FlowEstimator:
         dt = None if self._stamp is None else stamp_s - self._stamp
         if dt is None or not cfg.min_frame_gap_s <= dt <= cfg.max_frame_gap_s \
                 or self._previous is None or gray.shape != self._previous.shape:
-            self._points = np.zeros((0, 2), np.float32)
+            self._points, self._ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
+            self._history.clear()
         elif len(self._points):
-            prev_pts, cur_pts = self._track(gray)
-            if R_IB is not None and self._R_IB is not None and eta_I is not None \
-                    and len(cur_pts):
-                result = self._estimate(prev_pts, cur_pts, self._R_IB, R_IB, dt,
-                                        np.asarray(eta_I, dtype=float), exclude_I,
-                                        None if eta2_I is None
-                                        else np.asarray(eta2_I, dtype=float))
-            self._points = cur_pts
+            self._points, self._ids = self._track(gray)
+        p_I = None
+        if R_IB is None:
+            self._history.clear()                  # long baselines need every attitude
+        else:
+            p_I = self._bearings_I(self._points, R_IB)
+            if eta_I is not None and self._history and len(self._points):
+                result = self._estimate_over_baseline(
+                    stamp_s, p_I, np.asarray(eta_I, dtype=float), exclude_I,
+                    None if eta2_I is None else np.asarray(eta2_I, dtype=float))
         self._frame_count += 1
         if len(self._points) < cfg.min_tracks \
                 or self._frame_count % cfg.replenish_every_n_frames == 0:
+            n_old = len(self._points)
             self._replenish(gray)
-        self._previous, self._stamp, self._R_IB = gray, stamp_s, R_IB
+            if p_I is not None and len(self._points) > n_old:
+                p_I = np.vstack([p_I, self._bearings_I(self._points[n_old:], R_IB)])
+        if p_I is not None:
+            self._history.append((stamp_s, self._ids.copy(), p_I))
+        self._previous, self._stamp = gray, stamp_s
         return result
 
+    def _bearings_I(self, points_px: np.ndarray, R_IB: np.ndarray) -> np.ndarray:
+        """Return the unit bearings (N, 3) in {I} of distorted pixels at the attitude R_IB."""
+        if not len(points_px):
+            return np.zeros((0, 3))
+        return bearings_C_to_I(self.camera.pixels_to_bearings(points_px), R_IB, self.R_BC)
+
+    def _estimate_over_baseline(self, stamp_s: float, p1_all: np.ndarray, eta_I: np.ndarray,
+                                exclude_I: np.ndarray | None,
+                                eta2_I: np.ndarray | None) -> FlowResult:
+        """Estimate from the previous frame, or from further back when the motion is slow."""
+        cfg = self.config
+        baselines = []
+        for back in range(1, len(self._history) + 1):       # previous frame first
+            stamp0, ids0, p0_all = self._history[-back]
+            common, i0, i1 = np.intersect1d(ids0, self._ids, assume_unique=True,
+                                            return_indices=True)
+            if len(common) < cfg.min_inliers:
+                break
+            baselines.append((stamp_s - stamp0, p0_all[i0], p1_all[i1]))
+            if back == 1:
+                motion_px = float(np.median(np.arccos(np.clip(
+                    np.sum(p0_all[i0] * p1_all[i1], axis=1), -1.0, 1.0)))) \
+                    * float(self.camera.K[0, 0])
+                if motion_px >= cfg.slow_motion_px:
+                    break
+            elif back * motion_px >= cfg.slow_motion_px:
+                break
+        if not baselines:
+            return FlowResult(None, 0.0, 0, 0)
+        dt, p0, p1 = baselines[-1]
+        self.last_baseline_frames = len(baselines)
+        return self._estimate(p0, p1, dt, eta_I, exclude_I, eta2_I)
+
     def _track(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """LK-track the features from the previous image; returns (prev, cur) of the good."""
+        """LK-track the features from the previous image; returns (points, ids) of the good."""
         cfg = self.config
         prev = self._points.reshape(-1, 1, 2)
         cur, status, err = cv2.calcOpticalFlowPyrLK(
@@ -336,14 +394,12 @@ class FlowEstimator:
             & np.all(np.isfinite(cur), axis=1) \
             & (cur[:, 0] >= b) & (cur[:, 0] <= w - 1 - b) \
             & (cur[:, 1] >= b) & (cur[:, 1] <= h - 1 - b)
-        return self._points[ok], cur[ok].astype(np.float32)
+        return cur[ok].astype(np.float32), self._ids[ok]
 
-    def _estimate(self, prev_px: np.ndarray, cur_px: np.ndarray, R0: np.ndarray,
-                  R1: np.ndarray, dt: float, eta_I: np.ndarray,
+    def _estimate(self, p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: np.ndarray,
                   exclude_I: np.ndarray | None, eta2_I: np.ndarray | None) -> FlowResult:
+        """Phi from the tracks' bearings p0 -> p1 in {I}, dt apart (module doc)."""
         cfg = self.config
-        p0 = bearings_C_to_I(self.camera.pixels_to_bearings(prev_px), R0, self.R_BC)
-        p1 = bearings_C_to_I(self.camera.pixels_to_bearings(cur_px), R1, self.R_BC)
         on_plane = (p0 @ eta_I > cfg.min_cos_plane) & (p1 @ eta_I > cfg.min_cos_plane)
         if eta2_I is not None:       # a point may lie on either plane
             on_plane |= (p0 @ eta2_I > cfg.min_cos_plane) & (p1 @ eta2_I > cfg.min_cos_plane)
@@ -422,3 +478,5 @@ class FlowEstimator:
             d2 = ((cand[:, None, :] - pts[None, :, :]) ** 2).sum(axis=2)
             cand = cand[d2.min(axis=1) >= cfg.min_distance_px ** 2]
         self._points = np.concatenate([pts, cand]).astype(np.float32)
+        self._ids = np.concatenate([self._ids, self._next_id + np.arange(len(cand))])
+        self._next_id += len(cand)
