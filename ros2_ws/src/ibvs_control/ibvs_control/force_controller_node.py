@@ -32,7 +32,8 @@ from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
-from ibvs_control.core.control_laws import CrossingGains, GAIN_SPECS, LandingGains, WindowGains
+from ibvs_control.core.control_laws import (CrossingGains, GAIN_SPECS, IntegralGains,
+                                            LandingGains, WindowGains)
 from ibvs_control.core.controller import ControllerConfig, IbvsController
 from ibvs_control.core.frame_io import feature_vector, heading_quat_enu_flu, step_controller
 from ibvs_common.core.frames import MAP_FRAME, vec_I_to_map
@@ -55,7 +56,7 @@ def _gain_defaults() -> dict:
     """Parameter names and defaults of the gains (the paper's, from the core dataclasses)."""
     out = {}
     for prefix, kind in (('landing', LandingGains), ('window', WindowGains),
-                         ('crossing', CrossingGains)):
+                         ('crossing', CrossingGains), ('integral', IntegralGains)):
         for f in kind.__dataclass_fields__.values():
             out[f'{prefix}.{f.name}'] = float(f.default)
     return out
@@ -72,6 +73,7 @@ def _mode(number) -> tuple[Mode | None, str]:
 GAIN_PARAMETERS = _gain_defaults()
 PARAMETERS = {
     'crossing_law': 'closed',
+    'disturbance_law': 'paper',
     'frame_deadline_s': 0.04,
     'imu_history_s': 1.0,
     'imu_max_extrapolation_s': 0.05,
@@ -85,6 +87,8 @@ GAIN_PARAMETER_SPECS = {f'{prefix}.{name}': spec for prefix, specs in GAIN_SPECS
                         for name, spec in specs.items()}
 PARAMETER_SPECS = {
     'crossing_law': ('mode 2 law: closed | intended | seed (SPEC.md section 3)',),
+    'disturbance_law': ("window and landing laws: 'paper' (proportional) | 'integral' (with "
+                        'integral action on the image errors, integral.*; docs/design.md)',),
     'frame_deadline_s': ('s (ROS clock, from the frame stamp): a frame waits at most this for '
                          'the products its mode needs', 0.0, None),
     **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
@@ -108,6 +112,7 @@ class ForceControllerNode(Node):
         r_w = load_window_layout(p['window_layout_file'] or None).width
         gains = {k: p[k] for k in GAIN_PARAMETERS}
         gains['crossing_law'] = p['crossing_law']
+        gains['disturbance_law'] = p['disturbance_law']
         pad = load_pad_layout(p['pad_layout_file'] or None)
         config = ControllerConfig.from_params(gains, vehicle, r_w, pad)   # raises GainError
         self._controller = IbvsController(config)
@@ -130,7 +135,10 @@ class ForceControllerNode(Node):
                                  COMMAND_QOS)
         self._deadline = DeadlineTimer(self, self._release)
         self.get_logger().info(f'force controller: gains {config.landing}, {config.window}, '
-                               f'{config.crossing}, crossing law {config.crossing_law.value}')
+                               f'{config.crossing}, crossing law {config.crossing_law.value}, '
+                               f'disturbance law {config.disturbance_law.value}'
+                               + (f' {config.integral}' if config.disturbance_law.value
+                                  == 'integral' else ''))
 
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:

@@ -26,6 +26,13 @@ class CrossingLaw(str, Enum):
     SEED = 'seed'            # the seed's literal F = eta_w |eta_w^T F_w(T2-)| (defective)
 
 
+class DisturbanceLaw(str, Enum):
+    """How the window and landing laws treat a steady force disturbance (docs/design.md)."""
+
+    PAPER = 'paper'          # the paper's proportional laws: a steady image offset remains
+    INTEGRAL = 'integral'    # plus integral action on the image errors (anti-windup clamp)
+
+
 @dataclass(frozen=True)
 class LandingGains:
     """K_p^t = kp_xy pi_eta + kp_z eta eta^T, K_d^t likewise (1/s^2, 1/s); phi*_t (1/s)."""
@@ -101,6 +108,41 @@ class CrossingGains:
             raise GainError(f'crossing gains must be positive: {self}')
 
 
+@dataclass(frozen=True)
+class IntegralGains:
+    """Integral action of :attr:`DisturbanceLaw.INTEGRAL` (mass-normalised, as the paper's).
+
+    Window (mode 1): xi_w' = ki_w pi_eta q_bar_w (1/s^3), zeta_w' = ki_phi (eta^T phi_w -
+    phi*_w) (1/s^2); landing (mode 3): xi_t' = ki_t pi_e3 q_t (1/s^3). Each term is added to
+    its law's acceleration command and clamped to ``xi_max`` (m/s^2, anti-windup). The
+    frozen-distance linearisation (docs/design.md "Disturbance rejection") is stable for
+    ki_w < k_p^w k_d^w / d_max and ki_t < k_p^t k_d^t / d_max (horizontal gains).
+    """
+
+    ki_w: float = 0.2           # 1/s^3, window lateral/vertical image error
+    ki_phi: float = 0.5         # 1/s^2, window forward flow error
+    ki_t: float = 1.0           # 1/s^3, landing horizontal image error
+    xi_max: float = 2.0         # m/s^2, largest integral acceleration (anti-windup)
+    d_max: float = 3.0          # m, largest distance to the window or pad of the condition
+
+    def validate(self, window: 'WindowGains', landing: LandingGains) -> None:
+        """Raise GainError unless positive and within the frozen-distance conditions."""
+        if min(self.ki_w, self.ki_phi, self.ki_t, self.xi_max, self.d_max) <= 0.0:
+            raise GainError(f'integral gains, xi_max and d_max must be positive: {self}')
+        if self.ki_w >= window.kp * window.kd / self.d_max:
+            raise GainError(f'ki_w = {self.ki_w} must be < k_p^w k_d^w / d_max = '
+                            f'{window.kp * window.kd / self.d_max:.3f} (docs/design.md)')
+        if self.ki_t >= landing.kp_xy * landing.kd_xy / self.d_max:
+            raise GainError(f'ki_t = {self.ki_t} must be < k_p^t k_d^t / d_max = '
+                            f'{landing.kp_xy * landing.kd_xy / self.d_max:.3f}')
+
+
+def clamp_norm(v: np.ndarray, limit: float) -> np.ndarray:
+    """Return v scaled down to norm ``limit`` when longer (the integrators' anti-windup)."""
+    n = float(np.linalg.norm(v))
+    return v if n <= limit else v * (limit / n)
+
+
 #: spec of each gain as a ROS parameter ``<prefix>.<field>`` (description with unit, inclusive
 #: range; ibvs_common.param_descriptors); the paper's conditions are checked by validate()
 GAIN_SPECS = {
@@ -122,6 +164,17 @@ GAIN_SPECS = {
         'eps': ('alpha_w threshold epsilon (dimensionless), > 0', 0.0, None),
         'delta': ('alpha_w threshold delta (dimensionless), > 0', 0.0, None),
     },
+    'integral': {
+        'ki_w': ('1/s^3, window image-error integral (disturbance_law integral; < k_p^w '
+                 'k_d^w / d_max)', 0.0, None),
+        'ki_phi': ('1/s^2, window forward-flow-error integral, > 0', 0.0, None),
+        'ki_t': ('1/s^3, landing horizontal image-error integral (< k_p^t k_d^t / d_max)',
+                 0.0, None),
+        'xi_max': ('m/s^2, largest integral acceleration per law (anti-windup), > 0',
+                   0.0, None),
+        'd_max': ('m, largest window / pad distance of the integral gains condition, > 0',
+                  0.0, None),
+    },
     'crossing': {
         'kv': ('1/s, mode 2 flow damping (as K_d^t), > 0', 0.0, None),
         'ks': ('1/s^2, mode 2 flow-integral stiffness, > 0', 0.0, None),
@@ -138,16 +191,21 @@ def gain_matrix(k_xy: float, k_z: float, eta: np.ndarray = e3) -> np.ndarray:
 
 
 def force_landing(q_t: np.ndarray, phi_t: np.ndarray, gains: LandingGains, mass: float,
-                  eta_t: np.ndarray = e3, lateral_scale: float = 1.0) -> np.ndarray:
+                  eta_t: np.ndarray = e3, lateral_scale: float = 1.0,
+                  xi_I: np.ndarray | None = None) -> np.ndarray:
     """Landing force eq:FT (eq:FT2 when phi*_t > 0), newtons in {I}.
 
-    F_t = m (K_p^t q_t + K_d^t (phi_t - eta_t phi*_t)) + m g e3, with the in-plane gains
-    k_xy multiplied by ``lateral_scale`` (1 = the paper's law).
+    F_t = m (K_p^t q_t + K_d^t (phi_t - eta_t phi*_t) + xi) + m g e3, with the in-plane gains
+    k_xy multiplied by ``lateral_scale`` (1 = the paper's law) and xi the integral term of
+    :attr:`DisturbanceLaw.INTEGRAL` (m/s^2; None = 0, the paper's law).
     """
     Kp = gain_matrix(gains.kp_xy * lateral_scale, gains.kp_z, eta_t)
     Kd = gain_matrix(gains.kd_xy * lateral_scale, gains.kd_z, eta_t)
     phi = np.asarray(phi_t, dtype=float) - np.asarray(eta_t) * gains.phi_t_star
-    return mass * (Kp @ np.asarray(q_t, dtype=float) + Kd @ phi) + mass * GRAVITY * e3
+    a = Kp @ np.asarray(q_t, dtype=float) + Kd @ phi
+    if xi_I is not None:
+        a = a + np.asarray(xi_I, dtype=float)
+    return mass * a + mass * GRAVITY * e3
 
 
 def sigma(q_w: np.ndarray, eta_w: np.ndarray) -> float:
@@ -156,16 +214,20 @@ def sigma(q_w: np.ndarray, eta_w: np.ndarray) -> float:
 
 
 def force_window(q_w: np.ndarray, q_w_bar: np.ndarray, phi_w: np.ndarray, eta_w: np.ndarray,
-                 gains: WindowGains, mass: float) -> np.ndarray:
+                 gains: WindowGains, mass: float, xi_I: np.ndarray | None = None) -> np.ndarray:
     """Window force eq:Fw, newtons in {I}.
 
     F_w = sigma(q_w) m (k_p pi_eta q_bar_w + k_d pi_eta phi_w + k_phi eta (eta^T phi_w -
-    phi*_w)) + m g e3. Deviation from the literal eq:Fw (documented): sigma multiplies the
-    feedback terms only, so gravity stays compensated once the window is crossed.
+    phi*_w) + xi) + m g e3, xi the integral term of :attr:`DisturbanceLaw.INTEGRAL` (m/s^2;
+    None = 0, the paper's law). Deviation from the literal eq:Fw (documented): sigma
+    multiplies the feedback terms only, so gravity stays compensated once the window is
+    crossed.
     """
     pi = proj_orth(eta_w)
     fb = gains.kp * pi @ q_w_bar + gains.kd * pi @ phi_w \
         + gains.k_phi * eta_w * (float(eta_w @ phi_w) - gains.phi_star)
+    if xi_I is not None:
+        fb = fb + np.asarray(xi_I, dtype=float)
     return sigma(q_w, eta_w) * mass * fb + mass * GRAVITY * e3
 
 

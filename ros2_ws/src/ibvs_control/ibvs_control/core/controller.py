@@ -13,8 +13,9 @@ import numpy as np
 from ibvs_control.core.attitude import yaw_facing
 from ibvs_common.core.config import PadLayout, VehicleConfig
 from ibvs_control.core.control_laws import (
-    CrossingGains, CrossingLaw, force_crossing_closed, force_crossing_intended,
-    force_crossing_seed, force_landing, force_window, GainError, LandingGains, WindowGains)
+    clamp_norm, CrossingGains, CrossingLaw, DisturbanceLaw, force_crossing_closed,
+    force_crossing_intended, force_crossing_seed, force_landing, force_window, GainError,
+    IntegralGains, LandingGains, sigma, WindowGains)
 from ibvs_common.core.features import (
     centroid_feature, compute_window_features, pad_height_estimate, window_flow,
     WindowFeatures)
@@ -36,6 +37,8 @@ class ControllerConfig:
     window: WindowGains = field(default_factory=WindowGains)
     crossing: CrossingGains = field(default_factory=CrossingGains)
     crossing_law: CrossingLaw = CrossingLaw.CLOSED
+    disturbance_law: DisturbanceLaw = DisturbanceLaw.PAPER
+    integral: IntegralGains = field(default_factory=IntegralGains)
     eta_t: np.ndarray = field(default_factory=lambda: e3.copy())   # landing plane normal
     group_half_sides: dict = field(default_factory=dict)   # pad group name -> c (m)
 
@@ -46,6 +49,8 @@ class ControllerConfig:
         self.landing.validate()
         self.window.validate(self.r_w)
         self.crossing.validate()
+        if self.disturbance_law == DisturbanceLaw.INTEGRAL:
+            self.integral.validate(self.window, self.landing)
 
     @classmethod
     def from_params(cls, params: dict, vehicle: VehicleConfig, r_w: float,
@@ -56,7 +61,9 @@ class ControllerConfig:
         landing.kd_xy, landing.kd_z, landing.phi_t_star, window.kp, window.kd, window.k_phi,
         window.phi_star, window.eps, window.delta, crossing.kv, crossing.ks, crossing.kf,
         crossing.phi_fwd_min, crossing_law, landing.lateral_schedule_height_m,
-        landing.lateral_scale_min. ``pad`` gives the group sizes for the height estimate.
+        landing.lateral_scale_min, disturbance_law, integral.ki_w, integral.ki_phi,
+        integral.ki_t, integral.xi_max, integral.d_max. ``pad`` gives the group sizes for the
+        height estimate.
         Raises GainError (a ValueError).
         """
         def group(prefix: str, kind):
@@ -73,11 +80,18 @@ class ControllerConfig:
         except ValueError as exc:
             raise GainError(f'crossing_law must be one of {[x.value for x in CrossingLaw]}'
                             ) from exc
+        try:
+            disturbance = DisturbanceLaw(params.get('disturbance_law',
+                                                    DisturbanceLaw.PAPER.value))
+        except ValueError as exc:
+            raise GainError(f'disturbance_law must be one of '
+                            f'{[x.value for x in DisturbanceLaw]}') from exc
         cfg = cls(mass=vehicle.mass, r_w=float(r_w),
                   R_BC_front=vehicle.cameras['front'].R_BC,
                   R_BC_down=vehicle.cameras['down'].R_BC,
                   landing=group('landing', LandingGains), window=group('window', WindowGains),
                   crossing=group('crossing', CrossingGains), crossing_law=law,
+                  disturbance_law=disturbance, integral=group('integral', IntegralGains),
                   group_half_sides={} if pad is None else {g.name: g.c for g in pad.groups})
         cfg.validate()
         return cfg
@@ -141,6 +155,10 @@ class IbvsController:
         self._t_prev: float | None = None
         self._phi_fwd_ref = self.config.crossing.phi_fwd_min
         self._s_perp = np.zeros(3)
+        # DisturbanceLaw.INTEGRAL (m/s^2, {I}): window lateral/vertical and forward, landing
+        self._xi_w = np.zeros(3)
+        self._zeta_w = 0.0
+        self._xi_t = np.zeros(3)
 
     def _hover(self) -> np.ndarray:
         return self.config.mass * GRAVITY * e3
@@ -203,24 +221,53 @@ class IbvsController:
                q_t: np.ndarray | None, phi_w: np.ndarray | None,
                phi_t: np.ndarray | None, height: float | None) -> tuple[np.ndarray, bool]:
         cfg = self.config
+        integral = cfg.disturbance_law == DisturbanceLaw.INTEGRAL
         if mode == Mode.WINDOW:
+            if entering:
+                self._xi_w, self._zeta_w = np.zeros(3), 0.0
             if win is None or phi_w is None:
                 return self._F_last, False
             self._eta_w = win.eta_w
             self._yaw_des = yaw_facing(win.eta_w, cfg.R_BC_front)
-            F = force_window(win.q_w, win.q_w_bar, phi_w, win.eta_w, cfg.window, cfg.mass)
+            F = force_window(win.q_w, win.q_w_bar, phi_w, win.eta_w, cfg.window, cfg.mass,
+                             self._window_integral(win.eta_w) if integral else None)
+            if integral:
+                self._integrate_window(dt, win, phi_w)
             self._F_w_T2 = F
             return F, True
         if mode == Mode.CROSSING:
             return self._crossing_force(entering, dt, phi_t)
         if mode == Mode.LANDING:
+            if entering and integral and self._eta_w is not None:
+                # bumpless: the wind the window law had learnt, in the landing plane
+                self._xi_t = proj_orth(cfg.eta_t) @ self._window_integral(self._eta_w)
             if q_t is None or phi_t is None:
                 return self._F_last, False
-            return force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t,
-                                 cfg.landing.lateral_scale(height)), True
+            F = force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t,
+                              cfg.landing.lateral_scale(height), self._xi_t if integral else None)
+            if integral:
+                self._xi_t = clamp_norm(self._xi_t + cfg.integral.ki_t * dt
+                                        * (proj_orth(cfg.eta_t) @ q_t), cfg.integral.xi_max)
+            return F, True
         # IDLE (the autopilot holds), SHUTDOWN (level, the bridge ramps thrust down) and
         # FAILSAFE (level hover, the bridge/autopilot descend): a level attitude.
         return self._hover(), True
+
+    def _window_integral(self, eta_w: np.ndarray) -> np.ndarray:
+        """Window integral term (m/s^2, {I}): pi_eta xi_w + eta zeta_w."""
+        return proj_orth(eta_w) @ self._xi_w + eta_w * self._zeta_w
+
+    def _integrate_window(self, dt: float, win: WindowFeatures, phi_w: np.ndarray) -> None:
+        """One Euler step of the window integrators, frozen once the window is crossed."""
+        if sigma(win.q_w, win.eta_w) == 0.0:
+            return
+        g = self.config.integral
+        pi = proj_orth(win.eta_w)
+        self._xi_w = clamp_norm(pi @ (self._xi_w + g.ki_w * dt * win.q_w_bar), g.xi_max)
+        self._zeta_w = float(np.clip(
+            self._zeta_w + g.ki_phi * dt * (float(win.eta_w @ phi_w)
+                                            - self.config.window.phi_star),
+            -g.xi_max, g.xi_max))
 
     def _crossing_force(self, entering: bool, dt: float,
                         phi_t: np.ndarray | None) -> tuple[np.ndarray, bool]:

@@ -1,0 +1,110 @@
+"""Integral action on the image errors (disturbance_law 'integral', issue 14 item 1).
+
+Closed loop at feature level (ibvs_sim's loop, the reference start, a steady wind): outcomes
+against the paper's proportional laws; then the integrators' bookkeeping on one controller.
+"""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from ibvs_common.core.config import load_pad_layout, load_vehicle
+from ibvs_common.core.frames import bearings_I_to_C, e3, GRAVITY
+from ibvs_common.core.modes import Mode
+from ibvs_control.core.control_laws import DisturbanceLaw, GainError, IntegralGains
+from ibvs_control.core.controller import ControllerConfig, IbvsController, Measurements
+from ibvs_control.core.supervisor import SupervisorConfig
+from ibvs_sim.core.feature_sim import FeatureSimConfig, run_feature_scenario
+from ibvs_sim.core.world import load_world
+
+WORLD, PAD, VEHICLE = load_world(), load_pad_layout(), load_vehicle()
+
+
+def fly(law: str, wind_accel_I) -> dict:
+    ctrl = ControllerConfig.from_params({'disturbance_law': law}, VEHICLE, WORLD.window.width,
+                                        PAD)
+    cfg = FeatureSimConfig(initial_position_I=np.asarray(WORLD.initial_position_I, float),
+                           wind_accel_I=np.asarray(wind_accel_I, float), max_time_s=40.0)
+    summary, _ = run_feature_scenario(WORLD, PAD, VEHICLE, ctrl,
+                                      SupervisorConfig(r_w=WORLD.window.width), cfg)
+    return summary
+
+
+def test_a_headwind_stalls_the_paper_law_and_not_the_integral_one():
+    """0.2 m/s^2 against eta_w from hover: the proportional forward law stalls before the wall.
+
+    Measured (2026-11-25): paper fails (stalls before the window, crossing timeout), integral
+    succeeds with 15.8 cm clearance and 1.2 cm landing error.
+    """
+    paper, integral = fly('paper', [-0.2, 0.0, 0.0]), fly('integral', [-0.2, 0.0, 0.0])
+    assert not paper['success']
+    assert integral['success'] and integral['window']['min_clearance_m'] >= 0.05
+
+
+def test_a_crosswind_leaves_less_offset_with_the_integral_law():
+    """0.2 m/s^2 across: the paper's steady image offset ~ Delta / (m k_p) is integrated away.
+
+    Measured: clearance 6.4 -> 10.6 cm, landing error 3.8 -> 0.8 cm.
+    """
+    paper, integral = fly('paper', [0.0, 0.2, 0.0]), fly('integral', [0.0, 0.2, 0.0])
+    assert paper['success'] and integral['success']
+    assert integral['window']['min_clearance_m'] > paper['window']['min_clearance_m']
+    assert integral['landing']['error_m'] < 0.5 * paper['landing']['error_m']
+
+
+def window_measurements(t: float, xi: np.ndarray) -> Measurements:
+    """The front camera's window corner bearings seen level from xi, no flow (hovering)."""
+    P = WORLD.window.corners_I() - xi
+    b_C = bearings_I_to_C(P / np.linalg.norm(P, axis=1, keepdims=True), np.eye(3),
+                          VEHICLE.cameras['front'].R_BC)
+    return Measurements(t=t, R_IB=np.eye(3), window_bearings_C=b_C, pad_bearings_C=None,
+                        phi_front_I=np.zeros(3), phi_down_I=None)
+
+
+def test_integrators_accumulate_clamp_reset_and_the_paper_law_has_none():
+    gains = IntegralGains(xi_max=0.05)
+    paper = IbvsController(ControllerConfig.from_params({}, VEHICLE, WORLD.window.width, PAD))
+    integral = IbvsController(replace(paper.config, integral=gains,
+                                      disturbance_law=DisturbanceLaw.INTEGRAL))
+    xi = np.array([-2.0, 0.4, -1.6])                     # 0.4 m east of the window axis
+    hover = VEHICLE.mass * GRAVITY * e3
+    F_p = [paper.step(Mode.WINDOW, window_measurements(0.02 * k, xi)).F_I for k in range(60)]
+    F_i = [integral.step(Mode.WINDOW, window_measurements(0.02 * k, xi)).F_I
+           for k in range(60)]
+    assert np.allclose(F_p, F_p[0])                      # proportional: constant
+    assert np.allclose(F_i[0], F_p[0])                   # no integral yet at the first frame
+    # the integral adds m ki pi q_bar per second along y (the P term's direction), then clamps
+    lateral = np.array([f[1] for f in F_i]) - F_p[0][1]
+    assert np.sign(lateral[5]) == np.sign(F_p[0][1] - hover[1])
+    # F uses the integral up to the previous frame; the first frame has no dt: 0, 0, d, 2d
+    assert lateral[0] == lateral[1] == 0.0
+    assert lateral[3] - lateral[2] == pytest.approx(lateral[2] - lateral[1], rel=1e-6)
+    # both integrals clamped at xi_max: the image error's (y, z) and the forward flow error's
+    # (hovering: eta^T phi_w - phi* = -phi* < 0, so along -eta_w = -x)
+    d = (F_i[-1] - F_p[0]) / VEHICLE.mass
+    assert np.linalg.norm(d[1:]) == pytest.approx(0.05, rel=1e-6)
+    assert d[0] == pytest.approx(-0.05, rel=1e-3)
+    # LANDING starts from the wind the window law learnt, in the horizontal plane (bumpless)
+    above = np.array([0.1, -0.05, -1.0])
+    P = np.vstack([g.marker_centres_I() for g in PAD.groups]) - above
+    pad = Measurements(t=1.22, R_IB=np.eye(3), window_bearings_C=None,
+                       pad_bearings_C=bearings_I_to_C(P / np.linalg.norm(P, axis=1)[:, None],
+                                                      np.eye(3), VEHICLE.cameras['down'].R_BC),
+                       phi_front_I=None, phi_down_I=np.zeros(3),
+                       pad_groups=tuple(g.name for g in PAD.groups))
+    F_land_p = paper.step(Mode.LANDING, pad).F_I
+    F_land_i = integral.step(Mode.LANDING, pad).F_I
+    assert (F_land_i - F_land_p) / VEHICLE.mass == pytest.approx([d[0], d[1], 0.0], abs=1e-9)
+    # a new WINDOW engagement starts from zero
+    integral.step(Mode.IDLE, window_measurements(1.3, xi))
+    assert np.allclose(integral.step(Mode.WINDOW, window_measurements(1.32, xi)).F_I, F_p[0])
+
+
+def test_integral_gains_outside_the_stability_condition_are_refused():
+    with pytest.raises(GainError, match='ki_w'):
+        ControllerConfig.from_params({'disturbance_law': 'integral', 'integral.ki_w': 0.3},
+                                     VEHICLE, WORLD.window.width, PAD)
+    with pytest.raises(GainError, match='disturbance_law'):
+        ControllerConfig.from_params({'disturbance_law': 'pid'}, VEHICLE, WORLD.window.width)
+    # the paper's law does not check gains it does not use
+    ControllerConfig.from_params({'integral.ki_w': 0.3}, VEHICLE, WORLD.window.width)
