@@ -148,6 +148,14 @@ def test_campaign_resumes_and_refuses_other_settings(tmp_path):
                                     results_root=str(tmp_path)), workers=1, progress=None)
 
 
+def test_campaign_stops_after_its_wall_clock_budget(tmp_path):
+    cfg = CampaignConfig(name='budget', runs=3, levels_mps2=(0.0,), results_root=str(tmp_path))
+    messages = []
+    out = run_campaign(cfg, workers=1, progress=messages.append, max_wall_s=0.0)
+    assert len(out) == 1 and out[0]['run']['index'] == 0
+    assert messages[-1].startswith('  stopped after 0 s of wall clock: 1 / 3 flown')
+
+
 def test_help_and_bad_arguments(capsys):
     with pytest.raises(SystemExit) as e:
         campaign.parse_args(['--help'])

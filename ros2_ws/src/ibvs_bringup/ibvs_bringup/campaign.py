@@ -529,13 +529,16 @@ def check_manifest(cfg: CampaignConfig) -> None:
 
 
 def run_campaign(cfg: CampaignConfig, workers: int = 1,
-                 progress: Callable[[str], None] | None = print) -> list[dict]:
+                 progress: Callable[[str], None] | None = print,
+                 max_wall_s: float | None = None) -> list[dict]:
     """Fly the runs that have no summary.json yet (``workers`` processes); return all summaries.
 
     Returned: the summaries of every run of the campaign that has one (stored or just flown;
     an image-level run that could not be flown has none). Image level: each worker process
     sets its own ROS_DOMAIN_ID (``domain_base`` + worker) before it starts any graph.
-    Raises ValueError for a resume with other settings or a bad law override.
+    ``max_wall_s``: stop flying after this many seconds of wall clock (the runs in flight are
+    dropped, the stored ones kept: resume later). Raises ValueError for a resume with other
+    settings or a bad law override.
     """
     from ibvs_sim.core.world import load_world
     check_manifest(cfg)
@@ -571,6 +574,11 @@ def run_campaign(cfg: CampaignConfig, workers: int = 1,
                          '(see its run_scenario.log)')
             if progress and (k % every == 0 or k == len(tasks)):
                 progress(f'  {k} / {len(tasks)} flown, {time.monotonic() - t0:.0f} s')
+            if max_wall_s is not None and time.monotonic() - t0 > max_wall_s:
+                if progress:
+                    progress(f'  stopped after {max_wall_s:g} s of wall clock: {k} / '
+                             f'{len(tasks)} flown (resume with the same command)')
+                break
     finally:
         if pool is not None:
             pool.terminate()
@@ -685,8 +693,9 @@ def _save(fig, out_dir: str, name: str) -> str:
 
 # --- command line ---------------------------------------------------------------------------
 
-def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, bool]:
-    """Parse the command line into (config, workers, plots, aggregate_only)."""
+def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, bool,
+                                                  float | None]:
+    """Parse the command line into (config, workers, plots, aggregate_only, max_wall_s)."""
     p = argparse.ArgumentParser(
         prog='python -m ibvs_bringup.campaign',
         description='Monte Carlo campaign under wind, feature level (issue 14): N random '
@@ -726,6 +735,8 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                    help='image level: wall-clock limit of one run')
     p.add_argument('--aggregate-only', action='store_true',
                    help='fly nothing: aggregate the stored runs')
+    p.add_argument('--max-wall', type=float, default=None, metavar='S',
+                   help='stop flying after S s of wall clock (resumable), then aggregate')
     a = p.parse_args(argv)
     if a.runs < 1 or a.workers < 1 or a.gust_components < 1 or a.gust_level < 0 \
             or any(x < 0 or not math.isfinite(x) for x in a.levels):
@@ -753,14 +764,14 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          params_file=a.params_file, results_root=a.results_root,
                          image_level=a.image_level, domain_base=a.domain_base,
                          run_timeout_s=a.run_timeout)
-    return cfg, a.workers, not a.no_plots, a.aggregate_only
+    return cfg, a.workers, not a.no_plots, a.aggregate_only, a.max_wall
 
 
 def main(argv: list | None = None) -> int:
     """Run (or aggregate) a campaign from the command line; 0 on success, 2 on a bad setup."""
     from ibvs_bringup.graph import ensure_ament_prefix_path
     ensure_ament_prefix_path()
-    cfg, workers, plots, aggregate_only = parse_args(argv)
+    cfg, workers, plots, aggregate_only, max_wall_s = parse_args(argv)
     t0 = time.monotonic()
     try:
         if aggregate_only:
@@ -771,7 +782,7 @@ def main(argv: list | None = None) -> int:
                 print(f'campaign: no stored runs in {cfg.out_dir}', file=sys.stderr)
                 return 2
         else:
-            summaries = run_campaign(cfg, workers)
+            summaries = run_campaign(cfg, workers, max_wall_s=max_wall_s)
     except (ValueError, OSError) as exc:
         print(f'campaign: {exc}', file=sys.stderr)
         return 2
