@@ -302,6 +302,35 @@ def status(feed, t, mode):
                                               DiagnosticStatus.OK, {}))
 
 
+def test_controller_observer_reads_imu_specific_force_in_flu(ctx):
+    """disturbance_law observer: imu/data linear_acceleration (base_link FLU) reaches d_hat in {I}.
+
+    Hovering level, facing north: the accelerometer reads +g up plus 0.5 m/s^2 to the LEFT
+    (FLU y), i.e. a force towards the west (-y in {I}, north-east-down); F = m g e3, so
+    Delta / m = f_I + F / m = (0, -0.5, 0). An all-zero reading (an unfilled field) is ignored.
+    """
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fcobs_{TAG}', disturbance_law='observer')
+    feed = Feeder(context, f'feedobs_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    spin_for(executor, 0.3)
+    for i in range(100):                       # 2 s = 4 observer time constants
+        t = 20.0 + 0.02 * i
+        for sub in (0.005, 0.015):
+            msg = imu_msg(t - 0.02 + sub)
+            msg.linear_acceleration.y, msg.linear_acceleration.z = 0.5, GRAVITY
+            feed.imu.publish(msg)
+            feed.imu.publish(imu_msg(t - 0.02 + sub + 0.001))   # zeros: not a flying reading
+        spin_for(executor, 0.003)
+        status(feed, t, 0)
+        spin_for(executor, 0.003)
+    assert spin_until(executor, lambda: len(feed.forces) >= 100, 5.0)
+    d_hat = fc._controller.disturbance_estimate
+    assert d_hat == pytest.approx([0.0, -0.5 * (1 - np.exp(-2.0 / 0.5)), 0.0], abs=0.02)
+
+
 def test_controller_answers_every_status_once_in_idle(ctx):
     context, executor, nodes = ctx
     fc = make_controller(context, f'fc_{TAG}')

@@ -23,6 +23,7 @@ ControllerConfig.from_params: bad gains -> GainError, the process exits with sta
 """
 from __future__ import annotations
 
+import numpy as np
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -32,11 +33,13 @@ from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
-from ibvs_control.core.control_laws import (CrossingGains, GAIN_SPECS, IntegralGains,
-                                            LandingGains, WindowGains)
+from ibvs_control.core.control_laws import (CrossingGains, DisturbanceLaw, GAIN_SPECS,
+                                            IntegralGains, LandingGains, ObserverGains,
+                                            WindowGains)
 from ibvs_control.core.controller import ControllerConfig, IbvsController
-from ibvs_control.core.frame_io import feature_vector, heading_quat_enu_flu, step_controller
-from ibvs_common.core.frames import MAP_FRAME, vec_I_to_map
+from ibvs_control.core.frame_io import (feature_vector, heading_quat_enu_flu,
+                                        SpecificForceBuffer, step_controller)
+from ibvs_common.core.frames import GRAVITY, MAP_FRAME, vec_flu_to_frd, vec_I_to_map
 from ibvs_common.core.modes import InputKind, Mode, MODE_INPUTS
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
@@ -44,19 +47,21 @@ from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
-    SENSOR_QOS, set_quat, set_vector3)
+    SENSOR_QOS, set_quat, set_vector3, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
+MIN_SPECIFIC_FORCE = 0.3 * GRAVITY   # m/s^2, least accelerometer reading used in flight
 
 
 def _gain_defaults() -> dict:
     """Parameter names and defaults of the gains (the paper's, from the core dataclasses)."""
     out = {}
     for prefix, kind in (('landing', LandingGains), ('window', WindowGains),
-                         ('crossing', CrossingGains), ('integral', IntegralGains)):
+                         ('crossing', CrossingGains), ('integral', IntegralGains),
+                         ('observer', ObserverGains)):
         for f in kind.__dataclass_fields__.values():
             out[f'{prefix}.{f.name}'] = float(f.default)
     return out
@@ -88,7 +93,9 @@ GAIN_PARAMETER_SPECS = {f'{prefix}.{name}': spec for prefix, specs in GAIN_SPECS
 PARAMETER_SPECS = {
     'crossing_law': ('mode 2 law: closed | intended | seed (SPEC.md section 3)',),
     'disturbance_law': ("window and landing laws: 'paper' (proportional) | 'integral' (with "
-                        'integral action on the image errors, integral.*; docs/design.md)',),
+                        "integral action on the image errors, integral.*) | 'observer' (with "
+                        'a disturbance observer on imu/data specific force, observer.*); '
+                        'docs/design.md',),
     'frame_deadline_s': ('s (ROS clock, from the frame stamp): a frame waits at most this for '
                          'the products its mode needs', 0.0, None),
     **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
@@ -122,6 +129,10 @@ class ForceControllerNode(Node):
         # a frame = one supervisor status (tag: its mode), waiting for that mode's products
         self._frames = FrameAssembler(float(p['frame_deadline_s']),
                                       lambda mode: MODE_INPUTS[mode].needed)
+        # the disturbance observer's input: imu/data's specific force, per answered frame
+        self._specific_force = SpecificForceBuffer() \
+            if config.disturbance_law == DisturbanceLaw.OBSERVER else None
+        self._t_answered: float | None = None
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
                                                 COMMAND_QOS)
@@ -148,7 +159,23 @@ class ForceControllerNode(Node):
         except ValueError as exc:
             self.log.error(f'imu/data refused: {exc}', LOG_THROTTLE_S)
             return
+        if self._specific_force is not None and msg.linear_acceleration_covariance[0] >= 0.0:
+            self._add_specific_force(stamp_ns, R_IB, vector3(msg.linear_acceleration))
         self._release()
+
+    def _add_specific_force(self, stamp_ns: int, R_IB: np.ndarray, f_flu: np.ndarray) -> None:
+        """Keep a specific force sample (base_link FLU -> body FRD -> {I}) for the observer.
+
+        A flying multirotor's accelerometer reads about g (its thrust): a sample under
+        MIN_SPECIFIC_FORCE (an unfilled field, free fall) or non-finite is not used.
+        """
+        norm = float(np.linalg.norm(f_flu))
+        if not np.isfinite(norm) or norm < MIN_SPECIFIC_FORCE:
+            self.log.warning(f'imu/data linear_acceleration |f| = {norm:.2f} m/s^2 is not a '
+                             'flying specific force: the disturbance observer ignores it',
+                             LOG_THROTTLE_S)
+            return
+        self._specific_force.add(stamp_ns / NS_PER_S, R_IB @ vec_flu_to_frd(f_flu))
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         """Open the frame the supervisor evaluated, to be answered in the mode it reports."""
@@ -184,8 +211,13 @@ class ForceControllerNode(Node):
             self.log.warning(
                 f'frame {frame.stamp_ns / NS_PER_S:.3f} s answered at its deadline without '
                 f'{", ".join(k.value for k in frame.missing)} (late or lost)', LOG_THROTTLE_S)
+        t = frame.stamp_ns / NS_PER_S
+        f_I = None
+        if self._specific_force is not None:
+            f_I = self._specific_force.mean_between(self._t_answered, t)
+        self._t_answered = t
         out, F_I = step_controller(self._controller, frame.tag, frame,
-                                   self._attitudes.attitude_at(frame.stamp_ns / NS_PER_S))
+                                   self._attitudes.attitude_at(t), f_I)
         if out is None:
             self.log.warning('no IMU attitude (or no valid output): answering with hover',
                              LOG_THROTTLE_S)

@@ -31,6 +31,7 @@ class DisturbanceLaw(str, Enum):
 
     PAPER = 'paper'          # the paper's proportional laws: a steady image offset remains
     INTEGRAL = 'integral'    # plus integral action on the image errors (anti-windup clamp)
+    OBSERVER = 'observer'    # plus a disturbance observer: IMU specific force + commanded F
 
 
 @dataclass(frozen=True)
@@ -137,6 +138,24 @@ class IntegralGains:
                             f'{landing.kp_xy * landing.kd_xy / self.d_max:.3f}')
 
 
+@dataclass(frozen=True)
+class ObserverGains:
+    """Disturbance observer of :attr:`DisturbanceLaw.OBSERVER` (docs/design.md).
+
+    d_hat' = (f_I + F_prev / m - d_hat) / tau_s: the IMU's specific force f_I (m/s^2, {I},
+    mean over the frame) plus the force commanded over that frame, i.e. Delta / m for
+    m v' = -F + m g e3 + Delta, low-passed; |d_hat| <= d_max.
+    """
+
+    tau_s: float = 0.5          # s, observer time constant
+    d_max: float = 3.0          # m/s^2, largest disturbance compensated
+
+    def validate(self) -> None:
+        """Raise GainError unless both are positive."""
+        if min(self.tau_s, self.d_max) <= 0.0:
+            raise GainError(f'observer tau_s and d_max must be positive: {self}')
+
+
 def clamp_norm(v: np.ndarray, limit: float) -> np.ndarray:
     """Return v scaled down to norm ``limit`` when longer (the integrators' anti-windup)."""
     n = float(np.linalg.norm(v))
@@ -174,6 +193,11 @@ GAIN_SPECS = {
                    0.0, None),
         'd_max': ('m, largest window / pad distance of the integral gains condition, > 0',
                   0.0, None),
+    },
+    'observer': {
+        'tau_s': ('s, disturbance observer time constant (disturbance_law observer), > 0',
+                  0.0, None),
+        'd_max': ('m/s^2, largest disturbance the observer compensates, > 0', 0.0, None),
     },
     'crossing': {
         'kv': ('1/s, mode 2 flow damping (as K_d^t), > 0', 0.0, None),

@@ -15,7 +15,7 @@ from ibvs_common.core.config import PadLayout, VehicleConfig
 from ibvs_control.core.control_laws import (
     clamp_norm, CrossingGains, CrossingLaw, DisturbanceLaw, force_crossing_closed,
     force_crossing_intended, force_crossing_seed, force_landing, force_window, GainError,
-    IntegralGains, LandingGains, sigma, WindowGains)
+    IntegralGains, LandingGains, ObserverGains, sigma, WindowGains)
 from ibvs_common.core.features import (
     centroid_feature, compute_window_features, pad_height_estimate, window_flow,
     WindowFeatures)
@@ -39,6 +39,7 @@ class ControllerConfig:
     crossing_law: CrossingLaw = CrossingLaw.CLOSED
     disturbance_law: DisturbanceLaw = DisturbanceLaw.PAPER
     integral: IntegralGains = field(default_factory=IntegralGains)
+    observer: ObserverGains = field(default_factory=ObserverGains)
     eta_t: np.ndarray = field(default_factory=lambda: e3.copy())   # landing plane normal
     group_half_sides: dict = field(default_factory=dict)   # pad group name -> c (m)
 
@@ -51,6 +52,8 @@ class ControllerConfig:
         self.crossing.validate()
         if self.disturbance_law == DisturbanceLaw.INTEGRAL:
             self.integral.validate(self.window, self.landing)
+        if self.disturbance_law == DisturbanceLaw.OBSERVER:
+            self.observer.validate()
 
     @classmethod
     def from_params(cls, params: dict, vehicle: VehicleConfig, r_w: float,
@@ -62,7 +65,8 @@ class ControllerConfig:
         window.phi_star, window.eps, window.delta, crossing.kv, crossing.ks, crossing.kf,
         crossing.phi_fwd_min, crossing_law, landing.lateral_schedule_height_m,
         landing.lateral_scale_min, disturbance_law, integral.ki_w, integral.ki_phi,
-        integral.ki_t, integral.xi_max, integral.d_max. ``pad`` gives the group sizes for the
+        integral.ki_t, integral.xi_max, integral.d_max, observer.tau_s, observer.d_max.
+        ``pad`` gives the group sizes for the
         height estimate.
         Raises GainError (a ValueError).
         """
@@ -92,6 +96,7 @@ class ControllerConfig:
                   landing=group('landing', LandingGains), window=group('window', WindowGains),
                   crossing=group('crossing', CrossingGains), crossing_law=law,
                   disturbance_law=disturbance, integral=group('integral', IntegralGains),
+                  observer=group('observer', ObserverGains),
                   group_half_sides={} if pad is None else {g.name: g.c for g in pad.groups})
         cfg.validate()
         return cfg
@@ -108,6 +113,7 @@ class Measurements:
     phi_front_I: np.ndarray | None            # wall flow v/d_o (1/s), or None
     phi_down_I: np.ndarray | None             # floor flow v/d_t (1/s), or None
     pad_groups: tuple | None = None           # names of the groups in pad_bearings_C, in order
+    specific_force_I: np.ndarray | None = None  # m/s^2, IMU's, mean since the last step
 
 
 @dataclass(frozen=True)
@@ -159,6 +165,10 @@ class IbvsController:
         self._xi_w = np.zeros(3)
         self._zeta_w = 0.0
         self._xi_t = np.zeros(3)
+        # DisturbanceLaw.OBSERVER: Delta / m (m/s^2, {I}) and the force it was measured with
+        self._d_hat = np.zeros(3)
+        self._d_hat_T2 = np.zeros(3)          # its value with the last window force
+        self._F_cmd = self._hover()
 
     def _hover(self) -> np.ndarray:
         return self.config.mass * GRAVITY * e3
@@ -198,11 +208,28 @@ class IbvsController:
 
         if self._yaw_des is None:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
+        if cfg.disturbance_law == DisturbanceLaw.OBSERVER:
+            self._observe(dt, meas.specific_force_I)
         height = self._pad_height(meas, R_IB) if mode == Mode.LANDING else None
         F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t, height)
         if valid:
             self._F_last = F
-        return ControlOutput(F if valid else self._F_last, self._yaw_des, feats, valid)
+        self._F_cmd = F if valid else self._F_last
+        return ControlOutput(self._F_cmd, self._yaw_des, feats, valid)
+
+    def _observe(self, dt: float, f_I: np.ndarray | None) -> None:
+        """One step of the disturbance observer (ObserverGains): Delta/m = f_I + F / m."""
+        if f_I is None or dt <= 0.0 or not np.all(np.isfinite(f_I)):
+            return
+        g = self.config.observer
+        d_meas = np.asarray(f_I, dtype=float) + self._F_cmd / self.config.mass
+        self._d_hat = clamp_norm(self._d_hat + min(dt / g.tau_s, 1.0) * (d_meas - self._d_hat),
+                                 g.d_max)
+
+    @property
+    def disturbance_estimate(self) -> np.ndarray:
+        """The observer's Delta / m (m/s^2, {I}); zero unless disturbance_law is observer."""
+        return self._d_hat.copy()
 
     def _pad_height(self, meas: Measurements, R_IB: np.ndarray) -> float | None:
         """Height (m) from the smallest complete pad group of known size, or None."""
@@ -222,6 +249,7 @@ class IbvsController:
                phi_t: np.ndarray | None, height: float | None) -> tuple[np.ndarray, bool]:
         cfg = self.config
         integral = cfg.disturbance_law == DisturbanceLaw.INTEGRAL
+        observer = self._d_hat if cfg.disturbance_law == DisturbanceLaw.OBSERVER else None
         if mode == Mode.WINDOW:
             if entering:
                 self._xi_w, self._zeta_w = np.zeros(3), 0.0
@@ -230,10 +258,10 @@ class IbvsController:
             self._eta_w = win.eta_w
             self._yaw_des = yaw_facing(win.eta_w, cfg.R_BC_front)
             F = force_window(win.q_w, win.q_w_bar, phi_w, win.eta_w, cfg.window, cfg.mass,
-                             self._window_integral(win.eta_w) if integral else None)
+                             self._window_integral(win.eta_w) if integral else observer)
             if integral:
                 self._integrate_window(dt, win, phi_w)
-            self._F_w_T2 = F
+            self._F_w_T2, self._d_hat_T2 = F, self._d_hat.copy()
             return F, True
         if mode == Mode.CROSSING:
             return self._crossing_force(entering, dt, phi_t)
@@ -244,7 +272,8 @@ class IbvsController:
             if q_t is None or phi_t is None:
                 return self._F_last, False
             F = force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t,
-                              cfg.landing.lateral_scale(height), self._xi_t if integral else None)
+                              cfg.landing.lateral_scale(height),
+                              self._xi_t if integral else observer)
             if integral:
                 self._xi_t = clamp_norm(self._xi_t + cfg.integral.ki_t * dt
                                         * (proj_orth(cfg.eta_t) @ q_t), cfg.integral.xi_max)
@@ -286,8 +315,12 @@ class IbvsController:
         if phi_t is None:
             return self._F_last, False
         self._s_perp = self._s_perp + proj_orth(eta) @ np.asarray(phi_t) * dt
-        return force_crossing_closed(self._F_w_T2, eta, phi_t, self._s_perp,
-                                     self._phi_fwd_ref, cfg.crossing, cfg.mass), True
+        F = force_crossing_closed(self._F_w_T2, eta, phi_t, self._s_perp, self._phi_fwd_ref,
+                                  cfg.crossing, cfg.mass)
+        if cfg.disturbance_law == DisturbanceLaw.OBSERVER:
+            # F_w(T2-) held pi d_hat(T2); compensate the current estimate instead, along eta too
+            F = F + cfg.mass * (self._d_hat - proj_orth(eta) @ self._d_hat_T2)
+        return F, True
 
 
 def with_crossing_law(config: ControllerConfig, law: CrossingLaw) -> ControllerConfig:

@@ -76,6 +76,38 @@ class PadPairing:
                 self.unpaired += 1
 
 
+class SpecificForceBuffer:
+    """The IMU's specific force f_I (m/s^2, {I}) over time, for the disturbance observer.
+
+    f_I = v' - g e3 = (-F + Delta) / m (what an accelerometer measures, rotated to {I} with the
+    attitude of its sample). :meth:`mean_between` gives the mean over a frame interval, so the
+    observer sees the force that acted while the previous command was applied.
+    """
+
+    def __init__(self, history_s: float = 1.0) -> None:
+        self.history_s = history_s
+        self._t: list[float] = []
+        self._f: list[np.ndarray] = []
+
+    def add(self, t: float, f_I: np.ndarray) -> None:
+        """Keep one sample (non-finite ones are ignored); drop those older than history_s."""
+        f = np.asarray(f_I, dtype=float).reshape(3)
+        if not (np.isfinite(t) and np.all(np.isfinite(f))):
+            return
+        self._t.append(float(t))
+        self._f.append(f)
+        while self._t and self._t[0] < self._t[-1] - self.history_s:
+            del self._t[0], self._f[0]
+
+    def mean_between(self, t0: float | None, t1: float) -> np.ndarray | None:
+        """Mean of the samples with t0 < t <= t1 (t0 None: the newest only), or None."""
+        picked = [f for t, f in zip(self._t, self._f)
+                  if t <= t1 and (t0 is None or t > t0)]
+        if t0 is None:
+            picked = picked[-1:]
+        return np.mean(picked, axis=0) if picked else None
+
+
 BEARING_NORM_TOLERANCE = 0.05   # |b| of a unit bearing must be within 5 % of 1
 
 
@@ -144,7 +176,8 @@ def heading_quat_enu_flu(yaw_ned: float) -> np.ndarray:
 
 
 def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
-                    R_IB: np.ndarray | None) -> tuple[ControlOutput | None, np.ndarray]:
+                    R_IB: np.ndarray | None, specific_force_I: np.ndarray | None = None
+                    ) -> tuple[ControlOutput | None, np.ndarray]:
     """Answer one frame: (controller output or None, force F in {I} (N)).
 
     The PAD input of the frame is (landmark bearings or None, group names), as PadPairing
@@ -164,7 +197,7 @@ def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
         t=frame.stamp_ns / NS_PER_S, R_IB=R_IB,
         window_bearings_C=frame.get(InputKind.WINDOW), pad_bearings_C=pad,
         phi_front_I=frame.get(InputKind.FLOW_FRONT), phi_down_I=frame.get(InputKind.FLOW_DOWN),
-        pad_groups=pad_groups)
+        pad_groups=pad_groups, specific_force_I=specific_force_I)
     out = controller.step(mode, meas)
     F = np.asarray(out.F_I, dtype=float)
     if F.shape != (3,) or not np.all(np.isfinite(F)) or not np.isfinite(out.yaw_des):

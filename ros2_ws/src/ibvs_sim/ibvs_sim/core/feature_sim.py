@@ -4,9 +4,10 @@ Plant: point mass with eq:system, a first-order attitude lag standing in for the
 inner loop and a first-order thrust lag. Sensors: the features the perception would deliver,
 computed from geometry (window corner and pad marker bearings, translational flows v/d), with
 the cameras' fields of view (CameraModel projection with distortion) and the wall's occlusion
-deciding what is seen. Controller and supervisor: the ROS-free IBVS core, exactly as the nodes
-run it. Used by the tests of issue 2, by ``make run -- --feature-level`` and by the campaigns
-(``python -m ibvs_bringup.campaign``).
+deciding what is seen; the IMU's specific force v' - g e3, exact, averaged over each frame
+(the disturbance observer's input). Controller and supervisor: the ROS-free IBVS core,
+exactly as the nodes run it. Used by the tests of issue 2, by ``make run --
+--feature-level`` and by the campaigns (``python -m ibvs_bringup.campaign``).
 
 Wind: the image-level simulator's model, :class:`ibvs_sim.core.dynamics.Wind` (steady force
 plus a seeded sum of sines per axis, docs/sim.md "Wind"). The point mass feels
@@ -194,6 +195,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     R_BC_front, R_BC_down = vehicle.cameras['front'].R_BC, vehicle.cameras['down'].R_BC
     wind = Wind(config.wind or WindConfig())
     wind_accel_steady = np.asarray(config.wind_accel_I, dtype=float).reshape(3)
+    f_I_mean = None             # no IMU specific force before the first frame's physics
     while t <= config.max_time_s:
         # --- one camera frame: sense, supervise, control ---------------------------------
         win_C = sensors.window(R, xi)
@@ -210,7 +212,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         supervisor.update(t)
         mode = supervisor.mode
         out = controller.step(mode, Measurements(t, R, win_C, pad_C, phi_front, phi_down,
-                                                 tuple(groups)))
+                                                 tuple(groups), specific_force_I=f_I_mean))
         sp = attitude_from_force(out.F_I, out.yaw_des, m, vehicle.hover_thrust,
                                  vehicle.max_thrust_factor)
         R_d, thrust_d = sp.R_IB_des, sp.thrust_N
@@ -228,11 +230,13 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             break
         # --- physics substeps until the next frame ---------------------------------------
         done = False
+        f_I_sum = np.zeros(3)       # the IMU's specific force v' - g e3, mean over the frame
         for _ in range(n_sub):
             dt = config.physics_dt
             R = R @ exp_so3(log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
             a = -thrust * (R @ e3) / m + g * e3 + wind_accel_steady + wind.force_I(t) / m
+            f_I_sum += a - g * e3
             v = v + a * dt
             xi = xi + v * dt
             t += dt
@@ -244,6 +248,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
                 break
         if done:
             break
+        f_I_mean = f_I_sum / n_sub
     modes = [(int(tr.to_mode), tr.t) for tr in supervisor.transitions]
     log.transitions = [(int(tr.to_mode), float(tr.t), tr.reason)
                        for tr in supervisor.transitions]
