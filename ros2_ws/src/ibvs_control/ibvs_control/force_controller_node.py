@@ -78,7 +78,7 @@ def _mode(number) -> tuple[Mode | None, str]:
 GAIN_PARAMETERS = _gain_defaults()
 PARAMETERS = {
     'crossing_law': 'closed',
-    'disturbance_law': 'paper',
+    'disturbance_law': 'observer',
     'frame_deadline_s': 0.04,
     'imu_history_s': 1.0,
     'imu_max_extrapolation_s': 0.05,
