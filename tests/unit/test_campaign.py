@@ -97,6 +97,7 @@ def test_aggregate_statistics_by_hand():
 
 def test_law_spec_parse():
     assert LawSpec.parse('intended') == LawSpec('intended', (('crossing_law', 'intended'),))
+    assert LawSpec.parse('paper') == LawSpec('paper', (('disturbance_law', 'paper'),))
     law = LawSpec.parse('stiff:crossing_law=closed, crossing.kf=3.5')
     assert law == LawSpec('stiff', (('crossing_law', 'closed'), ('crossing.kf', 3.5)))
     for bad in ('robust', 'a b:x=1', 'x:kf', ''):
@@ -124,12 +125,12 @@ def test_draws_are_deterministic_in_the_box_and_shared_by_levels_and_laws():
 
 def test_campaign_resumes_and_refuses_other_settings(tmp_path):
     """Two feature-level runs (about 1.2 s), then a resume that flies nothing."""
-    cfg = CampaignConfig(name='tiny', runs=2, levels_mps2=(0.2,),
+    cfg = CampaignConfig(name='tiny', runs=2, levels_mps2=(0.2,), laws=(LawSpec('params'),),
                          results_root=str(tmp_path))
     messages = []
     first = run_campaign(cfg, workers=1, progress=messages.append)
     assert len(first) == 2 and messages[0].endswith('0 done, 2 to fly on 1 worker(s)')
-    path = os.path.join(cfg.out_dir, 'runs', 'closed', '0.2', '1', 'summary.json')
+    path = os.path.join(cfg.out_dir, 'runs', 'params', '0.2', '1', 'summary.json')
     with open(path) as f:
         stored = json.load(f)
     assert stored['run']['wind']['steady_force_I'][2] == pytest.approx(0.3 * 0.2 * 1.676)
@@ -145,7 +146,8 @@ def test_campaign_resumes_and_refuses_other_settings(tmp_path):
     assert os.path.exists(os.path.join(cfg.out_dir, 'table.md'))
     with pytest.raises(ValueError, match='other settings'):
         run_campaign(CampaignConfig(name='tiny', runs=2, levels_mps2=(0.2,), gust_level=0.5,
-                                    results_root=str(tmp_path)), workers=1, progress=None)
+                                    laws=(LawSpec('params'),), results_root=str(tmp_path)),
+                     workers=1, progress=None)
 
 
 def test_campaign_stops_after_its_wall_clock_budget(tmp_path):

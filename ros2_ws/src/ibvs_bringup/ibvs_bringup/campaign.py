@@ -77,7 +77,8 @@ class LawSpec:
     def parse(text: str) -> 'LawSpec':
         """Parse ``LABEL`` or ``LABEL:name=value,name=value`` (values read as YAML scalars).
 
-        A bare label that is a crossing law (closed, intended, seed) sets ``crossing_law``.
+        A bare label that is a crossing law (closed, intended, seed) sets ``crossing_law``, one
+        that is a disturbance law (paper, integral, observer) sets ``disturbance_law``.
         """
         import yaml
         label, _, rest = text.partition(':')
@@ -91,11 +92,14 @@ class LawSpec:
                 raise ValueError(f'law {label}: expected name=value, got {item!r}')
             pairs.append((name.strip(), yaml.safe_load(value)))
         if not pairs:
-            from ibvs_control.core.control_laws import CrossingLaw
-            if label not in {x.value for x in CrossingLaw}:
-                raise ValueError(f'law {label!r}: not a crossing law '
-                                 f'({[x.value for x in CrossingLaw]}) and no overrides given')
-            pairs = [('crossing_law', label)]
+            from ibvs_control.core.control_laws import CrossingLaw, DisturbanceLaw
+            kinds = (('crossing_law', [x.value for x in CrossingLaw]),
+                     ('disturbance_law', [x.value for x in DisturbanceLaw]))
+            name = next((n for n, values in kinds if label in values), None)
+            if name is None:
+                raise ValueError(f'law {label!r}: not a law name ({dict(kinds)}) and no '
+                                 'overrides given')
+            pairs = [(name, label)]
         return LawSpec(label, tuple(pairs))
 
 
@@ -106,7 +110,7 @@ class CampaignConfig:
     name: str
     runs: int = 500
     levels_mps2: tuple = DEFAULT_LEVELS_MPS2
-    laws: tuple = (LawSpec('closed', (('crossing_law', 'closed'),)),)
+    laws: tuple = (LawSpec('params'),)   # default: params.yaml's laws as they are
     gust_level: float = 0.3           # gust amplitude / steady horizontal magnitude
     vertical_factor: float = 0.3      # steady vertical / horizontal magnitude (+: down)
     gust_frequency_hz: float = 0.5    # Hz, base gust frequency
@@ -715,10 +719,12 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                    help='sines per axis (docs/sim.md "Wind")')
     p.add_argument('--crossing-law', nargs='+', default=None,
                    choices=('closed', 'intended', 'seed'),
-                   help="mode-2 laws to compare (default: params.yaml's)")
-    p.add_argument('--law', action='append', default=[], metavar='LABEL:NAME=VALUE,...',
-                   help='a law as force_controller parameter overrides, e.g. '
-                        '"intended:crossing_law=intended" (repeatable)')
+                   help='mode-2 laws to compare, each a law labelled by its name')
+    p.add_argument('--law', action='append', default=[], metavar='LABEL[:NAME=VALUE,...]',
+                   help='a law: a crossing or disturbance law name (closed, intended, seed; '
+                        'paper, integral, observer) or a label with force_controller '
+                        'parameter overrides, e.g. "stiff:crossing.kf=3.0" (repeatable; '
+                        "default: params.yaml's laws, labelled by its disturbance_law)")
     p.add_argument('--workers', type=int, default=os.cpu_count() or 1)
     p.add_argument('--seed', type=int, default=14, help='campaign seed')
     p.add_argument('--flow-noise', type=float, default=0.0, help='1/s, per flow component')
@@ -748,12 +754,12 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
             [LawSpec.parse(x) for x in a.law]
     except ValueError as exc:
         p.error(str(exc))
-    if not laws:
+    if not laws:                  # params.yaml's laws, labelled by its disturbance law
         import yaml
         _, text = read_params(a.params_file)
-        law = ((yaml.safe_load(text) or {}).get('force_controller', {})
-               .get('ros__parameters', {}).get('crossing_law', 'closed'))
-        laws = [LawSpec.parse(str(law))]
+        ctrl = ((yaml.safe_load(text) or {}).get('force_controller') or {}).get(
+            'ros__parameters') or {}
+        laws = [LawSpec(str(ctrl.get('disturbance_law', ctrl.get('crossing_law', 'params'))))]
     if len({law.label for law in laws}) != len(laws):
         p.error('law labels must be unique')
     cfg = CampaignConfig(name=a.name, runs=a.runs, levels_mps2=tuple(sorted(set(a.levels))),
