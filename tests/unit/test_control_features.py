@@ -136,6 +136,28 @@ def test_distance_to_window_plane_and_pad_height():
             assert ft.pad_height_estimate(p, g.c) == pytest.approx(h, rel=1e-9)
 
 
+def test_pad_height_is_exact_off_the_pad_centre():
+    """The height from the group's known size, not from how far below the group looks.
+
+    Group D (c = 0.045 m) 0.17 m beside the pad at 0.3 m: the centroid-angle formula used
+    before read 0.11 m (h sqrt(2) c / x), below the 0.14 m shutdown height; PX4 SIH shut down
+    there and touched down at 2.1 m/s. From geometry, any offset and height: exact.
+    """
+    pad = load_pad_layout()
+    rng = np.random.default_rng(5)
+    for g in pad.groups:
+        for h in (1.5, 0.5, 0.3, 0.15):
+            for x, y in ((0.17, 0.0), (0.0, -0.3), *rng.uniform(-0.5, 0.5, (3, 2))):
+                p = bearings(g.marker_centres_I(), np.array([x, y, -h]))
+                assert ft.pad_height_estimate(p, g.c) == pytest.approx(h, rel=1e-9)
+    D = next(g for g in pad.groups if g.name == 'D')
+    p = bearings(D.marker_centres_I(), np.array([0.17, 0.0, -0.3]))
+    cos_t = -p.mean(axis=0)[2]                      # the old, vertical-only reading
+    assert np.sqrt(2) * D.c * cos_t / np.sqrt(1 - cos_t ** 2) < 0.14 < 0.3
+    with pytest.raises(ValueError):                  # a marker above the camera
+        ft.pad_height_estimate(-p, D.c)
+
+
 def test_degenerate_inputs_raise():
     with pytest.raises(ValueError):
         ft.centroid_feature(np.zeros((0, 3)))

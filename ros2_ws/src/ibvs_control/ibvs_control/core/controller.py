@@ -242,7 +242,10 @@ class IbvsController:
             return None
         c, i = min(sizes)
         p_I = bearings_C_to_I(p_C[4 * i:4 * i + 4], R_IB, self.config.R_BC_down)
-        return pad_height_estimate(p_I, c, self.config.eta_t)
+        try:
+            return pad_height_estimate(p_I, c, self.config.eta_t)
+        except ValueError:                      # a marker not towards the floor
+            return None
 
     def _force(self, mode: Mode, entering: bool, dt: float, win: WindowFeatures | None,
                q_t: np.ndarray | None, phi_w: np.ndarray | None,

@@ -224,7 +224,10 @@ class ModeSupervisor:
         sizes = [(c, i) for c, i in sizes if c is not None]
         if sizes:
             c, i = min(sizes)
-            self._height_est = pad_height_estimate(p[4 * i:4 * i + 4], c)
+            try:
+                self._height_est = pad_height_estimate(p[4 * i:4 * i + 4], c)
+            except ValueError:                  # a marker not towards the floor: no estimate
+                self._height_est = None
         if self.mode == Mode.CROSSING and not self._landing_entered and self._crossed():
             self._request(Mode.LANDING, 'pad group seen after crossing the window plane')
         if self.mode == Mode.LANDING and self._height_est is not None:
