@@ -282,6 +282,7 @@ def check(run: Run, name: str) -> None:
 PARAMS_YAML = REPO / 'ros2_ws' / 'src' / 'ibvs_bringup' / 'config' / 'params.yaml'
 FORCE_HZ = 50.0                    # the controller's rate (one force per camera frame)
 STALL_S = 0.1                      # a gap between two harness steps above this is a stall
+ARM_WAIT_S = 15.0     # s (wall), arm request -> engaged, PX4's pre-arm checks included
 MAX_TILT = np.radians(25.0)
 
 
@@ -553,7 +554,11 @@ def px4_take_off(f: Flight, z_ref: float = -2.0, arm: bool = True) -> None:
     if f.state() == 'wait_arm' and arm:
         assert f.bridge.request_arm()[0]
     f.z_ref = z_ref
-    assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+    # PX4 may refuse to arm for a few seconds right after a landing (a fresh-clone CI run:
+    # "Preflight Fail: Battery unhealthy" 0.3 s after the disarm); the bridge waits for
+    # SYS_STATUS's pre-arm bit, as it should: wait for PX4, not only for the bridge
+    assert f.spin(ARM_WAIT_S, until=lambda: f.state() == 'engaged'), \
+        f.bridge.sequencer.last_reason
     assert f.spin(10.0, until=lambda: f.truth.z < z_ref + 0.3), f'z {f.truth.z}'
 
 
