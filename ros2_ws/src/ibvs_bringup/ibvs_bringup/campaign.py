@@ -247,7 +247,7 @@ def aggregate(summaries: Iterable[dict]) -> list[dict]:
     Success rate and its 95 % Wilson interval over all runs; clearance (m) min and median over
     the successes (the target is about every success); crossing speed (m/s) median and min
     over the runs that crossed; landing error (m) median and p95, touchdown speed (m/s) p95
-    over the runs that touched down (failures included); failure causes counted.
+    over the runs that crossed and touched down (failures included); failure causes counted.
     Percentiles: numpy's linear interpolation.
     """
     groups: dict = {}
@@ -259,7 +259,8 @@ def aggregate(summaries: Iterable[dict]) -> list[dict]:
         n = len(runs)
         ok = [s for s in runs if s.get('success')]
         crossed = [s for s in runs if s['window'].get('crossed')]
-        landed = [s for s in runs if s['landing'].get('landed')]
+        landed = [s for s in runs          # touchdowns on the far side, not blown-back ones
+                  if s['landing'].get('landed') and s['window'].get('crossed')]
         lo, hi = wilson_interval(len(ok), n)
         causes: dict = {}
         for s in runs:
@@ -631,7 +632,8 @@ def write_plots(rows: list[dict], summaries: list[dict], out_dir: str) -> list[s
         y = np.array([r['success_rate'] for r in rr]) * 100
         lo = np.array([r['success_ci95'][0] for r in rr]) * 100
         hi = np.array([r['success_ci95'][1] for r in rr]) * 100
-        ax.errorbar(x, y, yerr=[y - lo, hi - y], marker='o', capsize=3, label=law)
+        err = np.clip([y - lo, hi - y], 0.0, None)     # rounding: |p - bound| ~ 1e-14
+        ax.errorbar(x, y, yerr=err, marker='o', capsize=3, label=law)
     ax.set_xlabel('wind level |Δ_h|/m (m/s²)')
     ax.set_ylabel('success (%), 95 % Wilson interval')
     ax.set_ylim(-2, 102)
