@@ -6,7 +6,7 @@ and the observer (params.yaml's default), at 0 and 0.5 m/s^2, through
 ``campaign.run_campaign`` with 2 workers. Measured (2026-11-25, commit e05fceb): paper 20 / 20
 at 0 and 1 / 20 at 0.5 m/s^2 (observer 20 / 20 and 20 / 20; clearance min 13.6 cm, landing
 error p95 2.5 cm, touchdown p95 0.28 m/s at 0.5); 30 runs each took 97 s at load average 7
-(2 / 30 for paper at 0.5), so 20: about 65 s at that load, ~27 s on an idle 2-core machine.
+(2 / 30 for paper at 0.5); these 20 took 57 s at load average 5.3 (~27 s expected idle).
 
 Bound: this sample agrees with the reference campaign of docs/performance.md "Campaign"
 (seed 14, 86 runs per law and level, ``REFERENCE`` below) when their 95 % Wilson
