@@ -337,38 +337,23 @@ def read_params(params_file: str | None) -> tuple[str, str]:
 def load_setup(params_file: str | None, overrides: tuple) -> _Setup:
     """World, pad, vehicle and the controller/supervisor configs as the nodes build them.
 
-    force_controller: params.yaml's gains and ``crossing_law`` with ``overrides`` applied,
-    ``window_width_m`` as r_w, the pad's group sizes; mode_supervisor: its core thresholds,
-    ``window_width_m`` and the pad's group sizes. Cached per (file, overrides) in a process.
+    ``ibvs_bringup.core_configs`` (gains, laws, window and pad layout files of each node's
+    section) with ``overrides`` applied to force_controller. Cached per (file, overrides) in a
+    process.
     """
-    import dataclasses
     import yaml
+    from ibvs_bringup.core_configs import controller_config, supervisor_config
     from ibvs_common.core.config import load_pad_layout, load_vehicle
-    from ibvs_control.core.controller import ControllerConfig
-    from ibvs_control.core.supervisor import SupervisorConfig
     from ibvs_sim.core.world import load_world
     _, text = read_params(params_file)
     params = yaml.safe_load(text) or {}
 
-    def section(name: str) -> dict:
-        return dict((params.get(name) or {}).get('ros__parameters') or {})
-
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
-    ctrl_p = section('force_controller')
-    for name, value in overrides:
-        if name not in ctrl_p:
-            raise ValueError(f'law override {name!r}: no such force_controller parameter '
-                             f'in {params_file or "params.yaml"}')
-        ctrl_p[name] = value
-    r_w = float(ctrl_p.get('window_width_m', world.window.width))
-    ctrl = ControllerConfig.from_params(ctrl_p, vehicle, r_w, pad)
-    sup_p = section('mode_supervisor')
-    core = {f.name for f in dataclasses.fields(SupervisorConfig)}
-    sup_core = {k: v for k, v in sup_p.items() if k in core}
-    sup_core['r_w'] = float(sup_p.get('window_width_m', world.window.width))
-    if 'group_half_sides' in core:
-        sup_core['group_half_sides'] = {g.name: g.c for g in pad.groups}
-    sup = SupervisorConfig.from_params(sup_core)
+    try:
+        ctrl = controller_config(params, overrides)
+    except ValueError as exc:
+        raise ValueError(f'law overrides in {params_file or "params.yaml"}: {exc}') from exc
+    sup = supervisor_config(params)
     return _Setup(world, pad, vehicle, ctrl, sup)
 
 

@@ -14,7 +14,6 @@ Exit code: 0 success, 1 the flight failed SPEC.md's criteria, 2 the run could no
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from dataclasses import dataclass, field
 import os
 import re
@@ -125,8 +124,7 @@ def run_feature_level(opts: RunOptions) -> int:
     """Fly ibvs_sim's feature-level closed loop and report it like a graph run."""
     try:
         from ibvs_sim.core import feature_sim
-        from ibvs_control.core.controller import ControllerConfig
-        from ibvs_control.core.supervisor import SupervisorConfig
+        from ibvs_bringup.core_configs import controller_config, supervisor_config
         from ibvs_control.core.control_laws import CrossingLaw
     except ImportError as exc:
         print(f'--feature-level: the feature-level simulation is not available ({exc})',
@@ -137,14 +135,7 @@ def run_feature_level(opts: RunOptions) -> int:
     with open(opts.params_file or graph.default_params_file(), encoding='utf-8') as f:
         params = yaml.safe_load(f) or {}
 
-    def section(name: str) -> dict:
-        return (params.get(name) or {}).get('ros__parameters') or {}
-
-    ctrl = ControllerConfig.from_params(section('force_controller'), vehicle, world.window.width)
-    # the supervisor's core thresholds only (timing and file parameters belong to the node)
-    core_keys = {f.name for f in dataclasses.fields(SupervisorConfig)}
-    sup = SupervisorConfig.from_params({k: v for k, v in section('mode_supervisor').items()
-                                        if k in core_keys})
+    ctrl, sup = controller_config(params), supervisor_config(params)   # as the nodes build them
     xi0 = opts.initial_position or tuple(world.initial_position_I)
     law = CrossingLaw(opts.crossing_law) if opts.crossing_law else ctrl.crossing_law
     wind = np.asarray(opts.wind or (0.0, 0.0, 0.0), dtype=float) / vehicle.mass
