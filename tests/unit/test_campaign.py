@@ -167,43 +167,65 @@ def test_help_and_bad_arguments(capsys):
     assert e.value.code == 2
 
 
+STAND_IN = """
+import json, os, sys
+import yaml
+args = sys.argv[1:]
+root = args[args.index('--results-root') + 1]
+with open(args[args.index('--params-file') + 1]) as f:
+    params = yaml.safe_load(f)
+os.makedirs(os.path.join(root, 'flight'), exist_ok=True)
+with open(os.path.join(root, 'calls.json'), 'w') as f:
+    json.dump({'args': args, 'domain': os.environ['ROS_DOMAIN_ID']}, f)
+with open(os.path.join(root, 'flight', 'summary.json'), 'w') as f:
+    json.dump(json.loads(os.environ['STAND_IN_SUMMARY']), f)
+sys.exit(1)
+"""
+
+
 def test_image_level_runs_call_run_scenario_in_their_own_domain(tmp_path, monkeypatch):
-    """The whole-graph path with a stand-in for run_scenario (no graph is started)."""
+    """The whole-graph path with a stand-in for run_scenario (no graph is started).
+
+    The pool's workers are spawned (a fork beside DDS threads can deadlock), so the stand-in
+    is a module on PYTHONPATH that the campaign runs as ``python -m``, as it runs run_scenario.
+    """
     import subprocess
     import yaml
-    calls = []
-
-    def fake_run(cmd, stdout, stderr, env, timeout):
-        args = cmd[cmd.index('ibvs_bringup.run_scenario') + 1:]
-        root = args[args.index('--results-root') + 1]
-        with open(args[args.index('--params-file') + 1]) as f:
-            params = yaml.safe_load(f)
-        calls.append((args, params, env['ROS_DOMAIN_ID']))
-        os.makedirs(os.path.join(root, 'flight'), exist_ok=True)
-        s = _summary(success=False, crossed=False, landed=False, last_mode=5)
-        with open(os.path.join(root, 'flight', 'summary.json'), 'w') as f:
-            json.dump(s, f)
-        return subprocess.CompletedProcess(cmd, 1)
-
-    monkeypatch.setattr(subprocess, 'run', fake_run)
+    (tmp_path / 'stand_in_scenario.py').write_text(STAND_IN)
+    monkeypatch.setenv('PYTHONPATH', os.pathsep.join(
+        [str(tmp_path)] + [p for p in os.environ.get('PYTHONPATH', '').split(os.pathsep) if p]))
+    monkeypatch.setenv('STAND_IN_SUMMARY', json.dumps(
+        _summary(success=False, crossed=False, landed=False, last_mode=5)))
     cfg = CampaignConfig(name='img', runs=2, levels_mps2=(0.5,), image_level=True,
                          laws=(LawSpec.parse('stiff:crossing.kf=3.0'),), domain_base=40,
-                         results_root=str(tmp_path))
+                         results_root=str(tmp_path), scenario_module='stand_in_scenario')
     out = run_campaign(cfg, workers=2, progress=None)
     assert len(out) == 2 and {s['run']['ros_domain_id'] for s in out} <= {'40', '41'}
     assert all(s['run']['failure_cause'] == 'failsafe in window' for s in out)
     assert all(s['run']['image_level'] and not s['run']['feature_level'] for s in out)
     # the calls themselves ran in the pool's workers: read back what each wrote
-    s0 = json.load(open(os.path.join(cfg.out_dir, 'runs', 'stiff', '0.5', '0',
-                                     'summary.json')))
-    params = yaml.safe_load(open(os.path.join(cfg.out_dir, 'runs', 'stiff', '0.5', '0',
-                                              'params.yaml')))
+    run0 = os.path.join(cfg.out_dir, 'runs', 'stiff', '0.5', '0')
+    s0 = json.load(open(os.path.join(run0, 'summary.json')))
+    assert json.load(open(os.path.join(run0, 'calls.json')))['domain'] in {'40', '41'}
+    params = yaml.safe_load(open(os.path.join(run0, 'params.yaml')))
     wind = s0['run']['wind']
     assert params['force_controller']['ros__parameters']['crossing.kf'] == 3.0
     sim = params['sim']['ros__parameters']
     assert sim['wind_gust_amplitude_N'] == pytest.approx(0.3 * 0.5 * 1.676)
     assert sim['seed'] == wind['seed'] == s0['run']['gust_seed']
     assert wind['steady_force_I'][2] == pytest.approx(0.3 * 0.5 * 1.676)
+    calls = []
+
+    def fake_run(cmd, stdout, stderr, env, timeout):
+        args = cmd[cmd.index('stand_in_scenario') + 1:]
+        calls.append((args, None, env['ROS_DOMAIN_ID']))
+        root = args[args.index('--results-root') + 1]
+        os.makedirs(os.path.join(root, 'flight'), exist_ok=True)
+        with open(os.path.join(root, 'flight', 'summary.json'), 'w') as f:
+            json.dump(json.loads(os.environ['STAND_IN_SUMMARY']), f)
+        return subprocess.CompletedProcess(cmd, 1)
+
+    monkeypatch.setattr(subprocess, 'run', fake_run)
     # in-process (one worker would fork too: check the command on a direct call)
     spec = run_specs(cfg, BOX)[0]
     monkeypatch.setenv('ROS_DOMAIN_ID', '77')

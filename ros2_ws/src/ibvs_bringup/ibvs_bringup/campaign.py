@@ -122,6 +122,7 @@ class CampaignConfig:
     results_root: str = DEFAULT_RESULTS_ROOT
     image_level: bool = False         # True: the whole graph in lockstep (run_scenario)
     domain_base: int = 100            # image level: worker w uses ROS_DOMAIN_ID base + w
+    scenario_module: str = 'ibvs_bringup.run_scenario'   # image level: run as python -m
     run_timeout_s: float = 900.0      # image level: wall-clock limit of one run
 
     @property
@@ -453,7 +454,7 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     params_path = os.path.join(run_dir, 'params.yaml')
     with open(params_path, 'w', encoding='utf-8') as f:
         yaml.safe_dump(image_run_params(cfg, spec, wind), f, sort_keys=False)
-    cmd = [sys.executable, '-m', 'ibvs_bringup.run_scenario', '--run-name', 'flight',
+    cmd = [sys.executable, '-m', cfg.scenario_module, '--run-name', 'flight',
            '--results-root', run_dir, '--params-file', params_path, '--no-bag', '--no-plots',
            '--timeout', f'{cfg.run_timeout_s:g}', '--initial-position',
            *(f'{x!r}' for x in spec.initial_position_I),
@@ -544,7 +545,9 @@ def run_campaign(cfg: CampaignConfig, workers: int = 1,
                  f'{len(pending)} to fly on {workers} worker(s)')
     t0 = time.monotonic()
     tasks = [(k, cfg, s) for k, s in enumerate(pending)]
-    ctx = multiprocessing.get_context('fork')
+    # spawned workers: a fork of a process with threads (DDS, once rclpy is loaded, e.g. in a
+    # test worker) can deadlock (measured: a CI worker hung 600 s)
+    ctx = multiprocessing.get_context('spawn')
     pool = None
     if cfg.image_level:                    # every run in a worker with its own domain
         domains = ctx.Queue()
