@@ -63,6 +63,40 @@ def test_ned_frd_to_enu_flu_matches_mavros_convention():
         assert np.allclose(back, q) or np.allclose(back, -q)
 
 
+def test_scalar_imu_conversions_equal_the_matrix_route():
+    """The closed forms on the 100 Hz IMU path give what the rotation matrices give."""
+    for _ in range(200):
+        R_IB = random_rotation()
+        q_ned = fr.quat_from_rot(R_IB) * RNG.uniform(0.9, 1.1)    # not unit: normalised
+        R_map_base = fr.rot_map_base_from_R_IB(R_IB)
+        q_enu = fr.quat_ned_frd_to_enu_flu(q_ned)
+        assert q_enu[0] >= 0.0 and np.isclose(np.linalg.norm(q_enu), 1.0, atol=1e-15)
+        assert np.allclose(fr.rot_from_quat(q_enu), R_map_base, atol=1e-12)
+        assert np.allclose(fr.R_IB_from_quat_map_base(-q_enu * 1.05), R_IB, atol=1e-12)
+        yaw, cos_tilt = fr.yaw_and_cos_tilt_from_quat(q_ned)
+        assert np.isclose(yaw, fr.euler_zyx_from_rot(R_IB)[2], atol=1e-12)
+        assert np.isclose(cos_tilt, (R_IB @ fr.e3) @ fr.e3, atol=1e-12)
+    # nose north, level (NED identity): ENU quaternion = 90 deg about z
+    assert np.allclose(fr.quat_ned_frd_to_enu_flu([1.0, 0, 0, 0]),
+                       [np.sqrt(.5), 0, 0, np.sqrt(.5)])
+    for bad in ([np.nan, 0, 0, 1], [0, 0, 0, 0], [np.inf, 0, 0, 0]):
+        for f in (fr.quat_ned_frd_to_enu_flu, fr.R_IB_from_quat_map_base,
+                  fr.yaw_and_cos_tilt_from_quat):
+            with pytest.raises(ValueError):
+                f(bad)
+
+
+def test_is_rotation_rejects_reflections_non_orthonormal_and_nan():
+    R = random_rotation()
+    assert fr.is_rotation(R)
+    assert not fr.is_rotation(R @ np.diag([1.0, 1.0, -1.0]))           # det -1
+    assert not fr.is_rotation(R * 1.001)                               # scaled
+    assert fr.is_rotation(R * (1 + 1e-7)) and not fr.is_rotation(R * (1 + 1e-5))
+    bad = R.copy()
+    bad[1, 2] = np.nan
+    assert not fr.is_rotation(bad) and not fr.is_rotation(np.eye(2))
+
+
 def test_rotated_vector_consistent_across_conventions():
     R_IB = random_rotation()
     v_B = RNG.normal(size=3)

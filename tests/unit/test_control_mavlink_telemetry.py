@@ -17,7 +17,7 @@ from pymavlink import mavutil  # noqa: E402
 
 from ibvs_common.core.frames import GRAVITY  # noqa: E402
 from ibvs_control.core.mavlink_telemetry import (  # noqa: E402
-    decode_event, load_px4_events, StreamRequests, streams_for, Telemetry)
+    decode_event, load_px4_events, message_ids, StreamRequests, streams_for, Telemetry)
 from ibvs_control.core.time_sync import TimeSync  # noqa: E402
 
 PX4_EVENTS = Path(__file__).resolve().parents[3] / 'shared' / 'px4-sitl' / 'etc' / 'extras' \
@@ -103,6 +103,22 @@ def test_stream_lists_per_autopilot():
     ap = dict(streams_for('ardupilot', 100, 100, 50, 5, 5))
     assert px4 == {31: 100, 105: 100, 83: 50, 245: 5, 1: 5}       # no HEARTBEAT: PX4 fails it
     assert ap == {31: 100, 26: 100, 83: 50, 245: 5, 1: 5, 0: 5}   # never HIGHRES_IMU (105)
+
+
+def test_streams_off_follow_the_wanted_ones_and_never_switch_off_what_is_read():
+    off = message_ids(['ATTITUDE', 'LOCAL_POSITION_NED', 'attitude_quaternion', 'TIMESYNC',
+                       'STATUSTEXT', 'HEARTBEAT', 'ATTITUDE'])
+    assert off[:2] == (30, 32)                                  # MAVLink common.xml ids
+    px4 = streams_for('px4', 100, 100, 50, 5, 5, off)
+    assert px4[:5] == streams_for('px4', 100, 100, 50, 5, 5)    # what is read comes first
+    assert px4[5:] == [(30, 0.0), (32, 0.0)]                    # once each, rate 0 = off
+    ap = streams_for('ardupilot', 100, 100, 50, 5, 5, message_ids(['HEARTBEAT', 'VFR_HUD']))
+    assert ap[-1] == (74, 0.0) and (0, 0.0) not in ap           # its HEARTBEAT is asked for
+    with pytest.raises(ValueError, match='ATTITUDEX'):
+        message_ids(['ATTITUDEX'])
+    r = StreamRequests(px4[5:])
+    assert r.step(0.0) == (30, 0.0)
+    assert r.on_ack(3) == '' and r.refused == []                # no such stream: nothing lost
 
 
 def test_stream_requests_one_at_a_time_until_acknowledged():

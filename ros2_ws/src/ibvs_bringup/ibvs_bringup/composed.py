@@ -5,7 +5,9 @@ Same node classes, names, parameter files and per-run overrides as the separate 
 Python interpreter, one DDS participant and one rclpy ``EventsExecutor`` for all of them, so
 that the per-process and per-wake-up costs are paid once (docs/performance.md measures both
 layouts). Callbacks run one at a time: the per-frame work (detectors, flows, supervisor,
-controller) then shares one core, OpenCV's own threads aside.
+controller) then shares one core, OpenCV's own threads aside. The bridge's 100 Hz imu/data
+reaches the nodes beside it in process, without DDS (``ibvs_common.intra_process``); it is
+still published for everything else.
 
 A node whose construction fails (bad parameter) ends the process with status 1, like the
 node's own ``main``. A node cannot die alone here: the process is the unit that a supervisor
@@ -16,11 +18,12 @@ split into a few processes, e.g. one per camera plus one for control (GROUPS), e
 container of several nodes (docs/performance.md measures it).
 
 Usage: ``composed [--nodes NAMES] [--mavlink-url URL] [--params-file FILE] [--use-sim-time]
-[--ros-args ...]``.
+[--no-intra-process] [--ros-args ...]``.
 """
 from __future__ import annotations
 
 import argparse
+import inspect
 import sys
 
 from ibvs_bringup import graph
@@ -49,14 +52,25 @@ def node_class(package: str, executable: str):
     return getattr(__import__(module, fromlist=[name]), name)
 
 
-def build_nodes(specs: list, context) -> list:
-    """Instantiate every spec's node class with its name and per-run overrides."""
+def build_nodes(specs: list, context, intra_process: bool = True) -> list:
+    """Instantiate every spec's node class with its name and per-run overrides.
+
+    When the MAVLink bridge is among them, its imu/data goes to the others in process
+    (``ibvs_common.intra_process``: every node class with an ``imu_local`` argument takes it
+    from there instead of through DDS, as rclcpp's intra-process communication would).
+    """
     from rclpy.parameter import Parameter
+    from ibvs_common.intra_process import IntraProcessTopic
+    classes = [node_class(spec.package, spec.executable) for spec in specs]
+    with_bridge = any(spec.executable == 'mavlink_bridge' for spec in specs)
+    imu_local = IntraProcessTopic('imu/data') if with_bridge and intra_process else None
     nodes = []
-    for spec in specs:
+    for spec, cls in zip(specs, classes):
         overrides = [Parameter(k, value=v) for k, v in spec.overrides().items()]
-        nodes.append(node_class(spec.package, spec.executable)(
-            node_name=spec.name, context=context, parameter_overrides=overrides))
+        extra = ({'imu_local': imu_local} if imu_local is not None
+                 and 'imu_local' in inspect.signature(cls).parameters else {})
+        nodes.append(cls(node_name=spec.name, context=context, parameter_overrides=overrides,
+                         **extra))
     return nodes
 
 
@@ -73,6 +87,8 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--use-sim-time', action='store_true')
     p.add_argument('--nodes', default='', help='comma-separated onboard node names (default: '
                    'all of them)')
+    p.add_argument('--no-intra-process', action='store_true',
+                   help='imu/data through DDS to every node, as between processes')
     a = p.parse_args(remove_ros_args(['composed'] + argv)[1:])
     graph.ensure_ament_prefix_path()
     specs = graph.onboard_graph(graph.GraphOptions(
@@ -90,7 +106,8 @@ def main(argv: list | None = None) -> int:
     rclpy.init(args=['composed'] + ros_args + user_ros_args)
     nodes = []
     try:
-        nodes = build_nodes(specs, rclpy.get_default_context())
+        nodes = build_nodes(specs, rclpy.get_default_context(),
+                            intra_process=not a.no_intra_process)
         spin_guarded_nodes(nodes)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -5,6 +5,8 @@ Only conversions of message fields (frames.py does the frame conversions, no mat
 """
 from __future__ import annotations
 
+import math
+
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rclpy.node import Node
@@ -12,7 +14,7 @@ from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import JointState
 
-from ibvs_common.core.frames import R_IB_from_rot_map_base, rot_from_quat, vec_flu_to_frd
+from ibvs_common.core.frames import R_IB_from_quat_map_base, vec_flu_to_frd
 
 NS_PER_S = 1_000_000_000
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
@@ -51,15 +53,15 @@ def imu_sample(msg) -> tuple[int, np.ndarray, np.ndarray]:
 
     Raises ValueError for NaN/Inf or a quaternion that is not unit within 10 %.
     """
-    q = quat_wxyz(msg.orientation)
-    w = vector3(msg.angular_velocity)
-    if not np.all(np.isfinite(q)) or not np.all(np.isfinite(w)):
+    o, av = msg.orientation, msg.angular_velocity
+    q = (o.w, o.x, o.y, o.z)
+    w = (av.x, av.y, av.z)
+    if not all(map(math.isfinite, q + w)):
         raise ValueError('IMU message holds NaN or Inf')
-    if abs(np.linalg.norm(q) - 1.0) > 0.1:
-        raise ValueError(f'IMU orientation is not a unit quaternion '
-                         f'(|q| = {np.linalg.norm(q):.3f})')
-    R_IB = R_IB_from_rot_map_base(rot_from_quat(q))
-    return stamp_to_ns(msg.header.stamp), R_IB, vec_flu_to_frd(w)
+    norm = math.sqrt(sum(v * v for v in q))
+    if abs(norm - 1.0) > 0.1:
+        raise ValueError(f'IMU orientation is not a unit quaternion (|q| = {norm:.3f})')
+    return stamp_to_ns(msg.header.stamp), R_IB_from_quat_map_base(q), vec_flu_to_frd(w)
 
 
 class DeadlineTimer:

@@ -32,6 +32,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 
+from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_control.core.control_laws import (CrossingGains, DisturbanceLaw, GAIN_SPECS,
                                             IntegralGains, LandingGains, ObserverGains,
@@ -110,7 +111,8 @@ PARAMETER_SPECS = {
 class ForceControllerNode(Node):
     """ROS side of the outer-loop IBVS controller."""
 
-    def __init__(self, node_name: str = 'force_controller', **kwargs) -> None:
+    def __init__(self, node_name: str = 'force_controller',
+                 imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         p = declare_all(self, {**GAIN_PARAMETERS, **PARAMETERS},
@@ -140,7 +142,7 @@ class ForceControllerNode(Node):
                                                   COMMAND_QOS)
         self._features_pub = self.create_publisher(JointState, 'ibvs/features', COMMAND_QOS)
         # products and IMU first: at one wake-up rclpy takes them before a status
-        self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
+        subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
                                  COMMAND_QOS)

@@ -40,8 +40,9 @@ from ibvs_control.core.mavlink_hover import EstimatorConfig
 from ibvs_control.core.mavlink_link import (
     LinkConfig, load_signing_key, MavlinkReader, SigningError)
 from ibvs_control.core.mavlink_sequencer import SequencerConfig
-from ibvs_control.core.mavlink_telemetry import ImuSample, load_px4_events
+from ibvs_control.core.mavlink_telemetry import ImuSample, load_px4_events, message_ids
 from ibvs_control.core.time_sync import TimeSyncConfig
+from ibvs_common.intra_process import IntraProcessTopic
 from ibvs_common.node_common import (
     COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
     stamp_to_ns, vector3)
@@ -50,7 +51,12 @@ from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
 
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
-UNKNOWN_COVARIANCE = [-1.0] + [0.0] * 8     # sensor_msgs/Imu: element 0 = -1 "not provided"
+# PX4's onboard-link defaults that the bridge never reads (~300 of its ~400 messages/s,
+# measured on PX4 v1.16 SITL): each costs the bridge a parse in Python (docs/mavlink.md)
+DEFAULT_STREAMS_OFF = ('ATTITUDE', 'GLOBAL_POSITION_INT', 'LOCAL_POSITION_NED', 'ODOMETRY',
+                       'ALTITUDE', 'DISTANCE_SENSOR', 'POSITION_TARGET_LOCAL_NED',
+                       'SERVO_OUTPUT_RAW', 'VFR_HUD', 'GPS_RAW_INT')
+UNKNOWN_COVARIANCE = np.array([-1.0] + [0.0] * 8)   # sensor_msgs/Imu: [0] = -1 "not provided"
 LOG_THROTTLE_S = 2.0
 MIN_HEARTBEAT_TIMEOUT_S = 3.0               # >= 3 periods of the autopilots' 1 Hz heartbeat
 READER_WAIT_S = 0.1     # s (steady clock), the reader looks at a reopened link this often
@@ -73,6 +79,7 @@ PARAMETERS = {
     'vehicle_file': '',
     'param_timeout_s': 3.0,
     'attitude_rate_hz': 100.0,
+    'streams_off': list(DEFAULT_STREAMS_OFF),
     'imu_rate_hz': 100.0,
     'thrust_rate_hz': 50.0,
     'status_rate_hz': 5.0,
@@ -144,6 +151,9 @@ PARAMETER_SPECS = {
     'status_rate_hz': ('Hz, EXTENDED_SYS_STATE and SYS_STATUS streams asked', 0.0, None),
     'heartbeat_request_hz': ("Hz, ArduPilot's HEARTBEAT stream asked (PX4's is 1 Hz)",
                              0.0, None),
+    'streams_off': ('MAVLink message names whose streams are switched off on this link '
+                    '(SET_MESSAGE_INTERVAL -1): what the autopilot streams by default and the '
+                    "bridge does not read; never one it reads. [''] = none",),
     'timesync_period_s': ('s (ROS clock) between TIMESYNC requests once synced', 0.0, None),
     'timesync_init_request_period_s': ('s (steady clock) between TIMESYNC requests while '
                                        'unsynced', 0.0, None),
@@ -252,6 +262,7 @@ def config_from_parameters(p: dict) -> BridgeConfig:
         attitude_rate_hz=p['attitude_rate_hz'], imu_rate_hz=p['imu_rate_hz'],
         thrust_rate_hz=p['thrust_rate_hz'], status_rate_hz=p['status_rate_hz'],
         heartbeat_request_hz=p['heartbeat_request_hz'],
+        streams_off=message_ids(n for n in p['streams_off'] if n.strip()),
         stream_rate_hz=p['stream_rate_hz'], time_sync=sync, hold_last_s=p['hold_last_s'],
         max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
         shutdown_ramp_s=p['shutdown_ramp_s'], arm_on_start=bool(p['arm_on_start']),
@@ -261,13 +272,15 @@ def config_from_parameters(p: dict) -> BridgeConfig:
 class MavlinkBridgeNode(Node):
     """ROS side of the MAVLink bridge."""
 
-    def __init__(self, node_name: str = 'mavlink_bridge', **kwargs) -> None:
+    def __init__(self, node_name: str = 'mavlink_bridge',
+                 imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         p = declare_all(self, PARAMETERS, PARAMETER_SPECS)   # ValueError: bad type or range
         self._config = config_from_parameters(p)
         self._frame_id = p['frame_id']
-        self._cov = {k: [float(x) for x in p[k]] for k in (
+        # float64 arrays: a message takes them as they are (a list is checked and copied)
+        self._cov = {k: np.array(p[k], dtype=np.float64) for k in (
             'orientation_covariance', 'angular_velocity_covariance',
             'linear_acceleration_covariance')}
         self._bridge = MavlinkBridge(self._config)
@@ -278,6 +291,9 @@ class MavlinkBridgeNode(Node):
         self._bridge.stream_enabled = self._min_imu_subscribers == 0
 
         self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
+        self._imu_local = imu_local             # the composed container's co-located nodes
+        if imu_local is not None:
+            imu_local.attach_publisher(self)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # The heading subscription first: with both ready, the executor takes it first, so a
         # force finds the heading of its own stamp (the controller publishes the heading first).
@@ -370,12 +386,16 @@ class MavlinkBridgeNode(Node):
     def _receive(self, ros_ns: int) -> None:
         """Lock held: read what is pending, run the sequencer, publish new IMU samples."""
         for sample in self._bridge.poll(ros_ns):
-            self._imu_pub.publish(self._imu_msg(sample))
+            msg = self._imu_msg(sample)
+            self._imu_pub.publish(msg)
+            if self._imu_local is not None:
+                self._imu_local.publish(msg)
         self._log_events()
 
     def _check_imu_consumers(self) -> None:
         """Start the setpoint stream once imu/data has its consumers matched (then for good)."""
-        matched = self._imu_pub.get_subscription_count()
+        matched = self._imu_pub.get_subscription_count() + (
+            0 if self._imu_local is None else self._imu_local.subscriber_count)
         if matched >= self._min_imu_subscribers:
             self._bridge.stream_enabled = True
             self.get_logger().info(f'imu/data matched {matched} subscribers: setpoint stream on')

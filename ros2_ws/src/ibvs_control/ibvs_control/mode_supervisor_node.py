@@ -39,6 +39,7 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
+from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.modes import CAMERA_OF, InputKind, Mode, MODE_INPUTS
@@ -94,7 +95,8 @@ def _core_defaults() -> dict:
 class ModeSupervisorNode(Node):
     """ROS side of the mode supervisor."""
 
-    def __init__(self, node_name: str = 'mode_supervisor', **kwargs) -> None:
+    def __init__(self, node_name: str = 'mode_supervisor',
+                 imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         core_params = _core_defaults()
@@ -120,7 +122,7 @@ class ModeSupervisorNode(Node):
         self._mode_pub = self.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
                                                  COMMAND_QOS)
-        self.create_subscription(Imu, 'imu/data', self._on_imu, SENSOR_QOS)
+        subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)

@@ -31,6 +31,7 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
+from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import ConfigError, load_vehicle
 from ibvs_common.core.frames import e3, MAP_FRAME, vec_I_to_map
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
@@ -72,7 +73,8 @@ NODE_SPECS = {
 class OpticalFlowNode(Node):
     """Thin ROS wrapper of :class:`FlowEstimator` for one camera."""
 
-    def __init__(self, node_name: str = 'optical_flow', **kwargs) -> None:
+    def __init__(self, node_name: str = 'optical_flow',
+                 imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         self.camera_name = declare(self, 'camera', DOWN, NODE_SPECS['camera'])
@@ -111,7 +113,7 @@ class OpticalFlowNode(Node):
         self.pub_quality = self.create_publisher(
             Float32, f'{prefix}/translational_flow_quality', 10)
         # IMU and window first: at one wake-up rclpy takes them before an image
-        self.create_subscription(Imu, 'imu/data', self.on_imu, qos_profile_sensor_data)
+        subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data, imu_local)
         if self.camera_name == FRONT:
             self.create_subscription(PolygonStamped, 'window/corners', self.on_window,
                                      qos_profile_sensor_data)

@@ -29,6 +29,7 @@ from geometry_msgs.msg import PolygonStamped
 from sensor_msgs.msg import CameraInfo, Image, Imu
 
 from ibvs_perception.core.window import PARAMETER_SPECS, WindowDetector, WindowDetectorConfig
+from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.mode_gating import GatedImages
@@ -60,7 +61,8 @@ LAYOUT_FIELDS = ('window_width_m', 'window_height_m', 'frame_band_m')
 class WindowDetectorNode(Node):
     """Thin ROS wrapper of :class:`WindowDetector`."""
 
-    def __init__(self, node_name: str = 'window_detector', **kwargs) -> None:
+    def __init__(self, node_name: str = 'window_detector',
+                 imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         values = declare_all(self, dataclass_defaults(WindowDetectorConfig, LAYOUT_FIELDS),
@@ -93,7 +95,7 @@ class WindowDetectorNode(Node):
         self.pub_debug = self.create_publisher(Image, 'window/debug_image', 1) \
             if self.publish_debug else None
         # IMU first: at one wake-up rclpy takes it before an image
-        self.create_subscription(Imu, 'imu/data', self.on_imu, qos_profile_sensor_data)
+        subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data, imu_local)
         self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
         self.create_subscription(Image, 'front_camera/image_raw', self.gated.on_image,

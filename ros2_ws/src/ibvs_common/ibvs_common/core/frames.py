@@ -18,6 +18,8 @@ store ``(x, y, z, w)``: use :func:`quat_wxyz_to_xyzw` / :func:`quat_xyzw_to_wxyz
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 GRAVITY = 9.80665  # m/s^2, standard gravity
@@ -114,6 +116,19 @@ def euler_zyx_from_rot(R_IB: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
+def yaw_and_cos_tilt_from_quat(q_wxyz) -> tuple[float, float]:
+    """(yaw in rad, cos of the tilt) of an R_IB quaternion (FRD in NED, w x y z).
+
+    yaw as :func:`euler_zyx_from_rot` (``atan2(R[1, 0], R[0, 0])``), cos tilt = ``R[2, 2]`` =
+    e3 . R e3 clipped to [-1, 1], from the quaternion's matrix entries without building it
+    (tested equal): the bridge reads both from every ATTITUDE_QUATERNION. Normalises; raises
+    ValueError as :func:`rot_from_quat`.
+    """
+    w, x, y, z = _unit_quat(q_wxyz)
+    yaw = math.atan2(2 * (x * y + w * z), 1 - 2 * (y * y + z * z))
+    return yaw, min(1.0, max(-1.0, 1 - 2 * (x * x + y * y)))
+
+
 def quat_from_rot(R: np.ndarray) -> np.ndarray:
     """Return the unit quaternion (w, x, y, z), w >= 0, of a rotation matrix (Shepperd)."""
     R = np.asarray(R, dtype=float)
@@ -136,6 +151,18 @@ def quat_from_rot(R: np.ndarray) -> np.ndarray:
                       (R[1, 2] + R[2, 1]) / s, 0.25 * s])
     q /= np.linalg.norm(q)
     return q if q[0] >= 0.0 else -q
+
+
+_SQRT_HALF = float(np.sqrt(0.5))
+
+
+def _unit_quat(q_wxyz) -> tuple[float, float, float, float]:
+    """(w, x, y, z) as floats divided by their norm; ValueError if non-finite or zero."""
+    w, x, y, z = (float(v) for v in q_wxyz)
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    if not math.isfinite(n) or n < 1e-9:
+        raise ValueError(f'invalid quaternion {(w, x, y, z)!r}')
+    return w / n, x / n, y / n, z / n
 
 
 def rot_from_quat(q_wxyz: np.ndarray) -> np.ndarray:
@@ -208,12 +235,37 @@ def R_IB_from_rot_map_base(R_map_base: np.ndarray) -> np.ndarray:
     return R_I_MAP @ np.asarray(R_map_base, dtype=float) @ R_FLU_FRD
 
 
+def R_IB_from_quat_map_base(q_wxyz) -> np.ndarray:
+    """Paper's R_IB (FRD in NED) from a ROS attitude quaternion (FLU in ENU, w x y z).
+
+    ``R_IB_from_rot_map_base(rot_from_quat(q))`` (tested equal) with the two fixed axis swaps
+    done as row and column moves of the quaternion's matrix: row 0 of R_IB is row 1 of
+    R_map_base, row 1 is row 0, row 2 is negated; columns 1 and 2 are negated. Scalar
+    arithmetic: every node converts every imu/data sample (100 Hz). Normalises the
+    quaternion; raises ValueError as :func:`rot_from_quat`.
+    """
+    w, x, y, z = _unit_quat(q_wxyz)
+    r00, r01, r02 = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+    r10, r11, r12 = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+    r20, r21, r22 = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+    return np.array([[r10, -r11, -r12],
+                     [r00, -r01, -r02],
+                     [-r20, r21, r22]])
+
+
 def quat_ned_frd_to_enu_flu(q_wxyz: np.ndarray) -> np.ndarray:
     """Convert an autopilot attitude (FRD in NED, w x y z) to ROS (FLU in ENU, w x y z).
 
-    The same conversion MAVROS applies to ATTITUDE_QUATERNION.
+    The same conversion MAVROS applies to ATTITUDE_QUATERNION: ``q_MAP_I * q * q_FRD_FLU``
+    with ``q_MAP_I = (0, 1, 1, 0) / sqrt 2`` (pi about the x = y axis, R_MAP_I) and
+    ``q_FRD_FLU = (0, 1, 0, 0)`` (pi about x), in closed form; returned normalised with
+    w >= 0, as :func:`quat_from_rot` (the matrix route, tested equal). Scalar arithmetic: the
+    bridge converts every ATTITUDE_QUATERNION (100 Hz). Raises ValueError as
+    :func:`rot_from_quat`.
     """
-    return quat_from_rot(rot_map_base_from_R_IB(rot_from_quat(q_wxyz)))
+    w, x, y, z = _unit_quat(q_wxyz)
+    out = np.array([w + z, x + y, x - y, w - z]) * _SQRT_HALF
+    return out if out[0] >= 0.0 else -out
 
 
 def quat_enu_flu_to_ned_frd(q_wxyz: np.ndarray) -> np.ndarray:
@@ -238,8 +290,17 @@ def bearings_I_to_C(bearings_I: np.ndarray, R_IB: np.ndarray, R_BC: np.ndarray) 
 
 
 def is_rotation(R: np.ndarray, tol: float = 1e-6) -> bool:
-    """Tell whether R is a proper rotation matrix (orthonormal, det +1) within tol."""
+    """Tell whether R is a proper rotation matrix (orthonormal, det +1) within tol.
+
+    Orthonormal: every element of ``R R^T - I`` within tol; det by the rule of Sarrus.
+    """
     R = np.asarray(R, dtype=float)
-    return (R.shape == (3, 3) and bool(np.all(np.isfinite(R)))
-            and np.allclose(R @ R.T, np.eye(3), atol=tol)
-            and abs(np.linalg.det(R) - 1.0) < tol)
+    if R.shape != (3, 3) or not np.isfinite(R).all():
+        return False
+    if float(np.abs(R @ R.T - _EYE3).max()) > tol:
+        return False
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    return abs(a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g) - 1.0) < tol
+
+
+_EYE3 = np.eye(3)

@@ -74,6 +74,7 @@ class BridgeConfig:
     thrust_rate_hz: float = 50.0             # ATTITUDE_TARGET (the applied thrust)
     status_rate_hz: float = 5.0              # EXTENDED_SYS_STATE and SYS_STATUS
     heartbeat_request_hz: float = 5.0        # ArduPilot's HEARTBEAT (PX4's is fixed at 1 Hz)
+    streams_off: tuple = ()                  # message ids whose streams are switched off
     stream_rate_hz: float = 30.0             # a repeat when no setpoint left for 1 / this
     time_sync: TimeSyncConfig = field(default_factory=TimeSyncConfig)
     hold_last_s: float = 0.25                # s of vehicle time: no valid force -> hand back
@@ -445,7 +446,7 @@ class MavlinkBridge:
         c = self.config
         self.streams = StreamRequests(streams_for(
             self.autopilot.value, c.attitude_rate_hz, c.imu_rate_hz, c.thrust_rate_hz,
-            c.status_rate_hz, c.heartbeat_request_hz))
+            c.status_rate_hz, c.heartbeat_request_hz, c.streams_off))
 
     def _on_link_state(self) -> None:
         """Link back / autopilot reboot: ask for the streams again, forget per-boot state."""

@@ -32,8 +32,8 @@ import struct
 import numpy as np
 
 from ibvs_common.core.frames import (
-    euler_zyx_from_rot, GRAVITY, quat_ned_frd_to_enu_flu, rot_from_quat, vec_frd_to_flu)
-from ibvs_control.core.mavlink_link import MavMsgId
+    GRAVITY, quat_ned_frd_to_enu_flu, vec_frd_to_flu, yaw_and_cos_tilt_from_quat)
+from ibvs_control.core.mavlink_link import mavlink, MavMsgId
 from ibvs_control.core.time_sync import TimeSync
 
 NS_PER_MS = 1_000_000
@@ -202,16 +202,14 @@ class Telemetry:
         return None, None, None
 
     def _attitude(self, msg) -> ImuSample | None:
-        q = np.array([msg.q1, msg.q2, msg.q3, msg.q4], dtype=float)
-        w = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
-        if (not np.all(np.isfinite(q)) or not np.all(np.isfinite(w))
-                or abs(np.linalg.norm(q) - 1.0) > QUAT_NORM_TOLERANCE):
+        q = (float(msg.q1), float(msg.q2), float(msg.q3), float(msg.q4))
+        w = (float(msg.rollspeed), float(msg.pitchspeed), float(msg.yawspeed))
+        if (not all(map(math.isfinite, q + w))
+                or abs(math.sqrt(sum(v * v for v in q)) - 1.0) > QUAT_NORM_TOLERANCE):
             self._events.append(('error', f'ATTITUDE_QUATERNION out of range (q={q}, rates={w}): '
                                           'dropped'))
             return None
-        R = rot_from_quat(q)
-        self.yaw_now = euler_zyx_from_rot(R)[2]
-        self.cos_tilt_now = float(np.clip(R[2, 2], -1.0, 1.0))
+        self.yaw_now, self.cos_tilt_now = yaw_and_cos_tilt_from_quat(q)
         boot_ms = int(msg.time_boot_ms)
         self._events += self.time_sync.on_boot_time('time_boot_ms', boot_ms * NS_PER_MS)
         stamp_ns = self.time_sync.boot_ms_to_ros_ns(boot_ms)
@@ -222,10 +220,10 @@ class Telemetry:
         return ImuSample(stamp_ns, quat_ned_frd_to_enu_flu(q), vec_frd_to_flu(w), acc)
 
     def _accel(self, boot_ns: int, f) -> AccelSample | None:
-        f = np.array(f, dtype=float)
-        if not np.all(np.isfinite(f)) or np.linalg.norm(f) > MAX_SPECIFIC_FORCE:
+        f = tuple(float(v) for v in f)
+        if not all(map(math.isfinite, f)) or math.hypot(*f) > MAX_SPECIFIC_FORCE:
             return None
-        self.accel = AccelSample(int(boot_ns), f, self.cos_tilt_now)
+        self.accel = AccelSample(int(boot_ns), np.array(f), self.cos_tilt_now)
         return self.accel
 
     def _sys_status(self, msg) -> None:
@@ -299,21 +297,46 @@ class _Stream:
     attempts: int = 0
 
 
+#: what the bridge reads without asking for a stream: never switched off by ``streams_off``
+USED_UNREQUESTED = (MavMsgId.HEARTBEAT, MavMsgId.TIMESYNC, MavMsgId.PARAM_VALUE,
+                    MavMsgId.COMMAND_ACK, MavMsgId.STATUSTEXT, MavMsgId.EVENT)
+
+
+def message_ids(names) -> tuple[int, ...]:
+    """Return the message ids of MAVLink message names ('ATTITUDE', ...).
+
+    Raises ValueError naming an unknown one.
+    """
+    ids = []
+    for name in names:
+        msg_id = getattr(mavlink, f'MAVLINK_MSG_ID_{str(name).strip().upper()}', None)
+        if msg_id is None:
+            raise ValueError(f'unknown MAVLink message name {name!r}')
+        ids.append(int(msg_id))
+    return tuple(ids)
+
+
 def streams_for(autopilot: str, attitude_hz: float, imu_hz: float, thrust_hz: float,
-                status_hz: float, heartbeat_hz: float) -> list[tuple[int, float]]:
+                status_hz: float, heartbeat_hz: float,
+                off: tuple = ()) -> list[tuple[int, float]]:
     """Return the (message id, rate) list to ask ``autopilot`` ('px4' | 'ardupilot') for.
 
     PX4: ATTITUDE_QUATERNION, HIGHRES_IMU, ATTITUDE_TARGET, EXTENDED_SYS_STATE, SYS_STATUS
     (its HEARTBEAT rate is fixed: a request fails). ArduPilot: the same with SCALED_IMU instead
     of HIGHRES_IMU (which it lacks), and HEARTBEAT at ``heartbeat_hz`` (a pilot's mode switch is
-    then seen within 1 / heartbeat_hz).
+    then seen within 1 / heartbeat_hz). Then rate 0 (SET_MESSAGE_INTERVAL -1: stream off) for
+    each message id of ``off`` that the bridge does not use (the others are ignored): what
+    PX4's onboard link streams by default costs the bridge CPU for every message it parses.
     """
     common = [(MavMsgId.ATTITUDE_QUATERNION, attitude_hz), (MavMsgId.ATTITUDE_TARGET, thrust_hz),
               (MavMsgId.EXTENDED_SYS_STATE, status_hz), (MavMsgId.SYS_STATUS, status_hz)]
     if autopilot == 'ardupilot':
-        return common[:1] + [(MavMsgId.SCALED_IMU, imu_hz)] + common[1:] + [
+        wanted = common[:1] + [(MavMsgId.SCALED_IMU, imu_hz)] + common[1:] + [
             (MavMsgId.HEARTBEAT, heartbeat_hz)]
-    return common[:1] + [(MavMsgId.HIGHRES_IMU, imu_hz)] + common[1:]
+    else:
+        wanted = common[:1] + [(MavMsgId.HIGHRES_IMU, imu_hz)] + common[1:]
+    used = {int(i) for i, _ in wanted} | {int(i) for i in USED_UNREQUESTED}
+    return wanted + [(int(i), 0.0) for i in dict.fromkeys(off) if int(i) not in used]
 
 
 class StreamRequests:
@@ -367,7 +390,7 @@ class StreamRequests:
             return ''
         s.done = True
         self._sent_t = -math.inf
-        if int(result) == 0:
+        if int(result) == 0 or s.rate_hz == 0.0:   # off: refused = no such stream there
             return ''
         self.refused.append(s.msg_id)
         return (f'the autopilot refused message {s.msg_id} at {s.rate_hz:g} Hz '

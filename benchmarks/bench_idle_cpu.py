@@ -1,0 +1,149 @@
+#!/usr/bin/env python3
+"""CPU of the idle onboard graph (linked to an autopilot, no camera images), by layout.
+
+Issue 12's target: the idle graph takes <= 5 % of one core. Without images the graph's work is
+the 100 Hz IMU: the bridge reads the autopilot's MAVLink streams and publishes imu/data, and
+five nodes take every sample. Measured here, each case in a fresh process (CPU = utime +
+stime of that process over ``--window-s`` after ``--settle-s``), repeated ``--repeats`` times:
+
+- ``composed``: the seven onboard nodes in one process (ibvs_bringup.composed), imu/data to
+  the co-located nodes in process (ibvs_common.intra_process);
+- ``composed, DDS imu``: the same with ``--no-intra-process`` (every node subscribes through DDS);
+- ``bridge alone``: the MAVLink bridge node only, with params.yaml's ``streams_off``;
+- ``bridge alone, streams on`` (``--autopilot px4-sih`` only): ``streams_off: ['']``, i.e.
+  PX4's default onboard streams left on. PX4 keeps a stream setting until it reboots, so every
+  case there gets a fresh PX4.
+- ``no autopilot``: the composed process with nothing on the other end (its floor: timers,
+  DDS).
+
+Autopilot: ``stand-in`` (default; the sim's PX4-like autopilot in its own process, streams
+at 100 Hz like the bridge asks) or ``px4-sih`` (../shared/px4-sitl, instance 5+; skipped with a
+message when absent). Nothing subscribes to imu/data outside the measured process.
+
+Usage: ``bench_idle_cpu.py [--autopilot stand-in|px4-sih] [--repeats N] [--window-s S]
+[--smoke]``. Figures: docs/performance.md "Idle CPU".
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import subprocess
+import sys
+import threading
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CLK_TCK = os.sysconf('SC_CLK_TCK')
+STAND_IN_RATE_HZ = 100.0
+
+
+def cpu_seconds(pid: int) -> float:
+    """Return the CPU time (utime + stime, s) of a process so far."""
+    with open(f'/proc/{pid}/stat') as f:
+        fields = f.read().rsplit(')', 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / CLK_TCK
+
+
+def stand_in(url: str, stop: threading.Event) -> None:
+    """Serve the sim's PX4-like autopilot, level and still, on the wall clock (a thread)."""
+    import numpy as np
+    from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig, VehicleStateView
+    ap = Autopilot(AutopilotConfig(url=url, telemetry_default_hz=STAND_IN_RATE_HZ))
+    t0 = time.monotonic()
+    try:
+        while not stop.is_set():
+            time.sleep(0.002)
+            ap.poll(VehicleStateView(time.monotonic() - t0, np.zeros(3), np.zeros(3), np.eye(3),
+                                     np.zeros(3), np.array([0.0, 0.0, -9.81])))
+    finally:
+        ap.close()
+
+
+def measure(url: str | None, extra: list, settle_s: float, window_s: float) -> float:
+    """% of one core of one composed process (``extra``: its arguments) over window_s."""
+    cmd = [sys.executable, '-m', 'ibvs_bringup.composed',
+           '--mavlink-url', url or 'udpin:127.0.0.1:9'] + extra
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        time.sleep(settle_s)
+        if proc.poll() is not None:
+            raise RuntimeError(f'{cmd} exited {proc.returncode} during start-up')
+        a = cpu_seconds(proc.pid)
+        time.sleep(window_s)
+        return 100.0 * (cpu_seconds(proc.pid) - a) / window_s
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+CASES = {
+    'composed': [],
+    'composed, DDS imu': ['--no-intra-process'],
+    'bridge alone': ['--nodes', 'mavlink_bridge'],
+    'bridge alone, streams on': ['--nodes', 'mavlink_bridge', '--ros-args', '-p',
+                                 "streams_off:=['']"],
+}
+
+
+def run_case(name: str, autopilot: str, settle_s: float, window_s: float) -> float:
+    """One measurement of one case against a fresh autopilot."""
+    if autopilot == 'px4-sih':
+        from ibvs_bringup.px4_sih import free_instance, Px4Sitl
+        px4 = Px4Sitl(instance=free_instance(), params={})
+        px4.start()
+        try:
+            return measure(f'udpin:0.0.0.0:{14540 + px4.instance}', CASES[name], settle_s,
+                           window_s)
+        finally:
+            px4.stop()
+    from ibvs_bringup.run_scenario import free_udp_port
+    port = free_udp_port()
+    stop = threading.Event()
+    thread = threading.Thread(target=stand_in, args=(f'udpin:127.0.0.1:{port}', stop),
+                              daemon=True)
+    thread.start()
+    try:
+        return measure(f'udpout:127.0.0.1:{port}', CASES[name], settle_s, window_s)
+    finally:
+        stop.set()
+        thread.join(timeout=5.0)
+
+
+def main(argv: list | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument('--autopilot', choices=('stand-in', 'px4-sih'), default='stand-in')
+    p.add_argument('--repeats', type=int, default=3, help='measurements per case')
+    p.add_argument('--settle-s', type=float, default=10.0, help='s before the window (link, '
+                   'clock sync, streams)')
+    p.add_argument('--window-s', type=float, default=15.0, help='s of CPU measured')
+    p.add_argument('--smoke', action='store_true', help='CI: one short run of each case')
+    a = p.parse_args(argv)
+    os.environ.setdefault('AMENT_PREFIX_PATH', os.path.join(ROOT, '.venv'))
+    if a.smoke:
+        a.repeats, a.settle_s, a.window_s = 1, 4.0, 1.0
+    if a.autopilot == 'px4-sih':
+        from ibvs_bringup.px4_sih import find_px4_sitl
+        try:
+            find_px4_sitl()
+        except (FileNotFoundError, RuntimeError) as exc:
+            print(f'bench_idle_cpu: no PX4 SITL ({exc}); nothing measured')
+            return 0
+    cases = [c for c in CASES if a.autopilot == 'px4-sih' or 'streams on' not in c]
+    load = os.getloadavg()[0]
+    print(f'bench_idle_cpu: autopilot {a.autopilot}, {a.repeats} x {a.window_s:g} s per case, '
+          f'load average {load:.2f} on {os.cpu_count()} cores (% of one core)')
+    results = {c: [] for c in cases}
+    for _ in range(a.repeats):            # interleaved: slow drifts of the machine hit all
+        for c in cases:
+            results[c].append(run_case(c, a.autopilot, a.settle_s, a.window_s))
+    results['no autopilot'] = [measure(None, [], a.settle_s, a.window_s)
+                               for _ in range(a.repeats)]
+    for c, v in results.items():
+        print(f'{c:26s} median {statistics.median(v):5.1f} %   runs '
+              + ', '.join(f'{x:.1f}' for x in v))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
