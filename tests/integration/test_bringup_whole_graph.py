@@ -201,7 +201,29 @@ def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path)
     restarts = second['run']['node_restarts']
     print('node restarts: ' + '; '.join(restarts))
     assert any("'pad_detector' restarted" in r for r in restarts), restarts
-    a, b = first, second
+    assert_repeats(first, second)
+    # mode gating: the pad is not made in WINDOW, so the dead detector was not even waited for
+    assert second['timing']['lockstep_timeouts'] == 0
+    assert second['timing']['products_given_up'] == 0
+
+
+def test_the_composed_layout_repeats_the_reference(reference, tmp_path):
+    """The onboard nodes in one process (``--layout composed``) fly the reference's flight.
+
+    Same nodes, parameters and per-node overrides (composed --specs), one executor, imu/data
+    from the bridge in process: in lockstep nothing of that may change the flight (measured
+    bit-identical here; the same tolerances as the repeat above are required).
+    """
+    _, first = reference
+    second = run_scenario(tmp_path, 'composed', '--layout', 'composed', '--no-bag',
+                          '--no-plots')
+    assert second['run']['layout'] == 'composed'
+    assert len(second['run']['transitions']) == 4, second['run']['transitions']
+    assert_repeats(first, second)
+
+
+def assert_repeats(a: dict, b: dict) -> None:
+    """Assert that run b flew run a's flight (REPEAT_TOLERANCE, mode switches within a frame)."""
     pairs = {'clearance_m': (a['window']['min_clearance_m'], b['window']['min_clearance_m']),
              'landing_error_m': (a['landing']['error_m'], b['landing']['error_m']),
              'touchdown_speed_mps': (a['landing']['touchdown_speed_mps'],
@@ -212,15 +234,13 @@ def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path)
     identical = all(x == y for x, y in pairs.values()) and a['modes'] == b['modes']
     print(f'repeat: bit-identical {identical}; |difference| '
           + ', '.join(f'{k} {abs(x - y):.2e}' for k, (x, y) in pairs.items()))
-    assert_success(second)
+    assert_success(b)
     context = (a['modes'], b['modes'], a['timing'], b['timing'], b['_log_warnings'])
     for key, (x, y) in pairs.items():
         assert abs(x - y) <= REPEAT_TOLERANCE[key], (key, x, y, context)
     assert [m['mode'] for m in a['modes']] == [m['mode'] for m in b['modes']], context
     for ma, mb in zip(a['modes'], b['modes']):
         assert abs(ma['t_start_s'] - mb['t_start_s']) <= FRAME_S + 1e-9, context
-    # mode gating: the pad is not made in WINDOW, so the dead detector was not even waited for
-    assert b['timing']['lockstep_timeouts'] == 0 and b['timing']['products_given_up'] == 0
 
 
 def _mode_times(summary: dict) -> dict:

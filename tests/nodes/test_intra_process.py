@@ -130,3 +130,30 @@ def test_bridge_counts_in_process_subscribers_for_its_stream_gate(context):
         assert bridge._bridge.stream_enabled
     finally:
         bridge.destroy_node()
+
+
+def test_composed_nodes_get_their_own_parameters_and_remappings(context):
+    """Each node's NodeSpec.ros_args() apply to it alone, as in its own process."""
+    from ibvs_bringup import composed, graph
+    specs = graph.sim_graph(graph.GraphOptions(mavlink_port=14998))
+    onboard = [s for s in specs if s.role == 'onboard']
+    detector = next(s for s in onboard if s.executable == 'window_detector')
+    i = onboard.index(detector)
+    onboard[i] = graph.NodeSpec(detector.package, detector.executable, detector.name,
+                                detector.parameters + ({'max_corner_jump_px': 12.5},),
+                                (('window/corners', 'elsewhere/corners'),))
+    nodes = composed.build_nodes(onboard, context)
+    try:
+        by_name = {n.get_name(): n for n in nodes}
+        det = by_name[detector.name]
+        assert det.get_parameter('max_corner_jump_px').value == 12.5
+        assert '/elsewhere/corners' in [p.topic_name for p in det.publishers]
+        for node in nodes:
+            assert node.get_parameter('use_sim_time').value is True     # the sim graph's
+            if node is not det:
+                assert '/elsewhere/corners' not in [p.topic_name for p in node.publishers]
+                if node.has_parameter('max_corner_jump_px'):
+                    assert node.get_parameter('max_corner_jump_px').value != 12.5
+    finally:
+        for node in nodes:
+            node.destroy_node()

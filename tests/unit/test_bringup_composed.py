@@ -14,3 +14,38 @@ def test_every_onboard_node_has_a_class_and_exactly_one_group():
 def test_an_unknown_node_name_is_refused_before_anything_starts(capsys):
     assert composed.main(['--nodes', 'window_detector,no_such_node']) == 2
     assert "unknown node name(s) ['no_such_node']" in capsys.readouterr().err
+
+
+def test_specs_round_trip_through_the_json_file(tmp_path):
+    specs = graph.sim_graph(graph.GraphOptions(mavlink_port=14999, wind=(0.1, 0.0, 0.0),
+                                               extra_remappings=(('a', 'b'),)))
+    path = str(tmp_path / 'specs.json')
+    composed.write_specs(specs, path)
+    back = composed.read_specs(path)
+    assert back == specs                                 # tuples, dicts, roles, respawn
+    assert [s.ros_args() for s in back] == [s.ros_args() for s in specs]
+
+
+def test_a_bad_specs_file_is_refused_with_its_path(tmp_path, capsys):
+    bad = tmp_path / 'bad.json'
+    bad.write_text('[{"package": "ibvs_control"}]')
+    assert composed.main(['--specs', str(bad)]) == 2
+    assert f'bad node spec file {bad}' in capsys.readouterr().err
+
+
+def test_the_runner_composes_the_onboard_specs_only(tmp_path, monkeypatch):
+    from ibvs_bringup import run_scenario
+    from ibvs_bringup.runner import COMPOSED_NAME, ProcessRunner
+    started = []
+    runner = ProcessRunner(log_dir=str(tmp_path))
+    monkeypatch.setattr(runner, 'start', lambda name, argv, respawn=False:
+                        started.append((name, argv)))
+    specs = graph.sim_graph(graph.GraphOptions(mavlink_port=14999))
+    run_scenario.start_nodes(runner, specs, 'composed')
+    names = [n for n, _ in started]
+    assert names == ['sim', COMPOSED_NAME]
+    argv = started[1][1]
+    assert argv[1:4] == ['-m', 'ibvs_bringup.composed', '--specs']
+    assert [s.name for s in composed.read_specs(argv[4])] == list(graph.ONBOARD_NODE_NAMES)
+    assert run_scenario.supervisor_log(str(tmp_path / 'run')).endswith(
+        f'logs/{COMPOSED_NAME}.log')

@@ -18,12 +18,17 @@ split into a few processes, e.g. one per camera plus one for control (GROUPS), e
 container of several nodes (docs/performance.md measures it).
 
 Usage: ``composed [--nodes NAMES] [--mavlink-url URL] [--params-file FILE] [--use-sim-time]
-[--no-intra-process] [--ros-args ...]``.
+[--no-intra-process] [--specs FILE] [--ros-args ...]`` (``--ros-args`` apply to every node).
+Each node gets its own command-line tail (``NodeSpec.ros_args``: parameter files, overrides,
+remappings), as its own process would. ``--specs``: the node list of a run, written by the
+runner (``ProcessRunner.start_composed``), e.g. the onboard nodes of a sim or PX4 SIH run.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
+import json
 import sys
 
 from ibvs_bringup import graph
@@ -59,19 +64,37 @@ def build_nodes(specs: list, context, intra_process: bool = True) -> list:
     (``ibvs_common.intra_process``: every node class with an ``imu_local`` argument takes it
     from there instead of through DDS, as rclcpp's intra-process communication would).
     """
-    from rclpy.parameter import Parameter
     from ibvs_common.intra_process import IntraProcessTopic
     classes = [node_class(spec.package, spec.executable) for spec in specs]
     with_bridge = any(spec.executable == 'mavlink_bridge' for spec in specs)
     imu_local = IntraProcessTopic('imu/data') if with_bridge and intra_process else None
     nodes = []
     for spec, cls in zip(specs, classes):
-        overrides = [Parameter(k, value=v) for k, v in spec.overrides().items()]
         extra = ({'imu_local': imu_local} if imu_local is not None
                  and 'imu_local' in inspect.signature(cls).parameters else {})
-        nodes.append(cls(node_name=spec.name, context=context, parameter_overrides=overrides,
+        # the node's own command-line tail, as its process would get it: parameter files,
+        # overrides and remappings apply to this node only
+        nodes.append(cls(node_name=spec.name, context=context, cli_args=spec.ros_args(),
                          **extra))
     return nodes
+
+
+def write_specs(specs: list, path: str) -> None:
+    """Write node specs as JSON for ``composed --specs`` (the runner's composed layout)."""
+    with open(path, 'w') as f:
+        json.dump([dataclasses.asdict(s) for s in specs], f, indent=1)
+
+
+def read_specs(path: str) -> list:
+    """Read the node specs written by :func:`write_specs`; ValueError if malformed."""
+    try:
+        with open(path) as f:
+            raw = json.load(f)
+        return [graph.NodeSpec(**{**d, 'parameters': tuple(d['parameters']),
+                                  'remappings': tuple(tuple(r) for r in d['remappings'])})
+                for d in raw]
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f'bad node spec file {path}: {exc}') from exc
 
 
 def main(argv: list | None = None) -> int:
@@ -89,10 +112,19 @@ def main(argv: list | None = None) -> int:
                    'all of them)')
     p.add_argument('--no-intra-process', action='store_true',
                    help='imu/data through DDS to every node, as between processes')
+    p.add_argument('--specs', default=None, help='JSON node specs (write_specs) instead of the '
+                   'onboard graph of the options above: how the runner composes a run')
     a = p.parse_args(remove_ros_args(['composed'] + argv)[1:])
     graph.ensure_ament_prefix_path()
-    specs = graph.onboard_graph(graph.GraphOptions(
-        params_file=a.params_file, use_sim_time=a.use_sim_time, mavlink_url=a.mavlink_url))
+    if a.specs:
+        try:
+            specs = read_specs(a.specs)
+        except ValueError as exc:
+            print(f'composed: {exc}', file=sys.stderr)
+            return 2
+    else:
+        specs = graph.onboard_graph(graph.GraphOptions(
+            params_file=a.params_file, use_sim_time=a.use_sim_time, mavlink_url=a.mavlink_url))
     if a.nodes:
         wanted = [n for n in a.nodes.split(',') if n]
         unknown = sorted(set(wanted) - {s.name for s in specs})
@@ -101,9 +133,8 @@ def main(argv: list | None = None) -> int:
                   f'{[s.name for s in specs]}', file=sys.stderr)
             return 2
         specs = [s for s in specs if s.name in wanted]
-    ros_args = ['--ros-args'] + [x for f in specs[0].param_files() for x in ('--params-file', f)]
-    user_ros_args = argv[argv.index('--ros-args') + 1:] if '--ros-args' in argv else []
-    rclpy.init(args=['composed'] + ros_args + user_ros_args)
+    user_ros_args = argv[argv.index('--ros-args'):] if '--ros-args' in argv else []
+    rclpy.init(args=['composed'] + user_ros_args)
     nodes = []
     try:
         nodes = build_nodes(specs, rclpy.get_default_context(),

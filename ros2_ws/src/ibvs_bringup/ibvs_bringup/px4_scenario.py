@@ -118,7 +118,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
     from ibvs_bringup.monitor_node import close_monitor, ScenarioMonitor
-    from ibvs_bringup.run_scenario import supervisor_transitions
+    from ibvs_bringup.run_scenario import start_nodes, supervisor_log, supervisor_transitions
     from ibvs_bringup.runner import ProcessRunner, Terminated
 
     t_wall0 = time.monotonic()
@@ -138,7 +138,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
         print(f'run {opts.run_name}: PX4 SIH instance {instance} up in '
               f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")})', flush=True)
         monitor = ScenarioMonitor(use_sim_time=False)
-        runner.start_graph(specs)
+        start_nodes(runner, specs, opts.layout)
         pilot = Pilot(instance)
         stop_reason = _flight(opts, monitor, runner, pilot, xi0, t_wall0, info,
                               {s.name for s in specs if s.respawn},
@@ -172,7 +172,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
                                error=error, wall_time_s=time.monotonic() - t_wall0,
                                events=log.events, **info,
                                transitions=supervisor_transitions(
-                                   os.path.join(opts.out_dir, 'logs', 'mode_supervisor.log')))
+                                   supervisor_log(opts.out_dir)))
     return finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
 
 

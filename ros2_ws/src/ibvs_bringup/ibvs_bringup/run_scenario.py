@@ -23,7 +23,7 @@ import sys
 import time
 
 from ibvs_bringup import graph, plots, report
-from ibvs_bringup.runner import ProcessRunner, raise_on_sigterm, Terminated
+from ibvs_bringup.runner import COMPOSED_NAME, ProcessRunner, raise_on_sigterm, Terminated
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 import numpy as np
@@ -35,6 +35,7 @@ FAILSAFE_MODE = 5
 SHUTDOWN_MODE = 4
 DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
 AUTOPILOTS = ('sim', 'px4-sih')   # --autopilot: the first is the default
+LAYOUTS = ('processes', 'composed')   # --layout: the first is the default
 
 
 @dataclass
@@ -65,6 +66,7 @@ class RunOptions:
     autopilot: str = 'sim'              # 'sim' | 'px4-sih' (PX4 SITL is plant and autopilot)
     px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
     px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
+    layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
 
     @property
     def out_dir(self) -> str:
@@ -97,7 +99,8 @@ def prepare_out_dir(opts: RunOptions) -> str:
 
 
 def _run_block(opts: RunOptions, initial_position, **more) -> dict:
-    return {'name': opts.run_name, 'initial_position_I': list(initial_position),
+    return {'name': opts.run_name, 'layout': opts.layout,
+            'initial_position_I': list(initial_position),
             'wind_N': list(opts.wind) if opts.wind else [0.0, 0.0, 0.0],
             'crossing_law': opts.crossing_law or 'params.yaml',
             'feature_level': opts.feature_level, **opts.extra, **more}
@@ -167,6 +170,21 @@ def feature_run_data(flog, world, pad) -> plots.RunData:
 # --- whole-graph run ------------------------------------------------------------------------
 
 TRANSITION_LINE = re.compile(r'\]: (mode \w+ -> \w+ at t = .*)$')
+
+
+def start_nodes(runner, specs: list, layout: str) -> None:
+    """Start ``specs``: a process each, or the onboard ones in one composed process."""
+    if layout == 'composed':
+        runner.start_graph([s for s in specs if s.role != 'onboard'])
+        runner.start_composed([s for s in specs if s.role == 'onboard'])
+    else:
+        runner.start_graph(specs)
+
+
+def supervisor_log(out_dir: str) -> str:
+    """Return the log holding the supervisor's lines: its own, or the composed process's."""
+    own = os.path.join(out_dir, 'logs', 'mode_supervisor.log')
+    return own if os.path.exists(own) else os.path.join(out_dir, 'logs', f'{COMPOSED_NAME}.log')
 
 
 def supervisor_transitions(log_path: str) -> list[str]:
@@ -316,7 +334,7 @@ def run_graph(opts: RunOptions) -> int:
     restarts: list = []
     try:
         monitor = ScenarioMonitor()
-        runner.start_graph(specs)
+        start_nodes(runner, specs, opts.layout)
         print(f'run {opts.run_name}: started {len(specs)} nodes (MAVLink port {port}), '
               f'initial position {xi0}', flush=True)
         stop_reason = fly(opts, monitor, runner, t_wall0, specs, restarts)
@@ -336,8 +354,7 @@ def run_graph(opts: RunOptions) -> int:
                                 wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
                                 node_restarts=restarts,
                                 events=log.events,
-                                transitions=supervisor_transitions(
-                                    os.path.join(opts.out_dir, 'logs', 'mode_supervisor.log')))
+                                transitions=supervisor_transitions(supervisor_log(opts.out_dir)))
     return _finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
 
 
@@ -386,6 +403,10 @@ def parse_args(argv: list | None = None) -> RunOptions:
                    help="'sim': the simulator's plant and autopilot emulation (lockstep); "
                         "'px4-sih': PX4 SITL with SIH is plant and autopilot, real time on "
                         'the system clock, needs ../shared/px4-sitl (docs/px4_sih.md)')
+    p.add_argument('--layout', choices=LAYOUTS, default=LAYOUTS[0],
+                   help="onboard nodes as one process per node ('processes', the default) or "
+                        "all in one process on one executor ('composed', ibvs_bringup.composed"
+                        "); the sim, monitor and recorder run beside them either way")
     p.add_argument('--px4-instance', type=int, default=None, choices=range(10),
                    metavar='I', help='px4-sih: PX4 instance 0-9 (default: a free one >= 5)')
     p.add_argument('--px4-flight-s', type=float, default=None, metavar='S',
@@ -416,7 +437,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       imu_off=tuple(a.imu_off) if a.imu_off else None,
                       imu_nan=tuple(a.imu_nan) if a.imu_nan else None,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
-                      px4_flight_s=a.px4_flight_s)
+                      px4_flight_s=a.px4_flight_s, layout=a.layout)
 
 
 def main(argv: list | None = None) -> int:
@@ -425,6 +446,8 @@ def main(argv: list | None = None) -> int:
     graph.ensure_ament_prefix_path()
     try:
         graph.checked_params_file(opts.params_file, graph.SIM_NODE_NAMES)
+        if opts.kill_node and opts.layout == 'composed':
+            raise ValueError('--kill-node kills one node process: it needs --layout processes')
         prepare_out_dir(opts)
     except (ValueError, OSError) as exc:
         print(f'run_scenario: {exc}', file=sys.stderr)

@@ -21,6 +21,7 @@ import os
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from typing import Iterable
@@ -30,6 +31,7 @@ from ibvs_bringup.ros2run import command_for
 from ibvs_common.dds_profile import dds_env_overrides
 
 STDERR_TAIL_LINES = 20
+COMPOSED_NAME = 'onboard'     # process (and log) name of the composed onboard nodes
 RESPAWN_MAX_DELAY_S = 16.0    # s, longest wait before a restart
 RESPAWN_RESET_S = 30.0        # s of running that resets the backoff
 
@@ -127,6 +129,21 @@ class ProcessRunner:
         """Start one node of the graph the way ``ros2 run`` would."""
         self.start(spec.name, command_for(spec.package, spec.executable, spec.ros_args()),
                    respawn=spec.respawn)
+
+    def start_composed(self, specs: list, name: str = COMPOSED_NAME) -> None:
+        """Start ``specs`` as one process (ibvs_bringup.composed, one executor).
+
+        The specs go through a JSON file next to the logs (or a temporary one); the process is
+        not respawned (a supervisor of the whole process, e.g. systemd, would be).
+        """
+        from ibvs_bringup.composed import write_specs
+        if self.log_dir:
+            path = os.path.join(self.log_dir, f'{name}.specs.json')
+        else:
+            fd, path = tempfile.mkstemp(prefix='composed-', suffix='.json')
+            os.close(fd)
+        write_specs(list(specs), path)
+        self.start(name, [sys.executable, '-m', 'ibvs_bringup.composed', '--specs', path])
 
     def kill(self, name: str) -> str:
         """SIGKILL the process ``name`` (fault injection); return its name."""
