@@ -326,8 +326,10 @@ def test_controller_observer_reads_imu_specific_force_in_flu(ctx):
         spin_for(executor, 0.003)
         status(feed, t, 0)
         spin_for(executor, 0.003)
-    assert spin_until(executor, lambda: len(feed.forces) >= 100, 5.0)
-    d_hat = fc._controller.disturbance_estimate
+    assert spin_until(executor, lambda: len(feed.forces) >= 100 and len(feed.features) >= 100,
+                      5.0)
+    named = dict(zip(feed.features[-1].name, feed.features[-1].position))   # ibvs/features
+    d_hat = [named[f'd_hat.{axis}'] for axis in 'xyz']                       # {I}, m/s^2
     assert d_hat == pytest.approx([0.0, -0.5 * (1 - np.exp(-2.0 / 0.5)), 0.0], abs=0.02)
 
 

@@ -150,8 +150,8 @@ class ForceControllerNode(Node):
         self.get_logger().info(f'force controller: gains {config.landing}, {config.window}, '
                                f'{config.crossing}, crossing law {config.crossing_law.value}, '
                                f'disturbance law {config.disturbance_law.value}'
-                               + (f' {config.integral}' if config.disturbance_law.value
-                                  == 'integral' else ''))
+                               + (f' {config.integral}' if config.disturbance_law
+                                  == DisturbanceLaw.INTEGRAL else ''))
 
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:

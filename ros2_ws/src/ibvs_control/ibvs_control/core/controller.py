@@ -127,6 +127,7 @@ class FeatureSnapshot:
     phi_t: np.ndarray | None = None
     alpha_w: float | None = None
     eta_w: np.ndarray | None = None
+    d_hat: np.ndarray | None = None     # disturbance observer's Delta / m (m/s^2), else None
 
 
 @dataclass(frozen=True)
@@ -201,15 +202,16 @@ class IbvsController:
         phi_w = None
         if win is not None and meas.phi_front_I is not None:
             phi_w = window_flow(meas.phi_front_I, win.eta_w, win.l_e, win.alpha_w)
+        if self._yaw_des is None:
+            self._yaw_des = euler_zyx_from_rot(R_IB)[2]
+        observer = cfg.disturbance_law == DisturbanceLaw.OBSERVER
+        if observer:
+            self._observe(dt, meas.specific_force_I)
         feats = FeatureSnapshot(
             q_w=None if win is None else win.q_w, q_w_bar=None if win is None else win.q_w_bar,
             q_t=q_t, phi_w=phi_w, phi_t=phi_t, alpha_w=None if win is None else win.alpha_w,
-            eta_w=self._eta_w if win is None else win.eta_w)
-
-        if self._yaw_des is None:
-            self._yaw_des = euler_zyx_from_rot(R_IB)[2]
-        if cfg.disturbance_law == DisturbanceLaw.OBSERVER:
-            self._observe(dt, meas.specific_force_I)
+            eta_w=self._eta_w if win is None else win.eta_w,
+            d_hat=self._d_hat.copy() if observer else None)
         height = self._pad_height(meas, R_IB) if mode == Mode.LANDING else None
         F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t, height)
         if valid:

@@ -205,7 +205,7 @@ def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
     return out, F
 
 
-FEATURE_NAMES = ('q_w', 'q_w_bar', 'q_t', 'phi_w', 'phi_t', 'eta_w')
+FEATURE_NAMES = ('q_w', 'q_w_bar', 'q_t', 'phi_w', 'phi_t', 'eta_w', 'd_hat')
 
 
 def feature_vector(features: FeatureSnapshot) -> tuple[list[str], list[float]]:
