@@ -19,7 +19,8 @@ ROOT = Path(__file__).resolve().parents[2]
 BENCH_ARGS = {'bench_perception.py': ['--frames', '5'], 'bench_sim.py': ['--frames', '10'],
               'bench_log_throttle.py': ['--calls', '50'], 'bench_gc_pause.py': ['--repeats', '3'],
               'bench_latency.py': ['--smoke', '--grouped'],
-              'bench_window_robustness.py': ['--smoke'], 'bench_idle_cpu.py': ['--smoke']}
+              'bench_window_robustness.py': ['--smoke'], 'bench_idle_cpu.py': ['--smoke'],
+              'bench_pad_groups.py': ['--poses', '2']}
 
 
 def run(args, cwd, timeout=600):

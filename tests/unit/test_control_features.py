@@ -165,3 +165,84 @@ def test_degenerate_inputs_raise():
     p[1] = p[0]
     with pytest.raises(ValueError):
         ft.compute_window_features(p, 0.2, 0.05)
+
+
+def test_centroid_of_the_complete_groups_depends_on_which_groups_are_complete():
+    """Why q_t jumped at a group switch: rings of other radii have other spherical centroids.
+
+    Straight above the pad at height h, a group's 4 bearings make the angle atan(sqrt(2) c /
+    h) with the vertical, so its centroid is h / sqrt(h^2 + 2 c^2) e3-up; beside the pad the
+    direction differs too. The same pose, two sets of groups: two features.
+    """
+    pad = load_pad_layout()
+    h = 0.6
+    for g in pad.groups:
+        q = ft.centroid_feature(bearings(g.marker_centres_I(), np.array([0.0, 0.0, -h])))
+        assert np.allclose(q, [0.0, 0.0, -h / np.hypot(h, np.sqrt(2.0) * g.c)], atol=1e-12)
+    xi = np.array([0.3, -0.2, -0.6])
+    A, D = (bearings(g.marker_centres_I(), xi) for g in (pad.groups[0], pad.groups[-1]))
+    q_A, q_AD = ft.centroid_feature(A), ft.centroid_feature(np.vstack([A, D]))
+    assert np.linalg.norm(q_A - q_AD) > 0.03
+    assert np.degrees(np.arccos(q_A @ q_AD / np.linalg.norm(q_A) / np.linalg.norm(q_AD))) > 0.5
+
+
+def pad_subsets(pad):
+    """Every non-empty set of groups, in layout order (as pad/landmarks lists them)."""
+    n = len(pad.groups)
+    return [[g for k, g in enumerate(pad.groups) if mask >> k & 1] for mask in range(1, 2 ** n)]
+
+
+def test_pad_feature_is_the_same_for_every_set_of_complete_groups():
+    """q_t on fixed pad points: the same vector from any set of groups, in any frame.
+
+    Default: the pad centre alone, q_t = -p_centre = xi / |xi| (the unit direction from the
+    pad centre to the camera). With a reference square of half-side r: minus the mean of the
+    true bearings of its 4 corners (+-r, +-r). Bearings expressed in a rotated frame (as
+    the optical frame is): the feature comes out in that frame.
+    """
+    pad = load_pad_layout()
+    rng = np.random.default_rng(15)
+    r = 0.25
+    square = np.array([[r, r, 0.0], [r, -r, 0.0], [-r, -r, 0.0], [-r, r, 0.0]])
+    for _ in range(30):
+        xi = np.array([*rng.uniform(-0.5, 0.5, 2), -rng.uniform(0.12, 2.5)])
+        R = rot_from_euler_zyx(*rng.uniform(-0.4, 0.4, 3))      # {I} <- the bearings' frame
+        centre_truth = xi / np.linalg.norm(xi)
+        square_truth = -bearings(square, xi).mean(axis=0)
+        for groups in pad_subsets(pad):
+            p = np.vstack([bearings(g.marker_centres_I(), xi) for g in groups]) @ R  # R^T p
+            np.testing.assert_allclose(R @ ft.pad_feature(p), centre_truth, atol=1e-12)
+            q = ft.pad_feature(p, [g.c for g in groups], reference_half_side=r)
+            np.testing.assert_allclose(R @ q, square_truth, atol=1e-12)
+
+
+def test_pad_reference_bearings_of_one_group_are_the_true_bearings():
+    """Any pad point, seen through one group's plane map: its true bearing (inside or out)."""
+    pad = load_pad_layout()
+    xi = np.array([0.35, -0.25, -0.4])
+    points = np.array([[0.0, 0.0], [0.36, 0.36], [-0.5, 0.2], [0.01, -0.03]])
+    truth = bearings(np.column_stack([points, np.zeros(len(points))]), xi)
+    for g in pad.groups:
+        got = ft.pad_reference_bearings(bearings(g.marker_centres_I(), xi), g.c, points)
+        np.testing.assert_allclose(got, truth, atol=1e-11)
+
+
+def test_pad_feature_refuses_what_is_not_the_view_of_complete_groups():
+    pad = load_pad_layout()
+    xi = np.array([0.1, 0.0, -0.8])
+    A = bearings(pad.groups[0].marker_centres_I(), xi)
+    with pytest.raises(ValueError):                  # not 4 per group
+        ft.pad_feature(A[:3])
+    with pytest.raises(ValueError):
+        ft.pad_feature(np.zeros((0, 3)))
+    with pytest.raises(ValueError):                  # markers out of layout order (a bow tie)
+        ft.pad_feature(A[[0, 2, 1, 3]])
+    with pytest.raises(ValueError):                  # three centres on one great circle
+        ft.pad_feature(np.array([A[0], A[1], A[1], A[3]]))
+    with pytest.raises(ValueError):                  # a reference square needs the sizes
+        ft.pad_feature(A, reference_half_side=0.1)
+    D = bearings(pad.groups[-1].marker_centres_I(), xi)       # a degenerate group is left out
+    np.testing.assert_allclose(ft.pad_feature(np.vstack([A[[0, 2, 1, 3]], D])),
+                               xi / np.linalg.norm(xi), atol=1e-12)
+    with pytest.raises(ValueError):
+        ft.pad_reference_points(-0.1)

@@ -214,3 +214,107 @@ def pad_height_estimate(group_bearings_I: np.ndarray, c: float,
     lengths = np.array([np.linalg.norm(X[i] - X[j]) for i, j, _ in _GROUP_PAIRS])
     known = c * np.array([k for _, _, k in _GROUP_PAIRS])
     return float(lengths @ known / (lengths @ lengths))
+
+
+#: a group's 4 marker centres on the pad in units of its half-side c, layout id order
+_GROUP_UNIT_SQUARE = np.array([[1.0, 1.0], [1.0, -1.0], [-1.0, -1.0], [-1.0, 1.0]])
+#: smallest accepted scale of a marker bearing in the plane map (degenerate group view)
+_MIN_PLANE_MAP_SCALE = 1e-9
+
+
+def pad_plane_map(group_bearings: np.ndarray, c: float) -> np.ndarray:
+    """Return the map M (3, 3) of the pad plane to the camera's rays, from one complete group.
+
+    The vector from the camera to the pad point (x, y) (metres, pad axes of pad_layout.yaml,
+    origin at the pad centre) is linear in (x, y, 1): ``R [e1, e2, -xi] (x, y, 1)`` for a
+    camera at xi in {I} and any rotation R of the bearings' frame. Its 4 marker centres
+    (+-c, +-c) seen as unit bearings fix that map up to one positive scale:
+    ``M (x, y, 1) = s (point - camera)``, s > 0, in the bearings' frame (any frame: {I},
+    optical). M is the homography of the group's 4 centres, so M (0, 0, 1) is the
+    intersection of the image diagonals: the pad centre is where every group's centre is.
+    Bearings (4, 3) in layout id order ((+c,+c), (+c,-c), (-c,-c), (-c,+c)); raises
+    ValueError for a degenerate view (3 centres on one great circle, or a marker behind the
+    others: a sign the 4 bearings are not a square's image).
+    """
+    p = np.asarray(group_bearings, dtype=float).reshape(4, 3)
+    if not (np.all(np.isfinite(p)) and c > 0.0):
+        raise ValueError('non-finite bearing or non-positive group size')
+    P = p[:3].T
+    try:
+        b = np.linalg.solve(P, p[3])
+    except np.linalg.LinAlgError as exc:
+        raise ValueError('degenerate pad group view') from exc
+    # u3 = u0 - u1 + u2 for the square's homogeneous points, so lambda_k a_k = b_k with
+    # a = (1, -1, 1) (M u_k = lambda_k p_k, lambda_3 = 1)
+    lam = b * np.array([1.0, -1.0, 1.0])
+    if np.any(lam < _MIN_PLANE_MAP_SCALE):
+        raise ValueError('pad group bearings are not the view of a square')
+    U = np.vstack([c * _GROUP_UNIT_SQUARE[:3].T, np.ones(3)])
+    return (P * lam) @ np.linalg.inv(U)
+
+
+def pad_reference_bearings(group_bearings: np.ndarray, c: float,
+                           reference_xy: np.ndarray) -> np.ndarray:
+    """Return the unit bearings (m, 3) of pad points ``reference_xy`` (m, 2; metres).
+
+    The points are seen through one complete group's plane map (pad_plane_map), in the frame
+    of its bearings. Exact in geometry: any complete group gives the same bearings of the
+    same pad points.
+    """
+    M = pad_plane_map(group_bearings, c)
+    xy = np.asarray(reference_xy, dtype=float).reshape(-1, 2)
+    r = np.column_stack([xy, np.ones(len(xy))]) @ M.T
+    return r / np.linalg.norm(r, axis=1, keepdims=True)
+
+
+def pad_reference_points(reference_half_side: float) -> np.ndarray:
+    """Return the pad points (m, 2; metres) q_t is defined on: the centre or a square around it.
+
+    ``reference_half_side`` 0: the pad centre alone; r > 0: the 4 points (+-r, +-r).
+    """
+    r = float(reference_half_side)
+    if r < 0.0:
+        raise ValueError(f'reference half-side must be >= 0, got {r}')
+    return np.zeros((1, 2)) if r == 0.0 else r * _GROUP_UNIT_SQUARE
+
+
+def pad_feature(landmark_bearings: np.ndarray, half_sides: list[float] | None = None,
+                reference_half_side: float = 0.0) -> np.ndarray:
+    """Return q_t = -(1/n) sum p_j over a fixed set of pad points, from any complete groups.
+
+    eq:q_t on a landmark set that does not depend on which groups are complete: the pad
+    points of pad_reference_points(reference_half_side) (default: the pad centre alone,
+    q_t = -p_centre = xi / |xi|), each seen through every complete group's plane map
+    (pad_reference_bearings) and averaged over the groups. In geometry every group gives
+    the same q_t, so a group appearing or disappearing changes it only by the groups'
+    measurement noise. The centroid of the groups' own marker centres (centroid_feature)
+    is a different vector for each set of groups (rings of other radii: another magnitude
+    and, off the pad's axis or tilted, another direction).
+
+    ``landmark_bearings`` (4 k, 3): the 4 marker-centre bearings of each of k complete
+    groups, groups one after the other, each in layout id order (pad/landmarks); the frame
+    of q_t is theirs. ``half_sides``: each group's c (m); needed only when
+    ``reference_half_side`` > 0 (the pad centre is the same point in every group's units).
+    A group whose view is degenerate (pad_plane_map) is left out. Raises ValueError for no
+    group, a count that is not 4 k, or when every group is degenerate.
+    """
+    p = np.asarray(landmark_bearings, dtype=float).reshape(-1, 3)
+    k = len(p) // 4
+    if k == 0 or len(p) != 4 * k:
+        raise ValueError(f'need 4 bearings per complete group, got {len(p)}')
+    ref = pad_reference_points(reference_half_side)
+    if reference_half_side > 0.0:
+        if half_sides is None or len(half_sides) != k:
+            raise ValueError('half_sides (one per group) are needed for a reference square')
+        cs = [float(c) for c in half_sides]
+    else:
+        cs = [1.0] * k
+    rays = []
+    for g in range(k):
+        try:
+            rays.append(pad_reference_bearings(p[4 * g:4 * g + 4], cs[g], ref))
+        except ValueError:
+            continue
+    if not rays:
+        raise ValueError('no pad group gives a non-degenerate view')
+    return -np.mean(np.concatenate(rays), axis=0)

@@ -17,8 +17,7 @@ from ibvs_control.core.control_laws import (
     force_crossing_intended, force_crossing_seed, force_landing, force_window, GainError,
     IntegralGains, LandingGains, ObserverGains, sigma, WindowGains)
 from ibvs_common.core.features import (
-    centroid_feature, compute_window_features, pad_height_estimate, window_flow,
-    WindowFeatures)
+    compute_window_features, pad_feature, pad_height_estimate, window_flow, WindowFeatures)
 from ibvs_common.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
 from ibvs_common.core.modes import Mode
 
@@ -197,7 +196,10 @@ class IbvsController:
         win = self._window_features(meas, R_IB)
         q_t = None
         if meas.pad_bearings_C is not None and len(meas.pad_bearings_C) > 0:
-            q_t = centroid_feature(bearings_C_to_I(meas.pad_bearings_C, R_IB, cfg.R_BC_down))
+            try:        # eq:q_t on the pad centre, seen through every complete group
+                q_t = pad_feature(bearings_C_to_I(meas.pad_bearings_C, R_IB, cfg.R_BC_down))
+            except ValueError:          # not 4 bearings per group, or no usable group
+                q_t = None
         phi_t = meas.phi_down_I
         phi_w = None
         if win is not None and meas.phi_front_I is not None:
