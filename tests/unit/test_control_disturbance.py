@@ -159,6 +159,27 @@ def test_the_observer_converges_to_delta_over_m_with_its_time_constant():
     assert np.linalg.norm(ctrl.disturbance_estimate) == pytest.approx(cfg.observer.d_max)
 
 
+def test_the_observer_takes_the_applied_thrust_axis_from_the_attitude_not_the_command():
+    """A plant whose attitude lags the command: the thrust acts along the measured R_IB e3.
+
+    The vehicle is level (R_IB = I) while the law commands a 15 deg tilt: f_I = (-|F| e3 +
+    Delta) / m. d_hat must still go to Delta / m; with the commanded direction it would read
+    the command's horizontal part, |F| sin 15 deg / m = 2.5 m/s^2, as a disturbance.
+    """
+    cfg = replace(ControllerConfig.from_params({}, VEHICLE, WORLD.window.width, PAD),
+                  disturbance_law=DisturbanceLaw.OBSERVER)
+    ctrl = IbvsController(cfg)
+    m, delta = VEHICLE.mass, np.array([0.2, 0.0, 0.0])       # N
+    tilt = np.deg2rad(15.0)
+    F_cmd = m * GRAVITY * np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    ctrl._F_cmd = F_cmd                                        # the command in flight
+    dt = 0.02
+    for k in range(1, 400):
+        f_I = (-np.linalg.norm(F_cmd) * e3 + delta) / m        # level: thrust along e3
+        ctrl._observe(dt, f_I, np.eye(3))
+    assert ctrl.disturbance_estimate == pytest.approx(delta / m, abs=1e-6)
+
+
 def test_specific_force_buffer_means_over_a_frame_and_forgets():
     buf = SpecificForceBuffer(history_s=0.1)
     for k in range(10):

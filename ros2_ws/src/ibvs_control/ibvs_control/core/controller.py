@@ -208,7 +208,7 @@ class IbvsController:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
         observer = cfg.disturbance_law == DisturbanceLaw.OBSERVER
         if observer:
-            self._observe(dt, meas.specific_force_I)
+            self._observe(dt, meas.specific_force_I, R_IB)
         feats = FeatureSnapshot(
             q_w=None if win is None else win.q_w, q_w_bar=None if win is None else win.q_w_bar,
             q_t=q_t, phi_w=phi_w, phi_t=phi_t, alpha_w=None if win is None else win.alpha_w,
@@ -221,12 +221,20 @@ class IbvsController:
         self._F_cmd = F if valid else self._F_last
         return ControlOutput(self._F_cmd, self._yaw_des, feats, valid)
 
-    def _observe(self, dt: float, f_I: np.ndarray | None) -> None:
-        """One step of the disturbance observer (ObserverGains): Delta/m = f_I + F / m."""
+    def _observe(self, dt: float, f_I: np.ndarray | None, R_IB: np.ndarray) -> None:
+        """One step of the disturbance observer (ObserverGains): Delta/m = f_I + F_app / m.
+
+        F_app, the force the vehicle applied over the interval, is the previous command's
+        magnitude along the body's thrust axis R_IB e3 (the attitude measured, not the one
+        commanded): while the attitude loop lags a new command, the commanded direction is
+        not yet the applied one, and their difference would read as a disturbance that the
+        law then feeds back (measured on PX4 SIH: a growing oscillation in LANDING).
+        """
         if f_I is None or dt <= 0.0 or not np.all(np.isfinite(f_I)):
             return
         g = self.config.observer
-        d_meas = np.asarray(f_I, dtype=float) + self._F_cmd / self.config.mass
+        F_app = float(np.linalg.norm(self._F_cmd)) * (R_IB @ e3)
+        d_meas = np.asarray(f_I, dtype=float) + F_app / self.config.mass
         self._d_hat = clamp_norm(self._d_hat + min(dt / g.tau_s, 1.0) * (d_meas - self._d_hat),
                                  g.d_max)
 
