@@ -66,18 +66,29 @@ def test_content_computed_once_held_on_vehicle_time_then_level_or_held_when_enga
 
 def test_shutdown_ramp_from_the_last_thrust_on_vehicle_time():
     s = shaper(shutdown_ramp_s=2.0)
-    s.on_force(10.0, 1.2 * HOVER_F, 0.0, 0.5)
+    s.on_force(10.0, 0.8 * HOVER_F, 0.0, 0.5)
     first = s.target(10.0, Mode.LANDING, 0.0, 0.5, 0, 10.0, 100.0)
-    assert first.thrust == pytest.approx(0.6)
+    assert first.thrust == pytest.approx(0.4)
     r0 = s.target(10.0, Mode.SHUTDOWN, 0.0, 0.5, 0, 10.0, 100.0)
     r1 = s.target(11.0, Mode.SHUTDOWN, 0.0, 0.5, 0, 11.0, 100.5)
-    assert r0.thrust == pytest.approx(0.6) and r1.thrust == pytest.approx(0.3)
+    assert r0.thrust == pytest.approx(0.4) and r1.thrust == pytest.approx(0.2)
     assert not s.ramp_done(100.5)
     s.target(12.0, Mode.SHUTDOWN, 0.0, 0.5, 0, 12.0, 101.0)
     assert s.ramp_done(101.0)
     # the land mode asked for during a shutdown: level hold instead of the ramp
     assert s.target(12.0, Mode.SHUTDOWN, 0.0, 0.5, 0, 12.0, 101.0,
                     level_hold=True).source == SetpointSource.LEVEL_HOLD
+
+
+def test_shutdown_ramp_never_starts_above_the_hover_thrust():
+    """A last force above hover (braking a climb near the floor) must not be held level."""
+    s = shaper(shutdown_ramp_s=2.0)
+    s.on_force(10.0, 1.6 * HOVER_F, 0.0, 0.5)
+    assert s.target(10.0, Mode.LANDING, 0.0, 0.5, 0, 10.0, 100.0).thrust == pytest.approx(0.8)
+    r0 = s.target(10.02, Mode.SHUTDOWN, 0.0, 0.5, 0, 10.02, 100.0)
+    assert r0.source == SetpointSource.SHUTDOWN_RAMP and r0.thrust == pytest.approx(0.5)
+    r1 = s.target(11.02, Mode.SHUTDOWN, 0.0, 0.5, 0, 11.02, 101.0)
+    assert r1.thrust == pytest.approx(0.25)
 
 
 def test_shutdown_ramp_runs_on_vehicle_time_and_on_the_wall_after_a_stall():
