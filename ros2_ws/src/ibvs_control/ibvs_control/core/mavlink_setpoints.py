@@ -22,9 +22,9 @@ Content by supervisor mode
     the safety policy hands the vehicle back instead). SHUTDOWN: level at the current yaw, thrust
     ramped from its value at the switch to 0 over ``shutdown_ramp_s`` of vehicle time
     (:class:`ShutdownRamp`), starting from the lower of that value and the hover thrust (the
-    last force can ask for more than hover, e.g. braking a climb near the floor; held level,
-    more than hover climbs: measured on PX4 SIH, a SHUTDOWN that started above hover flew the
-    vehicle from 0.2 m into the window frame at 2 m, 4.5 m/s). While the autopilot's land
+    last force can ask for more than hover, e.g. braking the descent near the floor; held
+    level, more than hover climbs: measured on PX4 SIH, a SHUTDOWN that started from 2.4 times
+    the hover force flew the vehicle from 0.1 m into the window frame at 2 m, 4.5 m/s). While the autopilot's land
     mode is being asked for (FAILSAFE etc.):
     level at the current yaw at the hover thrust (LEVEL_HOLD), never a descent of our own.
 """
@@ -252,7 +252,7 @@ class SetpointShaper:
         """
         level_q = quat_from_rot(rot_z(yaw_now))
         if mode == Mode.SHUTDOWN and not level_hold:
-            if self._ramp is None:      # never above hover: level, it could only climb
+            if self._ramp is None:      # never above hover: held level, more would climb
                 start = hover if self._last_thrust is None else min(self._last_thrust, hover)
                 self._ramp = ShutdownRamp(start, t_stamp, t_wall)
             self._ramp.advance(t_stamp, t_wall)
