@@ -24,9 +24,9 @@ Content by supervisor mode
     (:class:`ShutdownRamp`), starting from the lower of that value and the hover thrust (the
     last force can ask for more than hover, e.g. braking the descent near the floor; held
     level, more than hover climbs: measured on PX4 SIH, a SHUTDOWN that started from 2.4 times
-    the hover force flew the vehicle from 0.1 m into the window frame at 2 m, 4.5 m/s). While the autopilot's land
-    mode is being asked for (FAILSAFE etc.):
-    level at the current yaw at the hover thrust (LEVEL_HOLD), never a descent of our own.
+    the hover force flew the vehicle from 0.1 m into the window frame at 2 m, 4.5 m/s). While
+    the autopilot's land mode is being asked for (FAILSAFE etc.): level at the current yaw at
+    the hover thrust (LEVEL_HOLD), never a descent of our own.
 """
 from __future__ import annotations
 
