@@ -46,18 +46,29 @@ def test_window_force_equilibrium_and_signs():
     assert np.allclose(F, M * GRAVITY * e3)
 
 
-def test_lateral_gain_schedule_near_the_ground():
-    g = cl.LandingGains()
-    assert g.lateral_scale(None) == 1.0 and g.lateral_scale(1.0) == 1.0
-    assert g.lateral_scale(0.2) == pytest.approx(0.5)
+def test_gain_schedule_near_the_ground():
+    g = cl.LandingGains()                  # in-plane below 1.5 m, along eta_t below 0.8 m
+    assert g.lateral_scale(None) == 1.0 and g.lateral_scale(2.0) == 1.0
+    assert g.lateral_scale(0.75) == pytest.approx(0.5)
     assert g.lateral_scale(0.01) == g.lateral_scale_min
+    assert g.vertical_scale(None) == 1.0 and g.vertical_scale(1.0) == 1.0
+    assert g.vertical_scale(0.4) == pytest.approx(0.5)
+    assert g.vertical_scale(0.01) == g.vertical_scale_min
+    assert cl.LandingGains(lateral_schedule_height_m=0.0).lateral_scale(0.1) == 1.0   # off
     q_t = np.array([0.1, 0.0, -0.9])
-    full = accel(cl.force_landing(q_t, np.zeros(3), g, M))
-    half = accel(cl.force_landing(q_t, np.zeros(3), g, M, lateral_scale=0.5))
+    phi_t = np.array([0.2, 0.0, 0.3])
+    full = accel(cl.force_landing(q_t, phi_t, g, M))
+    half = accel(cl.force_landing(q_t, phi_t, g, M, lateral_scale=0.5))
     assert half[0] == pytest.approx(full[0] / 2) and half[2] == pytest.approx(full[2])
-    # the effective lateral damping K_d/d stays bounded as d -> 0 (here <= 10 1/s)
-    for d in (0.4, 0.2, 0.1):
-        assert g.kd_xy * g.lateral_scale(d) / d <= 10.0 + 1e-9
+    third = accel(cl.force_landing(q_t, phi_t, g, M, vertical_scale=1 / 3))
+    assert third[0] == pytest.approx(full[0]) and third[2] == pytest.approx(full[2] / 3)
+    # eq:FT's effective damping K_d/d is bounded as d -> 0: lateral kd_xy/1.5 m, vertical
+    # kd_z/0.8 m (until the scale's lower bound), instead of growing as 1/d
+    for d in (1.5, 0.8, 0.4, 0.2):
+        assert g.kd_xy * g.lateral_scale(d) / d <= g.kd_xy / 1.5 + 1e-9
+        assert g.kd_z * g.vertical_scale(d) / d <= g.kd_z / 0.8 + 1e-9
+    with pytest.raises(cl.GainError, match='vertical'):
+        cl.LandingGains(vertical_scale_min=0.0).validate()
 
 
 def test_gain_conditions_are_enforced():

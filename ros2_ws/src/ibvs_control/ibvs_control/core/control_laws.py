@@ -43,10 +43,13 @@ class LandingGains:
     kd_xy: float = 4.0
     kd_z: float = 4.0
     phi_t_star: float = 0.0     # eq:FT2 robust variant when > 0
-    # Below this image-estimated height (m) the lateral gains shrink in proportion to it, so
-    # that K/d stays within the inner loop's bandwidth (0 disables; see docs/design.md).
-    lateral_schedule_height_m: float = 0.4
-    lateral_scale_min: float = 0.25
+    # Below these image-estimated heights (m) the in-plane and the vertical gains shrink in
+    # proportion to the height, so that K/d stays within what the attitude and thrust loops
+    # and the graph's delay allow (0 disables; docs/design.md "low-altitude gain schedule").
+    lateral_schedule_height_m: float = 1.5
+    lateral_scale_min: float = 0.1
+    vertical_schedule_height_m: float = 0.8
+    vertical_scale_min: float = 0.1
 
     def validate(self) -> None:
         """Raise GainError unless K_p^t, K_d^t are positive definite and phi*_t >= 0."""
@@ -54,15 +57,26 @@ class LandingGains:
             raise GainError(f'landing gains must be positive (K_p^t, K_d^t > 0): {self}')
         if self.phi_t_star < 0.0:
             raise GainError(f'phi*_t must be >= 0: {self.phi_t_star}')
-        if self.lateral_schedule_height_m < 0.0 or not 0.0 < self.lateral_scale_min <= 1.0:
-            raise GainError('lateral_schedule_height_m >= 0 and 0 < lateral_scale_min <= 1')
+        for axis in ('lateral', 'vertical'):
+            height, low = (getattr(self, f'{axis}_schedule_height_m'),
+                           getattr(self, f'{axis}_scale_min'))
+            if height < 0.0 or not 0.0 < low <= 1.0:
+                raise GainError(f'{axis}_schedule_height_m >= 0 and 0 < {axis}_scale_min <= 1')
 
     def lateral_scale(self, height_m: float | None) -> float:
         """Factor on K_p^t, K_d^t in the landing plane for an estimated height (m)."""
-        if height_m is None or self.lateral_schedule_height_m <= 0.0:
-            return 1.0
-        return float(np.clip(height_m / self.lateral_schedule_height_m,
-                             self.lateral_scale_min, 1.0))
+        return _schedule(height_m, self.lateral_schedule_height_m, self.lateral_scale_min)
+
+    def vertical_scale(self, height_m: float | None) -> float:
+        """Factor on K_p^t, K_d^t along eta_t for an estimated height (m)."""
+        return _schedule(height_m, self.vertical_schedule_height_m, self.vertical_scale_min)
+
+
+def _schedule(height_m: float | None, below_m: float, low: float) -> float:
+    """clip(h / below_m, low, 1); 1 without a height or with the schedule off (0)."""
+    if height_m is None or below_m <= 0.0:
+        return 1.0
+    return float(np.clip(height_m / below_m, low, 1.0))
 
 
 @dataclass(frozen=True)
@@ -174,6 +188,9 @@ GAIN_SPECS = {
         'lateral_schedule_height_m': ('m, below this pad-image height the lateral gains scale '
                                       'with the height (0: off)', 0.0, None),
         'lateral_scale_min': ('lower bound of that lateral gain scale, (0, 1]', 0.0, 1.0),
+        'vertical_schedule_height_m': ('m, below this pad-image height the gains along eta_t '
+                                       'scale with the height (0: off)', 0.0, None),
+        'vertical_scale_min': ('lower bound of that vertical gain scale, (0, 1]', 0.0, 1.0),
     },
     'window': {
         'kp': ('1/s^2, k_p^w (k_d^w^2 / k_p^w > r_w / 2: Proposition prop:window)', 0.0, None),
@@ -216,15 +233,17 @@ def gain_matrix(k_xy: float, k_z: float, eta: np.ndarray = e3) -> np.ndarray:
 
 def force_landing(q_t: np.ndarray, phi_t: np.ndarray, gains: LandingGains, mass: float,
                   eta_t: np.ndarray = e3, lateral_scale: float = 1.0,
-                  xi_I: np.ndarray | None = None) -> np.ndarray:
+                  xi_I: np.ndarray | None = None, vertical_scale: float = 1.0) -> np.ndarray:
     """Landing force eq:FT (eq:FT2 when phi*_t > 0), newtons in {I}.
 
     F_t = m (K_p^t q_t + K_d^t (phi_t - eta_t phi*_t) + xi) + m g e3, with the in-plane gains
-    k_xy multiplied by ``lateral_scale`` (1 = the paper's law) and xi the integral term of
-    :attr:`DisturbanceLaw.INTEGRAL` (m/s^2; None = 0, the paper's law).
+    k_xy multiplied by ``lateral_scale`` and k_z by ``vertical_scale`` (1 = the paper's law;
+    LandingGains.lateral_scale / vertical_scale) and xi the integral term of
+    :attr:`DisturbanceLaw.INTEGRAL` or the observer's estimate (m/s^2; None = 0, the paper's
+    law).
     """
-    Kp = gain_matrix(gains.kp_xy * lateral_scale, gains.kp_z, eta_t)
-    Kd = gain_matrix(gains.kd_xy * lateral_scale, gains.kd_z, eta_t)
+    Kp = gain_matrix(gains.kp_xy * lateral_scale, gains.kp_z * vertical_scale, eta_t)
+    Kd = gain_matrix(gains.kd_xy * lateral_scale, gains.kd_z * vertical_scale, eta_t)
     phi = np.asarray(phi_t, dtype=float) - np.asarray(eta_t) * gains.phi_t_star
     a = Kp @ np.asarray(q_t, dtype=float) + Kd @ phi
     if xi_I is not None:

@@ -63,7 +63,8 @@ class ControllerConfig:
         landing.kd_xy, landing.kd_z, landing.phi_t_star, window.kp, window.kd, window.k_phi,
         window.phi_star, window.eps, window.delta, crossing.kv, crossing.ks, crossing.kf,
         crossing.phi_fwd_min, crossing_law, landing.lateral_schedule_height_m,
-        landing.lateral_scale_min, disturbance_law, integral.ki_w, integral.ki_phi,
+        landing.lateral_scale_min, landing.vertical_schedule_height_m,
+        landing.vertical_scale_min, disturbance_law, integral.ki_w, integral.ki_phi,
         integral.ki_t, integral.xi_max, integral.d_max, observer.tau_s, observer.d_max.
         ``pad`` gives the group sizes for the
         height estimate.
@@ -288,7 +289,8 @@ class IbvsController:
                 return self._F_last, False
             F = force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t,
                               cfg.landing.lateral_scale(height),
-                              self._xi_t if integral else observer)
+                              self._xi_t if integral else observer,
+                              cfg.landing.vertical_scale(height))
             if integral:
                 self._xi_t = clamp_norm(self._xi_t + cfg.integral.ki_t * dt
                                         * (proj_orth(cfg.eta_t) @ q_t), cfg.integral.xi_max)

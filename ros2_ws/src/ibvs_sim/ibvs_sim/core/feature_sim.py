@@ -18,6 +18,8 @@ the callers that set it), ``wind`` a :class:`WindConfig` (newtons), default none
 """
 from __future__ import annotations
 
+import collections
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +56,7 @@ class FeatureSimConfig:
     physics_dt: float = 0.004          # s (250 Hz)
     camera_dt: float = 0.02            # s (50 Hz)
     attitude_tau: float = 0.05         # s, inner-loop time constant
+    command_delay_s: float = 0.0       # s, frame stamp -> setpoint applied (graph + link)
     thrust_tau: float = 0.03           # s
     shutdown_ramp_s: float = 2.0       # s, mode 4 thrust ramp
     max_time_s: float = 60.0
@@ -196,6 +199,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     wind = Wind(config.wind or WindConfig())
     wind_accel_steady = np.asarray(config.wind_accel_I, dtype=float).reshape(3)
     f_I_mean = None             # no IMU specific force before the first frame's physics
+    pending: collections.deque = collections.deque()   # (t applied, R_d, thrust_d)
     while t <= config.max_time_s:
         # --- one camera frame: sense, supervise, control ---------------------------------
         win_C = sensors.window(R, xi)
@@ -215,10 +219,11 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
                                                  tuple(groups), specific_force_I=f_I_mean))
         sp = attitude_from_force(out.F_I, out.yaw_des, m, vehicle.hover_thrust,
                                  vehicle.max_thrust_factor)
-        R_d, thrust_d = sp.R_IB_des, sp.thrust_N
+        thrust_new = sp.thrust_N
         if mode == Mode.SHUTDOWN:
             t_shutdown = t if t_shutdown is None else t_shutdown
-            thrust_d *= shutdown_thrust_scale(t - t_shutdown, config.shutdown_ramp_s)
+            thrust_new *= shutdown_thrust_scale(t - t_shutdown, config.shutdown_ramp_s)
+        pending.append((t + config.command_delay_s, sp.R_IB_des, thrust_new))
         log.t_ctrl.append(t)
         log.F_I.append(out.F_I)
         log.mode.append(int(mode))
@@ -233,6 +238,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         f_I_sum = np.zeros(3)       # the IMU's specific force v' - g e3, mean over the frame
         for _ in range(n_sub):
             dt = config.physics_dt
+            while pending and pending[0][0] <= t + 1e-9:   # the setpoint reaches the vehicle
+                _, R_d, thrust_d = pending.popleft()
             R = R @ exp_so3(log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
             a = -thrust * (R @ e3) / m + g * e3 + wind_accel_steady + wind.force_I(t) / m
