@@ -41,10 +41,12 @@ TAKEOFF_REACHED = 0.8          # PX4's altitude estimate at this fraction of MIS
 GRAPH_UP_TIMEOUT_S = 60.0     # s (steady), ground truth must flow from px4_sim by then
 START_WAIT_S = 20.0           # s (steady), ibvs/start retried (1 s apart) until accepted
 MAX_FLIGHT_S = 60.0           # s (system clock) after ibvs/start
-SHUTDOWN_GRACE_S = 3.0        # s after touchdown in mode 4 to wait for the disarm
+SHUTDOWN_GRACE_S = 8.0        # s after touchdown in mode 4 to wait for the disarm (PX4: ramp
+#                               2 s, then its land detector)
 FAILSAFE_MODE, SHUTDOWN_MODE, IDLE_MODE = 5, 4, 0
-START_TOLERANCE_M = 0.2       # m, ground truth vs the scenario's start at ibvs/start
+START_TOLERANCE_M = 0.5       # m, ground truth vs the scenario's start at ibvs/start
 START_YAW_TOL_RAD = 0.05      # rad, true heading vs world.yaml's initial yaw
+START_SPEED_TOL_MPS = 0.1     # m/s, true speed at ibvs/start (the scenario starts at rest)
 REPOSITION_WAIT_S = 3.0       # s (steady) between DO_REPOSITION corrections
 # PX4's threads run at this nice value (None: as started): on a vehicle PX4 has its own flight
 # controller; here a starved PX4 lets SIH's clock slip (measured: 6700 ppm skew and a jump
@@ -224,7 +226,9 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
         # PX4 has flown to its last hold point (not merely passing through the tolerance on
         # its way: measured, runs then started at the tolerance's edge, y = +0.29)
         arrived = time.monotonic() - moved_at >= REPOSITION_WAIT_S
-        if there and arrived and monitor.health.healthy():
+        # and is still: a start at 0.33 m/s sideways (measured) lost the window in WINDOW
+        still = float(np.linalg.norm(monitor.log.v[-1])) < START_SPEED_TOL_MPS
+        if there and arrived and still and monitor.health.healthy():
             break
         if time.monotonic() > deadline:
             print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
@@ -240,8 +244,9 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
     info['start_yaw_rad'] = round(float(euler[2]), 4)
     # PX4's own heading (its estimate: what imu/data and so the graph see) vs the truth
     info['px4_yaw_estimate_rad'] = None if pilot.yaw_est is None else round(pilot.yaw_est, 4)
+    info['start_speed_mps'] = round(float(np.linalg.norm(monitor.log.v[-1])), 3)
     print(f'start pose (ground truth): xi_I = ({xi[0]:+.2f}, {xi[1]:+.2f}, {xi[2]:+.2f}), '
-          f'yaw {euler[2]:+.3f} rad', flush=True)
+          f'yaw {euler[2]:+.3f} rad, speed {info["start_speed_mps"]:.2f} m/s', flush=True)
     client = monitor.create_client(Trigger, 'ibvs/start')
     deadline = time.monotonic() + START_WAIT_S
     answer = None
