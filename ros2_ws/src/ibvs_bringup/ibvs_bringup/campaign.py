@@ -78,7 +78,8 @@ class LawSpec:
         """Parse ``LABEL`` or ``LABEL:name=value,name=value`` (values read as YAML scalars).
 
         A bare label that is a crossing law (closed, intended, seed) sets ``crossing_law``, one
-        that is a disturbance law (paper, integral, observer) sets ``disturbance_law``.
+        that is a disturbance law (paper, integral, observer, observer_integral) sets
+        ``disturbance_law``.
         """
         import yaml
         label, _, rest = text.partition(':')

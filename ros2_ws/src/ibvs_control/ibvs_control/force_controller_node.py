@@ -34,7 +34,7 @@ from sensor_msgs.msg import Imu, JointState
 
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
-from ibvs_control.core.control_laws import (CrossingGains, DisturbanceLaw, GAIN_SPECS,
+from ibvs_control.core.control_laws import (CrossingGains, GAIN_SPECS,
                                             IntegralGains, LandingGains, ObserverGains,
                                             WindowGains)
 from ibvs_control.core.controller import ControllerConfig, IbvsController
@@ -79,7 +79,7 @@ def _mode(number) -> tuple[Mode | None, str]:
 GAIN_PARAMETERS = _gain_defaults()
 PARAMETERS = {
     'crossing_law': 'closed',
-    'disturbance_law': 'observer',
+    'disturbance_law': 'observer_integral',
     'frame_deadline_s': 0.04,
     'imu_history_s': 1.0,
     'imu_max_extrapolation_s': 0.05,
@@ -95,8 +95,9 @@ PARAMETER_SPECS = {
     'crossing_law': ('mode 2 law: closed | intended | seed (SPEC.md section 3)',),
     'disturbance_law': ("window and landing laws: 'paper' (proportional) | 'integral' (with "
                         "integral action on the image errors, integral.*) | 'observer' (with "
-                        'a disturbance observer on imu/data specific force, observer.*); '
-                        'docs/design.md',),
+                        'a disturbance observer on imu/data specific force, observer.*) | '
+                        "'observer_integral' (both: the observer for the wind, the integrals "
+                        'for accelerometer bias and attitude-estimate error); docs/design.md',),
     'frame_deadline_s': ('s (ROS clock, from the frame stamp): a frame waits at most this for '
                          'the products its mode needs', 0.0, None),
     **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
@@ -133,7 +134,7 @@ class ForceControllerNode(Node):
                                       lambda mode: MODE_INPUTS[mode].needed)
         # the disturbance observer's input: imu/data's specific force, per answered frame
         self._specific_force = SpecificForceBuffer() \
-            if config.disturbance_law == DisturbanceLaw.OBSERVER else None
+            if config.disturbance_law.uses_observer else None
         self._t_answered: float | None = None
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
@@ -151,7 +152,9 @@ class ForceControllerNode(Node):
                                f'{config.crossing}, crossing law {config.crossing_law.value}, '
                                f'disturbance law {config.disturbance_law.value}'
                                + (f' {config.integral}' if config.disturbance_law
-                                  == DisturbanceLaw.INTEGRAL else ''))
+                                  .uses_integral else '')
+                               + (f' {config.observer}' if config.disturbance_law
+                                  .uses_observer else ''))
 
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:

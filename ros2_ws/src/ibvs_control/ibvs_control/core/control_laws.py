@@ -32,6 +32,19 @@ class DisturbanceLaw(str, Enum):
     PAPER = 'paper'          # the paper's proportional laws: a steady image offset remains
     INTEGRAL = 'integral'    # plus integral action on the image errors (anti-windup clamp)
     OBSERVER = 'observer'    # plus a disturbance observer: IMU specific force + commanded F
+    # both: the observer for the wind, the integrals for what it cannot tell from a
+    # disturbance (accelerometer bias, attitude-estimate error; docs/design.md)
+    OBSERVER_INTEGRAL = 'observer_integral'
+
+    @property
+    def uses_integral(self) -> bool:
+        """Integral action on the image errors (IntegralGains)."""
+        return self in (DisturbanceLaw.INTEGRAL, DisturbanceLaw.OBSERVER_INTEGRAL)
+
+    @property
+    def uses_observer(self) -> bool:
+        """The disturbance observer on the IMU's specific force (ObserverGains)."""
+        return self in (DisturbanceLaw.OBSERVER, DisturbanceLaw.OBSERVER_INTEGRAL)
 
 
 @dataclass(frozen=True)
@@ -125,10 +138,11 @@ class CrossingGains:
 
 @dataclass(frozen=True)
 class IntegralGains:
-    """Integral action of :attr:`DisturbanceLaw.INTEGRAL` (mass-normalised, as the paper's).
+    """Integral action of DisturbanceLaw.INTEGRAL and OBSERVER_INTEGRAL (mass-normalised).
 
     Window (mode 1): xi_w' = ki_w pi_eta q_bar_w (1/s^3), zeta_w' = ki_phi (eta^T phi_w -
-    phi*_w) (1/s^2); landing (mode 3): xi_t' = ki_t pi_e3 q_t (1/s^3). Each term is added to
+    phi*_w) (1/s^2); landing (mode 3): xi_t' = ki_t s(h) pi_e3 q_t (1/s^3), s(h) the lateral
+    gain schedule (LandingGains.lateral_scale). Each term is added to
     its law's acceleration command and clamped to ``xi_max`` (m/s^2, anti-windup). The
     frozen-distance linearisation (docs/design.md "Disturbance rejection") is stable for
     ki_w < k_p^w k_d^w / d_max and ki_t < k_p^t k_d^t / d_max (horizontal gains).
@@ -154,7 +168,7 @@ class IntegralGains:
 
 @dataclass(frozen=True)
 class ObserverGains:
-    """Disturbance observer of :attr:`DisturbanceLaw.OBSERVER` (docs/design.md).
+    """Disturbance observer of DisturbanceLaw.OBSERVER and OBSERVER_INTEGRAL (docs/design.md).
 
     d_hat' = (f_I + F_prev / m - d_hat) / tau_s: the IMU's specific force f_I (m/s^2, {I},
     mean over the frame) plus the force commanded over that frame, i.e. Delta / m for

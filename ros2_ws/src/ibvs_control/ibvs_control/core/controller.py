@@ -49,9 +49,9 @@ class ControllerConfig:
         self.landing.validate()
         self.window.validate(self.r_w)
         self.crossing.validate()
-        if self.disturbance_law == DisturbanceLaw.INTEGRAL:
+        if self.disturbance_law.uses_integral:
             self.integral.validate(self.window, self.landing)
-        if self.disturbance_law == DisturbanceLaw.OBSERVER:
+        if self.disturbance_law.uses_observer:
             self.observer.validate()
 
     @classmethod
@@ -207,7 +207,7 @@ class IbvsController:
             phi_w = window_flow(meas.phi_front_I, win.eta_w, win.l_e, win.alpha_w)
         if self._yaw_des is None:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
-        observer = cfg.disturbance_law == DisturbanceLaw.OBSERVER
+        observer = cfg.disturbance_law.uses_observer
         if observer:
             self._observe(dt, meas.specific_force_I, R_IB)
         feats = FeatureSnapshot(
@@ -264,8 +264,8 @@ class IbvsController:
                q_t: np.ndarray | None, phi_w: np.ndarray | None,
                phi_t: np.ndarray | None, height: float | None) -> tuple[np.ndarray, bool]:
         cfg = self.config
-        integral = cfg.disturbance_law == DisturbanceLaw.INTEGRAL
-        observer = self._d_hat if cfg.disturbance_law == DisturbanceLaw.OBSERVER else None
+        integral = cfg.disturbance_law.uses_integral
+        observer = self._d_hat if cfg.disturbance_law.uses_observer else None
         if mode == Mode.WINDOW:
             if entering:
                 self._xi_w, self._zeta_w = np.zeros(3), 0.0
@@ -274,7 +274,8 @@ class IbvsController:
             self._eta_w = win.eta_w
             self._yaw_des = yaw_facing(win.eta_w, cfg.R_BC_front)
             F = force_window(win.q_w, win.q_w_bar, phi_w, win.eta_w, cfg.window, cfg.mass,
-                             self._window_integral(win.eta_w) if integral else observer)
+                             _sum_terms(self._window_integral(win.eta_w) if integral else None,
+                                        observer))
             if integral:
                 self._integrate_window(dt, win, phi_w)
             self._F_w_T2, self._d_hat_T2 = F, self._d_hat.copy()
@@ -287,12 +288,12 @@ class IbvsController:
                 self._xi_t = proj_orth(cfg.eta_t) @ self._window_integral(self._eta_w)
             if q_t is None or phi_t is None:
                 return self._F_last, False
-            F = force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t,
-                              cfg.landing.lateral_scale(height),
-                              self._xi_t if integral else observer,
+            lateral = cfg.landing.lateral_scale(height)
+            F = force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t, lateral,
+                              _sum_terms(self._xi_t if integral else None, observer),
                               cfg.landing.vertical_scale(height))
-            if integral:
-                self._xi_t = clamp_norm(self._xi_t + cfg.integral.ki_t * dt
+            if integral:        # scheduled as K_p^t: ki_t q_t would grow as 1/h near the floor
+                self._xi_t = clamp_norm(self._xi_t + cfg.integral.ki_t * lateral * dt
                                         * (proj_orth(cfg.eta_t) @ q_t), cfg.integral.xi_max)
             return F, True
         # IDLE (the autopilot holds), SHUTDOWN (level, the bridge ramps thrust down) and
@@ -334,10 +335,20 @@ class IbvsController:
         self._s_perp = self._s_perp + proj_orth(eta) @ np.asarray(phi_t) * dt
         F = force_crossing_closed(self._F_w_T2, eta, phi_t, self._s_perp, self._phi_fwd_ref,
                                   cfg.crossing, cfg.mass)
-        if cfg.disturbance_law == DisturbanceLaw.OBSERVER:
+        if cfg.disturbance_law.uses_observer:
             # F_w(T2-) held pi d_hat(T2); compensate the current estimate instead, along eta too
             F = F + cfg.mass * (self._d_hat - proj_orth(eta) @ self._d_hat_T2)
+            if cfg.disturbance_law.uses_integral:
+                # and the forward-flow integral's correction of it (an accelerometer bias
+                # along eta) carries on: the blind crossing has no image error of its own
+                F = F + cfg.mass * self._zeta_w * eta
         return F, True
+
+
+def _sum_terms(*terms: np.ndarray | None) -> np.ndarray | None:
+    """Sum of the disturbance terms given (m/s^2, {I}); None when none is."""
+    given = [np.asarray(t, dtype=float) for t in terms if t is not None]
+    return sum(given[1:], given[0]) if given else None
 
 
 def with_crossing_law(config: ControllerConfig, law: CrossingLaw) -> ControllerConfig:

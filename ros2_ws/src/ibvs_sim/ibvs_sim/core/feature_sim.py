@@ -57,6 +57,7 @@ class FeatureSimConfig:
     camera_dt: float = 0.02            # s (50 Hz)
     attitude_tau: float = 0.05         # s, inner-loop time constant
     command_delay_s: float = 0.0       # s, frame stamp -> setpoint applied (graph + link)
+    accel_bias_B: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m/s^2, body FRD
     thrust_tau: float = 0.03           # s
     shutdown_ramp_s: float = 2.0       # s, mode 4 thrust ramp
     max_time_s: float = 60.0
@@ -200,6 +201,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     wind_accel_steady = np.asarray(config.wind_accel_I, dtype=float).reshape(3)
     f_I_mean = None             # no IMU specific force before the first frame's physics
     pending: collections.deque = collections.deque()   # (t applied, R_d, thrust_d)
+    accel_bias_B = np.asarray(config.accel_bias_B, dtype=float).reshape(3)
     while t <= config.max_time_s:
         # --- one camera frame: sense, supervise, control ---------------------------------
         win_C = sensors.window(R, xi)
@@ -243,7 +245,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             R = R @ exp_so3(log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
             a = -thrust * (R @ e3) / m + g * e3 + wind_accel_steady + wind.force_I(t) / m
-            f_I_sum += a - g * e3
+            f_I_sum += a - g * e3 + R @ accel_bias_B     # what the IMU reports, in {I}
             v = v + a * dt
             xi = xi + v * dt
             t += dt
