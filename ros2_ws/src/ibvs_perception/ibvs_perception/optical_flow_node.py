@@ -82,7 +82,7 @@ class OpticalFlowNode(Node):
             raise ValueError(f"parameter camera must be 'front' or 'down', "
                              f'got {self.camera_name!r}')
         vehicle_file = declare(self, 'vehicle_file', '', NODE_SPECS['vehicle_file'])
-        self.max_window_age_s = float(declare(self, 'max_window_age_s', 0.1,
+        self.max_window_age_s = float(declare(self, 'max_window_age_s', 0.2,
                                               NODE_SPECS['max_window_age_s']))
         if not self.max_window_age_s > 0.0:
             raise ValueError(f'parameter max_window_age_s must be > 0, '
