@@ -1,4 +1,6 @@
 """The composed layouts (ibvs_bringup.composed): one process, or a few containers (GROUPS)."""
+import pytest
+
 from ibvs_bringup import composed, graph
 
 
@@ -41,7 +43,7 @@ def test_the_runner_composes_the_onboard_specs_only(tmp_path, monkeypatch):
     monkeypatch.setattr(runner, 'start', lambda name, argv, respawn=False:
                         started.append((name, argv)))
     specs = graph.sim_graph(graph.GraphOptions(mavlink_port=14999))
-    run_scenario.start_nodes(runner, specs, 'composed')
+    runner.start_layout(specs, 'composed')
     names = [n for n, _ in started]
     assert names == ['sim', COMPOSED_NAME]
     argv = started[1][1]
@@ -49,3 +51,22 @@ def test_the_runner_composes_the_onboard_specs_only(tmp_path, monkeypatch):
     assert [s.name for s in composed.read_specs(argv[4])] == list(graph.ONBOARD_NODE_NAMES)
     assert run_scenario.supervisor_log(str(tmp_path / 'run')).endswith(
         f'logs/{COMPOSED_NAME}.log')
+
+
+def test_onboard_default_layout_is_one_respawned_process(tmp_path, monkeypatch):
+    from ibvs_bringup import runner as runner_mod
+    started = []
+    runner = runner_mod.ProcessRunner(log_dir=str(tmp_path))
+    monkeypatch.setattr(runner, 'start', lambda name, argv, respawn=False:
+                        started.append((name, respawn)))
+    assert runner_mod.DEFAULT_LAYOUT == {'onboard': 'composed', 'sim': 'processes'}
+    specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False))
+    runner.start_layout(specs, runner_mod.DEFAULT_LAYOUT['onboard'], respawn_composed=True)
+    assert started == [(runner_mod.COMPOSED_NAME, True)]
+    started.clear()
+    runner.start_layout(specs, 'processes')
+    assert [name for name, _ in started] == list(graph.ONBOARD_NODE_NAMES)
+    assert [name for name, respawn in started if respawn] == [
+        s.name for s in specs if s.respawn]
+    with pytest.raises(ValueError, match='layout'):
+        runner.start_layout(specs, 'threads')

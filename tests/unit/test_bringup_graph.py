@@ -163,7 +163,8 @@ def test_launch_file_takes_its_node_list_from_graph(file_name, builder):
 @pytest.mark.parametrize('file_name, values', [
     ('sim.launch.py', {'params_file': PARAMS, 'mavlink_port': '14999', 'crossing_law': ''}),
     ('onboard.launch.py', {'params_file': PARAMS, 'mavlink_url': 'udpout:10.0.0.2:14540',
-                           'use_sim_time': 'false', 'crossing_law': 'intended'})])
+                           'use_sim_time': 'false', 'crossing_law': 'intended',
+                           'layout': 'processes'})])
 def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
     module = _load_launch(LAUNCH / file_name, monkeypatch)
     ld = module.generate_launch_description()
@@ -187,6 +188,34 @@ def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
         assert urls['sim'] == 'udpin:127.0.0.1:14999'
     else:
         assert urls['mavlink_bridge'] == 'udpout:10.0.0.2:14540'
+
+
+def test_onboard_launch_composes_the_same_nodes_by_default(monkeypatch):
+    """layout:=composed (the default): one respawned process running graph.onboard_graph."""
+    from ibvs_bringup import composed
+    module = _load_launch(LAUNCH / 'onboard.launch.py', monkeypatch)
+    ld = module.generate_launch_description()
+    layout = next(a for a in ld.args[0] if type(a).__name__ == 'DeclareLaunchArgument'
+                  and a.args[0] == 'layout')
+    assert layout.kwargs['default_value'] == 'composed'
+    values = {'params_file': PARAMS, 'mavlink_url': 'udpout:10.0.0.2:14540',
+              'use_sim_time': 'false', 'crossing_law': '', 'layout': 'composed'}
+    opaque = next(a for a in ld.args[0] if type(a).__name__ == 'OpaqueFunction')
+    (node,) = opaque.kwargs['function'](_Context(values))
+    assert node.kwargs['package'] == 'ibvs_bringup'
+    assert node.kwargs['executable'] == 'composed' in console_scripts('ibvs_bringup')
+    assert 'name' not in node.kwargs          # a name would rename every node inside it
+    assert node.kwargs['respawn'] is True
+    assert node.kwargs['respawn_delay'] == graph.RESPAWN_DELAY_S
+    flag, path = node.kwargs['arguments']
+    assert flag == '--specs'
+    specs = composed.read_specs(path)
+    os.remove(path)
+    expected = graph.onboard_graph(graph.GraphOptions(
+        params_file=PARAMS, use_sim_time=False, mavlink_url='udpout:10.0.0.2:14540'))
+    assert specs == expected
+    with pytest.raises(ValueError, match='layout'):
+        opaque.kwargs['function'](_Context({**values, 'layout': 'threads'}))
 
 
 def test_free_running_option_changes_only_the_sim():

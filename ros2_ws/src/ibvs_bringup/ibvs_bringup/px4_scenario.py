@@ -120,7 +120,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
     from ibvs_bringup.monitor_node import close_monitor, ScenarioMonitor
-    from ibvs_bringup.run_scenario import start_nodes, supervisor_log, supervisor_transitions
+    from ibvs_bringup.run_scenario import supervisor_log, supervisor_transitions
     from ibvs_bringup.runner import ProcessRunner, Terminated
 
     t_wall0 = time.monotonic()
@@ -140,7 +140,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
         print(f'run {opts.run_name}: PX4 SIH instance {instance} up in '
               f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")})', flush=True)
         monitor = ScenarioMonitor(use_sim_time=False)
-        start_nodes(runner, specs, opts.layout)
+        runner.start_layout(specs, opts.layout)
         pilot = Pilot(instance)
         stop_reason = _flight(opts, monitor, runner, pilot, xi0, t_wall0, info,
                               {s.name for s in specs if s.respawn},

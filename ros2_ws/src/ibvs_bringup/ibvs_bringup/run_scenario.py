@@ -23,7 +23,8 @@ import sys
 import time
 
 from ibvs_bringup import graph, plots, report
-from ibvs_bringup.runner import COMPOSED_NAME, ProcessRunner, raise_on_sigterm, Terminated
+from ibvs_bringup.runner import (COMPOSED_NAME, DEFAULT_LAYOUT, LAYOUTS, ProcessRunner,
+                                 raise_on_sigterm, Terminated)
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 import numpy as np
@@ -35,7 +36,6 @@ FAILSAFE_MODE = 5
 SHUTDOWN_MODE = 4
 DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
 AUTOPILOTS = ('sim', 'px4-sih')   # --autopilot: the first is the default
-LAYOUTS = ('processes', 'composed')   # --layout: the first is the default
 
 
 @dataclass
@@ -170,15 +170,6 @@ def feature_run_data(flog, world, pad) -> plots.RunData:
 # --- whole-graph run ------------------------------------------------------------------------
 
 TRANSITION_LINE = re.compile(r'\]: (mode \w+ -> \w+ at t = .*)$')
-
-
-def start_nodes(runner, specs: list, layout: str) -> None:
-    """Start ``specs``: a process each, or the onboard ones in one composed process."""
-    if layout == 'composed':
-        runner.start_graph([s for s in specs if s.role != 'onboard'])
-        runner.start_composed([s for s in specs if s.role == 'onboard'])
-    else:
-        runner.start_graph(specs)
 
 
 def supervisor_log(out_dir: str) -> str:
@@ -334,7 +325,7 @@ def run_graph(opts: RunOptions) -> int:
     restarts: list = []
     try:
         monitor = ScenarioMonitor()
-        start_nodes(runner, specs, opts.layout)
+        runner.start_layout(specs, opts.layout)
         print(f'run {opts.run_name}: started {len(specs)} nodes (MAVLink port {port}), '
               f'initial position {xi0}', flush=True)
         stop_reason = fly(opts, monitor, runner, t_wall0, specs, restarts)
@@ -403,10 +394,12 @@ def parse_args(argv: list | None = None) -> RunOptions:
                    help="'sim': the simulator's plant and autopilot emulation (lockstep); "
                         "'px4-sih': PX4 SITL with SIH is plant and autopilot, real time on "
                         'the system clock, needs ../shared/px4-sitl (docs/px4_sih.md)')
-    p.add_argument('--layout', choices=LAYOUTS, default=LAYOUTS[0],
-                   help="onboard nodes as one process per node ('processes', the default) or "
-                        "all in one process on one executor ('composed', ibvs_bringup.composed"
-                        "); the sim, monitor and recorder run beside them either way")
+    p.add_argument('--layout', choices=LAYOUTS, default=None,
+                   help="onboard nodes as one process per node ('processes', the default with "
+                        "the sim) or all in one process on one executor ('composed', "
+                        'ibvs_bringup.composed: the onboard default, and the default with '
+                        'px4-sih, which runs in real time); the sim, monitor and recorder run '
+                        'beside them either way')
     p.add_argument('--px4-instance', type=int, default=None, choices=range(10),
                    metavar='I', help='px4-sih: PX4 instance 0-9 (default: a free one >= 5)')
     p.add_argument('--px4-flight-s', type=float, default=None, metavar='S',
@@ -437,7 +430,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       imu_off=tuple(a.imu_off) if a.imu_off else None,
                       imu_nan=tuple(a.imu_nan) if a.imu_nan else None,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
-                      px4_flight_s=a.px4_flight_s, layout=a.layout)
+                      px4_flight_s=a.px4_flight_s,
+                      layout=a.layout or DEFAULT_LAYOUT['onboard' if a.autopilot == 'px4-sih'
+                                                        else 'sim'])
 
 
 def main(argv: list | None = None) -> int:

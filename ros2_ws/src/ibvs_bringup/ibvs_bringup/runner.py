@@ -11,6 +11,13 @@ the nodes marked ``respawn`` (the perception nodes, graph.py) after ``RESPAWN_DE
 at each restart up to ``RESPAWN_MAX_DELAY_S`` and reset once a node has run for
 ``RESPAWN_RESET_S``; the others stay down and the safety policy acts on their silence, exactly
 as with ``ros2 launch`` (launch_ros ``respawn``).
+
+Layouts (``LAYOUTS``): the onboard nodes as one composed process (``ibvs_bringup.composed``,
+the onboard default: measured cheaper and faster on this machine, docs/performance.md) or as a
+process each (the sim graph's default, and what node-kill tests need). Composed, a node cannot
+die alone: the whole process is respawned with the same backoff, bridge included; the new
+bridge stays in standby (it engages only on the supervisor's switch out of IDLE), while the
+autopilot's own offboard-loss failsafe has taken the vehicle (docs/mavlink.md).
 """
 from __future__ import annotations
 
@@ -32,6 +39,8 @@ from ibvs_common.dds_profile import dds_env_overrides
 
 STDERR_TAIL_LINES = 20
 COMPOSED_NAME = 'onboard'     # process (and log) name of the composed onboard nodes
+LAYOUTS = ('composed', 'processes')                   # the onboard nodes' process layouts
+DEFAULT_LAYOUT = {'onboard': 'composed', 'sim': 'processes'}
 RESPAWN_MAX_DELAY_S = 16.0    # s, longest wait before a restart
 RESPAWN_RESET_S = 30.0        # s of running that resets the backoff
 
@@ -130,11 +139,12 @@ class ProcessRunner:
         self.start(spec.name, command_for(spec.package, spec.executable, spec.ros_args()),
                    respawn=spec.respawn)
 
-    def start_composed(self, specs: list, name: str = COMPOSED_NAME) -> None:
+    def start_composed(self, specs: list, name: str = COMPOSED_NAME,
+                       respawn: bool = False) -> None:
         """Start ``specs`` as one process (ibvs_bringup.composed, one executor).
 
-        The specs go through a JSON file next to the logs (or a temporary one); the process is
-        not respawned (a supervisor of the whole process, e.g. systemd, would be).
+        The specs go through a JSON file next to the logs (or a temporary one). ``respawn``:
+        restart the whole process with the perception nodes' backoff when it dies.
         """
         from ibvs_bringup.composed import write_specs
         if self.log_dir:
@@ -143,7 +153,19 @@ class ProcessRunner:
             fd, path = tempfile.mkstemp(prefix='composed-', suffix='.json')
             os.close(fd)
         write_specs(list(specs), path)
-        self.start(name, [sys.executable, '-m', 'ibvs_bringup.composed', '--specs', path])
+        self.start(name, [sys.executable, '-m', 'ibvs_bringup.composed', '--specs', path],
+                   respawn=respawn)
+
+    def start_layout(self, specs: list, layout: str, respawn_composed: bool = False) -> None:
+        """Start ``specs``: a process each, or the onboard ones composed in one process."""
+        if layout not in LAYOUTS:
+            raise ValueError(f'layout must be one of {LAYOUTS}, got {layout!r}')
+        if layout == 'composed':
+            self.start_graph([s for s in specs if s.role != 'onboard'])
+            self.start_composed([s for s in specs if s.role == 'onboard'],
+                                respawn=respawn_composed)
+        else:
+            self.start_graph(specs)
 
     def kill(self, name: str) -> str:
         """SIGKILL the process ``name`` (fault injection); return its name."""
@@ -263,6 +285,9 @@ def main(argv: list | None = None) -> int:
     """Run the sim or onboard graph until Ctrl-C or SIGTERM; restart perception nodes."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('graph', nargs='?', choices=('sim', 'onboard'), default='sim')
+    parser.add_argument('--layout', choices=LAYOUTS, default=None,
+                        help='the onboard nodes in one composed process or a process each '
+                             '(default: composed for onboard, processes for sim)')
     add_graph_arguments(parser)
     parser.add_argument('--log-dir', default=None, help='write <node>.log files here')
     args = parser.parse_args(argv)
@@ -276,9 +301,10 @@ def main(argv: list | None = None) -> int:
     raise_on_sigterm()
     runner = ProcessRunner(log_dir=args.log_dir)
     rc = 0
+    layout = args.layout or DEFAULT_LAYOUT[args.graph]
     try:
-        runner.start_graph(specs)
-        print(f'runner: started {", ".join(s.name for s in specs)}', flush=True)
+        runner.start_layout(specs, layout, respawn_composed=True)
+        print(f'runner: started {", ".join(s.name for s in specs)} ({layout})', flush=True)
         while True:
             for event in runner.supervise():
                 print(f'runner: {event}', file=sys.stderr, flush=True)

@@ -1,10 +1,18 @@
 """Onboard IBVS nodes only (no sim), against a vehicle's MAVLink URL: nodes from graph.py.
 
 Usage: ros2 launch ibvs_bringup onboard.launch.py [mavlink_url:=udpin:0.0.0.0:14540]
+[layout:=composed|processes]
 (default: PX4's companion port; ArduPilot: udpin on its SERIALn UDP port, or a serial port in
-pymavlink's format, e.g. /dev/ttyUSB0,921600; docs/mavlink.md).
+pymavlink's format, e.g. /dev/ttyUSB0,921600; docs/mavlink.md). ``layout``: the onboard nodes
+in one process on one executor (``composed``, the default: ibvs_bringup.composed, respawned
+as a whole) or a process each (``processes``: the perception nodes respawned alone); the same
+as ``runner onboard --layout`` (runner.LAYOUTS, docs/onboard.md).
 """
-from ibvs_bringup import graph
+import os
+import tempfile
+
+from ibvs_bringup import composed, graph
+from ibvs_bringup.runner import DEFAULT_LAYOUT, LAYOUTS
 from ibvs_common.dds_profile import dds_env_overrides
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
@@ -19,13 +27,24 @@ def _nodes(context):
     params = get(Lc('params_file')) or None
     law = get(Lc('crossing_law')) or None
     use_sim_time = get(Lc('use_sim_time')).lower() in ('1', 'true', 'yes')
+    layout = get(Lc('layout'))
+    if layout not in LAYOUTS:
+        raise ValueError(f'layout must be one of {LAYOUTS}, got {layout!r}')
     opts = graph.GraphOptions(params_file=params, use_sim_time=use_sim_time,
                               mavlink_url=get(Lc('mavlink_url')), crossing_law=law)
     env = dds_env_overrides()
+    specs = graph.onboard_graph(opts)
+    if layout == 'composed':        # one process; its node list and parameters in a file
+        fd, path = tempfile.mkstemp(prefix='ibvs-onboard-', suffix='.json')
+        os.close(fd)
+        composed.write_specs(specs, path)
+        return [Node(package='ibvs_bringup', executable='composed',
+                     arguments=['--specs', path], output='screen', additional_env=env,
+                     respawn=True, respawn_delay=graph.RESPAWN_DELAY_S)]
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
                  additional_env=env, respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)
-            for s in graph.onboard_graph(opts)]
+            for s in specs]
 
 
 def generate_launch_description():
@@ -38,5 +57,7 @@ def generate_launch_description():
         DeclareLaunchArgument('use_sim_time', default_value='false'),
         DeclareLaunchArgument('crossing_law', default_value='',
                               description='closed | intended | seed (empty: params.yaml)'),
+        DeclareLaunchArgument('layout', default_value=DEFAULT_LAYOUT['onboard'],
+                              description='composed (one process) | processes (one per node)'),
         OpaqueFunction(function=_nodes),
     ])
