@@ -1,8 +1,9 @@
 """Image stamp -> SET_ATTITUDE_TARGET latency and CPU of the onboard graph, off lockstep.
 
 Setup (issue 12, item 5):
-- the onboard graph as shipped: ``graph.onboard_graph`` with params.yaml, system time, each
-  node its own process (started like ``ros2 run``);
+- the onboard graph: ``graph.onboard_graph`` with params.yaml, system time, each node its
+  own process (started like ``ros2 run``; the node-kill runs need it), and the same nodes
+  composed in one process (``ibvs_bringup.composed``, the onboard default since 2026-11-26);
 - both cameras replayed at 50 Hz and stamped with the system time at publication, as a camera
   driver does; the frames are rendered by the sim's renderer along the window approach of the
   feature-level reference run (t = 1.0 ... 2.5 s, slowed down 4 x so that 10 s of frames stay
@@ -21,7 +22,7 @@ status and the force: the replayer spins between frames, so these include its ow
 CPU per node (% of one core)
 while replaying, and (first run) the CPU of the idle graph (linked, no images). Runs again with
 the pad detector killed and with the down camera stopped (inputs WINDOW mode does not use),
-and once more with the same nodes composed in one process (``ibvs_bringup.composed``).
+and once more composed.
 The frames are all of WINDOW mode: with mode gating (params.yaml ``mode_gating``) the pad
 detector and the floor flow only keep their images; ``--gating-ab`` compares with gating off.
 Needs a quiet machine for meaningful figures (the load average is printed).
