@@ -50,8 +50,7 @@ POLICY: tuple[Rule, ...] = (
          "the autopilot's land mode (PX4 AUTO.LAND, ArduPilot LAND); level hold until it "
          'shows, then no setpoints', 'autopilot'),
     Rule('supervisor SHUTDOWN',
-         "thrust ramp to 0 over shutdown_ramp_s (along the controller's force, tilt <= "
-         'shutdown_max_tilt_rad), then disarm (touchdown rule for a force)',
+         'thrust ramp to 0 over shutdown_ramp_s, then disarm (touchdown rule for a force)',
          'bridge'),
     Rule('shutdown in the air (IMU: no ground contact at low thrust)',
          "the autopilot's land mode", 'autopilot'),
