@@ -96,12 +96,6 @@ def test_integrators_accumulate_clamp_reset_and_the_paper_law_has_none():
     F_land_p = paper.step(Mode.LANDING, pad).F_I
     F_land_i = integral.step(Mode.LANDING, pad).F_I
     assert (F_land_i - F_land_p) / VEHICLE.mass == pytest.approx([d[0], d[1], 0.0], abs=1e-9)
-    # SHUTDOWN: hover plus the compensation of the last landing frame, in the landing plane
-    # (the bridge ramps the thrust along it); the paper's laws have none: level
-    shut = replace(pad, t=1.24)
-    assert np.allclose(paper.step(Mode.SHUTDOWN, shut).F_I, hover)
-    F_shut = integral.step(Mode.SHUTDOWN, shut).F_I
-    assert (F_shut - hover) / VEHICLE.mass == pytest.approx([d[0], d[1], 0.0], abs=1e-9)
     # a new WINDOW engagement starts from zero
     integral.step(Mode.IDLE, window_measurements(1.3, xi))
     assert np.allclose(integral.step(Mode.WINDOW, window_measurements(1.32, xi)).F_I, F_p[0])

@@ -91,43 +91,6 @@ def test_shutdown_ramp_never_starts_above_the_hover_thrust():
     assert r1.thrust == pytest.approx(0.25)
 
 
-def tilt_of(q_wxyz) -> float:
-    """Angle (rad) between the body z axis of q (body FRD in NED) and the vertical."""
-    w, x, y, z = q_wxyz
-    return float(np.arccos(np.clip(1.0 - 2.0 * (x * x + y * y), -1.0, 1.0)))
-
-
-def test_shutdown_ramp_keeps_the_force_tilt_within_its_bound():
-    """The controller's SHUTDOWN force carries the landing's disturbance compensation.
-
-    A 1.7 deg tilt (PX4 SIH's tilt-estimate error, compensated by the landing law) is kept
-    through the ramp; a larger one is cut to shutdown_max_tilt_rad; no fresh force, or a bound
-    of 0, is level; the thrust ramp is the same either way.
-    """
-    s = shaper(shutdown_ramp_s=2.0, hold_last_s=0.25)
-    small = np.radians(1.7)
-    F = MASS * GRAVITY * np.array([np.tan(small), 0.0, 1.0])
-    s.on_force(10.0, F, 0.0, 0.5)
-    r0 = s.target(10.0, Mode.SHUTDOWN, 0.0, 0.5, 0, 10.0, 100.0)
-    assert r0.source == SetpointSource.SHUTDOWN_RAMP
-    assert tilt_of(r0.q_wxyz) == pytest.approx(small, abs=1e-9)
-    # the direction: R e3 (body z, down) along F, so the thrust (-R e3) accelerates the
-    # vehicle as the paper's (-F + m g e3) / m: towards -x here
-    w, x, y, z = r0.q_wxyz
-    assert 2.0 * (x * z + w * y) == pytest.approx(np.sin(small), abs=1e-9)
-    s.on_force(10.5, MASS * GRAVITY * np.array([0.0, np.tan(0.3), 1.0]), 0.0, 0.5)
-    r1 = s.target(10.5, Mode.SHUTDOWN, 0.0, 0.5, 0, 10.5, 100.5)
-    assert tilt_of(r1.q_wxyz) == pytest.approx(0.05, abs=1e-9)
-    assert r1.thrust == pytest.approx(0.5 * 0.75)           # the ramp, unchanged
-    stale = s.target(10.9, Mode.SHUTDOWN, 0.2, 0.5, 0, 10.9, 100.9)   # 0.4 s > hold_last_s
-    assert np.allclose(stale.q_wxyz, [np.cos(0.1), 0, 0, np.sin(0.1)])
-    level = shaper(shutdown_max_tilt_rad=0.0)
-    level.on_force(10.0, F, 0.0, 0.5)
-    assert tilt_of(level.target(10.0, Mode.SHUTDOWN, 0.0, 0.5, 0, 10.0, 100.0).q_wxyz) == 0.0
-    with pytest.raises(ValueError, match='shutdown_max_tilt_rad'):
-        shaper(shutdown_max_tilt_rad=0.7)                   # above max_tilt_rad
-
-
 def test_shutdown_ramp_runs_on_vehicle_time_and_on_the_wall_after_a_stall():
     r = ShutdownRamp(0.5, t_vehicle=10.0, t_wall=100.0)
     r.advance(10.2, 100.9)                 # lockstep: 0.2 s of vehicle time in 0.9 s of wall

@@ -35,7 +35,6 @@ from std_srvs.srv import Trigger
 
 from ibvs_common.core.config import ConfigError, load_vehicle
 from ibvs_common.core.frames import vec_map_to_I
-from ibvs_control.core.attitude import SHUTDOWN_MAX_TILT_RAD
 from ibvs_control.core.mavlink_bridge import BridgeConfig, BridgeStatus, MavlinkBridge
 from ibvs_control.core.mavlink_hover import EstimatorConfig
 from ibvs_control.core.mavlink_link import (
@@ -100,7 +99,6 @@ PARAMETERS = {
     'max_force_factor': 3.0,
     'max_tilt_rad': 0.6,
     'shutdown_ramp_s': 2.0,
-    'shutdown_max_tilt_rad': SHUTDOWN_MAX_TILT_RAD,
     'min_imu_subscribers': 0,
     'prestream_s': 1.2,
     'command_retry_s': 1.0,
@@ -179,9 +177,6 @@ PARAMETER_SPECS = {
     'max_tilt_rad': ('rad, tilt limit of the thrust direction', 0.0, math.pi),
     'shutdown_ramp_s': ('s (ROS clock, force stamps), SHUTDOWN: thrust ramp to 0, then disarm',
                         0.0, None),
-    'shutdown_max_tilt_rad': ("rad, SHUTDOWN: the ramp keeps the controller's force direction "
-                              '(hover plus the landing\'s disturbance compensation) tilted at '
-                              'most this; 0: level (<= max_tilt_rad)', 0.0, math.pi),
     'min_imu_subscribers': ('no setpoint stream until imu/data has matched this many '
                             'subscribers', 0, None),
     'prestream_s': ('s (steady clock), PX4: setpoint stream before OFFBOARD (> 1 s)',
@@ -270,8 +265,7 @@ def config_from_parameters(p: dict) -> BridgeConfig:
         streams_off=message_ids(n for n in p['streams_off'] if n.strip()),
         stream_rate_hz=p['stream_rate_hz'], time_sync=sync, hold_last_s=p['hold_last_s'],
         max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
-        shutdown_ramp_s=p['shutdown_ramp_s'],
-        shutdown_max_tilt_rad=p['shutdown_max_tilt_rad'], arm_on_start=bool(p['arm_on_start']),
+        shutdown_ramp_s=p['shutdown_ramp_s'], arm_on_start=bool(p['arm_on_start']),
         px4_events=events, sequencer=seq, estimator=estimator)
 
 

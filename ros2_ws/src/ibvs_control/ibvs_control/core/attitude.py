@@ -16,8 +16,6 @@ from ibvs_common.core.frames import GRAVITY, e3, quat_from_rot
 
 MIN_FORCE_N = 1e-3          # below this |F| carries no direction: keep the body z axis vertical
 DEFAULT_MAX_TILT_RAD = 0.6  # ~34 deg: tilt limit of the thrust direction (vertical part kept)
-#: SHUTDOWN: the thrust ramp keeps the controller's force direction tilted at most this (rad)
-SHUTDOWN_MAX_TILT_RAD = 0.05
 
 
 @dataclass(frozen=True)

@@ -169,9 +169,6 @@ class IbvsController:
         # DisturbanceLaw.OBSERVER: Delta / m (m/s^2, {I}) and the force it was measured with
         self._d_hat = np.zeros(3)
         self._d_hat_T2 = np.zeros(3)          # its value with the last window force
-        # the landing law's disturbance compensation in the landing plane (m/s^2, {I}) on its
-        # last frame: what SHUTDOWN keeps while the bridge ramps the thrust down
-        self._comp_t = np.zeros(3)
         self._F_cmd = self._hover()
 
     def _hover(self) -> np.ndarray:
@@ -292,21 +289,15 @@ class IbvsController:
             if q_t is None or phi_t is None:
                 return self._F_last, False
             lateral = cfg.landing.lateral_scale(height)
-            comp = _sum_terms(self._xi_t if integral else None, observer)
-            F = force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t, lateral, comp,
+            F = force_landing(q_t, phi_t, cfg.landing, cfg.mass, cfg.eta_t, lateral,
+                              _sum_terms(self._xi_t if integral else None, observer),
                               cfg.landing.vertical_scale(height))
-            self._comp_t = np.zeros(3) if comp is None else proj_orth(cfg.eta_t) @ comp
             if integral:        # scheduled as K_p^t: ki_t q_t would grow as 1/h near the floor
                 self._xi_t = clamp_norm(self._xi_t + cfg.integral.ki_t * lateral * dt
                                         * (proj_orth(cfg.eta_t) @ q_t), cfg.integral.xi_max)
             return F, True
-        if mode == Mode.SHUTDOWN:
-            # the bridge ramps the thrust down along this direction (its tilt bounded there):
-            # the hover plus the landing's last in-plane compensation, which holds the
-            # attitude-estimate error and steady wind that the landing law had taken out
-            # (level, the vehicle drifted 3-4 cm under PX4 SIH's 1.7 deg tilt-estimate error)
-            return self._hover() + cfg.mass * self._comp_t, True
-        # IDLE (the autopilot holds) and FAILSAFE (the autopilot's land mode): level.
+        # IDLE (the autopilot holds), SHUTDOWN (level, the bridge ramps thrust down) and
+        # FAILSAFE (level hover, the bridge/autopilot descend): a level attitude.
         return self._hover(), True
 
     def _window_integral(self, eta_w: np.ndarray) -> np.ndarray:

@@ -27,7 +27,6 @@ from typing import Callable
 
 import numpy as np
 
-from ibvs_control.core.attitude import SHUTDOWN_MAX_TILT_RAD
 from ibvs_control.core.mavlink_hover import (
     EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
 from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink
@@ -82,7 +81,6 @@ class BridgeConfig:
     max_force_factor: float = 3.0            # |F| above factor * m g is out of range
     max_tilt_rad: float = 0.6                # tilt limit of the thrust direction
     shutdown_ramp_s: float = 2.0             # SHUTDOWN: thrust ramp time to 0
-    shutdown_max_tilt_rad: float = SHUTDOWN_MAX_TILT_RAD   # SHUTDOWN: the force's tilt, at most
     arm_on_start: bool = False               # an arm request from the start (sim scenario)
     px4_events: dict | None = None           # PX4 event id -> text (all_events.json), or None
     sequencer: SequencerConfig = field(default_factory=SequencerConfig)
@@ -164,8 +162,7 @@ class MavlinkBridge:
         self.streams: StreamRequests | None = None
         self.shaper = SetpointShaper(ShaperConfig(
             config.mass, config.max_thrust_factor, config.max_force_factor,
-            config.max_tilt_rad, config.hold_last_s, config.shutdown_ramp_s,
-            config.shutdown_max_tilt_rad))
+            config.max_tilt_rad, config.hold_last_s, config.shutdown_ramp_s))
         self.pairing = HeadingPairing()
         self.seed = HoverThrustSeed(config.configured_hover_thrust,
                                     config.hover_thrust_source == 'autopilot')

@@ -21,10 +21,7 @@ Content by supervisor mode
     vehicle time, then the level hover at the current yaw outside an engagement; while engaged
     the safety policy hands the vehicle back instead). SHUTDOWN: level at the current yaw, thrust
     ramped from its value at the switch to 0 over ``shutdown_ramp_s`` of vehicle time
-    (:class:`ShutdownRamp`), along the latest valid force's direction tilted at most
-    ``shutdown_max_tilt_rad`` (the controller's SHUTDOWN force: hover plus the landing's
-    disturbance compensation, e.g. of the autopilot's tilt-estimate error; level when no
-    fresh force, or with 0), starting from the lower of that value and the hover thrust (the
+    (:class:`ShutdownRamp`), starting from the lower of that value and the hover thrust (the
     last force can ask for more than hover, e.g. braking the descent near the floor; held
     level, more than hover climbs: measured on PX4 SIH, a SHUTDOWN that started from 2.4 times
     the hover force flew the vehicle from 0.1 m into the window frame at 2 m, 4.5 m/s). While
@@ -39,8 +36,7 @@ from enum import Enum
 
 import numpy as np
 
-from ibvs_control.core.attitude import (
-    attitude_from_force, limit_tilt, SHUTDOWN_MAX_TILT_RAD, shutdown_thrust_scale)
+from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
 from ibvs_common.core.frames import (
     euler_zyx_from_rot, GRAVITY, quat_from_rot, R_IB_from_rot_map_base, rot_from_quat, rot_z)
 from ibvs_common.core.modes import Mode
@@ -72,7 +68,6 @@ class ShaperConfig:
     max_tilt_rad: float = 0.6       # tilt limit of the thrust direction
     hold_last_s: float = 0.25       # s of vehicle time a valid setpoint is kept
     shutdown_ramp_s: float = 2.0    # SHUTDOWN: thrust ramp time to 0 (vehicle time)
-    shutdown_max_tilt_rad: float = SHUTDOWN_MAX_TILT_RAD  # SHUTDOWN: the force's tilt, at most
 
     def __post_init__(self):
         for name in ('mass', 'max_thrust_factor', 'max_force_factor', 'max_tilt_rad',
@@ -80,9 +75,6 @@ class ShaperConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
-        if not 0.0 <= self.shutdown_max_tilt_rad <= self.max_tilt_rad:
-            raise ValueError('shutdown_max_tilt_rad must be in [0, max_tilt_rad], got '
-                             f'{self.shutdown_max_tilt_rad}')
 
 
 @dataclass(frozen=True)
@@ -190,7 +182,6 @@ class _Valid:
     t: float                         # vehicle time of receipt (s)
     q: np.ndarray
     thrust: float
-    F_I: np.ndarray                  # the force (N, {I}): its direction for SHUTDOWN
 
 
 class SetpointShaper:
@@ -239,7 +230,7 @@ class SetpointShaper:
             self.last_error = reason
             return reason
         q, thrust = self.force_target(F_I, yaw, hover)
-        self._valid = _Valid(float(t), q, thrust, np.array(F_I, dtype=float))
+        self._valid = _Valid(float(t), q, thrust)
         return ''
 
     def ramp_done(self, t_wall: float) -> bool:
@@ -266,8 +257,8 @@ class SetpointShaper:
                 self._ramp = ShutdownRamp(start, t_stamp, t_wall)
             self._ramp.advance(t_stamp, t_wall)
             scale = shutdown_thrust_scale(self._ramp.elapsed(t_wall), self.config.shutdown_ramp_s)
-            return self._out(time_boot_ms, self._shutdown_q(now, yaw_now, hover, level_q),
-                             self._ramp.start_thrust * scale, SetpointSource.SHUTDOWN_RAMP)
+            return self._out(time_boot_ms, level_q, self._ramp.start_thrust * scale,
+                             SetpointSource.SHUTDOWN_RAMP)
         if mode != Mode.SHUTDOWN:
             self._ramp = None
         if level_hold or mode == Mode.FAILSAFE:
@@ -279,17 +270,6 @@ class SetpointShaper:
             return self._out(time_boot_ms, v.q, v.thrust,
                              SetpointSource.HOLD_LAST if stale else SetpointSource.IBVS)
         return self._out(time_boot_ms, level_q, hover, SetpointSource.LEVEL_HOVER)
-
-    def _shutdown_q(self, now: float | None, yaw_now: float, hover: float,
-                    level_q: np.ndarray) -> np.ndarray:
-        """SHUTDOWN attitude: the fresh force's direction, tilt <= shutdown_max_tilt_rad."""
-        c, v = self.config, self._valid
-        if (c.shutdown_max_tilt_rad <= 0.0 or v is None or now is None
-                or now - v.t > c.hold_last_s):
-            return level_q
-        F = limit_tilt(v.F_I, c.shutdown_max_tilt_rad)
-        return attitude_from_force(F, yaw_now, c.mass, hover, c.max_thrust_factor,
-                                   c.max_tilt_rad).q_IB_wxyz
 
     def _out(self, time_boot_ms: int, q: np.ndarray, thrust: float,
              source: SetpointSource) -> AttitudeTarget:

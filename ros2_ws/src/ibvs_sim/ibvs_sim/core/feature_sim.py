@@ -24,8 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ibvs_control.core.attitude import (
-    attitude_from_force, limit_tilt, SHUTDOWN_MAX_TILT_RAD, shutdown_thrust_scale)
+from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
 from ibvs_common.core.config import CameraConfig, PadLayout, VehicleConfig
 from ibvs_sim.core.world import WorldConfig
 from ibvs_control.core.control_laws import CrossingLaw
@@ -61,7 +60,6 @@ class FeatureSimConfig:
     accel_bias_B: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m/s^2, body FRD
     thrust_tau: float = 0.03           # s
     shutdown_ramp_s: float = 2.0       # s, mode 4 thrust ramp
-    shutdown_max_tilt_rad: float = SHUTDOWN_MAX_TILT_RAD   # mode 4: as the bridge
     max_time_s: float = 60.0
     flow_noise: float = 0.0            # 1/s, white noise std on each flow component
     bearing_noise_rad: float = 0.0     # white noise on each bearing
@@ -221,9 +219,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         mode = supervisor.mode
         out = controller.step(mode, Measurements(t, R, win_C, pad_C, phi_front, phi_down,
                                                  tuple(groups), specific_force_I=f_I_mean))
-        F_fly = limit_tilt(out.F_I, config.shutdown_max_tilt_rad) if mode == Mode.SHUTDOWN \
-            else out.F_I                    # the bridge's SHUTDOWN: the force's tilt, bounded
-        sp = attitude_from_force(F_fly, out.yaw_des, m, vehicle.hover_thrust,
+        sp = attitude_from_force(out.F_I, out.yaw_des, m, vehicle.hover_thrust,
                                  vehicle.max_thrust_factor)
         thrust_new = sp.thrust_N
         if mode == Mode.SHUTDOWN:
