@@ -62,11 +62,17 @@ def test_stop_escalates_to_sigkill_and_kills_grandchildren(tmp_path):
                 f'p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])\n'
                 f'open({str(pid_file)!r}, "w").write(str(p.pid))\n'
                 'time.sleep(60)\n')
+    ready_file = tmp_path / 'polite.ready'
+    # 'polite' says when it is in its sleep: a SIGINT during the interpreter's start-up (a CI
+    # run under load) ends it with 1 (a KeyboardInterrupt in site's imports), not -SIGINT
+    polite = f'import pathlib, time\npathlib.Path({str(ready_file)!r}).write_text("1")\n' \
+        'time.sleep(60)\n'
     runner = ProcessRunner(stop_timeouts=(0.5, 0.5, 2.0))
     runner.start('stubborn', [PY, '-c', stubborn])
-    runner.start('polite', [PY, '-c', 'import time; time.sleep(60)'])
+    runner.start('polite', [PY, '-c', polite])
     try:
         assert _wait(lambda: pid_file.exists() and pid_file.read_text())
+        assert _wait(ready_file.exists)
         assert sorted(runner.running()) == ['polite', 'stubborn']
     finally:
         t0 = time.monotonic()
