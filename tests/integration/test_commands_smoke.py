@@ -54,3 +54,16 @@ def test_readme_run_help_lists_the_options(tmp_path):
     out = run(['-m', 'ibvs_bringup.run_scenario', '--help'], cwd=tmp_path)
     for option in ('--feature-level', '--random-ic', '--wind', '--real-time-factor'):
         assert option in out
+
+
+def test_attitude_response_script_smoke(tmp_path):
+    """scripts/attitude_response.py (docs/sim.md): the sim's fit, short and coarse.
+
+    Its line per axis must name a fitted loop near vehicle.yaml's (the coarse grid's step).
+    """
+    out = run([str(ROOT / 'scripts' / 'attitude_response.py'), '--smoke'], cwd=tmp_path)
+    print(out)
+    lines = [ln.split() for ln in out.splitlines() if ln.startswith('sim')]
+    assert [ln[1] for ln in lines] == ['roll', 'pitch', 'yaw']
+    wn = {ln[1]: float(ln[ln.index('wn') + 1]) for ln in lines}
+    assert 10.0 <= wn['roll'] <= 15.0 and 2.5 <= wn['yaw'] <= 4.0, out

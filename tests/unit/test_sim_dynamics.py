@@ -120,22 +120,53 @@ def _step_response(params, roll=0.0, pitch=0.0, yaw=0.0, duration=0.6):
     return np.array(t), np.array(angles)
 
 
-@pytest.mark.parametrize('axis, step', [(0, 0.2), (1, -0.25)])
-def test_inner_loop_attitude_step_time_constant(params, axis, step):
+def _second_order_step(t, wn, zeta):
+    """Return the unit step response of theta'' + 2 zeta wn theta' + wn^2 theta = wn^2.
+
+    Textbook closed form, 0 < zeta < 1; 0 for t < 0.
+    """
+    t = np.maximum(np.asarray(t, float), 0.0)
+    wd = wn * math.sqrt(1.0 - zeta ** 2)
+    return 1.0 - np.exp(-zeta * wn * t) * (np.cos(wd * t)
+                                           + zeta / math.sqrt(1.0 - zeta ** 2) * np.sin(wd * t))
+
+
+@pytest.mark.parametrize('axis, step', [(0, 0.05), (1, -0.08)])
+def test_inner_loop_roll_pitch_step_follows_the_second_order_model(params, axis, step):
+    """vehicle.yaml's loop (PX4 SIH's fit): nothing before the setpoint delay, then the
+    closed-form response of (wn, zeta) (textbook, not the simulator's code), within the
+    rotors' lag, which the model leaves out."""
     kwargs = {0: 'roll', 1: 'pitch'}
-    t, ang = _step_response(params, **{kwargs[axis]: step})
+    t, ang = _step_response(params, **{kwargs[axis]: step}, duration=1.0)
     a = ang[:, axis] / step
-    t63 = t[np.argmax(a >= 1.0 - math.exp(-1.0))]
-    print(f'{kwargs[axis]} step {step} rad: 63% at {t63 * 1e3:.0f} ms, '
-          f'overshoot {100 * (a.max() - 1):.1f} %')
-    assert t63 <= 0.1
-    assert abs(a[-1] - 1.0) < 0.02           # settled
-    assert a.max() < 1.25                     # well damped
+    delay = round(params.setpoint_delay_s / params.dt) * params.dt
+    assert params.setpoint_delay_s > 0.0
+    assert np.all(np.abs(a[t <= delay]) < 1e-9)          # the setpoint has not arrived yet
+    wn, zeta = params.attitude_wn, params.attitude_zeta
+    model = _second_order_step(t - delay, wn, zeta)
+
+    def t63(x):
+        return t[np.argmax(x >= 1.0 - math.exp(-1.0))]
+    overshoot = math.exp(-math.pi * zeta / math.sqrt(1.0 - zeta ** 2))
+    print(f'{kwargs[axis]}: 63 % at {t63(a) * 1e3:.0f} ms (model {t63(model) * 1e3:.0f} ms), '
+          f'overshoot {100 * (a.max() - 1):.1f} % (model {100 * overshoot:.1f} %)')
+    # the rotors' lag, which the model leaves out, delays the damping torque as much as the
+    # rest: the shape moves by no more than the slower rotor time constant
+    assert abs(t63(a) - t63(model)) <= params.tau_down
+    assert a.max() - 1.0 <= overshoot + 0.06
+    assert abs(a[-1] - 1.0) < 0.01                        # settled
 
 
-def test_inner_loop_yaw_step(params):
-    t, ang = _step_response(params, yaw=0.3, duration=1.5)
-    assert ang[-1, 2] == pytest.approx(0.3, abs=0.01)
+def test_inner_loop_yaw_step_overshoot_and_settling(params):
+    """Yaw: the closed-form overshoot exp(-pi zeta / sqrt(1 - zeta^2)) of (yaw_wn, yaw_zeta)
+    (16 % for PX4 SIH's fitted 0.5), settled within 2 % after 8 / (zeta wn)."""
+    step = 0.1
+    zeta, wn = params.yaw_zeta, params.yaw_wn
+    t, ang = _step_response(params, yaw=step, duration=8.0 / (zeta * wn))
+    a = ang[:, 2] / step
+    overshoot = math.exp(-math.pi * zeta / math.sqrt(1.0 - zeta ** 2))
+    assert a.max() - 1.0 == pytest.approx(overshoot, abs=0.03)
+    assert abs(a[-1] - 1.0) < 0.02
 
 
 def test_floor_stops_a_falling_body(params):
@@ -165,3 +196,25 @@ def test_wind_pushes_like_a_force(params):
     s = _run(plant, s, lambda _: np.full(4, params.mass * GRAVITY / 4), t,
              delta=np.array([0.0, 0.5, 0.0]))
     assert s.xi_I[1] == pytest.approx(0.5 * t ** 2 / (2 * params.mass), rel=0.02)
+
+
+def test_feature_level_inner_loop_is_the_plant_model_without_rotors(params):
+    """The feature-level loop's default inner loop: the same (wn, zeta, delay) as the plant,
+    as a pure second-order response: the closed form to within the Euler step's error."""
+    from ibvs_sim.core.feature_sim import InnerLoop
+    loop = InnerLoop(params)
+    assert loop.delay_s == params.setpoint_delay_s
+    dt, step = 0.001, 0.05
+    R_d = rot_from_euler_zyx(step, 0.0, 0.0)
+    R, Omega = np.eye(3), np.zeros(3)
+    t = np.arange(1, 1001) * dt
+    roll = []
+    for _ in t:
+        R, Omega = loop.step(R, Omega, R_d, dt)
+        roll.append(euler_zyx_from_rot(R)[0] / step)
+    model = _second_order_step(t, params.attitude_wn, params.attitude_zeta)
+    assert np.max(np.abs(np.array(roll) - model)) < 0.01
+    first_order = InnerLoop(params, tau=0.05)
+    assert first_order.delay_s == 0.0
+    R1, _ = first_order.step(np.eye(3), np.zeros(3), R_d, 0.05)
+    assert euler_zyx_from_rot(R1)[0] == pytest.approx(step)       # dt / tau = 1: there

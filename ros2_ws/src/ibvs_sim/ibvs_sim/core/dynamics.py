@@ -35,6 +35,7 @@ rate): semi-implicit Euler: rotor lag, then ``v+ = v + a dt`` and ``xi+ = xi + (
 """
 from __future__ import annotations
 
+import collections
 from dataclasses import dataclass, field, replace
 import math
 
@@ -44,6 +45,7 @@ from ibvs_common.core.config import VehicleConfig
 from ibvs_common.core.frames import GRAVITY, e3, rot_from_quat, skew
 
 SIM_PLANT_KEY = 'sim_plant'
+MAX_SETPOINT_DELAY_S = 0.1            # s, an autopilot slower than this is a config error
 N_ROTORS = 4
 # X configuration: rotor azimuths from x_B (FRD, clockwise seen from above) and spin senses
 # (+1: CCW seen from above, reaction torque +k_m T along z_B; -1: CW).
@@ -75,6 +77,8 @@ class PlantParams:
     yaw_wn: float                     # rad/s
     envelope_height: float            # m, for the floor contact
     floor_z: float = 0.0              # m, {I}
+    yaw_zeta: float = 0.8
+    setpoint_delay_s: float = 0.0     # s, the autopilot's setpoint -> inner loop latency
 
     @property
     def dt(self) -> float:
@@ -107,15 +111,20 @@ class PlantParams:
                     attitude_wn=float(sp['attitude_natural_frequency']),
                     attitude_zeta=float(sp['attitude_damping']),
                     yaw_wn=float(sp['yaw_natural_frequency']),
+                    yaw_zeta=float(sp['yaw_damping']),
+                    setpoint_delay_s=float(sp['setpoint_delay']),
                     envelope_height=vehicle.envelope_height,
                     floor_z=float(floor_z))
         except (KeyError, TypeError, ValueError) as exc:
             raise PlantConfigError(f'{SIM_PLANT_KEY}: {exc!r}') from exc
         if (np.any(p.inertia_diag <= 0) or p.rotor_thrust_max <= p.rotor_thrust_min
                 or p.tau_up <= 0 or p.tau_down <= 0 or p.physics_rate_hz < 250.0
-                or p.attitude_wn <= 0 or p.yaw_wn <= 0 or p.drag_coefficient < 0):
-            raise PlantConfigError(f'{SIM_PLANT_KEY}: values out of range '
-                                   '(physics_rate_hz must be >= 250)')
+                or p.attitude_wn <= 0 or p.yaw_wn <= 0 or p.drag_coefficient < 0
+                or not p.attitude_zeta > 0 or not p.yaw_zeta > 0
+                or not 0.0 <= p.setpoint_delay_s <= MAX_SETPOINT_DELAY_S):
+            raise PlantConfigError(f'{SIM_PLANT_KEY}: values out of range (physics_rate_hz '
+                                   f'must be >= 250, setpoint_delay in [0, '
+                                   f'{MAX_SETPOINT_DELAY_S}] s, dampings > 0)')
         return p
 
 
@@ -193,27 +202,45 @@ class AttitudeController:
 
     PD on SO(3) (Lee, Leok, McClamroch 2010): ``e_R = vee(R_d^T R - R^T R_d) / 2``,
     ``Gamma = -K_R e_R - K_Omega Omega + Omega x J Omega`` with per-axis ``K_R = J wn^2`` and
-    ``K_Omega = 2 zeta wn J`` (roll/pitch ``attitude_wn``, yaw ``yaw_wn``), so that small errors
-    follow ``theta'' + 2 zeta wn theta' + wn^2 theta = 0``. Thrust: ``F_T = u F_max``.
+    ``K_Omega = 2 zeta wn J`` (roll/pitch ``attitude_wn`` / ``attitude_zeta``, yaw ``yaw_wn`` /
+    ``yaw_zeta``), so that small errors follow ``theta'' + 2 zeta wn theta' + wn^2 theta = 0``
+    (the closed loop of an angle P loop ``K`` over a rate loop of bandwidth ``b``, as PX4's and
+    ArduPilot's: ``wn^2 = K b``, ``2 zeta wn = b``). Thrust: ``F_T = u F_max``.
+
+    The setpoint (R_d, u) reaches the loop ``setpoint_delay_s`` after it was given (rounded
+    to whole physics steps; the autopilot's own latency: message handling, estimator and
+    controller scheduling); until the first one arrives the loop holds the attitude it
+    started from, at the first thrust. Every call is one physics step. vehicle.yaml's values
+    are PX4 v1.16 SIH's measured response (docs/sim.md "Inner attitude loop").
     """
 
     def __init__(self, params: PlantParams) -> None:
         J = params.inertia_diag
         wn = np.array([params.attitude_wn, params.attitude_wn, params.yaw_wn])
+        zeta = np.array([params.attitude_zeta, params.attitude_zeta, params.yaw_zeta])
         self.J = J
         self.K_R = J * wn ** 2
-        self.K_Omega = 2.0 * params.attitude_zeta * wn * J
+        self.K_Omega = 2.0 * zeta * wn * J
         self.F_max = params.max_collective_thrust
         self.mixer = Mixer(params)
+        self.delay_steps = int(round(params.setpoint_delay_s / params.dt))
+        self._pending: collections.deque = collections.deque()   # (R_d, u), oldest first
+        self._applied: tuple[np.ndarray, float] | None = None     # what the loop tracks
 
     def rotor_commands(self, state: State, R_d: np.ndarray, thrust_norm: float) -> np.ndarray:
-        """Commanded rotor thrusts (N) for desired attitude R_d (= R_IB desired) and u."""
+        """Rotor thrusts (N) of one physics step, given desired attitude R_d (R_IB) and u."""
+        u = float(np.clip(thrust_norm, 0.0, 1.0)) if math.isfinite(thrust_norm) else 0.0
+        self._pending.append((R_d, u))
+        if len(self._pending) > self.delay_steps:
+            self._applied = self._pending.popleft()
+        elif self._applied is None:                 # before the first setpoint arrives: hold
+            self._applied = (state.R_IB.copy(), u)
+        R_d, u = self._applied
         R = state.R_IB
         E = R_d.T @ R - R.T @ R_d
         e_R = 0.5 * np.array([E[2, 1], E[0, 2], E[1, 0]])
         Om = state.Omega_B
         Gamma = -self.K_R * e_R - self.K_Omega * Om + np.cross(Om, self.J * Om)
-        u = float(np.clip(thrust_norm, 0.0, 1.0)) if math.isfinite(thrust_norm) else 0.0
         return self.mixer.allocate(u * self.F_max, Gamma)
 
     def rotor_commands_q(self, state: State, q_IB_wxyz: np.ndarray,

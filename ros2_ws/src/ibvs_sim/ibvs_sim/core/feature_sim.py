@@ -1,7 +1,9 @@
 """Feature-level closed loop of the reference scenario (no images).
 
-Plant: point mass with eq:system, a first-order attitude lag standing in for the autopilot's
-inner loop and a first-order thrust lag. Sensors: the features the perception would deliver,
+Plant: point mass with eq:system, the image-level simulator's inner attitude loop (a
+second-order response per axis after a setpoint delay, vehicle.yaml ``sim_plant``: PX4 SIH's
+measured response, docs/sim.md "Inner attitude loop"; or a first-order lag ``attitude_tau``
+when given) and a first-order thrust lag. Sensors: the features the perception would deliver,
 computed from geometry (window corner and pad marker bearings, translational flows v/d), with
 the cameras' fields of view (CameraModel projection with distortion) and the wall's occlusion
 deciding what is seen; the IMU's specific force v' - g e3, exact, averaged over each frame
@@ -35,7 +37,7 @@ from ibvs_common.core.frames import (
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
-from ibvs_sim.core.dynamics import Wind, WindConfig
+from ibvs_sim.core.dynamics import PlantParams, Wind, WindConfig
 from ibvs_sim.core.evaluation import evaluate_run, GroundTruthLog
 
 MIN_MARKER_PIXELS = 12.0      # a marker smaller than this (side, px) is not detected
@@ -55,7 +57,7 @@ class FeatureSimConfig:
     crossing_law: CrossingLaw = CrossingLaw.CLOSED
     physics_dt: float = 0.004          # s (250 Hz)
     camera_dt: float = 0.02            # s (50 Hz)
-    attitude_tau: float = 0.05         # s, inner-loop time constant
+    attitude_tau: float | None = None  # s: a first-order inner loop instead of vehicle.yaml's
     command_delay_s: float = 0.0       # s, frame stamp -> setpoint applied (graph + link)
     accel_bias_B: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m/s^2, body FRD
     thrust_tau: float = 0.03           # s
@@ -177,6 +179,36 @@ class FeatureSensors:
         return self._flow(v_I, d_o) if d_o > 0.05 else None
 
 
+class InnerLoop:
+    """The autopilot's attitude loop on the point mass: R_d -> R, one physics step at a time.
+
+    Default: the image-level plant's closed loop without its rigid body (dynamics.py
+    ``AttitudeController``): per axis ``theta'' + 2 zeta wn theta' + wn^2 theta = 0`` on the
+    SO(3) error ``e_R = vee(R_d^T R - R^T R_d) / 2``, i.e. ``Omega' = -wn^2 e_R - 2 zeta wn
+    Omega`` (body FRD, rad/s), ``R+ = R exp(S(Omega+) dt)``; the setpoint applied
+    ``delay_s`` (vehicle.yaml ``setpoint_delay``) after it is given. With ``tau`` (s): the
+    first-order lag ``R+ = R exp(log(R^T R_d) min(dt / tau, 1))`` and no delay.
+    """
+
+    def __init__(self, plant: PlantParams, tau: float | None = None) -> None:
+        if tau is not None and not tau > 0.0:
+            raise ValueError(f'attitude_tau must be > 0 s, got {tau}')
+        self.tau = tau
+        self.wn = np.array([plant.attitude_wn, plant.attitude_wn, plant.yaw_wn])
+        self.zeta = np.array([plant.attitude_zeta, plant.attitude_zeta, plant.yaw_zeta])
+        self.delay_s = 0.0 if tau is not None else plant.setpoint_delay_s
+
+    def step(self, R: np.ndarray, Omega_B: np.ndarray, R_d: np.ndarray,
+             dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Return (R_IB, Omega_B) after dt (s) towards R_d."""
+        if self.tau is not None:
+            return R @ exp_so3(log_so3(R.T @ R_d) * min(dt / self.tau, 1.0)), Omega_B
+        E = R_d.T @ R - R.T @ R_d
+        e_R = 0.5 * np.array([E[2, 1], E[0, 2], E[1, 0]])
+        Omega_B = Omega_B + (-self.wn ** 2 * e_R - 2.0 * self.zeta * self.wn * Omega_B) * dt
+        return R @ exp_so3(Omega_B * dt), Omega_B
+
+
 def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                          controller_config: ControllerConfig,
                          supervisor_config: SupervisorConfig,
@@ -201,6 +233,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     wind_accel_steady = np.asarray(config.wind_accel_I, dtype=float).reshape(3)
     f_I_mean = None             # no IMU specific force before the first frame's physics
     pending: collections.deque = collections.deque()   # (t applied, R_d, thrust_d)
+    loop = InnerLoop(PlantParams.from_vehicle(vehicle), config.attitude_tau)
+    Omega_B = np.zeros(3)
     accel_bias_B = np.asarray(config.accel_bias_B, dtype=float).reshape(3)
     while t <= config.max_time_s:
         # --- one camera frame: sense, supervise, control ---------------------------------
@@ -225,7 +259,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         if mode == Mode.SHUTDOWN:
             t_shutdown = t if t_shutdown is None else t_shutdown
             thrust_new *= shutdown_thrust_scale(t - t_shutdown, config.shutdown_ramp_s)
-        pending.append((t + config.command_delay_s, sp.R_IB_des, thrust_new))
+        pending.append((t + config.command_delay_s + loop.delay_s, sp.R_IB_des, thrust_new))
         log.t_ctrl.append(t)
         log.F_I.append(out.F_I)
         log.mode.append(int(mode))
@@ -242,7 +276,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             dt = config.physics_dt
             while pending and pending[0][0] <= t + 1e-9:   # the setpoint reaches the vehicle
                 _, R_d, thrust_d = pending.popleft()
-            R = R @ exp_so3(log_so3(R.T @ R_d) * min(dt / config.attitude_tau, 1.0))
+            R, Omega_B = loop.step(R, Omega_B, R_d, dt)
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
             a = -thrust * (R @ e3) / m + g * e3 + wind_accel_steady + wind.force_I(t) / m
             f_I_sum += a - g * e3 + R @ accel_bias_B     # what the IMU reports, in {I}
