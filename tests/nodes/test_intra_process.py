@@ -157,3 +157,35 @@ def test_composed_nodes_get_their_own_parameters_and_remappings(context):
     finally:
         for node in nodes:
             node.destroy_node()
+
+
+def test_bridge_publishes_imu_through_dds_only_while_a_reader_is_matched(context):
+    """Composed: no DDS reader -> the DDS publish is skipped (in process only); a recorder
+    that subscribes gets every sample from its match on, as with rclcpp's intra-process."""
+    from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
+    topic = IntraProcessTopic('imu/data')
+    local = []
+    topic.subscribe(local.append)
+    bridge = MavlinkBridgeNode(
+        node_name=f'ip_skip_{TAG}', context=context, imu_local=topic,
+        parameter_overrides=[Parameter('url', value='udpin:127.0.0.1:0')])
+    recorder = rclpy.create_node(f'ip_recorder_{TAG}', context=context)
+    executor = make_executor(context)
+    executor.add_node(bridge)
+    executor.add_node(recorder)
+    try:
+        bridge._publish_imu(imu(1))
+        assert bridge.imu_dds_skipped == 1
+        assert spin_until(executor, lambda: len(local) == 1, 2.0)   # in process regardless
+        got = []
+        recorder.create_subscription(Imu, 'imu/data', lambda m: got.append(m.header.stamp.sec),
+                                     SENSOR_QOS)
+        assert spin_until(executor, lambda: bridge._imu_pub.get_subscription_count() == 1, 5.0)
+        for k in range(2, 5):
+            bridge._publish_imu(imu(k))
+        assert spin_until(executor, lambda: len(got) == 3 and len(local) == 4, 2.0)
+        assert got == [2, 3, 4] and bridge.imu_dds_skipped == 1
+    finally:
+        executor.shutdown()
+        recorder.destroy_node()
+        bridge.destroy_node()

@@ -7,10 +7,12 @@ message. For the 100 Hz ``imu/data``, which five onboard nodes subscribe to, tha
 the idle CPU of the composed graph (docs/performance.md, "CPU").
 
 The composed container (``ibvs_bringup.composed``) gives the bridge and the nodes beside it
-one IntraProcessTopic for ``imu/data``. The bridge still publishes every sample through DDS
-(recorders, tools and nodes in other processes see no difference) and also hands the same
-message object to this topic; the co-located nodes subscribe here instead of through DDS, so
-that a sample is never delivered to them twice. Subscribers must not modify the message.
+one IntraProcessTopic for ``imu/data``. The bridge hands every message object to this topic,
+and publishes it through DDS too whenever a DDS subscription is matched (recorders, tools and
+nodes in other processes see no difference; with none, the serialisation is skipped, as
+rclcpp's intra-process publish does); the co-located nodes subscribe here instead of through
+DDS, so that a sample is never delivered to them twice. Subscribers must not modify the
+message.
 
 Threading: :meth:`publish` may be called from any thread (the bridge's MAVLink reader thread
 does). It queues the message and hands :meth:`_deliver` to the executor that spins the

@@ -292,6 +292,7 @@ class MavlinkBridgeNode(Node):
 
         self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
         self._imu_local = imu_local             # the composed container's co-located nodes
+        self.imu_dds_skipped = 0                # samples not published through DDS (no reader)
         if imu_local is not None:
             imu_local.attach_publisher(self)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
@@ -386,11 +387,23 @@ class MavlinkBridgeNode(Node):
     def _receive(self, ros_ns: int) -> None:
         """Lock held: read what is pending, run the sequencer, publish new IMU samples."""
         for sample in self._bridge.poll(ros_ns):
-            msg = self._imu_msg(sample)
-            self._imu_pub.publish(msg)
-            if self._imu_local is not None:
-                self._imu_local.publish(msg)
+            self._publish_imu(self._imu_msg(sample))
         self._log_events()
+
+    def _publish_imu(self, msg: Imu) -> None:
+        """imu/data to the co-located nodes in process, and through DDS when anyone there takes it.
+
+        As rclcpp's intra-process publish: the inter-process publish (serialisation, the
+        middleware's write) is skipped while no DDS subscription is matched (in the composed
+        container every onboard consumer is in process); a recorder or a node in another
+        process that subscribes gets the samples from its match on.
+        """
+        if self._imu_local is None or self._imu_pub.get_subscription_count() > 0:
+            self._imu_pub.publish(msg)
+        else:
+            self.imu_dds_skipped += 1
+        if self._imu_local is not None:
+            self._imu_local.publish(msg)
 
     def _check_imu_consumers(self) -> None:
         """Start the setpoint stream once imu/data has its consumers matched (then for good)."""
