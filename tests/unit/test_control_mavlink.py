@@ -1301,3 +1301,29 @@ def test_reader_refuses_a_nonpositive_wait():
     finally:
         link.close()
         peer.close()
+
+
+def test_reader_poll_supervises_only_after_messages_other_than_high_rate_telemetry():
+    """poll(supervise=False) (the node's reader thread, every datagram): the supervision
+    step (sequencer, requests) runs only when something else than the ~270/s attitude, IMU
+    and thrust streams came in; poll() (the stream tick) runs it always."""
+    m = mavutil.mavlink
+    bridge = make_bridge(free_udp_port())
+    try:
+        steps = []
+        bridge._run_sequencer = steps.append
+        attitude = m.MAVLink_attitude_quaternion_message(10, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+                                                         [0.0] * 4)
+        imu = m.MAVLink_highres_imu_message(10_000, 0.0, 0.0, -GRAVITY, *[0.0] * 10, 0)
+        state = m.MAVLink_extended_sys_state_message(0, m.MAV_LANDED_STATE_IN_AIR)
+        for batch, supervise, stepped in (([attitude, imu], False, False),
+                                          ([attitude], True, True),
+                                          ([attitude, state], False, True),
+                                          ([state], False, True)):
+            bridge.link.poll = lambda batch=batch: list(batch)
+            steps.clear()
+            bridge.poll(1, supervise)
+            assert bool(steps) == stepped, ([x.get_type() for x in batch], supervise)
+        assert bridge.telemetry.landed_state == m.MAV_LANDED_STATE_IN_AIR   # handled all
+    finally:
+        bridge.close()

@@ -364,8 +364,12 @@ class MavlinkBridgeNode(Node):
             self.log.error(f'ibvs/supervisor_status refused: {err}', LOG_THROTTLE_S)
 
     def _on_readable(self) -> None:
-        """Reader thread, lock held: handle the pending messages, publish the IMU samples."""
-        self._receive(self._ros_ns())
+        """Reader thread, lock held: handle the pending messages, publish the IMU samples.
+
+        The supervision step runs here only after messages other than the high-rate
+        telemetry (``MavlinkBridge.poll``); the stream tick runs it in any case.
+        """
+        self._receive(self._ros_ns(), supervise=False)
 
     def _on_reader_error(self, text: str) -> None:
         self.log.error(f'MAVLink receive step failed: {text}', LOG_THROTTLE_S)
@@ -384,9 +388,9 @@ class MavlinkBridgeNode(Node):
         with self._lock:
             self._bridge.heartbeat()
 
-    def _receive(self, ros_ns: int) -> None:
+    def _receive(self, ros_ns: int, supervise: bool = True) -> None:
         """Lock held: read what is pending, run the sequencer, publish new IMU samples."""
-        for sample in self._bridge.poll(ros_ns):
+        for sample in self._bridge.poll(ros_ns, supervise):
             self._publish_imu(self._imu_msg(sample))
         self._log_events()
 

@@ -55,6 +55,9 @@ AUTOPILOT_OF_HEARTBEAT = {MavAutopilot.PX4: Autopilot.PX4,
 STATUS_MODES_KEPT = 32      # supervisor modes by stamp kept to pair with forces (0.64 s)
 PENDING_ACCEL_KEPT = 500    # IMU samples kept until the hover-thrust seed is known
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
+# the streams that arrive at 50-100 Hz and need no supervision step of their own (poll)
+HIGH_RATE_TYPES = frozenset(('ATTITUDE_QUATERNION', 'HIGHRES_IMU', 'SCALED_IMU',
+                             'ATTITUDE_TARGET'))
 
 
 @dataclass(frozen=True)
@@ -311,20 +314,27 @@ class MavlinkBridge:
             return
         self._send_current(new=False)
 
-    def poll(self, ros_ns: int | None = None) -> list[ImuSample]:
+    def poll(self, ros_ns: int | None = None, supervise: bool = True) -> list[ImuSample]:
         """Receive everything pending, run the sequencer, return new IMU samples.
 
         ``ros_ns``: ROS time now (ns; the node's clock). It is the receipt time of the TIMESYNC
         answers read here, the tc1 of our answers to the autopilot's requests and the ts1 of
-        our requests; None or 0 (no ``/clock`` yet): no clock sync.
+        our requests; None or 0 (no ``/clock`` yet): no clock sync. ``supervise=False`` (the
+        reader thread, at every datagram): the supervision after the messages (link state,
+        sequencer, clock-sync, parameter and stream requests) runs only if a message other
+        than the high-rate telemetry (``HIGH_RATE_TYPES``: ~270 a second) came in; the
+        caller's periodic poll (the node's stream tick) supervises in any case.
         """
         now = self._clock()
         self._set_ros(ros_ns, force=True)
         samples = []
-        for msg in self.link.poll():
+        messages = self.link.poll()
+        for msg in messages:
             sample = self._handle(msg)
             if sample is not None:
                 samples.append(sample)
+        if not supervise and all(m.get_type() in HIGH_RATE_TYPES for m in messages):
+            return samples
         self._maybe_build_sequencer()
         self._on_link_state()
         if self.link.link_up:
