@@ -688,6 +688,7 @@ def test_hover_thrust_learnt_in_lockstep_from_a_wrong_seed():
 # --- failsafe -----------------------------------------------------------------------------------
 
 def test_offboard_loss_lands_and_needs_an_explicit_switch_back(rig):
+    assert rig.ap.awaits_setpoints                      # before any engagement: the graph's
     go_offboard(rig)
     rig.send_setpoint(int(rig.t * 1000), q=(np.cos(0.15), 0.0, np.sin(0.15), 0.0), thrust=0.8)
     for _ in range(200):                 # 0.4 s without setpoints: still offboard
@@ -696,6 +697,7 @@ def test_offboard_loss_lands_and_needs_an_explicit_switch_back(rig):
     for _ in range(60):                  # past 0.5 s
         rig.poll(0.002)
     assert rig.ap.mode.name == 'AUTO_LAND'
+    assert not rig.ap.awaits_setpoints                  # lockstep no longer waits for them
     hb = rig.heartbeat()
     assert hb.custom_mode == AUTO_LAND_CUSTOM_MODE
     assert hb.system_status == 5                        # MAV_STATE_CRITICAL
@@ -712,6 +714,8 @@ def test_offboard_loss_lands_and_needs_an_explicit_switch_back(rig):
     rig.stream_setpoints(0.5)
     assert rig.command(CMD_DO_SET_MODE, FLAG_CUSTOM, 6, 0).result == RESULT_ACCEPTED
     assert rig.ap.attitude_reference(rig.state()).source == 'offboard'
+    rig.poll(0.002)
+    assert rig.ap.awaits_setpoints
 
 
 def test_failsafe_keeps_yaw():

@@ -18,6 +18,7 @@ class FakeAutopilot:
     def __init__(self, thrust=0.5, q=(1.0, 0.0, 0.0, 0.0)):
         self.thrust, self.q = thrust, np.array(q)
         self.last_setpoint_time_boot_ms = None
+        self.awaits_setpoints = True
         self.polls = 0
         self.receiving_polls = 0
         self.telemetry_times = []       # sim times of the polls that may send telemetry
@@ -78,6 +79,19 @@ def test_lockstep_waits_for_the_answer_or_the_timeout(configs):
     clock.now += 1.0                               # wall-clock timeout
     assert sim.tick().t_ns == 40_000_000
     assert sim.lockstep_timeouts == 1
+
+
+def test_lockstep_stops_waiting_for_answers_once_the_autopilot_flies_its_own_mode(configs):
+    # A bridge that handed the vehicle back to the autopilot's failsafe sends no setpoints:
+    # lockstep must not stall every frame for the time-out (a campaign run stalled for hours).
+    ap, clock = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap, clock, pacing=Pacing.LOCKSTEP, lockstep_timeout_s=5.0)
+    assert sim.tick().t_ns == 0
+    assert sim.tick() is None                      # awaited: no answer yet
+    ap.awaits_setpoints = False                    # e.g. the offboard-loss failsafe lands
+    for k in range(1, 4):
+        assert sim.tick().t_ns == k * 20_000_000   # frame after frame, no wall-clock wait
+    assert sim.lockstep_timeouts == 0
 
 
 @pytest.mark.parametrize('pacing, receiving_substeps', [(Pacing.LOCKSTEP, 0),

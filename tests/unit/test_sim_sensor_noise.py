@@ -81,6 +81,7 @@ def test_noise_costs_well_under_a_millisecond_per_frame():
 
 class HoverAutopilot:
     last_setpoint_time_boot_ms = None
+    awaits_setpoints = True
 
     def poll(self, state, receive=True, telemetry=True):
         pass

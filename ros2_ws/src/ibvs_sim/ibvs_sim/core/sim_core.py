@@ -21,7 +21,10 @@ Pacing (:meth:`Simulation.tick`, called often by the node):
 - ``lockstep``: the next camera period is simulated only after the autopilot received a
   SET_ATTITUDE_TARGET whose time_boot_ms is at least the last frame's time in ms (the graph's
   answer to that frame) and the graph published every product of that frame
-  (:class:`GraphProducts`), or after ``lockstep_timeout_s`` of wall clock; meanwhile the autopilot
+  (:class:`GraphProducts`), or after ``lockstep_timeout_s`` of wall clock; no answer is
+  awaited once the autopilot flies a mode of its own after the offboard one (its failsafe
+  land: the graph's setpoints no longer fly the vehicle, and a bridge that handed the vehicle
+  back sends none: waiting would stall every frame for the time-out); meanwhile the autopilot
   is polled at the same sim time. MAVLink input is read only there, between frames, never
   during a frame's physics substeps: a datagram that lands while a frame is being computed (a
   stream repeat, a command) takes effect at the next frame boundary, not at whichever substep
@@ -77,6 +80,7 @@ class ReferenceSource(Protocol):
     """What the simulation needs from the autopilot (ibvs_sim.core.autopilot.Autopilot)."""
 
     last_setpoint_time_boot_ms: int | None
+    awaits_setpoints: bool
 
     def poll(self, state: VehicleStateView, receive: bool = True,
              telemetry: bool = True) -> None: ...
@@ -495,7 +499,8 @@ class Simulation:
             return self._free_run(now)
         self.autopilot.poll(self.state_view())
         answered = self.autopilot.last_setpoint_time_boot_ms
-        answered = answered is not None and answered >= self.last_frame_ms()
+        answered = (answered is not None and answered >= self.last_frame_ms()) \
+            or not self.autopilot.awaits_setpoints
         if answered and not self.products.missing():
             return self.step_frame()
         if now - self._waiting_since_wall >= self.answer_wait_s:

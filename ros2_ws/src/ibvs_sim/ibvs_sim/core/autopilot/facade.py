@@ -52,6 +52,7 @@ class Autopilot:
                                         self._telemetry)
         self._params = ParamServer(config, self.counters, self._link)
         self._timesync = TimesyncResponder(self.counters, self._link)
+        self._was_offboard = False              # OFFBOARD seen at a poll (awaits_setpoints)
         self._handlers = {'COMMAND_LONG': self._commands.on_command_long,
                           'SET_ATTITUDE_TARGET': self._on_set_attitude_target,
                           'PARAM_REQUEST_READ': self._params.on_request_read,
@@ -80,6 +81,16 @@ class Autopilot:
         return self._modes.failsafe_active
 
     @property
+    def awaits_setpoints(self) -> bool:
+        """Whether the graph's setpoints fly the vehicle: OFFBOARD, or before it first was.
+
+        False once the autopilot flies a mode of its own after OFFBOARD (its failsafe land, a
+        land or hold commanded by the bridge): the lockstep sim then stops waiting for an
+        answer to each frame.
+        """
+        return self.mode is FlightMode.OFFBOARD or not self._was_offboard
+
+    @property
     def last_setpoint_time_boot_ms(self) -> int | None:
         """time_boot_ms (the sender's clock, ms) of the latest well-formed SET_ATTITUDE_TARGET."""
         return self._setpoints.last_time_boot_ms
@@ -104,6 +115,7 @@ class Autopilot:
         auto-disarms after a landing, sends due telemetry (sim-time rates; not with
         ``telemetry`` False: the sim before its first frame) and the heartbeat (wall clock).
         """
+        self._was_offboard = self._was_offboard or self.mode is FlightMode.OFFBOARD
         self._references.ensure_hold_target(state)
         if receive:
             self._link.receive(state, self._handlers, self._telemetry.greet_new_peer)
