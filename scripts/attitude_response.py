@@ -36,18 +36,13 @@ STREAM_HZ = 100.0                   # Hz, ATTITUDE_QUATERNION and ATTITUDE_TARGE
 SETPOINT_HZ = 50.0                  # Hz, our SET_ATTITUDE_TARGET
 TAKEOFF_ALT_M = 5.0
 AXES = ('roll', 'pitch', 'yaw')
+PX4_OFFBOARD = 6                    # PX4's main mode number (DO_SET_MODE param 2)
 
 
 def step_sequence(axis: str, repeats: int = 2) -> list[float]:
     """Commanded angles (rad), one per STEP_S: +A, 0, -A, 0, repeated."""
     a = YAW_STEP_RAD if axis == 'yaw' else ROLL_PITCH_STEP_RAD
     return [a, 0.0, -a, 0.0] * repeats
-
-
-def euler_zyx(R: np.ndarray) -> np.ndarray:
-    """(roll, pitch, yaw) (rad) of R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    return np.array([math.atan2(R[2, 1], R[2, 2]), -math.asin(max(-1.0, min(1.0, R[2, 0]))),
-                     math.atan2(R[1, 0], R[0, 0])])
 
 
 def second_order(u: np.ndarray, dt: float, delay_s: np.ndarray, wn: np.ndarray,
@@ -94,7 +89,7 @@ def fit(t: np.ndarray, u: np.ndarray, y: np.ndarray, coarse: bool = False) -> di
 def sim_response(axis: str, repeats: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(t, commanded, actual) angle of ``axis`` of vehicle.yaml's plant, resampled."""
     from ibvs_common.core.config import load_vehicle
-    from ibvs_common.core.frames import rot_from_euler_zyx
+    from ibvs_common.core.frames import euler_zyx_from_rot, rot_from_euler_zyx
     from ibvs_sim.core.dynamics import (AttitudeController, hover_state, PlantParams,
                                         QuadrotorPlant)
     p = PlantParams.from_vehicle(load_vehicle())
@@ -111,7 +106,7 @@ def sim_response(axis: str, repeats: int = 2) -> tuple[np.ndarray, np.ndarray, n
             s = plant.step(s, inner.rotor_commands(s, R_d, u_hover), np.zeros(3))
             t.append(len(t) * p.dt)
             cmd.append(value)
-            act.append(euler_zyx(s.R_IB)[k])
+            act.append(euler_zyx_from_rot(s.R_IB)[k])
     return resample(np.array(t), np.array(cmd), np.array(t), np.unwrap(act))
 
 
@@ -129,8 +124,10 @@ def px4_response() -> dict:
     from pymavlink import mavutil
     from ibvs_bringup.px4_sih import free_instance, Pilot, Px4Sitl, px4_boot_parameters
     from ibvs_common.core.config import load_vehicle
-    from ibvs_common.core.frames import quat_from_rot, rot_from_euler_zyx, rot_from_quat
+    from ibvs_common.core.frames import (euler_zyx_from_rot, quat_from_rot, rot_from_euler_zyx,
+                                         rot_from_quat)
     from ibvs_sim.core.px4_plant import sih_parameters
+    mav = mavutil.mavlink
     sih = sih_parameters(load_vehicle())
     px4 = Px4Sitl(instance=free_instance(), params=px4_boot_parameters(sih, TAKEOFF_ALT_M))
     px4.start()
@@ -143,16 +140,17 @@ def px4_response() -> dict:
         pilot.poll()
         while (m := link.recv_match(blocking=False)) is not None:
             kind = m.get_type()
-            if kind == 'HEARTBEAT' and state['target'] is None and m.autopilot == 12:
+            if kind == 'HEARTBEAT' and state['target'] is None \
+                    and m.autopilot == mav.MAV_AUTOPILOT_PX4:
                 state['target'] = (m.get_srcSystem(), m.get_srcComponent())
             elif kind == 'LOCAL_POSITION_NED':
                 state['z'], state['vz'] = m.z, m.vz
             elif kind == 'ATTITUDE_QUATERNION':
                 R = rot_from_quat(np.array([m.q1, m.q2, m.q3, m.q4]))
-                state['att'].append((m.time_boot_ms * 1e-3, euler_zyx(R)))
+                state['att'].append((m.time_boot_ms * 1e-3, euler_zyx_from_rot(R)))
                 state['yaw'] = state['att'][-1][1][2]
             elif kind == 'ATTITUDE_TARGET':
-                state['sp'].append((m.time_boot_ms * 1e-3, euler_zyx(rot_from_quat(
+                state['sp'].append((m.time_boot_ms * 1e-3, euler_zyx_from_rot(rot_from_quat(
                     np.array(m.q, dtype=float)))))
 
     def run_for(seconds: float, angles: np.ndarray, z_ref: float) -> None:
@@ -176,27 +174,26 @@ def px4_response() -> dict:
         while state['target'] is None or state['yaw'] is None or state['z'] is None:
             read()
             time.sleep(0.01)
-        for msg_id in (31, 83):         # ATTITUDE_QUATERNION, ATTITUDE_TARGET
-            link.mav.command_long_send(*state['target'], 511, 0, msg_id, 1e6 / STREAM_HZ,
-                                       0, 0, 0, 0, 0)
+        for msg_id in (mav.MAVLINK_MSG_ID_ATTITUDE_QUATERNION, mav.MAVLINK_MSG_ID_ATTITUDE_TARGET):
+            link.mav.command_long_send(*state['target'], mav.MAV_CMD_SET_MESSAGE_INTERVAL, 0,
+                                       msg_id, 1e6 / STREAM_HZ, 0, 0, 0, 0, 0)
         z_ref, yaw0 = state['z'], state['yaw']
         level = np.array([0.0, 0.0, yaw0])
         run_for(1.0, level, z_ref)                       # a setpoint stream before OFFBOARD
-        link.mav.command_long_send(*state['target'], 176, 0, 1, 6, 0, 0, 0, 0, 0)
+        link.mav.command_long_send(*state['target'], mav.MAV_CMD_DO_SET_MODE, 0,
+                                   mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PX4_OFFBOARD,
+                                   0, 0, 0, 0, 0)
         run_for(2.0, level, z_ref)
-        windows = {}
+        first_sp = {}                   # axis -> index of its first PX4 setpoint
         for k, axis in enumerate(AXES):
-            t0 = time.monotonic()
-            n_sp = len(state['sp'])
+            first_sp[axis] = len(state['sp'])
             for value in step_sequence(axis):
                 angles = level.copy()
                 angles[k] += value
                 run_for(STEP_S, angles, z_ref)
-            windows[axis] = (n_sp, time.monotonic() - t0)
         out = {}
         for k, axis in enumerate(AXES):
-            n_sp, _ = windows[axis]
-            sp = state['sp'][n_sp:]
+            sp = state['sp'][first_sp[axis]:]
             t_sp = np.array([s[0] for s in sp])
             end = t_sp[0] + STEP_S * len(step_sequence(axis))
             keep = t_sp < end

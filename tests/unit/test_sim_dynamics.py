@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from ibvs_common.core.config import load_vehicle
-from ibvs_common.core.frames import (GRAVITY, euler_zyx_from_rot, quat_from_rot,
+from ibvs_common.core.frames import (GRAVITY, euler_zyx_from_rot, exp_so3, quat_from_rot,
                                      rot_from_euler_zyx)
 from ibvs_sim.core.dynamics import (AttitudeController, Mixer, PlantParams, QuadrotorPlant,
                                     State, Wind, WindConfig, hover_state)
@@ -218,3 +218,32 @@ def test_feature_level_inner_loop_is_the_plant_model_without_rotors(params):
     assert first_order.delay_s == 0.0
     R1, _ = first_order.step(np.eye(3), np.zeros(3), R_d, 0.05)
     assert euler_zyx_from_rot(R1)[0] == pytest.approx(step)       # dt / tau = 1: there
+
+
+@pytest.mark.parametrize('key, value', [('setpoint_delay', -0.01), ('setpoint_delay', 0.5),
+                                        ('yaw_damping', 0.0), ('attitude_damping', -0.9),
+                                        ('yaw_damping', None)])
+def test_inner_loop_values_out_of_range_or_missing_are_refused(key, value):
+    """A bad or missing inner-loop value in vehicle.yaml: a PlantConfigError naming the
+    section, never a plant that runs on it."""
+    import copy
+    import dataclasses
+    from ibvs_sim.core.dynamics import PlantConfigError, SIM_PLANT_KEY
+    vehicle = load_vehicle()
+    raw = copy.deepcopy(vehicle.raw)
+    if value is None:
+        del raw[SIM_PLANT_KEY][key]
+    else:
+        raw[SIM_PLANT_KEY][key] = value
+    with pytest.raises(PlantConfigError, match=SIM_PLANT_KEY):
+        PlantParams.from_vehicle(dataclasses.replace(vehicle, raw=raw))
+
+
+def test_attitude_error_is_the_rotation_angle_for_small_errors():
+    """e_R of R = R_d exp(S(a n)): sin(a) n (Lee et al.), so a for small a: a second method."""
+    from ibvs_sim.core.dynamics import attitude_error
+    R_d = rot_from_euler_zyx(0.2, -0.1, 0.7)
+    n = np.array([1.0, 2.0, -2.0]) / 3.0
+    for a in (1e-3, 0.3):
+        e = attitude_error(R_d @ exp_so3(a * n), R_d)
+        assert e == pytest.approx(math.sin(a) * n, abs=1e-12)

@@ -86,6 +86,16 @@ class PlantParams:
         return 1.0 / self.physics_rate_hz
 
     @property
+    def inner_wn(self) -> np.ndarray:
+        """Inner-loop natural frequency per body axis (roll, pitch, yaw), rad/s."""
+        return np.array([self.attitude_wn, self.attitude_wn, self.yaw_wn])
+
+    @property
+    def inner_zeta(self) -> np.ndarray:
+        """Inner-loop damping ratio per body axis (roll, pitch, yaw)."""
+        return np.array([self.attitude_zeta, self.attitude_zeta, self.yaw_zeta])
+
+    @property
     def max_collective_thrust(self) -> float:
         """F_max = max_thrust_factor m g (N), what normalised thrust 1 commands."""
         return self.max_thrust_factor * self.mass * GRAVITY
@@ -197,6 +207,16 @@ class Mixer:
         return np.clip(base + max(s, 0.0) * delta, self.t_min, self.t_max)
 
 
+def attitude_error(R: np.ndarray, R_d: np.ndarray) -> np.ndarray:
+    """SO(3) attitude error ``e_R = vee(R_d^T R - R^T R_d) / 2`` (Lee et al. 2010), body axes.
+
+    ``sin(theta) n`` for a rotation by theta about n from R_d to R: the angle itself for small
+    errors.
+    """
+    E = R_d.T @ R - R.T @ R_d
+    return 0.5 * np.array([E[2, 1], E[0, 2], E[1, 0]])
+
+
 class AttitudeController:
     """Inner attitude loop of the autopilot: (q_IB desired, normalised thrust) -> rotor thrusts.
 
@@ -216,11 +236,9 @@ class AttitudeController:
 
     def __init__(self, params: PlantParams) -> None:
         J = params.inertia_diag
-        wn = np.array([params.attitude_wn, params.attitude_wn, params.yaw_wn])
-        zeta = np.array([params.attitude_zeta, params.attitude_zeta, params.yaw_zeta])
         self.J = J
-        self.K_R = J * wn ** 2
-        self.K_Omega = 2.0 * zeta * wn * J
+        self.K_R = J * params.inner_wn ** 2
+        self.K_Omega = 2.0 * params.inner_zeta * params.inner_wn * J
         self.F_max = params.max_collective_thrust
         self.mixer = Mixer(params)
         self.delay_steps = int(round(params.setpoint_delay_s / params.dt))
@@ -236,9 +254,7 @@ class AttitudeController:
         elif self._applied is None:                 # before the first setpoint arrives: hold
             self._applied = (state.R_IB.copy(), u)
         R_d, u = self._applied
-        R = state.R_IB
-        E = R_d.T @ R - R.T @ R_d
-        e_R = 0.5 * np.array([E[2, 1], E[0, 2], E[1, 0]])
+        e_R = attitude_error(state.R_IB, R_d)
         Om = state.Omega_B
         Gamma = -self.K_R * e_R - self.K_Omega * Om + np.cross(Om, self.J * Om)
         return self.mixer.allocate(u * self.F_max, Gamma)

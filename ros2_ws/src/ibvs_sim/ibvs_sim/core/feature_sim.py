@@ -37,7 +37,7 @@ from ibvs_common.core.frames import (
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
 from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
-from ibvs_sim.core.dynamics import PlantParams, Wind, WindConfig
+from ibvs_sim.core.dynamics import attitude_error, PlantParams, Wind, WindConfig
 from ibvs_sim.core.evaluation import evaluate_run, GroundTruthLog
 
 MIN_MARKER_PIXELS = 12.0      # a marker smaller than this (side, px) is not detected
@@ -184,7 +184,7 @@ class InnerLoop:
 
     Default: the image-level plant's closed loop without its rigid body (dynamics.py
     ``AttitudeController``): per axis ``theta'' + 2 zeta wn theta' + wn^2 theta = 0`` on the
-    SO(3) error ``e_R = vee(R_d^T R - R^T R_d) / 2``, i.e. ``Omega' = -wn^2 e_R - 2 zeta wn
+    SO(3) error ``e_R`` (dynamics.attitude_error), i.e. ``Omega' = -wn^2 e_R - 2 zeta wn
     Omega`` (body FRD, rad/s), ``R+ = R exp(S(Omega+) dt)``; the setpoint applied
     ``delay_s`` (vehicle.yaml ``setpoint_delay``) after it is given. With ``tau`` (s): the
     first-order lag ``R+ = R exp(log(R^T R_d) min(dt / tau, 1))`` and no delay.
@@ -194,8 +194,7 @@ class InnerLoop:
         if tau is not None and not tau > 0.0:
             raise ValueError(f'attitude_tau must be > 0 s, got {tau}')
         self.tau = tau
-        self.wn = np.array([plant.attitude_wn, plant.attitude_wn, plant.yaw_wn])
-        self.zeta = np.array([plant.attitude_zeta, plant.attitude_zeta, plant.yaw_zeta])
+        self.wn, self.zeta = plant.inner_wn, plant.inner_zeta
         self.delay_s = 0.0 if tau is not None else plant.setpoint_delay_s
 
     def step(self, R: np.ndarray, Omega_B: np.ndarray, R_d: np.ndarray,
@@ -203,8 +202,7 @@ class InnerLoop:
         """Return (R_IB, Omega_B) after dt (s) towards R_d."""
         if self.tau is not None:
             return R @ exp_so3(log_so3(R.T @ R_d) * min(dt / self.tau, 1.0)), Omega_B
-        E = R_d.T @ R - R.T @ R_d
-        e_R = 0.5 * np.array([E[2, 1], E[0, 2], E[1, 0]])
+        e_R = attitude_error(R, R_d)
         Omega_B = Omega_B + (-self.wn ** 2 * e_R - 2.0 * self.zeta * self.wn * Omega_B) * dt
         return R @ exp_so3(Omega_B * dt), Omega_B
 
