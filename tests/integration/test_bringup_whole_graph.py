@@ -181,10 +181,11 @@ def test_random_initial_condition_succeeds(tmp_path, seed):
 def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path):
     """Lockstep repeats, and a perception node that dies where it is not used changes nothing.
 
-    The second run kills the pad detector at 1.05 s (WINDOW mode, from 1.00 s: the pad is not
-    waited for); the runner restarts it (1 s backoff) before the crossing needs it (the
-    supervisor looks for the pad from CROSSING on, at 3.44 s here; killed at 1.5 s, the
-    restarted detector was not back in one CI run and 2 products were given up), as on a
+    The second run kills the pad detector at 0.5 s (IDLE mode, where the pad is not used
+    either: mode gating; WINDOW from 1.00 s); the runner restarts it (1 s backoff) before the
+    crossing needs it (the supervisor looks for the pad from CROSSING on, at 3.46 s here;
+    killed at 1.5 s and at 1.05 s, the restarted detector, respawned at 1.78 s of sim time,
+    was not back in a CI run beside the SITL flights and 2 products were given up), as on a
     vehicle. The
     reference records a bag (one more subscriber of every topic), this run does not. The sim
     moves on only once every product the frame's mode uses is out (sim_core.GraphProducts;
@@ -200,7 +201,7 @@ def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path)
     """
     _, first = reference
     second = run_scenario(tmp_path, 'pad-killed', '--kill-node', 'pad_detector',
-                          '--kill-at-s', '1.05', '--no-bag', '--no-plots')
+                          '--kill-at-s', '0.5', '--no-bag', '--no-plots')
     restarts = second['run']['node_restarts']
     print('node restarts: ' + '; '.join(restarts))
     assert any("'pad_detector' restarted" in r for r in restarts), restarts
