@@ -187,14 +187,27 @@ def test_the_observer_takes_the_applied_thrust_axis_from_the_attitude_not_the_co
 
 def test_specific_force_buffer_means_over_a_frame_and_forgets():
     buf = SpecificForceBuffer(history_s=0.1)
+    level = lambda t: np.eye(3)                              # noqa: E731
     for k in range(10):
         buf.add(0.01 * k, np.array([k, 0.0, -9.81]))
     buf.add(0.095, np.array([np.nan, 0.0, 0.0]))             # ignored
-    assert buf.mean_between(0.045, 0.07) == pytest.approx([6.0, 0.0, -9.81])   # 5, 6, 7
-    assert buf.mean_between(None, 0.09) == pytest.approx([9.0, 0.0, -9.81])    # the newest
-    assert buf.mean_between(0.09, 0.2) is None
+    assert buf.mean_between(0.045, 0.07, level) == pytest.approx([6.0, 0.0, -9.81])  # 5, 6, 7
+    assert buf.mean_between(None, 0.09, level) == pytest.approx([9.0, 0.0, -9.81])  # newest
+    assert buf.mean_between(0.09, 0.2, level) is None
     buf.add(0.5, np.zeros(3))                                # older than 0.4 s are dropped
-    assert buf.mean_between(-1.0, 1.0) == pytest.approx([0.0, 0.0, 0.0])
+    assert buf.mean_between(-1.0, 1.0, level) == pytest.approx([0.0, 0.0, 0.0])
+
+
+def test_specific_force_is_rotated_with_the_attitude_at_each_sample():
+    # body FRD samples; yawed 90 deg (nose east) the body's forward axis is {I}'s y (east)
+    buf = SpecificForceBuffer()
+    buf.add(0.01, np.array([1.0, 0.0, -9.81]))
+    buf.add(0.02, np.array([3.0, 0.0, -9.81]))
+    buf.add(0.03, np.array([5.0, 0.0, -9.81]))
+    yaw_east = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    attitude = {0.01: yaw_east, 0.02: yaw_east, 0.03: None}   # no attitude: left out
+    assert buf.mean_between(0.0, 0.03, attitude.get) == pytest.approx([0.0, 2.0, -9.81])
+    assert buf.mean_between(0.025, 0.03, attitude.get) is None
 
 
 def test_an_accelerometer_bias_reads_as_a_disturbance_and_the_integrals_take_it_out():

@@ -5,7 +5,10 @@ import pytest
 
 from ibvs_control.core.frame_io import check_flow, PadPairing
 from ibvs_common.core.modes import Mode
+from ibvs_common.core import attitude_buffer
 from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_common.core.frames import (quat_from_rot, R_IB_from_quat_map_base,
+                                     rot_map_base_from_R_IB)
 from ibvs_common.core.modes import Camera, InputKind, MODE_INPUTS
 from ibvs_control.core.timing import FrameAssembler
 
@@ -128,6 +131,31 @@ def test_attitude_at_a_stamp_is_interpolated_or_propagated_never_waited_for():
     assert buf.attitude_at(0.99) is None             # before the first sample
     with pytest.raises(ValueError):
         buf.add(1.1, np.full((3, 3), np.nan), w)
+
+
+def test_a_sample_given_by_its_ros_quaternion_is_converted_only_when_read(monkeypatch):
+    converted = []
+    convert = attitude_buffer.R_IB_from_quat_map_base
+    monkeypatch.setattr(attitude_buffer, 'R_IB_from_quat_map_base',
+                        lambda q: converted.append(q) or convert(q))
+    w = np.array([0.3, -0.2, 0.5])
+    R0 = rot([0.1, 0.2, 0.3])
+    eager, lazy = AttitudeBuffer(), AttitudeBuffer()
+    for k in range(50):                              # 0.5 s of 100 Hz samples
+        t = 1.0 + 0.01 * k
+        q_map_base = quat_from_rot(rot_map_base_from_R_IB(R0 @ rot(w * (t - 1.0))))
+        eager.add(t, R_IB_from_quat_map_base(q_map_base), w)
+        lazy.add_map_base(t, tuple(q_map_base), w)
+    assert converted == []                           # nothing computed before a query
+    for t in (1.0, 1.015, 1.2, 1.49, 1.52):
+        assert np.array_equal(lazy.attitude_at(t), eager.attitude_at(t))
+    assert np.allclose(lazy.attitude_at(1.2), R0 @ rot(w * 0.2), atol=1e-9)   # geometry
+    assert len(converted) <= 8                       # only the samples around the stamps read
+    for q, omega in (((np.nan, 0.0, 0.0, 0.0), w), ((1.2, 0.0, 0.0, 0.0), w),
+                     ((1.0, 0.0, 0.0, 0.0), (np.inf, 0.0, 0.0))):
+        with pytest.raises(ValueError):
+            lazy.add_map_base(2.0, q, omega)
+    assert len(lazy) == 50
 
 
 def test_pad_pairing_pairs_by_stamp_in_either_order():

@@ -14,7 +14,7 @@ from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import JointState
 
-from ibvs_common.core.frames import R_IB_from_quat_map_base, vec_flu_to_frd
+from ibvs_common.core.frames import R_IB_from_quat_map_base
 
 NS_PER_S = 1_000_000_000
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
@@ -48,20 +48,31 @@ def ns_to_stamp(ns: int, stamp) -> None:
     stamp.sec, stamp.nanosec = divmod(int(ns), NS_PER_S)
 
 
+def imu_attitude(msg) -> tuple[int, tuple, np.ndarray]:
+    """sensor_msgs/Imu -> (stamp ns, q_map_base (w, x, y, z), Omega_B FRD in rad/s), checked.
+
+    For :meth:`AttitudeBuffer.add_map_base`, which turns the quaternion into R_IB only when a
+    query reads the sample. Raises ValueError for NaN/Inf or a quaternion that is not unit
+    within 10 %.
+    """
+    o, av = msg.orientation, msg.angular_velocity
+    q = (o.w, o.x, o.y, o.z)
+    if not math.isfinite(o.w + o.x + o.y + o.z + av.x + av.y + av.z):
+        raise ValueError('IMU message holds NaN or Inf')
+    norm = math.sqrt(o.w * o.w + o.x * o.x + o.y * o.y + o.z * o.z)
+    if abs(norm - 1.0) > 0.1:
+        raise ValueError(f'IMU orientation is not a unit quaternion (|q| = {norm:.3f})')
+    # base_link FLU -> body FRD: y and z change sign (frames.R_FRD_FLU)
+    return stamp_to_ns(msg.header.stamp), q, np.array((av.x, -av.y, -av.z))
+
+
 def imu_sample(msg) -> tuple[int, np.ndarray, np.ndarray]:
     """sensor_msgs/Imu (base_link FLU in map ENU) -> (stamp ns, R_IB, Omega_B FRD in rad/s).
 
     Raises ValueError for NaN/Inf or a quaternion that is not unit within 10 %.
     """
-    o, av = msg.orientation, msg.angular_velocity
-    q = (o.w, o.x, o.y, o.z)
-    w = (av.x, av.y, av.z)
-    if not all(map(math.isfinite, q + w)):
-        raise ValueError('IMU message holds NaN or Inf')
-    norm = math.sqrt(sum(v * v for v in q))
-    if abs(norm - 1.0) > 0.1:
-        raise ValueError(f'IMU orientation is not a unit quaternion (|q| = {norm:.3f})')
-    return stamp_to_ns(msg.header.stamp), R_IB_from_quat_map_base(q), vec_flu_to_frd(w)
+    stamp_ns, q, omega_B = imu_attitude(msg)
+    return stamp_ns, R_IB_from_quat_map_base(q), omega_B
 
 
 class DeadlineTimer:

@@ -47,7 +47,7 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, imu_sample, mode_from_status, NS_PER_S, ns_to_stamp,
+    COMMAND_QOS, DeadlineTimer, imu_attitude, mode_from_status, NS_PER_S, ns_to_stamp,
     SENSOR_QOS, set_quat, set_vector3, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
@@ -159,20 +159,21 @@ class ForceControllerNode(Node):
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:
         try:
-            stamp_ns, R_IB, omega_B = imu_sample(msg)
-            self._attitudes.add(stamp_ns / NS_PER_S, R_IB, omega_B)
+            stamp_ns, q_map_base, omega_B = imu_attitude(msg)
+            self._attitudes.add_map_base(stamp_ns / NS_PER_S, q_map_base, omega_B)
         except ValueError as exc:
             self.log.error(f'imu/data refused: {exc}', LOG_THROTTLE_S)
             return
         if self._specific_force is not None and msg.linear_acceleration_covariance[0] >= 0.0:
-            self._add_specific_force(stamp_ns, R_IB, vector3(msg.linear_acceleration))
+            self._add_specific_force(stamp_ns, vector3(msg.linear_acceleration))
         self._release()
 
-    def _add_specific_force(self, stamp_ns: int, R_IB: np.ndarray, f_flu: np.ndarray) -> None:
-        """Keep a specific force sample (base_link FLU -> body FRD -> {I}) for the observer.
+    def _add_specific_force(self, stamp_ns: int, f_flu: np.ndarray) -> None:
+        """Keep a specific force sample (base_link FLU -> body FRD) for the observer.
 
         A flying multirotor's accelerometer reads about g (its thrust): a sample under
-        MIN_SPECIFIC_FORCE (an unfilled field, free fall) or non-finite is not used.
+        MIN_SPECIFIC_FORCE (an unfilled field, free fall) or non-finite is not used. It is
+        rotated to {I} with the attitude of its stamp when a frame reads it.
         """
         norm = float(np.linalg.norm(f_flu))
         if not np.isfinite(norm) or norm < MIN_SPECIFIC_FORCE:
@@ -180,7 +181,7 @@ class ForceControllerNode(Node):
                              'flying specific force: the disturbance observer ignores it',
                              LOG_THROTTLE_S)
             return
-        self._specific_force.add(stamp_ns / NS_PER_S, R_IB @ vec_flu_to_frd(f_flu))
+        self._specific_force.add(stamp_ns / NS_PER_S, vec_flu_to_frd(f_flu))
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         """Open the frame the supervisor evaluated, to be answered in the mode it reports."""
@@ -206,6 +207,8 @@ class ForceControllerNode(Node):
         self._release()
 
     def _release(self) -> None:
+        if not self._frames.has_pending:      # most calls: an IMU sample between frames
+            return
         for frame in self._frames.release(self.get_clock().now().nanoseconds):
             self._answer(frame)
         self._deadline.arm(self._frames.next_deadline_ns())
@@ -219,7 +222,8 @@ class ForceControllerNode(Node):
         t = frame.stamp_ns / NS_PER_S
         f_I = None
         if self._specific_force is not None:
-            f_I = self._specific_force.mean_between(self._t_answered, t)
+            f_I = self._specific_force.mean_between(self._t_answered, t,
+                                                    self._attitudes.attitude_at)
         self._t_answered = t
         out, F_I = step_controller(self._controller, frame.tag, frame,
                                    self._attitudes.attitude_at(t), f_I)

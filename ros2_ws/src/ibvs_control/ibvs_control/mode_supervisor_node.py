@@ -50,7 +50,7 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, imu_sample, MODE_QOS, NS_PER_S, SENSOR_QOS,
+    COMMAND_QOS, DeadlineTimer, imu_attitude, MODE_QOS, NS_PER_S, SENSOR_QOS,
     supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
@@ -168,12 +168,12 @@ class ModeSupervisorNode(Node):
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:
         try:
-            stamp_ns, R_IB, omega_B = imu_sample(msg)
-            self._attitudes.add(stamp_ns / NS_PER_S, R_IB, omega_B)
+            stamp_ns, q_map_base, omega_B = imu_attitude(msg)
+            self._attitudes.add_map_base(stamp_ns / NS_PER_S, q_map_base, omega_B)
         except ValueError as exc:
             self._error(f'imu/data refused: {exc}')
             return
-        self._core.on_imu(stamp_ns / NS_PER_S, R_IB)
+        self._core.on_imu(stamp_ns / NS_PER_S)
         self._release()
 
     def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
@@ -193,6 +193,8 @@ class ModeSupervisorNode(Node):
 
     def _release(self) -> None:
         """Evaluate the frames that are complete or past their deadline; re-arm the timer."""
+        if not self._frames.has_pending:      # most calls: an IMU sample between frames
+            return
         for frame in self._frames.release(self.get_clock().now().nanoseconds):
             self._evaluate(frame)
         self._deadline.arm(self._frames.next_deadline_ns())

@@ -9,7 +9,7 @@ import numpy as np
 
 from geometry_msgs.msg import Point32, PolygonStamped
 from ibvs_common.core.camera import CameraModel
-from ibvs_common.node_common import imu_sample, NS_PER_S
+from ibvs_common.node_common import imu_attitude, NS_PER_S
 from sensor_msgs.msg import CameraInfo, Image, Imu
 
 from ibvs_perception.core.image import image_to_mono8
@@ -37,14 +37,14 @@ def camera_from_info(msg: CameraInfo | None, image: Image) -> CameraModel:
     return model
 
 
-def attitude_from_imu(msg: Imu) -> tuple[float, np.ndarray, np.ndarray]:
-    """(stamp s, R_IB, Omega_B FRD) of sensor_msgs/Imu (base_link FLU in map ENU).
+def attitude_from_imu(msg: Imu) -> tuple[float, tuple, np.ndarray]:
+    """(stamp s, q_map_base, Omega_B FRD) of sensor_msgs/Imu, for AttitudeBuffer.add_map_base.
 
-    The conversion is ``ibvs_common.node_common.imu_sample`` (one for every node); raises
+    The check is ``ibvs_common.node_common.imu_attitude`` (one for every node); raises
     ValueError for NaN/Inf or a non-unit quaternion.
     """
-    stamp_ns, R_IB, omega_B = imu_sample(msg)
-    return stamp_ns / NS_PER_S, R_IB, omega_B
+    stamp_ns, q_map_base, omega_B = imu_attitude(msg)
+    return stamp_ns / NS_PER_S, q_map_base, omega_B
 
 
 def polygon_from_vectors(header, frame_id: str, vectors: np.ndarray | None) -> PolygonStamped:

@@ -130,7 +130,7 @@ class OpticalFlowNode(Node):
 
     def on_imu(self, msg: Imu) -> None:
         try:
-            self.attitudes.add(*attitude_from_imu(msg))
+            self.attitudes.add_map_base(*attitude_from_imu(msg))
         except ValueError as exc:
             self.log.error(f'optical_flow: IMU message dropped: {exc}', THROTTLE_S)
 

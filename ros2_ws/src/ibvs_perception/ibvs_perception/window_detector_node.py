@@ -106,7 +106,7 @@ class WindowDetectorNode(Node):
 
     def on_imu(self, msg: Imu) -> None:
         try:
-            self.attitudes.add(*attitude_from_imu(msg))
+            self.attitudes.add_map_base(*attitude_from_imu(msg))
         except ValueError as exc:
             self.log.error(f'window_detector: IMU message dropped: {exc}', THROTTLE_S)
 

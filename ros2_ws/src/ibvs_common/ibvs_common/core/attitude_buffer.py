@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import bisect
 from dataclasses import dataclass, field
+import math
 
 import numpy as np
 
-from ibvs_common.core.frames import exp_so3, is_rotation, log_so3
+from ibvs_common.core.frames import exp_so3, is_rotation, log_so3, R_IB_from_quat_map_base
 
 
 @dataclass(frozen=True)
@@ -49,11 +50,17 @@ class AttitudeBuffer:
     on SO(3) (geodesic: ``R_a exp(s log(R_a^T R_b))``); after the newest sample it is
     propagated with its rate, ``R_n exp(Omega_n dt)``, for at most ``max_extrapolation_s``.
     Stamps are seconds on the ROS clock (images and IMU share it).
+
+    Samples come either as R_IB (:meth:`add`) or as the ROS message's quaternion
+    (:meth:`add_map_base`), whose R_IB is computed only when a query needs it: every node
+    keeps every 100 Hz imu/data sample, but only the few around an image stamp are ever read
+    (docs/performance.md, "Idle CPU").
     """
 
     config: AttitudeBufferConfig = field(default_factory=AttitudeBufferConfig)
     _stamps: list = field(default_factory=list)
-    _R: list = field(default_factory=list)
+    _R: list = field(default_factory=list)       # R_IB, or None until first read (_q then)
+    _q: list = field(default_factory=list)       # unit q_map_base of an add_map_base sample
     _omega: list = field(default_factory=list)
 
     def __len__(self) -> int:
@@ -71,17 +78,44 @@ class AttitudeBuffer:
         if not np.isfinite(stamp_s) or not np.all(np.isfinite(omega_B)) \
                 or not is_rotation(R_IB, tol=1e-4):
             raise ValueError('IMU sample with a non-finite stamp/rate or an invalid attitude')
+        self._insert(float(stamp_s), R_IB, None, omega_B)
+
+    def add_map_base(self, stamp_s: float, q_map_base, omega_B) -> None:
+        """Insert a sample given by a ROS attitude quaternion (base_link FLU in map ENU).
+
+        ``q_map_base``: (w, x, y, z), unit within 10 % (normalised here); ``omega_B``: body
+        FRD rates (rad/s). R_IB (:func:`frames.R_IB_from_quat_map_base`, a rotation by
+        construction) is computed on the first query that reads this sample, so the result
+        of every query is the same as with :meth:`add`. Raises ValueError as :meth:`add`.
+        """
+        w, x, y, z = (float(v) for v in q_map_base)
+        o0, o1, o2 = (float(v) for v in omega_B)
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        if not (math.isfinite(stamp_s) and math.isfinite(o0 + o1 + o2) and math.isfinite(n)) \
+                or abs(n - 1.0) > 0.1:
+            raise ValueError('IMU sample with a non-finite stamp/rate or an invalid attitude')
+        self._insert(float(stamp_s), None, (w, x, y, z), np.array((o0, o1, o2)))
+
+    def _insert(self, stamp_s: float, R_IB, q, omega_B: np.ndarray) -> None:
         i = bisect.bisect_right(self._stamps, stamp_s)
         if i > 0 and self._stamps[i - 1] == stamp_s:
-            self._R[i - 1], self._omega[i - 1] = R_IB, omega_B
+            self._R[i - 1], self._q[i - 1], self._omega[i - 1] = R_IB, q, omega_B
             return
-        self._stamps.insert(i, float(stamp_s))
+        self._stamps.insert(i, stamp_s)
         self._R.insert(i, R_IB)
+        self._q.insert(i, q)
         self._omega.insert(i, omega_B)
         cutoff = self._stamps[-1] - self.config.history_s
         drop = bisect.bisect_left(self._stamps, cutoff)
         if drop > 0:
-            del self._stamps[:drop], self._R[:drop], self._omega[:drop]
+            del self._stamps[:drop], self._R[:drop], self._q[:drop], self._omega[:drop]
+
+    def _rotation(self, i: int) -> np.ndarray:
+        """R_IB of sample i (computed from its quaternion once, on the first read)."""
+        R = self._R[i]
+        if R is None:
+            R = self._R[i] = R_IB_from_quat_map_base(self._q[i])
+        return R
 
     def attitude_at(self, stamp_s: float) -> np.ndarray | None:
         """R_IB at ``stamp_s`` or None when the buffer does not cover it."""
@@ -89,19 +123,21 @@ class AttitudeBuffer:
             return None
         cfg = self.config
         i = bisect.bisect_right(self._stamps, stamp_s)
+        if i > 0 and self._stamps[i - 1] == stamp_s:       # a sample's own stamp
+            return self._rotation(i - 1)
         if i == len(self._stamps):
             dt = stamp_s - self._stamps[-1]
             if dt > cfg.max_extrapolation_s:
                 return None
-            return self._R[-1] @ exp_so3(self._omega[-1] * dt)
+            return self._rotation(-1) @ exp_so3(self._omega[-1] * dt)
         if i == 0:
             return None
         t0, t1 = self._stamps[i - 1], self._stamps[i]
         if t1 - t0 > cfg.max_interpolation_gap_s:
             return None
         s = (stamp_s - t0) / (t1 - t0)
-        R0 = self._R[i - 1]
-        return R0 @ exp_so3(s * log_so3(R0.T @ self._R[i]))
+        R0 = self._rotation(i - 1)
+        return R0 @ exp_so3(s * log_so3(R0.T @ self._rotation(i)))
 
     def gyro_rotation(self, t0: float, t1: float) -> np.ndarray | None:
         """Body rotation dR from t0 to t1 integrated from the buffered rates (R(t1) = R(t0) dR).

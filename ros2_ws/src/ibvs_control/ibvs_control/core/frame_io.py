@@ -7,6 +7,8 @@ timing layer's business (core/timing.py), not this module's.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 
 from ibvs_control.core.controller import (
@@ -77,35 +79,47 @@ class PadPairing:
 
 
 class SpecificForceBuffer:
-    """The IMU's specific force f_I (m/s^2, {I}) over time, for the disturbance observer.
+    """The IMU's specific force over time, for the disturbance observer.
 
     f_I = v' - g e3 = (-F + Delta) / m (what an accelerometer measures, rotated to {I} with the
-    attitude of its sample). :meth:`mean_between` gives the mean over a frame interval, so the
-    observer sees the force that acted while the previous command was applied.
+    attitude of its sample). Samples are kept in the body frame FRD (m/s^2) as they arrive;
+    :meth:`mean_between` rotates the ones of a frame interval with the attitude at their stamps
+    and gives their mean, so the observer sees the force that acted while the previous
+    command was applied.
     """
 
     def __init__(self, history_s: float = 1.0) -> None:
         self.history_s = history_s
         self._t: list[float] = []
-        self._f: list[np.ndarray] = []
+        self._f_B: list[np.ndarray] = []
 
-    def add(self, t: float, f_I: np.ndarray) -> None:
-        """Keep one sample (non-finite ones are ignored); drop those older than history_s."""
-        f = np.asarray(f_I, dtype=float).reshape(3)
+    def add(self, t: float, f_B: np.ndarray) -> None:
+        """Keep one body-frame sample (non-finite ones are ignored); drop older than history_s."""
+        f = np.asarray(f_B, dtype=float).reshape(3)
         if not (np.isfinite(t) and np.all(np.isfinite(f))):
             return
         self._t.append(float(t))
-        self._f.append(f)
+        self._f_B.append(f)
         while self._t and self._t[0] < self._t[-1] - self.history_s:
-            del self._t[0], self._f[0]
+            del self._t[0], self._f_B[0]
 
-    def mean_between(self, t0: float | None, t1: float) -> np.ndarray | None:
-        """Mean of the samples with t0 < t <= t1 (t0 None: the newest only), or None."""
-        picked = [f for t, f in zip(self._t, self._f)
+    def mean_between(self, t0: float | None, t1: float,
+                     attitude_at: Callable[[float], np.ndarray | None]) -> np.ndarray | None:
+        """Mean f_I of the samples with t0 < t <= t1 (t0 None: the newest only), or None.
+
+        ``attitude_at(t)``: R_IB at a sample's stamp (AttitudeBuffer.attitude_at); a sample
+        without an attitude is left out.
+        """
+        picked = [(t, f) for t, f in zip(self._t, self._f_B)
                   if t <= t1 and (t0 is None or t > t0)]
         if t0 is None:
             picked = picked[-1:]
-        return np.mean(picked, axis=0) if picked else None
+        f_I = []
+        for t, f_B in picked:
+            R_IB = attitude_at(t)
+            if R_IB is not None:
+                f_I.append(R_IB @ f_B)
+        return np.mean(f_I, axis=0) if f_I else None
 
 
 BEARING_NORM_TOLERANCE = 0.05   # |b| of a unit bearing must be within 5 % of 1

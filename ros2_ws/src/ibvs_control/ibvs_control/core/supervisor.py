@@ -180,8 +180,8 @@ class ModeSupervisor:
         return True, 'aborted: failsafe'
 
     # --- inputs -----------------------------------------------------------------------------
-    def on_imu(self, t: float, R_IB: np.ndarray) -> None:
-        """Note a valid IMU attitude at t."""
+    def on_imu(self, t: float, R_IB: np.ndarray | None = None) -> None:
+        """Note a valid IMU sample at t (its attitude R_IB is not needed: only its age is)."""
         self._last['imu'] = t
 
     def on_window(self, t: float, corner_bearings_I: np.ndarray | None) -> None:

@@ -137,6 +137,11 @@ class FrameAssembler:
         return best
 
     # --- frames ------------------------------------------------------------------------
+    @property
+    def has_pending(self) -> bool:
+        """Whether any frame is open (if not, :meth:`release` has nothing to do)."""
+        return bool(self._pending)
+
     def is_pending(self, stamp_ns: int) -> bool:
         """Whether a frame with this stamp is open and not yet released."""
         return any(p.stamp_ns == int(stamp_ns) for p in self._pending)
