@@ -159,6 +159,51 @@ def test_a_texture_step_beside_the_band_is_not_its_edge():
     assert np.max(np.linalg.norm(result.detection.corners_px - inner, axis=1)) < 0.2
 
 
+def test_dark_texture_touching_the_band_outside_is_not_the_band():
+    """Dark blobs joined to the band from outside: the ring's aperture gives the candidate.
+
+    As dark bricks of a light-mortar wall: the blobs and the band are one dark component,
+    whose outer boundary is no convex quadrilateral (before: no candidate). Its hole, the
+    aperture, is one; the band's proportions (1.2 x 1.0 m aperture, 0.08 m band: a frontal
+    view, 250 px/m, turned by 4 degrees) predict the outer quad around it.
+    """
+    cam = CameraModel.from_camera_info(752, 480, [366.667, 0, 375.5, 0, 366.667, 239.5, 0, 0,
+                                                  1], [0.0] * 5, 'plumb_bob')
+    turn = np.radians(4.0)
+    rot = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+    centre = np.array([380.0, 245.0])
+
+    def place(corners_m):
+        return (np.asarray(corners_m) * 250.0) @ rot.T + centre
+
+    def rect(x0, y0, x1, y1):
+        return [[x0, y0], [x1, y0], [x1, y1], [x0, y1]]
+
+    inner, outer = place(rect(-0.6, -0.5, 0.6, 0.5)), place(rect(-0.68, -0.58, 0.68, 0.58))
+    blobs = [place(rect(-1.0, -0.3, -0.66, -0.18)), place(rect(0.1, -0.9, 0.3, -0.56)),
+             place(rect(0.66, 0.1, 0.9, 0.3))]
+    img = draw_supersampled([(b, 20) for b in blobs] + [(outer, 20), (inner, 150)], 120)
+    result = WindowDetector(WindowDetectorConfig()).process(img, cam)
+    assert result.status == WindowStatus.DETECTED
+    assert np.max(np.linalg.norm(result.detection.corners_px - inner, axis=1)) < 0.2
+
+
+def test_the_band_beside_a_black_brick_and_a_dim_aperture_is_dark():
+    """Threshold window mostly dark: the band stays "dark" (else the ring has a gap).
+
+    Vertical stripes as in a brick-wall frame where the ring opened: a mortar line (230), a
+    black brick (0), the band (18) and the dim top of the room (80). At the band the window's
+    mean is 43 and its contrast 230: an offset of 0.15 x 230 = 34.5 put the threshold at 8.5,
+    below the band. The offset is at most half the mean's depth above the local minimum
+    (21.5 here).
+    """
+    row = np.full(64, 80, np.uint8)
+    row[17:28], row[20], row[28:36] = 0, 230, 18
+    small = np.tile(row, (64, 1))
+    mask = window._dark_mask(small, 31, 0.15, 4.0)
+    assert np.all(mask[:, 28:36] == 255)
+
+
 def test_acquisition_while_hovering_level(world, front):
     """Level hover (roll = pitch = yaw = 0) at 1.2-4 m: a fresh detector finds every window.
 

@@ -107,12 +107,33 @@ def test_noise_fresh_detection(scene, sigma):
     assert np.median(errors) <= 0.3
 
 
-def test_light_mortar_brick_wall_no_wrong_window(scene):
+@pytest.mark.parametrize('kind, value, least, median_px, max_px', [
+    (None, 0.0, N_POSES, 0.2, 1.5), ('noise', 12.0, N_POSES - 1, 0.25, 1.5),
+    ('blur', 6.0, N_POSES - 2, 0.6, 3.0)])
+def test_light_mortar_brick_wall_fresh_search(scene, kind, value, least, median_px, max_px):
+    """High-contrast light-mortar bricks: a fresh (full) search finds the window.
+
+    Before: 11, 10 and 7 of these 15 frames (clean, sigma 12, blur 6; bench, 60 poses: 61.7,
+    53.3, 23.3 %), reason "no candidate": dark bricks touching the band joined its dark
+    component, whose outer boundary was no quadrilateral, and beside a black brick and the dim
+    top of the room the band itself was not darker than its threshold window's mean minus
+    0.15 of its contrast (a gap in the ring). Now the aperture (the ring's hole, intact) and
+    the band's proportions give the outer quad, and the dark offset is at most half the local
+    mean's depth above the local minimum. Corners against the projected true aperture; with
+    blur the ramp biases them (a corner up to ~2.3 px off, as on the sim's own wall).
+    """
+    found, wrong, errors = fresh_results(scene, 'brick', kind, value, seed=int(value))
+    assert found >= least
+    if kind is None or kind == 'noise':
+        assert wrong == 0
+    assert np.median(errors) <= median_px and errors.max() <= max_px
+
+
+def test_light_mortar_brick_wall_tracked_approach(scene):
     """High-contrast light-mortar bricks: no wrong corners on a tracked approach.
 
-    Not solved: the fresh search still misses ~40 % (bench; the band merges with dark bricks
-    in the contour search). On this 30-frame approach 19 frames were found before, 21 after;
-    the guard is that none is wrong and the rate does not fall back.
+    On this 30-frame approach 19 frames were found before the contrast-relative thresholds,
+    21 after them, 30 with the aperture-based candidates.
     """
     world, cam, base, _ = scene
     renderer = bench.make_scene(base, 'brick')
@@ -125,7 +146,7 @@ def test_light_mortar_brick_wall_no_wrong_window(scene):
             err = np.linalg.norm(result.detection.corners_px
                                  - bench.true_corners_px(world, cam, R_IB, xi), axis=1)
             assert err.max() <= WRONG_PX
-    assert found >= 0.65 * len(poses)
+    assert found >= len(poses) - 1
 
 
 @pytest.mark.parametrize('kind, value', [('noise', 15.0), ('blur', 8.0)])

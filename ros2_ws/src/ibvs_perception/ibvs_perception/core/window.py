@@ -3,14 +3,21 @@
 Algorithm (paper section Experiments: "ArUco border detection", made sub-pixel):
 
 1. Candidates. Adaptive threshold (dark = foreground) of a down-scaled image, the offset
-   below the local mean a fraction of the local contrast (so it follows the exposure), then
-   ``findContours`` with a two-level hierarchy, every boundary pixel kept
+   below the local mean a fraction of the local contrast (so it follows the exposure), at
+   most half the mean's depth above the local minimum (beside a black brick and a dim room
+   the contrast's fraction left the band itself above the threshold: a gap in the ring),
+   then ``findContours`` with a two-level hierarchy, every boundary pixel kept
    (``CHAIN_APPROX_NONE``: with ``CHAIN_APPROX_SIMPLE`` an axis-aligned side, as in a level
    hover, shrinks to its two end points and no line can be fitted to it). The window is a
    dark *ring* (the frame band on the wall face): an outer contour (band/wall border) with
    one large hole (the aperture).
    Both are approximated by convex quadrilaterals (``approxPolyDP``); area, aspect-ratio and
-   hole/outer area-ratio checks reject markers, door-like shapes and texture.
+   hole/outer area-ratio checks reject markers, door-like shapes and texture. Dark texture
+   touching the band (the dark bricks of a light-mortar wall) joins its component, whose outer
+   contour is then no quadrilateral; the hole stays one, so a large quadrilateral hole gives a
+   candidate too: the outer quad that the band's proportions predict around it (a
+   homography, the inverse of the aperture prediction below), tried when the component's
+   outer contour gives no window.
 2. Sub-pixel refinement. A straight 3-D edge is straight only in *undistorted* coordinates,
    so each aperture side is parametrised in undistorted pixels (the ideal pinhole image
    ``K [x/z, y/z, 1]``), sampled, projected into the distorted image, and searched for the
@@ -45,6 +52,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import enum
 import functools
+import itertools
 
 import cv2
 import numpy as np
@@ -88,6 +96,11 @@ _TANGENT_OFFSETS_PX = (-1.0, 0.0, 1.0)
 #: texture gradients beside a sharp edge in: 0.25 gave 0.17 px median on clean frames)
 _EDGE_RUN_FRACTION = 0.7
 _MAX_EDGE_HALF_WIDTH = 12
+#: the dark offset below the local mean is at most this fraction of the mean's depth above the
+#: local minimum: in a window mostly dark (the band beside a black brick and a dim aperture)
+#: the contrast's fraction can exceed it and leave even the band's pixels "not dark", a gap
+#: that opens the ring
+_MEAN_DEPTH_FRACTION = 0.5
 #: where the band's level is read between the outer and the predicted inner edge (fractions
 #: of the predicted band width, from the outer edge)
 _BAND_LEVEL_SPAN = (0.25, 0.5)
@@ -282,9 +295,13 @@ class WindowDetector:
             refined = self._refine(gray, camera, self._last_outer_u)
             if refined is not None:
                 return self._track([refined])
-        refined = [r for r in (self._refine(gray, camera, quad)
-                               for quad in self.find_candidates(gray, camera))
-                   if r is not None]
+        refined = []
+        for ring in self._rings(gray, camera):
+            # a component's first candidate that refines (its outer boundary's, else a hole's)
+            found = next((r for r in (self._refine(gray, camera, quad) for quad in ring)
+                          if r is not None), None)
+            if found is not None:
+                refined.append(found)
         return self._track(refined)
 
     def find_candidates(self, gray: np.ndarray, camera: CameraModel) -> list[np.ndarray]:
@@ -294,6 +311,20 @@ class WindowDetector:
         quadrilateral of plausible size and aspect ratio, and
         whose holes (the aperture, possibly cut by dark texture seen through it) cover at
         least ``min_holes_fraction`` of it: a filled dark square is not a ring.
+        Dark texture touching the band (a dark brick) joins its component and bends the outer
+        boundary out of shape, while the hole (the aperture) stays a quadrilateral: each
+        large convex quadrilateral hole of a dark component also gives a candidate, the outer
+        quad that the band's known proportions predict around it (:meth:`_predicted_outer`).
+        Per component: its outer boundary's quad first (if any), then its holes'.
+        """
+        return [quad for ring in self._rings(gray, camera) for quad in ring]
+
+    def _rings(self, gray: np.ndarray, camera: CameraModel) -> list:
+        """Candidates per dark component (see find_candidates): one lazy iterator each.
+
+        The holes' quads are computed only when asked for: the detector stops at a
+        component's first candidate that refines into a window (its outer boundary's when
+        intact), so an intact band costs no more than without the holes.
         """
         cfg = self.config
         scale = cfg.detection_scale
@@ -310,26 +341,40 @@ class WindowDetector:
         # a contour keeps every boundary pixel: one shorter than the perimeter of the smallest
         # admissible square cannot pass the area check (noise makes thousands of such specks)
         min_points = 4.0 * np.sqrt(cfg.min_area_fraction * image_area)
-        quads = []
+        # the smallest admissible aperture: min_hole_area_ratio of the smallest outer quad
+        min_hole_area = cfg.min_hole_area_ratio * cfg.min_area_fraction * image_area
+        min_hole_points = 4.0 * np.sqrt(min_hole_area)
+        rings = []
         for i, (_, _, child, parent) in enumerate(hierarchy):
-            if parent != -1 or child == -1 or len(contours[i]) < min_points:
+            if parent != -1 or child == -1 or len(contours[i]) < min_hole_points:
                 continue
-            outer = contours[i]
-            outer_area = cv2.contourArea(outer)
-            if not cfg.min_area_fraction * image_area <= outer_area \
-                    <= cfg.max_area_fraction * image_area:
-                continue
-            if _children_area(contours, hierarchy, child) < cfg.min_holes_fraction * outer_area:
-                continue
-            quad = self._outer_quad_u(outer, camera, scale)
-            if quad is None:
-                continue
-            width = 0.5 * (np.linalg.norm(quad[1] - quad[0]) + np.linalg.norm(quad[2] - quad[3]))
-            height = 0.5 * (np.linalg.norm(quad[3] - quad[0]) + np.linalg.norm(quad[2] - quad[1]))
-            if height <= 0 or not cfg.min_aspect_ratio <= width / height <= cfg.max_aspect_ratio:
-                continue
-            quads.append(quad)
-        return quads
+            outer = None
+            if len(contours[i]) >= min_points:
+                outer = self._ring_quad_u(contours, hierarchy, i, camera, scale, image_area)
+            holes = []
+            while child != -1:
+                if len(contours[child]) >= min_hole_points \
+                        and cv2.contourArea(contours[child]) >= min_hole_area:
+                    holes.append(contours[child])
+                child = hierarchy[child][0]
+            if outer is not None or holes:
+                rings.append(itertools.chain(
+                    () if outer is None else (outer,),
+                    self._hole_quads(holes, camera, scale, image_area / (scale * scale))))
+        return rings
+
+    def _hole_quads(self, holes: list, camera: CameraModel, scale: float,
+                    image_area: float):
+        """Yield the outer quads (undistorted px) predicted around quadrilateral holes.
+
+        ``image_area``: full-resolution px^2, for the area check of the predicted quad.
+        """
+        for hole in holes:
+            inner = self._contour_quad_u(hole, camera, scale)
+            if inner is not None:
+                quad = self._predicted_outer(inner)
+                if self._plausible(quad, image_area):
+                    yield quad
 
     # --- helpers --------------------------------------------------------------------------
 
@@ -392,9 +437,50 @@ class WindowDetector:
             else:
                 self._last_outer_u = None
 
-    def _outer_quad_u(self, contour: np.ndarray, camera: CameraModel,
-                      scale: float) -> np.ndarray | None:
-        """Return the initial outer quad in undistorted px from robust lines along 4 sides.
+    def _ring_quad_u(self, contours, hierarchy, i: int, camera: CameraModel, scale: float,
+                     image_area: float) -> np.ndarray | None:
+        """Outer quad (undistorted px) of the outer boundary ``i`` of a dark ring, or None.
+
+        The area (``image_area`` at detection scale), holes and aspect-ratio checks of
+        :meth:`find_candidates` on the boundary and its quad.
+        """
+        cfg = self.config
+        outer = contours[i]
+        outer_area = cv2.contourArea(outer)
+        if not cfg.min_area_fraction * image_area <= outer_area \
+                <= cfg.max_area_fraction * image_area:
+            return None
+        if _children_area(contours, hierarchy, hierarchy[i][2]) \
+                < cfg.min_holes_fraction * outer_area:
+            return None
+        quad = self._contour_quad_u(outer, camera, scale)
+        if quad is None or not self._aspect_ok(quad):
+            return None
+        return quad
+
+    def _aspect_ok(self, quad: np.ndarray) -> bool:
+        """Whether a quad's width / height lies in [min_aspect_ratio, max_aspect_ratio]."""
+        cfg = self.config
+        width = 0.5 * (np.linalg.norm(quad[1] - quad[0]) + np.linalg.norm(quad[2] - quad[3]))
+        height = 0.5 * (np.linalg.norm(quad[3] - quad[0]) + np.linalg.norm(quad[2] - quad[1]))
+        return bool(height > 0 and cfg.min_aspect_ratio <= width / height
+                    <= cfg.max_aspect_ratio)
+
+    def _plausible(self, quad: np.ndarray, image_area: float) -> bool:
+        """Whether a predicted outer quad (px, ``image_area`` at that scale) may be a band.
+
+        Finite, convex, of the outer boundary's area range and aspect ratio.
+        """
+        cfg = self.config
+        if not np.all(np.isfinite(quad)) or not cv2.isContourConvex(quad.astype(np.float32)):
+            return False
+        area = _quad_area(quad)
+        return bool(cfg.min_area_fraction * image_area <= area
+                    <= cfg.max_area_fraction * image_area) and self._aspect_ok(quad)
+
+    def _contour_quad_u(self, contour: np.ndarray, camera: CameraModel,
+                        scale: float) -> np.ndarray | None:
+        """Return a contour's quad in undistorted px from robust lines along its 4 sides.
 
         approxPolyDP splits the contour into 4 convex sides; each side's points (ends left
         out) are undistorted and fitted with a Huber line, so that texture blobs touching the
@@ -482,6 +568,22 @@ class WindowDetector:
         w, h = cfg.window_width_m + b, cfg.window_height_m + b
         inner = np.array([[[b, b], [w, b], [w, h], [b, h]]], np.float32)
         return cv2.perspectiveTransform(inner, self._band_homography(outer_u))[0].astype(float)
+
+    def _predicted_outer(self, inner_u: np.ndarray) -> np.ndarray:
+        """Outer band quad (4, 2) predicted from an aperture quad and the band's proportions.
+
+        The inverse of :meth:`_predicted_inner`: the homography of the aperture rectangle
+        (``window_*_m``, at ``frame_band_m`` from the outer one) onto the aperture quad maps the
+        band's outer rectangle.
+        """
+        cfg = self.config
+        b = cfg.frame_band_m
+        w, h = cfg.window_width_m + b, cfg.window_height_m + b
+        inner = np.array([[b, b], [w, b], [w, h], [b, h]], np.float32)
+        outer = np.array([[[0.0, 0.0], [w + b, 0.0], [w + b, h + b], [0.0, h + b]]],
+                         np.float32)
+        H = cv2.getPerspectiveTransform(inner, inner_u.astype(np.float32))
+        return cv2.perspectiveTransform(outer, H)[0].astype(float)
 
     def _shape_error(self, camera: CameraModel, outer_u: np.ndarray) -> float:
         """How far the outer quad is from a perspective view of the band's rectangle.
@@ -748,12 +850,16 @@ def _dark_mask(small: np.ndarray, block: int, fraction: float, floor: float) -> 
 
     The offset is ``fraction`` of the local contrast (max - min over the ``block`` x ``block``
     window), at least ``floor`` grey levels: it follows the exposure (gain) instead of a fixed
-    grey level, and the band stays dark beside a bright aperture or a dark one.
+    grey level, and the band stays dark beside a bright aperture or a dark one. It is at most
+    ``_MEAN_DEPTH_FRACTION`` of (mean - min) over the window, so that in a mostly dark window
+    (a black brick, the band, a dim room beyond) the band stays below the threshold.
     """
     mean = cv2.blur(small.astype(np.float32), (block, block), borderType=cv2.BORDER_REPLICATE)
     kernel = cv2.getStructuringElement(cv2.MORPH_RECT, (block, block))
-    contrast = cv2.subtract(cv2.dilate(small, kernel), cv2.erode(small, kernel))
-    offset = np.maximum(fraction * contrast.astype(np.float32), floor)
+    low = cv2.erode(small, kernel)
+    contrast = cv2.subtract(cv2.dilate(small, kernel), low)
+    offset = np.maximum(np.minimum(fraction * contrast.astype(np.float32),
+                                   _MEAN_DEPTH_FRACTION * (mean - low)), floor)
     return np.where(small <= mean - offset, _DARK, 0).astype(np.uint8)
 
 
