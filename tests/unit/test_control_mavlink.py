@@ -497,6 +497,35 @@ def test_setpoints_leave_at_the_force_rate_and_repeats_only_fill_gaps(peer_bridg
     assert 26.0 <= repeats <= 31.5
 
 
+def test_the_step_slows_to_the_idle_rate_only_while_quiet(peer_bridge):
+    # The node's step (poll, supervision, repeat) runs on a 30 Hz timer; while nothing is to
+    # be engaged (standby, supervisor IDLE, clocks synced) it acts at idle_tick_rate_hz (10),
+    # which is then the keepalive stream's rate (PX4 wants > 2 Hz before OFFBOARD).
+    peer, bridge = peer_bridge()
+    wait_link(bridge)
+    spin(bridge, 0.3)
+    assert bridge.sequencer.state == EngageState.STANDBY and bridge.quiet
+    n0, due, t0 = len(peer.setpoints), 0, time.monotonic()
+    while time.monotonic() - t0 < 1.0:
+        if bridge.tick_due():
+            due += 1
+            bridge.poll(ros_now(bridge))
+            bridge.stream(ros_now(bridge))
+        time.sleep(1.0 / 30.0)
+    time.sleep(0.05)
+    assert 8 <= due <= 11
+    assert 8 <= len(peer.setpoints) - n0 <= 11
+    bridge.on_supervisor_mode(Mode.WINDOW)          # engaging: every step again
+    assert not bridge.quiet and all(bridge.tick_due() for _ in range(5))
+
+
+def test_an_idle_step_rate_of_2_hz_or_less_is_refused():
+    link = LinkConfig(url='udpin:127.0.0.1:9')
+    with pytest.raises(ValueError, match='idle_tick_rate_hz'):
+        BridgeConfig(link=link, mass=MASS, max_thrust_factor=2.0,
+                     configured_hover_thrust=0.5, idle_tick_rate_hz=2.0)
+
+
 # --- engage and arm -----------------------------------------------------------------------------
 
 def test_px4_offboard_after_streaming_and_arms_only_when_asked(peer_bridge):

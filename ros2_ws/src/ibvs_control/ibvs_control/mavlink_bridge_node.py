@@ -93,6 +93,7 @@ PARAMETERS = {
     'timesync_max_deviation_s': 0.010,
     'timesync_max_consecutive_outliers': 5,
     'stream_rate_hz': 30.0,
+    'idle_tick_rate_hz': 10.0,
     'heartbeat_rate_hz': 1.0,
     'diagnostics_rate_hz': 1.0,
     'hold_last_s': 0.25,
@@ -169,6 +170,9 @@ PARAMETER_SPECS = {
                                           're-sync', 0, None),
     'stream_rate_hz': ('Hz (steady clock timer), setpoint repeat when none left for 1/this, '
                        'link supervision, engage sequencing; > 0', 0.0, None),
+    'idle_tick_rate_hz': ('Hz (steady clock), the same step while quiet (standby, supervisor '
+                          'IDLE, clocks synced): also the keepalive stream rate then; > 2 '
+                          '(PX4 wants > 2 Hz before OFFBOARD)', 2.0, None),
     'heartbeat_rate_hz': ('Hz (steady clock timer), our HEARTBEAT; > 0', 0.0, None),
     'diagnostics_rate_hz': ('Hz (steady clock timer), /diagnostics; > 0', 0.0, None),
     'hold_last_s': ('s (ROS clock, vehicle time), the last valid setpoint is kept this long, '
@@ -263,7 +267,8 @@ def config_from_parameters(p: dict) -> BridgeConfig:
         thrust_rate_hz=p['thrust_rate_hz'], status_rate_hz=p['status_rate_hz'],
         heartbeat_request_hz=p['heartbeat_request_hz'],
         streams_off=message_ids(n for n in p['streams_off'] if n.strip()),
-        stream_rate_hz=p['stream_rate_hz'], time_sync=sync, hold_last_s=p['hold_last_s'],
+        stream_rate_hz=p['stream_rate_hz'], idle_tick_rate_hz=p['idle_tick_rate_hz'],
+        time_sync=sync, hold_last_s=p['hold_last_s'],
         max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
         shutdown_ramp_s=p['shutdown_ramp_s'], arm_on_start=bool(p['arm_on_start']),
         px4_events=events, sequencer=seq, estimator=estimator)
@@ -377,6 +382,8 @@ class MavlinkBridgeNode(Node):
     def _on_stream_tick(self) -> None:
         """Supervise the link and the sequencer; repeat the setpoint when none left."""
         with self._lock:
+            if not self._bridge.tick_due():     # quiet: at idle_tick_rate_hz
+                return
             ros_ns = self._ros_ns()
             self._receive(ros_ns)
             if not self._bridge.stream_enabled:
