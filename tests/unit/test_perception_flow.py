@@ -124,6 +124,48 @@ def test_rendered_front_flow_with_the_floor_in_view(scene):
     assert max(errors[True]) < max(errors[False]), errors
 
 
+def wall_fraction(camera, R_IB, xi, wall_x):
+    """Fraction of the image whose rays meet the wall (x = wall_x, behind) before the floor."""
+    u, v = np.meshgrid(np.arange(8, camera.model.width, 16), np.arange(8, camera.model.height, 16))
+    b_C = camera.model.pixels_to_bearings(np.column_stack([u.ravel(), v.ravel()]).astype(float))
+    b_I = b_C @ (R_IB @ camera.R_BC).T
+    with np.errstate(divide='ignore', invalid='ignore'):
+        t_floor = np.where(b_I[:, 2] > 0, -xi[2] / b_I[:, 2], np.inf)
+        t_wall = np.where(b_I[:, 0] < 0, (wall_x - xi[0]) / b_I[:, 0], np.inf)
+    return float(np.mean(t_wall < t_floor))
+
+
+def test_rendered_down_flow_with_the_wall_in_view(scene):
+    """Landing near the wall (0.3-0.8 m in front of it, 0.8-1.8 m up): the wall is in view.
+
+    The down flow fits the floor alone; the wall's tracks (7-36 % of the image here) do not
+    fit that plane and the robust fit leaves them out. Measured (2026-11-26, 3 x 20 poses,
+    |v| 0.3-1 m/s, |Omega| <= 1 rad/s): p95 2.6-4.4 %, max 5.0 % (a second plane with the
+    wall's normal known: p95 0.5-0.6 %, not wired: docs/perception.md).
+    """
+    world, vehicle, renderers = scene
+    cam, renderer = vehicle.cameras['down'], renderers['down']
+    rng = np.random.default_rng(31)
+    errors, in_view = [], []
+    for k in range(8):
+        v, omega = random_motion(rng)
+        v *= max(1.0, 0.3 / np.linalg.norm(v))
+        xi0 = np.array([world.wall_x + rng.uniform(0.3, 0.8), rng.uniform(-0.3, 0.3),
+                        -rng.uniform(0.8, 1.8)])
+        R0 = frames.rot_from_euler_zyx(*rng.uniform(-0.1, 0.1, 3))
+        R1 = R0 @ cv2.Rodrigues(omega * DT)[0]
+        xi1 = xi0 + v * DT
+        in_view.append(wall_fraction(cam, R1, xi1, world.wall_x))
+        estimator = FlowEstimator(FlowConfig(), cam.model, cam.R_BC)
+        estimator.process(renderer.render(R0, xi0), 0.0, R0, frames.e3, None)
+        result = estimator.process(renderer.render(R1, xi1), DT, R1, frames.e3, None)
+        assert result is not None and result.phi_I is not None
+        truth = v / (-(xi0[2] + xi1[2]) / 2.0)
+        errors.append(np.linalg.norm(result.phi_I - truth) / np.linalg.norm(truth))
+    assert min(in_view) > 0.05, in_view            # the wall is in view in every pose
+    assert max(errors) <= 0.10, errors
+
+
 def test_slow_motion_is_estimated_over_a_longer_baseline(scene):
     """Down camera, 0.3-1.6 m up, |v| 0.03-0.3 m/s (0.3-3 px per frame), |Omega| <= 0.5 rad/s.
 
