@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections import deque
 import json
+import time
 
 from geometry_msgs.msg import Vector3Stamped
 from ibvs_bringup.preflight import BEST_EFFORT, GraphHealth, LATCHED
@@ -80,6 +81,9 @@ class ScenarioMonitor(Node):
         self.touchdown = None
         self.collision = None
         self.disarmed = False
+        # steady clock (s) when the first ground truth (frame 0's) arrived: the start of the
+        # sim's run for its real-time factor (summary.json timing.wall_s, sim_over_wall)
+        self.first_truth_wall: float | None = None
         self.health = GraphHealth(self)
         self.create_subscription(Odometry, 'sim/ground_truth/odom', self._on_odom, BEST_EFFORT)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
@@ -107,6 +111,8 @@ class ScenarioMonitor(Node):
         self.touchdown = self.collision = None
 
     def _on_odom(self, msg: Odometry) -> None:
+        if self.first_truth_wall is None:
+            self.first_truth_wall = time.monotonic()
         self.log.add_truth(stamp_s(msg) - self.time_origin_s, *odom_to_I(msg))
 
     def _on_status(self, msg: DiagnosticArray) -> None:
@@ -163,19 +169,28 @@ class ScenarioMonitor(Node):
 DRAIN_SPINS = 20      # spins without waiting: what arrived while the graph was being stopped
 
 
-def close_monitor(monitor: ScenarioMonitor | None) -> tuple[RunLog, dict, list]:
+def close_monitor(monitor: ScenarioMonitor | None, executor=None
+                  ) -> tuple[RunLog, dict, list]:
     """Take what arrived while the graph stopped, destroy the monitor; return its products.
 
     Returns (run log, the sim's timing stats, the bridge's diagnostics history); empty ones
-    when the monitor was never created. Call after the graph is stopped, before
+    when the monitor was never created. ``executor``: the one the monitor spins on (shut
+    down here; None: rclpy's global one). Call after the graph is stopped, before
     ``rclpy.try_shutdown``.
     """
     import rclpy
     if monitor is None:
+        if executor is not None:
+            executor.shutdown()
         return RunLog(), {}, []
     if rclpy.ok():
         for _ in range(DRAIN_SPINS):
-            rclpy.spin_once(monitor, timeout_sec=0.0)
+            if executor is None:
+                rclpy.spin_once(monitor, timeout_sec=0.0)
+            else:
+                executor.spin_once(timeout_sec=0.0)
     products = monitor.log, dict(monitor.sim_stats), list(monitor.bridge_history)
+    if executor is not None:
+        executor.shutdown()
     monitor.destroy_node()
     return products

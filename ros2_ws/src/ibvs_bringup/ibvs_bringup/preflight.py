@@ -127,6 +127,22 @@ class GraphHealth:
             node.create_subscription(PolygonStamped, 'window/corners', self._on_window,
                                      BEST_EFFORT)]
 
+    def stop_preflight_only(self) -> None:
+        """Drop the subscriptions only the checklist reads (camera_info, imu/data, window).
+
+        After the preflight a run reads only the link's state (``armed``) and the mode: the
+        camera_info, IMU and window streams (250 messages/s at 50 Hz frames) would cost the
+        watching process a share of the CPU the graph runs on. The checklist then reports
+        their last state.
+        """
+        keep = []
+        for sub in self.subs:
+            if sub.topic_name.lstrip('/').endswith(('camera_info', 'imu/data', 'window/corners')):
+                self.node.destroy_subscription(sub)
+            else:
+                keep.append(sub)
+        self.subs = keep
+
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
         self.stamps[f'{cam} camera'] = stamp_ns(msg)

@@ -67,6 +67,7 @@ class RunOptions:
     px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
     px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
     layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
+    max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
 
     @property
     def out_dir(self) -> str:
@@ -229,11 +230,12 @@ START_AT_SIM_S = 1.0
 
 
 def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner_specs: list,
-        restarts: list) -> str:
+        restarts: list, executor=None) -> str:
     """Preflight, start, watch; return the stop reason (raise _Stop on a run error).
 
     As on a vehicle, a perception node that dies is restarted (runner.supervise) and the run
-    goes on (``restarts`` lists what happened); any other death stops the run.
+    goes on (``restarts`` lists what happened); any other death stops the run. ``executor``:
+    the one the monitor was added to (None: rclpy's global one).
     """
     killed: list = []
     import rclpy
@@ -242,7 +244,10 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner
     respawning = {s.name for s in runner_specs if s.respawn}
 
     def spin(dt: float) -> None:
-        rclpy.spin_once(monitor, timeout_sec=dt)
+        if executor is None:
+            rclpy.spin_once(monitor, timeout_sec=dt)
+        else:
+            executor.spin_once(timeout_sec=dt)
         if opts.kill_node and not killed and monitor.now_s() >= opts.kill_at_s:
             killed.append(runner.kill(opts.kill_node))
             print(f'fault injected: {opts.kill_node} killed at sim t = {monitor.now_s():.2f} s',
@@ -261,6 +266,7 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner
     print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
     if not monitor.health.healthy():
         raise _Stop(f'preflight failed after {opts.preflight_timeout_s:.0f} s')
+    monitor.health.stop_preflight_only()      # imu/data, camera_info, window: not needed now
     # The supervisor starts by itself at START_AT_SIM_S (it retries at each frame while its
     # inputs settle); a run that has not started START_WAIT_S of wall clock later is stopped.
     while monitor.now_s() < START_AT_SIM_S:
@@ -294,14 +300,31 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner
             td_t = float(monitor.touchdown.get('t', t_sim))
             if t_sim - td_t > SHUTDOWN_GRACE_S:
                 return 'touchdown, mode 4 (no disarm report)'
-        if t_sim - t_start > MAX_SIM_TIME_S:
-            return f'{MAX_SIM_TIME_S:.0f} s of sim time'
+        if t_sim - t_start > opts.max_sim_time_s:
+            return f'{opts.max_sim_time_s:g} s of sim time'
+
+
+def flight_timing(monitor, wall_end: float) -> dict:
+    """Return the run's real-time factor: sim time over wall time since frame 0 (summary.json).
+
+    ``wall_s``: steady clock from the first ground truth (frame 0, sim t = 0) reaching the
+    monitor to ``wall_end`` (the end of the flight: the stop decision, before the graph is
+    stopped), so process start-up and preflight discovery are not counted; ``flight_sim_s``:
+    the monitor's sim time then; ``sim_over_wall``: their ratio. Empty before frame 0.
+    """
+    start = getattr(monitor, 'first_truth_wall', None)
+    if start is None or wall_end <= start:
+        return {}
+    sim_s, wall_s = monitor.now_s(), wall_end - start
+    return {'flight_sim_s': round(sim_s, 3), 'wall_s': round(wall_s, 3),
+            'sim_over_wall': round(sim_s / wall_s, 4)}
 
 
 def run_graph(opts: RunOptions) -> int:
     """Fly the whole graph once; write results/<run>/."""
     import rclpy
     from ibvs_bringup.monitor_node import close_monitor, ScenarioMonitor
+    from ibvs_common.spin import make_executor
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
 
@@ -320,26 +343,31 @@ def run_graph(opts: RunOptions) -> int:
     # our own SIGINT/SIGTERM handling (KeyboardInterrupt / Terminated): rclpy must not shut
     # its context down under us before the graph is stopped and the log drained
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
-    monitor = None
+    monitor = executor = None
     stop_reason, error = None, None
     restarts: list = []
     try:
         monitor = ScenarioMonitor()
+        # the graph's own executor (C++ events executor): the monitor takes ~550 messages/s,
+        # and rclpy's Python wait set cost it 15-25 % of a core, taken from the graph
+        executor = make_executor(monitor.context)
+        executor.add_node(monitor)
         runner.start_layout(specs, opts.layout)
         print(f'run {opts.run_name}: started {len(specs)} nodes (MAVLink port {port}), '
               f'initial position {xi0}', flush=True)
-        stop_reason = fly(opts, monitor, runner, t_wall0, specs, restarts)
+        stop_reason = fly(opts, monitor, runner, t_wall0, specs, restarts, executor)
     except _Stop as exc:
         error = str(exc)
     except (KeyboardInterrupt, Terminated, ExternalShutdownException):
         error = 'interrupted'
     finally:
+        flight = flight_timing(monitor, time.monotonic())
         codes = runner.stop()
-        log, sim_stats, bridge = close_monitor(monitor)
+        log, sim_stats, bridge = close_monitor(monitor, executor)
         rclpy.try_shutdown()
     print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
-    summary['timing'] = sim_stats
+    summary['timing'] = {**sim_stats, **flight}
     summary['bridge'] = bridge        # the bridge's /diagnostics, once a second (sim time t)
     summary['run'] = _run_block(opts, xi0, stop_reason=stop_reason, error=error,
                                 wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
@@ -366,6 +394,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--bag-image-every', type=int, default=DEFAULT_IMAGE_EVERY,
                    help='record every N-th camera frame (1: all)')
     p.add_argument('--no-plots', action='store_true')
+    p.add_argument('--max-sim-time', type=float, default=MAX_SIM_TIME_S, metavar='S',
+                   help='stop S s of sim time after the start (default: SPEC.md\'s 60; a '
+                        'shorter flight fails the criteria: benchmarks, smoke runs)')
     p.add_argument('--feature-level', action='store_true',
                    help="fly ibvs_sim's feature-level closed loop (no images, no ROS)")
     p.add_argument('--timeout', type=float, default=900.0, help='wall-clock limit, s')
@@ -429,6 +460,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                           if w},
                       imu_off=tuple(a.imu_off) if a.imu_off else None,
                       imu_nan=tuple(a.imu_nan) if a.imu_nan else None,
+                      max_sim_time_s=a.max_sim_time,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
                       px4_flight_s=a.px4_flight_s,
                       layout=a.layout or DEFAULT_LAYOUT['onboard' if a.autopilot == 'px4-sih'
@@ -441,6 +473,8 @@ def main(argv: list | None = None) -> int:
     graph.ensure_ament_prefix_path()
     try:
         graph.checked_params_file(opts.params_file, graph.SIM_NODE_NAMES)
+        if not opts.max_sim_time_s > 0.0:
+            raise ValueError(f'--max-sim-time must be > 0, got {opts.max_sim_time_s}')
         if opts.kill_node and opts.layout == 'composed':
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
         prepare_out_dir(opts)

@@ -53,7 +53,7 @@ from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
                                     GraphProducts, ImuBeforeImages, NS_PER_S, Pacing, SimConfig,
-                                    Simulation, STATUS_TOPIC)
+                                    Simulation, STATUS_TOPIC, wall_budget)
 from ibvs_common.core.modes import InputKind, modes_using
 from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.node_common import mode_from_status
@@ -306,6 +306,8 @@ class SimNode(Node):
         self._clock_wall = 0.0
         self._ended_logged = False
         self._events_published = 0
+        self._first_frame_wall: float | None = None   # steady s, frame 0 published
+        self._publish_wall_s = 0.0                     # perf_counter s spent publishing
         self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
                                         enabled=cfg.pacing is Pacing.LOCKSTEP)
         if self.imu_hold.enabled:
@@ -482,7 +484,8 @@ class SimNode(Node):
                   'sim_time_s': self.sim.t, 'frames_dropped': self.sim.frames_dropped,
                   'stalls': self.sim.stalls, 'lockstep_timeouts': self.sim.lockstep_timeouts,
                   'products_given_up': len(self.sim.products_given_up),
-                  'imu_hold_timeouts': self.imu_hold.timeouts, **self.latency.stats()}
+                  'imu_hold_timeouts': self.imu_hold.timeouts, **self.latency.stats(),
+                  **self._wall_budget()}
         status = DiagnosticStatus(
             level=DiagnosticStatus.WARN if self.sim.frames_dropped else DiagnosticStatus.OK,
             name='sim: timing', message=f"{values['frames_published']} frames published, "
@@ -492,7 +495,24 @@ class SimNode(Node):
         msg.header.stamp = stamp_from_ns(self.sim.t_ns)
         self.stats_pub.publish(msg)
 
+    def _wall_budget(self) -> dict:
+        """Where the wall clock went since frame 0 (``sim_core.wall_budget``)."""
+        if self._first_frame_wall is None:
+            return {}
+        return wall_budget(time.monotonic() - self._first_frame_wall, self.latency.frames, {
+            'physics': self.sim.physics_wall_s, 'render': self.sim.render_wall_s,
+            'publish': self._publish_wall_s, 'imu_hold': self.imu_hold.held_s})
+
     def _publish(self, out: FrameOutput) -> None:
+        t0 = time.perf_counter()
+        if self._first_frame_wall is None:
+            self._first_frame_wall = time.monotonic()
+        try:
+            self._publish_frame(out)
+        finally:
+            self._publish_wall_s += time.perf_counter() - t0
+
+    def _publish_frame(self, out: FrameOutput) -> None:
         stamp = stamp_from_ns(out.t_ns)
         self._publish_clock(out.t_ns)
         images, withheld, frozen = self.faults.apply(out.t, out.images)
@@ -534,6 +554,7 @@ class SimNode(Node):
     def destroy_node(self) -> None:
         """Close the MAVLink endpoint, then destroy the node."""
         self.autopilot.close()
+        self.sim.close()
         super().destroy_node()
 
 

@@ -36,6 +36,7 @@ before touchdown: the run ends there (no more frames).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 import enum
 import math
@@ -100,6 +101,9 @@ class SimConfig:
     initial_yaw: float | None = None                 # rad; None = world.yaml
     wind: WindConfig = field(default_factory=WindConfig)
     render: bool = True                              # False: physics only (tests)
+    # render the cameras of a frame at once, one thread each (OpenCV and most of numpy run
+    # without the GIL; each camera has its own renderer and noise): the same images, sooner
+    parallel_render: bool = True
     cameras: tuple[str, ...] = ('front', 'down')
     read_noise_std: float = 0.0                      # grey levels, camera read noise (0: off)
     noise_seed: int = 0                              # read noise draws (with camera, frame)
@@ -203,6 +207,7 @@ class ImuBeforeImages:
         self.imu_through_ns: int | None = None     # newest IMU stamp seen
         self.timed_out = False
         self.timeouts = 0
+        self.held_s = 0.0                          # wall s frames were held, in all
         self._held: FrameOutput | None = None
         self._since = 0.0
 
@@ -235,6 +240,7 @@ class ImuBeforeImages:
             self.timed_out = True
             self.timeouts += 1
         self._held = None
+        self.held_s += max(0.0, now - self._since)
         return frame
 
     def _covered(self, frame: FrameOutput) -> bool:
@@ -296,6 +302,23 @@ class AnswerLatency:
             out.update({'answer_stamp_error_max_ms': int(errors.max()),
                         'answer_stamp_exact_fraction': float(np.mean(errors == 0))})
         return out
+
+
+def wall_budget(wall_s: float, frames: int, parts: dict) -> dict:
+    """Where a run's wall clock went, per frame published (ms): the ``sim/stats`` figures.
+
+    ``wall_s``: wall clock (s) since frame 0 was published; ``parts``: name -> wall s spent in
+    it (the sim node: physics substeps, render with read noise, publish, imu_hold: a rendered
+    frame waiting for imu/data in lockstep). ``graph_wait`` is the rest: the sim waiting for
+    the graph's answer and products (lockstep) or for the wall clock (realtime), and its own
+    ticks. Returns ``sim_wall_s`` and ``wall_<part>_ms_per_frame``; empty before any frame.
+    """
+    if frames <= 0 or wall_s <= 0.0:
+        return {}
+    parts = dict(parts)
+    parts['graph_wait'] = max(0.0, wall_s - sum(parts.values()))
+    return {'sim_wall_s': round(wall_s, 3),
+            **{f'wall_{k}_ms_per_frame': round(v * 1e3 / frames, 3) for k, v in parts.items()}}
 
 
 class GraphProducts:
@@ -437,6 +460,7 @@ class Simulation:
         self.substeps = self.period_ns // self.dt_ns
         self.renderers = ({name: SceneRenderer(world, pad, vehicle.cameras[name])
                            for name in config.cameras} if config.render else {})
+        self._render_pool = None              # parallel_render: threads of all but one camera
         self.read_noise = {name: ReadNoise(
             config.read_noise_std, (vehicle.cameras[name].model.height,
                                     vehicle.cameras[name].model.width),
@@ -461,6 +485,10 @@ class Simulation:
         self.frames_dropped = 0               # realtime: frames not rendered on time
         self.stalls = 0                       # realtime: re-phased after a stall of the sim
         self.reference: AttitudeReference | None = None
+        # wall clock (perf_counter, s) spent in the physics substeps and in rendering the
+        # frames (read noise included): the sim's own share of a run (sim/stats)
+        self.physics_wall_s = 0.0
+        self.render_wall_s = 0.0
         self._waiting_since_wall: float | None = None
         # lockstep: wall wait for the answer to the last frame; shorter when fault injection
         # withheld some of its images (the graph may have nothing to answer)
@@ -544,6 +572,13 @@ class Simulation:
     # --- simulation ---
     def _substep(self, receive: bool) -> SimEvent | None:
         """One physics step: autopilot, inner loop, plant, contacts (sets ``ended``)."""
+        t0 = time.perf_counter()
+        try:
+            return self._physics_step(receive)
+        finally:
+            self.physics_wall_s += time.perf_counter() - t0
+
+    def _physics_step(self, receive: bool) -> SimEvent | None:
         view = self.state_view()
         self.autopilot.poll(view, receive=receive)
         self.reference = self.autopilot.attitude_reference(view)
@@ -596,11 +631,38 @@ class Simulation:
     def _emit(self, new_events: list) -> FrameOutput:
         self.frame_index += 1
         self._waiting_since_wall = self.wall_clock()
-        images = {name: self.read_noise[name].apply(r.render(self.state.R_IB, self.state.xi_I),
-                                                    self.frame_index)
-                  for name, r in self.renderers.items()}
+        t0 = time.perf_counter()
+        images = self.render_cameras(self.state.R_IB, self.state.xi_I, self.frame_index)
+        self.render_wall_s += time.perf_counter() - t0
         self.events.extend(new_events)
         return FrameOutput(self.t_ns, images, self.state.copy(), new_events)
+
+    def render_cameras(self, R_IB: np.ndarray, xi_I: np.ndarray, frame_index: int) -> dict:
+        """Return every camera's image (read noise of frame ``frame_index`` added) at a pose.
+
+        With ``parallel_render`` the cameras but the last render on worker threads while the
+        last renders here; the images are the same as one after the other (each camera has its
+        own renderer and noise bank, and nothing they share is written).
+        """
+        def one(name: str) -> np.ndarray:
+            return self.read_noise[name].apply(self.renderers[name].render(R_IB, xi_I),
+                                               frame_index)
+
+        names = list(self.renderers)
+        if not self.config.parallel_render or len(names) < 2:
+            return {name: one(name) for name in names}
+        if self._render_pool is None:
+            self._render_pool = ThreadPoolExecutor(max_workers=len(names) - 1,
+                                                   thread_name_prefix='render')
+        futures = {name: self._render_pool.submit(one, name) for name in names[:-1]}
+        last = one(names[-1])
+        return {name: futures[name].result() if name in futures else last for name in names}
+
+    def close(self) -> None:
+        """Stop the render threads (idempotent; a later frame starts them again)."""
+        pool, self._render_pool = self._render_pool, None
+        if pool is not None:
+            pool.shutdown(wait=True)
 
     def _check_contacts(self) -> SimEvent | None:
         if self.touched_down:
