@@ -7,9 +7,10 @@ import pytest
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_perception.core.freeze import FrozenImageCheck
-from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.sensor_noise import BANK_MARGIN_PX, ReadNoise
 from ibvs_sim.core.sim_core import CameraFaults, Pacing, SimConfig, Simulation
+
+from sim_fakes import HoverAutopilot
 
 SHAPE = (480, 752)
 
@@ -77,17 +78,6 @@ def test_noise_costs_well_under_a_millisecond_per_frame():
     print(f'read noise per 752x480 frame: median {np.median(ms):.3f} ms, '
           f'p99 {np.percentile(ms, 99):.3f} ms')
     assert np.median(ms) < 1.0
-
-
-class HoverAutopilot:
-    last_setpoint_time_boot_ms = None
-    awaits_setpoints = True
-
-    def poll(self, state, receive=True, telemetry=True):
-        pass
-
-    def attitude_reference(self, state):
-        return AttitudeReference(np.array([1.0, 0.0, 0.0, 0.0]), 0.5, 'offboard')
 
 
 def test_simulation_frames_of_a_still_vehicle_differ_only_with_noise():

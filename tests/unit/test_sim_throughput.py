@@ -11,21 +11,11 @@ from ibvs_bringup.preflight import GraphHealth
 from ibvs_bringup.run_scenario import flight_timing, MAX_SIM_TIME_S, parse_args
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.frames import rot_from_euler_zyx
-from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.sim_core import (FrameOutput, ImuBeforeImages, Pacing, SimConfig,
                                     Simulation, wall_budget)
 from ibvs_sim.core.world import load_world
 
-
-class HoverAutopilot:
-    last_setpoint_time_boot_ms = None
-    awaits_setpoints = True
-
-    def poll(self, state, receive=True, telemetry=True):
-        pass
-
-    def attitude_reference(self, state):
-        return AttitudeReference(np.array([1.0, 0.0, 0.0, 0.0]), 0.5, 'offboard')
+from sim_fakes import HoverAutopilot
 
 
 @pytest.fixture(scope='module')
