@@ -124,7 +124,7 @@ class AttitudeBuffer:
         cfg = self.config
         i = bisect.bisect_right(self._stamps, stamp_s)
         if i > 0 and self._stamps[i - 1] == stamp_s:       # a sample's own stamp
-            return self._rotation(i - 1)
+            return self._rotation(i - 1).copy()            # (the caller may modify it)
         if i == len(self._stamps):
             dt = stamp_s - self._stamps[-1]
             if dt > cfg.max_extrapolation_s:
