@@ -116,16 +116,19 @@ class GraphHealth:
         self.armed: bool | None = None
         self.mode: int | None = None
         self.window_corners = 0
-        self.subs = [node.create_subscription(CameraInfo, f'{cam}_camera/camera_info',
-                                              lambda m, c=cam: self._on_info(c, m), BEST_EFFORT)
-                     for cam in self.camera_info]
-        self.subs += [
+        # read by the checklist only (stop_preflight_only drops them once it has passed)
+        self._preflight_only = [
+            node.create_subscription(CameraInfo, f'{cam}_camera/camera_info',
+                                     lambda m, c=cam: self._on_info(c, m), BEST_EFFORT)
+            for cam in self.camera_info]
+        self._preflight_only += [
             node.create_subscription(Imu, 'imu/data', self._on_imu, BEST_EFFORT),
-            node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag,
-                                     BEST_EFFORT),
-            node.create_subscription(UInt8, 'ibvs/mode', self._on_mode, LATCHED),
             node.create_subscription(PolygonStamped, 'window/corners', self._on_window,
                                      BEST_EFFORT)]
+        self.subs = self._preflight_only + [
+            node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag,
+                                     BEST_EFFORT),
+            node.create_subscription(UInt8, 'ibvs/mode', self._on_mode, LATCHED)]
 
     def stop_preflight_only(self) -> None:
         """Drop the subscriptions only the checklist reads (camera_info, imu/data, window).
@@ -135,13 +138,10 @@ class GraphHealth:
         watching process a share of the CPU the graph runs on. The checklist then reports
         their last state.
         """
-        keep = []
-        for sub in self.subs:
-            if sub.topic_name.lstrip('/').endswith(('camera_info', 'imu/data', 'window/corners')):
-                self.node.destroy_subscription(sub)
-            else:
-                keep.append(sub)
-        self.subs = keep
+        for sub in self._preflight_only:
+            self.node.destroy_subscription(sub)
+        self.subs = [sub for sub in self.subs if sub not in self._preflight_only]
+        self._preflight_only = []
 
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'

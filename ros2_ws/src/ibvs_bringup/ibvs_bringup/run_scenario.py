@@ -230,24 +230,20 @@ START_AT_SIM_S = 1.0
 
 
 def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner_specs: list,
-        restarts: list, executor=None) -> str:
+        restarts: list, executor) -> str:
     """Preflight, start, watch; return the stop reason (raise _Stop on a run error).
 
     As on a vehicle, a perception node that dies is restarted (runner.supervise) and the run
     goes on (``restarts`` lists what happened); any other death stops the run. ``executor``:
-    the one the monitor was added to (None: rclpy's global one).
+    the one the monitor was added to.
     """
     killed: list = []
-    import rclpy
     from ibvs_bringup.preflight import format_checklist
 
     respawning = {s.name for s in runner_specs if s.respawn}
 
     def spin(dt: float) -> None:
-        if executor is None:
-            rclpy.spin_once(monitor, timeout_sec=dt)
-        else:
-            executor.spin_once(timeout_sec=dt)
+        executor.spin_once(timeout_sec=dt)
         if opts.kill_node and not killed and monitor.now_s() >= opts.kill_at_s:
             killed.append(runner.kill(opts.kill_node))
             print(f'fault injected: {opts.kill_node} killed at sim t = {monitor.now_s():.2f} s',

@@ -14,7 +14,6 @@ from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import JointState
 
-from ibvs_common.core.frames import R_IB_from_quat_map_base
 
 NS_PER_S = 1_000_000_000
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
@@ -64,15 +63,6 @@ def imu_attitude(msg) -> tuple[int, tuple, np.ndarray]:
         raise ValueError(f'IMU orientation is not a unit quaternion (|q| = {norm:.3f})')
     # base_link FLU -> body FRD: y and z change sign (frames.R_FRD_FLU)
     return stamp_to_ns(msg.header.stamp), q, np.array((av.x, -av.y, -av.z))
-
-
-def imu_sample(msg) -> tuple[int, np.ndarray, np.ndarray]:
-    """sensor_msgs/Imu (base_link FLU in map ENU) -> (stamp ns, R_IB, Omega_B FRD in rad/s).
-
-    Raises ValueError for NaN/Inf or a quaternion that is not unit within 10 %.
-    """
-    stamp_ns, q, omega_B = imu_attitude(msg)
-    return stamp_ns, R_IB_from_quat_map_base(q), omega_B
 
 
 class DeadlineTimer:

@@ -304,27 +304,22 @@ class WindowDetector:
                 refined.append(found)
         return self._track(refined)
 
-    def find_candidates(self, gray: np.ndarray, camera: CameraModel) -> list[np.ndarray]:
-        """Outer quads (4, 2) of dark rings in undistorted pixels, TL, TR, BR, BL.
+    def _rings(self, gray: np.ndarray, camera: CameraModel) -> list:
+        """Candidate outer quads (4, 2; undistorted px, TL, TR, BR, BL) per dark component.
 
         A candidate is the outer boundary of a dark connected component that is a convex
-        quadrilateral of plausible size and aspect ratio, and
-        whose holes (the aperture, possibly cut by dark texture seen through it) cover at
-        least ``min_holes_fraction`` of it: a filled dark square is not a ring.
-        Dark texture touching the band (a dark brick) joins its component and bends the outer
-        boundary out of shape, while the hole (the aperture) stays a quadrilateral: each
-        large convex quadrilateral hole of a dark component also gives a candidate, the outer
-        quad that the band's known proportions predict around it (:meth:`_predicted_outer`).
-        Per component: its outer boundary's quad first (if any), then its holes'.
-        """
-        return [quad for ring in self._rings(gray, camera) for quad in ring]
+        quadrilateral of plausible size and aspect ratio, and whose holes (the aperture,
+        possibly cut by dark texture seen through it) cover at least ``min_holes_fraction``
+        of it: a filled dark square is not a ring. Dark texture touching the band (a dark
+        brick) joins its component and bends the outer boundary out of shape, while the hole
+        (the aperture) stays a quadrilateral: each large convex quadrilateral hole of a dark
+        component also gives a candidate, the outer quad that the band's known proportions
+        predict around it (:meth:`_predicted_outer`).
 
-    def _rings(self, gray: np.ndarray, camera: CameraModel) -> list:
-        """Candidates per dark component (see find_candidates): one lazy iterator each.
-
-        The holes' quads are computed only when asked for: the detector stops at a
-        component's first candidate that refines into a window (its outer boundary's when
-        intact), so an intact band costs no more than without the holes.
+        One lazy iterator per component: its outer boundary's quad first (if any), then its
+        holes', computed only when asked for. The detector stops at a component's first
+        candidate that refines into a window (its outer boundary's when intact), so an intact
+        band costs no more than without the holes.
         """
         cfg = self.config
         scale = cfg.detection_scale
@@ -442,7 +437,7 @@ class WindowDetector:
         """Outer quad (undistorted px) of the outer boundary ``i`` of a dark ring, or None.
 
         The area (``image_area`` at detection scale), holes and aspect-ratio checks of
-        :meth:`find_candidates` on the boundary and its quad.
+        :meth:`_rings` on the boundary and its quad.
         """
         cfg = self.config
         outer = contours[i]
