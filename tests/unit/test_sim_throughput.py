@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ibvs_bringup.preflight import GraphHealth
-from ibvs_bringup.run_scenario import flight_timing, MAX_SIM_TIME_S, parse_args
+from ibvs_bringup.run_scenario import flight_timing, main, MAX_SIM_TIME_S, parse_args
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.frames import rot_from_euler_zyx
 from ibvs_sim.core.sim_core import (FrameOutput, ImuBeforeImages, Pacing, SimConfig,
@@ -116,6 +116,14 @@ def test_flight_timing_is_sim_time_over_wall_time_since_frame_0():
 def test_max_sim_time_option():
     assert parse_args(['--run-name', 'x']).max_sim_time_s == MAX_SIM_TIME_S
     assert parse_args(['--run-name', 'x', '--max-sim-time', '1.5']).max_sim_time_s == 1.5
+
+
+@pytest.mark.parametrize('bad', ['0', '-1', 'nan'])
+def test_a_max_sim_time_that_is_not_positive_is_refused(bad, tmp_path, capsys):
+    code = main(['--run-name', 'x', '--results-root', str(tmp_path), '--max-sim-time', bad])
+    assert code == 2
+    assert '--max-sim-time must be > 0' in capsys.readouterr().err
+    assert not (tmp_path / 'x').exists()            # refused before anything was written
 
 
 class FakeSub:
