@@ -234,3 +234,29 @@ def test_observer_integral_sums_both_terms():
     # in a steady wind it keeps the observer's result (0.5 m/s^2 side wind, feature level)
     s = fly('observer_integral', [0.0, 0.5, 0.0])
     assert s['success'] and s['landing']['error_m'] <= 0.05, s
+
+
+def test_a_roll_error_of_the_autopilots_estimate_drifts_the_vehicle_with_its_sign():
+    """An estimate rolled +-1.7 deg (PX4 SIH's size), flown: the truth tilts -+1.7 deg.
+
+    The push g sin(delta) is invisible to the observer (its specific force is put into {I}
+    with the same estimate) and only the window image, soft at range (k_p^w / d), opposes it:
+    the vehicle crosses off centre towards -y for a +roll error and +y for a -roll error
+    (the truth rolled left pushes left, NED y east). Measured (2026-11-26, default law):
+    crossing offset y -0.247 / +0.245 m, clearance 1.6 / 2.3 cm; both land. This pins the
+    sensitivity documented in docs/design.md "Attitude-estimate error", and the feature-level
+    model of the estimate (flown and read), which gives the same as the image-level sim
+    (lockstep: -0.261 / +0.254 m).
+    """
+    law = 'observer_integral'
+    ctrl = ControllerConfig.from_params({'disturbance_law': law}, VEHICLE, WORLD.window.width,
+                                        PAD)
+    offsets = {}
+    for roll in (0.0297, -0.0297):
+        cfg = FeatureSimConfig(initial_position_I=np.asarray(WORLD.initial_position_I, float),
+                               attitude_estimate_offset_rad=(roll, 0.0), max_time_s=40.0)
+        summary, _ = run_feature_scenario(WORLD, PAD, VEHICLE, ctrl,
+                                          SupervisorConfig(r_w=WORLD.window.width), cfg)
+        assert summary['window']['crossed'], summary
+        offsets[roll] = summary['window']['crossing_offset_m'][0]
+    assert offsets[0.0297] < -0.15 and offsets[-0.0297] > 0.15, offsets

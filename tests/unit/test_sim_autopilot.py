@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
-from ibvs_common.core.frames import GRAVITY, rot_from_euler_zyx  # noqa: E402
+from ibvs_common.core.frames import GRAVITY, rot_from_euler_zyx, rot_x  # noqa: E402
 from ibvs_sim.core.autopilot import (Autopilot, AutopilotConfig,  # noqa: E402
                                      VehicleStateView)
 from pymavlink import mavutil  # noqa: E402
@@ -491,6 +491,37 @@ def test_telemetry_noise_and_fields():
         assert np.sqrt(np.mean(steps ** 2)) < 0.03
     finally:
         r.close()
+
+
+def test_a_static_estimate_offset_is_reported_as_that_rotation_and_checked():
+    """attitude_estimate_offset_rad (roll, pitch) is R_err = exp((roll, pitch, 0)^): reported.
+
+    Noise off, so the error is the offset alone; independent values: the rotation built from
+    the elementary rotations for a roll-only offset, and an accelerometer bias b along x_B
+    read level by an estimate tilted b / g in pitch (the estimate's gravity f_I = R_IB R_err
+    f_B is vertical while the true f_B has the bias), the physics the offset stands for.
+    """
+    delta = np.radians(1.7)
+    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0', attitude_noise_std=0.0,
+                                   attitude_estimate_offset_rad=(delta, 0.0)))
+    try:
+        np.testing.assert_allclose(ap.estimate_error(3.0), rot_x(delta), atol=1e-12)
+        q = ap._noisy_attitude(np.eye(3), 3.0)
+        assert q == pytest.approx([np.cos(delta / 2), np.sin(delta / 2), 0.0, 0.0], abs=1e-12)
+    finally:
+        ap.close()
+    b = 0.3                                                   # m/s^2 along x_B (FRD)
+    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0', attitude_noise_std=0.0,
+                                   attitude_estimate_offset_rad=(0.0, np.arcsin(b / GRAVITY))))
+    try:
+        f_B = np.array([b, 0.0, -np.sqrt(GRAVITY ** 2 - b ** 2)])  # level vehicle + bias
+        f_I = ap.estimate_error(0.0) @ f_B
+        assert f_I[:2] == pytest.approx([0.0, 0.0], abs=1e-12)   # the estimate reads it level
+    finally:
+        ap.close()
+    for bad in ((0.3, 0.0), (np.nan, 0.0), (0.01,)):
+        with pytest.raises(ValueError, match='attitude_estimate_offset_rad'):
+            AutopilotConfig(attitude_estimate_offset_rad=bad)
 
 
 def test_attitude_error_is_gauss_markov_with_the_configured_std():

@@ -4,10 +4,10 @@ import pytest
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
-from ibvs_common.core.frames import GRAVITY
+from ibvs_common.core.frames import euler_zyx_from_rot, GRAVITY, rot_x
 from ibvs_common.core.modes import Mode
 from ibvs_sim.core.autopilot import AttitudeReference
-from ibvs_sim.core.dynamics import WindConfig
+from ibvs_sim.core.dynamics import PlantParams, WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, EventType, FirstFrameHold, GraphProducts,
                                     Pacing, SimConfig, Simulation, STATUS_TOPIC)
 
@@ -15,8 +15,9 @@ from ibvs_sim.core.sim_core import (AnswerLatency, EventType, FirstFrameHold, Gr
 class FakeAutopilot:
     """Constant reference; records polls; answers frames when told to."""
 
-    def __init__(self, thrust=0.5, q=(1.0, 0.0, 0.0, 0.0)):
+    def __init__(self, thrust=0.5, q=(1.0, 0.0, 0.0, 0.0), R_err=None):
         self.thrust, self.q = thrust, np.array(q)
+        self.R_err = np.eye(3) if R_err is None else R_err    # estimate = R_IB R_err
         self.last_setpoint_time_boot_ms = None
         self.awaits_setpoints = True
         self.polls = 0
@@ -31,6 +32,9 @@ class FakeAutopilot:
 
     def attitude_reference(self, state):
         return AttitudeReference(self.q, self.thrust, 'offboard')
+
+    def estimate_error(self, t):
+        return self.R_err
 
 
 class FakeClock:
@@ -150,6 +154,31 @@ def test_hover_reference_keeps_the_initial_condition(configs):
         out = sim.step_frame()
     assert out.t == pytest.approx(1.0)
     assert out.state.xi_I == pytest.approx(configs[0].initial_position_I, abs=1e-6)
+
+
+def test_the_autopilot_flies_its_attitude_estimate_not_the_truth(configs):
+    """An estimate rolled by +d (R_err = rot_x(d)) holding level: the truth rolls by -d.
+
+    The autopilot's loop drives its estimate R_IB R_err to the level reference, so the truth
+    settles at R_IB = rot_x(-d), and the hover thrust (m g) along the tilted body axis pushes
+    the vehicle sideways at a_y = -g sin d ({I}, NED: towards -y for a truth rolled left;
+    less the plant's rotor drag),
+    the horizontal disturbance of g * tilt error that an estimate error is to a controller.
+    """
+    d = np.radians(2.0)
+    sim = _sim(configs, FakeAutopilot(thrust=configs[2].hover_thrust, R_err=rot_x(d)))
+    for _ in range(51):
+        out = sim.step_frame()                      # 1 s: the inner loop has settled
+    roll, pitch, _ = euler_zyx_from_rot(out.state.R_IB)
+    assert roll == pytest.approx(-d, abs=np.radians(0.01)) and abs(pitch) < 1e-6
+    # v_y' = -g sin d - (k_D / m) v_y (the plant's rotor drag): closed form over 1 s
+    k = PlantParams.from_vehicle(configs[2]).drag_coefficient / configs[2].mass
+    v_inf = -GRAVITY * np.sin(d) / k
+    v0 = out.state.v_I.copy()
+    for _ in range(50):
+        out = sim.step_frame()                      # one more second
+    assert out.state.v_I[1] == pytest.approx(v_inf + (v0[1] - v_inf) * np.exp(-k), rel=0.01)
+    assert v0[1] < -0.2 and abs(out.state.v_I[0]) < 1e-6
 
 
 def test_two_runs_are_identical(configs):

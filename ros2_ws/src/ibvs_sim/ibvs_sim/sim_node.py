@@ -109,6 +109,7 @@ PARAMETERS = {
     'subscriber_wait_timeout_s': 30.0,
     'start_on_setpoints': True,
     'telemetry_default_hz': 100.0,
+    'attitude_estimate_offset_rad': [0.0, 0.0],
     'fault_front_camera_off_s': [0.0, 0.0],
     'fault_down_camera_off_s': [0.0, 0.0],
     'fault_front_camera_freeze_s': [0.0, 0.0],
@@ -152,6 +153,10 @@ PARAMETER_SPECS = {
     'start_on_setpoints': ('frame 0 also waits until the bridge streams setpoints',),
     'telemetry_default_hz': ('Hz (sim time), IMU/attitude stream rate before any '
                              'SET_MESSAGE_INTERVAL, > 0', 0.0, None),
+    'attitude_estimate_offset_rad': ("rad, [roll, pitch] static error of the autopilot's "
+                                     'attitude estimate, reported and flown (an accelerometer '
+                                     'bias b tilts it b / g; PX4 SIH: 1.5-1.8 deg), each within '
+                                     '+-0.2',),
     'fault_front_camera_off_s': ('no front images in' + _FAULT,),
     'fault_down_camera_off_s': ('no down images in' + _FAULT,),
     'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULT,),
@@ -186,6 +191,7 @@ class SimNodeConfig:
     subscriber_wait_timeout_s: float = 30.0
     start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
     telemetry_default_hz: float = 100.0
+    attitude_estimate_offset_rad: tuple = (0.0, 0.0)   # rad (roll, pitch), the estimate's error
     camera_off_s: dict = None                # fault injection: camera -> (start, end) sim s
     camera_frozen_s: dict = None             # fault injection: camera -> (start, end) sim s
     imu_off_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
@@ -272,7 +278,8 @@ class SimNode(Node):
             signing_key_file=cfg.signing_key_file or None, noise_seed=cfg.seed,
             mass=vehicle.mass, floor_z=world.floor_z,
             telemetry_default_hz=cfg.telemetry_default_hz, imu_off_s=cfg.imu_off_s,
-            imu_nan_s=cfg.imu_nan_s))
+            imu_nan_s=cfg.imu_nan_s,
+            attitude_estimate_offset_rad=cfg.attitude_estimate_offset_rad))
         wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
@@ -372,6 +379,8 @@ class SimNode(Node):
             subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']),
             start_on_setpoints=bool(v['start_on_setpoints']),
             telemetry_default_hz=telemetry_hz,
+            attitude_estimate_offset_rad=tuple(
+                float(x) for x in v['attitude_estimate_offset_rad']),
             read_noise_std=noise,
             camera_off_s={cam: _window(v[f'fault_{cam}_camera_off_s'], f'fault_{cam}_camera_off_s')
                           for cam in CAMERAS},

@@ -60,6 +60,11 @@ class FeatureSimConfig:
     attitude_tau: float | None = None  # s: a first-order inner loop instead of vehicle.yaml's
     command_delay_s: float = 0.0       # s, frame stamp -> setpoint applied (graph + link)
     accel_bias_B: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m/s^2, body FRD
+    # rad (roll, pitch): static error of the autopilot's attitude estimate R_IB R_err, which
+    # the graph reads (bearings, flows, specific force into {I}) and the inner loop flies (it
+    # holds the estimate at R_d, so the truth at R_d R_err^T), as the image-level sim's
+    # autopilot (ibvs_sim.core.autopilot.noise); PX4 SIH showed 1.5-1.8 deg in one axis
+    attitude_estimate_offset_rad: tuple = (0.0, 0.0)
     thrust_tau: float = 0.03           # s
     shutdown_ramp_s: float = 2.0       # s, mode 4 thrust ramp
     max_time_s: float = 60.0
@@ -234,22 +239,30 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     loop = InnerLoop(PlantParams.from_vehicle(vehicle), config.attitude_tau)
     Omega_B = np.zeros(3)
     accel_bias_B = np.asarray(config.accel_bias_B, dtype=float).reshape(3)
+    roll_err, pitch_err = (float(a) for a in config.attitude_estimate_offset_rad)
+    R_err = exp_so3(np.array([roll_err, pitch_err, 0.0])) if (roll_err or pitch_err) else None
     while t <= config.max_time_s:
         # --- one camera frame: sense, supervise, control ---------------------------------
         win_C = sensors.window(R, xi)
         pad_C, groups = sensors.pad_landmarks(R, xi)
         phi_down, phi_front = sensors.flow_down(xi, v), sensors.flow_front(xi, v)
-        supervisor.on_imu(t, R)
-        supervisor.on_window(t, None if win_C is None else bearings_C_to_I(win_C, R, R_BC_front))
-        supervisor.on_pad(t, None if pad_C is None else bearings_C_to_I(pad_C, R, R_BC_down),
-                          groups)
+        R_est = R if R_err is None else R @ R_err       # the attitude the graph reads
+        if R_err is not None:   # flows measured in the cameras, put into {I} with R_est
+            rot_I = R_est @ R.T
+            phi_down = None if phi_down is None else rot_I @ phi_down
+            phi_front = None if phi_front is None else rot_I @ phi_front
+        supervisor.on_imu(t, R_est)
+        supervisor.on_window(t, None if win_C is None
+                             else bearings_C_to_I(win_C, R_est, R_BC_front))
+        supervisor.on_pad(t, None if pad_C is None
+                          else bearings_C_to_I(pad_C, R_est, R_BC_down), groups)
         supervisor.on_flow(t, 'front', phi_front)
         supervisor.on_flow(t, 'down', phi_down)
         if not started:
             started, _ = supervisor.start(t)
         supervisor.update(t)
         mode = supervisor.mode
-        out = controller.step(mode, Measurements(t, R, win_C, pad_C, phi_front, phi_down,
+        out = controller.step(mode, Measurements(t, R_est, win_C, pad_C, phi_front, phi_down,
                                                  tuple(groups), specific_force_I=f_I_mean))
         sp = attitude_from_force(out.F_I, out.yaw_des, m, vehicle.hover_thrust,
                                  vehicle.max_thrust_factor)
@@ -274,10 +287,14 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             dt = config.physics_dt
             while pending and pending[0][0] <= t + 1e-9:   # the setpoint reaches the vehicle
                 _, R_d, thrust_d = pending.popleft()
-            R, Omega_B = loop.step(R, Omega_B, R_d, dt)
+            # the loop holds the estimate R R_err at R_d: the truth goes to R_d R_err^T
+            R, Omega_B = loop.step(R, Omega_B, R_d if R_err is None else R_d @ R_err.T, dt)
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)
             a = -thrust * (R @ e3) / m + g * e3 + wind_accel_steady + wind.force_I(t) / m
-            f_I_sum += a - g * e3 + R @ accel_bias_B     # what the IMU reports, in {I}
+            if R_err is None:
+                f_I_sum += a - g * e3 + R @ accel_bias_B     # what the IMU reports, in {I}
+            else:       # the IMU's specific force (FRD), put into {I} with the estimate
+                f_I_sum += R @ R_err @ (R.T @ (a - g * e3) + accel_bias_B)
             v = v + a * dt
             xi = xi + v * dt
             t += dt

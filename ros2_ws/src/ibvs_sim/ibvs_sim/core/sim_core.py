@@ -47,7 +47,7 @@ import numpy as np
 
 from ibvs_common.core.config import PadLayout, VehicleConfig
 from ibvs_sim.core.world import WorldConfig
-from ibvs_common.core.frames import rot_z, vec_I_to_map
+from ibvs_common.core.frames import rot_from_quat, rot_z, vec_I_to_map
 from ibvs_sim.core.autopilot import AttitudeReference, VehicleStateView
 from ibvs_sim.core.contacts import FLOOR, min_clearance
 from ibvs_sim.core.dynamics import (AttitudeController, PlantParams, QuadrotorPlant, State,
@@ -87,6 +87,9 @@ class ReferenceSource(Protocol):
              telemetry: bool = True) -> None: ...
 
     def attitude_reference(self, state: VehicleStateView) -> AttitudeReference: ...
+
+    def estimate_error(self, t: float) -> np.ndarray:
+        """R_err (3x3) at sim time t: the autopilot's attitude estimate is R_IB R_err."""
 
 
 @dataclass(frozen=True)
@@ -582,8 +585,12 @@ class Simulation:
         view = self.state_view()
         self.autopilot.poll(view, receive=receive)
         self.reference = self.autopilot.attitude_reference(view)
-        cmd = self.controller.rotor_commands_q(self.state, self.reference.q_IB_wxyz,
-                                               self.reference.thrust_norm)
+        # The autopilot's loop drives its estimate R_IB R_err to the reference R_d, so the
+        # truth settles at R_d R_err^T: an estimate error is flown, as on a real autopilot.
+        R_d = rot_from_quat(self.reference.q_IB_wxyz)
+        cmd = self.controller.rotor_commands(
+            self.state, R_d @ self.autopilot.estimate_error(self.t).T,
+            self.reference.thrust_norm)
         self.state = self.plant.step(self.state, cmd, self.wind.force_I(self.t))
         self.t_ns += self.dt_ns
         event = self._check_contacts()

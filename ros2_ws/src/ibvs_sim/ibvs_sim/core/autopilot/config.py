@@ -19,6 +19,8 @@ from ibvs_sim.core.autopilot.protocol import MAV_COMP_ID_AUTOPILOT1
 # One logger for every part of the autopilot: 'ibvs_sim.core.autopilot', as before the split.
 LOG = logging.getLogger(__package__)
 
+MAX_ESTIMATE_OFFSET_RAD = 0.2     # rad (11.5 deg): larger is not an estimator error to fly on
+
 
 @dataclass
 class AutopilotConfig:
@@ -53,6 +55,10 @@ class AutopilotConfig:
     # from one sample to the next: white 0.2 deg per sample would read as ~0.25 rad/s of
     # spurious rotation between two camera frames 20 ms apart.
     attitude_noise_tau_s: float = 5.0              # s, correlation time of that error
+    # A static error of the estimate (roll, pitch; rad, body rotation vector (x, y, 0)): an
+    # accelerometer bias b tilts an estimate that levels on it by b / g (PX4 SIH: 1.5-1.8 deg
+    # in one axis). Reported and flown, as the noise above (noise.py).
+    attitude_estimate_offset_rad: tuple = (0.0, 0.0)
     hold_kp_xy: float = 2.0                 # 1/s^2
     hold_kd_xy: float = 2.5                 # 1/s
     hold_kp_z: float = 3.0                  # 1/s^2
@@ -72,6 +78,15 @@ class AutopilotConfig:
     # NaN (a broken estimator or sensor driver)
     imu_off_s: tuple = (0.0, 0.0)
     imu_nan_s: tuple = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        offset = tuple(float(a) for a in self.attitude_estimate_offset_rad)
+        if len(offset) != 2 or not all(math.isfinite(a) and abs(a) <= MAX_ESTIMATE_OFFSET_RAD
+                                       for a in offset):
+            raise ValueError('attitude_estimate_offset_rad must be (roll, pitch), each finite '
+                             f'and within +-{MAX_ESTIMATE_OFFSET_RAD} rad, got '
+                             f'{self.attitude_estimate_offset_rad!r}')
+        self.attitude_estimate_offset_rad = offset
 
     def imu_fault_at(self, t: float) -> str:
         """Return 'off', 'nan' or '' (no IMU fault) at sim time ``t`` (s)."""

@@ -131,6 +131,15 @@ class Autopilot:
         return self._references.reference(state, self._modes.armed, self._modes.mode,
                                           self._setpoints.q_wxyz, self._setpoints.thrust)
 
+    def estimate_error(self, t: float) -> np.ndarray:
+        """Return R_err (3x3) at sim time t: this autopilot's attitude estimate is R_IB R_err.
+
+        It reports that estimate (ATTITUDE_QUATERNION) and its attitude loop flies it: the
+        loop drives the estimate, not the truth, to the reference (``Simulation`` tracks
+        ``R_d R_err^T`` in truth). See ``noise.SensorNoise``.
+        """
+        return self._noise.attitude_error(t)
+
     def close(self) -> None:
         """Close the UDP endpoint."""
         self._link.close()

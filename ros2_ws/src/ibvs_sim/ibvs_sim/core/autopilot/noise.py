@@ -1,11 +1,17 @@
 """Sensor noise of the sim autopilot's telemetry, a function of sim time only.
 
 Gyro (``gyro_noise_std``, rad/s) and accelerometer (``accel_noise_std``, m/s²) white Gaussian
-per axis; the attitude error is a small body rotation following a first-order Gauss-Markov
-process per axis (stationary std ``attitude_noise_std`` rad, correlation time
-``attitude_noise_tau_s`` s), advanced on a fixed sim-time grid of ``NOISE_GRID_S``: an attitude
-estimator's error wanders, white noise per message would read as spurious rotation between two
-camera frames. Every draw is keyed by (``noise_seed``, stream, sim-time index), so the noise
+per axis. The attitude estimate's error is a small body rotation ``R_err``: the autopilot's
+estimate is ``R_IB R_err`` (R_IB the truth, FRD -> NED). It is a static offset
+(``attitude_estimate_offset_rad``: roll and pitch, a body rotation vector (x, y, 0), e.g. the
+tilt b/g that an accelerometer bias b leaves in an estimator levelling on it; PX4 SIH measured
+1.5-1.8 deg in one axis, docs/sim.md) composed with a first-order Gauss-Markov process per axis
+(stationary std ``attitude_noise_std`` rad, correlation time ``attitude_noise_tau_s`` s),
+advanced on a fixed sim-time grid of ``NOISE_GRID_S``: an attitude estimator's error wanders,
+white noise per message would read as spurious rotation between two camera frames. The
+autopilot both reports that estimate (ATTITUDE_QUATERNION) and flies it (its attitude loop
+drives the estimate, not the truth, to the setpoint: ``Simulation`` gives the inner loop
+``R_d R_err^T``). Every draw is keyed by (``noise_seed``, stream, sim-time index), so the noise
 does not depend on how many messages were sent before: two lockstep runs see the same noise.
 """
 from __future__ import annotations
@@ -15,7 +21,7 @@ import math
 
 import numpy as np
 
-from ibvs_common.core.frames import quat_from_rot, quat_multiply
+from ibvs_common.core.frames import quat_from_rot, quat_multiply, rot_from_quat
 from ibvs_sim.core.autopilot.config import AutopilotConfig
 from ibvs_sim.core.autopilot.protocol import US_PER_S
 
@@ -39,6 +45,11 @@ class SensorNoise:
         self._att_err = self.rng_at(NoiseStream.ATTITUDE, 0).normal(
             0.0, config.attitude_noise_std, 3)                   # rad, body axes
         self._att_k = 0
+        roll, pitch = config.attitude_estimate_offset_rad
+        angle = math.hypot(roll, pitch)
+        axis = (roll / angle, pitch / angle) if angle > 0.0 else (0.0, 0.0)
+        self._offset_q = np.array([math.cos(0.5 * angle), math.sin(0.5 * angle) * axis[0],
+                                   math.sin(0.5 * angle) * axis[1], 0.0])
 
     def rng_at(self, stream: NoiseStream, index: int) -> np.random.Generator:
         """Return the generator of one noise sample, keyed by (seed, stream, sim-time index).
@@ -49,12 +60,11 @@ class SensorNoise:
         """
         return np.random.default_rng((self.config.noise_seed, int(stream), int(index)))
 
-    def noisy_attitude(self, R_IB: np.ndarray, t: float) -> np.ndarray:
-        """Return the quaternion (w, x, y, z, w >= 0) of R_IB times a small, slow body rotation.
+    def error_quat(self, t: float) -> np.ndarray:
+        """Return the estimate's error R_err at sim time t as a unit quaternion (w, x, y, z).
 
-        The error is a first-order Gauss-Markov process per axis (std attitude_noise_std,
-        correlation time attitude_noise_tau_s), advanced to the sim time t (s); it is not
-        wound back for an earlier t.
+        The static offset times the Gauss-Markov error (std attitude_noise_std, correlation
+        time attitude_noise_tau_s), advanced to t (s); it is not wound back for an earlier t.
         """
         cfg = self.config
         a = math.exp(-NOISE_GRID_S / cfg.attitude_noise_tau_s) \
@@ -66,7 +76,15 @@ class SensorNoise:
                 NoiseStream.ATTITUDE, self._att_k).normal(0.0, cfg.attitude_noise_std, 3)
         half = 0.5 * self._att_err
         dq = np.concatenate(([1.0], half))
-        q = quat_multiply(quat_from_rot(R_IB), dq / np.linalg.norm(dq))
+        return quat_multiply(self._offset_q, dq / np.linalg.norm(dq))
+
+    def attitude_error(self, t: float) -> np.ndarray:
+        """Return R_err (3x3) at sim time t: the autopilot's attitude estimate is R_IB R_err."""
+        return rot_from_quat(self.error_quat(t))
+
+    def noisy_attitude(self, R_IB: np.ndarray, t: float) -> np.ndarray:
+        """Return the quaternion (w, x, y, z, w >= 0) of the estimate R_IB R_err at sim time t."""
+        q = quat_multiply(quat_from_rot(R_IB), self.error_quat(t))
         return q if q[0] >= 0.0 else -q
 
     def noisy_rates(self, Omega_B: np.ndarray, t: float) -> np.ndarray:
