@@ -21,13 +21,15 @@ from ibvs_sim.core.world import load_world
 WORLD, PAD, VEHICLE = load_world(), load_pad_layout(), load_vehicle()
 
 
-def fly(law: str, wind_accel_I, accel_bias_B=(0.0, 0.0, 0.0)) -> dict:
+def fly(law: str, wind_accel_I, accel_bias_B=(0.0, 0.0, 0.0), bias_tau_s: float = 0.2) -> dict:
     """Fly the reference start in a steady wind, with the IMU's accelerometer biased.
 
-    ``accel_bias_B``: body FRD, m/s^2.
+    ``accel_bias_B``: body FRD, m/s^2. ``bias_tau_s``: the observer's velocity channel (0:
+    the IMU channel alone).
     """
-    ctrl = ControllerConfig.from_params({'disturbance_law': law}, VEHICLE, WORLD.window.width,
-                                        PAD)
+    ctrl = ControllerConfig.from_params({'disturbance_law': law,
+                                         'observer.bias_tau_s': bias_tau_s}, VEHICLE,
+                                        WORLD.window.width, PAD)
     cfg = FeatureSimConfig(initial_position_I=np.asarray(WORLD.initial_position_I, float),
                            wind_accel_I=np.asarray(wind_accel_I, float),
                            accel_bias_B=np.asarray(accel_bias_B, float), max_time_s=40.0)
@@ -213,12 +215,14 @@ def test_specific_force_is_rotated_with_the_attitude_at_each_sample():
 def test_an_accelerometer_bias_reads_as_a_disturbance_and_the_integrals_take_it_out():
     """0.35 m/s^2 of lateral accelerometer bias (PX4 SIH's d_hat showed ~0.3-0.4 in hover).
 
-    The observer cannot tell it from a wind: it pushes the vehicle sideways by the bias and
-    the proportional image terms alone let it hit the frame. The integrals of
-    observer_integral (and of integral) see the image offset and cancel it.
+    The IMU observer alone cannot tell it from a wind: it pushes the vehicle sideways by the
+    bias and the proportional image terms alone let it hit the frame. The integrals of
+    observer_integral (and of integral) see the image offset and cancel it; so does the
+    observer's velocity channel (the default), which sees no such push in the flow.
     """
     bias = [0.0, 0.35, 0.0]
-    assert not fly('observer', [0.0, 0.0, 0.0], bias)['success']
+    assert not fly('observer', [0.0, 0.0, 0.0], bias, bias_tau_s=0.0)['success']
+    assert fly('observer', [0.0, 0.0, 0.0], bias)['success']
     for law in ('observer_integral', 'integral'):
         s = fly(law, [0.0, 0.0, 0.0], bias)
         assert s['success'], (law, s)
@@ -236,27 +240,32 @@ def test_observer_integral_sums_both_terms():
     assert s['success'] and s['landing']['error_m'] <= 0.05, s
 
 
-def test_a_roll_error_of_the_autopilots_estimate_drifts_the_vehicle_with_its_sign():
+def test_a_roll_error_of_the_autopilots_estimate_is_taken_out_by_the_velocity_channel():
     """An estimate rolled +-1.7 deg (PX4 SIH's size), flown: the truth tilts -+1.7 deg.
 
-    The push g sin(delta) is invisible to the observer (its specific force is put into {I}
-    with the same estimate) and only the window image, soft at range (k_p^w / d), opposes it:
-    the vehicle crosses off centre towards -y for a +roll error and +y for a -roll error
-    (the truth rolled left pushes left, NED y east). Measured (2026-11-26, default law):
-    crossing offset y -0.247 / +0.245 m, clearance 1.6 / 2.3 cm; both land. This pins the
-    sensitivity documented in docs/design.md "Attitude-estimate error", and the feature-level
-    model of the estimate (flown and read), which gives the same as the image-level sim
-    (lockstep: -0.261 / +0.254 m).
+    The push g sin(delta) is invisible to the IMU observer (its specific force is put into
+    {I} with the same estimate) and only the window image, soft at range (k_p^w / d),
+    opposes it: with the IMU alone (observer.bias_tau_s = 0) the vehicle crosses off centre
+    towards -y for a +roll error and +y for a -roll error (the truth rolled left pushes left,
+    NED y east). Measured (2026-11-26): crossing offset y -0.247 / +0.245 m, clearance
+    1.6 / 2.3 cm. The observer's velocity channel (the default, bias_tau_s 0.2 s: the wall
+    flow times the window's distance) sees the push: -0.061 / +0.059 m, 15.0 cm, as without
+    the error (docs/design.md "Attitude-estimate error").
     """
-    law = 'observer_integral'
-    ctrl = ControllerConfig.from_params({'disturbance_law': law}, VEHICLE, WORLD.window.width,
-                                        PAD)
-    offsets = {}
-    for roll in (0.0297, -0.0297):
-        cfg = FeatureSimConfig(initial_position_I=np.asarray(WORLD.initial_position_I, float),
-                               attitude_estimate_offset_rad=(roll, 0.0), max_time_s=40.0)
-        summary, _ = run_feature_scenario(WORLD, PAD, VEHICLE, ctrl,
-                                          SupervisorConfig(r_w=WORLD.window.width), cfg)
-        assert summary['window']['crossed'], summary
-        offsets[roll] = summary['window']['crossing_offset_m'][0]
-    assert offsets[0.0297] < -0.15 and offsets[-0.0297] > 0.15, offsets
+    offsets, clearances = {}, {}
+    for tau in (0.0, 0.2):
+        ctrl = ControllerConfig.from_params({'disturbance_law': 'observer_integral',
+                                             'observer.bias_tau_s': tau}, VEHICLE,
+                                            WORLD.window.width, PAD)
+        for roll in (0.0297, -0.0297):
+            cfg = FeatureSimConfig(initial_position_I=np.asarray(WORLD.initial_position_I,
+                                                                 float),
+                                   attitude_estimate_offset_rad=(roll, 0.0), max_time_s=40.0)
+            summary, _ = run_feature_scenario(WORLD, PAD, VEHICLE, ctrl,
+                                              SupervisorConfig(r_w=WORLD.window.width), cfg)
+            assert summary['success'], (tau, roll, summary)
+            offsets[tau, roll] = summary['window']['crossing_offset_m'][0]
+            clearances[tau, roll] = summary['window']['min_clearance_m']
+    assert offsets[0.0, 0.0297] < -0.15 and offsets[0.0, -0.0297] > 0.15, offsets
+    assert abs(offsets[0.2, 0.0297]) < 0.1 and abs(offsets[0.2, -0.0297]) < 0.1, offsets
+    assert min(clearances[0.2, r] for r in (0.0297, -0.0297)) > 0.12, clearances

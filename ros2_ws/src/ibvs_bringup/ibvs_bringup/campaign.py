@@ -118,6 +118,9 @@ class CampaignConfig:
     gust_components: int = 1          # sines per axis
     flow_noise: float = 0.0           # 1/s, white noise on each flow component
     bearing_noise_rad: float = 0.0    # rad, white noise on each bearing
+    # rad (roll, pitch): static error of the autopilot's attitude estimate, flown and read
+    # (FeatureSimConfig / the sim's attitude_estimate_offset_rad); docs/design.md
+    estimate_error_rad: tuple = (0.0, 0.0)
     seed: int = 14                    # campaign seed (run i: SeedSequence([seed, i]))
     params_file: str | None = None    # None: the installed params.yaml
     results_root: str = DEFAULT_RESULTS_ROOT
@@ -138,7 +141,10 @@ class CampaignConfig:
                 'gust_components': self.gust_components, 'flow_noise': self.flow_noise,
                 'bearing_noise_rad': self.bearing_noise_rad, 'seed': self.seed,
                 'image_level': self.image_level,
-                'params_sha256': hashlib.sha256(params_text.encode()).hexdigest()}
+                'params_sha256': hashlib.sha256(params_text.encode()).hexdigest(),
+                # only when set: campaigns stored before it existed still resume
+                **({'estimate_error_rad': list(self.estimate_error_rad)}
+                   if any(self.estimate_error_rad) else {})}
 
 
 @dataclass(frozen=True)
@@ -375,6 +381,7 @@ def _run_block(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: 
             'wind': {**asdict(wind), 'steady_force_I': list(wind.steady_force_I)},
             'index': spec.index, 'seed': cfg.seed, 'gust_seed': spec.gust_seed,
             'initial_position_I': list(spec.initial_position_I),
+            'estimate_error_rad': list(cfg.estimate_error_rad),
             'failure_cause': failure_cause(summary), 'wall_time_s': wall_s}
 
 
@@ -399,6 +406,7 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
         initial_yaw=setup.world.initial_yaw, wind=wind,
         crossing_law=setup.controller.crossing_law, max_time_s=MAX_SIM_TIME_S,
         flow_noise=cfg.flow_noise, bearing_noise_rad=cfg.bearing_noise_rad,
+        attitude_estimate_offset_rad=tuple(cfg.estimate_error_rad),
         seed=spec.gust_seed)
     t0 = time.monotonic()
     summary, flog = feature_sim.run_feature_scenario(setup.world, setup.pad, setup.vehicle,
@@ -435,6 +443,7 @@ def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind) -> dict:
     sim['wind_gust_amplitude_N'] = float(wind.gust_amplitude_N)
     sim['wind_gust_frequency_hz'] = float(wind.gust_frequency_hz)
     sim['seed'] = int(wind.seed)
+    sim['attitude_estimate_offset_rad'] = [float(a) for a in cfg.estimate_error_rad]
     return params
 
 
@@ -720,6 +729,10 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
     p.add_argument('--seed', type=int, default=14, help='campaign seed')
     p.add_argument('--flow-noise', type=float, default=0.0, help='1/s, per flow component')
     p.add_argument('--bearing-noise', type=float, default=0.0, help='rad, per bearing')
+    p.add_argument('--estimate-error', type=float, nargs=2, default=(0.0, 0.0),
+                   metavar=('ROLL_DEG', 'PITCH_DEG'),
+                   help="static error of the autopilot's attitude estimate, flown and read "
+                        '(docs/design.md "Attitude-estimate error"), each within +-11 deg')
     p.add_argument('--params-file', default=None, help='default: the installed params.yaml')
     p.add_argument('--results-root', default=DEFAULT_RESULTS_ROOT)
     p.add_argument('--no-plots', action='store_true')
@@ -738,6 +751,8 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
     if a.runs < 1 or a.workers < 1 or a.gust_components < 1 or a.gust_level < 0 \
             or any(x < 0 or not math.isfinite(x) for x in a.levels):
         p.error('--runs, --workers, --gust-components >= 1; levels and gust level >= 0')
+    if not all(math.isfinite(x) and abs(x) <= 11.0 for x in a.estimate_error):
+        p.error('--estimate-error: roll and pitch in degrees, each finite and within +-11')
     if not all(c.isalnum() or c in '_.+-' for c in a.name) or a.name in ('', '.', '..'):
         p.error(f'bad --name {a.name!r}: use letters, digits, _ . + -')
     try:
@@ -758,6 +773,7 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          vertical_factor=a.vertical_factor, gust_frequency_hz=a.gust_frequency,
                          gust_components=a.gust_components, flow_noise=a.flow_noise,
                          bearing_noise_rad=a.bearing_noise, seed=a.seed,
+                         estimate_error_rad=tuple(math.radians(x) for x in a.estimate_error),
                          params_file=a.params_file, results_root=a.results_root,
                          image_level=a.image_level, domain_base=a.domain_base,
                          run_timeout_s=a.run_timeout)

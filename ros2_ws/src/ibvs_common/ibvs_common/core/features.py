@@ -142,8 +142,9 @@ def distance_to_window_plane(corner_bearings_I: np.ndarray, eta_w: np.ndarray,
     """Return d_o (m) from the corner bearings and the known window width r_w.
 
     Corner i is at P_i = d_o p_i / (eta^T p_i); the top and bottom edges have length r_w, so
-    d_o = r_w / |p_TR/(eta^T p_TR) - p_TL/(eta^T p_TL)| (averaged over both edges). Used only by
-    the mode supervisor (blind-crossing length), never by the control laws.
+    d_o = r_w / |p_TR/(eta^T p_TR) - p_TL/(eta^T p_TL)| (averaged over both edges). Used by
+    the mode supervisor (blind-crossing length) and by the disturbance observer's velocity
+    channel (v = d_o times the wall flow v / d_o), never by the force laws themselves.
     """
     p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
     s = p / (p @ eta_w)[:, None]

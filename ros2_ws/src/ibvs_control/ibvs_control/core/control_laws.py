@@ -172,16 +172,22 @@ class ObserverGains:
 
     d_hat' = (f_I + F_prev / m - d_hat) / tau_s: the IMU's specific force f_I (m/s^2, {I},
     mean over the frame) plus the force commanded over that frame, i.e. Delta / m for
-    m v' = -F + m g e3 + Delta, low-passed; |d_hat| <= d_max.
+    m v' = -F + m g e3 + Delta, low-passed; |d_hat| <= d_max. With bias_tau_s > 0, the
+    flow's velocity corrects what the IMU cannot see (an attitude-estimate error's push),
+    low-passed with bias_tau_s, |.| <= bias_max, held where no velocity is measured
+    (observer.py).
     """
 
     tau_s: float = 0.5          # s, observer time constant
     d_max: float = 3.0          # m/s^2, largest disturbance compensated
+    bias_tau_s: float = 0.2     # s, velocity channel's correction time constant; 0 = IMU only
+    bias_max: float = 1.0       # m/s^2, largest correction (~6 deg of tilt-estimate error)
 
     def validate(self) -> None:
-        """Raise GainError unless both are positive."""
-        if min(self.tau_s, self.d_max) <= 0.0:
-            raise GainError(f'observer tau_s and d_max must be positive: {self}')
+        """Raise GainError unless tau_s, d_max, bias_max > 0 and bias_tau_s >= 0."""
+        if min(self.tau_s, self.d_max, self.bias_max) <= 0.0 or not self.bias_tau_s >= 0.0:
+            raise GainError(f'observer tau_s, d_max, bias_max must be positive and '
+                            f'bias_tau_s >= 0: {self}')
 
 
 def clamp_norm(v: np.ndarray, limit: float) -> np.ndarray:
@@ -229,6 +235,10 @@ GAIN_SPECS = {
         'tau_s': ('s, disturbance observer time constant (disturbance_law observer), > 0',
                   0.0, None),
         'd_max': ('m/s^2, largest disturbance the observer compensates, > 0', 0.0, None),
+        'bias_tau_s': ("s, time constant of the flow-velocity channel's correction of what the "
+                       'IMU cannot see (an attitude-estimate error); 0 = IMU only, >= 0',
+                       0.0, None),
+        'bias_max': ('m/s^2, largest such correction, > 0', 0.0, None),
     },
     'crossing': {
         'kv': ('1/s, mode 2 flow damping (as K_d^t), > 0', 0.0, None),

@@ -7,6 +7,7 @@ yaw that faces the forward camera to the window normal eta_w (paper section 5).
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+import math
 
 import numpy as np
 
@@ -17,11 +18,16 @@ from ibvs_control.core.control_laws import (
     force_crossing_intended, force_crossing_seed, force_landing, force_window, GainError,
     IntegralGains, LandingGains, ObserverGains, sigma, WindowGains)
 from ibvs_common.core.features import (
-    compute_window_features, pad_feature, pad_height_estimate, window_flow, WindowFeatures)
+    compute_window_features, distance_to_window_plane, pad_feature, pad_height_estimate,
+    window_flow, WindowFeatures)
 from ibvs_common.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
 from ibvs_common.core.modes import Mode
+from ibvs_control.core.observer import DisturbanceObserver
 
 MAX_INTEGRATION_STEP_S = 0.1   # a longer gap between frames is not integrated as flow
+# m, the window-plane distances at which d_o times the wall flow is taken as the velocity
+# (closer, the corners leave the image; farther, the window is a few pixels)
+MIN_VELOCITY_DISTANCE_M, MAX_VELOCITY_DISTANCE_M = 0.2, 10.0
 
 
 @dataclass(frozen=True)
@@ -65,7 +71,8 @@ class ControllerConfig:
         crossing.phi_fwd_min, crossing_law, landing.lateral_schedule_height_m,
         landing.lateral_scale_min, landing.vertical_schedule_height_m,
         landing.vertical_scale_min, disturbance_law, integral.ki_w, integral.ki_phi,
-        integral.ki_t, integral.xi_max, integral.d_max, observer.tau_s, observer.d_max.
+        integral.ki_t, integral.xi_max, integral.d_max, observer.tau_s, observer.d_max,
+        observer.bias_tau_s, observer.bias_max.
         ``pad`` gives the group sizes for the
         height estimate.
         Raises GainError (a ValueError).
@@ -167,6 +174,7 @@ class IbvsController:
         self._zeta_w = 0.0
         self._xi_t = np.zeros(3)
         # DisturbanceLaw.OBSERVER: Delta / m (m/s^2, {I}) and the force it was measured with
+        self._observer = DisturbanceObserver(self.config.observer, self.config.mass)
         self._d_hat = np.zeros(3)
         self._d_hat_T2 = np.zeros(3)          # its value with the last window force
         self._F_cmd = self._hover()
@@ -209,7 +217,8 @@ class IbvsController:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
         observer = cfg.disturbance_law.uses_observer
         if observer:
-            self._observe(dt, meas.specific_force_I, R_IB)
+            v_I = self._window_velocity(meas, R_IB, win) if mode == Mode.WINDOW else None
+            self._observe(dt, meas.specific_force_I, R_IB, v_I)
         feats = FeatureSnapshot(
             q_w=None if win is None else win.q_w, q_w_bar=None if win is None else win.q_w_bar,
             q_t=q_t, phi_w=phi_w, phi_t=phi_t, alpha_w=None if win is None else win.alpha_w,
@@ -222,22 +231,36 @@ class IbvsController:
         self._F_cmd = F if valid else self._F_last
         return ControlOutput(self._F_cmd, self._yaw_des, feats, valid)
 
-    def _observe(self, dt: float, f_I: np.ndarray | None, R_IB: np.ndarray) -> None:
-        """One step of the disturbance observer (ObserverGains): Delta/m = f_I + F_app / m.
+    def _observe(self, dt: float, f_I: np.ndarray | None, R_IB: np.ndarray,
+                 v_I: np.ndarray | None = None) -> None:
+        """One step of the disturbance observer (observer.py): Delta/m = f_I + F_app / m.
 
         F_app, the force the vehicle applied over the interval, is the previous command's
         magnitude along the body's thrust axis R_IB e3 (the attitude measured, not the one
         commanded): while the attitude loop lags a new command, the commanded direction is
         not yet the applied one, and their difference would read as a disturbance that the
-        law then feeds back (measured on PX4 SIH: a growing oscillation in LANDING).
+        law then feeds back (measured on PX4 SIH: a growing oscillation in LANDING). v_I:
+        the metric velocity for the velocity channel (WINDOW only), or None.
         """
-        if f_I is None or dt <= 0.0 or not np.all(np.isfinite(f_I)):
-            return
-        g = self.config.observer
         F_app = float(np.linalg.norm(self._F_cmd)) * (R_IB @ e3)
-        d_meas = np.asarray(f_I, dtype=float) + F_app / self.config.mass
-        self._d_hat = clamp_norm(self._d_hat + min(dt / g.tau_s, 1.0) * (d_meas - self._d_hat),
-                                 g.d_max)
+        self._observer.update(dt, f_I, F_app, v_I)
+        self._d_hat = self._observer.estimate
+
+    def _window_velocity(self, meas: Measurements, R_IB: np.ndarray,
+                         win: WindowFeatures | None) -> np.ndarray | None:
+        """Return v (m/s, {I}) = d_o times the wall flow v / d_o (d_o: corners and r_w).
+
+        None without the velocity channel, a window, a wall flow or a plausible distance.
+        """
+        if (not self._observer.velocity_aided or win is None or meas.phi_front_I is None
+                or meas.window_bearings_C is None):
+            return None
+        p_I = bearings_C_to_I(meas.window_bearings_C, R_IB, self.config.R_BC_front)
+        with np.errstate(divide='ignore', invalid='ignore'):
+            d_o = distance_to_window_plane(p_I, win.eta_w, self.config.r_w)
+        if not (math.isfinite(d_o) and MIN_VELOCITY_DISTANCE_M <= d_o <= MAX_VELOCITY_DISTANCE_M):
+            return None
+        return d_o * np.asarray(meas.phi_front_I, dtype=float)
 
     @property
     def disturbance_estimate(self) -> np.ndarray:
