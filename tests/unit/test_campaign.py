@@ -167,6 +167,25 @@ def test_help_and_bad_arguments(capsys):
     assert e.value.code == 2
 
 
+def test_estimate_error_reaches_the_feature_sim_and_the_image_level_params(tmp_path):
+    """--estimate-error ROLL PITCH (deg): into the run's sim, its manifest and its summary."""
+    cfg, *_ = campaign.parse_args(['--name', 'est', '--runs', '1', '--levels', '0',
+                                   '--estimate-error', '1.7', '-1.0',
+                                   '--results-root', str(tmp_path)])
+    assert cfg.estimate_error_rad == pytest.approx((math.radians(1.7), math.radians(-1.0)))
+    assert cfg.model('x')['estimate_error_rad'] == list(cfg.estimate_error_rad)
+    assert 'estimate_error_rad' not in CampaignConfig(name='old').model('x')   # old ones resume
+    (summary,) = run_campaign(cfg, workers=1, progress=None)
+    assert summary['run']['estimate_error_rad'] == pytest.approx(list(cfg.estimate_error_rad))
+    spec = run_specs(cfg, BOX)[0]
+    params = campaign.image_run_params(cfg, spec, campaign.run_wind(cfg, spec, 1.676))
+    assert params['sim']['ros__parameters']['attitude_estimate_offset_rad'] == \
+        pytest.approx(list(cfg.estimate_error_rad))
+    with pytest.raises(SystemExit) as e:
+        campaign.parse_args(['--estimate-error', '12', '0'])
+    assert e.value.code == 2
+
+
 STAND_IN = """
 import json, os, sys
 import yaml
