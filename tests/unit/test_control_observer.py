@@ -58,6 +58,13 @@ def test_the_velocity_channel_finds_the_push_the_imu_cannot_see_and_holds_it():
     assert obs.estimate == pytest.approx(2 * wind + unseen, abs=2e-3)
 
 
+def test_the_correction_is_horizontal_only():
+    """A vertical push the IMU does not see (e.g. a flow error) is not taken into b."""
+    obs = DisturbanceObserver(ObserverGains(tau_s=0.5, bias_tau_s=0.2), M)
+    fly(obs, 6.0, np.zeros(3), [0.1, -0.2, 0.3])
+    assert obs.bias == pytest.approx([0.1, -0.2, 0.0], abs=1e-4)
+
+
 def test_a_wind_both_channels_see_is_not_counted_twice():
     obs = DisturbanceObserver(ObserverGains(tau_s=0.5, bias_tau_s=0.2), M)
     fly(obs, 6.0, [0.0, 0.5, -0.1], np.zeros(3))

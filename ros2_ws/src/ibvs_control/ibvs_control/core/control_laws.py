@@ -180,7 +180,7 @@ class ObserverGains:
 
     tau_s: float = 0.5          # s, observer time constant
     d_max: float = 3.0          # m/s^2, largest disturbance compensated
-    bias_tau_s: float = 0.2     # s, velocity channel's correction time constant; 0 = IMU only
+    bias_tau_s: float = 0.0     # s, velocity channel's correction time constant; 0 = IMU only
     bias_max: float = 1.0       # m/s^2, largest correction (~6 deg of tilt-estimate error)
 
     def validate(self) -> None:

@@ -19,9 +19,13 @@ WINDOW, the wall's translational flow v / d_o times the window plane's distance 
 corner bearings and the known width r_w), a momentum observer sees every push the vehicle
 feels: ``z' = g e3 - F_app / m + d_vel``, ``d_vel = (v - z) / tau_s`` (a first-order
 low-pass of the true Delta / m with time constant tau_s, no differentiation of v). The
-difference ``b = d_vel - d_imu`` is what the IMU cannot see; it is low-passed with
-``bias_tau_s``, clamped at ``bias_max``, and *held* where no velocity is measured (the blind
-crossing, the landing): an estimate error or a bias is constant over a flight. The estimate
+difference's horizontal part, ``b = (I - e3 e3^T)(d_vel - d_imu)``, is what the IMU cannot
+see (a tilt error pushes sideways; a vertical push, the thrust model's error, the IMU does
+see); it is low-passed with ``bias_tau_s``, clamped at ``bias_max``, and *held* where no
+velocity is measured (the blind crossing, the landing): an estimate error or a bias is
+constant over a flight. Horizontal only also keeps the flow's vertical errors (the
+derotation's, a distance error coupling the vertical acceleration) out of the thrust, as a
+PX4 SIH flight with all three axes suggested (docs/px4_sih.md). The estimate
 is always ``d_imu + b``: the IMU channel keeps its bandwidth for the wind, the velocity
 channel (noisier: flow noise times the distance, divided by tau_s) only sets the slow part.
 docs/design.md "Attitude-estimate error".
@@ -85,6 +89,7 @@ class DisturbanceObserver:
             return
         self._z = self._z + dt * (GRAVITY * e3 - F_app / self.mass + self._d_vel)
         self._d_vel = clamp_norm((v_I - self._z) / g.tau_s, g.d_max)
-        self.bias = clamp_norm(
-            self.bias + min(dt / g.bias_tau_s, 1.0) * (self._d_vel - self.d_imu - self.bias),
-            g.bias_max)
+        unseen = self._d_vel - self.d_imu
+        unseen[2] = 0.0                         # horizontal: the IMU sees vertical pushes
+        self.bias = clamp_norm(self.bias + min(dt / g.bias_tau_s, 1.0) * (unseen - self.bias),
+                               g.bias_max)
