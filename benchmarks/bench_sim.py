@@ -38,6 +38,10 @@ class HoverReference:
     def attitude_reference(self, state) -> AttitudeReference:
         return AttitudeReference(LEVEL_Q, self.hover_thrust, 'hold')
 
+    def estimate_error(self, t: float) -> np.ndarray:
+        """Return R_err = I: a perfect attitude estimate."""
+        return np.eye(3)
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
