@@ -106,9 +106,10 @@ def test_the_controller_feeds_the_window_distance_times_the_wall_flow():
     v_true = np.array([0.3, -0.1, 0.05])
     meas = Measurements(t=0.0, R_IB=np.eye(3), window_bearings_C=b_C, pad_bearings_C=None,
                         phi_front_I=v_true / 1.5, phi_down_I=None)
-    win = ctrl._window_features(meas, np.eye(3))
-    assert ctrl._window_velocity(meas, np.eye(3), win) == pytest.approx(v_true, rel=1e-9)
+    p_I = ctrl._window_bearings_I(meas, np.eye(3))
+    win = ctrl._window_features(p_I)
+    assert ctrl._window_velocity(meas.phi_front_I, p_I, win) == pytest.approx(v_true, rel=1e-9)
     off = IbvsController(replace(cfg, observer=ObserverGains(bias_tau_s=0.0)))
-    assert off._window_velocity(meas, np.eye(3), win) is None
+    assert off._window_velocity(meas.phi_front_I, p_I, win) is None
     assert cfg.disturbance_law == DisturbanceLaw.OBSERVER_INTEGRAL
     ctrl.step(Mode.WINDOW, meas)                    # and step() takes it without complaint

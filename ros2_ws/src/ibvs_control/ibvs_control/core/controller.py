@@ -175,17 +175,21 @@ class IbvsController:
         self._xi_t = np.zeros(3)
         # DisturbanceLaw.OBSERVER: Delta / m (m/s^2, {I}) and the force it was measured with
         self._observer = DisturbanceObserver(self.config.observer, self.config.mass)
-        self._d_hat = np.zeros(3)
         self._d_hat_T2 = np.zeros(3)          # its value with the last window force
         self._F_cmd = self._hover()
 
     def _hover(self) -> np.ndarray:
         return self.config.mass * GRAVITY * e3
 
-    def _window_features(self, meas: Measurements, R_IB: np.ndarray) -> WindowFeatures | None:
+    def _window_bearings_I(self, meas: Measurements, R_IB: np.ndarray) -> np.ndarray | None:
+        """Return the window corner bearings (4, 3) in {I}, or None without a window."""
         if meas.window_bearings_C is None:
             return None
-        p_I = bearings_C_to_I(meas.window_bearings_C, R_IB, self.config.R_BC_front)
+        return bearings_C_to_I(meas.window_bearings_C, R_IB, self.config.R_BC_front)
+
+    def _window_features(self, p_I: np.ndarray | None) -> WindowFeatures | None:
+        if p_I is None:
+            return None
         try:
             return compute_window_features(p_I, self.config.window.eps,
                                            self.config.window.delta, self._eta_w)
@@ -202,7 +206,8 @@ class IbvsController:
         entering = mode != self._mode
         self._mode = mode
 
-        win = self._window_features(meas, R_IB)
+        p_w_I = self._window_bearings_I(meas, R_IB)
+        win = self._window_features(p_w_I)
         q_t = None
         if meas.pad_bearings_C is not None and len(meas.pad_bearings_C) > 0:
             try:        # eq:q_t on the pad centre, seen through every complete group
@@ -217,13 +222,14 @@ class IbvsController:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
         observer = cfg.disturbance_law.uses_observer
         if observer:
-            v_I = self._window_velocity(meas, R_IB, win) if mode == Mode.WINDOW else None
+            v_I = (self._window_velocity(meas.phi_front_I, p_w_I, win)
+                   if mode == Mode.WINDOW else None)
             self._observe(dt, meas.specific_force_I, R_IB, v_I)
         feats = FeatureSnapshot(
             q_w=None if win is None else win.q_w, q_w_bar=None if win is None else win.q_w_bar,
             q_t=q_t, phi_w=phi_w, phi_t=phi_t, alpha_w=None if win is None else win.alpha_w,
             eta_w=self._eta_w if win is None else win.eta_w,
-            d_hat=self._d_hat.copy() if observer else None)
+            d_hat=self._d_hat if observer else None)
         height = self._pad_height(meas, R_IB) if mode == Mode.LANDING else None
         F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t, height)
         if valid:
@@ -244,28 +250,31 @@ class IbvsController:
         """
         F_app = float(np.linalg.norm(self._F_cmd)) * (R_IB @ e3)
         self._observer.update(dt, f_I, F_app, v_I)
-        self._d_hat = self._observer.estimate
 
-    def _window_velocity(self, meas: Measurements, R_IB: np.ndarray,
+    @property
+    def _d_hat(self) -> np.ndarray:
+        """The observer's current Delta / m (m/s^2, {I}; a new array)."""
+        return self._observer.estimate
+
+    def _window_velocity(self, phi_front_I: np.ndarray | None, p_I: np.ndarray | None,
                          win: WindowFeatures | None) -> np.ndarray | None:
-        """Return v (m/s, {I}) = d_o times the wall flow v / d_o (d_o: corners and r_w).
+        """Return v (m/s, {I}) = d_o times the wall flow v / d_o (d_o: corners p_I and r_w).
 
         None without the velocity channel, a window, a wall flow or a plausible distance.
         """
-        if (not self._observer.velocity_aided or win is None or meas.phi_front_I is None
-                or meas.window_bearings_C is None):
+        if (not self._observer.velocity_aided or win is None or phi_front_I is None
+                or p_I is None):
             return None
-        p_I = bearings_C_to_I(meas.window_bearings_C, R_IB, self.config.R_BC_front)
         with np.errstate(divide='ignore', invalid='ignore'):
             d_o = distance_to_window_plane(p_I, win.eta_w, self.config.r_w)
         if not (math.isfinite(d_o) and MIN_VELOCITY_DISTANCE_M <= d_o <= MAX_VELOCITY_DISTANCE_M):
             return None
-        return d_o * np.asarray(meas.phi_front_I, dtype=float)
+        return d_o * np.asarray(phi_front_I, dtype=float)
 
     @property
     def disturbance_estimate(self) -> np.ndarray:
         """The observer's Delta / m (m/s^2, {I}); zero unless disturbance_law is observer."""
-        return self._d_hat.copy()
+        return self._d_hat
 
     def _pad_height(self, meas: Measurements, R_IB: np.ndarray) -> float | None:
         """Height (m) from the smallest complete pad group of known size, or None."""
@@ -301,7 +310,7 @@ class IbvsController:
                                         observer))
             if integral:
                 self._integrate_window(dt, win, phi_w)
-            self._F_w_T2, self._d_hat_T2 = F, self._d_hat.copy()
+            self._F_w_T2, self._d_hat_T2 = F, self._d_hat
             return F, True
         if mode == Mode.CROSSING:
             return self._crossing_force(entering, dt, phi_t)

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from ibvs_common.core.frames import quat_from_rot, quat_multiply, rot_from_quat
+from ibvs_common.core.frames import exp_so3, quat_from_rot, quat_multiply, rot_from_quat
 from ibvs_sim.core.autopilot.config import AutopilotConfig
 from ibvs_sim.core.autopilot.protocol import US_PER_S
 
@@ -46,10 +46,7 @@ class SensorNoise:
             0.0, config.attitude_noise_std, 3)                   # rad, body axes
         self._att_k = 0
         roll, pitch = config.attitude_estimate_offset_rad
-        angle = math.hypot(roll, pitch)
-        axis = (roll / angle, pitch / angle) if angle > 0.0 else (0.0, 0.0)
-        self._offset_q = np.array([math.cos(0.5 * angle), math.sin(0.5 * angle) * axis[0],
-                                   math.sin(0.5 * angle) * axis[1], 0.0])
+        self._offset_q = quat_from_rot(exp_so3(np.array([roll, pitch, 0.0])))
 
     def rng_at(self, stream: NoiseStream, index: int) -> np.random.Generator:
         """Return the generator of one noise sample, keyed by (seed, stream, sim-time index).
