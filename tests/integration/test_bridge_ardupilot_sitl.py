@@ -124,26 +124,39 @@ def test_ardupilot_arms_when_armable_only_on_request_flies_learns_hover_and_land
         assert f.bridge.streams.refused == []                   # every request accepted ...
         assert not [c for c in f.commands if c[1] == 511 and c[2][0] == 105]   # no HIGHRES_IMU
         assert f.bridge.params.angle_boost == 1 and f.bridge.shaper.tilt_boost_by_autopilot
-        # Engaged long before the pre-arm checks pass: GUIDED_NOGPS, waiting for ibvs/arm.
+        # Engaged long before the pre-arm checks pass: ArduPilot keeps its own mode until it
+        # is armable (its RC mode switch is applied ~1.5 s after boot: a GUIDED_NOGPS set
+        # before that was replaced, docs/mavlink.md "Safety policy"), then GUIDED_NOGPS,
+        # waiting for ibvs/arm.
         f.bridge.on_supervisor_mode(0)
         f.controller_on = True
         f.z_ref = f.truth.z
         f.spin(0.3)
         assert f.sent == []                         # ArduPilot: no setpoint before the switch
+        t_engage = time.monotonic()
         f.bridge.on_supervisor_mode(1)
-        assert f.spin(5.0, until=lambda: f.state() == 'wait_arm'), f.bridge.sequencer.last_reason
+        if f.bridge.telemetry.armable is False:
+            f.spin(2.0)
+            assert f.state() == 'set_mode' and f.hb().custom_mode != GUIDED_NOGPS
+            assert not [c for c in f.commands if c[1] == 176] and f.sent == []
+        assert f.spin(40.0, until=lambda: f.state() == 'wait_arm'), \
+            f.bridge.sequencer.last_reason
         assert f.hb().custom_mode == GUIDED_NOGPS and not f.hb().armed
+        armable_t = [t for t, m in f.messages('SYS_STATUS', t_engage)
+                     if m.onboard_control_sensors_health & (1 << 28)][0]
+        switches = [c[0] for c in f.commands if c[1] == 176]
+        assert switches and switches[0] >= armable_t - 0.3    # not before it is armable
         t_req = time.monotonic()
         assert f.bridge.request_arm()[0]
         f.z_ref = -3.0
         assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
         t_armed = time.monotonic()
         arms = [c for c in f.commands if c[1] == 400 and c[2][0] == 1.0]
-        armable_t = [t for t, m in f.messages('SYS_STATUS', t_req)
-                     if m.onboard_control_sensors_health & (1 << 28)][0]
         reasons = [t for lv, t in f.events if lv.startswith('reason')]
-        print(f'\nArduPilot: engaged and arm requested {t_req - ardupilot["t_start"]:.1f} s after '
-              f'start; armable {armable_t - ardupilot["t_start"]:.1f} s, armed '
+        print(f'\nArduPilot: engaged {t_engage - ardupilot["t_start"]:.1f} s after start; '
+              f'armable {armable_t - ardupilot["t_start"]:.1f} s, GUIDED_NOGPS requested '
+              f'{switches[0] - ardupilot["t_start"]:.1f} s, arm requested '
+              f'{t_req - ardupilot["t_start"]:.1f} s, armed '
               f'{t_armed - ardupilot["t_start"]:.1f} s after start with {len(arms)} ARM '
               f'command(s); {len(reasons)} autopilot reasons logged, e.g. '
               f'{reasons[-3:] if reasons else None}')
@@ -262,12 +275,6 @@ def test_ardupilot_freeze_pilot_takeover_and_touchdown_disarm(ardupilot):
         f.close()
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    'flaky in the full suite (session 7: failed in 1 of 4 runs, passed in 2 of 2 alone): the '
-    'bridge saw a HEARTBEAT with custom_mode 0 after its GUIDED_NOGPS switch and before arming '
-    '("autopilot left the offboard mode ... pilot / GCS in charge"); ArduPilot\'s DataFlash log '
-    'of that run shows no GUIDED_NOGPS at all. Same family as the PX4 engage flake: a foreign '
-    'mode in the companion link? A failure prints the bridge events'))
 def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
     """The bridge process dies in flight; ArduPilot set up as docs/mavlink.md says lands.
 
@@ -275,6 +282,11 @@ def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
     (measured before: hovering armed at 32 m). With FS_GCS_ENABLE = 5 and SYSID_MYGCS = the
     bridge's source_system, the loss of the bridge's HEARTBEAT is ArduPilot's GCS failsafe:
     LAND after FS_GCS_TIMEOUT, then the land detector disarms.
+
+    It engages right after boot, so it is also the test of the armable wait before the mode
+    switch: before that, 2 of 8 runs under load (3 of ~20 fresh-clone CI runs) lost a race
+    with ArduPilot's RC mode switch (STABILIZE, ~1.5 s after boot) and held, as it should
+    once that happened (docs/mavlink.md "Safety policy").
     """
     with ardupilot_sitl(tmp_path, *GCS_FAILSAFE_PARAMS) as ap:
         f = ap_flight(ap)

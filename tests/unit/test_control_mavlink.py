@@ -562,11 +562,10 @@ def test_arming_waits_until_armable_retries_with_backoff_and_logs_the_reasons(pe
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.request_arm()
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ARMING,
-                 force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
-    spin(bridge, 1.0, force_fn=feeder(bridge))
-    assert peer.arm_commands() == []               # not armable: nothing sent
+    spin(bridge, 3.0, force_fn=feeder(bridge))
+    # not armable: no mode switch, no ARM (the autopilot keeps its own mode until ready)
+    assert bridge.sequencer.state == EngageState.SET_MODE, bridge.sequencer.last_reason
+    assert peer.arm_commands() == [] and peer.set_mode_commands() == []
     assert bridge.status().armable is False
     peer.refuse_arm = 3                            # armable, but refused three times
     peer.armable = True
@@ -1354,5 +1353,67 @@ def test_reader_poll_supervises_only_after_messages_other_than_high_rate_telemet
             bridge.poll(1, supervise)
             assert bool(steps) == stepped, ([x.get_type() for x in batch], supervise)
         assert bridge.telemetry.landed_state == m.MAV_LANDED_STATE_IN_AIR   # handled all
+    finally:
+        bridge.close()
+
+
+# --- MavlinkLink: connection errors and a second UDP peer are reported -----------------------
+
+def test_a_port_that_cannot_be_opened_is_reported_once_per_loss_with_its_reason():
+    from ibvs_control.core.mavlink_link import MavlinkLink
+    clock = FrozenClock()
+    link = MavlinkLink(LinkConfig(url='/dev/ibvs-no-such-serial-port,921600',
+                                  reconnect_period_s=1.0), clock=clock)
+    try:
+        events = link.pop_events()
+        assert len(events) == 1 and events[0][0] == 'error', events
+        assert 'cannot open /dev/ibvs-no-such-serial-port' in events[0][1]
+        assert 'cannot open' in link.last_error
+        for _ in range(3):                      # retried every reconnect period, said once
+            clock.t += 1.5
+            link.poll()
+        assert link.counters.reopens >= 2 and link.pop_events() == []
+        assert 'cannot open' in link.last_error
+    finally:
+        link.close()
+
+
+def test_a_second_udp_sender_is_warned_about_once_and_counted():
+    """pymavlink's udpin answers every address it heard: a second sender gets our messages."""
+    link, autopilot = _reader_link()
+    port = link.config.url.rsplit(':', 1)[1]
+    tool = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=255,
+                                      source_component=190)
+    try:
+        _send_heartbeat(autopilot)
+        assert _wait_until(lambda: link.poll() or link.counters.received >= 1)
+        assert link.pop_events() == [] and link.counters.peers == 1
+        for _ in range(3):                      # a GCS tool on the companion port
+            tool.mav.heartbeat_send(mavutil.mavlink.MAV_TYPE_GCS,
+                                    mavutil.mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        assert _wait_until(lambda: link.poll() is not None and link.counters.foreign >= 3)
+        _send_heartbeat(autopilot)
+        assert _wait_until(lambda: link.poll() or link.counters.received >= 2)
+        events = link.pop_events()
+        assert len(events) == 1 and events[0][0] == 'warn', events
+        tool_port = tool.port.getsockname()[1]
+        assert f'second address 127.0.0.1:{tool_port}' in events[0][1]
+        assert link.counters.peers == 2 and link.target_system == 1
+    finally:
+        link.close()
+        autopilot.close()
+        tool.close()
+
+
+def test_the_bridge_logs_the_links_errors_and_reports_them_on_diagnostics():
+    link = LinkConfig(url='/dev/ibvs-no-such-serial-port,921600')
+    bridge = MavlinkBridge(BridgeConfig(link=link, mass=MASS, max_thrust_factor=2.0,
+                                        configured_hover_thrust=0.5), clock=FrozenClock())
+    try:
+        events = bridge.pop_events()
+        assert [lv for lv, text in events if 'cannot open' in text] == ['error'], events
+        st = bridge.status()
+        assert not st.link_up and 'cannot open' in st.link_error
+        assert st.counters['peers'] == 0
     finally:
         bridge.close()

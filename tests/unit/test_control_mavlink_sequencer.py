@@ -120,6 +120,86 @@ def test_arming_gives_up_after_arm_timeout():
     assert r.seq.request_arm()[0] is False
 
 
+@pytest.mark.parametrize('autopilot', [Autopilot.PX4, Autopilot.ARDUPILOT])
+def test_no_mode_switch_before_the_autopilot_is_armable(autopilot):
+    # ArduCopter SITL in a fresh-clone CI run: GUIDED_NOGPS set 1.5 s after boot, then its RC
+    # input turned valid and it applied its mode switch (STABILIZE): the bridge saw a takeover
+    r = Rig(autopilot)
+    r.step(armed=False, armable=False, custom_mode=0)
+    assert r.seq.request_arm()[0]
+    r.step(supervisor_mode=Mode.WINDOW)
+    r.run(3.0)
+    assert r.seq.state == EngageState.SET_MODE and r.sent == []
+    assert any('armable' in e and 'before switching' in e for e in r.seq.pop_events())
+    # PX4 keeps its (ignored) pre-stream; ArduPilot gets setpoints from the switch on only
+    assert r.seq.streaming == (autopilot == Autopilot.PX4)
+    r.run(1.0, custom_mode=2)                    # the autopilot picks a mode of its own: fine
+    assert r.seq.state == EngageState.SET_MODE and r.sent == []
+    r.step(t=r.inp.t + 0.01, armable=True)       # ready: switch, then arm
+    assert r.seq.streaming
+    [(_, c)] = r.commands(MavCmd.DO_SET_MODE)
+    assert c.params[1] == (6.0 if autopilot == Autopilot.PX4 else 20.0)
+    r.step(t=r.inp.t + 0.01, custom_mode=OFFBOARD if autopilot == Autopilot.PX4
+           else GUIDED_NOGPS)
+    assert r.seq.state == EngageState.ARMING and len(r.commands(MavCmd.COMPONENT_ARM_DISARM)) == 1
+
+
+def test_no_pre_arm_report_yet_waits_for_one_then_tries():
+    # fresh-clone CI again: the switch went out 0.05 s before ArduPilot's first SYS_STATUS
+    r = Rig(Autopilot.ARDUPILOT, armable_unknown_wait_s=1.0)
+    r.step(armed=False, armable=None, custom_mode=0)
+    r.seq.request_arm()
+    r.step(supervisor_mode=Mode.WINDOW)
+    r.run(0.5)
+    assert r.sent == [] and r.seq.state == EngageState.SET_MODE
+    r.step(t=r.inp.t + 0.01, armable=False)             # the report: not armable, wait on
+    r.run(2.0)
+    assert r.sent == []
+    r.step(t=r.inp.t + 0.01, armable=True)
+    assert [c.params for _, c in r.sent] == [(1.0, 20.0)]
+    # an autopilot that never reports the bit: tried after armable_unknown_wait_s
+    r = Rig(Autopilot.ARDUPILOT, armable_unknown_wait_s=1.0)
+    r.step(armed=False, armable=None, custom_mode=0)
+    r.step(supervisor_mode=Mode.WINDOW)
+    r.run(0.95)
+    assert r.sent == []
+    r.run(0.1)
+    assert [c.params for _, c in r.sent] == [(1.0, 20.0)]
+
+
+def test_never_armable_with_an_arm_request_fails_after_arm_timeout_without_a_switch():
+    r = Rig(Autopilot.ARDUPILOT, arm_timeout_s=3.0)
+    r.step(armed=False, armable=False, custom_mode=0)
+    r.seq.request_arm()
+    r.step(supervisor_mode=Mode.WINDOW)
+    r.run(2.9)
+    assert r.seq.state == EngageState.SET_MODE
+    r.run(0.2)
+    assert r.seq.state == EngageState.FAILED and 'not armable' in r.seq.last_reason
+    assert r.sent == []
+
+
+def test_a_second_engagement_arms_on_its_own_timer():
+    # the arming timer of the first engagement must not time out the second one's
+    r = Rig(arm_timeout_s=5.0)
+    r.step(armed=False)
+    assert r.seq.request_arm()[0]
+    r.step(supervisor_mode=Mode.WINDOW)
+    r.step(custom_mode=OFFBOARD)
+    assert r.seq.state == EngageState.ARMING
+    r.step(t=r.inp.t + 0.5, armed=True)
+    assert r.seq.state == EngageState.ENGAGED
+    r.step(t=r.inp.t + 0.01, custom_mode=POSCTL)          # the pilot takes over, lands
+    assert r.seq.state == EngageState.HELD
+    r.step(t=r.inp.t + 30.0, armed=False, supervisor_mode=Mode.IDLE, idle_reports=2)
+    assert r.seq.state == EngageState.STANDBY
+    assert r.seq.request_arm()[0]
+    r.step(t=r.inp.t + 0.01, supervisor_mode=Mode.WINDOW)
+    r.step(t=r.inp.t + 0.01, custom_mode=OFFBOARD)
+    assert r.seq.state == EngageState.ARMING, r.seq.last_reason
+    assert len(r.commands(MavCmd.COMPONENT_ARM_DISARM, 1.0)) == 2
+
+
 def test_no_engagement_without_idle_and_not_again_after_a_takeover_until_idle():
     r = Rig()
     r.step(idle_reports=0, supervisor_mode=Mode.WINDOW)

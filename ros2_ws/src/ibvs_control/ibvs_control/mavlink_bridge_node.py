@@ -107,6 +107,7 @@ PARAMETERS = {
     'arm_on_start': False,
     'arm_backoff_max_s': 8.0,
     'arm_timeout_s': 60.0,
+    'armable_unknown_wait_s': 1.0,
     'disarm_force_after_s': 1.0,
     'disarm_timeout_s': 10.0,
     'input_loss_action': 'auto',
@@ -193,6 +194,9 @@ PARAMETER_SPECS = {
     'arm_backoff_max_s': ('s (steady clock), arming retries back off (doubling) up to this',
                           0.0, None),
     'arm_timeout_s': ('s (steady clock), arming refused this long: FAILED', 0.0, None),
+    'armable_unknown_wait_s': ('s (steady clock), disarmed and no SYS_STATUS pre-arm report '
+                               'yet: the mode switch waits this long for one, then tries',
+                               0.0, None),
     'disarm_force_after_s': ('s (ROS clock, IMU stamps), touchdown rule: evidence and first '
                              'refusal this old before a forced disarm', 0.0, None),
     'disarm_timeout_s': ("s (steady clock), still armed this long after the ramp: the "
@@ -241,6 +245,7 @@ def config_from_parameters(p: dict) -> BridgeConfig:
                           max_attempts=p['max_attempts'],
                           arm_backoff_max_s=p['arm_backoff_max_s'],
                           arm_timeout_s=p['arm_timeout_s'],
+                          armable_unknown_wait_s=p['armable_unknown_wait_s'],
                           disarm_force_after_s=p['disarm_force_after_s'],
                           disarm_timeout_s=p['disarm_timeout_s'],
                           input_loss_action=p['input_loss_action'])
@@ -462,7 +467,9 @@ class MavlinkBridgeNode(Node):
         else:
             status.level = DiagnosticStatus.OK
         ts = st.time_sync
-        status.message = (f'link {"up" if st.link_up else "LOST"}, {st.engage_state}'
+        status.message = (f'link {"up" if st.link_up else "LOST"}'
+                          + (f' ({st.link_error})' if st.link_error and not st.link_up else '')
+                          + f', {st.engage_state}'
                           + (f' ({st.engage_reason})' if st.engage_reason else '')
                           + ('' if ts.synced else ', clock not synced: no imu/data')
                           + (f', autopilot internal errors 0x{st.autopilot_internal_errors:x}'

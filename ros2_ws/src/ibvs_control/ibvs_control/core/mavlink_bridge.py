@@ -140,6 +140,7 @@ class BridgeStatus:
     counters: dict
     time_sync: TimeSyncStatus
     imu_dropped_unsynced: int
+    link_error: str = ''                    # the connection's last error ('' if none)
 
 
 def param_value(value: float, param_type: int, bytewise: bool) -> float:
@@ -385,6 +386,7 @@ class MavlinkBridge:
         autopilot's own words (STATUSTEXT, EVENT), each text once per 5 s.
         """
         events, self._events = self._events, []
+        events += self.link.pop_events()
         events += self.telemetry.pop_events()
         if self.sequencer is not None:
             events += [('info', f'engage: {e}') for e in self.sequencer.pop_events()]
@@ -417,14 +419,15 @@ class MavlinkBridge:
             counters={'received': c.received, 'sent': c.sent, 'bad_data': c.bad_data,
                       'foreign': c.foreign, 'reconnects': c.reconnects, 'reopens': c.reopens,
                       'link_losses': c.link_losses, 'send_errors': c.send_errors,
-                      'headings_missing': self.pairing.missing,
+                      'peers': c.peers, 'headings_missing': self.pairing.missing,
                       'late_headings': self.pairing.late,
                       'timesync_answered': self.timesync.answered,
                       'hover_estimate_samples': self.estimator.accepted,
                       'hover_estimate_rejected': self.estimator.rejected,
                       'autopilot_reasons': tel.reasons,
                       'streams_refused': len(self.streams.refused) if self.streams else 0},
-            time_sync=self.time_sync.status(), imu_dropped_unsynced=tel.imu_dropped_unsynced)
+            time_sync=self.time_sync.status(), imu_dropped_unsynced=tel.imu_dropped_unsynced,
+            link_error=self.link.last_error)
 
     def close(self) -> None:
         """Close the link."""

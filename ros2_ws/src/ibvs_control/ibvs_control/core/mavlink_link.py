@@ -150,6 +150,7 @@ class LinkCounters:
     reopens: int = 0              # connection (re)opened after an error or a serial loss
     link_losses: int = 0
     send_errors: int = 0
+    peers: int = 0                # addresses a udpin link heard from (1 = the autopilot only)
 
 
 @dataclass(frozen=True)
@@ -189,6 +190,10 @@ class MavlinkLink:
         self._link_up = False
         self._last_open_t = -np.inf
         self._conn = None
+        self._events: list[tuple[str, str]] = []
+        self._reported_error = ''       # last_error as last reported (each text once per loss)
+        self._peers: list = []          # udpin: addresses heard from, in order
+        self.last_error = ''
         self.open()
 
     # --- connection --------------------------------------------------------------------
@@ -207,7 +212,7 @@ class MavlinkLink:
                 retries=0, udp_timeout=UDP_CLIENT_TIMEOUT_S)
         except Exception as exc:  # OSError, serial errors, bad URL: reported, retried
             self._conn = None
-            self.last_error = f'cannot open {self.config.url}: {exc}'
+            self._error(f'cannot open {self.config.url}: {exc}')
             return
         self._conn.mav.robust_parsing = True
         if self.config.signing_key is not None:
@@ -265,7 +270,7 @@ class MavlinkLink:
                 try:
                     msg = self._conn.recv_msg()
                 except Exception as exc:  # socket/serial error: reopen on the next period
-                    self.last_error = f'receive failed: {exc}'
+                    self._error(f'receive failed on {self.config.url}: {exc}')
                     self.close()
                     break
                 if msg is None:
@@ -278,8 +283,45 @@ class MavlinkLink:
                     messages.append(msg)
                 else:
                     self.counters.foreign += 1
+            self._check_peers()
         self._supervise()
         return messages
+
+    def pop_events(self) -> list[tuple[str, str]]:
+        """(level, text) since the last call: connection errors, a second UDP peer.
+
+        An error text is reported once, and again only after the link was up in between (a
+        port that cannot be opened is retried every ``reconnect_period_s`` silently).
+        """
+        events, self._events = self._events, []
+        return events
+
+    def _error(self, text: str) -> None:
+        self.last_error = text
+        if text != self._reported_error:
+            self._reported_error = text
+            self._events.append(('error', f'MAVLink link: {text}'))
+
+    def _check_peers(self) -> None:
+        """udpin: warn once per new sender address after the first (cheap: a length test).
+
+        pymavlink's udpin connection sends everything to every address it has heard from, so
+        a second MAVLink sender on this port (a GCS tool, a second autopilot or simulator)
+        receives our setpoints and commands too, and its HEARTBEATs may be taken for the
+        autopilot's when it uses the same system id.
+        """
+        clients = getattr(self._conn, 'clients', None)
+        if not isinstance(clients, set) or len(clients) == len(self._peers):
+            return
+        for address in sorted(clients - set(self._peers), key=str):
+            self._peers.append(address)
+            if len(self._peers) > 1:
+                self._events.append(('warn', (
+                    f'MAVLink link {self.config.url}: datagrams from a second address '
+                    f'{address[0]}:{address[1]} (first {self._peers[0][0]}:'
+                    f'{self._peers[0][1]}); the bridge sends to both. Give every other '
+                    'MAVLink sender its own port (docs/mavlink.md "Link")')))
+        self.counters.peers = len(self._peers)
 
     def _accept(self, msg) -> bool:
         """Filter to the autopilot; learn its ids from its first HEARTBEAT."""
@@ -313,6 +355,8 @@ class MavlinkLink:
         elif up and not self._link_up and self.counters.link_losses:
             self.counters.reconnects += 1
         self._link_up = up
+        if up:
+            self._reported_error = ''       # a later failure is news again
         if up or now - self._last_open_t < self.config.reconnect_period_s:
             return
         # Lost (or never up): a broken connection is reopened; a serial port too once it was
@@ -332,7 +376,7 @@ class MavlinkLink:
             self._conn.mav.send(getattr(self._conn.mav, encode)(*args))
         except Exception as exc:  # socket/serial error: counted, reopened by poll()
             self.counters.send_errors += 1
-            self.last_error = f'send failed: {exc}'
+            self._error(f'send failed on {self.config.url}: {exc}')
             return False
         self.counters.sent += 1
         return True

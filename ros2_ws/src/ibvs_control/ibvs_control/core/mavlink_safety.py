@@ -38,8 +38,9 @@ POLICY: tuple[Rule, ...] = (
     Rule('start', 'stream setpoints only (PX4) or nothing (ArduPilot); never arm',
          'bridge'),
     Rule('supervisor leaves IDLE (engage)',
-         'PX4: > prestream_s of setpoints, then OFFBOARD; ArduPilot: GUIDED_NOGPS (if '
-         'GUID_OPTIONS bit 3), setpoints from then on', 'bridge'),
+         'disarmed: first wait until armable (SYS_STATUS pre-arm bit); PX4: > prestream_s '
+         'of setpoints, then OFFBOARD; ArduPilot: GUIDED_NOGPS (if GUID_OPTIONS bit 3), '
+         'setpoints from then on', 'bridge'),
     Rule('engaged while disarmed',
          'arm only if asked (ibvs/arm, arm_on_start), once armable (SYS_STATUS pre-arm bit), '
          'retried with backoff; reasons logged (STATUSTEXT, EVENT)', 'bridge'),

@@ -12,6 +12,10 @@ since the last engagement, so a bridge restarted mid-flight never takes the vehi
     6. ArduPilot: read ``GUID_OPTIONS`` first and refuse (REFUSED) unless bit 3 is set (thrust
     is then thrust, not a climb rate); DO_SET_MODE (1, 20 = GUIDED_NOGPS); setpoints stream from
     the switch on only (ArduPilot needs no pre-stream, and a GUIDED mode obeys them).
+    Disarmed and reported not armable (SYS_STATUS pre-arm bit clear), or not reported yet
+    (for up to ``armable_unknown_wait_s``; then tried): no switch yet; the autopilot keeps its
+    own mode until it is ready (ArduCopter sets the mode of its RC mode switch when its RC
+    input first turns valid, after boot).
 Arm (only if asked: ``ibvs/arm`` or ``arm_on_start``)
     In the offboard mode and disarmed: ``MAV_CMD_COMPONENT_ARM_DISARM`` param1 = 1, once the
     autopilot reports itself armable (SYS_STATUS pre-arm bit), retried with a backoff (doubling
@@ -116,6 +120,8 @@ class SequencerConfig:
     max_attempts: int = 5            # mode switches: then FAILED (land: then stop streaming)
     arm_backoff_max_s: float = 8.0   # arming retries back off up to this period
     arm_timeout_s: float = 60.0      # arming still refused after this long: FAILED
+    armable_unknown_wait_s: float = 1.0  # disarmed, no pre-arm report yet: the mode switch
+    #                                      waits this long for one (then tries)
     disarm_force_after_s: float = 1.0  # touchdown rule: evidence and refusal this long
     disarm_timeout_s: float = 10.0   # still armed after the ramp this long: land mode
     input_loss_action: str = 'auto'  # forces lost: 'stop' streaming | 'land' | 'auto'
@@ -126,7 +132,7 @@ class SequencerConfig:
             raise ValueError(f'input_loss_action must be one of {INPUT_LOSS_ACTIONS}, not '
                              f'{self.input_loss_action!r}')
         for name in ('prestream_s', 'command_retry_s', 'arm_backoff_max_s', 'arm_timeout_s',
-                     'disarm_force_after_s', 'disarm_timeout_s'):
+                     'armable_unknown_wait_s', 'disarm_force_after_s', 'disarm_timeout_s'):
             if not getattr(self, name) > 0.0:
                 raise ValueError(f'{name} must be > 0')
         if int(self.max_attempts) < 1:
@@ -194,6 +200,7 @@ class EngageSequencer:
     _pending: _Pending | None = None
     _entered_t: float = 0.0
     _arm_start_t: float | None = None
+    _waiting_armable: bool = False       # SET_MODE, disarmed: the switch waits for armable
     _land_confirmed: bool = False
     _first_refusal_t: float | None = None
     _said: set = field(default_factory=set)
@@ -226,6 +233,8 @@ class EngageSequencer:
     def streaming(self) -> bool:
         """Whether setpoints should stream now (the link being up is checked by the bridge)."""
         s = self.state
+        if s == EngageState.SET_MODE and self._waiting_armable:
+            return self.config.autopilot == Autopilot.PX4    # ArduPilot: from the switch on
         if s in (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
                  EngageState.ENGAGED, EngageState.SHUTDOWN_RAMP, EngageState.DISARMING):
             return True
@@ -256,6 +265,9 @@ class EngageSequencer:
                 self._entered_t = t
             if state in (EngageState.HELD, EngageState.DONE, EngageState.FAILED):
                 self.arm_requested = False
+            if state not in (EngageState.SET_MODE, EngageState.ARMING):
+                self._arm_start_t = None        # each engagement's arming has its own time
+            self._waiting_armable = False
             if state == EngageState.LANDING:
                 self._land_confirmed = False
             if state == EngageState.DISARMING:
@@ -389,6 +401,11 @@ class EngageSequencer:
             self._go(EngageState.ARMING if not inp.armed else EngageState.ENGAGED,
                      f'autopilot reports custom_mode {inp.custom_mode}', inp.t)
             return self._arming(inp) if not inp.armed else []
+        if not inp.armed and (inp.armable is False or (
+                inp.armable is None
+                and inp.t - self._entered_t < self.config.armable_unknown_wait_s)):
+            return self._wait_armable(inp)
+        self._waiting_armable = False
         if (self.config.autopilot == Autopilot.PX4
                 and inp.streaming_s <= self.config.prestream_s):
             return []  # PX4 needs a setpoint stream of > 1 s before OFFBOARD
@@ -400,6 +417,30 @@ class EngageSequencer:
                      inp.t)
             return []
         return out
+
+    def _wait_armable(self, inp: SequencerInputs) -> list[CommandRequest]:
+        """Disarmed and not armable yet: leave the autopilot in its own mode for now.
+
+        The switch waits, as the arming does, for the pre-arm bit: a not-yet-ready autopilot
+        still sets modes of its own (ArduCopter applies its RC mode switch when its RC input
+        first turns valid, ~1.5 s after boot: in a fresh-clone CI run it replaced a
+        GUIDED_NOGPS the bridge had set 0.2 s before, which the bridge rightly took for a
+        pilot's takeover). No pre-arm report yet (SYS_STATUS comes at ``status_rate_hz``
+        once requested): wait for one up to ``armable_unknown_wait_s`` from the engagement,
+        then try (an autopilot that never reports the bit). An arm request bounds the wait by
+        ``arm_timeout_s``, as in ARMING.
+        """
+        self._waiting_armable = True
+        self._say_once('state', 'waiting for the autopilot to be armable (pre-arm checks '
+                                'not passed yet; its reasons are logged) before switching to '
+                                'the offboard mode')
+        if self.arm_requested:
+            if self._arm_start_t is None:
+                self._arm_start_t = inp.t
+            if inp.t - self._arm_start_t > self.config.arm_timeout_s:
+                self._go(EngageState.FAILED, f'not armable after {self.config.arm_timeout_s:.0f}'
+                         ' s: the offboard mode was not requested', inp.t)
+        return []
 
     def _arming(self, inp: SequencerInputs) -> list[CommandRequest]:
         if inp.supervisor_mode not in FLYING_MODES:
