@@ -284,7 +284,7 @@ def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
     LAND after FS_GCS_TIMEOUT, then the land detector disarms.
 
     It engages right after boot, so it is also the test of the armable wait before the mode
-    switch: before that, 2 of 8 runs under load (3 of ~20 fresh-clone CI runs) lost a race
+    switch: before that, 2 of 8 runs under load (4 of 23 fresh-clone CI runs) lost a race
     with ArduPilot's RC mode switch (STABILIZE, ~1.5 s after boot) and held, as it should
     once that happened (docs/mavlink.md "Safety policy").
     """

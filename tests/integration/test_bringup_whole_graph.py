@@ -243,7 +243,10 @@ def assert_repeats(a: dict, b: dict) -> None:
     for key, (x, y) in pairs.items():
         assert abs(x - y) <= REPEAT_TOLERANCE[key], (key, x, y, context)
     assert [m['mode'] for m in a['modes']] == [m['mode'] for m in b['modes']], context
-    for ma, mb in zip(a['modes'], b['modes']):
+    # the transitions; not the first IDLE, whose t_start is the first supervisor status the
+    # scenario's monitor heard (volatile QoS): a fresh-clone CI run's monitor matched the
+    # composed process only at sim t = 0.12 s, in a flight otherwise bit-identical
+    for ma, mb in zip(a['modes'][1:], b['modes'][1:]):
         assert abs(ma['t_start_s'] - mb['t_start_s']) <= FRAME_S + 1e-9, context
 
 

@@ -120,28 +120,42 @@ def test_arming_gives_up_after_arm_timeout():
     assert r.seq.request_arm()[0] is False
 
 
-@pytest.mark.parametrize('autopilot', [Autopilot.PX4, Autopilot.ARDUPILOT])
-def test_no_mode_switch_before_the_autopilot_is_armable(autopilot):
+def test_ardupilot_no_mode_switch_before_it_is_armable():
     # ArduCopter SITL in a fresh-clone CI run: GUIDED_NOGPS set 1.5 s after boot, then its RC
     # input turned valid and it applied its mode switch (STABILIZE): the bridge saw a takeover
-    r = Rig(autopilot)
+    r = Rig(Autopilot.ARDUPILOT)
     r.step(armed=False, armable=False, custom_mode=0)
     assert r.seq.request_arm()[0]
     r.step(supervisor_mode=Mode.WINDOW)
     r.run(3.0)
     assert r.seq.state == EngageState.SET_MODE and r.sent == []
     assert any('armable' in e and 'before switching' in e for e in r.seq.pop_events())
-    # PX4 keeps its (ignored) pre-stream; ArduPilot gets setpoints from the switch on only
-    assert r.seq.streaming == (autopilot == Autopilot.PX4)
+    assert not r.seq.streaming                   # ArduPilot: setpoints from the switch on
     r.run(1.0, custom_mode=2)                    # the autopilot picks a mode of its own: fine
     assert r.seq.state == EngageState.SET_MODE and r.sent == []
     r.step(t=r.inp.t + 0.01, armable=True)       # ready: switch, then arm
     assert r.seq.streaming
     [(_, c)] = r.commands(MavCmd.DO_SET_MODE)
-    assert c.params[1] == (6.0 if autopilot == Autopilot.PX4 else 20.0)
-    r.step(t=r.inp.t + 0.01, custom_mode=OFFBOARD if autopilot == Autopilot.PX4
-           else GUIDED_NOGPS)
+    assert c.params == (1.0, 20.0)
+    r.step(t=r.inp.t + 0.01, custom_mode=GUIDED_NOGPS)
     assert r.seq.state == EngageState.ARMING and len(r.commands(MavCmd.COMPONENT_ARM_DISARM)) == 1
+
+
+def test_px4_switches_to_offboard_even_when_not_armable_in_the_pilots_mode():
+    # PX4's pre-arm bit is canArm(current nav_state): Position mode without a position
+    # estimate (indoors) is never armable, OFFBOARD attitude is; so PX4 switches, then waits
+    r = Rig()
+    r.step(armed=False, armable=False)
+    assert r.seq.request_arm()[0]
+    r.step(supervisor_mode=Mode.WINDOW)
+    r.step(t=r.inp.t + 0.01)
+    [(_, c)] = r.commands(MavCmd.DO_SET_MODE)     # at once (its stream ran > prestream_s)
+    assert c.params[1] == 6.0 and r.seq.streaming
+    r.step(t=r.inp.t + 0.01, custom_mode=OFFBOARD)
+    r.run(1.0)
+    assert r.seq.state == EngageState.ARMING and r.commands(MavCmd.COMPONENT_ARM_DISARM) == []
+    r.run(0.5, armable=True)
+    assert len(r.commands(MavCmd.COMPONENT_ARM_DISARM)) == 1
 
 
 def test_no_pre_arm_report_yet_waits_for_one_then_tries():

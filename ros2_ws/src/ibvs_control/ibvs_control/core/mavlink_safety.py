@@ -38,8 +38,8 @@ POLICY: tuple[Rule, ...] = (
     Rule('start', 'stream setpoints only (PX4) or nothing (ArduPilot); never arm',
          'bridge'),
     Rule('supervisor leaves IDLE (engage)',
-         'disarmed: first wait until armable (SYS_STATUS pre-arm bit); PX4: > prestream_s '
-         'of setpoints, then OFFBOARD; ArduPilot: GUIDED_NOGPS (if GUID_OPTIONS bit 3), '
+         'PX4: > prestream_s of setpoints, then OFFBOARD; ArduPilot: once armable if '
+         'disarmed (SYS_STATUS pre-arm bit), GUIDED_NOGPS (if GUID_OPTIONS bit 3), '
          'setpoints from then on', 'bridge'),
     Rule('engaged while disarmed',
          'arm only if asked (ibvs/arm, arm_on_start), once armable (SYS_STATUS pre-arm bit), '

@@ -12,10 +12,12 @@ since the last engagement, so a bridge restarted mid-flight never takes the vehi
     6. ArduPilot: read ``GUID_OPTIONS`` first and refuse (REFUSED) unless bit 3 is set (thrust
     is then thrust, not a climb rate); DO_SET_MODE (1, 20 = GUIDED_NOGPS); setpoints stream from
     the switch on only (ArduPilot needs no pre-stream, and a GUIDED mode obeys them).
-    Disarmed and reported not armable (SYS_STATUS pre-arm bit clear), or not reported yet
-    (for up to ``armable_unknown_wait_s``; then tried): no switch yet; the autopilot keeps its
-    own mode until it is ready (ArduCopter sets the mode of its RC mode switch when its RC
-    input first turns valid, after boot).
+    ArduPilot, disarmed and reported not armable (SYS_STATUS pre-arm bit clear), or not
+    reported yet (for up to ``armable_unknown_wait_s``; then tried): no switch yet; it keeps
+    its own mode until it is ready (ArduCopter sets the mode of its RC mode switch when its
+    RC input first turns valid, after boot). Not PX4: its pre-arm bit is ``canArm`` of the
+    *current* mode (commander), so an indoor vehicle left in Position mode without a position
+    estimate would never be armable there, though it is in OFFBOARD.
 Arm (only if asked: ``ibvs/arm`` or ``arm_on_start``)
     In the offboard mode and disarmed: ``MAV_CMD_COMPONENT_ARM_DISARM`` param1 = 1, once the
     autopilot reports itself armable (SYS_STATUS pre-arm bit), retried with a backoff (doubling
@@ -234,7 +236,7 @@ class EngageSequencer:
         """Whether setpoints should stream now (the link being up is checked by the bridge)."""
         s = self.state
         if s == EngageState.SET_MODE and self._waiting_armable:
-            return self.config.autopilot == Autopilot.PX4    # ArduPilot: from the switch on
+            return False                    # ArduPilot: setpoints from the switch on
         if s in (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
                  EngageState.ENGAGED, EngageState.SHUTDOWN_RAMP, EngageState.DISARMING):
             return True
@@ -401,9 +403,10 @@ class EngageSequencer:
             self._go(EngageState.ARMING if not inp.armed else EngageState.ENGAGED,
                      f'autopilot reports custom_mode {inp.custom_mode}', inp.t)
             return self._arming(inp) if not inp.armed else []
-        if not inp.armed and (inp.armable is False or (
-                inp.armable is None
-                and inp.t - self._entered_t < self.config.armable_unknown_wait_s)):
+        if self.config.autopilot == Autopilot.ARDUPILOT and not inp.armed and (
+                inp.armable is False or (
+                    inp.armable is None
+                    and inp.t - self._entered_t < self.config.armable_unknown_wait_s)):
             return self._wait_armable(inp)
         self._waiting_armable = False
         if (self.config.autopilot == Autopilot.PX4
@@ -419,7 +422,7 @@ class EngageSequencer:
         return out
 
     def _wait_armable(self, inp: SequencerInputs) -> list[CommandRequest]:
-        """Disarmed and not armable yet: leave the autopilot in its own mode for now.
+        """ArduPilot, disarmed and not armable yet: leave it in its own mode for now.
 
         The switch waits, as the arming does, for the pre-arm bit: a not-yet-ready autopilot
         still sets modes of its own (ArduCopter applies its RC mode switch when its RC input
