@@ -1400,6 +1400,17 @@ def test_a_second_udp_sender_is_warned_about_once_and_counted():
         tool_port = tool.port.getsockname()[1]
         assert f'second address 127.0.0.1:{tool_port}' in events[0][1]
         assert link.counters.peers == 2 and link.target_system == 1
+        # all silent, then the autopilot again from a new port (ArduPilot restarted: it sends
+        # from an ephemeral port): only noted
+        time.sleep(1.1)
+        restarted = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1,
+                                               source_component=1)
+        _send_heartbeat(restarted)
+        assert _wait_until(lambda: link.poll() or link.counters.received >= 3)
+        events = link.pop_events()
+        assert [lv for lv, _ in events] == ['info'] and 'restarted' in events[0][1], events
+        assert link.counters.peers == 3
+        restarted.close()
     finally:
         link.close()
         autopilot.close()

@@ -33,6 +33,7 @@ from pymavlink import mavutil  # noqa: E402  (must follow the MAVLINK20 switch)
 mavlink = mavutil.mavlink
 
 SIGNING_KEY_LEN = 32            # bytes, MAVLink 2 signing secret key
+PEER_CONCURRENT_S = 1.0         # s (wall), a udpin peer heard this recently still sends
 UINT32_MAX = 2**32 - 1
 
 
@@ -303,24 +304,34 @@ class MavlinkLink:
             self._events.append(('error', f'MAVLink link: {text}'))
 
     def _check_peers(self) -> None:
-        """udpin: warn once per new sender address after the first (cheap: a length test).
+        """udpin: warn once per new sender address while another one sends (a length test).
 
-        pymavlink's udpin connection sends everything to every address it has heard from, so
-        a second MAVLink sender on this port (a GCS tool, a second autopilot or simulator)
-        receives our setpoints and commands too, and its HEARTBEATs may be taken for the
-        autopilot's when it uses the same system id.
+        pymavlink's udpin connection sends everything to every address it has heard from
+        (dropping one silent for ``udp_timeout``), so a second MAVLink sender on this port (a
+        GCS tool, a second autopilot or simulator) receives our setpoints and commands too, and
+        its HEARTBEATs may be taken for the autopilot's when it uses the same system id. A new
+        address while the earlier ones are silent (ArduPilot sends from an ephemeral port, so a
+        restart changes it) is only noted.
         """
         clients = getattr(self._conn, 'clients', None)
         if not isinstance(clients, set) or len(clients) == len(self._peers):
             return
+        alive = getattr(self._conn, 'clients_last_alive', {})
+        now = time.time()                   # pymavlink's clock for clients_last_alive
         for address in sorted(clients - set(self._peers), key=str):
+            others = [a for a in self._peers
+                      if now - alive.get(a, -np.inf) < PEER_CONCURRENT_S]
             self._peers.append(address)
-            if len(self._peers) > 1:
+            here = f'{address[0]}:{address[1]}'
+            if others:
                 self._events.append(('warn', (
-                    f'MAVLink link {self.config.url}: datagrams from a second address '
-                    f'{address[0]}:{address[1]} (first {self._peers[0][0]}:'
-                    f'{self._peers[0][1]}); the bridge sends to both. Give every other '
-                    'MAVLink sender its own port (docs/mavlink.md "Link")')))
+                    f'MAVLink link {self.config.url}: datagrams from a second address {here} '
+                    f'while {others[0][0]}:{others[0][1]} sends too; the bridge sends to both. '
+                    'Give every other MAVLink sender its own port (docs/mavlink.md "Link")')))
+            elif len(self._peers) > 1:      # the old one went silent: a restart, likely
+                self._events.append(('info', (
+                    f'MAVLink link {self.config.url}: datagrams now from {here} (the earlier '
+                    'address is silent: an autopilot restarted on a new source port?)')))
         self.counters.peers = len(self._peers)
 
     def _accept(self, msg) -> bool:
