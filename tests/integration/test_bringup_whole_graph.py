@@ -218,7 +218,8 @@ def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path)
     sim_log = (tmp_path / 'pad-killed' / 'logs' / 'sim.log').read_text()
     given_up = re.findall(r'lockstep: (.+) not published within .* frame at t = ([0-9.]+) s',
                           sim_log)
-    print(f'products given up: {given_up}')
+    back = re.findall(r'lockstep: (\S+) published again \(stamp t = ([0-9.]+) s', sim_log)
+    print(f'products given up: {given_up}; published again: {back}')
     assert sum(len(names.split(', ')) for names, _ in given_up) \
         == second['timing']['products_given_up'], (given_up, second['timing'])
     for names, t in given_up:

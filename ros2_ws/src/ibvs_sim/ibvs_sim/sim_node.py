@@ -413,8 +413,11 @@ class SimNode(Node):
 
     def _product_callback(self, topic: str):
         def note(msg) -> None:
-            self.sim.products.note(topic, msg.header.stamp.sec * NS_PER_S
-                                   + msg.header.stamp.nanosec)
+            stamp_ns = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+            if self.sim.products.note(topic, stamp_ns):
+                self.get_logger().info(
+                    f'lockstep: {topic} published again (stamp t = {stamp_ns / NS_PER_S:.3f} '
+                    f's, sim t = {self.sim.t:.3f} s): waited for again')
         return note
 
     def _on_tick(self) -> None:

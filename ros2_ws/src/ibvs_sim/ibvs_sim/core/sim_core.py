@@ -371,11 +371,13 @@ class GraphProducts:
         older = [mode for t, mode in self.statuses if t <= stamp_ns]
         return older[-1] if older else None
 
-    def note(self, topic: str, stamp_ns: int) -> None:
-        """Note a published product stamped ``stamp_ns``."""
+    def note(self, topic: str, stamp_ns: int) -> bool:
+        """Note a published product stamped ``stamp_ns``; return True if it was given up."""
         if stamp_ns > self.newest_ns.get(topic, -1):
             self.newest_ns[topic] = int(stamp_ns)
+        back = topic in self.given_up
         self.given_up.discard(topic)
+        return back
 
     def missing(self) -> list[str]:
         """Return the expected products of the last frame not yet published.
