@@ -130,6 +130,7 @@ def test_ardupilot_no_mode_switch_before_it_is_armable():
     r.run(3.0)
     assert r.seq.state == EngageState.SET_MODE and r.sent == []
     assert any('armable' in e and 'before switching' in e for e in r.seq.pop_events())
+    assert 'armable' in r.seq.last_reason        # what /diagnostics shows meanwhile
     assert not r.seq.streaming                   # ArduPilot: setpoints from the switch on
     r.run(1.0, custom_mode=2)                    # the autopilot picks a mode of its own: fine
     assert r.seq.state == EngageState.SET_MODE and r.sent == []

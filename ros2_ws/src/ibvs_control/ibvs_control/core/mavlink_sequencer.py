@@ -276,9 +276,16 @@ class EngageSequencer:
                 self._first_refusal_t = None
 
     def _say_once(self, key: str, text: str) -> None:
+        """Log ``text`` once per ``key``.
+
+        A 'state' text (what the state waits for) is also the reason /diagnostics shows until
+        the next transition.
+        """
         if key not in self._said:
             self._said.add(key)
             self._events.append(text)
+            if key == 'state':
+                self.last_reason = text
 
     def in_offboard(self, custom_mode: int) -> bool:
         """Whether the HEARTBEAT custom_mode is the bridge's offboard mode."""
