@@ -46,6 +46,13 @@ class Rig:
         return [(t, c) for t, c in self.sent if c.command == command
                 and (param1 is None or c.params[0] == param1)]
 
+    def engage_disarmed(self, armable, arm=True):
+        """Disarmed in the autopilot's own mode (ArduPilot STABILIZE) with ``armable``; WINDOW."""
+        self.step(armed=False, armable=armable, custom_mode=0)
+        if arm:
+            assert self.seq.request_arm()[0]
+        self.step(supervisor_mode=Mode.WINDOW)
+
     def engage(self):
         self.step(supervisor_mode=Mode.WINDOW)
         assert self.seq.state == EngageState.SET_MODE
@@ -124,9 +131,7 @@ def test_ardupilot_no_mode_switch_before_it_is_armable():
     # ArduCopter SITL in a fresh-clone CI run: GUIDED_NOGPS set 1.5 s after boot, then its RC
     # input turned valid and it applied its mode switch (STABILIZE): the bridge saw a takeover
     r = Rig(Autopilot.ARDUPILOT)
-    r.step(armed=False, armable=False, custom_mode=0)
-    assert r.seq.request_arm()[0]
-    r.step(supervisor_mode=Mode.WINDOW)
+    r.engage_disarmed(armable=False)
     r.run(3.0)
     assert r.seq.state == EngageState.SET_MODE and r.sent == []
     assert any('armable' in e and 'before switching' in e for e in r.seq.pop_events())
@@ -162,9 +167,7 @@ def test_px4_switches_to_offboard_even_when_not_armable_in_the_pilots_mode():
 def test_no_pre_arm_report_yet_waits_for_one_then_tries():
     # fresh-clone CI again: the switch went out 0.05 s before ArduPilot's first SYS_STATUS
     r = Rig(Autopilot.ARDUPILOT, armable_unknown_wait_s=1.0)
-    r.step(armed=False, armable=None, custom_mode=0)
-    r.seq.request_arm()
-    r.step(supervisor_mode=Mode.WINDOW)
+    r.engage_disarmed(armable=None)
     r.run(0.5)
     assert r.sent == [] and r.seq.state == EngageState.SET_MODE
     r.step(t=r.inp.t + 0.01, armable=False)             # the report: not armable, wait on
@@ -174,8 +177,7 @@ def test_no_pre_arm_report_yet_waits_for_one_then_tries():
     assert [c.params for _, c in r.sent] == [(1.0, 20.0)]
     # an autopilot that never reports the bit: tried after armable_unknown_wait_s
     r = Rig(Autopilot.ARDUPILOT, armable_unknown_wait_s=1.0)
-    r.step(armed=False, armable=None, custom_mode=0)
-    r.step(supervisor_mode=Mode.WINDOW)
+    r.engage_disarmed(armable=None, arm=False)
     r.run(0.95)
     assert r.sent == []
     r.run(0.1)
@@ -184,9 +186,7 @@ def test_no_pre_arm_report_yet_waits_for_one_then_tries():
 
 def test_never_armable_with_an_arm_request_fails_after_arm_timeout_without_a_switch():
     r = Rig(Autopilot.ARDUPILOT, arm_timeout_s=3.0)
-    r.step(armed=False, armable=False, custom_mode=0)
-    r.seq.request_arm()
-    r.step(supervisor_mode=Mode.WINDOW)
+    r.engage_disarmed(armable=False)
     r.run(2.9)
     assert r.seq.state == EngageState.SET_MODE
     r.run(0.2)

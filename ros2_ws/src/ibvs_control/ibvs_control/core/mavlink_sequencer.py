@@ -202,7 +202,6 @@ class EngageSequencer:
     _pending: _Pending | None = None
     _entered_t: float = 0.0
     _arm_start_t: float | None = None
-    _waiting_armable: bool = False       # SET_MODE, disarmed: the switch waits for armable
     _land_confirmed: bool = False
     _first_refusal_t: float | None = None
     _said: set = field(default_factory=set)
@@ -235,8 +234,9 @@ class EngageSequencer:
     def streaming(self) -> bool:
         """Whether setpoints should stream now (the link being up is checked by the bridge)."""
         s = self.state
-        if s == EngageState.SET_MODE and self._waiting_armable:
-            return False                    # ArduPilot: setpoints from the switch on
+        if s == EngageState.SET_MODE and self.config.autopilot == Autopilot.ARDUPILOT \
+                and self._pending is None:
+            return False                    # ArduPilot: setpoints from the switch on only
         if s in (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
                  EngageState.ENGAGED, EngageState.SHUTDOWN_RAMP, EngageState.DISARMING):
             return True
@@ -269,7 +269,6 @@ class EngageSequencer:
                 self.arm_requested = False
             if state not in (EngageState.SET_MODE, EngageState.ARMING):
                 self._arm_start_t = None        # each engagement's arming has its own time
-            self._waiting_armable = False
             if state == EngageState.LANDING:
                 self._land_confirmed = False
             if state == EngageState.DISARMING:
@@ -415,7 +414,6 @@ class EngageSequencer:
                     inp.armable is None
                     and inp.t - self._entered_t < self.config.armable_unknown_wait_s)):
             return self._wait_armable(inp)
-        self._waiting_armable = False
         if (self.config.autopilot == Autopilot.PX4
                 and inp.streaming_s <= self.config.prestream_s):
             return []  # PX4 needs a setpoint stream of > 1 s before OFFBOARD
@@ -440,7 +438,6 @@ class EngageSequencer:
         then try (an autopilot that never reports the bit). An arm request bounds the wait by
         ``arm_timeout_s``, as in ARMING.
         """
-        self._waiting_armable = True
         self._say_once('state', 'waiting for the autopilot to be armable (pre-arm checks '
                                 'not passed yet; its reasons are logged) before switching to '
                                 'the offboard mode')
