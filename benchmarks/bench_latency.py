@@ -27,8 +27,11 @@ The frames are all of WINDOW mode: with mode gating (params.yaml ``mode_gating``
 detector and the floor flow only keep their images; ``--gating-ab`` compares with gating off.
 Needs a quiet machine for meaningful figures (the load average is printed).
 
+The composed layout (one process) is also run with the down camera stopped. ``--repeats N``
+runs every case N times, interleaved, and takes each dead-input difference within a round.
+
 Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
-benchmarks/bench_latency.py [--frames N] [--smoke]``.
+benchmarks/bench_latency.py [--frames N] [--repeats N] [--smoke]``.
 """
 from __future__ import annotations
 
@@ -373,10 +376,42 @@ def report(r: dict) -> None:
             + f'; total {sum(idle.values()):.1f}')
 
 
+# (name, run_once keyword arguments, the case it is compared with) of the default runs; the
+# dead-input cases are compared with the same layout's all-inputs run of the same round
+CASES = (('all inputs', {}, None),
+         ('pad detector killed', {'kill': 'pad_detector'}, 'all inputs'),
+         ('down camera stopped', {'cameras': ('front',)}, 'all inputs'),
+         ('composed, all inputs', {'composed': True}, None),
+         ('composed, down camera stopped', {'composed': True, 'cameras': ('front',)},
+          'composed, all inputs'))
+
+
+def dead_input_report(rounds: list) -> None:
+    """Print each dead-input case's median latency minus its baseline's, paired by round.
+
+    The medians of one case move by 1-5 ms from run to run with the machine's state, more than
+    the 1 ms target: each round runs every case once, back to back, and the difference is
+    taken within a round; the median and range over the rounds are printed.
+    """
+    for name, _, base in CASES:
+        if base is None:
+            continue
+        diffs = [np.median(r[name]['latency_ms']) - np.median(r[base]['latency_ms'])
+                 for r in rounds if name in r and base in r
+                 and len(r[name]['latency_ms']) and len(r[base]['latency_ms'])]
+        if diffs:
+            print(f'{name}: median latency {np.median(diffs):+.2f} ms against {base} '
+                  f'(median of {len(diffs)} round(s); range {min(diffs):+.2f} ... '
+                  f'{max(diffs):+.2f} ms)')
+
+
 def main(argv: list | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--frames', type=int, default=500, help='frames replayed per run (50 Hz)')
     p.add_argument('--idle-s', type=float, default=5.0, help='idle CPU window, s')
+    p.add_argument('--repeats', type=int, default=1,
+                   help='rounds of every case, interleaved (dead-input differences paired '
+                        'by round)')
     p.add_argument('--smoke', action='store_true',
                    help='CI: one short run of the separate-process graph (figures mean little)')
     p.add_argument('--no-composed', action='store_true',
@@ -387,6 +422,8 @@ def main(argv: list | None = None) -> int:
                    help='only: all inputs with mode gating on, then off (params.yaml '
                         'mode_gating: false), same frames')
     a = p.parse_args(argv)
+    if a.repeats < 1:
+        p.error('--repeats must be >= 1')
     n = max(a.frames if not a.smoke else 110, START_AT_FRAME + WARMUP_FRAMES + 10)
     idle_s = 1.0 if a.smoke else a.idle_s
     from ibvs_common.dds_profile import use_dds_profile_here
@@ -396,34 +433,35 @@ def main(argv: list | None = None) -> int:
           f'on {os.cpu_count()} cores; rendering...', flush=True)
     track = approach_track(n)
     images = render(*track)
+    if a.gating_ab:
+        cases = [('all inputs', {}), ('all inputs, no gating',
+                                      {'params_file': params_without_gating()})]
+    elif a.smoke:                       # CI's smoke run: the whole path once is enough
+        cases = [('all inputs', {})]
+    else:
+        cases = [(name, kw) for name, kw, _ in CASES
+                 if not (a.no_composed and kw.get('composed'))]
+    if a.grouped:
+        cases.append(('grouped, all inputs', {'grouped': True}))
+    rounds = []
     rclpy.init()
     try:
-        runs = [run_once('all inputs', images, track, n, idle_s)]
-        if a.gating_ab:
-            runs.append(run_once('all inputs, no gating', images, track, n, idle_s,
-                                 params_file=params_without_gating()))
-        elif not a.smoke:               # CI's smoke run: the whole path once is enough
-            runs += [run_once('pad detector killed', images, track, n, 0.0,
-                              kill='pad_detector'),
-                     run_once('down camera stopped', images, track, n, 0.0,
-                              cameras=('front',))]
-        if not (a.no_composed or a.smoke):
-            runs.append(run_once('composed, all inputs', images, track, n, idle_s,
-                                 composed=True))
-        if a.grouped:
-            runs.append(run_once('grouped, all inputs', images, track, n, idle_s,
-                                 grouped=True))
+        for k in range(a.repeats):
+            rounds.append({})
+            for name, kw in cases:
+                # the idle CPU of each layout once, in its first round's all-inputs run
+                idle = idle_s if k == 0 and 'kill' not in kw and 'cameras' not in kw else 0.0
+                rounds[-1][name] = run_once(name if a.repeats == 1 else f'{name} #{k + 1}',
+                                            images, track, n, idle, **kw)
     finally:
         rclpy.try_shutdown()
-    for r in runs:
-        report(r)
-    base = np.median(runs[0]['latency_ms']) if len(runs[0]['latency_ms']) else np.nan
-    for r in runs[1:3] if not a.gating_ab else ():
-        if len(r['latency_ms']):
-            print(f"{r['name']}: median latency {np.median(r['latency_ms']) - base:+.2f} ms "
-                  'against all inputs')
+    for r in rounds:
+        for run in r.values():
+            report(run)
+    if not a.gating_ab:
+        dead_input_report(rounds)
     # exit 1 only when nothing could be measured; slow figures are figures
-    return 0 if all(len(r['latency_ms']) > 0 for r in runs) else 1
+    return 0 if all(len(run['latency_ms']) > 0 for r in rounds for run in r.values()) else 1
 
 
 if __name__ == '__main__':
