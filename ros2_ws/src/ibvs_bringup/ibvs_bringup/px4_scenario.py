@@ -47,7 +47,12 @@ FAILSAFE_MODE, SHUTDOWN_MODE, IDLE_MODE = 5, 4, 0
 START_TOLERANCE_M = 0.5       # m, ground truth vs the scenario's start at ibvs/start
 START_YAW_TOL_RAD = 0.05      # rad, true heading vs world.yaml's initial yaw
 START_SPEED_TOL_MPS = 0.1     # m/s, true speed at ibvs/start (the scenario starts at rest)
-REPOSITION_WAIT_S = 3.0       # s (steady) between DO_REPOSITION corrections
+REPOSITION_WAIT_S = 3.0       # s (steady), at least this long between DO_REPOSITION corrections
+REPOSITION_STILL_S = 1.0      # s (steady) the truth must have been slower than
+#                               START_SPEED_TOL_MPS before the next correction: one sent while
+#                               PX4 still swings to the last hold point re-excites its loop
+#                               (s17px4e2: +-1 m swings for 120 s, 33 repositions)
+REPOSITION_MAX_WAIT_S = 10.0  # s (steady), a correction anyway after this long in motion
 # PX4's threads run at this nice value (None: as started): on a vehicle PX4 has its own flight
 # controller; here a starved PX4 lets SIH's clock slip (measured: 6700 ppm skew and a jump
 # that reset the bridge's clock sync, IMU stale -> FAILSAFE, with PX4 at the graph's priority)
@@ -213,11 +218,12 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
     # PX4 holds its own estimate, which is off the truth and wanders (measured: 0.3-0.5 m in
     # height after the take-off, up to 1 m and 0.3 rad of heading within a minute on the
     # loaded machine): the harness moves PX4's hold point by the ground-truth error
-    # (DO_REPOSITION, PX4 stays in AUTO.LOITER) every REPOSITION_WAIT_S until the truth is
+    # (DO_REPOSITION, PX4 stays in AUTO.LOITER), once it has settled after the last one
+    # (REPOSITION_STILL_S, or REPOSITION_MAX_WAIT_S in motion), until the truth is
     # at the start while the preflight passes, then starts at once; the pose is reported.
     target, yaw0 = frame.to_ned(xi0), float(load_world().initial_yaw)
     deadline = time.monotonic() + opts.preflight_timeout_s
-    moved_at, info['repositions'] = -np.inf, 0
+    moved_at, moving_at, info['repositions'] = -np.inf, time.monotonic(), 0
     while True:
         spin(0.05)
         err = target - frame.to_ned(monitor.log.xi[-1])
@@ -228,6 +234,8 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
         arrived = time.monotonic() - moved_at >= REPOSITION_WAIT_S
         # and is still: a start at 0.33 m/s sideways (measured) lost the window in WINDOW
         still = float(np.linalg.norm(monitor.log.v[-1])) < START_SPEED_TOL_MPS
+        if not still:
+            moving_at = time.monotonic()
         if there and arrived and still and monitor.health.healthy():
             break
         if time.monotonic() > deadline:
@@ -235,7 +243,10 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
             raise _Stop(f'not at the start with the preflight passed within '
                         f'{opts.preflight_timeout_s:.0f} s (error {np.round(err, 2).tolist()} '
                         f'm NED, {yaw_err:+.3f} rad, {info["repositions"]} repositions)')
-        if not there and time.monotonic() - moved_at > REPOSITION_WAIT_S:
+        since_move = time.monotonic() - moved_at
+        settled = time.monotonic() - moving_at >= REPOSITION_STILL_S
+        if not there and since_move > REPOSITION_WAIT_S \
+                and (settled or since_move > REPOSITION_MAX_WAIT_S):
             moved_at = time.monotonic()
             info['repositions'] += pilot.reposition_by(err, yaw_err)
     print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
