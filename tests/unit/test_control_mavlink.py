@@ -680,6 +680,36 @@ def test_silent_controller_px4_stops_streaming_after_hold_last(peer_bridge):
     assert len(peer.set_mode_commands()) == 1      # nothing commanded: PX4's failsafe acts
 
 
+def test_forces_of_old_images_are_not_flown_and_hand_the_vehicle_back(peer_bridge):
+    """A graph 0.3 s behind (older than max_force_age_s): refused, then handed back.
+
+    The forces keep coming, so the controller is not silent; they answer images older than
+    max_force_age_s (0.25 s), so none is flown, none counts as valid, and after hold_last_s
+    the bridge hands PX4 its offboard-loss failsafe. One 0.1 s behind is flown.
+    """
+    peer, bridge = peer_bridge(bridge_kw={'hold_last_s': 0.25})
+    engage(bridge, peer)
+    tilted = MASS * np.array([-2.0, 0.0, GRAVITY])
+
+    def behind(lag_s):
+        def feed(_now):
+            stamp = ros_now(bridge) - int(lag_s * 1e9)
+            bridge.on_heading(stamp, heading_msg_quat(0.0))
+            bridge.on_force(stamp, tilted)
+        return feed
+    spin(bridge, 0.1, force_fn=behind(0.1))
+    assert bridge.status().stale_setpoints == 0
+    flown = last_setpoint(peer)
+    assert flown.thrust > 0.5                      # the tilted force, 0.1 s old: flown
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+                 force_fn=behind(0.3))
+    assert ok, bridge.sequencer.last_reason
+    assert 'offboard-loss failsafe' in bridge.sequencer.last_reason
+    st = bridge.status()
+    assert st.stale_setpoints > 5 and st.rejected_setpoints == st.stale_setpoints
+    assert 'ms old' in bridge.shaper.last_error
+
+
 def test_silent_controller_ardupilot_commands_land(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'kind': 'ardupilot', 'params': {
         'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.3, 'ATC_ANGLE_BOOST': 1}},
@@ -1066,10 +1096,12 @@ def test_diagnostics_report_the_clock_sync(peer_bridge):
 # --- heading / force pairing by stamp ---------------------------------------------------------
 
 S0, S1, S2 = 1_000_000_000, 1_020_000_000, 1_040_000_000      # 20 ms frames: 1000, 1020, 1040
+# (older than max_force_age_s on the peer's boot clock by the time they are sent: the tests
+# that send them switch the age check off; test_forces_of_old_images_... tests it)
 
 
 def test_heading_before_force_sent_at_once_with_the_heading_of_the_same_stamp(peer_bridge):
-    peer, bridge = peer_bridge(bridge_kw={'clock': FrozenClock()})
+    peer, bridge = peer_bridge(bridge_kw={'clock': FrozenClock(), 'max_force_age_s': 0.0})
     wait_link(bridge)
     bridge.on_heading(S0, heading_msg_quat(0.1))
     bridge.on_heading(S1, heading_msg_quat(0.2))   # a newer heading is already there ...
@@ -1084,7 +1116,7 @@ def test_heading_before_force_sent_at_once_with_the_heading_of_the_same_stamp(pe
 
 def test_force_without_its_heading_flies_at_once_with_the_latest_and_is_counted(peer_bridge):
     clock = FrozenClock()
-    peer, bridge = peer_bridge(bridge_kw={'clock': clock})
+    peer, bridge = peer_bridge(bridge_kw={'clock': clock, 'max_force_age_s': 0.0})
     wait_link(bridge)
     bridge.on_heading(S0, heading_msg_quat(0.3))
     bridge.on_force(S0, HOVER_F)
@@ -1127,7 +1159,7 @@ def test_stream_held_sends_nothing_then_fallback_carries_no_newer_time(peer_brid
 def test_content_follows_the_status_of_the_force_stamp_not_the_latest_mode(peer_bridge):
     # ibvs/mode SHUTDOWN may land before the force of the last LANDING frame: that force is
     # still flown as LANDING (its own status); the SHUTDOWN frame's force starts the ramp.
-    peer, bridge = peer_bridge()
+    peer, bridge = peer_bridge(bridge_kw={'max_force_age_s': 0.0})   # fixed stamps: no age
     wait_link(bridge)
     assert bridge.on_supervisor_status(1_000_000_000, int(Mode.LANDING)) == ''
     assert bridge.on_supervisor_status(1_020_000_000, int(Mode.SHUTDOWN)) == ''

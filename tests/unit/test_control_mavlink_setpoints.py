@@ -100,6 +100,25 @@ def test_shutdown_ramp_runs_on_vehicle_time_and_on_the_wall_after_a_stall():
     assert r.elapsed(100.9 + RAMP_STALL_S + 0.5) == pytest.approx(0.7)   # ... then the wall
 
 
+def test_a_force_of_an_old_image_is_refused_and_counted():
+    """max_force_age_s on the ROS clock: received at t, answering the image of stamp_t."""
+    s = shaper(max_force_age_s=0.25)
+    F = MASS * np.array([-1.0, 0.0, GRAVITY])
+    assert s.on_force(10.0, F, 0.0, 0.5, stamp_t=10.0) == ''         # lockstep: age 0
+    assert s.on_force(10.3, F, 0.0, 0.5, stamp_t=10.05) == ''        # 0.25 s: the limit
+    reason = s.on_force(10.6, F, 0.0, 0.5, stamp_t=10.3001)
+    assert 'ms old' in reason and (s.rejected, s.stale) == (1, 1)
+    t = s.target(10.6, Mode.WINDOW, 0.0, 0.5, 1, 10.3, 0.0, engaged=True)
+    assert t.source == SetpointSource.HOLD_LAST                       # held, not flown
+    assert s.on_force(10.6, np.array([np.nan, 0, 1.0]), 0.0, 0.5, stamp_t=10.6) != ''
+    assert (s.rejected, s.stale) == (2, 1)                           # bad content: not stale
+    assert s.on_force(20.0, F, 0.0, 0.5) == ''                       # stamp unknown: no check
+    off = shaper(max_force_age_s=0.0)
+    assert off.on_force(20.0, F, 0.0, 0.5, stamp_t=10.0) == ''       # 0 = off
+    with pytest.raises(ValueError, match='max_force_age_s'):
+        shaper(max_force_age_s=-0.1)
+
+
 def test_refused_forces():
     s = shaper()
     for bad in (np.array([np.nan, 0.0, 9.0]), np.array([0.0, 0.0, 1e4]),

@@ -97,6 +97,7 @@ PARAMETERS = {
     'heartbeat_rate_hz': 1.0,
     'diagnostics_rate_hz': 1.0,
     'hold_last_s': 0.25,
+    'max_force_age_s': 0.25,
     'max_force_factor': 3.0,
     'max_tilt_rad': 0.6,
     'shutdown_ramp_s': 2.0,
@@ -178,6 +179,10 @@ PARAMETER_SPECS = {
     'diagnostics_rate_hz': ('Hz (steady clock timer), /diagnostics; > 0', 0.0, None),
     'hold_last_s': ('s (ROS clock, vehicle time), the last valid setpoint is kept this long, '
                     'then the vehicle is handed back (input_loss_action)', 0.0, None),
+    'max_force_age_s': ('s (ROS clock), a force computed from an image older than this when '
+                        'it arrives is refused (not flown: the held setpoint goes on, and '
+                        'after hold_last_s of refusals the vehicle is handed back): a graph '
+                        'that falls behind does not fly old images; 0 = off', 0.0, None),
     'max_force_factor': ('|F| above this factor * m g is refused', 0.0, None),
     'max_tilt_rad': ('rad, tilt limit of the thrust direction', 0.0, math.pi),
     'shutdown_ramp_s': ('s (ROS clock, force stamps), SHUTDOWN: thrust ramp to 0, then disarm',
@@ -273,7 +278,7 @@ def config_from_parameters(p: dict) -> BridgeConfig:
         heartbeat_request_hz=p['heartbeat_request_hz'],
         streams_off=message_ids(n for n in p['streams_off'] if n.strip()),
         stream_rate_hz=p['stream_rate_hz'], idle_tick_rate_hz=p['idle_tick_rate_hz'],
-        time_sync=sync, hold_last_s=p['hold_last_s'],
+        time_sync=sync, hold_last_s=p['hold_last_s'], max_force_age_s=p['max_force_age_s'],
         max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
         shutdown_ramp_s=p['shutdown_ramp_s'], arm_on_start=bool(p['arm_on_start']),
         px4_events=events, sequencer=seq, estimator=estimator)
@@ -490,6 +495,7 @@ class MavlinkBridgeNode(Node):
                   'setpoint_source': st.setpoint_source,
                   'setpoint_rate_hz': f'{st.setpoint_rate_hz:.1f}',
                   'rejected_setpoints': str(st.rejected_setpoints),
+                  'stale_setpoints': str(st.stale_setpoints),
                   'landed_state': fmt(st.landed_state, 'd'),
                   'armable': fmt(st.armable, '', 'unknown'),
                   'autopilot_internal_errors': f'0x{st.autopilot_internal_errors:x}',

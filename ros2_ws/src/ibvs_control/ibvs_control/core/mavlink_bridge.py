@@ -82,6 +82,7 @@ class BridgeConfig:
     idle_tick_rate_hz: float = 10.0          # the periodic step while quiet (see quiet)
     time_sync: TimeSyncConfig = field(default_factory=TimeSyncConfig)
     hold_last_s: float = 0.25                # s of vehicle time: no valid force -> hand back
+    max_force_age_s: float = 0.25            # s (ROS clock), a force of an older image: refused
     max_force_factor: float = 3.0            # |F| above factor * m g is out of range
     max_tilt_rad: float = 0.6                # tilt limit of the thrust direction
     shutdown_ramp_s: float = 2.0             # SHUTDOWN: thrust ramp time to 0
@@ -141,6 +142,7 @@ class BridgeStatus:
     time_sync: TimeSyncStatus
     imu_dropped_unsynced: int
     link_error: str = ''                    # the connection's last error ('' if none)
+    stale_setpoints: int = 0                # of rejected_setpoints: images too old
 
 
 def param_value(value: float, param_type: int, bytewise: bool) -> float:
@@ -170,7 +172,8 @@ class MavlinkBridge:
         self.streams: StreamRequests | None = None
         self.shaper = SetpointShaper(ShaperConfig(
             config.mass, config.max_thrust_factor, config.max_force_factor,
-            config.max_tilt_rad, config.hold_last_s, config.shutdown_ramp_s))
+            config.max_tilt_rad, config.hold_last_s, config.shutdown_ramp_s,
+            config.max_force_age_s))
         self.pairing = HeadingPairing()
         self.seed = HoverThrustSeed(config.configured_hover_thrust,
                                     config.hover_thrust_source == 'autopilot')
@@ -277,7 +280,7 @@ class MavlinkBridge:
         p = self.pairing.on_force(stamp_ns, F_I)
         yaw = self.telemetry.yaw_now if p.yaw is None else p.yaw
         reason = self.shaper.on_force(self._vehicle_s() or 0.0, p.F_I, yaw,
-                                      self.hover_for_stamp(p.stamp_ns))
+                                      self.hover_for_stamp(p.stamp_ns), p.stamp_ns / NS_PER_S)
         if not reason:
             self.safety.on_force(self._vehicle_s())
         if self._setpoint_stamp_ns is None or p.stamp_ns > self._setpoint_stamp_ns:
@@ -427,7 +430,7 @@ class MavlinkBridge:
                       'autopilot_reasons': tel.reasons,
                       'streams_refused': len(self.streams.refused) if self.streams else 0},
             time_sync=self.time_sync.status(), imu_dropped_unsynced=tel.imu_dropped_unsynced,
-            link_error=self.link.last_error)
+            link_error=self.link.last_error, stale_setpoints=self.shaper.stale)
 
     def close(self) -> None:
         """Close the link."""

@@ -44,6 +44,8 @@ POLICY: tuple[Rule, ...] = (
     Rule('engaged while disarmed',
          'arm only if asked (ibvs/arm, arm_on_start), once armable (SYS_STATUS pre-arm bit), '
          'retried with backoff; reasons logged (STATUSTEXT, EVENT)', 'bridge'),
+    Rule('a force of an image older than max_force_age_s (the graph falls behind)',
+         'refused, not flown: counts as no force (stale_setpoints in /diagnostics)', 'bridge'),
     Rule('forces stop for hold_last_s (vehicle time)',
          'hold the last setpoint until then; then PX4: stop streaming; ArduPilot: LAND '
          '(input_loss_action)', 'autopilot: offboard-loss failsafe (PX4) / LAND (ArduPilot)'),

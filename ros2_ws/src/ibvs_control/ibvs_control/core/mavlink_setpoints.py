@@ -68,6 +68,7 @@ class ShaperConfig:
     max_tilt_rad: float = 0.6       # tilt limit of the thrust direction
     hold_last_s: float = 0.25       # s of vehicle time a valid setpoint is kept
     shutdown_ramp_s: float = 2.0    # SHUTDOWN: thrust ramp time to 0 (vehicle time)
+    max_force_age_s: float = 0.25   # s (ROS clock), a force of an older image is refused; 0 off
 
     def __post_init__(self):
         for name in ('mass', 'max_thrust_factor', 'max_force_factor', 'max_tilt_rad',
@@ -75,6 +76,9 @@ class ShaperConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
+        if not (np.isfinite(self.max_force_age_s) and self.max_force_age_s >= 0.0):
+            raise ValueError(f'max_force_age_s must be finite and >= 0, got '
+                             f'{self.max_force_age_s}')
 
 
 @dataclass(frozen=True)
@@ -191,6 +195,7 @@ class SetpointShaper:
         self.config = config
         self.tilt_boost_by_autopilot = False    # True: send F_z (ArduPilot ATC_ANGLE_BOOST=1)
         self.rejected = 0
+        self.stale = 0                          # of them: forces of images too old (age)
         self.last_error = ''
         self._valid: _Valid | None = None
         self._last_refused = False
@@ -218,15 +223,35 @@ class SetpointShaper:
             thrust *= float(sp.R_IB_des[2, 2])     # cos(tilt): the vertical component
         return sp.q_IB_wxyz, float(np.clip(thrust, 0.0, 1.0))
 
-    def on_force(self, t: float, F_I: np.ndarray, yaw: float, hover: float) -> str:
+    def check_age(self, t: float, stamp_t: float | None) -> str:
+        """Return '' for a force answering an image of ``stamp_t`` received at ``t``, else why.
+
+        Both on the ROS clock (s): system time onboard, sim time in the sim, where lockstep
+        stops the clock while the graph computes (an age of 0). A force computed from an image
+        older than ``max_force_age_s`` is refused: a graph that falls behind (an overloaded
+        onboard computer queues its frames) must not fly old images. With the default equal
+        to ``hold_last_s``, such a force is older than anything the hold itself would fly.
+        """
+        limit = self.config.max_force_age_s
+        if limit <= 0.0 or stamp_t is None or stamp_t <= 0.0 or t - stamp_t <= limit:
+            return ''
+        return (f'force of an image {1e3 * (t - stamp_t):.0f} ms old (max_force_age_s '
+                f'{1e3 * limit:.0f} ms): the graph falls behind')
+
+    def on_force(self, t: float, F_I: np.ndarray, yaw: float, hover: float,
+                 stamp_t: float | None = None) -> str:
         """Store a force received at vehicle time t (s) with its yaw; compute its content once.
 
-        Returns '' or the refusal reason (a refused force keeps the last valid one).
+        ``stamp_t``: the stamp (s, ROS clock) of the image the force answers (None: unknown,
+        no age check). Returns '' or the refusal reason (a refused force keeps the last valid
+        one).
         """
-        reason = self.check_force(F_I)
+        stale = self.check_age(t, stamp_t)
+        reason = stale or self.check_force(F_I)
         self._last_refused = bool(reason)
         if reason:
             self.rejected += 1
+            self.stale += bool(stale)
             self.last_error = reason
             return reason
         q, thrust = self.force_target(F_I, yaw, hover)
