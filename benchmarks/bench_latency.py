@@ -318,10 +318,12 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
                               and rep.start_future.result().success)
     finally:
         stop.set()
-        got, boot_to_sys_ns = results.get(timeout=20.0)
-        ap.join(timeout=10.0)
-        runner.stop()
-        rep.close()
+        try:
+            got, boot_to_sys_ns = results.get(timeout=20.0)
+            ap.join(timeout=10.0)
+        finally:                    # a stand-in that never answered must not orphan the graph
+            runner.stop()
+            rep.close()
     counted = np.array(stamps[START_AT_FRAME + WARMUP_FRAMES:], dtype=np.int64)
     lat, answered = [], set()
     for ms, rx_ns in got:
