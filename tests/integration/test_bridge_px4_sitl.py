@@ -235,9 +235,14 @@ class Run:
         st = self.bridge.status().time_sync
         ages, rtts = self.judged_ages_ms(), self.rtts_ms()
         every = self.ages_ms()
-        return (f'{name}: link after {self.t_link:.2f} s, synced '
-                f'{self.t_sync - self.t_link:.2f} s later; offset {st.offset_ns / 1e9:.6f} s, '
-                f'skew {st.skew_ppm:+.0f} ppm; '
+        # unsynced at the end (a reset after a clock jump, not re-synced yet): said, and the
+        # check's assertions say why it fails
+        offset = 'none' if st.offset_ns is None else f'{st.offset_ns / 1e9:.6f} s'
+        skew = 'none' if st.skew_ppm is None else f'{st.skew_ppm:+.0f} ppm'
+        synced = 'never synced' if self.t_sync is None or self.t_link is None \
+            else f'synced {self.t_sync - self.t_link:.2f} s later'
+        link = 'no link' if self.t_link is None else f'link after {self.t_link:.2f} s'
+        return (f'{name}: {link}, {synced}; offset {offset}, skew {skew}; '
                 f'TIMESYNC accepted {st.accepted}, rejected rtt {st.rejected_rtt} / outliers '
                 f'{st.rejected_outliers}, resets {st.resets}; rtt median {np.median(rtts):.2f} '
                 f'ms, p95 {np.percentile(rtts, 95):.2f} ms; boot clock grid '
