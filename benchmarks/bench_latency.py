@@ -462,8 +462,15 @@ def main(argv: list | None = None) -> int:
             report(run)
     if not a.gating_ab:
         dead_input_report(rounds)
-    # exit 1 only when nothing could be measured; slow figures are figures
-    return 0 if all(len(run['latency_ms']) > 0 for r in rounds for run in r.values()) else 1
+    silent = [run['name'] for r in rounds for run in r.values() if not len(run['latency_ms'])]
+    if silent:
+        print('no frame answered in: ' + ', '.join(silent) + ' (the logs under '
+              'results/bench_latency/ say why, e.g. the supervisor failed safe)')
+    # exit 1 only when nothing could be measured; slow figures are figures. The smoke run
+    # checks that the benchmark runs end to end (a graph that is not up raises): on a loaded
+    # CI machine its graph may rightly fail safe before it answers a frame (CI, 2026-11-26:
+    # the front flow had no IMU attitude at its image stamps for 0.5 s, FAILSAFE)
+    return 0 if a.smoke or not silent else 1
 
 
 if __name__ == '__main__':

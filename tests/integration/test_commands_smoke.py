@@ -39,7 +39,9 @@ def test_every_benchmark_has_a_smoke_run():
 def test_benchmark_smoke_run(name, tmp_path):
     out = run([str(ROOT / 'benchmarks' / name), *BENCH_ARGS[name]], cwd=tmp_path)
     print(out)
-    assert 'median' in out
+    # bench_latency's smoke run reports every run's answered frames, a median only when one
+    # was answered (a loaded CI machine may make its graph fail safe first)
+    assert ('answered' if name == 'bench_latency.py' else 'median') in out
 
 
 def test_readme_feature_level_run(tmp_path):
