@@ -172,7 +172,7 @@ def test_a_drifting_boot_clock_is_tracked_with_its_skew():
     # a plain exponential smoothing (no skew) lags 7.7 ms/s * 0.1 s / 0.05 = 15 ms: outliers
 
 
-def test_outliers_are_not_used_and_five_in_a_row_reset_then_resync():
+def test_outliers_are_not_used_and_five_in_a_row_re_initialise_from_them():
     ts, link = synced()
     accepted = ts.accepted
     for _ in range(4):
@@ -186,14 +186,12 @@ def test_outliers_are_not_used_and_five_in_a_row_reset_then_resync():
     for _ in range(4):
         link.trip()
     assert ts.synced and ts.offset_ns == OFFSET
-    events = link.trip()                           # the 5th in a row
-    assert not ts.synced and ts.resets == 1
-    assert any('time jump' in text for _, text in events)
-    for _ in range(4):
-        link.trip()
-        assert not ts.synced
-    link.trip()
-    assert ts.synced and ts.offset_ns == jumped
+    events = link.trip()                           # the 5th in a row: the new offset at once
+    assert ts.synced and ts.resets == 1 and ts.offset_ns == jumped
+    assert any('time jump' in text and 're-initialised' in text for _, text in events)
+    for _ in range(20):
+        link.trip()                                # tracked from there, no further reset
+    assert ts.offset_ns == jumped and ts.resets == 1 and ts.skew == 0.0
 
 
 def test_deviation_gate_is_a_parameter():
@@ -202,8 +200,11 @@ def test_deviation_gate_is_a_parameter():
     assert ts.rejected_outliers == 0
     link.trip(offset=OFFSET + 5 * MS)
     assert ts.synced
-    link.trip(offset=OFFSET + 5 * MS)              # 2 in a row: reset
-    assert not ts.synced
+    link.trip(offset=OFFSET + 5 * MS)              # 2 in a row: reset, 2 of 5 initial samples
+    assert not ts.synced and ts.resets == 1
+    for _ in range(3):
+        link.trip(offset=OFFSET + 5 * MS)
+    assert ts.synced and ts.offset_ns == OFFSET + 5 * MS
 
 
 def test_reboot_resets_on_time_boot_ms_or_tc1_going_back():

@@ -48,7 +48,9 @@ Tracking
 Outliers
     A sample farther than ``max_deviation_s`` (10 ms) from the prediction is not used (e.g.
     -20 ms with rtt 0 when our ``/clock`` lags the sim by one frame); ``max_consecutive_outliers``
-    (5) in a row mean a time jump (a clock was set): reset, re-initialise.
+    (5) in a row mean a time jump (a clock was set): reset, and re-initialise from those
+    outliers (the newest ``init_samples`` of them: synced again at once, no imu/data gap; a
+    gap of 0.2 s or more is an IMU dropout to the supervisor, FAILSAFE in flight).
 Reboot
     A ``time_boot_ms`` or ``tc1`` more than 1 s before the previous one of its kind: the
     autopilot rebooted, reset, re-initialise.
@@ -236,15 +238,13 @@ class TimeSync:
         if abs(residual) > self._max_dev_ns:
             self.rejected_outliers += 1
             self._outlier_streak += 1
+            self._outliers.append((t, sample))
             if self._outlier_streak >= self.config.max_consecutive_outliers:
-                events.append(('warn', f'TIMESYNC: {self._outlier_streak} samples in a row more '
-                                       f'than {self.config.max_deviation_s * 1e3:.1f} ms from '
-                                       f'the offset (last {residual / 1e6:+.1f} ms): time jump, '
-                                       'clock sync reset'))
-                self.reset()
+                self._rejump(events, residual)
             return events
         self.accepted += 1
         self._outlier_streak = 0
+        self._outliers = []
         self._k += 1
         k = self._k
         a = max(self.config.alpha, 2.0 * (2 * k - 1) / (k * (k + 1)))
@@ -275,6 +275,26 @@ class TimeSync:
         """Forget the offset (counted): unsynced until ``init_samples`` new samples."""
         self.resets += 1
         self._clear()
+
+    def _rejump(self, events: list, residual: float) -> None:
+        """Start again from the outliers of a time jump's streak (counted as a reset).
+
+        They passed the RTT gate and agree with each other, so they are samples of the new
+        offset: as MAVROS's sys_time joins the new offset at once, the newest ``init_samples``
+        of them are the new initial samples (synced at once when the streak is that long), and
+        imu/data goes on without the gap that waiting for new samples would leave.
+        """
+        streak = self._outliers[-self.config.init_samples:]
+        self.reset()
+        self._init = streak
+        if len(streak) >= self.config.init_samples:
+            self._start()
+        events.append(('warn', f'TIMESYNC: {len(streak)} samples in a row more than '
+                               f'{self.config.max_deviation_s * 1e3:.1f} ms from the offset '
+                               f'(last {residual / 1e6:+.1f} ms): time jump, clock sync '
+                               're-initialised from them' + (
+                                   f': ROS - boot = {self._base_ns / NS_PER_S:.6f} s'
+                                   if self.synced else '')))
 
     # --- mapping -----------------------------------------------------------------------------
     def boot_ms_to_ros_ns(self, time_boot_ms: int) -> int | None:
@@ -313,6 +333,7 @@ class TimeSync:
         self._k = 0
         self._init: list[tuple[int, int]] = []
         self._outlier_streak = 0
+        self._outliers: list[tuple[int, int]] = []     # (t, sample) of the current streak
         self._last_request_ros_ns = None
 
 
