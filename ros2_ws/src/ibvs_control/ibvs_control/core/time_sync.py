@@ -279,10 +279,11 @@ class TimeSync:
     def _rejump(self, events: list, residual: float) -> None:
         """Start again from the outliers of a time jump's streak (counted as a reset).
 
-        They passed the RTT gate and agree with each other, so they are samples of the new
-        offset: as MAVROS's sys_time joins the new offset at once, the newest ``init_samples``
-        of them are the new initial samples (synced at once when the streak is that long), and
-        imu/data goes on without the gap that waiting for new samples would leave.
+        They passed the RTT gate, as initial samples must, and they are what the clock pair
+        reads after the jump: the newest ``init_samples`` of them are taken as the new initial
+        samples (their median, as at the start; synced at once when the streak is that long),
+        so imu/data goes on without the gap that waiting for new samples leaves. (MAVROS's
+        sys_time discards them and stamps with its receive time until it converges again.)
         """
         streak = self._outliers[-self.config.init_samples:]
         self.reset()
