@@ -237,13 +237,11 @@ class TimeSync:
         residual = (sample - self._base_ns) - self._predict(t)
         if abs(residual) > self._max_dev_ns:
             self.rejected_outliers += 1
-            self._outlier_streak += 1
             self._outliers.append((t, sample))
-            if self._outlier_streak >= self.config.max_consecutive_outliers:
+            if len(self._outliers) >= self.config.max_consecutive_outliers:
                 self._rejump(events, residual)
             return events
         self.accepted += 1
-        self._outlier_streak = 0
         self._outliers = []
         self._k += 1
         k = self._k
@@ -333,7 +331,6 @@ class TimeSync:
         self._t_ref = 0
         self._k = 0
         self._init: list[tuple[int, int]] = []
-        self._outlier_streak = 0
         self._outliers: list[tuple[int, int]] = []     # (t, sample) of the current streak
         self._last_request_ros_ns = None
 
