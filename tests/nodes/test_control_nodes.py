@@ -373,6 +373,33 @@ def test_controller_answers_every_status_once_in_idle(ctx):
     assert stamps_of(feed.forces[n:]) == [int(11.0 * 1e9)]
 
 
+def test_controller_that_fell_behind_answers_the_newest_frames_not_a_backlog(ctx):
+    """Statuses queue at most 2 deep (FRAME_QOS): 12 frames while the controller was busy.
+
+    Only the newest two are answered: a node that falls behind skips to the newest frames
+    instead of answering ever older ones (with depth 10 it answered the last 10, up to 0.2 s
+    old at 50 Hz).
+    """
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fc9_{TAG}')
+    feed = Feeder(context, f'feedfc9_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    spin_for(executor, 0.3)
+    xi = np.array([-2.0, 0.1, -1.82])
+    sent = []
+    for i in range(12):                  # published without spinning: nobody takes them
+        t = 10.0 + 0.02 * i
+        feed.imu.publish(imu_msg(t - 0.001))
+        feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+        status(feed, t, 0)
+        sent.append(int(round(t * 1e9)))
+    assert spin_until(executor, lambda: len(feed.forces) >= 2, 3.0)
+    spin_for(executor, 0.3)
+    assert stamps_of(feed.forces) == sent[-2:]
+
+
 def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clock(ctx):
     """WINDOW needs the front flow: no answer while sim time stands still, one at stamp + 40 ms.
 

@@ -35,6 +35,17 @@ IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT,
 # Setpoints and features: every message matters (lockstep), reliable.
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
+# One message per camera frame between the flight-path nodes (supervisor status, force and
+# heading setpoints: FRAME_QOS; the perception products as subscribed by the supervisor and
+# controller: PRODUCT_QOS, best effort as sensor data): keep last 2, as for images. A node
+# that falls behind takes the newest frame and at most one queued behind it, never a backlog:
+# with depth 5 / 10 a saturated computer queued 150-190 ms at the supervisor and 0.84-0.96 s
+# at the bridge (docs/performance.md, 2026-11-26). Not 1, for the reason given at IMAGE_QOS:
+# in lockstep a consumer may still hold frame k's message when frame k+1's arrives.
+FRAME_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
+                       durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+PRODUCT_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT,
+                         durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 
 
 def stamp_to_ns(stamp) -> int:

@@ -47,7 +47,7 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, imu_attitude, mode_from_status, NS_PER_S, ns_to_stamp,
+    COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, mode_from_status, NS_PER_S, ns_to_stamp,
     SENSOR_QOS, set_quat, set_vector3, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
@@ -146,7 +146,7 @@ class ForceControllerNode(Node):
         subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
-                                 COMMAND_QOS)
+                                 FRAME_QOS)
         self._deadline = DeadlineTimer(self, self._release)
         self.get_logger().info(f'force controller: gains {config.landing}, {config.window}, '
                                f'{config.crossing}, crossing law {config.crossing_law.value}, '

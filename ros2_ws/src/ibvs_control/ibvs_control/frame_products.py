@@ -1,8 +1,8 @@
 """The perception products of a camera frame, subscribed once for the supervisor and controller.
 
 :class:`FrameProductSubscriptions` subscribes ``window/corners``, ``pad/landmarks`` +
-``pad/groups`` and both ``<camera>_camera/translational_flow`` (sensor QoS), validates each
-message (:func:`~ibvs_control.core.frame_io.check_bearings`,
+``pad/groups`` and both ``<camera>_camera/translational_flow`` (``PRODUCT_QOS``: best effort,
+keep last 2), validates each message (:func:`~ibvs_control.core.frame_io.check_bearings`,
 :func:`~ibvs_control.core.frame_io.check_flow`), pairs the two pad halves by stamp
 (:class:`~ibvs_control.core.frame_io.PadPairing`) and hands every product to the node's
 ``add(kind, stamp_ns, value, err)``:
@@ -25,7 +25,7 @@ from sensor_msgs.msg import JointState
 
 from ibvs_common.core.modes import InputKind
 from ibvs_common.node_common import (
-    pad_group_names, polygon_points, SENSOR_QOS, stamp_to_ns, vector3)
+    pad_group_names, polygon_points, PRODUCT_QOS, stamp_to_ns, vector3)
 from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
 
 LANDMARKS_PER_GROUP = 4
@@ -38,14 +38,15 @@ class FrameProductSubscriptions:
     def __init__(self, node: Node, add: AddProduct) -> None:
         self._add = add
         self.pad_pairing = PadPairing(LANDMARKS_PER_GROUP)
-        node.create_subscription(PolygonStamped, 'window/corners', self._on_window, SENSOR_QOS)
+        node.create_subscription(PolygonStamped, 'window/corners', self._on_window,
+                                 PRODUCT_QOS)
         node.create_subscription(PolygonStamped, 'pad/landmarks', self._on_landmarks,
-                                 SENSOR_QOS)
-        node.create_subscription(JointState, 'pad/groups', self._on_groups, SENSOR_QOS)
+                                 PRODUCT_QOS)
+        node.create_subscription(JointState, 'pad/groups', self._on_groups, PRODUCT_QOS)
         for kind, camera in ((InputKind.FLOW_FRONT, 'front'), (InputKind.FLOW_DOWN, 'down')):
             node.create_subscription(Vector3Stamped, f'{camera}_camera/translational_flow',
                                      lambda msg, kind=kind: self._on_flow(kind, msg),
-                                     SENSOR_QOS)
+                                     PRODUCT_QOS)
 
     def _on_window(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg), expected=4)

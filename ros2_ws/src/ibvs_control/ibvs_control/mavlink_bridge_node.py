@@ -44,8 +44,8 @@ from ibvs_control.core.mavlink_telemetry import ImuSample, load_px4_events, mess
 from ibvs_control.core.time_sync import TimeSyncConfig
 from ibvs_common.intra_process import IntraProcessTopic
 from ibvs_common.node_common import (
-    COMMAND_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat, set_vector3,
-    stamp_to_ns, vector3)
+    COMMAND_QOS, FRAME_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat,
+    set_vector3, stamp_to_ns, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -314,12 +314,12 @@ class MavlinkBridgeNode(Node):
         # The heading subscription first: with both ready, the executor takes it first, so a
         # force finds the heading of its own stamp (the controller publishes the heading first).
         self.create_subscription(QuaternionStamped, 'ibvs/heading_setpoint', self._on_heading,
-                                 COMMAND_QOS)
+                                 FRAME_QOS)
         self.create_subscription(Vector3Stamped, 'ibvs/force_setpoint', self._on_force,
-                                 COMMAND_QOS)
+                                 FRAME_QOS)
         self.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
-                                 COMMAND_QOS)
+                                 FRAME_QOS)
         self.create_service(Trigger, 'ibvs/arm', self._on_arm)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(1.0 / p['stream_rate_hz'], self._on_stream_tick, clock=steady)
