@@ -292,6 +292,17 @@ def make_controller(context, name, **params):
     return ForceControllerNode(node_name=name, context=context, parameter_overrides=overrides)
 
 
+def controller_with_feeder(ctx, suffix, **params):
+    """A force controller ``fc<suffix>`` and its Feeder on the test executor."""
+    context, executor, nodes = ctx
+    fc = make_controller(context, f'fc{suffix}_{TAG}', **params)
+    feed = Feeder(context, f'feedfc{suffix}_{TAG}')
+    nodes += [fc, feed.node]
+    executor.add_node(fc)
+    executor.add_node(feed.node)
+    return fc, feed
+
+
 def stamps_of(msgs):
     return [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs]
 
@@ -309,12 +320,8 @@ def test_controller_observer_reads_imu_specific_force_in_flu(ctx):
     (FLU y), i.e. a force towards the west (-y in {I}, north-east-down); F = m g e3, so
     Delta / m = f_I + F / m = (0, -0.5, 0). An all-zero reading (an unfilled field) is ignored.
     """
-    context, executor, nodes = ctx
-    fc = make_controller(context, f'fcobs_{TAG}', disturbance_law='observer')
-    feed = Feeder(context, f'feedobs_{TAG}')
-    nodes += [fc, feed.node]
-    executor.add_node(fc)
-    executor.add_node(feed.node)
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, 'obs', disturbance_law='observer')
     spin_for(executor, 0.3)
     for i in range(100):                       # 2 s = 4 observer time constants
         t = 20.0 + 0.02 * i
@@ -334,12 +341,8 @@ def test_controller_observer_reads_imu_specific_force_in_flu(ctx):
 
 
 def test_controller_answers_every_status_once_in_idle(ctx):
-    context, executor, nodes = ctx
-    fc = make_controller(context, f'fc_{TAG}')
-    feed = Feeder(context, f'feedfc_{TAG}')
-    nodes += [fc, feed.node]
-    executor.add_node(fc)
-    executor.add_node(feed.node)
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, '')
     spin_for(executor, 0.3)
     xi = np.array([-2.0, 0.1, -1.82])
     sent = []
@@ -380,12 +383,8 @@ def test_controller_that_fell_behind_answers_the_newest_frames_not_a_backlog(ctx
     instead of answering ever older ones (with depth 10 it answered the last 10, up to 0.2 s
     old at 50 Hz).
     """
-    context, executor, nodes = ctx
-    fc = make_controller(context, f'fc9_{TAG}')
-    feed = Feeder(context, f'feedfc9_{TAG}')
-    nodes += [fc, feed.node]
-    executor.add_node(fc)
-    executor.add_node(feed.node)
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, '9')
     spin_for(executor, 0.3)
     xi = np.array([-2.0, 0.1, -1.82])
     sent = []
@@ -405,12 +404,8 @@ def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clo
 
     An unneeded product (the pad, whose detector is dead here) never delays a frame.
     """
-    context, executor, nodes = ctx
-    fc = make_controller(context, f'fc7_{TAG}', use_sim_time=True, frame_deadline_s=0.04)
-    feed = Feeder(context, f'feedfc7_{TAG}')
-    nodes += [fc, feed.node]
-    executor.add_node(fc)
-    executor.add_node(feed.node)
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, '7', use_sim_time=True, frame_deadline_s=0.04)
     xi = np.array([-2.0, 0.1, -1.82])
     t = 5.0
     feed.clock.publish(Clock(clock=stamp(t)))
@@ -439,12 +434,8 @@ def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clo
 
 
 def test_controller_bad_inputs_still_answered_without_nan(ctx):
-    context, executor, nodes = ctx
-    fc = make_controller(context, f'fc2_{TAG}')
-    feed = Feeder(context, f'feedfc2_{TAG}')
-    nodes += [fc, feed.node]
-    executor.add_node(fc)
-    executor.add_node(feed.node)
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, '2')
     spin_for(executor, 0.3)
     xi = np.array([-2.0, 0.1, -1.82])
     bad = corners_C(xi)
@@ -469,12 +460,8 @@ def test_controller_bad_inputs_still_answered_without_nan(ctx):
 
 
 def test_controller_window_mode_force_heading_features(ctx):
-    context, executor, nodes = ctx
-    fc = make_controller(context, f'fc3_{TAG}')
-    feed = Feeder(context, f'feedfc3_{TAG}')
-    nodes += [fc, feed.node]
-    executor.add_node(fc)
-    executor.add_node(feed.node)
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, '3')
     spin_for(executor, 0.3)
     xi = np.array([-2.0, 0.3, -1.82])
     for i in range(6):
@@ -504,12 +491,8 @@ def test_controller_window_mode_force_heading_features(ctx):
 def test_controller_flies_the_mode_reported_for_each_stamp(ctx):
     # The supervisor's status for each frame says which law flies it: IDLE hovers, WINDOW
     # flies the window law; the status may come before its frame's products.
-    context, executor, nodes = ctx
-    fc = make_controller(context, f'fc6_{TAG}', use_sim_time=True)
-    feed = Feeder(context, f'feedfc6_{TAG}')
-    nodes += [fc, feed.node]
-    executor.add_node(fc)
-    executor.add_node(feed.node)
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, '6', use_sim_time=True)
     feed.clock.publish(Clock(clock=stamp(40.0)))
     spin_for(executor, 0.3)
     xi = np.array([-2.0, 0.3, -1.82])
