@@ -388,6 +388,16 @@ CASES = (('all inputs', {}, None),
           'composed, all inputs'))
 
 
+def select_cases(names: list, no_composed: bool = False) -> list:
+    """Return the (name, run_once kwargs) of the default runs to do.
+
+    ``names``: only these cases of :data:`CASES` (empty: all); ``no_composed``: without the
+    single-process layout.
+    """
+    return [(name, kw) for name, kw, _ in CASES
+            if (not names or name in names) and not (no_composed and kw.get('composed'))]
+
+
 def dead_input_report(rounds: list) -> None:
     """Print each dead-input case's median latency minus its baseline's, paired by round.
 
@@ -420,6 +430,9 @@ def main(argv: list | None = None) -> int:
                    help='skip the single-process layout (ibvs_bringup.composed)')
     p.add_argument('--grouped', action='store_true',
                    help='also: the graph as three processes (composed.GROUPS)')
+    p.add_argument('--case', action='append', default=[], choices=[c[0] for c in CASES],
+                   help='only this case of the default runs (repeatable), e.g. '
+                        "'composed, all inputs'")
     p.add_argument('--gating-ab', action='store_true',
                    help='only: all inputs with mode gating on, then off (params.yaml '
                         'mode_gating: false), same frames')
@@ -441,8 +454,7 @@ def main(argv: list | None = None) -> int:
     elif a.smoke:                       # CI's smoke run: the whole path once is enough
         cases = [('all inputs', {})]
     else:
-        cases = [(name, kw) for name, kw, _ in CASES
-                 if not (a.no_composed and kw.get('composed'))]
+        cases = select_cases(a.case, a.no_composed)
     if a.grouped:
         cases.append(('grouped, all inputs', {'grouped': True}))
     rounds = []

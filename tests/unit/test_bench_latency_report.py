@@ -1,4 +1,4 @@
-"""bench_latency's dead-input report: differences taken within a round, not across rounds."""
+"""bench_latency: the dead-input report (differences within a round) and its case selection."""
 import importlib.util
 from pathlib import Path
 
@@ -30,3 +30,13 @@ def test_dead_input_differences_are_paired_by_round(capsys):
            'round(s); range +0.50 ... +0.50 ms)' in out
     assert 'down camera stopped: median latency -0.20 ms' in out
     assert 'composed' not in out                 # no composed runs: nothing said about them
+
+
+def test_case_selection():
+    bench = load_bench()
+    every = [name for name, _, _ in bench.CASES]
+    assert [n for n, _ in bench.select_cases([])] == every
+    assert bench.select_cases(['composed, all inputs']) == [('composed, all inputs',
+                                                             {'composed': True})]
+    assert all(not kw.get('composed') for _, kw in bench.select_cases([], no_composed=True))
+    assert bench.select_cases(['composed, all inputs'], no_composed=True) == []
