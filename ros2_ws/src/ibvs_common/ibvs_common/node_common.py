@@ -32,7 +32,8 @@ SENSOR_QOS = qos_profile_sensor_data
 # 5 s harness time-outs at start-up in one run of six, which then no longer repeated).
 IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-# Setpoints and features: every message matters (lockstep), reliable.
+# Publishers of setpoints, statuses and features, imu/data, commands: reliable, 10 kept for
+# every reader (recorders, tools); the flight-path nodes subscribe with FRAME_QOS below.
 COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
 # One message per camera frame between the flight-path nodes (supervisor status, force and
@@ -44,8 +45,7 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 # in lockstep a consumer may still hold frame k's message when frame k+1's arrives.
 FRAME_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-PRODUCT_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT,
-                         durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
+PRODUCT_QOS = IMAGE_QOS          # the same profile: best effort, keep last 2
 
 
 def stamp_to_ns(stamp) -> int:
