@@ -73,10 +73,14 @@ lint: install
 unit: install
 	$(PY) -m pytest -q tests/unit
 
-# Unit tests on OpenCV 4.6 / numpy 1.26, with .venv-cv46 as the only install prefix.
+# Unit tests on OpenCV 4.6 / numpy 1.26, with .venv-cv46 as the only install prefix. Not the
+# `slow` ones (of tests/unit: the fifty random starts of the feature-level loop, a statistic of
+# the control law that the main run checks; 2 minutes of CI on a slow machine): the feature
+# loop itself runs here in its other tests.
 unit-cv46: $(VENV46)/.workspace
 	$(PY46) -c 'import cv2, numpy; print("OpenCV", cv2.__version__, "numpy", numpy.__version__)'
-	AMENT_PREFIX_PATH=$(CURDIR)/$(VENV46) $(PY46) -m pytest -q -n $(PYTEST_WORKERS) tests/unit
+	AMENT_PREFIX_PATH=$(CURDIR)/$(VENV46) $(PY46) -m pytest -q -n $(PYTEST_WORKERS) \
+		-m 'not slow' tests/unit
 
 integration: install
 	$(PY) -m pytest -q tests/integration

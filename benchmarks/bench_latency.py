@@ -25,7 +25,10 @@ the pad detector killed and with the down camera stopped (inputs WINDOW mode doe
 and once more composed.
 The frames are all of WINDOW mode: with mode gating (params.yaml ``mode_gating``) the pad
 detector and the floor flow only keep their images; ``--gating-ab`` compares with gating off.
-Needs a quiet machine for meaningful figures (the load average is printed).
+Needs a quiet machine for meaningful figures (the load average is printed). Every run's node
+logs are under results/bench_latency/<case>/; they end with WINDOW -> FAILSAFE ("window stale")
+about window_timeout_s (0.5 s) after the last replayed frame and the bridge's hand-back: the
+end of the replay, not a fault (checked 2026-11-26 on a 150-frame run that had looked like one).
 
 The composed layout (one process) is also run with the down camera stopped. ``--repeats N``
 runs every case N times, interleaved, and takes each dead-input difference within a round.
