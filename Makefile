@@ -85,7 +85,12 @@ unit-cv46: $(VENV46)/.workspace
 integration: install
 	$(PY) -m pytest -q tests/integration
 
-test: lint install
+# The two venvs' dependencies first, side by side: pip mostly waits on downloads and unpacking
+# (from scratch 65 s together against 52 + 58 s one after the other, 2026-11-26). The editable
+# installs of the workspace stay one at a time: they write into the source tree.
+test:
+	$(MAKE) -j2 $(VENV)/.deps $(VENV46)/.deps
+	$(MAKE) lint
 	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=20 tests \
 		$(addsuffix /test,$(PKG_DIRS))
 	$(MAKE) unit-cv46
