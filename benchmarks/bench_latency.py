@@ -43,7 +43,6 @@ import importlib
 import multiprocessing as mp
 import os
 import select
-import socket
 import sys
 import tempfile
 import time
@@ -178,12 +177,6 @@ def cpu_percent(a: dict, b: dict, seconds: float) -> dict:
             if a[n] is not None and b.get(n) is not None}
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
-
-
 class Replayer:
     """The benchmark's ROS node: camera publishers, imu/data watch, ibvs/start client."""
 
@@ -263,6 +256,7 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
     """
     from ibvs_bringup import graph
     from ibvs_bringup.runner import ProcessRunner
+    from ibvs_bringup.run_scenario import free_udp_port
     port = free_udp_port()
     ctx = mp.get_context('spawn')
     stop, results, start_mono = ctx.Event(), ctx.Queue(), ctx.Value('d', 0.0)

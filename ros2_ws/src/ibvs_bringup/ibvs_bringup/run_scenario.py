@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, field
 import os
+import random
 import re
 import shutil
 import socket
@@ -81,11 +82,33 @@ def random_initial_position(seed: int, world=None) -> tuple:
     return tuple(float(rng.uniform(*box[k])) for k in ('x', 'y', 'z'))
 
 
-def free_udp_port() -> int:
-    """Return a UDP port on 127.0.0.1 that is free right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
+#: Where free_udp_port looks: below Fast DDS's ports (7400 + 250 x domain + ...) and the
+#: kernel's ephemeral range (32768-60999 by default), above the UDP ports PX4 and ArduPilot
+#: SITL bind (4560, 5501-5510) and the usual local services (mDNS 5353, SIP 5060).
+SERVER_PORTS = range(6100, 7400)
+PORT_TRIES = 50
+
+
+def free_udp_port(rng: random.Random | None = None) -> int:
+    """Return a UDP port on 127.0.0.1, free right now, for a server another process binds later.
+
+    The sim's autopilot binds it a few seconds after this check, when its process is up. A
+    port the kernel hands out (bind to port 0) lies in the ephemeral range, where every client
+    socket opened meanwhile (a bridge's udpout, a DDS participant of another domain) may take
+    it: a CI run once lost the sim to "Address already in use" that way. So the port is drawn
+    at random from SERVER_PORTS, which nothing takes without asking for it by number.
+    """
+    rng = rng or random.SystemRandom()
+    for _ in range(PORT_TRIES):
+        port = rng.choice(SERVER_PORTS)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind(('127.0.0.1', port))
+            except OSError:
+                continue
+        return port
+    raise OSError(f'no free UDP port in {SERVER_PORTS.start}-{SERVER_PORTS.stop - 1} after '
+                  f'{PORT_TRIES} tries')
 
 
 def prepare_out_dir(opts: RunOptions) -> str:
@@ -397,7 +420,8 @@ def parse_args(argv: list | None = None) -> RunOptions:
                    help="fly ibvs_sim's feature-level closed loop (no images, no ROS)")
     p.add_argument('--timeout', type=float, default=900.0, help='wall-clock limit, s')
     p.add_argument('--preflight-timeout', type=float, default=120.0)
-    p.add_argument('--mavlink-port', type=int, default=None, help='default: a free UDP port')
+    p.add_argument('--mavlink-port', type=int, default=None,
+                   help='default: a free UDP port in 6100-7399 (free_udp_port)')
     p.add_argument('--params-file', default=None)
     p.add_argument('--kill-node', default=None, metavar='NAME',
                    help='fault injection: SIGKILL this node at --kill-at-s (sim time)')
