@@ -1,7 +1,6 @@
 """The sim node in-process: images, camera_info, ground truth and /clock, consistently stamped."""
 import json
 import os
-import socket
 import time
 
 import numpy as np
@@ -16,6 +15,7 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
+from ibvs_bringup.run_scenario import free_udp_port
 from ibvs_common.core.config import load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_common.core.frames import vec_I_to_map
@@ -23,12 +23,6 @@ from ibvs_sim.sim_node import SimNode
 
 CAMERAS = ('front', 'down')
 BODY_RATES_IGNORED = 0b00000111   # SET_ATTITUDE_TARGET type_mask bits 0-2
-
-
-def _free_udp_port():
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture()
@@ -56,7 +50,7 @@ def test_sim_node_publishes_consistent_frames(ros_context):
     params = [Parameter('pacing', value='realtime'),
               Parameter('start_on_setpoints', value=False),   # no companion in this test
               Parameter('real_time_factor', value=0.25),      # time between frames to spare
-              Parameter('mavlink_url', value=f'udpin:127.0.0.1:{_free_udp_port()}'),
+              Parameter('mavlink_url', value=f'udpin:127.0.0.1:{free_udp_port()}'),
               Parameter('initial_override', value=True),
               Parameter('initial_position_I', value=[-1.5, 0.2, -1.5]),
               Parameter('initial_yaw', value=0.1)]
@@ -129,7 +123,7 @@ def test_sim_node_default_initial_condition_and_bad_parameter(ros_context):
                 parameter_overrides=[Parameter('pacing', value='fast')])
     sim = SimNode(node_name=f'sim_def_{tag}', context=ros_context,
                   parameter_overrides=[Parameter('mavlink_url',
-                                                 value=f'udpin:127.0.0.1:{_free_udp_port()}')])
+                                                 value=f'udpin:127.0.0.1:{free_udp_port()}')])
     try:
         assert sim.sim.state.xi_I == pytest.approx(load_world().initial_position_I)
     finally:
@@ -148,7 +142,7 @@ def test_sim_node_lockstep_advances_on_answers_only(ros_context):
     os.environ['MAVLINK20'] = '1'
     from pymavlink import mavutil
     tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
-    port = _free_udp_port()
+    port = free_udp_port()
     sim = SimNode(node_name=f'sim_lock_{tag}', context=ros_context, parameter_overrides=[
         Parameter('pacing', value='lockstep'), Parameter('lockstep_timeout_s', value=60.0),
         Parameter('start_on_setpoints', value=False),
@@ -196,7 +190,7 @@ def test_sim_node_read_noise_and_frozen_front_camera(ros_context):
     params = [Parameter('pacing', value='realtime'),
               Parameter('start_on_setpoints', value=False),
               Parameter('real_time_factor', value=0.25),
-              Parameter('mavlink_url', value=f'udpin:127.0.0.1:{_free_udp_port()}'),
+              Parameter('mavlink_url', value=f'udpin:127.0.0.1:{free_udp_port()}'),
               Parameter('fault_front_camera_freeze_s', value=[0.04, 100.0])]
     sim = SimNode(node_name=f'sim_freeze_{tag}', parameter_overrides=params, context=ros_context)
     probe = rclpy.create_node(f'sim_freeze_probe_{tag}', context=ros_context)

@@ -16,7 +16,6 @@ AUTO.LAND = main 4 / sub 6, ArduCopter LAND = 9).
 """
 import os
 import select
-import socket
 import struct
 import threading
 import time
@@ -34,6 +33,7 @@ from ibvs_control.core.mavlink_hover import EstimatorConfig  # noqa: E402
 from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
 from ibvs_control.core.mavlink_sequencer import EngageState, SequencerConfig  # noqa: E402
 from ibvs_common.core.modes import Mode  # noqa: E402
+from ibvs_bringup.run_scenario import free_udp_port  # noqa: E402,F401 (also for other tests)
 
 MASS = 1.676
 PX4_OFFBOARD = 6 << 16
@@ -57,12 +57,6 @@ class FrameClock:
 
     def __call__(self):
         return self.start_ns + (time.monotonic_ns() - self.t0) // FRAME_NS * FRAME_NS
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
 
 
 def rotmat(q):

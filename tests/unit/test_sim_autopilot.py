@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
+from ibvs_bringup.run_scenario import free_udp_port  # noqa: E402
 from ibvs_common.core.frames import GRAVITY, rot_from_euler_zyx, rot_x  # noqa: E402
 from ibvs_sim.core.autopilot import (Autopilot, AutopilotConfig,  # noqa: E402
                                      VehicleStateView)
@@ -29,13 +30,6 @@ CLIENT_COMP = 191                  # MAV_COMP_ID_ONBOARD_COMPUTER
 INITIAL_XI = (-2.0, 0.1, -1.82)    # SPEC.md initial condition, {I} NED, m
 MAX_DRAIN = 20000
 ACK_WAIT_S = 2.0                   # wall bound of every request/answer exchange
-
-
-def free_udp_port() -> int:
-    """Return a UDP port on 127.0.0.1 that was free a moment ago."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
 
 
 class FakeWallClock:
