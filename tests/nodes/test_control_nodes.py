@@ -28,6 +28,7 @@ from ibvs_sim.core.world import load_world
 from ibvs_control.core.control_laws import GainError
 from ibvs_common.core.frames import (
     bearings_I_to_C, GRAVITY, quat_ned_frd_to_enu_flu, vec_I_to_map)
+from ibvs_bringup.run_scenario import free_udp_port
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
@@ -35,7 +36,7 @@ from ibvs_common.node_common import (
     COMMAND_QOS, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS, supervisor_status_msg)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'unit'))
-from test_control_mavlink import FakeAutopilot, free_udp_port, same_rotation  # noqa: E402
+from test_control_mavlink import FakeAutopilot, same_rotation  # noqa: E402
 
 VEHICLE = load_vehicle()
 WORLD = load_world()

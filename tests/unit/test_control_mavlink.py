@@ -33,7 +33,7 @@ from ibvs_control.core.mavlink_hover import EstimatorConfig  # noqa: E402
 from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
 from ibvs_control.core.mavlink_sequencer import EngageState, SequencerConfig  # noqa: E402
 from ibvs_common.core.modes import Mode  # noqa: E402
-from ibvs_bringup.run_scenario import free_udp_port  # noqa: E402,F401 (also for other tests)
+from ibvs_bringup.run_scenario import free_udp_port  # noqa: E402
 
 MASS = 1.676
 PX4_OFFBOARD = 6 << 16
