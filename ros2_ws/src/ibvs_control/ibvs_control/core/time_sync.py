@@ -41,6 +41,10 @@ Tracking
     is learnt in a few samples), down to the smoothing gains (alpha 0.05, beta 0.002) after
     some 80 samples (8 s). A plain exponential smoothing lags a skew s by s T / alpha at a
     sample period T (15 ms for SIH): beyond the deviation gate, it resets again and again.
+    The skew step divides by max(t - t_last, ``period_s``): the gains are those of samples a
+    period apart, and a sample closer to the last one says less about the rate, not more
+    (two answers 5 ms apart with SIH's 4 ms clock grid made a 2 ms residual a step of 8 % in
+    the skew, the next samples outliers, and a reset every 0.5 s: CI 21 failed on it).
     The estimate is an exact integer base (the initial median) plus float terms: samples equal
     to the prediction leave it unchanged to the bit (in a lockstep sim the true offset is
     exactly 0 and a round trip takes 0 s of sim time, so every good sample is exactly 0, the
@@ -50,7 +54,11 @@ Outliers
     -20 ms with rtt 0 when our ``/clock`` lags the sim by one frame); ``max_consecutive_outliers``
     (5) in a row mean a time jump (a clock was set): reset, and re-initialise from those
     outliers (the newest ``init_samples`` of them: synced again at once, no imu/data gap; a
-    gap of 0.2 s or more is an IMU dropout to the supervisor, FAILSAFE in flight).
+    gap of 0.2 s or more is an IMU dropout to the supervisor, FAILSAFE in flight). A jump
+    moves the offset, not the rate: the skew learnt so far is kept if those outliers lie on
+    it, else (the rate was wrong: a SITL running 13 % slow after a freeze) the outliers' own
+    slope (Theil-Sen) is taken; the new base is their median brought to the latest one's time
+    along that skew, and the requests go on at their period.
 Reboot
     A ``time_boot_ms`` or ``tc1`` more than 1 s before the previous one of its kind: the
     autopilot rebooted, reset, re-initialise.
@@ -250,7 +258,7 @@ class TimeSync:
         dt = t - self._t_ref
         self._residual_ns = self._predict(t) + a * residual
         if dt > 0:
-            self._skew += b * residual / dt
+            self._skew += b * residual / max(dt, self._period_ns)
             self._t_ref = t
         return events
 
@@ -282,12 +290,24 @@ class TimeSync:
         samples (their median, as at the start; synced at once when the streak is that long),
         so imu/data goes on without the gap that waiting for new samples leaves. (MAVROS's
         sys_time discards them and stamps with its receive time until it converges again.)
+
+        The rate: a clock that was set keeps its rate, so the skew learnt so far is kept when
+        the streak lies on it (every sample within ``max_deviation_s`` of the line of that
+        slope through the streak's median). When it does not, the rate itself was wrong (PX4
+        SIH runs 13 % slow for seconds after a freeze: 13 ms per 0.1 s request period, beyond
+        the gate, so the tracker never sees a sample to learn it from and resets every
+        0.5 s): the streak's own slope is taken, the median of its pairwise slopes
+        (Theil-Sen: one wrong sample of five cannot move it).
         """
         streak = self._outliers[-self.config.init_samples:]
+        skew, last_request = self._skew, self._last_request_ros_ns
+        if len(streak) >= 2 and not _lies_on(streak, skew, self._max_dev_ns):
+            skew = _theil_sen_slope(streak)
         self.reset()
+        self._last_request_ros_ns = last_request
         self._init = streak
         if len(streak) >= self.config.init_samples:
-            self._start()
+            self._start(skew)
         events.append(('warn', f'TIMESYNC: {len(streak)} samples in a row more than '
                                f'{self.config.max_deviation_s * 1e3:.1f} ms from the offset '
                                f'(last {residual / 1e6:+.1f} ms): time jump, clock sync '
@@ -315,11 +335,14 @@ class TimeSync:
         """Offset - base (ns) extrapolated to ROS time t."""
         return self._residual_ns + self._skew * (t - self._t_ref)
 
-    def _start(self) -> None:
-        """Start from the median of the initial samples, skew 0, at the latest one's time."""
-        self._base_ns = statistics.median_low([s for _, s in self._init])
-        self._t_ref = max(t for t, _ in self._init)
-        self._skew = 0.0
+    def _start(self, skew: float = 0.0) -> None:
+        """Start from the median of the initial samples at the latest one's time.
+
+        Each sample is first brought to that time with ``skew`` (0 at the first start: an
+        actual sample, exact integer; after a time jump, see :meth:`_rejump`).
+        """
+        self._t_ref, self._base_ns = _median_at_latest(self._init, skew)
+        self._skew = skew
         self._residual_ns = 0.0
         self._k = len(self._init)
         self._init = []
@@ -333,6 +356,29 @@ class TimeSync:
         self._init: list[tuple[int, int]] = []
         self._outliers: list[tuple[int, int]] = []     # (t, sample) of the current streak
         self._last_request_ros_ns = None
+
+
+def _median_at_latest(samples: list, skew: float) -> tuple[int, int]:
+    """(latest t, lower median of the samples brought to it along ``skew``); ns, integers."""
+    t_ref = max(t for t, _ in samples)
+    return t_ref, statistics.median_low([s + int(round(skew * (t_ref - t)))
+                                         for t, s in samples])
+
+
+def _lies_on(samples: list, skew: float, tolerance_ns: int) -> bool:
+    """Whether every (t, sample) is within ``tolerance_ns`` of the line of slope ``skew``.
+
+    The line goes through the samples' median at the latest one's time.
+    """
+    t_ref, base = _median_at_latest(samples, skew)
+    return all(abs(s + skew * (t_ref - t) - base) <= tolerance_ns for t, s in samples)
+
+
+def _theil_sen_slope(samples: list) -> float:
+    """Lower median of the pairwise slopes (ns per ns) of (t, sample); 0.0 if t never moves."""
+    slopes = [(s2 - s1) / (t2 - t1) for i, (t1, s1) in enumerate(samples)
+              for t2, s2 in samples[i + 1:] if t2 != t1]
+    return statistics.median_low(slopes) if slopes else 0.0
 
 
 class TimesyncExchange:
