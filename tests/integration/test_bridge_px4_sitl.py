@@ -162,6 +162,7 @@ class Run:
         self.bridge.stream_enabled = False     # listen only
         self.polls = []   # (ROS ns of the poll, synced before, synced after, raw, samples)
         self.events = []
+        self.reset_ns = []    # ROS ns of the polls in which the bridge's clock sync reset
         self.t_link = self.t_sync = None
         self._raw = []
         link_poll = self.bridge.link.poll
@@ -177,8 +178,10 @@ class Run:
         t0 = next_t = time.monotonic()
         while time.monotonic() - t0 < seconds:
             ros = time.time_ns()
-            synced = b.time_sync.synced
+            synced, resets = b.time_sync.synced, b.time_sync.resets
             samples = b.poll(ros)
+            if b.time_sync.resets != resets:
+                self.reset_ns.append(ros)
             self.polls.append((ros, synced, b.time_sync.synced, self._raw, samples))
             self.events += b.pop_events()
             now = time.monotonic() - t0
@@ -279,12 +282,18 @@ class Run:
         synced = 'never synced' if self.t_sync is None or self.t_link is None \
             else f'synced {self.t_sync - self.t_link:.2f} s later'
         link = 'no link' if self.t_link is None else f'link after {self.t_link:.2f} s'
+        t0 = self.polls[0][0] if self.polls else 0
+
+        def times(ns: list) -> str:
+            return '[' + ', '.join(f'{(t - t0) / 1e9:.2f}' for t in ns) + '] s'
         return (f'{name}: {link}, {synced}; offset {offset}, skew {skew} (floors: {rate}); '
                 f'TIMESYNC accepted {st.accepted}, rejected rtt {st.rejected_rtt} / outliers '
-                f'{st.rejected_outliers}, resets {st.resets}; rtt median {np.median(rtts):.2f} '
+                f'{st.rejected_outliers}, resets {st.resets} at {times(self.reset_ns)}; rtt '
+                f'median {np.median(rtts):.2f} '
                 f'ms, p95 {np.percentile(rtts, 95):.2f} ms; boot clock grid '
                 f'{self.clock_quantum_ms():.3f} ms; autopilot clock jumps seen '
-                f'{len(self.clock_jumps())}; IMU receipt - stamp over {len(ages)} samples '
+                f'{len(self.clock_jumps())} at {times(self.clock_jumps())}; IMU receipt - '
+                f'stamp over {len(ages)} samples '
                 f'(of {len(every)}, those within {AFTER_JUMP_S} s after a jump left out): '
                 f'{spread_ms(ages)}; '
                 f'{self.bridge.imu_dropped_unsynced} dropped while unsynced')
