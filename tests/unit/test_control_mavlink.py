@@ -1023,10 +1023,14 @@ def test_autopilot_reboot_holds_the_imu_until_synced_again(peer_bridge):
                                ros_clock=lambda: frames() + OFFSET)
     wait_link(bridge)
     assert bridge.time_sync.offset_ns == OFFSET
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete)
+    assert ok
+    requested = len(peer.intervals)
+    assert requested > 0
     # Reboot: the boot clock starts again at 1 s; our ROS clock runs on.
     boot_epoch[0] = frames() - 1_000 * MS
     spin(bridge, 0.1)
-    assert bridge.time_sync.resets == 1
+    assert bridge.time_sync.resets == 1 and bridge.time_sync.reboots == 1
     ok, samples = spin(bridge, 2.0, until=lambda: bridge.time_sync.synced)
     assert ok
     new_offset = OFFSET + boot_epoch[0]
@@ -1034,6 +1038,30 @@ def test_autopilot_reboot_holds_the_imu_until_synced_again(peer_bridge):
     _, samples = spin(bridge, 0.2)
     sent_ns = {ms * MS for ms in peer.attitude_ms}
     assert samples and all(s.stamp_ns - new_offset in sent_ns for s in samples)
+    assert len(peer.intervals) > requested         # an autopilot forgets its streams
+
+
+def test_a_time_jump_resyncs_but_is_no_reboot(peer_bridge):
+    # The companion's system clock is stepped by 3 s (chrony's makestep) while the autopilot
+    # runs on: the clock sync re-initialises from the streak of outliers, and nothing
+    # per-boot is redone (streams asked again, landed state and ground contact forgotten).
+    frames = FrameClock(start_ns=100_000 * MS)
+    step = [0]
+    peer, bridge = peer_bridge(peer_kw={'boot_clock': frames},
+                               ros_clock=lambda: frames() + OFFSET + step[0])
+    wait_link(bridge)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete)
+    assert ok
+    requested = len(peer.intervals)
+    assert requested > 0
+    step[0] = 3_000 * MS
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.time_sync.resets == 1
+                 and bridge.time_sync.synced)
+    assert ok
+    assert bridge.time_sync.reboots == 0
+    assert bridge.time_sync.offset_ns == OFFSET + 3_000 * MS
+    spin(bridge, 0.3)
+    assert len(peer.intervals) == requested
 
 
 def test_bridge_answers_the_autopilots_timesync_requests_with_its_ros_time(peer_bridge):

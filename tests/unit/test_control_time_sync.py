@@ -188,6 +188,7 @@ def test_outliers_are_not_used_and_five_in_a_row_re_initialise_from_them():
     assert ts.synced and ts.offset_ns == OFFSET
     events = link.trip()                           # the 5th in a row: the new offset at once
     assert ts.synced and ts.resets == 1 and ts.offset_ns == jumped
+    assert ts.reboots == 0 and ts.status().reboots == 0            # a jump is no reboot
     assert any('time jump' in text and 're-initialised' in text for _, text in events)
     for _ in range(20):
         link.trip()                                # tracked from there, no further reset
@@ -213,7 +214,7 @@ def test_reboot_resets_on_time_boot_ms_or_tc1_going_back():
     assert ts.on_boot_time('time_boot_ms', 99_500 * MS) == []    # 0.5 s back: reordering
     assert ts.synced
     events = ts.on_boot_time('time_boot_ms', 2_000 * MS)         # 98 s back: reboot
-    assert not ts.synced and ts.resets == 1
+    assert not ts.synced and ts.resets == 1 and ts.reboots == 1
     assert any('reboot' in text for _, text in events)
     # re-sync on the new boot clock (booted 150 s after the old one)
     link.offset = OFFSET + 150_000 * MS
@@ -223,7 +224,7 @@ def test_reboot_resets_on_time_boot_ms_or_tc1_going_back():
     # tc1 going back by more than 1 s resets as well
     link.offset = OFFSET + 300_000 * MS
     link.trip()
-    assert not ts.synced and ts.resets == 2
+    assert not ts.synced and ts.resets == 2 and ts.status().reboots == 2
 
 
 def test_requests_never_at_ros_time_zero_and_paced_by_the_right_clock():

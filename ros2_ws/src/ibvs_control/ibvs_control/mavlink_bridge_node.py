@@ -509,6 +509,7 @@ class MavlinkBridgeNode(Node):
                   'timesync_rejected_rtt': str(ts.rejected_rtt),
                   'timesync_rejected_outliers': str(ts.rejected_outliers),
                   'timesync_resets': str(ts.resets),
+                  'timesync_reboots': str(ts.reboots),
                   'timesync_last_rtt_ms': fmt(None if ts.last_rtt_ns is None
                                               else ts.last_rtt_ns / 1e6, '.3f', 'none'),
                   'imu_dropped_unsynced': str(st.imu_dropped_unsynced),

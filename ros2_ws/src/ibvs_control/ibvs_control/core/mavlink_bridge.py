@@ -205,7 +205,7 @@ class MavlinkBridge:
         self._last_send_t: float | None = None
         self._last_tick_t: float | None = None
         self._was_up = False
-        self._sync_resets = 0
+        self._sync_reboots = 0
         self._reported_missing = 0
         self._events: list[tuple[str, str]] = []
         self._maybe_build_sequencer()
@@ -502,8 +502,8 @@ class MavlinkBridge:
     def _on_link_state(self) -> None:
         """Link back / autopilot reboot: ask for the streams again, forget per-boot state."""
         up = self.link.link_up
-        rebooted = self.time_sync.resets != self._sync_resets
-        self._sync_resets = self.time_sync.resets
+        rebooted = self.time_sync.reboots != self._sync_reboots
+        self._sync_reboots = self.time_sync.reboots
         if (up and not self._was_up) or rebooted:
             if self.streams is not None:
                 self.streams.reset()

@@ -122,6 +122,7 @@ class TimeSyncStatus:
     rejected_outliers: int          # farther than max_deviation_s from the estimate
     unmatched: int                  # answers to no request of ours (ignored)
     resets: int                     # time jumps and reboots
+    reboots: int                    # of those, autopilot reboots (its boot time went back)
     last_rtt_ns: int | None         # of the last answer to one of our requests
 
 
@@ -139,6 +140,7 @@ class TimeSync:
         self.rejected_outliers = 0
         self.unmatched = 0
         self.resets = 0
+        self.reboots = 0
         self.last_rtt_ns: int | None = None
         self._pending: deque = deque(maxlen=PENDING_REQUESTS_KEPT)
         self._last_request_ros_ns: int | None = None
@@ -182,7 +184,7 @@ class TimeSync:
         return TimeSyncStatus(self.synced, self.offset_ns,
                               None if skew is None else skew * 1e6, self.accepted,
                               self.rejected_rtt, self.rejected_outliers, self.unmatched,
-                              self.resets, self.last_rtt_ns)
+                              self.resets, self.reboots, self.last_rtt_ns)
 
     # --- requests ----------------------------------------------------------------------------
     def next_request(self, ros_ns: int | None, steady_s: float) -> int | None:
@@ -272,6 +274,7 @@ class TimeSync:
         self._last_boot_ns[kind] = boot_ns
         if last is not None and boot_ns < last - REBOOT_BACKSTEP_NS:
             self.reset()
+            self.reboots += 1
             self._last_boot_ns = {kind: boot_ns}
             return [('warn', f'autopilot {kind} went back from {last / NS_PER_S:.3f} s to '
                              f'{boot_ns / NS_PER_S:.3f} s: reboot, clock sync reset')]
