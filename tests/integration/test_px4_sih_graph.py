@@ -34,6 +34,7 @@ import sys
 import numpy as np
 import pytest
 
+from ibvs_bringup.px4_scenario import START_SPEED_TOL_MPS, START_TOLERANCE_M
 from ibvs_sim.core.px4_plant import find_px4_sitl
 from ibvs_sim.core.world import load_world
 
@@ -41,7 +42,6 @@ REPO = Path(__file__).resolve().parents[2]
 FLIGHT_S = 4.0                 # s (system clock) of flight after ibvs/start (the window is
 #                                reached after 5 s at the earliest: docs/px4_sih.md)
 RUN_TIMEOUT_S = 400            # s (wall), the whole run_scenario process
-START_TOLERANCE_M = 0.25       # start vs world.yaml's initial condition (harness: 0.2)
 MIN_APPROACH_M = 0.1           # x gained towards the wall within FLIGHT_S
 OPT_IN = 'IBVS_PX4_SIH_TEST'   # =1: run (alone); else skipped (see the module doc)
 
@@ -51,7 +51,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 
 @pytest.fixture(scope='module')
 def px4_run(tmp_path_factory):
-    """Run the px4-sih scenario once; return (exit code, summary, stdout)."""
+    """Run the px4-sih scenario once; return (exit code, summary, output, node logs)."""
     if os.environ.get(OPT_IN) != '1':
         pytest.skip(f'px4-sih whole-graph test is opt-in: set {OPT_IN}=1 and run it alone '
                     '(real-time PX4 + rendering starves the lockstep tests run beside it)')
@@ -67,19 +67,24 @@ def px4_run(tmp_path_factory):
                           text=True, timeout=RUN_TIMEOUT_S)
     path = root / 'brief' / 'summary.json'
     assert path.exists(), proc.stdout[-3000:] + proc.stderr[-3000:]
-    return proc.returncode, json.loads(path.read_text()), proc.stdout + proc.stderr
+    log_files = sorted((path.parent / 'logs').glob('*.log'))
+    logs = ''.join(f.read_text(errors='replace') for f in log_files)
+    return proc.returncode, json.loads(path.read_text()), proc.stdout + proc.stderr, logs
 
 
 def test_px4_flies_the_graph_towards_the_window(px4_run):
-    code, summary, out = px4_run
+    code, summary, out, logs = px4_run
     run = summary['run']
     assert code != 2 and not run.get('error'), out[-4000:]
     assert run['autopilot'] == 'px4-sih'
     assert run['px4_parameters']['SIH_MASS'] == pytest.approx(1.676)
-    # PX4 took off itself and the harness brought its ground truth to the start
+    # PX4 took off itself and the harness brought its ground truth to the start, at rest,
+    # within the harness's own tolerances (0.2 m until 66b7bff, 0.5 m since: this test kept
+    # 0.25 m and failed at 0.29 m on 2026-11-27)
     world = load_world()
     start = np.array(run['start_pose_I'])
     assert np.linalg.norm(start - world.initial_position_I) < START_TOLERANCE_M, start
+    assert run['start_speed_mps'] < START_SPEED_TOL_MPS, run['start_speed_mps']
     # the cameras were rendered from PX4's ground truth, at the rate asked
     timing = summary['timing']
     assert timing['pacing'] == 'px4_sih'
@@ -89,8 +94,10 @@ def test_px4_flies_the_graph_towards_the_window(px4_run):
     assert timing['frames_answered'] > 0 and timing['latency_median_ms'] > 0.0
     modes = [m['mode'] for m in summary['modes']]
     assert modes and modes[0] == 1, modes                         # WINDOW
+    # the bridge's own log: summary['bridge'] samples /diagnostics at 1 Hz and missed an
+    # engagement of 1.3 s on 2026-11-27 (a starved run: forces too old, held, FAILSAFE)
     states = [row.get('engage_state') for row in summary['bridge']]
-    assert 'engaged' in states, states
+    assert 'engage: set_mode -> engaged' in logs, (states, logs[-3000:])
     assert 'ibvs/start: started' in out
     # and flew towards the window (x along its normal), into no wall
     assert run['max_x_I'] - start[0] > MIN_APPROACH_M, (start, run['max_x_I'], modes)
