@@ -16,6 +16,14 @@ object`` from inside ``spin`` (ros2/rclpy#848), which would end the node. For fl
 one bad sample must cost one sample, not the node: the error is logged (throttled) and spinning
 resumes. KeyboardInterrupt and ExternalShutdownException still end the spin as usual.
 
+Stopping: SIGINT and SIGTERM (Ctrl-C, launch, the runner, systemd) end the spin between two
+callbacks, with the context still valid, so the caller destroys the nodes and shuts rclpy down
+in order. rclpy's own handlers, which :func:`spin_guarded_nodes` replaces while it spins (in
+the main thread), shut the context down at once, under a callback that may be publishing:
+"Exception in 'subscriptions' callback" (FATAL, from the events executor) and "publisher's
+context is invalid" in the log of every stopped px4-sih run (2026-11-27). A stop takes up to
+``SPIN_ONCE_TIMEOUT_S`` when no work arrives.
+
 Garbage collector: before spinning, ``gc.freeze()`` moves every object built at start-up
 (modules, parameters, buffers: some 45,000 in the supervisor, controller, window detector
 and flow nodes) out of the collector's reach. A full collection, which Python runs now and
@@ -27,6 +35,8 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
+import threading
 
 import rclpy
 from rclpy.executors import Executor, SingleThreadedExecutor
@@ -35,6 +45,7 @@ from rclpy.node import Node
 LOG_THROTTLE_S = 2.0
 SPIN_ONCE_TIMEOUT_S = 0.5               # s, longest wait for work before re-checking rclpy.ok
 EXECUTOR_ENV = 'IBVS_EXECUTOR'          # 'events' (default when available) | 'single'
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 def make_executor(context=None) -> Executor:
@@ -61,8 +72,10 @@ def spin_guarded_nodes(nodes: list) -> int:
     for node in nodes:
         executor.add_node(node)
     gc.freeze()                 # start-up objects: never scanned again by a full collection
+    stop: list = []
+    previous = _catch_stop_signals(stop)
     try:
-        while rclpy.ok(context=context):
+        while rclpy.ok(context=context) and not stop:
             try:
                 executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
             except RuntimeError as exc:
@@ -74,4 +87,23 @@ def spin_guarded_nodes(nodes: list) -> int:
                     throttle_duration_sec=LOG_THROTTLE_S)
     finally:
         executor.shutdown()
+        _restore_signals(previous)
     return errors
+
+
+def _catch_stop_signals(stop: list) -> dict:
+    """Make SIGINT/SIGTERM append to ``stop``; return the handlers replaced (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, lambda signum, _frame: stop.append(signum))
+    return previous
+
+
+def _restore_signals(previous: dict) -> None:
+    """Put back Python's handlers; Python's defaults where the replaced one was not Python's."""
+    for sig, handler in previous.items():
+        if handler is None:      # installed outside Python (rclpy's): not restorable
+            handler = signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL
+        signal.signal(sig, handler)
