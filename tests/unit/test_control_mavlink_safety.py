@@ -31,6 +31,18 @@ def test_inputs_lost_after_hold_last_s_of_vehicle_time_only():
     assert m.forces_silent_s(100.4) == pytest.approx(0.1)
 
 
+def test_a_ros_clock_stepped_back_in_flight_counts_as_inputs_lost():
+    # the companion's system clock steps back 3 s after the last force (chrony makestep):
+    # counting from 0 again would keep the last setpoint for 3 s on a silent controller
+    m = SafetyMonitor(SafetyConfig(hold_last_s=0.25))
+    m.on_force(1000.0)
+    assert m.inputs_lost(997.1)
+    assert m.forces_silent_s(997.1) == float('inf')
+    # readings a little out of order (two threads), or a short step: within hold_last_s
+    assert not m.inputs_lost(999.9) and m.forces_silent_s(999.9) == 0.0
+    assert not m.inputs_lost(999.75) and m.inputs_lost(999.74)
+
+
 def feed(m, seconds, f_g, thrust, hover=0.5, t0=0, dt_ms=10):
     t = t0
     for _ in range(int(seconds * 1000 / dt_ms)):

@@ -62,6 +62,14 @@ def test_content_computed_once_held_on_vehicle_time_then_level_or_held_when_enga
     assert t4.source == SetpointSource.HOLD_LAST and t4.thrust == t1.thrust
     t5 = s.target(10.3, Mode.FAILSAFE, 0.7, 0.48, 124, 10.2, 0.0, engaged=True)
     assert t5.source == SetpointSource.LEVEL_HOLD and t5.thrust == 0.48   # no descent of ours
+    # the ROS clock stepped back 3 s: the force is not fresh (level when not engaged, held
+    # when engaged: the safety monitor's inputs_lost acts then); 0.1 s back: still fresh
+    assert s.on_force(20.0, F, 0.0, 0.5) == ''
+    assert s.target(17.0, Mode.WINDOW, 0.7, 0.5, 125, 20.0, 0.0).source == \
+        SetpointSource.LEVEL_HOVER
+    assert s.target(17.0, Mode.WINDOW, 0.7, 0.5, 125, 20.0, 0.0, engaged=True).source == \
+        SetpointSource.HOLD_LAST
+    assert s.target(19.9, Mode.WINDOW, 0.7, 0.5, 125, 20.0, 0.0).source == SetpointSource.IBVS
 
 
 def test_shutdown_ramp_from_the_last_thrust_on_vehicle_time():

@@ -117,10 +117,20 @@ class SafetyMonitor:
             self._last_force_s = float(vehicle_s)
 
     def forces_silent_s(self, vehicle_s: float | None) -> float:
-        """Seconds of vehicle time since the last valid force (0 if unknown)."""
+        """Seconds of vehicle time since the last valid force (0 if unknown).
+
+        Infinite when the ROS clock went back by more than ``hold_last_s`` since that force
+        (the system clock stepped back in flight): the silence can no longer be measured, and
+        counting from 0 again would hold the last setpoint for the length of the step. A step
+        back shorter than that (or readings taken in two threads a little out of order) adds
+        at most ``hold_last_s`` to the hold.
+        """
         if vehicle_s is None or self._last_force_s is None:
             return 0.0
-        return max(0.0, float(vehicle_s) - self._last_force_s)
+        elapsed = float(vehicle_s) - self._last_force_s
+        if elapsed < -self.config.hold_last_s:
+            return math.inf
+        return max(0.0, elapsed)
 
     def inputs_lost(self, vehicle_s: float | None) -> bool:
         """Whether no valid force came for ``hold_last_s`` of vehicle time."""

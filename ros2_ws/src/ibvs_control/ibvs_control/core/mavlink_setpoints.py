@@ -289,7 +289,8 @@ class SetpointShaper:
         if level_hold or mode == Mode.FAILSAFE:
             return self._out(time_boot_ms, level_q, hover, SetpointSource.LEVEL_HOLD)
         v = self._valid
-        fresh = v is not None and (now is None or now - v.t <= self.config.hold_last_s)
+        hold = self.config.hold_last_s       # a clock stepped back by more: not fresh either
+        fresh = v is not None and (now is None or -hold <= now - v.t <= hold)
         if v is not None and (fresh or engaged):
             stale = self._last_refused or not fresh
             return self._out(time_boot_ms, v.q, v.thrust,
