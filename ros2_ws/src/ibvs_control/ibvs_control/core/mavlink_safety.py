@@ -94,6 +94,19 @@ class SafetyConfig:
             raise ValueError('low_thrust_ratio must be in (0, 1)')
 
 
+def silence_s(now_s: float, since_s: float, hold_last_s: float) -> float:
+    """Vehicle time (s, ROS clock) from ``since_s`` to ``now_s`` for the hold rule.
+
+    0 for a clock a little back (at most ``hold_last_s``: readings of two threads out of
+    order, a short step); infinite for a clock stepped back by more, where the time since can
+    no longer be measured (see :meth:`SafetyMonitor.forces_silent_s`).
+    """
+    elapsed = now_s - since_s
+    if elapsed < -hold_last_s:
+        return math.inf
+    return max(0.0, elapsed)
+
+
 class SafetyMonitor:
     """Detectors of the policy's events (see the module doc)."""
 
@@ -127,10 +140,7 @@ class SafetyMonitor:
         """
         if vehicle_s is None or self._last_force_s is None:
             return 0.0
-        elapsed = float(vehicle_s) - self._last_force_s
-        if elapsed < -self.config.hold_last_s:
-            return math.inf
-        return max(0.0, elapsed)
+        return silence_s(float(vehicle_s), self._last_force_s, self.config.hold_last_s)
 
     def inputs_lost(self, vehicle_s: float | None) -> bool:
         """Whether no valid force came for ``hold_last_s`` of vehicle time."""

@@ -37,6 +37,7 @@ from enum import Enum
 import numpy as np
 
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
+from ibvs_control.core.mavlink_safety import silence_s
 from ibvs_common.core.frames import (
     euler_zyx_from_rot, GRAVITY, quat_from_rot, R_IB_from_rot_map_base, rot_from_quat, rot_z)
 from ibvs_common.core.modes import Mode
@@ -290,7 +291,7 @@ class SetpointShaper:
             return self._out(time_boot_ms, level_q, hover, SetpointSource.LEVEL_HOLD)
         v = self._valid
         hold = self.config.hold_last_s       # a clock stepped back by more: not fresh either
-        fresh = v is not None and (now is None or -hold <= now - v.t <= hold)
+        fresh = v is not None and (now is None or silence_s(now, v.t, hold) <= hold)
         if v is not None and (fresh or engaged):
             stale = self._last_refused or not fresh
             return self._out(time_boot_ms, v.q, v.thrust,

@@ -303,11 +303,10 @@ class TimeSync:
         (Theil-Sen: one wrong sample of five cannot move it).
         """
         streak = self._outliers[-self.config.init_samples:]
-        skew, last_request = self._skew, self._last_request_ros_ns
+        skew = self._skew
         if len(streak) >= 2 and not _lies_on(streak, skew, self._max_dev_ns):
             skew = _theil_sen_slope(streak)
         self.reset()
-        self._last_request_ros_ns = last_request
         self._init = streak
         if len(streak) >= self.config.init_samples:
             self._start(skew)
@@ -358,7 +357,6 @@ class TimeSync:
         self._k = 0
         self._init: list[tuple[int, int]] = []
         self._outliers: list[tuple[int, int]] = []     # (t, sample) of the current streak
-        self._last_request_ros_ns = None
 
 
 def _median_at_latest(samples: list, skew: float) -> tuple[int, int]:
