@@ -178,15 +178,22 @@ def call(executor, node, srv_name):
 
 # --- mode supervisor ---------------------------------------------------------------------
 
-def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
+def supervisor_on_sim_time(ctx, suffix):
+    """A mode supervisor ``sup<suffix>`` on sim time and its Feeder, IDLE published."""
     context, executor, nodes = ctx
-    sup = ModeSupervisorNode(node_name=f'sup_{TAG}', context=context,
+    sup = ModeSupervisorNode(node_name=f'sup{suffix}_{TAG}', context=context,
                              parameter_overrides=[Parameter('use_sim_time', value=True)])
-    feed = Feeder(context, f'feed_{TAG}')
+    feed = Feeder(context, f'feed{suffix}_{TAG}')
     nodes += [sup, feed.node]
     executor.add_node(sup)
     executor.add_node(feed.node)
     assert spin_until(executor, lambda: feed.modes == [0], 5.0)
+    return sup, feed
+
+
+def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
+    _, executor, _ = ctx
+    sup, feed = supervisor_on_sim_time(ctx, '')
 
     dt, v = 0.02, 1.0
     t, xi = 1.0, np.array([-2.0, 0.0, -1.6])
@@ -231,6 +238,43 @@ def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
     modes = [mode for _, mode, _ in reported]
     assert sorted(set(modes)) == [0, 1, 2, 3, 4] and modes == sorted(modes)
     assert feed.statuses[-1].status[0].message == 'SHUTDOWN'
+
+
+def test_supervisor_after_a_clock_step_back_idle_goes_on_and_flight_fails_safe(ctx):
+    """A step back of the node clock (the system clock onboard; /clock here) is seen at once.
+
+    IDLE: the frames after a 1 s step are evaluated as they come (before: refused as older
+    than one evaluated, for the whole second). WINDOW: FAILSAFE at the next IMU sample (before:
+    the inputs taken before the step looked fresh until the clock caught up, 1 s + timeouts).
+    """
+    _, executor, _ = ctx
+    sup, feed = supervisor_on_sim_time(ctx, '_step')
+    xi, t, fed = np.array([-2.0, 0.0, -1.6]), 5.0, []
+
+    def step():
+        nonlocal t
+        feed.frame(t, xi, front_flow=np.zeros(3))
+        fed.append(int(round(t * 1e9)))
+        assert spin_until(executor, lambda: len(feed.statuses) >= len(fed), 2.0), \
+            f'no status for the frame of {t:.2f} s'
+        t += 0.02
+
+    for _ in range(5):
+        step()
+    t -= 1.0                                         # the clock steps back by 1 s in IDLE
+    for _ in range(5):
+        step()
+    assert [mode_from_status(m)[0] for m in feed.statuses] == fed and feed.modes == [0]
+    assert call(executor, feed.node, 'ibvs/start').success
+    assert spin_until(executor, lambda: feed.modes[-1:] == [1], 2.0)
+    for _ in range(5):
+        step()
+    t -= 1.0                                         # ... and by 1 s in WINDOW
+    feed.clock.publish(Clock(clock=stamp(t)))
+    feed.imu.publish(imu_msg(t))
+    assert spin_until(executor, lambda: feed.modes[-1:] == [5], 2.0)
+    assert spin_until(executor, lambda: mode_from_status(feed.statuses[-1])[1] == 5, 2.0)
+    assert mode_from_status(feed.statuses[-1])[0] == int(round(t * 1e9))
 
 
 def test_supervisor_stale_input_failsafe_and_abort(ctx):
@@ -366,13 +410,17 @@ def test_controller_answers_every_status_once_in_idle(ctx):
     q = feed.headings[0].quaternion
     assert np.allclose([q.w, q.z], [np.cos(np.pi / 4), np.sin(np.pi / 4)], atol=1e-9)
 
-    # a status out of order or repeated: dropped, no extra answer
+    # a status a little out of order (within MAX_BACKSTEP_S) or repeated: dropped
     n = len(feed.forces)
-    status(feed, 10.0, 0)
-    status(feed, 11.0, 0)
-    status(feed, 11.0, 0)
-    spin_for(executor, 0.3)
+    for t in (10.15, 11.0, 11.0):                    # one at a time: FRAME_QOS keeps 2
+        status(feed, t, 0)
+        spin_for(executor, 0.1)
     assert stamps_of(feed.forces[n:]) == [int(11.0 * 1e9)]
+    # a status 1 s back: the clock stepped back, the frames start again from it (before,
+    # every status up to 11.0 s would have been dropped as older than one answered)
+    status(feed, 10.0, 0)
+    assert spin_until(executor, lambda: len(feed.forces) == n + 2, 2.0)
+    assert stamps_of(feed.forces[n:]) == [int(11.0 * 1e9), int(10.0 * 1e9)]
 
 
 def test_controller_that_fell_behind_answers_the_newest_frames_not_a_backlog(ctx):

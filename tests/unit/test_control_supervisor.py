@@ -226,3 +226,29 @@ def test_the_staleness_watchdog_leaves_image_cues_to_the_frames():
     sup._last.update({'window': 1.0, 'front_flow': 1.0})
     assert sup.update(1.0, apply_requests=False) == [] and sup.mode == Mode.WINDOW
     assert [tr.to_mode for tr in sup.update(1.0)] == [Mode.CROSSING]
+
+
+def test_a_clock_step_back_in_flight_is_failsafe_and_in_idle_needs_fresh_inputs():
+    """Without the step rule, the inputs of 1.0 s would look 0.2 s *younger* than fresh."""
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    sup = started()
+    for k in range(1, 50):
+        feed(sup, 0.02 * k, xi, v)
+    assert sup.mode == Mode.WINDOW
+    # the clock read 0.98 s; it now reads 0.80 s, and the window is gone: by ages alone the
+    # window (stamped 0.98) would count as fresh until the clock reached 1.48 s
+    done = sup.clock_stepped_back(0.8, 0.18)
+    assert sup.mode == Mode.FAILSAFE and done == sup.transitions[-1:]
+    assert done[0].t == 0.8 and 'clock went back by 0.180 s' in done[0].reason
+    # in IDLE: no transition, but a start needs inputs taken after the step
+    sup = ModeSupervisor(SupervisorConfig(r_w=WORLD.window.width))
+    feed(sup, 1.0, xi, np.zeros(3))
+    assert sup.clock_stepped_back(0.5, 0.5) == [] and sup.mode == Mode.IDLE
+    ok, msg = sup.start(0.55)
+    assert not ok and 'IMU' in msg
+    feed(sup, 0.56, xi, np.zeros(3))
+    assert sup.start(0.56)[0]
+    # FAILSAFE and SHUTDOWN stay what they are
+    sup = started()
+    sup.abort(0.1)
+    assert sup.clock_stepped_back(0.05, 0.2) == [] and sup.mode == Mode.FAILSAFE

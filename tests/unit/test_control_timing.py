@@ -7,6 +7,7 @@ from ibvs_control.core.frame_io import check_flow, PadPairing
 from ibvs_common.core.modes import Mode
 from ibvs_common.core import attitude_buffer
 from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
+from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.frames import (quat_from_rot, R_IB_from_quat_map_base,
                                      rot_map_base_from_R_IB)
 from ibvs_common.core.modes import Camera, InputKind, MODE_INPUTS
@@ -218,3 +219,72 @@ def test_check_flow_converts_map_to_the_paper_frame_and_refuses_bad_input():
     assert check_flow(np.full(3, np.nan), 'odom')[1]                 # wrong frame still refused
     phi_I, err = check_flow(np.zeros(3), 'odom')
     assert phi_I is None and 'odom' in err
+
+
+def test_the_backstep_watch_reports_a_step_back_beyond_its_tolerance_once():
+    watch = BackstepWatch(max_backstep_s=0.1)
+    assert [watch.observe(t * MS) for t in (0, 20, 40, 40, 35)] == [0] * 5  # 5 ms: jitter
+    assert watch.newest_ns == 40 * MS
+    assert watch.observe(-61 * MS) == 101 * MS and watch.steps == 1     # 101 ms back
+    assert watch.observe(-41 * MS) == 0 and watch.newest_ns == -41 * MS  # from the step on
+    assert watch.observe(-141 * MS) == 0                                 # exactly 0.1 s back
+    with pytest.raises(ValueError):
+        BackstepWatch(max_backstep_s=0.0)
+
+
+def test_after_a_clock_step_back_no_attitude_mixes_samples_of_two_moments():
+    """IMU samples before and after a 0.5 s step back share stamps, not attitudes."""
+    w = np.array([0.0, 0.0, 1.0])                    # yaw at 1 rad/s
+    buf = AttitudeBuffer(AttitudeBufferConfig())
+    added = [buf.add(10.0 + 0.01 * k, rot(w * 0.01 * k), w)   # real time 0 .. 0.5 s,
+             for k in range(51)]                                 # stamps 10.0 .. 10.5 s
+    # the clock steps back by 0.497 s: real time 0.51 s is stamped 10.013 s
+    added += [buf.add(10.013, rot(w * 0.51), w), buf.add(10.023, rot(w * 0.52), w)]
+    # 10.018 s is real time 0.515 s: interpolated between the two new samples only (mixed
+    # with the old ones, e.g. 10.02 s of real time 0.02 s, it would be far off)
+    assert np.allclose(buf.attitude_at(10.018), rot(w * 0.515), atol=1e-9)
+    assert buf.attitude_at(10.3) is None             # the old samples are gone
+    assert added == [False] * 51 + [True, False] and len(buf) == 2   # dropped once
+    # a little out of order (5 ms, within MAX_BACKSTEP_S) is sorted in as before
+    assert buf.add(10.018, rot(w * 0.515), w) is False and len(buf) == 3
+
+
+def test_after_a_clock_step_back_frames_start_again_instead_of_being_refused():
+    """Without the reset, every frame of the next 1 s would be 'older than one released'."""
+    a = assembler()
+    for t in (1000, 1020):
+        a.add_input(W, t * MS, 'corners')
+        a.add_input(FF, t * MS, 'phi')
+        a.open(t * MS, Mode.WINDOW, now_ns=t * MS)
+    assert [f.stamp_ns for f in a.release(1020 * MS)] == [1000 * MS, 1020 * MS]
+    a.add_input(W, 1040 * MS, 'corners')             # a frame waiting for its flow
+    a.open(1040 * MS, Mode.WINDOW, now_ns=1040 * MS)
+    # the clock steps back by 1 s: the same stamps come again, from new images
+    assert a.add_input(W, 40 * MS, 'new corners')    # not a duplicate of a kept product
+    assert a.clock_steps == 1 and not a.has_pending  # the frame of 1040 ms is gone
+    assert a.open(40 * MS, Mode.WINDOW, now_ns=40 * MS)
+    a.add_input(FF, 40 * MS, 'new phi')              # the flow's go-back: no second reset
+    assert a.clock_steps == 1
+    (frame,) = a.release(41 * MS)
+    assert frame.inputs == {W: 'new corners', FF: 'new phi'} and not frame.expired
+    a.add_input(W, 20 * MS, 'x')                     # the watches go on from the step
+    assert a.clock_steps == 1
+    # a flow still on its way from before the step opens nothing by itself; the go-back
+    # of its kind after it is a (second) step: the frame at hand is lost, not a second
+    a.add_input(FF, 1060 * MS, 'old phi')
+    a.add_input(W, 60 * MS, 'corners 60')
+    a.open(60 * MS, Mode.WINDOW, now_ns=60 * MS)
+    a.add_input(FF, 60 * MS, 'phi 60')
+    assert a.clock_steps == 2 and not a.has_pending
+    for t in (80, 100):
+        a.add_input(W, t * MS, 'corners')
+        a.add_input(FF, t * MS, 'phi')
+        assert a.open(t * MS, Mode.WINDOW, now_ns=t * MS)
+    assert [f.stamp_ns for f in a.release(101 * MS)] == [80 * MS, 100 * MS]
+    # a product late but in its kind's order (older than frames released) is no step
+    a.add_input(FD, 30 * MS, 'x')
+    a.add_input(FD, 50 * MS, 'x')
+    assert a.clock_steps == 2
+    a.reset()                                        # a reset restarts every watch
+    a.add_input(FD, 10 * MS, 'x')
+    assert a.clock_steps == 2

@@ -18,7 +18,10 @@ propagated to it with the gyro; never waited for. It publishes, stamped with the
 
 Every evaluated frame is answered exactly once in every mode (IDLE included: the core gives
 hover). Without statuses (supervisor dead) nothing is answered: the bridge's safety policy
-then hands the vehicle back to the autopilot. Gains are checked at start by
+then hands the vehicle back to the autopilot. When the stamps of the statuses, of a product
+kind or of the IMU go back (a clock step, :mod:`ibvs_common.core.clock_step`), the frames or
+the IMU history they feed are dropped and start again from the next input, instead of
+refusing every stamp for the length of the step. Gains are checked at start by
 ControllerConfig.from_params: bad gains -> GainError, the process exits with status 1.
 """
 from __future__ import annotations
@@ -33,6 +36,7 @@ from geometry_msgs.msg import QuaternionStamped, Vector3Stamped
 from sensor_msgs.msg import Imu, JointState
 
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
+from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_control.core.control_laws import (CrossingGains, GAIN_SPECS,
                                             IntegralGains, LandingGains, ObserverGains,
@@ -136,6 +140,7 @@ class ForceControllerNode(Node):
         self._specific_force = SpecificForceBuffer() \
             if config.disturbance_law.uses_observer else None
         self._t_answered: float | None = None
+        self._status_stamps = BackstepWatch()   # one publisher's stream: back = clock step
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
                                                 COMMAND_QOS)
@@ -160,10 +165,15 @@ class ForceControllerNode(Node):
     def _on_imu(self, msg: Imu) -> None:
         try:
             stamp_ns, q_map_base, omega_B = imu_attitude(msg)
-            self._attitudes.add_map_base(stamp_ns / NS_PER_S, q_map_base, omega_B)
+            stepped = self._attitudes.add_map_base(stamp_ns / NS_PER_S, q_map_base, omega_B)
         except ValueError as exc:
             self.log.error(f'imu/data refused: {exc}', LOG_THROTTLE_S)
             return
+        if stepped:
+            self._clock_stepped('imu/data', 'IMU history')
+            if self._specific_force is not None:
+                self._specific_force.clear()
+            self._t_answered = None
         if self._specific_force is not None and msg.linear_acceleration_covariance[0] >= 0.0:
             self._add_specific_force(stamp_ns, vector3(msg.linear_acceleration))
         self._release()
@@ -190,6 +200,9 @@ class ForceControllerNode(Node):
         if err:
             self._refused('ibvs/supervisor_status', err)
             return
+        if self._status_stamps.observe(stamp_ns):
+            self._frames.reset()
+            self._clock_stepped('ibvs/supervisor_status', 'pending frames')
         if not self._frames.open(stamp_ns, mode, self.get_clock().now().nanoseconds):
             self.log.warning(f'status of {stamp_ns} ns is a duplicate or older than '
                              'a frame already answered: dropped', LOG_THROTTLE_S)
@@ -198,12 +211,19 @@ class ForceControllerNode(Node):
     def _refused(self, what: str, err: str) -> None:
         self.log.error(f'{what} refused: {err}', LOG_THROTTLE_S)
 
+    def _clock_stepped(self, what: str, dropped: str) -> None:
+        self.log.warning(f'{what} stamps went back (a step of the clock): {dropped} dropped',
+                         LOG_THROTTLE_S)
+
     def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
         """Keep one product (a bad one counts as 'not detected') and answer what it completes."""
         if err:
             self._refused(kind.value, err)
+        steps = self._frames.clock_steps
         if not self._frames.add_input(kind, stamp_ns, value):
             self.log.warning(f'duplicate {kind.value}: dropped', LOG_THROTTLE_S)
+        if self._frames.clock_steps != steps:
+            self._clock_stepped(kind.value, 'pending frames')
         self._release()
 
     def _release(self) -> None:

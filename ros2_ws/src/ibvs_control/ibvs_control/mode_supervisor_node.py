@@ -16,6 +16,14 @@ before it, not on the order in which DDS delivered them, and an input the mode d
 never delays a frame. A timer on the
 node clock (``update_rate_hz``) applies the staleness rules when inputs stop altogether.
 
+Clock steps (:mod:`ibvs_common.core.clock_step`): every callback reads the node clock through
+a watch. When it went back by more than ``MAX_BACKSTEP_S`` (the system clock stepped back),
+the frames and the IMU history are dropped and the core takes every input as missing:
+FAILSAFE in a flying mode (:meth:`ModeSupervisor.clock_stepped_back`). The watchdog timer
+cannot be relied on for this: rcl does not see a step of system time and would hold the
+timer for the length of the step. The stamps of the IMU and of each product kind are
+watched too (a camera or a bag on a clock of its own): the history they feed starts again.
+
 Publishes ``ibvs/mode`` (std_msgs/UInt8, reliable, transient local, depth 1) at start and on
 every transition (each logged with its reason), and ``ibvs/supervisor_status``
 (diagnostic_msgs/DiagnosticArray, reliable) for every evaluated frame, stamped with it: the
@@ -47,6 +55,7 @@ from ibvs_control.core.supervisor import (
     ModeSupervisor, PARAMETER_SPECS as CORE_SPECS, SupervisorConfig)
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
+from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
@@ -116,6 +125,7 @@ class ModeSupervisorNode(Node):
             float(p['imu_max_interpolation_gap_s'])))
         # frames of the current mode's camera wait for the products that mode needs
         self._frames = FrameAssembler(float(p['frame_deadline_s']), self._needed)
+        self._clock_watch = BackstepWatch()    # the node clock, read in every callback
         self._n_reported = 0
         self._published: Mode | None = None
 
@@ -132,8 +142,28 @@ class ModeSupervisorNode(Node):
         self.get_logger().info(f'mode supervisor ready in {self._core.mode.name}: {config}')
 
     # --- helpers ---------------------------------------------------------------------------
+    def _now_ns(self) -> int:
+        """Return the node clock (ns), watched for a step back (:meth:`_on_clock_step`)."""
+        now_ns = self.get_clock().now().nanoseconds
+        back_ns = self._clock_watch.observe(now_ns)
+        if back_ns:
+            self._on_clock_step(now_ns, back_ns)
+        return now_ns
+
     def _now(self) -> float:
-        return self.get_clock().now().nanoseconds / NS_PER_S
+        return self._now_ns() / NS_PER_S
+
+    def _on_clock_step(self, now_ns: int, back_ns: int) -> None:
+        """Drop frames and IMU history after a step back of the clock; the core sets the mode."""
+        self.log.error(f'the ROS clock went back by {back_ns / NS_PER_S:.3f} s (a step of the '
+                       'system clock?): frames and IMU history dropped, every input missing '
+                       'until it comes again', LOG_THROTTLE_S)
+        self._frames.reset()
+        self._attitudes.clear()
+        self._deadline.arm(None)
+        if self._core.clock_stepped_back(now_ns / NS_PER_S, back_ns / NS_PER_S):
+            self._publish_mode()
+            self._publish_status(now_ns)
 
     def _error(self, text: str) -> None:
         self.log.error(text, LOG_THROTTLE_S)
@@ -167,9 +197,12 @@ class ModeSupervisorNode(Node):
 
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:
+        self._now_ns()                         # watch the clock between frames too
         try:
             stamp_ns, q_map_base, omega_B = imu_attitude(msg)
-            self._attitudes.add_map_base(stamp_ns / NS_PER_S, q_map_base, omega_B)
+            if self._attitudes.add_map_base(stamp_ns / NS_PER_S, q_map_base, omega_B):
+                self.log.warning('imu/data stamps went back (a clock step): IMU history '
+                                 'dropped', LOG_THROTTLE_S)
         except ValueError as exc:
             self._error(f'imu/data refused: {exc}')
             return
@@ -180,11 +213,15 @@ class ModeSupervisorNode(Node):
         """Route one product: into its frame, or to the core at once (see the module doc)."""
         if err:
             self._error(f'{kind.value} refused: {err}')
+        now_ns = self._now_ns()
+        steps = self._frames.clock_steps
         if not self._frames.add_input(kind, stamp_ns, value):
             self.log.warning(f'duplicate {kind.value} at {stamp_ns} ns: dropped', LOG_THROTTLE_S)
             return
+        if self._frames.clock_steps != steps:
+            self.log.warning(f'{kind.value} stamps went back (a clock step): pending frames '
+                             'dropped', LOG_THROTTLE_S)
         camera = CAMERA_OF[kind]
-        now_ns = self.get_clock().now().nanoseconds
         if camera != MODE_INPUTS[self._core.mode].camera \
                 or not (self._frames.is_pending(stamp_ns)
                         or self._frames.open(stamp_ns, camera, now_ns)):
@@ -195,7 +232,7 @@ class ModeSupervisorNode(Node):
         """Evaluate the frames that are complete or past their deadline; re-arm the timer."""
         if not self._frames.has_pending:      # most calls: an IMU sample between frames
             return
-        for frame in self._frames.release(self.get_clock().now().nanoseconds):
+        for frame in self._frames.release(self._now_ns()):
             self._evaluate(frame)
         self._deadline.arm(self._frames.next_deadline_ns())
 
@@ -272,7 +309,7 @@ class ModeSupervisorNode(Node):
         so that the controller answers it (in FAILSAFE: level, the bridge hands over) and the
         mode of every later stamp is known.
         """
-        now_ns = self.get_clock().now().nanoseconds
+        now_ns = self._now_ns()
         if self._core.update(now_ns / NS_PER_S, apply_requests=False):
             self._publish_mode()
             self._publish_status(now_ns)

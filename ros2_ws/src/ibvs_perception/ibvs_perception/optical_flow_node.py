@@ -130,7 +130,9 @@ class OpticalFlowNode(Node):
 
     def on_imu(self, msg: Imu) -> None:
         try:
-            self.attitudes.add_map_base(*attitude_from_imu(msg))
+            if self.attitudes.add_map_base(*attitude_from_imu(msg)):
+                self.log.warning('optical_flow: imu/data stamps went back (a clock step): IMU '
+                                 'history dropped', THROTTLE_S)
         except ValueError as exc:
             self.log.error(f'optical_flow: IMU message dropped: {exc}', THROTTLE_S)
 

@@ -106,7 +106,9 @@ class WindowDetectorNode(Node):
 
     def on_imu(self, msg: Imu) -> None:
         try:
-            self.attitudes.add_map_base(*attitude_from_imu(msg))
+            if self.attitudes.add_map_base(*attitude_from_imu(msg)):
+                self.log.warning('window_detector: imu/data stamps went back (a clock step): IMU '
+                                 'history dropped', THROTTLE_S)
         except ValueError as exc:
             self.log.error(f'window_detector: IMU message dropped: {exc}', THROTTLE_S)
 

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from ibvs_common.core.clock_step import BackstepWatch, NS_PER_S
 from ibvs_common.core.frames import exp_so3, is_rotation, log_so3, R_IB_from_quat_map_base
 
 
@@ -55,6 +56,11 @@ class AttitudeBuffer:
     (:meth:`add_map_base`), whose R_IB is computed only when a query needs it: every node
     keeps every 100 Hz imu/data sample, but only the few around an image stamp are ever read
     (docs/performance.md, "Idle CPU").
+
+    Samples may come a little out of order (they are sorted in). A sample stamped more than
+    :data:`~ibvs_common.core.clock_step.MAX_BACKSTEP_S` before the newest one means the clock
+    stepped back (:mod:`ibvs_common.core.clock_step`): the history is dropped first, so that
+    no attitude is ever interpolated between samples of two moments; ``add`` returns True.
     """
 
     config: AttitudeBufferConfig = field(default_factory=AttitudeBufferConfig)
@@ -62,6 +68,7 @@ class AttitudeBuffer:
     _R: list = field(default_factory=list)       # R_IB, or None until first read (_q then)
     _q: list = field(default_factory=list)       # unit q_map_base of an add_map_base sample
     _omega: list = field(default_factory=list)
+    backsteps: BackstepWatch = field(default_factory=BackstepWatch)   # IMU stamps
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -71,22 +78,25 @@ class AttitudeBuffer:
         """Stamp (s) of the newest sample, or None when empty."""
         return self._stamps[-1] if self._stamps else None
 
-    def add(self, stamp_s: float, R_IB: np.ndarray, omega_B: np.ndarray) -> None:
-        """Insert a sample; raises ValueError for non-finite values or a non-rotation."""
+    def add(self, stamp_s: float, R_IB: np.ndarray, omega_B: np.ndarray) -> bool:
+        """Insert a sample; True if the clock stepped back and the history was dropped.
+
+        Raises ValueError for non-finite values or a non-rotation.
+        """
         R_IB = np.asarray(R_IB, dtype=float)
         omega_B = np.asarray(omega_B, dtype=float).reshape(3)
         if not np.isfinite(stamp_s) or not np.all(np.isfinite(omega_B)) \
                 or not is_rotation(R_IB, tol=1e-4):
             raise ValueError('IMU sample with a non-finite stamp/rate or an invalid attitude')
-        self._insert(float(stamp_s), R_IB, None, omega_B)
+        return self._insert(float(stamp_s), R_IB, None, omega_B)
 
-    def add_map_base(self, stamp_s: float, q_map_base, omega_B) -> None:
+    def add_map_base(self, stamp_s: float, q_map_base, omega_B) -> bool:
         """Insert a sample given by a ROS attitude quaternion (base_link FLU in map ENU).
 
         ``q_map_base``: (w, x, y, z), unit within 10 % (normalised here); ``omega_B``: body
         FRD rates (rad/s). R_IB (:func:`frames.R_IB_from_quat_map_base`, a rotation by
         construction) is computed on the first query that reads this sample, so the result
-        of every query is the same as with :meth:`add`. Raises ValueError as :meth:`add`.
+        of every query is the same as with :meth:`add`. Returns and raises as :meth:`add`.
         """
         w, x, y, z = (float(v) for v in q_map_base)
         o0, o1, o2 = (float(v) for v in omega_B)
@@ -94,13 +104,20 @@ class AttitudeBuffer:
         if not (math.isfinite(stamp_s) and math.isfinite(o0 + o1 + o2) and math.isfinite(n)) \
                 or abs(n - 1.0) > 0.1:
             raise ValueError('IMU sample with a non-finite stamp/rate or an invalid attitude')
-        self._insert(float(stamp_s), None, (w, x, y, z), np.array((o0, o1, o2)))
+        return self._insert(float(stamp_s), None, (w, x, y, z), np.array((o0, o1, o2)))
 
-    def _insert(self, stamp_s: float, R_IB, q, omega_B: np.ndarray) -> None:
+    def clear(self) -> None:
+        """Drop every sample."""
+        del self._stamps[:], self._R[:], self._q[:], self._omega[:]
+
+    def _insert(self, stamp_s: float, R_IB, q, omega_B: np.ndarray) -> bool:
+        stepped = bool(self.backsteps.observe(round(stamp_s * NS_PER_S)))
+        if stepped:
+            self.clear()
         i = bisect.bisect_right(self._stamps, stamp_s)
         if i > 0 and self._stamps[i - 1] == stamp_s:
             self._R[i - 1], self._q[i - 1], self._omega[i - 1] = R_IB, q, omega_B
-            return
+            return stepped
         self._stamps.insert(i, stamp_s)
         self._R.insert(i, R_IB)
         self._q.insert(i, q)
@@ -109,6 +126,7 @@ class AttitudeBuffer:
         drop = bisect.bisect_left(self._stamps, cutoff)
         if drop > 0:
             del self._stamps[:drop], self._R[:drop], self._q[:drop], self._omega[:drop]
+        return stepped
 
     def _rotation(self, i: int) -> np.ndarray:
         """R_IB of sample i (computed from its quaternion once, on the first read)."""

@@ -103,6 +103,11 @@ class SpecificForceBuffer:
         while self._t and self._t[0] < self._t[-1] - self.history_s:
             del self._t[0], self._f_B[0]
 
+    def clear(self) -> None:
+        """Drop every sample (the IMU's stamps went back: a clock step)."""
+        self._t.clear()
+        self._f_B.clear()
+
     def mean_between(self, t0: float | None, t1: float,
                      attitude_at: Callable[[float], np.ndarray | None]) -> np.ndarray | None:
         """Mean f_I of the samples with t0 < t <= t1 (t0 None: the newest only), or None.

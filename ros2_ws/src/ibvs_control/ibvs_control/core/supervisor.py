@@ -18,7 +18,9 @@ Transitions and their image cues (no position or velocity estimate is used):
           ``shutdown_height_m`` (SPEC: an image criterion, -eta_t^T q_t of that group) on
           every pad frame for ``shutdown_confirm_s`` (one wrong frame cannot shut down).
 - any flying mode -> 5 (failsafe) when an input it needs is stale (timeouts), on ``abort``,
-          or when the crossing does not find the pad within ``crossing_timeout_s``.
+          when the crossing does not find the pad within ``crossing_timeout_s``, or when the
+          node's clock stepped back (:meth:`clock_stepped_back`: no input's age can be
+          measured across the step).
 All times are seconds of the node clock (sim time in simulation).
 
 The node feeds one camera frame's inputs together (``on_*`` with the frame's stamp, in a
@@ -178,6 +180,22 @@ class ModeSupervisor:
             return False, f'already in {self.mode.name}'
         self._switch(t, Mode.FAILSAFE, reason)
         return True, 'aborted: failsafe'
+
+    def clock_stepped_back(self, t: float, back_s: float) -> list[Transition]:
+        """Take a step back of the node's clock by ``back_s`` (s), to ``t``.
+
+        An input's age, ``t`` minus its stamp, can no longer be measured for the inputs taken
+        before the step (they would look fresh for the length of the step), so every input
+        counts as missing until it comes again. In a flying mode this is FAILSAFE, as for a
+        stale input; in IDLE a start then needs inputs taken after the step.
+        """
+        self._last.clear()
+        self._t_flow_down = None
+        self._t_below_shutdown = None
+        if self.mode not in FLYING_MODES:
+            return []
+        return [self._switch(t, Mode.FAILSAFE, f'the clock went back by {back_s:.3f} s (a step '
+                             'of the system clock): input ages cannot be measured')]
 
     # --- inputs -----------------------------------------------------------------------------
     def on_imu(self, t: float, R_IB: np.ndarray | None = None) -> None:

@@ -28,6 +28,16 @@ Attitude at a stamp (:class:`ibvs_common.core.attitude_buffer.AttitudeBuffer`)
     Interpolated on SO(3) between the IMU samples around the stamp, or propagated from the
     newest sample with its body rate for at most ``max_extrapolation_s``: a frame never waits
     for a later IMU sample.
+
+Clock steps (:mod:`ibvs_common.core.clock_step`)
+    The products of one kind come from one publisher, in stamp order. When a kind's stamps go
+    back by more than ``MAX_BACKSTEP_S``, the ROS clock stepped back: the assembler drops
+    its frames and products (``clock_steps`` counts it) and starts again from that product,
+    instead of refusing every frame up to the newest one already released, i.e. for the
+    length of the step. A reset (also one by a node that saw its clock step) restarts every
+    kind's watch, so the other kinds' first products after the step are no second step. One
+    still on its way from before the step may open a frame or two more; the go-back of its
+    kind after it then clears them (and the frame at hand) in turn.
 """
 from __future__ import annotations
 
@@ -38,6 +48,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.modes import InputKind
 
 NS_PER_S = 1_000_000_000
@@ -105,14 +116,33 @@ class FrameAssembler:
         self.depth = int(depth)
         self.released_through_ns: int | None = None
         self.expired = 0                      # frames released by their deadline
+        self.clock_steps = 0                  # resets after a product kind's stamps went back
         self._inputs: dict[InputKind, OrderedDict] = {k: OrderedDict() for k in InputKind}
         self._pending: list[_Pending] = []    # in stamp order
+        self._backsteps = {k: BackstepWatch() for k in InputKind}
+
+    def reset(self) -> None:
+        """Forget every frame and product (the ROS clock stepped back)."""
+        self.released_through_ns = None
+        self._pending.clear()
+        for store in self._inputs.values():
+            store.clear()
+        for watch in self._backsteps.values():
+            watch.forget()
 
     # --- inputs ------------------------------------------------------------------------
     def add_input(self, kind: InputKind, stamp_ns: int, value) -> bool:
-        """Keep one product; False if this kind already has a value at this stamp."""
+        """Keep one product; False if this kind already has a value at this stamp.
+
+        A product stamped more than ``MAX_BACKSTEP_S`` before the newest of its kind first
+        resets the assembler (module doc, "Clock steps").
+        """
         store = self._inputs[kind]
         stamp_ns = int(stamp_ns)
+        if self._backsteps[kind].observe(stamp_ns):
+            self.reset()
+            self.clock_steps += 1
+            self._backsteps[kind].observe(stamp_ns)
         if stamp_ns in store:
             return False
         store[stamp_ns] = value
