@@ -388,6 +388,11 @@ def test_front_optical_flow_node_needs_a_window(ctx, renderers):
     assert stamp_s(node.window_before(20.0)) == pytest.approx(19.98)
     assert stamp_s(node.window_before(20.001)) == pytest.approx(20.0)
     assert node.window_before(19.96) is None
+    # the clock steps back by 0.15 s: the detections of before are of another moment
+    pubs['window/corners'].publish(polygon_msg(19.87))
+    assert spin_until(executor, lambda: len(node.window_msgs) == 1)
+    assert node.window_before(19.97) is not None and node.window_before(19.99) is not None
+    assert stamp_s(node.window_before(19.99)) == pytest.approx(19.87)   # not 19.98
 
 
 @pytest.mark.parametrize('name, value', [('max_window_age_s', 0.0),

@@ -98,6 +98,22 @@ def test_a_switch_off_stops_processing_from_its_stamp_and_a_late_image_keeps_its
     assert not gate.active
 
 
+def test_after_a_clock_step_back_the_gate_starts_again_instead_of_ignoring_statuses():
+    """The front flow, off in IDLE since 10 s, must come on at a start stamped 9.5 s."""
+    gate = ModeGate((Mode.WINDOW,))
+    gate.on_status(10_000 * MS, Mode.IDLE)           # off from 10 s
+    assert gate.on_image(10_020 * MS, 'kept') == []
+    # the clock steps back by 1 s: images and statuses stamped from 9.04 s on
+    assert released(gate.on_image(9_040 * MS, 'a')) == [(9_040, True)]   # as before any status
+    assert gate.on_status(9_040 * MS, Mode.IDLE) == [] and not gate.active
+    assert gate.on_image(9_060 * MS, 'b') == []
+    assert released(gate.on_status(9_060 * MS, Mode.WINDOW)) == [(9_060, True)]
+    assert gate.active
+    assert gate.clock_steps == 1                     # the statuses' own go-back: no new reset
+    # within MAX_BACKSTEP_S a status out of order is still just ignored
+    assert gate.on_status(9_000 * MS, Mode.IDLE) == [] and gate.active
+
+
 def test_a_depth_below_two_is_refused():
     with pytest.raises(ValueError, match='depth'):
         ModeGate(DOWN_FLOW_MODES, depth=1)

@@ -32,6 +32,7 @@ from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
+from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.config import ConfigError, load_vehicle
 from ibvs_common.core.frames import e3, MAP_FRAME, vec_I_to_map
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
@@ -47,7 +48,7 @@ from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.mode_gating import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
-from ibvs_common.node_common import IMAGE_QOS
+from ibvs_common.node_common import IMAGE_QOS, stamp_to_ns
 from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -108,6 +109,7 @@ class OpticalFlowNode(Node):
         self.camera_key: tuple | None = None
         self.camera_info: CameraInfo | None = None
         self.window_msgs: list[PolygonStamped] = []      # newest last
+        self.window_stamps = BackstepWatch()              # back: a clock step, forget them
         prefix = f'{self.camera_name}_camera'
         self.pub_flow = self.create_publisher(Vector3Stamped, f'{prefix}/translational_flow', 10)
         self.pub_quality = self.create_publisher(
@@ -126,6 +128,10 @@ class OpticalFlowNode(Node):
         self.camera_info = msg
 
     def on_window(self, msg: PolygonStamped) -> None:
+        if self.window_stamps.observe(stamp_to_ns(msg.header.stamp)):
+            self.log.warning('optical_flow: window/corners stamps went back (a clock step): '
+                             'earlier detections dropped', THROTTLE_S)
+            self.window_msgs = []
         self.window_msgs = self.window_msgs[-(WINDOW_HISTORY - 1):] + [msg]
 
     def on_imu(self, msg: Imu) -> None:

@@ -20,12 +20,20 @@ So the images processed from a switch on are the same whether an image or the st
 same stamp arrives first; in a lockstep simulation, where the status of frame k is published
 before the sim renders frame k + 1, runs repeat. Onboard, the first frames after a switch are
 answered when the status arrives (one supervisor latency, a few ms, later).
+
+Clock steps (:mod:`ibvs_common.core.clock_step`): when the images' or the statuses' stamps go
+back by more than ``MAX_BACKSTEP_S``, the gate forgets its switches and kept images, i.e. it
+processes every image until the next status, as before any status. Otherwise a status after a
+step back, older than the last switch, would be ignored until the clock caught up: a product
+switched off in IDLE would stay off in WINDOW (and WINDOW would fail safe for want of it).
 """
 from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
 from typing import Any, Iterable
+
+from ibvs_common.core.clock_step import BackstepWatch
 
 #: activity changes remembered, to find the mode in force at a late image's stamp
 CHANGE_HISTORY = 8
@@ -52,6 +60,23 @@ class ModeGate:
         self.enabled = bool(enabled)
         self._kept: deque = deque(maxlen=int(depth))      # (stamp_ns, item), oldest first
         self._changes: deque = deque(maxlen=CHANGE_HISTORY)   # (stamp_ns, active)
+        self._image_stamps = BackstepWatch()
+        self._status_stamps = BackstepWatch()
+        self.clock_steps = 0                  # times the gate started again (stamps went back)
+
+    def _watch(self, watch: BackstepWatch, stamp_ns: int) -> None:
+        """Forget switches and kept images when the stamps of ``watch`` went back (a step).
+
+        Both watches start again from there: the other stream's first stamp after the step is
+        no second step.
+        """
+        if watch.observe(stamp_ns):
+            self._changes.clear()
+            self._kept.clear()
+            self.clock_steps += 1
+            self._image_stamps.forget()
+            self._status_stamps.forget()
+            watch.observe(stamp_ns)
 
     @property
     def active(self) -> bool:
@@ -70,6 +95,7 @@ class ModeGate:
 
     def on_image(self, stamp_ns: int, item: Any) -> list[GatedImage]:
         """Take one image: [it] to process now, or [] when kept for a possible switch."""
+        self._watch(self._image_stamps, stamp_ns)
         if self.active_at(stamp_ns):
             return [GatedImage(stamp_ns, item, True)]
         self._kept.append((stamp_ns, item))
@@ -79,6 +105,7 @@ class ModeGate:
         """Take the mode of the frame at ``stamp_ns``; return the images a switch on releases."""
         if not self.enabled:
             return []
+        self._watch(self._status_stamps, stamp_ns)
         active = int(mode) in self.active_modes
         if active == self.active:
             return []
