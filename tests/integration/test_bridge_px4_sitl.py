@@ -942,12 +942,17 @@ def test_px4_reconnects_after_a_restart(px4):
         t_sync = time.monotonic()
         n0, t0 = len(f.messages('ATTITUDE_QUATERNION')), time.monotonic()
         f.spin(2.0)
-        rate = (len(f.messages('ATTITUDE_QUATERNION')) - n0) / (time.monotonic() - t0)
+        new = f.messages('ATTITUDE_QUATERNION')[n0:]
+        rate = len(new) / (time.monotonic() - t0)
+        # the interval PX4 sends at, in its own time: requested 10 ms (100 Hz), 20 ms by
+        # default; a starved PX4 skips some (CI once: 79 Hz on average), not every other one
+        interval_ms = float(np.median(np.diff([m.time_boot_ms for _, m in new])))
         print(f'\nPX4 restarted ({t_up - t_stop:.1f} s down): bridge synced and streams '
               f'requested again {t_sync - t_up:.2f} s after PX4 was ready; '
-              f'ATTITUDE_QUATERNION at {rate:.0f} Hz; time sync resets '
-              f'{f.bridge.time_sync.resets}, reopens {f.bridge.link.counters.reopens}')
-        assert rate > 85.0 and f.bridge.link.counters.reopens == 0
+              f'ATTITUDE_QUATERNION at {rate:.0f} Hz, median interval {interval_ms:.0f} ms; '
+              f'time sync resets {f.bridge.time_sync.resets}, reopens '
+              f'{f.bridge.link.counters.reopens}')
+        assert interval_ms <= 14.0 and f.bridge.link.counters.reopens == 0
     finally:
         f.truth.close()
         f.close()
