@@ -26,6 +26,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Imu
 from std_msgs.msg import UInt8
 
+from ibvs_common.core.stamps import NS_PER_S, s_to_ns, stamp_to_ns
+
 IMU_MIN_MESSAGES = 10
 IMU_MAX_AGE_S = 1.0
 STAMP_AGREEMENT_S = 0.1       # s, latest image and IMU stamps vs each other and the ROS clock
@@ -76,19 +78,14 @@ def diag_value(msg: DiagnosticArray, key: str) -> str | None:
     return None
 
 
-def stamp_ns(msg) -> int:
-    """Header stamp of a message in integer nanoseconds."""
-    return msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-
-
 def stamps_agree(stamps: dict, now_ns: int, tolerance_s: float = STAMP_AGREEMENT_S
                  ) -> tuple[bool, str]:
     """Whether the latest stamps (name -> ns or None) agree with each other and with now."""
     missing = [n for n, t in stamps.items() if t is None]
     if missing:
         return False, 'no stamp yet from ' + ', '.join(missing)
-    tol = int(tolerance_s * 1e9)
-    offsets = {n: (t - now_ns) / 1e9 for n, t in stamps.items()}
+    tol = s_to_ns(tolerance_s)
+    offsets = {n: (t - now_ns) / NS_PER_S for n, t in stamps.items()}
     detail = ', '.join(f'{n} {dt * 1e3:+.0f} ms' for n, dt in offsets.items()) + ' vs ROS time'
     values = list(stamps.values()) + [now_ns]
     return max(values) - min(values) <= tol, detail
@@ -145,12 +142,12 @@ class GraphHealth:
 
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
-        self.stamps[f'{cam} camera'] = stamp_ns(msg)
+        self.stamps[f'{cam} camera'] = stamp_to_ns(msg.header.stamp)
 
     def _on_imu(self, msg: Imu) -> None:
         self.imu_count += 1
         self.imu_last = self.clock()
-        self.stamps['imu'] = stamp_ns(msg)
+        self.stamps['imu'] = stamp_to_ns(msg.header.stamp)
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         synced = diag_value(msg, 'clock_synced')

@@ -14,8 +14,8 @@ from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import JointState
 
+from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
 
-NS_PER_S = 1_000_000_000
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
 
 # ibvs/mode: latched state (the last mode reaches late joiners).
@@ -46,11 +46,6 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 FRAME_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 PRODUCT_QOS = IMAGE_QOS          # the same profile: best effort, keep last 2
-
-
-def stamp_to_ns(stamp) -> int:
-    """builtin_interfaces/Time -> integer nanoseconds."""
-    return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)
 
 
 def ns_to_stamp(ns: int, stamp) -> None:

@@ -38,6 +38,7 @@ from std_msgs.msg import String
 
 from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
+from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample, NedToI,
@@ -45,7 +46,7 @@ from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample,
                                      SIH_DEFAULT_HOME, StateLink)
 from ibvs_sim.core.render import SceneRenderer
 from ibvs_sim.core.sensor_noise import ReadNoise
-from ibvs_sim.core.sim_core import AnswerLatency, NS_PER_S
+from ibvs_sim.core.sim_core import AnswerLatency
 from ibvs_sim.core.world import load_world
 from ibvs_sim.sim_node import CAMERAS, camera_info_msg, image_msg, odometry_msg, stamp_from_ns
 
@@ -201,7 +202,7 @@ class Px4SimNode(Node):
             f'start {list(start)}); system clock, no /clock')
 
     def _on_force(self, msg: Vector3Stamped) -> None:
-        stamp_ns = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+        stamp_ns = stamp_to_ns(msg.header.stamp)
         self.latency.answered(stamp_ns // 1_000_000, time.time_ns() / NS_PER_S)
 
     def _on_tick(self) -> None:

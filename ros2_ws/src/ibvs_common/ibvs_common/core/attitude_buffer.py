@@ -12,7 +12,8 @@ import math
 
 import numpy as np
 
-from ibvs_common.core.clock_step import BackstepWatch, NS_PER_S
+from ibvs_common.core.clock_step import BackstepWatch
+from ibvs_common.core.stamps import NS_PER_S
 from ibvs_common.core.frames import exp_so3, is_rotation, log_so3, R_IB_from_quat_map_base
 
 

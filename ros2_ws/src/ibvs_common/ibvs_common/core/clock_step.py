@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 
-NS_PER_S = 1_000_000_000
+from ibvs_common.core.stamps import NS_PER_S
 
 #: s, a go-back of a clock or stamp stream beyond this is a clock step (5 frames at 50 Hz)
 MAX_BACKSTEP_S = 0.1

@@ -17,7 +17,8 @@ from ibvs_common.core.frames import (
     e3, GRAVITY, MAP_FRAME, quat_from_rot, quat_ned_frd_to_enu_flu, rot_z, vec_map_to_I)
 from ibvs_common.core.modes import Mode
 from ibvs_common.core.modes import InputKind
-from ibvs_control.core.timing import Frame, NS_PER_S
+from ibvs_common.core.stamps import NS_PER_S
+from ibvs_control.core.timing import Frame
 
 
 class PadPairing:

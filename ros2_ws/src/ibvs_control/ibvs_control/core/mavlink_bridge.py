@@ -40,13 +40,13 @@ from ibvs_control.core.mavlink_setpoints import (
 from ibvs_control.core.mavlink_telemetry import (
     AccelSample, ImuSample, LandedState, StreamRequests, streams_for, Telemetry)
 from ibvs_common.core.modes import Mode
+from ibvs_common.core.stamps import NS_PER_S
 from ibvs_control.core.time_sync import (
     TimeSync, TimeSyncConfig, TimesyncExchange, TimeSyncStatus)
 
 __all__ = ['BridgeConfig', 'BridgeStatus', 'ImuSample', 'MavlinkBridge', 'SetpointSource']
 
 NS_PER_MS = 1_000_000
-NS_PER_S = 1_000_000_000
 MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32 = 6, 9
 STREAM_GAP_S = 0.5                      # a longer pause in sending restarts the stream count
 STREAM_EPS_S = 1e-3                     # s, slack of the repeat period (timer jitter)

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import math
 
 from ibvs_common.core.frames import GRAVITY
+from ibvs_common.core.stamps import NS_PER_S
 
 HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover thrust outside this is refused
 THRUST_VALID_RANGE = (0.1, 0.9)         # applied thrust used by the estimator
@@ -50,7 +51,6 @@ THRUST_RATIO_RANGE = (0.6, 1.6)         # applied thrust / estimate used: far be
 #                                         touchdown (ground contact carries the rest) or a drop
 MAX_ACCEL_G = 3.0                       # |f| above this many g: not used
 HISTORY_S = 3.0                         # estimates kept for value_at (s of boot time)
-NS_PER_S = 1_000_000_000
 
 
 class HoverThrustSeed:

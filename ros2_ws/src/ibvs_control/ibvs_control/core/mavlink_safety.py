@@ -21,8 +21,7 @@ from dataclasses import dataclass
 import math
 
 from ibvs_common.core.frames import GRAVITY
-
-NS_PER_S = 1_000_000_000
+from ibvs_common.core.stamps import NS_PER_S
 
 
 @dataclass(frozen=True)

@@ -74,8 +74,9 @@ from dataclasses import dataclass
 import math
 import statistics
 
+from ibvs_common.core.stamps import NS_PER_S
+
 NS_PER_MS = 1_000_000
-NS_PER_S = 1_000_000_000
 REBOOT_BACKSTEP_NS = NS_PER_S          # boot time going back by more than this: a reboot
 PENDING_REQUESTS_KEPT = 32             # ts1 of our latest requests an answer may echo
 STEADY_EPS_S = 1e-9                    # s, float slack of the steady-clock request period

@@ -50,13 +50,7 @@ import numpy as np
 
 from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.modes import InputKind
-
-NS_PER_S = 1_000_000_000
-
-
-def s_to_ns(t_s: float) -> int:
-    """Seconds -> integer nanoseconds (rounded)."""
-    return int(round(float(t_s) * NS_PER_S))
+from ibvs_common.core.stamps import s_to_ns
 
 
 EVALUATION_ORDER = (InputKind.WINDOW, InputKind.PAD, InputKind.FLOW_FRONT, InputKind.FLOW_DOWN)
@@ -116,10 +110,14 @@ class FrameAssembler:
         self.depth = int(depth)
         self.released_through_ns: int | None = None
         self.expired = 0                      # frames released by their deadline
-        self.clock_steps = 0                  # resets after a product kind's stamps went back
         self._inputs: dict[InputKind, OrderedDict] = {k: OrderedDict() for k in InputKind}
         self._pending: list[_Pending] = []    # in stamp order
         self._backsteps = {k: BackstepWatch() for k in InputKind}
+
+    @property
+    def clock_steps(self) -> int:
+        """Resets after a product kind's stamps went back (not those :meth:`reset` was told)."""
+        return sum(watch.steps for watch in self._backsteps.values())
 
     def reset(self) -> None:
         """Forget every frame and product (the ROS clock stepped back)."""
@@ -141,7 +139,6 @@ class FrameAssembler:
         stamp_ns = int(stamp_ns)
         if self._backsteps[kind].observe(stamp_ns):
             self.reset()
-            self.clock_steps += 1
             self._backsteps[kind].observe(stamp_ns)
         if stamp_ns in store:
             return False

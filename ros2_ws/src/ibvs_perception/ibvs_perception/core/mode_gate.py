@@ -62,7 +62,11 @@ class ModeGate:
         self._changes: deque = deque(maxlen=CHANGE_HISTORY)   # (stamp_ns, active)
         self._image_stamps = BackstepWatch()
         self._status_stamps = BackstepWatch()
-        self.clock_steps = 0                  # times the gate started again (stamps went back)
+
+    @property
+    def clock_steps(self) -> int:
+        """Times the gate started again because the image or status stamps went back."""
+        return self._image_stamps.steps + self._status_stamps.steps
 
     def _watch(self, watch: BackstepWatch, stamp_ns: int) -> None:
         """Forget switches and kept images when the stamps of ``watch`` went back (a step).
@@ -73,7 +77,6 @@ class ModeGate:
         if watch.observe(stamp_ns):
             self._changes.clear()
             self._kept.clear()
-            self.clock_steps += 1
             self._image_stamps.forget()
             self._status_stamps.forget()
             watch.observe(stamp_ns)

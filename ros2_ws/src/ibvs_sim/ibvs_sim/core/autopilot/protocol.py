@@ -83,7 +83,6 @@ PX4_MAIN_MODE_BIT = 16           # custom_mode bits 16-23: main mode
 PX4_SUB_MODE_BIT = 24            # custom_mode bits 24-31: sub mode
 US_PER_S = 1_000_000
 MS_PER_S = 1000
-NS_PER_S = 1_000_000_000
 PARAM_ID_LEN = 16                # PARAM_VALUE.param_id, chars
 STATUSTEXT_LEN = 50              # STATUSTEXT.text, chars
 

@@ -10,7 +10,7 @@ from typing import Any
 
 from ibvs_sim.core.autopilot.config import AutopilotCounters, VehicleStateView
 from ibvs_sim.core.autopilot.link import AutopilotLink
-from ibvs_sim.core.autopilot.protocol import NS_PER_S
+from ibvs_common.core.stamps import NS_PER_S
 
 
 class TimesyncResponder:
