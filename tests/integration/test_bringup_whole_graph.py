@@ -274,26 +274,44 @@ def _mode_times(summary: dict) -> dict:
     return {m['mode']: m['t_start_s'] for m in summary['modes']}
 
 
-def test_a_short_down_camera_dropout_in_landing_is_ridden_through(reference, tmp_path):
-    """0.2 s without down images while landing: frames wait, the force is held, no failsafe."""
-    _, ref = reference
-    t0 = _mode_times(ref)[3] + 2.0                 # 2 s into LANDING
-    summary = run_scenario(tmp_path, 'down-dropout-short', '--down-camera-off', str(t0),
-                           str(t0 + 0.2), '--no-bag', '--no-plots')
-    assert 5 not in _mode_times(summary), summary['modes']
-    assert_success(summary)
+SHORT_DROPOUT_S = 0.2        # shorter than the bridge's hold_last_s (0.25 s, params.yaml)
+LONG_DROPOUT_S = 2.0
+DOWN_FLOW_TIMEOUT_S = 0.5    # params.yaml mode_supervisor down_flow_timeout_s
 
 
-def test_a_long_down_camera_dropout_in_landing_ends_in_failsafe(reference, tmp_path):
-    """2 s without down images while landing: FAILSAFE once the down flow is stale (0.5 s)."""
+def test_down_camera_dropouts_in_landing_short_ridden_through_long_ends_in_failsafe(
+        reference, tmp_path):
+    """0.2 s without down images while landing is ridden through; 2 s ends in FAILSAFE.
+
+    One flight for both (a whole flight per fault costs CI 1-1.5 min): 1.0 s into LANDING the
+    down camera stops for 0.2 s: no frames, no forces, the bridge holds the last setpoint
+    (hold_last_s 0.25 s) and keeps flying the vehicle; LANDING goes on. 1.5 s later it stops
+    for 2 s: FAILSAFE once the down flow is 0.5 s stale, at the first frame past it
+    (measured: dropouts at 8.04 and 9.74 s, FAILSAFE at 10.26 s). The whole landing after a
+    0.2 s dropout alone was flown to success in a run of its own until 2026-11-27 (1.1 mm
+    from the pad; docs/design.md, failure table).
+    """
     _, ref = reference
-    t0 = _mode_times(ref)[3] + 2.0
-    summary = run_scenario(tmp_path, 'down-dropout-long', '--down-camera-off', str(t0),
-                           str(t0 + 2.0), '--no-bag', '--no-plots')
-    modes = _mode_times(summary)
-    print(f'dropout at {t0:.2f} s, failsafe at {modes.get(5)}')
-    assert summary['run']['stop_reason'] == 'failsafe', summary['run']
-    assert t0 + 0.5 <= modes[5] <= t0 + 0.5 + 0.2, (t0, summary['modes'])
+    t_short = _mode_times(ref)[3] + 1.0
+    t_long = t_short + SHORT_DROPOUT_S + 1.5
+    summary = run_scenario(tmp_path, 'down-dropouts', '--down-camera-off', str(t_short),
+                           str(t_short + SHORT_DROPOUT_S), '--down-camera-off',
+                           str(t_long), str(t_long + LONG_DROPOUT_S), '--no-bag', '--no-plots')
+    modes, run = _mode_times(summary), summary['run']
+    print(f'dropouts at {t_short:.2f} s and {t_long:.2f} s, failsafe at {modes.get(5)}: '
+          + '; '.join(run.get('transitions', [])))
+    assert list(modes) == [0, 1, 2, 3, 5], summary['modes']
+    assert modes[3] < t_short, (t_short, summary['modes'])
+    # ridden through: the bridge flew the IBVS setpoints from the short dropout to the long
+    # one (a hold past hold_last_s would have handed the vehicle back: it does so 0.25 s into
+    # the long one, before the supervisor's FAILSAFE; measured 'held' from +0.26 s)
+    flown = [(b['t'], b['engage_state'], b['setpoint_source']) for b in summary['bridge']
+             if t_short <= b['t'] <= t_long]
+    assert len(flown) >= 3 and all(state == 'engaged' and source == 'ibvs'
+                                   for _, state, source in flown), flown
+    assert run['stop_reason'] == 'failsafe', run
+    assert t_long + DOWN_FLOW_TIMEOUT_S <= modes[5] <= t_long + DOWN_FLOW_TIMEOUT_S + 0.2, \
+        (t_long, summary['modes'])
 
 
 FREEZE_AT_S = 2.0            # WINDOW mode (started at 1.0 s), the window still ~1.5 m away

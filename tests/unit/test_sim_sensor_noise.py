@@ -8,7 +8,7 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_sim.core.sensor_noise import BANK_MARGIN_PX, ReadNoise
-from ibvs_sim.core.sim_core import CameraFaults, Pacing, SimConfig, Simulation
+from ibvs_sim.core.sim_core import CameraFaults, fault_windows, Pacing, SimConfig, Simulation
 
 from sim_fakes import HoverAutopilot
 
@@ -117,3 +117,15 @@ def test_camera_faults_off_and_frozen_windows():
     assert out[0.08][0]['down'] is frames[0.08]['down'] and faults.held == {}
     with pytest.raises(ValueError, match='start <= end'):
         CameraFaults(frozen_s={'front': (2.0, 1.0)})
+
+
+def test_camera_faults_several_windows_flat_or_as_pairs():
+    """Two off windows of one camera, given flat (a ROS parameter) or as pairs (the same)."""
+    for windows in ((0.02, 0.04, 0.08, 0.12), ((0.02, 0.04), (0.08, 0.12))):
+        faults = CameraFaults(off_s={'down': windows})
+        withheld = [t for t in (0.0, 0.02, 0.04, 0.06, 0.08, 0.1, 0.12)
+                    if faults.apply(t, {'down': np.zeros((2, 2), np.uint8)})[1] == ['down']]
+        assert withheld == [0.02, 0.08, 0.1]          # each [start, end): the ends excluded
+    for bad in ((1.0,), (), (0.0, 1.0, 3.0, 2.0)):
+        with pytest.raises(ValueError, match='fault_down'):
+            fault_windows('fault_down', bad)

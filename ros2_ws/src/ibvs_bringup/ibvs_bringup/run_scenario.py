@@ -58,8 +58,9 @@ class RunOptions:
     real_time_factor: float | None = None   # free-running sim at this factor (None: lockstep)
     kill_node: str | None = None        # fault injection: SIGKILL this node ...
     kill_at_s: float = 2.0              # ... at this sim time (perception nodes come back)
-    camera_off: dict = field(default_factory=dict)   # fault injection: camera -> [start, end]
-    camera_freeze: dict = field(default_factory=dict)   # fault injection: camera -> [start, end]
+    # fault injection: camera -> [start, end, start, end, ...] (sim s), one or more windows
+    camera_off: dict = field(default_factory=dict)
+    camera_freeze: dict = field(default_factory=dict)
     imu_off: tuple | None = None        # fault injection: [start, end] sim s without IMU
     imu_nan: tuple | None = None        # fault injection: [start, end] sim s of NaN IMU
     plots: bool = True
@@ -396,6 +397,11 @@ def run_graph(opts: RunOptions) -> int:
     return _finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
 
 
+def _flat(windows: list) -> tuple:
+    """(start, end) pairs of a repeated option -> the flat start, end, start, end, ..."""
+    return tuple(x for pair in windows for x in pair)
+
+
 def parse_args(argv: list | None = None) -> RunOptions:
     """Parse the command line into RunOptions."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -428,10 +434,14 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--kill-at-s', type=float, default=2.0, metavar='T')
     for cam in ('front', 'down'):
         p.add_argument(f'--{cam}-camera-off', type=float, nargs=2, metavar=('START', 'END'),
-                       help=f'fault injection: no {cam} images in this sim-time window (s)')
+                       action='append',
+                       help=f'fault injection: no {cam} images in this sim-time window (s); '
+                            'repeat the option for several windows')
         p.add_argument(f'--{cam}-camera-freeze', type=float, nargs=2, metavar=('START', 'END'),
+                       action='append',
                        help=f'fault injection: in this sim-time window (s) the {cam} camera '
-                            f're-publishes its image of START with new stamps (a hung driver)')
+                            f're-publishes its image of START with new stamps (a hung driver); '
+                            'repeat the option for several windows')
     p.add_argument('--imu-off', type=float, nargs=2, metavar=('START', 'END'),
                    help='fault injection: the autopilot sends no attitude/IMU in this sim-time '
                         'window (s)')
@@ -473,9 +483,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       params_file=a.params_file, plots=not a.no_plots, extra=extra,
                       real_time_factor=a.real_time_factor, kill_node=a.kill_node,
                       kill_at_s=a.kill_at_s,
-                      camera_off={cam: tuple(w) for cam, w in (
+                      camera_off={cam: _flat(w) for cam, w in (
                           ('front', a.front_camera_off), ('down', a.down_camera_off)) if w},
-                      camera_freeze={cam: tuple(w) for cam, w in (
+                      camera_freeze={cam: _flat(w) for cam, w in (
                           ('front', a.front_camera_freeze), ('down', a.down_camera_freeze))
                           if w},
                       imu_off=tuple(a.imu_off) if a.imu_off else None,

@@ -52,11 +52,12 @@ from ibvs_common.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_b
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
-                                    GraphProducts, ImuBeforeImages, NS_PER_S, Pacing, SimConfig,
-                                    Simulation, STATUS_TOPIC, wall_budget)
+                                    GraphProducts, ImuBeforeImages, Pacing, SimConfig,
+                                    fault_windows, Simulation, STATUS_TOPIC, wall_budget)
 from ibvs_common.core.modes import InputKind, modes_using
+from ibvs_common.core.stamps import NS_PER_S
 from ibvs_common.dds_profile import use_dds_profile_here
-from ibvs_common.node_common import mode_from_status
+from ibvs_common.node_common import mode_from_status, stamp_to_ns
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 
@@ -120,6 +121,8 @@ PARAMETERS = {
 # description with unit (times: sim = the sim's own clock, published on /clock; wall = steady
 # clock), inclusive range (ibvs_common.param_descriptors)
 _FAULT = ' [start, end) s (sim time), fault injection (tests only); [0, 0] = never'
+_FAULTS = ' [start, end) s (sim time), or several: [start, end, start, end, ...]; fault ' \
+    'injection (tests only); [0, 0] = never'
 PARAMETER_SPECS = {
     'pacing': ("'lockstep': the next 20 ms only once the graph answered the last frame (or "
                "after lockstep_timeout_s); 'realtime': free-running, late frames dropped",),
@@ -157,10 +160,10 @@ PARAMETER_SPECS = {
                                      'attitude estimate, reported and flown (an accelerometer '
                                      'bias b tilts it b / g; PX4 SIH: 1.5-1.8 deg), each within '
                                      '+-0.2',),
-    'fault_front_camera_off_s': ('no front images in' + _FAULT,),
-    'fault_down_camera_off_s': ('no down images in' + _FAULT,),
-    'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULT,),
-    'fault_down_camera_freeze_s': ('the down camera re-publishes one image in' + _FAULT,),
+    'fault_front_camera_off_s': ('no front images in' + _FAULTS,),
+    'fault_down_camera_off_s': ('no down images in' + _FAULTS,),
+    'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULTS,),
+    'fault_down_camera_freeze_s': ('the down camera re-publishes one image in' + _FAULTS,),
     'fault_imu_off_s': ('the autopilot sends no ATTITUDE_QUATERNION / HIGHRES_IMU in'
                         + _FAULT,),
     'fault_imu_nan_s': ('the autopilot sends ATTITUDE_QUATERNION / HIGHRES_IMU full of NaN in'
@@ -192,8 +195,8 @@ class SimNodeConfig:
     start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
     telemetry_default_hz: float = 100.0
     attitude_estimate_offset_rad: tuple = (0.0, 0.0)   # rad (roll, pitch), the estimate's error
-    camera_off_s: dict = None                # fault injection: camera -> (start, end) sim s
-    camera_frozen_s: dict = None             # fault injection: camera -> (start, end) sim s
+    camera_off_s: dict = None                # fault injection: camera -> [start, end, ...] s
+    camera_frozen_s: dict = None             # fault injection: camera -> [start, end, ...] s
     imu_off_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
     imu_nan_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
     read_noise_std: float = 0.0              # grey levels, the cameras' read noise (0: off)
@@ -382,10 +385,11 @@ class SimNode(Node):
             attitude_estimate_offset_rad=tuple(
                 float(x) for x in v['attitude_estimate_offset_rad']),
             read_noise_std=noise,
-            camera_off_s={cam: _window(v[f'fault_{cam}_camera_off_s'], f'fault_{cam}_camera_off_s')
-                          for cam in CAMERAS},
-            camera_frozen_s={cam: _window(v[f'fault_{cam}_camera_freeze_s'],
-                                          f'fault_{cam}_camera_freeze_s') for cam in CAMERAS},
+            camera_off_s={cam: fault_windows(f'parameter fault_{cam}_camera_off_s',
+                                             v[f'fault_{cam}_camera_off_s']) for cam in CAMERAS},
+            camera_frozen_s={cam: fault_windows(f'parameter fault_{cam}_camera_freeze_s',
+                                                v[f'fault_{cam}_camera_freeze_s'])
+                             for cam in CAMERAS},
             imu_off_s=_window(v['fault_imu_off_s'], 'fault_imu_off_s'),
             imu_nan_s=_window(v['fault_imu_nan_s'], 'fault_imu_nan_s'))
 
@@ -404,7 +408,7 @@ class SimNode(Node):
         return False
 
     def _on_imu(self, msg: Imu) -> None:
-        self.imu_hold.note_imu(msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec)
+        self.imu_hold.note_imu(stamp_to_ns(msg.header.stamp))
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         stamp_ns, mode, err = mode_from_status(msg)
@@ -413,7 +417,7 @@ class SimNode(Node):
 
     def _product_callback(self, topic: str):
         def note(msg) -> None:
-            stamp_ns = msg.header.stamp.sec * NS_PER_S + msg.header.stamp.nanosec
+            stamp_ns = stamp_to_ns(msg.header.stamp)
             if self.sim.products.note(topic, stamp_ns):
                 self.get_logger().info(
                     f'lockstep: {topic} published again (stamp t = {stamp_ns / NS_PER_S:.3f} '

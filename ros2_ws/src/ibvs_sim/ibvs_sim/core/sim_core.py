@@ -48,6 +48,7 @@ import numpy as np
 from ibvs_common.core.config import PadLayout, VehicleConfig
 from ibvs_sim.core.world import WorldConfig
 from ibvs_common.core.frames import rot_from_quat, rot_z, vec_I_to_map
+from ibvs_common.core.stamps import NS_PER_S
 from ibvs_sim.core.autopilot import AttitudeReference, VehicleStateView
 from ibvs_sim.core.contacts import FLOOR, min_clearance
 from ibvs_sim.core.dynamics import (AttitudeController, PlantParams, QuadrotorPlant, State,
@@ -55,7 +56,6 @@ from ibvs_sim.core.dynamics import (AttitudeController, PlantParams, QuadrotorPl
 from ibvs_sim.core.render import SceneRenderer
 from ibvs_sim.core.sensor_noise import ReadNoise
 
-NS_PER_S = 1_000_000_000
 NS_PER_MS = 1_000_000
 DEFAULT_CAMERA_RATE_HZ = 50.0
 MAX_CATCH_UP_S = 0.5          # s of sim time: a longer stall of the sim process re-phases it
@@ -404,27 +404,41 @@ class GraphProducts:
         return gone
 
 
-class CameraFaults:
-    """Fault injection on the published camera images (test harness), by sim-time window.
+def fault_windows(name: str, flat) -> tuple[tuple[float, float], ...]:
+    """Return the (start, end) sim-time windows (s) of a sequence start, end, start, end, ...
 
-    ``off_s`` and ``frozen_s`` map a camera name to its [start, end) window in sim seconds
-    (start == end: never). Off: the camera's images are withheld. Frozen: the camera keeps
-    delivering the image of the first frame in the window with the new frames' stamps, as a
-    hung camera driver that re-publishes its last buffer (read noise included: the very same
-    bytes). :meth:`apply` gives each frame's images to publish.
+    The sequence may be flat or of pairs. ValueError, naming ``name``, for an odd or empty
+    sequence or a window with end < start.
+    """
+    v = np.asarray(flat, dtype=float).ravel().tolist()
+    if not v or len(v) % 2:
+        raise ValueError(f'{name} needs [start, end, ...] pairs, got {v}')
+    windows = tuple(zip(v[0::2], v[1::2]))
+    for a, b in windows:
+        if not (math.isfinite(a) and math.isfinite(b) and b >= a):
+            raise ValueError(f'{name} needs start <= end in each window, got [{a}, {b}]')
+    return windows
+
+
+class CameraFaults:
+    """Fault injection on the published camera images (test harness), by sim-time windows.
+
+    ``off_s`` and ``frozen_s`` map a camera name to its [start, end) window in sim seconds, or
+    to several: a flat sequence (start, end, start, end, ...) (start == end: never). Off: the
+    camera's images are withheld. Frozen: the camera keeps delivering the image of the first
+    frame in the window with the new frames' stamps, as a hung camera driver that re-publishes
+    its last buffer (read noise included: the very same bytes). :meth:`apply` gives each
+    frame's images to publish.
     """
 
     def __init__(self, off_s: dict | None = None, frozen_s: dict | None = None) -> None:
-        self.off_s = {k: (float(a), float(b)) for k, (a, b) in (off_s or {}).items()}
-        self.frozen_s = {k: (float(a), float(b)) for k, (a, b) in (frozen_s or {}).items()}
-        for name, (a, b) in list(self.off_s.items()) + list(self.frozen_s.items()):
-            if not (math.isfinite(a) and math.isfinite(b) and b >= a):
-                raise ValueError(f'fault window of {name} needs start <= end, got [{a}, {b}]')
+        self.off_s = {k: fault_windows(k, v) for k, v in (off_s or {}).items()}
+        self.frozen_s = {k: fault_windows(k, v) for k, v in (frozen_s or {}).items()}
         self.held: dict[str, tuple[float, np.ndarray]] = {}   # frozen camera -> (t, image)
 
     @staticmethod
-    def _active(window: tuple | None, t: float) -> bool:
-        return window is not None and window[0] <= t < window[1]
+    def _active(windows: tuple | None, t: float) -> bool:
+        return windows is not None and any(a <= t < b for a, b in windows)
 
     def apply(self, t: float, images: dict) -> tuple[dict, list, list]:
         """Return (images to publish, cameras withheld, cameras frozen) of the frame at ``t``."""
