@@ -217,3 +217,41 @@ def test_so3_exp_log_against_rodrigues_and_round_trip():
     w = np.array([1.0, -2.0, 0.5])
     w *= np.pi / np.linalg.norm(w)
     assert np.allclose(fr.exp_so3(fr.log_so3(fr.exp_so3(w))), fr.exp_so3(w), atol=1e-6)
+
+
+@pytest.mark.parametrize('d, model', [
+    ([-0.25, 0.06, 0.0, 0.0, 0.0], 'plumb_bob'),
+    ([0.1, -0.02, 0.001, -0.002, 0.003], 'plumb_bob'),
+    ([0.1, -0.02, 0.001, -0.002], 'plumb_bob'),
+    ([0.0] * 5, 'plumb_bob'),
+    ([0.1, -0.02, 0.001, -0.002, 0.003, 0.05, 0.01, -0.001], 'rational_polynomial'),
+])
+def test_projection_is_opencvs_to_the_last_bit(d, model):
+    """The written-out plumb_bob / rational map against cv2.projectPoints itself.
+
+    Points at depths 0.05-20 m (not only z = 1: OpenCV scales by 1 / z), a skewed K (OpenCV
+    ignores the skew when projecting, so must the model), and normalised coordinates through
+    ``normalized_to_pixels``: every pixel equal to OpenCV's, bit for bit.
+    """
+    k = [366.7, 0.3, 375.5, 0.0, 366.7, 239.5, 0.0, 0.0, 1.0]
+    cam = CameraModel.from_camera_info(752, 480, k, d, model)
+    rng = np.random.default_rng(7)
+    P = np.column_stack([rng.uniform(-1.5, 1.5, (5000, 2)), np.ones(5000)]) \
+        * rng.uniform(0.05, 20.0, (5000, 1))
+    expected, _ = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                    np.array(k).reshape(3, 3), np.array(d, float))
+    uv, _ = cam.bearings_to_pixels(P)
+    np.testing.assert_array_equal(uv, expected.reshape(-1, 2))
+    xy = P[:, :2] / P[:, 2:]
+    expected, _ = cv2.projectPoints(np.column_stack([xy, np.ones(len(xy))]).reshape(-1, 1, 3),
+                                    np.zeros(3), np.zeros(3), np.array(k).reshape(3, 3),
+                                    np.array(d, float))
+    np.testing.assert_array_equal(cam.normalized_to_pixels(xy), expected.reshape(-1, 2))
+
+
+def test_cross3_is_np_cross_to_the_bit_with_the_right_hand_sign():
+    assert fr.cross3([1.0, 0.0, 0.0], [0.0, 1.0, 0.0]).tolist() == [0.0, 0.0, 1.0]   # x ^ y = z
+    assert fr.cross3([0.0, 0.0, 1.0], [1.0, 0.0, 0.0]).tolist() == [0.0, 1.0, 0.0]   # z ^ x = y
+    rng = np.random.default_rng(5)
+    for a, b in rng.normal(size=(2000, 2, 3)) * rng.uniform(1e-3, 1e3, (2000, 2, 1)):
+        np.testing.assert_array_equal(fr.cross3(a, b), np.cross(a, b))

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ibvs_common.core.frames import cross3
+
 _EPS = 1e-9
 
 
@@ -42,7 +44,7 @@ def edge_normals(corner_bearings: np.ndarray) -> np.ndarray:
     coordinates, paper section 3.2).
     """
     p = np.asarray(corner_bearings, dtype=float).reshape(4, 3)
-    return np.array([_unit(np.cross(p[i], p[(i + 1) % 4])) for i in range(4)])
+    return np.array([_unit(cross3(p[i], p[(i + 1) % 4])) for i in range(4)])
 
 
 def window_axes(h: np.ndarray, corner_bearings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -55,8 +57,8 @@ def window_axes(h: np.ndarray, corner_bearings: np.ndarray) -> tuple[np.ndarray,
     (eta_w, rho_w, u_w) is right-handed with rho_w = u_w x eta_w (paper's axes).
     """
     p = np.asarray(corner_bearings, dtype=float).reshape(4, 3)
-    rho_w = _unit(np.cross(h[0], h[2]))
-    u_w = _unit(np.cross(h[1], h[3]))
+    rho_w = _unit(cross3(h[0], h[2]))
+    u_w = _unit(cross3(h[1], h[3]))
     if rho_w @ ((p[1] + p[2]) - (p[0] + p[3])) < 0.0:
         rho_w = -rho_w
     if u_w @ ((p[2] + p[3]) - (p[0] + p[1])) < 0.0:
@@ -72,7 +74,7 @@ def window_normal(u_w: np.ndarray, rho_w: np.ndarray, q_w: np.ndarray,
     window, the direction of travel). When eta_ref (the previous estimate) is given, continuity
     with it decides instead, so that the sign cannot flip near the window plane.
     """
-    eta = _unit(np.cross(u_w, rho_w))
+    eta = _unit(cross3(u_w, rho_w))
     if eta_ref is not None:
         return eta if eta @ eta_ref >= 0.0 else -eta
     return eta if eta @ q_w < 0.0 else -eta
@@ -92,7 +94,7 @@ def closest_edge_direction(h: np.ndarray, u_w: np.ndarray, rho_w: np.ndarray,
     best, best_score = None, -1.0
     for i in range(4):
         d = rho_w if i % 2 == 0 else u_w
-        l_i = _unit(np.cross(h[i], d))
+        l_i = _unit(cross3(h[i], d))
         if l_i @ (p[i] + p[(i + 1) % 4]) < 0.0:
             l_i = -l_i
         score = abs(float(eta_w @ l_i))

@@ -46,6 +46,17 @@ R_BC_FRONT_DEFAULT = np.array([[0.0, 0.0, 1.0],
                                [0.0, 1.0, 0.0]])
 
 
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return a x b of two 3-vectors (3,): np.cross's operations, so its result to the bit.
+
+    For the per-sample and per-frame vector algebra: np.cross spends ~20 us (on a normal
+    machine) handling the axes of its general case, for 6 products.
+    """
+    a0, a1, a2 = np.asarray(a, dtype=float).tolist()
+    b0, b1, b2 = np.asarray(b, dtype=float).tolist()
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def skew(w: np.ndarray) -> np.ndarray:
     """Return S(w), the skew-symmetric matrix with ``S(w) x = w x x`` (paper: Omega_x)."""
     wx, wy, wz = np.asarray(w, dtype=float)

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ibvs_common.core.frames import GRAVITY, e3, quat_from_rot
+from ibvs_common.core.frames import cross3, GRAVITY, e3, quat_from_rot
 
 MIN_FORCE_N = 1e-3          # below this |F| carries no direction: keep the body z axis vertical
 DEFAULT_MAX_TILT_RAD = 0.6  # ~34 deg: tilt limit of the thrust direction (vertical part kept)
@@ -54,13 +54,13 @@ def rotation_from_thrust_direction(z_B_I: np.ndarray, yaw: float) -> np.ndarray:
     z_B = np.asarray(z_B_I, dtype=float)
     z_B = z_B / np.linalg.norm(z_B)
     y_c = np.array([-np.sin(yaw), np.cos(yaw), 0.0])
-    x_B = np.cross(y_c, z_B)
+    x_B = cross3(y_c, z_B)
     n = np.linalg.norm(x_B)
     if n < 1e-6:  # thrust axis horizontal along y_c: degenerate, keep the heading axis
-        x_B = np.cross(np.cross(z_B, np.array([np.cos(yaw), np.sin(yaw), 0.0])), z_B)
+        x_B = cross3(cross3(z_B, np.array([np.cos(yaw), np.sin(yaw), 0.0])), z_B)
         n = np.linalg.norm(x_B)
     x_B /= n
-    y_B = np.cross(z_B, x_B)
+    y_B = cross3(z_B, x_B)
     return np.column_stack([x_B, y_B, z_B])
 
 

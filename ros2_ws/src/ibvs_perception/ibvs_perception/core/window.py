@@ -959,37 +959,10 @@ def _undistorted_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
 
 
 def _distort_px(camera: CameraModel, uv_u: np.ndarray) -> np.ndarray:
-    """Ideal pinhole pixels (N, 2) -> distorted pixels (N, 2).
-
-    ``plumb_bob`` and ``rational_polynomial`` (up to 8 coefficients k1 k2 p1 p2 k3 k4 k5 k6):
-    OpenCV's ``projectPoints`` model written out for the points (x, y, 1) of the normalised
-    plane, the same double operations in the same order, so the same pixels to the last bit
-    (a coefficient that is zero is skipped: its term is an exact +0 or a factor of exactly 1).
-    ``projectPoints`` itself costs ~60 us a call even for 4 points (it always computes the
-    Jacobians); the fisheye model still goes through it (``CameraModel.bearings_to_pixels``).
-    """
+    """Ideal pinhole pixels (N, 2) -> distorted pixels (N, 2) (``normalized_to_pixels``)."""
     uv_u = np.asarray(uv_u, dtype=float)
-    K, D = camera.K, np.asarray(camera.D, dtype=float).reshape(-1)
-    if camera.is_fisheye or len(D) > 8:
-        xy = (uv_u - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
-        uv, _ = camera.bearings_to_pixels(np.column_stack([xy, np.ones(len(xy))]))
-        return uv
-    k1, k2, p1, p2, k3, k4, k5, k6 = np.concatenate([D, np.zeros(8 - len(D))]).tolist()
-    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-    x = (uv_u[:, 0] - cx) / fx
-    y = (uv_u[:, 1] - cy) / fy
-    r2 = x * x + y * y
-    r4 = r2 * r2
-    radial = 1 + k1 * r2 + k2 * r4 + k3 * (r4 * r2)
-    xd, yd = x * radial, y * radial
-    if k4 or k5 or k6:
-        inverse = 1. / (1 + k4 * r2 + k5 * r4 + k6 * (r4 * r2))
-        xd, yd = xd * inverse, yd * inverse
-    if p1 or p2:
-        a1 = 2 * x * y
-        xd = xd + p1 * a1 + p2 * (r2 + 2 * x * x)
-        yd = yd + p1 * (r2 + 2 * y * y) + p2 * a1
-    return np.column_stack([xd * fx + cx, yd * fy + cy])
+    K = camera.K
+    return camera.normalized_to_pixels((uv_u - K[:2, 2]) / np.array([K[0, 0], K[1, 1]]))
 
 
 def _robust_lines(points: np.ndarray, valid: np.ndarray, inlier_px: float,

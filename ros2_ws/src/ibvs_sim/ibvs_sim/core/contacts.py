@@ -23,10 +23,16 @@ BACK_WALL = 'back_wall'
 
 def cylinder_sdf(point: np.ndarray, xi_I: np.ndarray, radius: float, height: float) -> float:
     """Signed distance (m) from a point to the vertical capped cylinder centred on xi_I."""
-    d = np.asarray(point, dtype=float) - np.asarray(xi_I, dtype=float)
-    s = float(np.hypot(d[0], d[1])) - radius        # radial
-    v = abs(float(d[2])) - height / 2.0             # vertical (z down, symmetric)
+    (px, py, pz), (x, y, z) = _floats(point), _floats(xi_I)
+    s = float(np.hypot(px - x, py - y)) - radius    # radial
+    v = abs(pz - z) - height / 2.0                  # vertical (z down, symmetric)
     return min(max(s, v), 0.0) + float(np.hypot(max(s, 0.0), max(v, 0.0)))
+
+
+def _floats(p) -> tuple[float, float, float]:
+    """Return the 3 coordinates of a point (sequence or array) as Python floats."""
+    x, y, z = p.tolist() if isinstance(p, np.ndarray) else p
+    return float(x), float(y), float(z)
 
 
 def wall_clearance(xi_I: np.ndarray, world: WorldConfig, radius: float,
@@ -37,12 +43,13 @@ def wall_clearance(xi_I: np.ndarray, world: WorldConfig, radius: float,
     solid wall point is the foot point (wall_x, xi_y, xi_z) when that is solid wall, otherwise
     one of the four perpendicular feet on the aperture's edges.
     """
-    x, y, z = np.asarray(xi_I, dtype=float)
+    x, y, z = _floats(xi_I)
     win = world.window
     y_lo, y_hi = win.center_I[1] - win.width / 2.0, win.center_I[1] + win.width / 2.0
     z_lo, z_hi = win.center_I[2] - win.height / 2.0, win.center_I[2] + win.height / 2.0
-    wy = float(np.clip(y, *world.wall_y_range))
-    wz = float(np.clip(z, *world.wall_z_range))
+    (wy0, wy1), (wz0, wz1) = world.wall_y_range, world.wall_z_range
+    wy = min(max(y, float(wy0)), float(wy1))       # np.clip's value, for scalars
+    wz = min(max(z, float(wz0)), float(wz1))
     inside_aperture = y_lo < wy < y_hi and z_lo < wz < z_hi
     if not inside_aperture:
         return cylinder_sdf((world.wall_x, wy, wz), xi_I, radius, height), WALL

@@ -42,7 +42,7 @@ import math
 import numpy as np
 
 from ibvs_common.core.config import VehicleConfig
-from ibvs_common.core.frames import GRAVITY, e3, rot_from_quat, skew
+from ibvs_common.core.frames import cross3, GRAVITY, e3, rot_from_quat, skew
 
 SIM_PLANT_KEY = 'sim_plant'
 MAX_SETPOINT_DELAY_S = 0.1            # s, an autopilot slower than this is a config error
@@ -256,7 +256,7 @@ class AttitudeController:
         R_d, u = self._applied
         e_R = attitude_error(state.R_IB, R_d)
         Om = state.Omega_B
-        Gamma = -self.K_R * e_R - self.K_Omega * Om + np.cross(Om, self.J * Om)
+        Gamma = -self.K_R * e_R - self.K_Omega * Om + cross3(Om, self.J * Om)
         return self.mixer.allocate(u * self.F_max, Gamma)
 
     def rotor_commands_q(self, state: State, q_IB_wxyz: np.ndarray,
@@ -370,7 +370,7 @@ class QuadrotorPlant:
         v = s.v_I + a_I * dt
         xi = s.xi_I + 0.5 * (s.v_I + v) * dt
         Om = s.Omega_B
-        Om_dot = (-np.cross(Om, self.J * Om) + Gamma) / self.J
+        Om_dot = (-cross3(Om, self.J * Om) + Gamma) / self.J
         Om = Om + Om_dot * dt
         R = R @ rodrigues(Om * dt)
         new = State(xi, v, R, Om, T)
