@@ -304,11 +304,13 @@ def test_down_camera_dropouts_in_landing_short_ridden_through_long_ends_in_fails
     assert modes[3] < t_short, (t_short, summary['modes'])
     # ridden through: the bridge flew the IBVS setpoints from the short dropout to the long
     # one (a hold past hold_last_s would have handed the vehicle back: it does so 0.25 s into
-    # the long one, before the supervisor's FAILSAFE; measured 'held' from +0.26 s)
+    # the long one, before the supervisor's FAILSAFE; measured 'held' from +0.26 s). The
+    # bridge reports at 1 Hz of wall clock: 1.7 s of sim time holds 8 reports on this slow
+    # machine (sim / wall ~0.25), 2 at the lockstep's 0.8 on a normal day.
     flown = [(b['t'], b['engage_state'], b['setpoint_source']) for b in summary['bridge']
              if t_short <= b['t'] <= t_long]
-    assert len(flown) >= 3 and all(state == 'engaged' and source == 'ibvs'
-                                   for _, state, source in flown), flown
+    assert flown and all(state == 'engaged' and source == 'ibvs'
+                         for _, state, source in flown), flown
     assert run['stop_reason'] == 'failsafe', run
     assert t_long + DOWN_FLOW_TIMEOUT_S <= modes[5] <= t_long + DOWN_FLOW_TIMEOUT_S + 0.2, \
         (t_long, summary['modes'])
