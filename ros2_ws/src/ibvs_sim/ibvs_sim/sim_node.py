@@ -203,11 +203,10 @@ class SimNodeConfig:
 
 
 def _window(values, name: str) -> tuple[float, float]:
-    """Return the [start, end] sim-time window (s) of a fault parameter; [0, 0] = never."""
-    v = [float(x) for x in values]
-    if len(v) != 2 or not all(math.isfinite(x) for x in v) or v[1] < v[0]:
-        raise ValueError(f'parameter {name} needs [start, end] with end >= start, got {v}')
-    return v[0], v[1]
+    """Return the one [start, end] sim-time window (s) of a fault parameter; [0, 0] = never."""
+    if len(values) != 2:
+        raise ValueError(f'parameter {name} needs one window [start, end], got {list(values)}')
+    return fault_windows(f'parameter {name}', values)[0]
 
 
 def stamp_from_ns(t_ns: int) -> Time:
