@@ -28,7 +28,6 @@ from ibvs_sim.core.world import load_world
 from ibvs_control.core.control_laws import GainError
 from ibvs_common.core.frames import (
     bearings_I_to_C, GRAVITY, quat_ned_frd_to_enu_flu, vec_I_to_map)
-from ibvs_bringup.run_scenario import free_udp_port
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
@@ -583,16 +582,15 @@ def test_controller_refuses_bad_gains(ctx):
 def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
     from diagnostic_msgs.msg import DiagnosticArray
     context, executor, nodes = ctx
-    port = free_udp_port()
     # Clocks stand still: the autopilot's boot time 1.5 s, our ROS time (/clock) 4.0 s, so the
     # TIMESYNC offset is exactly 2.5 s (rtt 0) and the mapped times are exact.
-    peer = FakeAutopilot(port, yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000,
+    peer = FakeAutopilot(yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000,
                          armed=False, landed=True)
     try:
         bridge = MavlinkBridgeNode(
             node_name=f'bridge_{TAG}', context=context, parameter_overrides=[
                 Parameter('use_sim_time', value=True),
-                Parameter('url', value=f'udpout:127.0.0.1:{port}'),
+                Parameter('url', value=f'udpout:127.0.0.1:{peer.udp_port}'),
                 Parameter('hover_thrust_source', value='config'),
                 Parameter('hover_estimator_enabled', value=False),
                 Parameter('diagnostics_rate_hz', value=5.0)])

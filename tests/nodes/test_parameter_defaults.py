@@ -12,7 +12,6 @@ import pytest
 from rclpy.parameter import Parameter
 import yaml
 
-from ibvs_bringup.run_scenario import free_udp_port
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
 from ibvs_perception.window_detector_node import WindowDetectorNode
@@ -36,7 +35,7 @@ NODES = [('window_detector', WindowDetectorNode), ('pad_detector', PadDetectorNo
 
 @pytest.mark.parametrize('section, cls', NODES, ids=[n for n, _ in NODES])
 def test_code_defaults_equal_params_yaml(section, cls, context):
-    extra = ([Parameter('state_url', value=f'udpin:127.0.0.1:{free_udp_port()}')]
+    extra = ([Parameter('state_url', value='udpin:127.0.0.1:0')]
              if cls is Px4SimNode else [])
     node = cls(f'{section}_{TAG}', context=context, parameter_overrides=extra)
     try:

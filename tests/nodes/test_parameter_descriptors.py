@@ -46,9 +46,9 @@ NODES = {  # name -> (class, overrides factory)
     'force_controller': (ForceControllerNode, list),
     'mavlink_bridge': (MavlinkBridgeNode, bridge_overrides),
     'sim': (SimNode, lambda: [Parameter('mavlink_url',
-                                        value=f'udpin:127.0.0.1:{free_udp_port()}')]),
+                                        value='udpin:127.0.0.1:0')]),
     'px4_sim': (Px4SimNode, lambda: [Parameter('state_url',
-                                               value=f'udpin:127.0.0.1:{free_udp_port()}')]),
+                                               value='udpin:127.0.0.1:0')]),
 }
 
 

@@ -15,7 +15,6 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
-from ibvs_bringup.run_scenario import free_udp_port
 from ibvs_common.core.config import load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_common.core.frames import vec_I_to_map
@@ -38,6 +37,11 @@ def _stamp_ns(header_or_time):
     return t.sec * 1_000_000_000 + t.nanosec
 
 
+#: The sim's autopilot on a port the kernel picks at the bind (``sim.autopilot.local_port``):
+#: nothing can take it between a check and the bind, as with a port chosen first.
+KERNEL_PORT = 'udpin:127.0.0.1:0'
+
+
 def _spin_until(executor, done, timeout_s):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and not done():
@@ -50,7 +54,7 @@ def test_sim_node_publishes_consistent_frames(ros_context):
     params = [Parameter('pacing', value='realtime'),
               Parameter('start_on_setpoints', value=False),   # no companion in this test
               Parameter('real_time_factor', value=0.25),      # time between frames to spare
-              Parameter('mavlink_url', value=f'udpin:127.0.0.1:{free_udp_port()}'),
+              Parameter('mavlink_url', value=KERNEL_PORT),
               Parameter('initial_override', value=True),
               Parameter('initial_position_I', value=[-1.5, 0.2, -1.5]),
               Parameter('initial_yaw', value=0.1)]
@@ -123,7 +127,7 @@ def test_sim_node_default_initial_condition_and_bad_parameter(ros_context):
                 parameter_overrides=[Parameter('pacing', value='fast')])
     sim = SimNode(node_name=f'sim_def_{tag}', context=ros_context,
                   parameter_overrides=[Parameter('mavlink_url',
-                                                 value=f'udpin:127.0.0.1:{free_udp_port()}')])
+                                                 value=KERNEL_PORT)])
     try:
         assert sim.sim.state.xi_I == pytest.approx(load_world().initial_position_I)
     finally:
@@ -142,14 +146,13 @@ def test_sim_node_lockstep_advances_on_answers_only(ros_context):
     os.environ['MAVLINK20'] = '1'
     from pymavlink import mavutil
     tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
-    port = free_udp_port()
     sim = SimNode(node_name=f'sim_lock_{tag}', context=ros_context, parameter_overrides=[
         Parameter('pacing', value='lockstep'), Parameter('lockstep_timeout_s', value=60.0),
         Parameter('start_on_setpoints', value=False),
-        Parameter('mavlink_url', value=f'udpin:127.0.0.1:{port}')])
+        Parameter('mavlink_url', value=KERNEL_PORT)])
     probe = rclpy.create_node(f'sim_lock_probe_{tag}', context=ros_context)
-    gcs = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=255,
-                                     source_component=190)
+    gcs = mavutil.mavlink_connection(f'udpout:127.0.0.1:{sim.autopilot.local_port}',
+                                     source_system=255, source_component=190)
     stamps = []
     answer = {'on': False}
 
@@ -190,7 +193,7 @@ def test_sim_node_read_noise_and_frozen_front_camera(ros_context):
     params = [Parameter('pacing', value='realtime'),
               Parameter('start_on_setpoints', value=False),
               Parameter('real_time_factor', value=0.25),
-              Parameter('mavlink_url', value=f'udpin:127.0.0.1:{free_udp_port()}'),
+              Parameter('mavlink_url', value=KERNEL_PORT),
               Parameter('fault_front_camera_freeze_s', value=[0.04, 100.0])]
     sim = SimNode(node_name=f'sim_freeze_{tag}', parameter_overrides=params, context=ros_context)
     probe = rclpy.create_node(f'sim_freeze_probe_{tag}', context=ros_context)

@@ -14,6 +14,7 @@ the nose-down pitch needed to accelerate forward), from the clocks' offset, and 
 MAVLink/PX4/ArduPilot documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196,
 AUTO.LAND = main 4 / sub 6, ArduCopter LAND = 9).
 """
+import dataclasses
 import os
 import select
 import struct
@@ -67,9 +68,13 @@ def rotmat(q):
 
 
 class FakeAutopilot:
-    """A minimal PX4- or ArduPilot-like autopilot speaking MAVLink 2 on udpin."""
+    """A minimal PX4- or ArduPilot-like autopilot speaking MAVLink 2 on udpin.
 
-    def __init__(self, port, kind='px4', armed=True, params=None, key=None, yaw_ned=0.0,
+    It listens on a port the kernel picks (``udpin:127.0.0.1:0``): ``udp_port``. No other
+    process can take that port between a check and the bind, as with a port chosen first.
+    """
+
+    def __init__(self, kind='px4', armed=True, params=None, key=None, yaw_ned=0.0,
                  boot_clock=None, timesync_on=True, timesync_requests=False, landed=False,
                  armable=True, specific_force=(0.0, 0.0, -GRAVITY), thrust=0.5):
         self.kind = kind
@@ -79,8 +84,9 @@ class FakeAutopilot:
         self.timesync_seen = []    # requests (tc1 == 0) received: msg
         self.timesync_answers = []  # (boot ns at receipt, msg) answers to our requests
         self.attitude_ms = []      # time_boot_ms of every ATTITUDE_QUATERNION sent
-        self.conn = mavutil.mavlink_connection(f'udpin:127.0.0.1:{port}', source_system=1,
+        self.conn = mavutil.mavlink_connection('udpin:127.0.0.1:0', source_system=1,
                                                source_component=1)
+        self.udp_port = self.conn.port.getsockname()[1]
         if key is not None:
             self.conn.setup_signing(key, sign_outgoing=True)
         self.armed = armed
@@ -311,14 +317,13 @@ def peer_bridge(request):
 
     def factory(peer_kw=None, bridge_kw=None, ros_offset_ns=0, ros_clock=None):
         """Peer + bridge; the bridge's ROS clock = the peer's boot clock + ros_offset_ns."""
-        port = free_udp_port()
         peer_kw = dict(peer_kw or {})
         boot = peer_kw.setdefault('boot_clock', FrameClock())
-        peer = FakeAutopilot(port, **peer_kw)
+        peer = FakeAutopilot(**peer_kw)
         if ros_clock is None:
             def ros_clock():
                 return boot() + ros_offset_ns
-        bridge = make_bridge(port, ros_clock=ros_clock, **(bridge_kw or {}))
+        bridge = make_bridge(peer.udp_port, ros_clock=ros_clock, **(bridge_kw or {}))
         made.append((peer, bridge))
         return peer, bridge
     yield factory
@@ -1294,9 +1299,8 @@ def test_px4_offboard_loss_failsafe_is_read_and_reported(peer_bridge, params, ex
 
 def _reader_link():
     from ibvs_control.core.mavlink_link import MavlinkLink
-    port = free_udp_port()
-    link = MavlinkLink(LinkConfig(url=f'udpin:127.0.0.1:{port}', source_system=1))
-    peer = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1,
+    link = MavlinkLink(LinkConfig(url='udpin:127.0.0.1:0', source_system=1))
+    peer = mavutil.mavlink_connection(f'udpout:127.0.0.1:{link.local_port}', source_system=1,
                                       source_component=1)
     return link, peer
 
@@ -1363,8 +1367,11 @@ def test_reader_follows_a_reopened_link_and_reports_errors_without_dying():
         reader.start()
         _send_heartbeat(peer)
         assert _wait_until(lambda: errors == ['RuntimeError: boom'])
+        port = link.local_port
         link.close()                          # closed under the reader: it waits, no error
+        assert port > 0 and link.local_port is None
         time.sleep(0.2)
+        link.config = dataclasses.replace(link.config, url=f'udpin:127.0.0.1:{port}')
         link.open()                           # the same port again
         _send_heartbeat(peer)
         assert _wait_until(lambda: len(calls) >= 2)
@@ -1436,7 +1443,7 @@ def test_a_port_that_cannot_be_opened_is_reported_once_per_loss_with_its_reason(
 def test_a_second_udp_sender_is_warned_about_once_and_counted():
     """pymavlink's udpin answers every address it heard: a second sender gets our messages."""
     link, autopilot = _reader_link()
-    port = link.config.url.rsplit(':', 1)[1]
+    port = link.local_port
     tool = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=255,
                                       source_component=190)
     try:

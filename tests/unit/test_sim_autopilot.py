@@ -17,7 +17,6 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
-from ibvs_bringup.run_scenario import free_udp_port  # noqa: E402
 from ibvs_common.core.frames import GRAVITY, rot_from_euler_zyx, rot_x  # noqa: E402
 from ibvs_sim.core.autopilot import (Autopilot, AutopilotConfig,  # noqa: E402
                                      VehicleStateView)
@@ -142,14 +141,14 @@ class Rig:
 
 def make_rig(signing_key_file: str | None = None, client_key: bytes | None = None,
              client_link_id: int = 1, state_fn=None, **config) -> Rig:
-    """Autopilot on a free port + a client that has already said hello (HEARTBEAT)."""
-    port = free_udp_port()
+    """Autopilot on a port the kernel picks + a client that has already said hello."""
     wall = FakeWallClock()
-    ap = Autopilot(AutopilotConfig(url=f'udpin:127.0.0.1:{port}',
+    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0',
                                    signing_key_file=signing_key_file, **config),
                    wall_clock=wall)
-    client = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=CLIENT_SYS,
-                                        source_component=CLIENT_COMP, dialect='common')
+    client = mavutil.mavlink_connection(f'udpout:127.0.0.1:{ap.local_port}',
+                                        source_system=CLIENT_SYS, source_component=CLIENT_COMP,
+                                        dialect='common')
     if client_key is not None:
         client.setup_signing(client_key, sign_outgoing=True, link_id=client_link_id)
     rig = Rig(ap, wall, client, state_fn=state_fn)
@@ -641,11 +640,10 @@ def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list,
     """
     from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge
     from ibvs_control.core.mavlink_link import LinkConfig
-    port = free_udp_port()
-    ap = Autopilot(AutopilotConfig(url=f'udpin:127.0.0.1:{port}'))
+    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0'))
     bridge = MavlinkBridge(BridgeConfig(
-        link=LinkConfig(url=f'udpout:127.0.0.1:{port}'), mass=1.676, max_thrust_factor=2.0,
-        configured_hover_thrust=seed, hover_thrust_source='config'))
+        link=LinkConfig(url=f'udpout:127.0.0.1:{ap.local_port}'), mass=1.676,
+        max_thrust_factor=2.0, configured_hover_thrust=seed, hover_thrust_source='config'))
     stamps, hover = [], np.array([0.0, 0.0, 1.676 * GRAVITY])
     t_ns, ros_ns, answered_frame = 0, 0, None
     deadline = time.monotonic() + 10.0
@@ -850,7 +848,7 @@ def test_posctl_switch_holds_where_it_was_entered():
 # --- robustness ---------------------------------------------------------------------------------
 
 def test_garbage_unknown_and_truncated_input_is_survived_and_counted(rig):
-    port = int(rig.ap.config.url.rsplit(':', 1)[1])
+    port = rig.ap.local_port
     rng = np.random.default_rng(1)
     c = rig.ap.counters
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as raw:

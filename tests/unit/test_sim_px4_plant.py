@@ -213,11 +213,9 @@ def test_px4_sih_run_without_px4_fails_clearly(tmp_path, monkeypatch, capsys):
 def test_state_link_stamps_on_arrival_and_asks_the_sender_for_the_rate():
     import time
     from pymavlink import mavutil
-    from ibvs_bringup.run_scenario import free_udp_port
     from ibvs_sim.core.px4_plant import StateLink
-    port = free_udp_port()
-    link = StateLink(f'udpin:127.0.0.1:{port}', 100.0, request_period_s=0.0, threaded=True)
-    sim = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=6,
+    link = StateLink('udpin:127.0.0.1:0', 100.0, request_period_s=0.0, threaded=True)
+    sim = mavutil.mavlink_connection(f'udpout:127.0.0.1:{link.local_port}', source_system=6,
                                      source_component=1)
     try:
         sent = []

@@ -98,6 +98,8 @@ def free_udp_port(rng: random.Random | None = None) -> int:
     socket opened meanwhile (a bridge's udpout, a DDS participant of another domain) may take
     it: a CI run once lost the sim to "Address already in use" that way. So the port is drawn
     at random from SERVER_PORTS, which nothing takes without asking for it by number.
+    Between this check and the bind, another process may still take it: a server in this
+    process binds port 0 instead and reads its port back (the links' ``local_port``).
     """
     rng = rng or random.SystemRandom()
     for _ in range(PORT_TRIES):

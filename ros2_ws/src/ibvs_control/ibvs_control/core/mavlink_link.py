@@ -248,6 +248,17 @@ class MavlinkLink:
         """Whether an autopilot HEARTBEAT arrived within heartbeat_timeout_s."""
         return self._link_up
 
+    @property
+    def local_port(self) -> int | None:
+        """Port of this end's socket; None while closed or on a serial port.
+
+        The kernel's pick for ``udpin:HOST:0``; 0 for a ``udpout`` that has not sent yet.
+        """
+        try:
+            return int(self._conn.port.getsockname()[1])
+        except (AttributeError, OSError, IndexError):   # closed, serial, unix socket
+            return None
+
     def fileno(self) -> int | None:
         """File descriptor of the connection (socket or serial port), None while closed."""
         fd = getattr(self._conn, 'fd', None)

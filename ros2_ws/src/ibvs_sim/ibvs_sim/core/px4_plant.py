@@ -433,6 +433,11 @@ class StateLink:
             out.append(self._queue.popleft())
         return out
 
+    @property
+    def local_port(self) -> int:
+        """UDP port the link listens on (the kernel's pick for ``udpin:HOST:0``)."""
+        return self.conn.port.getsockname()[1]
+
     def close(self) -> None:
         """Stop the reader thread, close the socket."""
         self._stop.set()

@@ -106,6 +106,11 @@ class Autopilot:
         """File descriptor of the MAVLink socket (to wait on it with select)."""
         return self._link.fileno()
 
+    @property
+    def local_port(self) -> int:
+        """UDP port the autopilot listens on (the kernel's pick for ``udpin:HOST:0``)."""
+        return self._link.local_port
+
     def poll(self, state: VehicleStateView, receive: bool = True,
              telemetry: bool = True) -> None:
         """Do one autopilot cycle at sim time ``state.t``; never blocks.

@@ -72,6 +72,11 @@ class AutopilotLink:
         """File descriptor of the MAVLink socket (to wait on it with select)."""
         return self._conn.port.fileno()
 
+    @property
+    def local_port(self) -> int:
+        """UDP port the endpoint is bound to (the kernel's pick for ``udpin:HOST:0``)."""
+        return self._conn.port.getsockname()[1]
+
     def close(self) -> None:
         """Close the UDP endpoint."""
         try:
