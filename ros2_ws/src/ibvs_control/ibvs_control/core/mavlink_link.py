@@ -30,6 +30,8 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # before pymavlink.mavutil is imported: MAVLink 2 framing
 from pymavlink import mavutil  # noqa: E402  (must follow the MAVLINK20 switch)
 
+from ibvs_control.core.mavlink_udp import open_mavlink  # noqa: E402
+
 mavlink = mavutil.mavlink
 
 SIGNING_KEY_LEN = 32            # bytes, MAVLink 2 signing secret key
@@ -207,7 +209,7 @@ class MavlinkLink:
         try:
             # TCP: one connect attempt, never a blocking retry loop inside a poll (a failed
             # reconnect raises out of recv; poll() then reopens every reconnect_period_s).
-            self._conn = mavutil.mavlink_connection(
+            self._conn = open_mavlink(
                 url, source_system=self.config.source_system,
                 source_component=self.config.source_component, autoreconnect=True,
                 retries=0, udp_timeout=UDP_CLIENT_TIMEOUT_S)

@@ -361,13 +361,12 @@ class StateLink:
 
     def __init__(self, url: str, rate_hz: float, request_period_s: float = 1.0,
                  threaded: bool = False) -> None:
-        os.environ.setdefault('MAVLINK20', '1')
-        from pymavlink import mavutil
+        from ibvs_control.core.mavlink_udp import open_mavlink   # pymavlink only when used
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise Px4PlantError(f'state rate must be > 0 Hz, got {rate_hz}')
         self.rate_hz = float(rate_hz)
         self.request_period_s = float(request_period_s)
-        self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=191)
+        self.conn = open_mavlink(url, source_system=255, source_component=191)
         self._asked_at = -math.inf
         self._times: list[float] = []       # steady s of the last received samples
         self.received = 0

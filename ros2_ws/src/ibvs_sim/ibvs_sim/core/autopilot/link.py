@@ -12,7 +12,8 @@ from typing import Any, Callable, Mapping
 
 from ibvs_sim.core.autopilot.config import (AutopilotConfig, AutopilotCounters, RateLimitedLog,
                                             VehicleStateView)
-from ibvs_sim.core.autopilot.protocol import (BROADCAST_ID, mavlink, MAVLINK_DIALECT, mavutil,
+from ibvs_control.core.mavlink_udp import open_mavlink
+from ibvs_sim.core.autopilot.protocol import (BROADCAST_ID, mavlink, MAVLINK_DIALECT,
                                               STATUSTEXT_LEN)
 
 # A handler of one message type: (decoded pymavlink message, ground truth of the poll).
@@ -54,9 +55,9 @@ class AutopilotLink:
         self.counters = counters
         self._warn = warn
         self._known_peers = 0
-        self._conn = mavutil.mavlink_connection(config.url, source_system=config.system_id,
-                                                source_component=config.component_id,
-                                                dialect=MAVLINK_DIALECT)
+        self._conn = open_mavlink(config.url, source_system=config.system_id,
+                                  source_component=config.component_id,
+                                  dialect=MAVLINK_DIALECT)
         if config.signing_key_file:
             key = load_signing_key(config.signing_key_file)
             self._conn.setup_signing(key, sign_outgoing=True,
