@@ -83,10 +83,13 @@ def random_initial_position(seed: int, world=None) -> tuple:
     return tuple(float(rng.uniform(*box[k])) for k in ('x', 'y', 'z'))
 
 
-#: Where free_udp_port looks: below Fast DDS's ports (7400 + 250 x domain + ...) and the
-#: kernel's ephemeral range (32768-60999 by default), above the UDP ports PX4 and ArduPilot
-#: SITL bind (4560, 5501-5510) and the usual local services (mDNS 5353, SIP 5060).
-SERVER_PORTS = range(6100, 7400)
+#: Where free_udp_port looks. Below the UDP ports Fast DDS binds in every ROS process: its
+#: well-known ports (7400 + 250 x domain + ...) and, measured (Jazzy, Fast DDS 2.14), one
+#: socket on 0.0.0.0:7000 + k, the first k free, per participant process (a graph of 10
+#: processes holds 7000-7009; a sim started after the check lost port 7003 that way in CI).
+#: Below the kernel's ephemeral range (32768-60999 by default) too, and above the UDP ports PX4
+#: and ArduPilot SITL bind (4560, 5501-5510) and the usual local services (mDNS 5353, SIP 5060).
+SERVER_PORTS = range(6100, 6900)
 PORT_TRIES = 50
 
 
@@ -429,7 +432,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--timeout', type=float, default=900.0, help='wall-clock limit, s')
     p.add_argument('--preflight-timeout', type=float, default=120.0)
     p.add_argument('--mavlink-port', type=int, default=None,
-                   help='default: a free UDP port in 6100-7399 (free_udp_port)')
+                   help='default: a free UDP port in 6100-6899 (free_udp_port)')
     p.add_argument('--params-file', default=None)
     p.add_argument('--kill-node', default=None, metavar='NAME',
                    help='fault injection: SIGKILL this node at --kill-at-s (sim time)')
