@@ -47,6 +47,7 @@ from ibvs_common.core.frames import GRAVITY  # noqa: E402
 from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge  # noqa: E402
 from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
 from ibvs_control.core.mavlink_sequencer import px4_main_mode  # noqa: E402
+from ibvs_bringup.px4_sih import renice_threads, SITL_NICE  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / 'shared'
@@ -143,12 +144,20 @@ def px4_launcher(tmp_path: Path) -> Path:
 
 
 def start(script: Path, args: list) -> dict:
-    """Run ``script start args``; return its NAME=VALUE lines (the autopilot is up)."""
+    """Run ``script start args``; return its NAME=VALUE lines (the autopilot is up).
+
+    The autopilot's threads then run at ``SITL_NICE``, as in px4_scenario: on a vehicle it
+    has a processor of its own, here it shares two cores with the tests of the other worker
+    (a CI run starved PX4 until its baro and compass timed out and it never landed).
+    """
     out = subprocess.run([str(script), 'start', *args], capture_output=True, text=True,
                          timeout=90)
     env = dict(line.split('=', 1) for line in out.stdout.split() if '=' in line)
     if out.returncode != 0:
         raise RuntimeError(f'{script} start failed ({out.returncode}): {out.stderr[-2000:]}')
+    pid = env.get('PX4_PID') or env.get('AP_PID')
+    if pid:
+        print(f'{script.name} (PID {pid}): {renice_threads(int(pid), SITL_NICE)}')
     return env
 
 

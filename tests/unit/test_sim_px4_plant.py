@@ -237,3 +237,26 @@ def test_state_link_stamps_on_arrival_and_asks_the_sender_for_the_rate():
     finally:
         link.close()
         sim.close()
+
+
+def test_renice_threads_sets_every_thread_of_a_sitl_process():
+    """Linux keeps a nice value per thread: each task of /proc/PID/task gets it."""
+    import subprocess
+    import sys
+    from ibvs_bringup.px4_sih import renice_threads
+    code = ('import threading, time\n'
+            'for _ in range(3):\n'
+            '    threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n'
+            'print("up", flush=True)\n'
+            'time.sleep(30)\n')
+    child = subprocess.Popen([sys.executable, '-c', code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == 'up'
+        tids = [int(t) for t in os.listdir(f'/proc/{child.pid}/task')]
+        assert len(tids) == 4                              # main + 3 threads
+        assert renice_threads(child.pid, 7) == '4 threads at nice 7'   # no privilege needed
+        assert [os.getpriority(os.PRIO_PROCESS, t) for t in tids] == [7] * 4
+    finally:
+        child.kill()
+        child.wait()
+    assert renice_threads(child.pid, 7).startswith('not reniced')       # gone: reported

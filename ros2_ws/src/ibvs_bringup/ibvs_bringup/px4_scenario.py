@@ -31,7 +31,8 @@ import time
 import numpy as np
 
 from ibvs_bringup import graph, report
-from ibvs_bringup.px4_sih import free_instance, Pilot, px4_boot_parameters, Px4Sitl
+from ibvs_bringup.px4_sih import (free_instance, Pilot, px4_boot_parameters, Px4Sitl,
+                                  SITL_NICE)
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.px4_plant import find_px4_sitl, NedToI, sih_parameters
 from ibvs_sim.core.world import load_world
@@ -53,10 +54,6 @@ REPOSITION_STILL_S = 1.0      # s (steady) the truth must have been slower than
 #                               PX4 still swings to the last hold point re-excites its loop
 #                               (s17px4e2: +-1 m swings for 120 s, 33 repositions)
 REPOSITION_MAX_WAIT_S = 10.0  # s (steady), a correction anyway after this long in motion
-# PX4's threads run at this nice value (None: as started): on a vehicle PX4 has its own flight
-# controller; here a starved PX4 lets SIH's clock slip (measured: 6700 ppm skew and a jump
-# that reset the bridge's clock sync, IMU stale -> FAILSAFE, with PX4 at the graph's priority)
-PX4_NICE = -5
 
 
 class _Stop(Exception):
@@ -140,8 +137,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
         t = time.monotonic()
         px4.start()
         info['px4_start_s'] = round(time.monotonic() - t, 2)
-        if PX4_NICE is not None:
-            info['px4_nice'] = px4.renice(PX4_NICE)
+        info['px4_nice'] = px4.renice(SITL_NICE)
         print(f'run {opts.run_name}: PX4 SIH instance {instance} up in '
               f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")})', flush=True)
         monitor = ScenarioMonitor(use_sim_time=False)

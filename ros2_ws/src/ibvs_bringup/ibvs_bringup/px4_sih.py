@@ -116,25 +116,8 @@ class Px4Sitl:
         return env
 
     def renice(self, nice: int) -> str:
-        """Set the nice value of every thread of this PX4 (Linux); return what was done.
-
-        On a vehicle PX4 runs on its own flight controller; here it shares the cores with the
-        graph, and SIH's lockstep clock slips when PX4 is starved (docs/px4_sih.md). A
-        permission error is reported, not raised.
-        """
-        pid = int(self.env['PX4_PID'])
-        done, failed = 0, 0
-        try:
-            tids = os.listdir(f'/proc/{pid}/task')
-        except OSError as exc:
-            return f'not reniced: {exc}'
-        for tid in tids:
-            try:
-                os.setpriority(os.PRIO_PROCESS, int(tid), int(nice))
-                done += 1
-            except OSError:
-                failed += 1
-        return f'{done} threads at nice {nice}' + (f', {failed} refused' if failed else '')
+        """Set the nice value of every thread of this PX4 (:func:`renice_threads`)."""
+        return renice_threads(int(self.env['PX4_PID']), nice)
 
     def stop(self) -> None:
         """Stop this instance (by its work directory: only its own PID)."""
@@ -283,3 +266,33 @@ class Pilot:
     def close(self) -> None:
         """Close the GCS socket."""
         self.conn.close()
+
+
+#: Nice value of a SITL autopilot's threads: on a vehicle the autopilot has its own flight
+#: controller; here a starved PX4 lets SIH's clock slip (measured: 6700 ppm skew and a jump
+#: that reset the bridge's clock sync, IMU stale -> FAILSAFE, with PX4 at the graph's
+#: priority; in a CI run its baro and compass timed out and it never landed).
+SITL_NICE = -5
+
+
+def renice_threads(pid: int, nice: int) -> str:
+    """Set the nice value of every thread of process ``pid`` (Linux); return what was done.
+
+    For a SITL autopilot (PX4, ArduPilot): on a vehicle it runs on its own flight controller;
+    here it shares the cores with the graph or the tests, and a starved SITL lets its clock
+    slip, its sensors time out and its failsafes act (docs/px4_sih.md). Linux keeps a nice
+    value per thread, so each one of /proc/PID/task is set. A permission error (no
+    CAP_SYS_NICE for a negative value) is reported, not raised.
+    """
+    done, failed = 0, 0
+    try:
+        tids = os.listdir(f'/proc/{pid}/task')
+    except OSError as exc:
+        return f'not reniced: {exc}'
+    for tid in tids:
+        try:
+            os.setpriority(os.PRIO_PROCESS, int(tid), int(nice))
+            done += 1
+        except OSError:
+            failed += 1
+    return f'{done} threads at nice {nice}' + (f', {failed} refused' if failed else '')
