@@ -122,7 +122,8 @@ PARAMETERS = {
 # under use_sim_time; steady = monotonic), inclusive range (ibvs_common.param_descriptors).
 PARAMETER_SPECS = {
     'url': ("MAVLink endpoint (pymavlink URL): PX4 'udpin:0.0.0.0:14540', serial "
-            "'/dev/ttyUSB0,921600'",),
+            "'/dev/ttyUSB0,921600'; a udpin port is ours alone (one another socket holds is "
+            "refused and retried every reconnect_period_s)",),
     'source_system': ("our MAVLink system id (the vehicle's)", 1, 255),
     'target_system': ("autopilot system id; 0 = learn from its first HEARTBEAT", 0, 255),
     'target_component': ("autopilot component id; 0 = learn from its first HEARTBEAT",

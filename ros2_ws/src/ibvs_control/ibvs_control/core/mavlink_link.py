@@ -30,7 +30,7 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # before pymavlink.mavutil is imported: MAVLink 2 framing
 from pymavlink import mavutil  # noqa: E402  (must follow the MAVLINK20 switch)
 
-from ibvs_control.core.mavlink_udp import open_mavlink  # noqa: E402
+from ibvs_control.core.mavlink_udp import local_port, open_mavlink  # noqa: E402
 
 mavlink = mavutil.mavlink
 
@@ -252,14 +252,8 @@ class MavlinkLink:
 
     @property
     def local_port(self) -> int | None:
-        """Port of this end's socket; None while closed or on a serial port.
-
-        The kernel's pick for ``udpin:HOST:0``; 0 for a ``udpout`` that has not sent yet.
-        """
-        try:
-            return int(self._conn.port.getsockname()[1])
-        except (AttributeError, OSError, IndexError):   # closed, serial, unix socket
-            return None
+        """Port of this end's socket; None while closed or on a serial port (``local_port``)."""
+        return local_port(self._conn)
 
     def fileno(self) -> int | None:
         """File descriptor of the connection (socket or serial port), None while closed."""

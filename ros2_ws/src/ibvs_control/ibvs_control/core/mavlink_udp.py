@@ -58,3 +58,14 @@ def open_mavlink(url: str, **kwargs) -> mavutil.mavfile:
     if address is not None:
         conn.port.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 0)
     return conn
+
+
+def local_port(conn: mavutil.mavfile | None) -> int | None:
+    """Port of a pymavlink connection's socket; None when closed (None) or a serial port.
+
+    The kernel's pick for ``udpin:HOST:0``; 0 for a ``udpout`` that has not sent yet.
+    """
+    try:
+        return int(conn.port.getsockname()[1])
+    except (AttributeError, OSError, IndexError):   # closed, serial, unix socket
+        return None

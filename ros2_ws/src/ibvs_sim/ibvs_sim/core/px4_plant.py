@@ -433,9 +433,10 @@ class StateLink:
         return out
 
     @property
-    def local_port(self) -> int:
+    def local_port(self) -> int | None:
         """UDP port the link listens on (the kernel's pick for ``udpin:HOST:0``)."""
-        return self.conn.port.getsockname()[1]
+        from ibvs_control.core.mavlink_udp import local_port
+        return local_port(self.conn)
 
     def close(self) -> None:
         """Stop the reader thread, close the socket."""

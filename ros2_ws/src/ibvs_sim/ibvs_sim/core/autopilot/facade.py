@@ -107,7 +107,7 @@ class Autopilot:
         return self._link.fileno()
 
     @property
-    def local_port(self) -> int:
+    def local_port(self) -> int | None:
         """UDP port the autopilot listens on (the kernel's pick for ``udpin:HOST:0``)."""
         return self._link.local_port
 

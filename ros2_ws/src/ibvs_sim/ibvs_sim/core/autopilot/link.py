@@ -12,7 +12,7 @@ from typing import Any, Callable, Mapping
 
 from ibvs_sim.core.autopilot.config import (AutopilotConfig, AutopilotCounters, RateLimitedLog,
                                             VehicleStateView)
-from ibvs_control.core.mavlink_udp import open_mavlink
+from ibvs_control.core.mavlink_udp import local_port, open_mavlink
 from ibvs_sim.core.autopilot.protocol import (BROADCAST_ID, mavlink, MAVLINK_DIALECT,
                                               STATUSTEXT_LEN)
 
@@ -74,9 +74,9 @@ class AutopilotLink:
         return self._conn.port.fileno()
 
     @property
-    def local_port(self) -> int:
+    def local_port(self) -> int | None:
         """UDP port the endpoint is bound to (the kernel's pick for ``udpin:HOST:0``)."""
-        return self._conn.port.getsockname()[1]
+        return local_port(self._conn)
 
     def close(self) -> None:
         """Close the UDP endpoint."""
