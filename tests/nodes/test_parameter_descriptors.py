@@ -6,6 +6,7 @@ node reads a parameter after start). A value out of range or of the wrong type s
 with an error naming the parameter; a runtime set_parameters is refused.
 """
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -159,6 +160,26 @@ def test_main_exits_1_with_a_fatal_log_naming_the_parameter(module, node, parame
     out = proc.stderr + proc.stdout
     assert proc.returncode == 1, out
     assert parameter.split(':=')[0] in out
+    assert 'Traceback' not in out
+
+
+@pytest.mark.parametrize('module, node, url_parameter', [
+    ('ibvs_sim.sim_node', 'sim', 'mavlink_url'),
+    ('ibvs_sim.px4_sim_node', 'px4_sim', 'state_url'),
+])
+def test_main_exits_1_with_a_fatal_log_when_its_udp_port_is_taken(module, node, url_parameter):
+    """A sim whose MAVLink/state port another socket holds says so and exits: no traceback."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as holder:
+        holder.bind(('127.0.0.1', 0))
+        port = holder.getsockname()[1]
+        proc = subprocess.run(
+            [sys.executable, '-c', f'from {module} import main; main()',
+             '--ros-args', '-r', f'__node:={node}_{TAG}',
+             '-p', f'{url_parameter}:=udpin:127.0.0.1:{port}'],
+            env=dict(os.environ), capture_output=True, text=True, timeout=60)
+    out = proc.stderr + proc.stdout
+    assert proc.returncode == 1, out
+    assert 'cannot start' in out and f'UDP port {port} is already bound' in out, out
     assert 'Traceback' not in out
 
 

@@ -584,7 +584,7 @@ def main(args=None) -> None:
         spin_guarded(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except (ConfigError, ValueError) as exc:
+    except (ConfigError, ValueError, OSError) as exc:   # OSError: the MAVLink port is taken
         rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
         raise SystemExit(1) from exc
     finally:
