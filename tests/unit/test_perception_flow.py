@@ -291,3 +291,45 @@ def test_image_decoding():
                  (b'\0' * 6, 3, 2, 'mono8', 2), (b'', 0, 0, 'mono8', 0)):
         with pytest.raises(ImageFormatError):
             image_to_mono8(*args)
+
+
+def test_image_decoding_with_alpha_ignores_the_alpha():
+    rgba = np.zeros((2, 3, 4), np.uint8)
+    rgba[..., 0], rgba[..., 3] = 255, 7         # red, a stray alpha
+    assert np.all(image_to_mono8(rgba.tobytes(), 3, 2, 'rgba8', 12) == 76)
+    assert np.all(image_to_mono8(rgba[..., [2, 1, 0, 3]].tobytes(), 3, 2, 'bgra8', 12) == 76)
+
+
+@pytest.mark.parametrize('encoding, luma_first', [
+    ('yuv422_yuy2', True), ('yuyv', True), ('yuv422', False), ('uyvy', False)])
+def test_yuv422_decodes_to_its_y_bytes(encoding, luma_first):
+    rng = np.random.default_rng(3)
+    y = rng.integers(16, 236, (4, 6), dtype=np.uint8)
+    chroma = rng.integers(16, 241, (4, 6), dtype=np.uint8)      # U V U V ... per row
+    pairs = np.stack([y, chroma] if luma_first else [chroma, y], axis=-1).reshape(4, 12)
+    padded = np.zeros((4, 14), np.uint8)                         # 2 bytes of row padding
+    padded[:, :12] = pairs
+    grey = image_to_mono8(padded.tobytes(), 6, 4, encoding, 14)
+    np.testing.assert_array_equal(grey, y)
+    code = cv2.COLOR_YUV2GRAY_YUY2 if luma_first else cv2.COLOR_YUV2GRAY_UYVY   # 2nd method
+    np.testing.assert_array_equal(grey, cv2.cvtColor(pairs.reshape(4, 6, 2), code))
+    with pytest.raises(ImageFormatError, match='step'):
+        image_to_mono8(pairs.tobytes(), 6, 4, encoding, 11)
+
+
+@pytest.mark.parametrize('pattern', ['rggb', 'bggr', 'gbrg', 'grbg'])
+def test_bayer_decodes_to_the_luma_of_the_colour_its_name_says(pattern):
+    # a uniform colour, mosaicked as the ROS name reads (first row: pattern[0:2], second:
+    # pattern[2:4]); red and blue differ, so a pattern read the wrong way round shows
+    red, green, blue = 200, 100, 20
+    value = {'r': red, 'g': green, 'b': blue}
+    mosaic = np.zeros((8, 10), np.uint8)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            mosaic[dy::2, dx::2] = value[pattern[2 * dy + dx]]
+    grey = image_to_mono8(mosaic.tobytes(), 10, 8, f'bayer_{pattern}8', 10)
+    luma = 0.299 * red + 0.587 * green + 0.114 * blue              # BT.601: 121.0
+    assert grey.shape == (8, 10)
+    assert np.all(np.abs(grey[2:-2, 2:-2].astype(float) - luma) <= 1.0), grey
+    with pytest.raises(ImageFormatError, match='2x2'):
+        image_to_mono8(b'\0' * 3, 3, 1, f'bayer_{pattern}8', 3)

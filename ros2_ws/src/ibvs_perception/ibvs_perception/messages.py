@@ -21,7 +21,7 @@ def stamp_to_s(stamp) -> float:
 
 
 def mono8_from_image(msg: Image) -> np.ndarray:
-    """sensor_msgs/Image (mono8, bgr8, rgb8) -> (H, W) uint8; raises ImageFormatError."""
+    """sensor_msgs/Image (core.image SUPPORTED_ENCODINGS) -> (H, W) uint8 grey; raises."""
     return image_to_mono8(msg.data, msg.width, msg.height, msg.encoding, msg.step)
 
 
