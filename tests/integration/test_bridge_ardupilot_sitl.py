@@ -73,7 +73,9 @@ FS_GCS_TIMEOUT_S = 5.0        # ArduCopter 4.5's default
 
 def ap_flight(ap) -> Flight:
     truth = Truth(ap['env']['AP_GCS_TCP_URL'], request=(SIM_STATE, 50.0))
-    return Flight(ap['env']['AP_COMPANION_URL'], truth, VEHICLE_MASS)
+    f = Flight(ap['env']['AP_COMPANION_URL'], truth, VEHICLE_MASS)
+    f.autopilot_log = Path(ap['env']['AP_WORKDIR']) / 'arducopter.log'   # README: console log
+    return f
 
 
 def gcs_mode(f: Flight, mode: int) -> None:

@@ -547,6 +547,12 @@ class Flight:
                         f'{hold_last_s} s: CPU load beside it?); its forces stopped and the '
                         f'bridge went {self.state()!r}, as it should')
 
+    def autopilot_log_lines(self) -> list:
+        """The lines of the SITL's console log (``autopilot_log``); [] when it is not known."""
+        if self.autopilot_log is None or not self.autopilot_log.is_file():
+            return []
+        return self.autopilot_log.read_text(errors='replace').splitlines()
+
     def skip_if_sensors_lost(self, what: str) -> None:
         """Skip when the SITL's own log says its simulated sensors timed out or went invalid.
 
@@ -555,10 +561,7 @@ class Flight:
         lands: ``what`` failed for the autopilot's sake, and the bridge cannot be judged. A
         quiet run logs none of these lines.
         """
-        if self.autopilot_log is None or not self.autopilot_log.is_file():
-            return
-        lost = [ln.strip() for ln in self.autopilot_log.read_text(errors='replace').splitlines()
-                if SENSOR_LOSS.search(ln)]
+        lost = [ln.strip() for ln in self.autopilot_log_lines() if SENSOR_LOSS.search(ln)]
         if lost:
             pytest.skip(f"{what}: the autopilot's own sensors failed ({lost[0]!r}, {len(lost)} "
                         f'such lines in its log): a starved SITL (CPU load beside it), the '
@@ -666,10 +669,11 @@ def px4_take_off(f: Flight, z_ref: float = -2.0, arm: bool = True) -> None:
     assert f.spin(10.0, until=lambda: f.truth.z < z_ref + 0.3), f'z {f.truth.z}'
 
 
-def close_flight(f: Flight, px4: dict | None = None) -> None:
+def close_flight(f: Flight) -> None:
     """After a test: close the bridge and the ground-truth link (PX4 is stopped with it).
 
-    Prints the bridge's last events and PX4's own log: pytest shows them when the test failed.
+    Prints the bridge's last events and the autopilot's own log (``f.autopilot_log``, when
+    known): pytest shows them when the test failed.
     """
     f.truth.close()
     f.close()
@@ -677,11 +681,10 @@ def close_flight(f: Flight, px4: dict | None = None) -> None:
           + '\n'.join(f'{t:.2f} {lv}: {text}' for t, (lv, text) in f.timed_events[-40:]))
     print(f'--- harness stalls > {STALL_S} s (ended at, gap s): '
           + (', '.join(f'{t:.2f} {gap:.2f}' for t, gap in f.stalls) or 'none'))
-    log = Path(px4['env'].get('PX4_LOG', '')) if px4 else None
-    if log is not None and log.is_file():
-        lines = [ln for ln in log.read_text(errors='replace').splitlines()
-                 if 'WARN' in ln or 'ERROR' in ln or 'ailsafe' in ln or 'mode' in ln.lower()]
-        print('--- PX4 log, warnings, errors, failsafes and modes (last 40):\n'
+    lines = [ln for ln in f.autopilot_log_lines()
+             if 'WARN' in ln or 'ERROR' in ln or 'ailsafe' in ln or 'mode' in ln.lower()]
+    if lines:
+        print('--- autopilot log, warnings, errors, failsafes and modes (last 40):\n'
               + '\n'.join(lines[-40:]))
 
 
@@ -816,7 +819,7 @@ def test_px4_engages_arms_only_on_request_tracks_steps_learns_hover_then_fails_s
         assert all(t < t_req and params == (1.0, 6.0) for t, _, params in set_modes), set_modes
         assert all(b[0] - a[0] >= 0.95 for a, b in zip(set_modes, set_modes[1:])), set_modes
     finally:
-        close_flight(f, px4)
+        close_flight(f)
 
 
 def test_px4_pilot_takeover_failsafe_land_mode_and_touchdown_disarm(px4):
@@ -878,7 +881,7 @@ def test_px4_pilot_takeover_failsafe_land_mode_and_touchdown_disarm(px4):
         assert not f.hb().armed
         assert not f.bridge.sequencer.disarm_forced or f.truth.z > -0.1, f.truth.z
     finally:
-        close_flight(f, px4)
+        close_flight(f)
 
 
 def test_px4_fails_safe_when_the_bridge_dies(px4):
@@ -913,7 +916,7 @@ def test_px4_fails_safe_when_the_bridge_dies(px4):
     finally:
         if watch is not None:
             watch.close()
-        close_flight(f, px4)
+        close_flight(f)
 
 
 def test_px4_reconnects_after_a_3_s_freeze(px4):
