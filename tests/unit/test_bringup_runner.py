@@ -4,7 +4,7 @@ import subprocess
 import sys
 import time
 
-from ibvs_bringup import ros2run
+from ibvs_bringup import parent_death, ros2run
 from ibvs_bringup.run_scenario import supervisor_transitions
 from ibvs_bringup.runner import ProcessRunner
 import pytest
@@ -117,6 +117,49 @@ def test_runner_cli_stops_its_nodes_on_sigterm(tmp_path):
     finally:
         proc.kill()
         proc.wait(timeout=5)
+
+
+@pytest.mark.skipif(not parent_death.supported(), reason='PR_SET_PDEATHSIG is Linux only')
+def test_a_killed_runner_takes_its_nodes_with_it(tmp_path):
+    """SIGKILL of the runner (no chance to stop anything): the kernel sends its nodes SIGTERM.
+
+    Without the parent death signal the child, in a process group of its own, runs on.
+    """
+    code = ('import time\n'
+            'from ibvs_bringup import runner\n'
+            'r = runner.ProcessRunner()\n'
+            'r.start("child", [__import__("sys").executable, "-c", '
+            '"import time; time.sleep(60)"])\n'
+            f'open({str(tmp_path / "pid")!r}, "w").write(str(r.children[0].proc.pid))\n'
+            'time.sleep(60)\n')
+    proc = subprocess.Popen([PY, '-c', code])
+    child = None
+    try:
+        assert _wait(lambda: (tmp_path / 'pid').exists() and (tmp_path / 'pid').read_text())
+        child = int((tmp_path / 'pid').read_text())
+        # the child is the command itself (exec'd), not a wrapper around it
+        assert _wait(lambda: 'time.sleep(60)' in open(f'/proc/{child}/cmdline').read(), 5.0)
+        assert _alive(child)
+        proc.kill()
+        proc.wait(timeout=5)
+        assert _wait(lambda: not _alive(child), 3.0), 'the node outlived its killed runner'
+    finally:
+        proc.kill()
+        proc.wait(timeout=5)
+        if child is not None and _alive(child):
+            os.kill(child, 9)
+
+
+def test_parent_death_refuses_to_start_when_its_parent_is_already_gone():
+    # a parent pid that is not ours: as if the runner died before the child's prctl
+    out = subprocess.run([PY, '-m', 'ibvs_bringup.parent_death', '1', '--', PY, '-c',
+                          'print("ran")'], capture_output=True, text=True, timeout=30)
+    assert out.returncode == parent_death.EXIT_PARENT_GONE
+    assert 'ran' not in out.stdout and 'parent 1 is gone' in out.stderr
+    bad = subprocess.run([PY, '-m', 'ibvs_bringup.parent_death', 'x', PY],
+                         capture_output=True, text=True, timeout=30)
+    assert bad.returncode == 2 and 'usage' in bad.stderr
+    assert parent_death.wrap(['a', 'b'], 7)[-4:] == ['7', '--', 'a', 'b']
 
 
 def test_resolver_finds_console_scripts_and_reports_unknown_ones(monkeypatch, tmp_path):

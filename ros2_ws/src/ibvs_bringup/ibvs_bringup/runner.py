@@ -4,7 +4,9 @@ Each node runs as ``<resolved executable> --ros-args -r __node:=<name> --params-
 -r from:=to`` (``NodeSpec.ros_args``), in its own process group, with the caller's environment
 (ROS_DOMAIN_ID, discovery range, AMENT_PREFIX_PATH pass through). ``ProcessRunner`` stops every
 process it started on exit, Ctrl-C or SIGTERM (SIGINT, then SIGTERM, then SIGKILL, each with a
-timeout) and reports a process that died: name, exit code and its last stderr lines.
+timeout) and reports a process that died: name, exit code and its last stderr lines. If the
+runner itself is killed, every process it started is sent SIGTERM by the kernel
+(``parent_death``): the graph never runs on without its runner.
 
 As on a vehicle, the graph keeps running when a node dies: ``ProcessRunner.supervise`` restarts
 the nodes marked ``respawn`` (the perception nodes, graph.py) after ``RESPAWN_DELAY_S``, doubled
@@ -33,7 +35,7 @@ import threading
 import time
 from typing import Iterable
 
-from ibvs_bringup import graph
+from ibvs_bringup import graph, parent_death
 from ibvs_bringup.ros2run import command_for
 from ibvs_common.dds_profile import dds_env_overrides
 
@@ -80,7 +82,7 @@ class _Child:
         self._log = open(log_path, 'a' if append else 'w', encoding='utf-8') \
             if log_path else None
         self.proc = subprocess.Popen(
-            argv, env=env, stdin=subprocess.DEVNULL,
+            parent_death.wrap(argv), env=env, stdin=subprocess.DEVNULL,
             stdout=self._log if self._log else subprocess.DEVNULL,
             stderr=subprocess.PIPE, process_group=0)
         self._reader = threading.Thread(target=self._read_stderr, daemon=True)
