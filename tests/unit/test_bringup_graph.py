@@ -4,10 +4,11 @@ import importlib.util
 import os
 from pathlib import Path
 import re
+import shlex
 import sys
 import types
 
-from ibvs_bringup import graph
+from ibvs_bringup import graph, parent_death
 import pytest
 
 SRC = Path(__file__).resolve().parents[2] / 'ros2_ws' / 'src'
@@ -148,6 +149,16 @@ class _Context:
         return self.values[sub.args[0]]
 
 
+def _assert_ends_with_launch(node) -> None:
+    """The node runs through parent_death with this (launch) process as the parent, as the
+    runner's nodes do (test_bringup_runner: a killed runner takes its nodes with it)."""
+    if not parent_death.supported():
+        assert node.kwargs['prefix'] is None
+        return
+    words = shlex.split(node.kwargs['prefix'])
+    assert words == [sys.executable, '-m', 'ibvs_bringup.parent_death', str(os.getpid()), '--']
+
+
 @pytest.mark.parametrize('file_name, builder', [('sim.launch.py', 'sim_graph'),
                                                 ('onboard.launch.py', 'onboard_graph')])
 def test_launch_file_takes_its_node_list_from_graph(file_name, builder):
@@ -181,6 +192,7 @@ def test_launch_file_builds_the_graph_nodes(file_name, values, monkeypatch):
         assert n.kwargs['respawn'] is (n.kwargs['package'] == 'ibvs_perception')
         assert n.kwargs['respawn_delay'] == graph.RESPAWN_DELAY_S
         assert n.kwargs['parameters'][0] == PARAMS
+        _assert_ends_with_launch(n)
     urls = {n.kwargs['name']: n.kwargs['parameters'][-1].get(
         graph.BRIDGE_URL if n.kwargs['name'] == 'mavlink_bridge' else graph.MAVLINK_URL)
         for n in nodes if isinstance(n.kwargs['parameters'][-1], dict)}
@@ -207,6 +219,7 @@ def test_onboard_launch_composes_the_same_nodes_by_default(monkeypatch):
     assert 'name' not in node.kwargs          # a name would rename every node inside it
     assert node.kwargs['respawn'] is True
     assert node.kwargs['respawn_delay'] == graph.RESPAWN_DELAY_S
+    _assert_ends_with_launch(node)
     flag, path = node.kwargs['arguments']
     assert flag == '--specs'
     specs = composed.read_specs(path)

@@ -16,12 +16,14 @@ offboard-loss failsafe takes the vehicle (docs/mavlink.md).
 
 Linux sends the signal when the *thread* that forked the child ends, not the process: start
 children from a thread that lives as long as the runner (the runner's and run_scenario's main
-thread). Elsewhere than Linux, :func:`wrap` returns the command unchanged.
+thread). Elsewhere than Linux, :func:`wrap` returns the command unchanged. The launch files
+give their nodes the same rule (:func:`launch_prefix`).
 """
 from __future__ import annotations
 
 import ctypes
 import os
+import shlex
 import signal
 import sys
 
@@ -40,6 +42,16 @@ def wrap(argv: list, parent_pid: int | None = None) -> list:
         return list(argv)
     pid = os.getpid() if parent_pid is None else parent_pid
     return [sys.executable, '-m', 'ibvs_bringup.parent_death', str(pid), '--', *argv]
+
+
+def launch_prefix() -> str | None:
+    """Return a launch_ros ``Node(prefix=...)`` that ends the node with this (launch) process.
+
+    ``ros2 launch`` starts its nodes from its main thread (asyncio), which lives as long as it
+    does. None elsewhere than Linux.
+    """
+    words = wrap([])
+    return ' '.join(shlex.quote(w) for w in words) if words else None
 
 
 def set_parent_death_signal(sig: int = signal.SIGTERM) -> None:

@@ -11,7 +11,7 @@ as ``runner onboard --layout`` (runner.LAYOUTS, docs/onboard.md).
 import os
 import tempfile
 
-from ibvs_bringup import composed, graph
+from ibvs_bringup import composed, graph, parent_death
 from ibvs_bringup.runner import DEFAULT_LAYOUT, LAYOUTS
 from ibvs_common.dds_profile import dds_env_overrides
 from launch import LaunchDescription
@@ -33,6 +33,7 @@ def _nodes(context):
     opts = graph.GraphOptions(params_file=params, use_sim_time=use_sim_time,
                               mavlink_url=get(Lc('mavlink_url')), crossing_law=law)
     env = dds_env_overrides()
+    prefix = parent_death.launch_prefix()     # each node ends with ros2 launch, as with the runner
     specs = graph.onboard_graph(opts)
     if layout == 'composed':        # one process; its node list and parameters in a file
         fd, path = tempfile.mkstemp(prefix='ibvs-onboard-', suffix='.json')
@@ -40,10 +41,11 @@ def _nodes(context):
         composed.write_specs(specs, path)
         return [Node(package='ibvs_bringup', executable='composed',
                      arguments=['--specs', path], output='screen', additional_env=env,
-                     respawn=True, respawn_delay=graph.RESPAWN_DELAY_S)]
+                     prefix=prefix, respawn=True, respawn_delay=graph.RESPAWN_DELAY_S)]
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
-                 additional_env=env, respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)
+                 additional_env=env, prefix=prefix, respawn=s.respawn,
+                 respawn_delay=graph.RESPAWN_DELAY_S)
             for s in specs]
 
 

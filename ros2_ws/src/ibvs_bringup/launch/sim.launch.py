@@ -3,7 +3,7 @@
 Usage: ros2 launch ibvs_bringup sim.launch.py [mavlink_port:=14560] [crossing_law:=closed]
        [params_file:=/path/params.yaml]
 """
-from ibvs_bringup import graph
+from ibvs_bringup import graph, parent_death
 from ibvs_common.dds_profile import dds_env_overrides
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
@@ -20,7 +20,8 @@ def _nodes(context):
     env = dds_env_overrides()
     return [Node(package=s.package, executable=s.executable, name=s.name,
                  parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
-                 additional_env=env, respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)
+                 additional_env=env, prefix=parent_death.launch_prefix(), respawn=s.respawn,
+                 respawn_delay=graph.RESPAWN_DELAY_S)
             for s in graph.sim_graph(opts)]
 
 
