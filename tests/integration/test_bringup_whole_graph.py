@@ -167,6 +167,12 @@ def test_reference_run_succeeds_and_reports(reference):
     assert timing['pacing'] == 'lockstep' and timing['lockstep_timeouts'] == 0, timing
     assert timing['imu_hold_timeouts'] == 0 and timing['frames_dropped'] == 0, timing
     assert timing['products_given_up'] == 0, timing
+    # the sim's autopilot asks the bridge for TIMESYNC as PX4 does (10 Hz of sim time), and
+    # the bridge answers every request it reads once its ROS time is known
+    assert timing['autopilot_timesync_requests'] >= 100, timing
+    assert timing['autopilot_timesync_answers'] >= timing['autopilot_timesync_requests'] - 3, \
+        timing
+    assert timing['autopilot_timesync_foreign'] == 0, timing
     counts = bag.topic_counts(out / 'bag')
     for topic in ('/front_camera/image_raw', '/down_camera/image_raw', '/imu/data',
                   '/window/corners', '/pad/landmarks', '/ibvs/mode', '/sim/ground_truth/odom',
@@ -398,6 +404,11 @@ def test_free_running_reference_on_the_onboard_parameters(tmp_path):
     # the run reports them, and the graph answered most frames while it flew the mission
     assert timing['frames_dropped'] >= 0 and timing['answered_fraction'] >= 0.5, timing
     assert 0.0 < timing['latency_median_ms'] <= timing['latency_p99_ms'], timing
+    # the autopilot's TIMESYNC requests (as PX4's) answered by the bridge on real clocks
+    assert timing['autopilot_timesync_requests'] >= 100, timing
+    assert timing['autopilot_timesync_answers'] >= 0.9 * timing['autopilot_timesync_requests'], \
+        timing
+    assert timing['autopilot_timesync_foreign'] == 0, timing
 
 
 # --- replay --------------------------------------------------------------------------------

@@ -565,10 +565,58 @@ def test_param_request_read_unknown_name_gets_no_value(rig):
 
 # --- clock sync (TIMESYNC) ----------------------------------------------------------------------
 
+def is_answer(m) -> bool:
+    """A TIMESYNC answer (tc1 != 0), not one of the autopilot's own requests (tc1 = 0)."""
+    return m.get_type() == 'TIMESYNC' and m.tc1 != 0
+
+
+def own_requests(msgs: list) -> list:
+    return [m for m in msgs if m.get_type() == 'TIMESYNC' and m.tc1 == 0]
+
+
+def test_timesync_requests_of_its_own_at_10_hz_of_sim_time_with_the_boot_time(rig):
+    """As PX4: requests (tc1 = 0, ts1 = boot time ns) at timesync_request_hz, sim time."""
+    got = []
+    for _ in range(50):                               # 0.5 s of 10 ms polls
+        rig.poll(0.01)
+        got += own_requests(rig.drain())
+    assert [m.ts1 for m in got] == [10_000_000 + 100_000_000 * i for i in range(5)]
+    assert rig.ap.counters.timesync_requests_sent == 5
+
+
+def test_timesync_answers_to_its_requests_are_checked_and_counted(rig):
+    rig.poll(0.5)
+    (request,) = own_requests(rig.drain())
+    ros_ns = 1_700_000_000_000_000_000                # the companion's clock
+    rig.client.mav.timesync_send(ros_ns, request.ts1)            # a good answer
+    rig.client.mav.timesync_send(ros_ns, request.ts1 + 1)        # echoes no request of ours
+    rig.client.mav.timesync_send(ros_ns, request.ts1)            # the same one again
+    deadline = time.monotonic() + ACK_WAIT_S
+    c = rig.ap.counters
+    while c.timesync_answers_received + c.timesync_answers_foreign < 3 \
+            and time.monotonic() < deadline:
+        rig.ap.poll(rig.state())                      # time frozen: no new request
+        time.sleep(0.001)
+    assert (c.timesync_answers_received, c.timesync_answers_foreign) == (1, 2)
+    assert c.timesync_answered == 0                   # none of them was a request
+
+
+def test_timesync_requests_off_at_zero_hz_and_a_negative_rate_refused():
+    r = make_rig(timesync_request_hz=0.0)
+    try:
+        for _ in range(30):
+            r.poll(0.01)
+        assert own_requests(r.drain()) == [] and r.ap.counters.timesync_requests_sent == 0
+    finally:
+        r.close()
+    with pytest.raises(ValueError, match='timesync_request_hz'):
+        make_rig(timesync_request_hz=-1.0)
+
+
 def test_timesync_request_answered_with_the_boot_time_in_ns(rig):
     rig.poll(1.234)                                   # sim time = boot time: 1.234 s
     ts1 = 1_700_000_000_123_456_789                   # the companion's clock, echoed
-    reply, _ = rig.exchange(lambda: rig.client.mav.timesync_send(0, ts1), 'TIMESYNC')
+    reply, _ = rig.exchange(lambda: rig.client.mav.timesync_send(0, ts1), 'TIMESYNC', is_answer)
     assert reply is not None
     assert reply.tc1 == 1_234_000_000 and reply.ts1 == ts1
     assert (reply.get_srcSystem(), reply.get_srcComponent()) == (1, 1)
@@ -585,15 +633,16 @@ def test_timesync_request_answered_with_the_boot_time_in_ns(rig):
 def test_timesync_not_answered_at_time_zero_and_answers_ignored(rig):
     assert rig.t == 0.0
     reply, _ = rig.exchange(lambda: rig.client.mav.timesync_send(0, 5_000_000), 'TIMESYNC',
-                            wait_s=0.3)
+                            is_answer, wait_s=0.3)
     assert reply is None                              # tc1 = 0 would read as a request
     assert rig.ap.counters.timesync_unanswered == 1
     rig.poll(0.02)
     reply, _ = rig.exchange(lambda: rig.client.mav.timesync_send(7, 5_000_000), 'TIMESYNC',
-                            wait_s=0.3)
+                            is_answer, wait_s=0.3)
     assert reply is None                              # an answer to nobody: ignored
     assert rig.ap.counters.unknown_messages == 0
     assert rig.ap.counters.timesync_answered == 0
+    assert rig.ap.counters.timesync_answers_foreign == 1
 
 
 def test_timesync_answered_where_messages_are_read_with_that_polls_time(rig):
@@ -604,10 +653,10 @@ def test_timesync_answered_where_messages_are_read_with_that_polls_time(rig):
     time.sleep(0.05)
     for k in range(1, 20):                            # a frame's substeps, 1 ms each
         rig.ap.poll(rig.state(0.02 + k * 0.001), receive=False)
-    assert [m for m in rig.drain() if m.get_type() == 'TIMESYNC'] == []
+    assert [m for m in rig.drain() if is_answer(m)] == []
     rig.t = 0.04
     rig.ap.poll(rig.state())
-    replies = [m for m in rig.drain() if m.get_type() == 'TIMESYNC']
+    replies = [m for m in rig.drain() if is_answer(m)]
     assert [(m.tc1, m.ts1) for m in replies] == [(40_000_000, 123)]
 
 
@@ -621,21 +670,22 @@ def test_timesync_answered_before_the_first_frame_once_time_is_not_zero():
         replies = []
         while not replies and time.monotonic() < deadline:
             r.ap.poll(r.state(), telemetry=False)
-            replies = [m for m in r.drain() if m.get_type() == 'TIMESYNC']
+            replies = [m for m in r.drain() if is_answer(m)]
             time.sleep(0.001)
         assert [(m.tc1, m.ts1) for m in replies] == [(500_000_000, 99)]
     finally:
         r.close()
 
 
-def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list, object]:
+def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list, object, object]:
     """The sim's lockstep exchange with the real bridge core, without ROS or physics.
 
     As sim_core / sim_node do: the autopilot is served before frame 0 without telemetry; each
     frame's telemetry leaves before the frame is published; the frame's time becomes the
     bridge's ROS time (/clock); the controller answers each published frame with a force of
     its stamp; the next 20 ms are simulated once a setpoint with time_boot_ms >= the frame's ms
-    arrived. Returns the stamps of the IMU samples the bridge published, and the bridge.
+    arrived. Returns the stamps of the IMU samples the bridge published, the bridge and the
+    autopilot's counters.
     ``seed``: the bridge's configured hover thrust (the sim's true one is 0.5).
     """
     from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge
@@ -670,14 +720,14 @@ def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list,
                 stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]   # ... (old /clock)
                 ros_ns = t_ns                                    # ... then /clock
         assert t_ns == frames * 20_000_000, 'lockstep stalled'
-        return stamps, bridge
+        return stamps, bridge, ap.counters
     finally:
         bridge.close()
         ap.close()
 
 
 def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
-    stamps, bridge = lockstep_with_the_bridge()
+    stamps, bridge, ap_counters = lockstep_with_the_bridge()
     ts = bridge.time_sync
     assert ts.synced and ts.offset_ns == 0 and ts.skew == 0.0
     assert ts.rejected_outliers == 0 and ts.resets == 0
@@ -687,7 +737,15 @@ def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
     assert bridge.imu_dropped_unsynced == 2
     assert stamps == sorted(stamps)
     assert sorted(set(stamps)) == [k * 20_000_000 for k in range(2, 11)]
-    again, bridge2 = lockstep_with_the_bridge()
+    # the other way, as with PX4: the autopilot's own requests (10 Hz of sim time from
+    # t = 0.02 s: 0.02, 0.12) answered by the real bridge core, each answer checked; the
+    # first one reaches the bridge while its ROS time is still 0 (frame 1's /clock comes
+    # after its telemetry) and is not answered (tc1 = 0 would read as a request)
+    assert ap_counters.timesync_requests_sent == 2
+    assert ap_counters.timesync_answers_received == 1
+    assert ap_counters.timesync_answers_foreign == 0
+    assert bridge.status().counters['timesync_answered'] == 1
+    again, bridge2, _ = lockstep_with_the_bridge()
     assert sorted(set(again)) == sorted(set(stamps))
     # the hover-thrust estimate learns from the sim's ATTITUDE_TARGET and HIGHRES_IMU, and the
     # value a setpoint uses is the same in two runs (samples >= 0.1 s older than its stamp)
@@ -701,7 +759,7 @@ def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
 def test_hover_thrust_learnt_in_lockstep_from_a_wrong_seed():
     # The bridge seeded at 0.45 learns the sim's true 0.5 (vehicle.yaml) from the sim
     # autopilot's ATTITUDE_TARGET thrust and HIGHRES_IMU specific force, as on PX4.
-    _, bridge = lockstep_with_the_bridge(frames=150, seed=0.45)
+    _, bridge, _ = lockstep_with_the_bridge(frames=150, seed=0.45)
     est = bridge.estimator
     print(f'\nsim autopilot, 3 s in lockstep: hover thrust estimate {est.theta:.4f} (std '
           f'{est.std:.4f}, {est.accepted} samples) from the seed 0.45; true 0.5')

@@ -493,13 +493,22 @@ class SimNode(Node):
             self.clock_pub.publish(ClockMsg(clock=stamp_from_ns(t_ns)))
 
     def _publish_stats(self) -> None:
-        """sim/stats: frames published, dropped, answered and the image -> setpoint latency."""
+        """sim/stats: frames published, dropped, answered, the image -> setpoint latency.
+
+        Also the autopilot's own TIMESYNC requests and the bridge's answers to them (checked:
+        ts1 one of the requests), as PX4 asks.
+        """
+        counters = self.autopilot.counters
         values = {'pacing': self.sim.config.pacing.value,
                   'real_time_factor': self.sim.config.real_time_factor,
                   'sim_time_s': self.sim.t, 'frames_dropped': self.sim.frames_dropped,
                   'stalls': self.sim.stalls, 'lockstep_timeouts': self.sim.lockstep_timeouts,
                   'products_given_up': len(self.sim.products_given_up),
-                  'imu_hold_timeouts': self.imu_hold.timeouts, **self.latency.stats(),
+                  'imu_hold_timeouts': self.imu_hold.timeouts,
+                  'autopilot_timesync_requests': counters.timesync_requests_sent,
+                  'autopilot_timesync_answers': counters.timesync_answers_received,
+                  'autopilot_timesync_foreign': counters.timesync_answers_foreign,
+                  **self.latency.stats(),
                   **self._wall_budget()}
         status = DiagnosticStatus(
             level=DiagnosticStatus.WARN if self.sim.frames_dropped else DiagnosticStatus.OK,

@@ -23,9 +23,10 @@ One concern per module (details, and how it differs from real PX4, in docs/sim_a
   SET_MESSAGE_INTERVAL, REQUEST_MESSAGE), acknowledged with PX4's results (a refused mode
   switch or arming change is TEMPORARILY_REJECTED, as PX4's commander answers);
 - :mod:`~ibvs_sim.core.autopilot.params`: PARAM_REQUEST_READ / _LIST;
-- :mod:`~ibvs_sim.core.autopilot.timesync`: TIMESYNC answered as PX4 does: a request (tc1 = 0)
-  gets tc1 = the boot time in ns (= the sim time it is polled at, the clock of time_boot_ms),
-  ts1 echoed; not at time 0 (tc1 = 0 would read as a request);
+- :mod:`~ibvs_sim.core.autopilot.timesync`: TIMESYNC both ways as PX4 does: a request
+  (tc1 = 0) gets tc1 = the boot time in ns (= the sim time it is polled at, the clock of
+  time_boot_ms), ts1 echoed, not at time 0 (tc1 = 0 would read as a request); and requests of
+  its own at 10 Hz of sim time, whose answers are checked and counted;
 - :mod:`~ibvs_sim.core.autopilot.setpoints`: SET_ATTITUDE_TARGET validation and the offboard
   stream's timing;
 - :mod:`~ibvs_sim.core.autopilot.modes`: armed state, flight mode, offboard-loss failsafe,

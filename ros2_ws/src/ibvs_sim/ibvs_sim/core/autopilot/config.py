@@ -48,6 +48,7 @@ class AutopilotConfig:
     thrust_telemetry_hz: float = 50.0       # ATTITUDE_TARGET default (= the bridge's request)
     status_telemetry_hz: float = 5.0        # EXTENDED_SYS_STATE, SYS_STATUS (as PX4 SITL)
     telemetry_max_hz: float = 250.0
+    timesync_request_hz: float = 10.0       # own TIMESYNC requests, sim time (PX4: ~10 Hz)
     gyro_noise_std: float = 0.005           # rad/s, white, per axis
     accel_noise_std: float = 0.05           # m/s^2, white, per axis
     attitude_noise_std: float = math.radians(0.2)  # rad, stationary std per axis
@@ -144,6 +145,9 @@ class AutopilotCounters:
     param_unknown: int = 0
     timesync_answered: int = 0      # TIMESYNC requests answered
     timesync_unanswered: int = 0    # requests read at boot time 0 (not answered)
+    timesync_requests_sent: int = 0   # our own requests (TimesyncRequester)
+    timesync_answers_received: int = 0  # answers to them (ts1 one of ours, tc1 > 0)
+    timesync_answers_foreign: int = 0   # answers to no request of ours, or tc1 <= 0
     interval_clamped: int = 0       # SET_MESSAGE_INTERVAL faster than telemetry_max_hz
     failsafe_events: int = 0
     heartbeats_sent: int = 0

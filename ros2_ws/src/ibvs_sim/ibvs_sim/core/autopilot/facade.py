@@ -24,7 +24,7 @@ from ibvs_sim.core.autopilot.protocol import FlightMode, MAV_SEVERITY_CRITICAL
 from ibvs_sim.core.autopilot.references import AttitudeReferences
 from ibvs_sim.core.autopilot.setpoints import OffboardSetpoints
 from ibvs_sim.core.autopilot.telemetry import Telemetry
-from ibvs_sim.core.autopilot.timesync import TimesyncResponder
+from ibvs_sim.core.autopilot.timesync import TimesyncRequester, TimesyncResponder
 
 
 class Autopilot:
@@ -52,12 +52,14 @@ class Autopilot:
                                         self._telemetry)
         self._params = ParamServer(config, self.counters, self._link)
         self._timesync = TimesyncResponder(self.counters, self._link)
+        self._timesync_requests = TimesyncRequester(config.timesync_request_hz, self.counters,
+                                                    self._link)
         self._was_offboard = False              # OFFBOARD seen at a poll (awaits_setpoints)
         self._handlers = {'COMMAND_LONG': self._commands.on_command_long,
                           'SET_ATTITUDE_TARGET': self._on_set_attitude_target,
                           'PARAM_REQUEST_READ': self._params.on_request_read,
                           'PARAM_REQUEST_LIST': self._params.on_request_list,
-                          'TIMESYNC': self._timesync.on_timesync}
+                          'TIMESYNC': self._on_timesync}
         LOG.info('sim autopilot on %s (sys %d comp %d), %s, %s, signing %s', config.url,
                  config.system_id, config.component_id,
                  'armed' if self.armed else 'disarmed', self.mode.name,
@@ -117,8 +119,9 @@ class Autopilot:
 
         Reads every pending datagram and answers it (unless ``receive`` is False: the
         lockstep sim reads only between frames), checks the offboard stream (failsafe),
-        auto-disarms after a landing, sends due telemetry (sim-time rates; not with
-        ``telemetry`` False: the sim before its first frame) and the heartbeat (wall clock).
+        auto-disarms after a landing, sends due telemetry and TIMESYNC requests (sim-time
+        rates; not with ``telemetry`` False: the sim before its first frame) and the heartbeat
+        (wall clock).
         """
         self._was_offboard = self._was_offboard or self.mode is FlightMode.OFFBOARD
         self._references.ensure_hold_target(state)
@@ -130,6 +133,14 @@ class Autopilot:
         self._telemetry.send_heartbeat_if_due()
         if telemetry:
             self._telemetry.send_due(state)
+            self._timesync_requests.send_if_due(state)
+
+    def _on_timesync(self, msg, state: VehicleStateView) -> None:
+        """Answer a request (tc1 = 0); hand an answer to the check of our own requests."""
+        if int(msg.tc1) == 0:
+            self._timesync.on_timesync(msg, state)
+        else:
+            self._timesync_requests.on_answer(msg, state)
 
     def attitude_reference(self, state: VehicleStateView) -> AttitudeReference:
         """Return the inner-loop reference for the current mode (does not change the mode)."""
