@@ -6,12 +6,17 @@ the autopilot (TIMESYNC, ``clock_synced`` in its diagnostics, with the offset), 
 stamps on one clock (both cameras' and the IMU's latest stamps within
 ``STAMP_AGREEMENT_S`` of each other and of this node's ROS clock: a camera driver or an IMU
 mapping on another clock fails here), ibvs/mode present, window detected (4 corners on
-window/corners). ``GraphHealth`` can also be attached to another node
+window/corners), and the perception keeping up with the front camera (``KeepUp``: of the last
+``KEEP_UP_FRAMES`` front camera frames, at least ``KEEP_UP_MIN_ANSWERED`` answered on
+window/corners, median ``KEEP_UP_MAX_AGE_S`` at most after the image stamp, on the ROS clock:
+a computer that cannot keep up with 50 Hz, or a detector that is not running, fails here).
+``GraphHealth`` can also be attached to another node
 (``run_scenario`` does) so that the same checks gate a scripted run.
 """
 from __future__ import annotations
 
 import argparse
+import collections
 from dataclasses import dataclass
 import sys
 import time
@@ -31,6 +36,13 @@ from ibvs_common.core.stamps import NS_PER_S, s_to_ns, stamp_to_ns
 IMU_MIN_MESSAGES = 10
 IMU_MAX_AGE_S = 1.0
 STAMP_AGREEMENT_S = 0.1       # s, latest image and IMU stamps vs each other and the ROS clock
+KEEP_UP_FRAMES = 50           # front camera frames the keep-up check looks at (1 s at 50 Hz)
+KEEP_UP_MIN_FRAMES = 25       # fewer judged frames than this: not judged yet
+KEEP_UP_MIN_ANSWERED = 0.95   # fraction of them whose window/corners arrived
+KEEP_UP_MAX_AGE_S = 0.020     # s (ROS clock), median image stamp -> window/corners received:
+#                               one frame period, the detector keeps up with 50 Hz
+KEEP_UP_GRACE_S = 0.25        # s (ROS clock), frames younger than this are not judged yet (the
+#                               bridge's max_force_age_s: an answer later is no use either)
 BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -91,6 +103,52 @@ def stamps_agree(stamps: dict, now_ns: int, tolerance_s: float = STAMP_AGREEMENT
     return max(values) - min(values) <= tol, detail
 
 
+class KeepUp:
+    """Does a product answer its camera's frames, and how late? ROS-free; times in ns.
+
+    ``note_frame`` takes each frame's stamp (camera_info: a driver publishes it with every
+    image, same stamp), ``note_answer`` the stamp of each product and when it was received (the
+    ROS clock: system time onboard). Frames younger than ``grace_ns`` are not judged.
+    """
+
+    def __init__(self, frames: int = KEEP_UP_FRAMES, grace_s: float = KEEP_UP_GRACE_S) -> None:
+        self._frames: collections.deque = collections.deque(maxlen=frames)
+        self._answers: dict[int, int] = {}            # product stamp -> age at receipt (ns)
+        self._grace_ns = s_to_ns(grace_s)
+
+    def note_frame(self, stamp_ns: int) -> None:
+        """Take one frame's stamp (repeats of the newest one are ignored)."""
+        if not self._frames or stamp_ns > self._frames[-1]:
+            self._frames.append(stamp_ns)
+        elif stamp_ns < self._frames[-1]:             # the clock went back: start again
+            self._frames.clear()
+            self._answers.clear()
+            self._frames.append(stamp_ns)
+        oldest = self._frames[0]
+        for stamp in [t for t in self._answers if t < oldest]:
+            del self._answers[stamp]
+
+    def note_answer(self, stamp_ns: int, received_ns: int) -> None:
+        """Take one product of the frame stamped ``stamp_ns``, received at ``received_ns``."""
+        self._answers.setdefault(stamp_ns, received_ns - stamp_ns)
+
+    def check(self, now_ns: int, min_frames: int = KEEP_UP_MIN_FRAMES,
+              min_answered: float = KEEP_UP_MIN_ANSWERED,
+              max_age_s: float = KEEP_UP_MAX_AGE_S) -> tuple[bool, str]:
+        """Return (ok, detail) over the frames at least ``grace_s`` old."""
+        judged = [t for t in self._frames if t <= now_ns - self._grace_ns]
+        if len(judged) < min_frames:
+            return False, f'{len(judged)} frames to judge yet (needs {min_frames})'
+        ages = sorted(self._answers[t] for t in judged if t in self._answers)
+        answered = len(ages) / len(judged)
+        detail = f'{len(ages)} / {len(judged)} frames answered'
+        if not ages:
+            return False, detail
+        median_s = ages[len(ages) // 2] / NS_PER_S
+        detail += f', median {median_s * 1e3:.1f} ms after the image stamp'
+        return answered >= min_answered and median_s <= max_age_s, detail
+
+
 def link_up(msg: DiagnosticArray) -> bool | None:
     """Return the MAVLink link state reported in a DiagnosticArray (None if not reported)."""
     states = [s.level == DiagnosticStatus.OK for s in msg.status if 'mavlink' in s.name.lower()]
@@ -113,6 +171,7 @@ class GraphHealth:
         self.armed: bool | None = None
         self.mode: int | None = None
         self.window_corners = 0
+        self.front_keep_up = KeepUp()
         # read by the checklist only (stop_preflight_only drops them once it has passed)
         self._preflight_only = [
             node.create_subscription(CameraInfo, f'{cam}_camera/camera_info',
@@ -143,6 +202,8 @@ class GraphHealth:
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
         self.stamps[f'{cam} camera'] = stamp_to_ns(msg.header.stamp)
+        if cam == 'front':
+            self.front_keep_up.note_frame(stamp_to_ns(msg.header.stamp))
 
     def _on_imu(self, msg: Imu) -> None:
         self.imu_count += 1
@@ -165,6 +226,8 @@ class GraphHealth:
 
     def _on_window(self, msg: PolygonStamped) -> None:
         self.window_corners = len(msg.polygon.points)
+        self.front_keep_up.note_answer(stamp_to_ns(msg.header.stamp),
+                                       self.node.get_clock().now().nanoseconds)
 
     def checklist(self) -> list[Check]:
         """Return the current checklist."""
@@ -187,6 +250,9 @@ class GraphHealth:
                             'not received' if self.mode is None else f'mode {self.mode}'))
         checks.append(Check('window detected', self.window_corners == 4,
                             f'{self.window_corners} corners'))
+        keeps_up, detail = self.front_keep_up.check(self.node.get_clock().now().nanoseconds)
+        checks.append(Check('perception keeps up (window/corners per front frame)', keeps_up,
+                            detail))
         return checks
 
     def healthy(self) -> bool:
