@@ -8,8 +8,9 @@ stamps on one clock (both cameras' and the IMU's latest stamps within
 mapping on another clock fails here), ibvs/mode present, window detected (4 corners on
 window/corners), and the perception keeping up with the front camera (``KeepUp``: of the last
 ``KEEP_UP_FRAMES`` front camera frames, at least ``KEEP_UP_MIN_ANSWERED`` answered on
-window/corners, median ``KEEP_UP_MAX_AGE_S`` at most after the image stamp, on the ROS clock:
-a computer that cannot keep up with 50 Hz, or a detector that is not running, fails here).
+window/corners, median ``KEEP_UP_MAX_DELAY_S`` at most after the frame arrived, on the ROS
+clock: a computer that cannot keep up with 50 Hz, or a detector that is not running, fails
+here).
 ``GraphHealth`` can also be attached to another node
 (``run_scenario`` does) so that the same checks gate a scripted run.
 """
@@ -39,10 +40,10 @@ STAMP_AGREEMENT_S = 0.1       # s, latest image and IMU stamps vs each other and
 KEEP_UP_FRAMES = 50           # front camera frames the keep-up check looks at (1 s at 50 Hz)
 KEEP_UP_MIN_FRAMES = 25       # fewer judged frames than this: not judged yet
 KEEP_UP_MIN_ANSWERED = 0.95   # fraction of them whose window/corners arrived
-KEEP_UP_MAX_AGE_S = 0.020     # s (ROS clock), median image stamp -> window/corners received:
+KEEP_UP_MAX_DELAY_S = 0.020   # s (ROS clock), median frame arrival -> window/corners arrival:
 #                               one frame period, the detector keeps up with 50 Hz
-KEEP_UP_GRACE_S = 0.25        # s (ROS clock), frames younger than this are not judged yet (the
-#                               bridge's max_force_age_s: an answer later is no use either)
+KEEP_UP_GRACE_S = 0.25        # s (ROS clock), frames that arrived less than this ago are not
+#                               judged yet (the bridge's max_force_age_s: later is no use)
 BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -104,49 +105,51 @@ def stamps_agree(stamps: dict, now_ns: int, tolerance_s: float = STAMP_AGREEMENT
 
 
 class KeepUp:
-    """Does a product answer its camera's frames, and how late? ROS-free; times in ns.
+    """Does a product answer its camera's frames, and how long after they arrived? ROS-free.
 
-    ``note_frame`` takes each frame's stamp (camera_info: a driver publishes it with every
-    image, same stamp), ``note_answer`` the stamp of each product and when it was received (the
-    ROS clock: system time onboard). Frames younger than ``grace_ns`` are not judged.
+    ``note_frame`` takes each frame's stamp and when it arrived (camera_info: a driver
+    publishes it with every image, same stamp), ``note_answer`` the stamp of each product and
+    when it arrived; times in ns on one clock (the ROS clock: system time onboard). The delay is
+    counted from the frame's arrival, not from its stamp: a camera's own latency (exposure,
+    transfer, a simulator's rendering) is not the graph's, and the stamps' clock is checked
+    apart (``stamps_agree``). Frames younger than ``grace_s`` are not judged.
     """
 
     def __init__(self, frames: int = KEEP_UP_FRAMES, grace_s: float = KEEP_UP_GRACE_S) -> None:
-        self._frames: collections.deque = collections.deque(maxlen=frames)
-        self._answers: dict[int, int] = {}            # product stamp -> age at receipt (ns)
+        self._frames: collections.deque = collections.deque(maxlen=frames)   # (stamp, arrival)
+        self._answers: dict[int, int] = {}            # product stamp -> its arrival (ns)
         self._grace_ns = s_to_ns(grace_s)
 
-    def note_frame(self, stamp_ns: int) -> None:
-        """Take one frame's stamp (repeats of the newest one are ignored)."""
-        if not self._frames or stamp_ns > self._frames[-1]:
-            self._frames.append(stamp_ns)
-        elif stamp_ns < self._frames[-1]:             # the clock went back: start again
+    def note_frame(self, stamp_ns: int, received_ns: int) -> None:
+        """Take one frame (repeats of the newest stamp are ignored)."""
+        if not self._frames or stamp_ns > self._frames[-1][0]:
+            self._frames.append((stamp_ns, received_ns))
+        elif stamp_ns < self._frames[-1][0]:          # the clock went back: start again
             self._frames.clear()
             self._answers.clear()
-            self._frames.append(stamp_ns)
-        oldest = self._frames[0]
+            self._frames.append((stamp_ns, received_ns))
+        oldest = self._frames[0][0]
         for stamp in [t for t in self._answers if t < oldest]:
             del self._answers[stamp]
 
     def note_answer(self, stamp_ns: int, received_ns: int) -> None:
-        """Take one product of the frame stamped ``stamp_ns``, received at ``received_ns``."""
-        self._answers.setdefault(stamp_ns, received_ns - stamp_ns)
+        """Take one product of the frame stamped ``stamp_ns``, arrived at ``received_ns``."""
+        self._answers.setdefault(stamp_ns, received_ns)
 
     def check(self, now_ns: int, min_frames: int = KEEP_UP_MIN_FRAMES,
               min_answered: float = KEEP_UP_MIN_ANSWERED,
-              max_age_s: float = KEEP_UP_MAX_AGE_S) -> tuple[bool, str]:
-        """Return (ok, detail) over the frames at least ``grace_s`` old."""
-        judged = [t for t in self._frames if t <= now_ns - self._grace_ns]
+              max_delay_s: float = KEEP_UP_MAX_DELAY_S) -> tuple[bool, str]:
+        """Return (ok, detail) over the frames that arrived at least ``grace_s`` ago."""
+        judged = [(t, rx) for t, rx in self._frames if rx <= now_ns - self._grace_ns]
         if len(judged) < min_frames:
             return False, f'{len(judged)} frames to judge yet (needs {min_frames})'
-        ages = sorted(self._answers[t] for t in judged if t in self._answers)
-        answered = len(ages) / len(judged)
-        detail = f'{len(ages)} / {len(judged)} frames answered'
-        if not ages:
+        delays = sorted(self._answers[t] - rx for t, rx in judged if t in self._answers)
+        detail = f'{len(delays)} / {len(judged)} frames answered'
+        if not delays:
             return False, detail
-        median_s = ages[len(ages) // 2] / NS_PER_S
-        detail += f', median {median_s * 1e3:.1f} ms after the image stamp'
-        return answered >= min_answered and median_s <= max_age_s, detail
+        median_s = delays[len(delays) // 2] / NS_PER_S
+        detail += f', median {median_s * 1e3:.1f} ms after the frame arrived'
+        return len(delays) / len(judged) >= min_answered and median_s <= max_delay_s, detail
 
 
 def link_up(msg: DiagnosticArray) -> bool | None:
@@ -203,7 +206,8 @@ class GraphHealth:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
         self.stamps[f'{cam} camera'] = stamp_to_ns(msg.header.stamp)
         if cam == 'front':
-            self.front_keep_up.note_frame(stamp_to_ns(msg.header.stamp))
+            self.front_keep_up.note_frame(stamp_to_ns(msg.header.stamp),
+                                          self.node.get_clock().now().nanoseconds)
 
     def _on_imu(self, msg: Imu) -> None:
         self.imu_count += 1
