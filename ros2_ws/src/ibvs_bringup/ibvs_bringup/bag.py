@@ -10,7 +10,7 @@ from __future__ import annotations
 import contextlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Any, Iterable, Iterator
 
 from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness, QosReliability,
                                 QosTime)
@@ -146,12 +146,12 @@ def read_messages(path: str | Path, topics: Iterable[str] | None = None
             yield conn.topic, conn.msgtype, t_ns, bytes(data)
 
 
-def deserialize(data: bytes, msgtype: str):
+def deserialize(data: bytes, msgtype: str) -> Any:
     """Return the rosbags message object of CDR ``data``."""
     return TYPESTORE.deserialize_cdr(data, msgtype)
 
 
-def serialize(msg, msgtype: str) -> bytes:
+def serialize(msg: object, msgtype: str) -> bytes:
     """Return the CDR bytes of a rosbags message object."""
     return bytes(TYPESTORE.serialize_cdr(msg, msgtype))
 

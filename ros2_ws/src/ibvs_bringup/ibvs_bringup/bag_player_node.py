@@ -119,7 +119,7 @@ def _qos(topic: str) -> QoSProfile:
     return QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Play the bag once, then keep the node alive until Ctrl-C / SIGTERM."""
     # the images' shared-memory segment is the player's: lossless under a plain `ros2 run` too
     use_dds_profile_here()

@@ -50,9 +50,12 @@ import multiprocessing
 import os
 import sys
 import time
-from typing import Callable, Iterable
+from typing import Callable, Iterable, TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ibvs_sim.core.dynamics import WindConfig
 
 DEFAULT_LEVELS_MPS2 = (0.0, 0.2, 0.5, 0.8)
 DEFAULT_RESULTS_ROOT = os.path.join('results', 'campaign')
@@ -300,7 +303,7 @@ def aggregate(summaries: Iterable[dict]) -> list[dict]:
 
 def format_table(rows: list[dict]) -> str:
     """Format the aggregate rows as a Markdown table (lengths in cm, speeds in m/s)."""
-    def f(x, scale=1.0, digits=2):
+    def f(x: float | None, scale: float = 1.0, digits: int = 2) -> str:
         return '-' if x is None else f'{x * scale:.{digits}f}'
     lines = ['| law | wind (m/s²) | success | rate [95 % CI] | clearance min / median (cm) '
              '| crossing speed median [min] (m/s) | landing error median / p95 (cm) '
@@ -365,7 +368,7 @@ def load_setup(params_file: str | None, overrides: tuple) -> _Setup:
     return _Setup(world, pad, vehicle, ctrl, sup)
 
 
-def run_wind(cfg: CampaignConfig, spec: RunSpec, mass_kg: float):
+def run_wind(cfg: CampaignConfig, spec: RunSpec, mass_kg: float) -> WindConfig:
     """Return the run's ``dynamics.WindConfig`` (N, {I})."""
     from ibvs_sim.core.dynamics import WindConfig
     return WindConfig.from_level(spec.level_mps2, spec.direction_rad, mass_kg,
@@ -420,7 +423,7 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     return summary
 
 
-def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind) -> dict:
+def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind: WindConfig) -> dict:
     """params.yaml of an image-level run: the law's overrides and the wind's gusts and seed.
 
     The steady force goes on run_scenario's ``--wind`` ({I}, N; recorded in its summary);

@@ -30,8 +30,13 @@ import dataclasses
 import inspect
 import json
 import sys
+from typing import TYPE_CHECKING
 
 from ibvs_bringup import graph
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
+    from rclpy.node import Node
 
 #: a split of the onboard graph into three containers: one per camera, one for control
 GROUPS = {'front': ('window_detector', 'front_optical_flow'),
@@ -51,13 +56,13 @@ NODE_CLASSES = {
 }
 
 
-def node_class(package: str, executable: str):
+def node_class(package: str, executable: str) -> type[Node]:
     """Import the node class of ``package``/``executable``."""
     module, name = NODE_CLASSES[(package, executable)].split(':')
     return getattr(__import__(module, fromlist=[name]), name)
 
 
-def build_nodes(specs: list, context, intra_process: bool = True) -> list:
+def build_nodes(specs: list, context: Context, intra_process: bool = True) -> list:
     """Instantiate every spec's node class with its name and per-run overrides.
 
     When the MAVLink bridge is among them, its imu/data goes to the others in process

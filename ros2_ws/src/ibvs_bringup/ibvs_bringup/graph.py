@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import os
 import sys
-from typing import Sequence
+from typing import Any, Sequence
 
 from ibvs_common.core import frames
 import numpy as np
@@ -112,7 +112,7 @@ class GraphOptions:
     sim_overrides: tuple = ()                       # more (name, value) for the sim (faults)
 
 
-def format_param_value(value) -> str:
+def format_param_value(value: Any) -> str:
     """Format a parameter override for ``-p name:=value`` (YAML, floats kept as doubles)."""
     if isinstance(value, bool):
         return 'true' if value else 'false'

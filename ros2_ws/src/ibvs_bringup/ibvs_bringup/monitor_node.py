@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections import deque
 import json
 import time
+from typing import TYPE_CHECKING
 
 from geometry_msgs.msg import Vector3Stamped
 from ibvs_bringup.preflight import BEST_EFFORT, GraphHealth, LATCHED
@@ -26,6 +27,9 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
 from std_msgs.msg import String
 
+if TYPE_CHECKING:
+    from rclpy.executors import Executor
+
 FLOW_TOPICS = {'flow_front': 'front_camera/translational_flow',
                'flow_down': 'down_camera/translational_flow'}
 # the MAVLink bridge's /diagnostics values kept once per message (1 Hz) for summary.json
@@ -35,7 +39,7 @@ BRIDGE_KEYS = ('engage_state', 'setpoint_source', 'hover_thrust', 'hover_estimat
 BRIDGE_HISTORY_LEN = 120
 
 
-def stamp_s(msg) -> float:
+def stamp_s(msg: Odometry | Vector3Stamped | JointState) -> float:
     """Return a header stamp in seconds."""
     return msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
 
@@ -169,7 +173,7 @@ class ScenarioMonitor(Node):
 DRAIN_SPINS = 20      # spins without waiting: what arrived while the graph was being stopped
 
 
-def close_monitor(monitor: ScenarioMonitor | None, executor=None
+def close_monitor(monitor: ScenarioMonitor | None, executor: Executor | None = None
                   ) -> tuple[RunLog, dict, list]:
     """Take what arrived while the graph stopped, destroy the monitor; return its products.
 

@@ -8,12 +8,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 import os
+from typing import TYPE_CHECKING
 
 import matplotlib
 
 matplotlib.use('Agg')
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+
+if TYPE_CHECKING:
+    import numpy.typing as npt
 
 MODE_COLOURS = {0: '#dddddd', 1: '#cfe2f3', 2: '#fce5cd', 3: '#d9ead3', 4: '#ead1dc',
                 5: '#f4cccc'}
@@ -28,7 +32,7 @@ class TimeSeries:
     v: np.ndarray
 
     @staticmethod
-    def of(t, v) -> 'TimeSeries':
+    def of(t: npt.ArrayLike, v: npt.ArrayLike) -> 'TimeSeries':
         """Build from sequences; an empty sequence gives shape (0, k) or (0, 1)."""
         t = np.asarray(t, dtype=float).reshape(-1)
         v = np.asarray(v, dtype=float)

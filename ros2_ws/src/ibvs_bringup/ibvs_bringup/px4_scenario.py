@@ -27,6 +27,7 @@ import math
 import os
 import sys
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +37,9 @@ from ibvs_bringup.px4_sih import (free_instance, Pilot, px4_boot_parameters, Px4
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.px4_plant import find_px4_sitl, NedToI, sih_parameters
 from ibvs_sim.core.world import load_world
+
+if TYPE_CHECKING:
+    from ibvs_bringup.run_scenario import RunOptions
 
 TAKEOFF_TIMEOUT_S = 60.0      # s (steady), PX4's take-off until it holds (AUTO.LOITER)
 TAKEOFF_REACHED = 0.8          # PX4's altitude estimate at this fraction of MIS_TAKEOFF_ALT
@@ -76,7 +80,7 @@ def _error_summary(opts, world, xi0, error: str) -> dict:
     return summary
 
 
-def run_px4_sih(opts) -> int:
+def run_px4_sih(opts: RunOptions) -> int:
     """Fly the whole graph against PX4 SIH once; write results/<run>/ (exit code as run_graph)."""
     from ibvs_bringup.run_scenario import _finish, _run_block, missing_executables
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()

@@ -25,8 +25,12 @@ import socket
 import subprocess
 import tempfile
 import time
+from typing import Callable, TYPE_CHECKING
 
 from ibvs_sim.core.px4_plant import EARTH_RADIUS_M, find_px4_sitl, SIH_DEFAULT_HOME
+
+if TYPE_CHECKING:
+    import numpy as np
 
 START_TIMEOUT_S = 90.0          # s (steady), px4-sih start (it waits for "Ready for takeoff")
 STOP_TIMEOUT_S = 30.0           # s (steady), px4-sih stop
@@ -218,7 +222,8 @@ class Pilot:
                 and self.sub_mode == PX4_SUB_LOITER and self.relative_alt_m is not None
                 and self.relative_alt_m >= min_alt_m)
 
-    def take_off(self, timeout_s: float, min_alt_m: float, spin=None) -> str | None:
+    def take_off(self, timeout_s: float, min_alt_m: float,
+                 spin: Callable[[float], None] | None = None) -> str | None:
         """Command PX4's take-off and arm, retrying each second; wait for AUTO.LOITER.
 
         Holding counts once PX4's own altitude estimate is ``min_alt_m`` above home (an
@@ -247,7 +252,7 @@ class Pilot:
                 f'altitude {self.relative_alt_m} m, acks '
                 f'{self.acks}, last texts {self.statustext[-3:]}')
 
-    def reposition_by(self, d_ned, d_yaw_rad: float = 0.0) -> bool:
+    def reposition_by(self, d_ned: np.ndarray, d_yaw_rad: float = 0.0) -> bool:
         """Move PX4's hold point by ``d_ned`` (m, NED) and its heading by ``d_yaw_rad``.
 
         MAV_CMD_DO_REPOSITION (COMMAND_INT, global frame, AMSL altitude) to PX4's own

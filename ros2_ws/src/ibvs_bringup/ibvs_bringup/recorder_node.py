@@ -40,7 +40,7 @@ class RecorderConfig:
     topics: tuple
 
 
-def msg_class(msgtype: str):
+def msg_class(msgtype: str) -> type:
     """Return the rclpy message class of 'pkg/msg/Name'."""
     pkg, _, name = msgtype.split('/')
     return getattr(importlib.import_module(f'{pkg}.msg'), name)
@@ -117,7 +117,7 @@ class RecorderNode(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the recorder until Ctrl-C / SIGTERM; the bag is closed either way."""
     rclpy.init(args=args)
     node = None

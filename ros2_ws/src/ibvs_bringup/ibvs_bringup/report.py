@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 import json
 import os
+from typing import Any
 
 from ibvs_bringup.plots import RunData, TimeSeries
 from ibvs_common.core import features
@@ -35,7 +36,8 @@ class RunLog:
     events: list = field(default_factory=list)         # sim/events dicts
     vectors: dict = field(default_factory=dict)        # name -> ([t], [v])
 
-    def add_truth(self, t: float, xi, v, euler, omega) -> None:
+    def add_truth(self, t: float, xi: np.ndarray, v: np.ndarray, euler: np.ndarray,
+                  omega: np.ndarray) -> None:
         """Append one ground-truth sample."""
         self.t.append(float(t))
         self.xi.append(np.asarray(xi, dtype=float))
@@ -50,7 +52,7 @@ class RunLog:
         self.modes.append((int(mode), float(t)))
         return True
 
-    def add_vector(self, name: str, t: float, value) -> None:
+    def add_vector(self, name: str, t: float, value: np.ndarray) -> None:
         """Append one sample of a named vector series (force, flow_down, q_t, ...)."""
         ts, vs = self.vectors.setdefault(name, ([], []))
         ts.append(float(t))
@@ -172,7 +174,7 @@ def summarize(log: RunLog, world: WorldConfig, envelope_radius: float,
 
 def write_json(path: str, data: dict) -> None:
     """Write ``data`` as indented JSON (NaN-free: NaN becomes null)."""
-    def clean(x):
+    def clean(x: Any) -> Any:
         if isinstance(x, float) and not np.isfinite(x):
             return None
         if isinstance(x, dict):

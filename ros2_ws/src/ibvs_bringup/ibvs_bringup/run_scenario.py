@@ -22,13 +22,19 @@ import shutil
 import socket
 import sys
 import time
+from typing import Iterable, TYPE_CHECKING
 
 from ibvs_bringup import graph, plots, report
 from ibvs_bringup.runner import (COMPOSED_NAME, DEFAULT_LAYOUT, LAYOUTS, ProcessRunner,
                                  raise_on_sigterm, Terminated)
-from ibvs_common.core.config import load_pad_layout, load_vehicle
-from ibvs_sim.core.world import load_world
+from ibvs_common.core.config import load_pad_layout, load_vehicle, PadLayout
+from ibvs_sim.core.world import load_world, WorldConfig
 import numpy as np
+
+if TYPE_CHECKING:
+    from ibvs_bringup.monitor_node import ScenarioMonitor
+    from ibvs_sim.core.feature_sim import FeatureSimLog
+    from rclpy.executors import Executor
 
 MAX_SIM_TIME_S = 60.0
 SHUTDOWN_GRACE_S = 3.0        # sim s after touchdown in mode 4 to wait for the disarm
@@ -76,7 +82,7 @@ class RunOptions:
         return os.path.join(self.results_root, self.run_name)
 
 
-def random_initial_position(seed: int, world=None) -> tuple:
+def random_initial_position(seed: int, world: WorldConfig | None = None) -> tuple:
     """Draw an initial position uniformly from world.yaml's random box (SPEC.md section 2)."""
     box = (world or load_world()).random_box
     rng = np.random.default_rng(seed)
@@ -182,7 +188,8 @@ def run_feature_level(opts: RunOptions) -> int:
     return _finish(opts, summary, feature_run_data(flog, world, pad))
 
 
-def feature_run_data(flog, world, pad) -> plots.RunData:
+def feature_run_data(flog: FeatureSimLog, world: WorldConfig, pad: PadLayout
+                     ) -> plots.RunData:
     """Convert ibvs_sim's FeatureSimLog into the plots' RunData."""
     log = report.RunLog()
     t, xi, v = flog.truth.arrays()
@@ -217,7 +224,7 @@ def supervisor_transitions(log_path: str) -> list[str]:
         return []
 
 
-def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
+def graph_specs(opts: RunOptions, port: int, initial_position: tuple) -> list:
     """Return the node specs of a run: the sim graph plus the recorder."""
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
                                mavlink_port=port, initial_position=initial_position,
@@ -241,7 +248,7 @@ def graph_specs(opts: RunOptions, port: int, initial_position) -> list:
     return specs
 
 
-def missing_executables(specs) -> list[str]:
+def missing_executables(specs: Iterable[graph.NodeSpec]) -> list[str]:
     """Return why nodes of ``specs`` cannot start here (empty: all present)."""
     from ibvs_bringup.ros2run import unavailable_reason
     return [r for r in (unavailable_reason(s.package, s.executable) for s in specs) if r]
@@ -258,8 +265,8 @@ START_WAIT_S = 20.0    # s of wall clock after START_AT_SIM_S for the supervisor
 START_AT_SIM_S = 1.0
 
 
-def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner_specs: list,
-        restarts: list, executor) -> str:
+def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wall0: float,
+        runner_specs: list, restarts: list, executor: Executor) -> str:
     """Preflight, start, watch; return the stop reason (raise _Stop on a run error).
 
     As on a vehicle, a perception node that dies is restarted (runner.supervise) and the run
@@ -329,7 +336,7 @@ def fly(opts: RunOptions, monitor, runner: ProcessRunner, t_wall0: float, runner
             return f'{opts.max_sim_time_s:g} s of sim time'
 
 
-def flight_timing(monitor, wall_end: float) -> dict:
+def flight_timing(monitor: ScenarioMonitor | None, wall_end: float) -> dict:
     """Return the run's real-time factor: sim time over wall time since frame 0 (summary.json).
 
     ``wall_s``: steady clock from the first ground truth (frame 0, sim t = 0) reaching the

@@ -33,7 +33,8 @@ import sys
 import tempfile
 import threading
 import time
-from typing import Iterable
+from types import FrameType
+from typing import Iterable, NoReturn
 
 from ibvs_bringup import graph, parent_death
 from ibvs_bringup.ros2run import command_for
@@ -257,7 +258,7 @@ class Terminated(Exception):
 
 def raise_on_sigterm() -> None:
     """Turn SIGTERM into a ``Terminated`` exception in the main thread."""
-    def handler(signum, frame):
+    def handler(signum: int, frame: FrameType | None) -> NoReturn:
         raise Terminated()
     signal.signal(signal.SIGTERM, handler)
 

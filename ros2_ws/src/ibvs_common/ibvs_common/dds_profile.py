@@ -10,6 +10,7 @@ to their processes' environment (:func:`dds_env_overrides`); an image publisher 
 from __future__ import annotations
 
 import os
+from typing import Mapping
 
 from ibvs_common.core.config import CONFIG_PACKAGE
 
@@ -18,7 +19,7 @@ FASTDDS_PROFILE_ENV = 'FASTRTPS_DEFAULT_PROFILES_FILE'    # read by Fast DDS 2.x
 RMW_ENV, FASTDDS_RMW = 'RMW_IMPLEMENTATION', 'rmw_fastrtps_cpp'
 
 
-def dds_env_overrides(environ=None) -> dict:
+def dds_env_overrides(environ: Mapping[str, str] | None = None) -> dict:
     """Return the environment to add for the graph's processes: the project's Fast DDS profile.
 
     Nothing is added when a profile is already set or another RMW is chosen (``environ``:

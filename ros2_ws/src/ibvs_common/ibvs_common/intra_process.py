@@ -27,9 +27,13 @@ does not exist before its node spins.
 from __future__ import annotations
 
 import collections
-from typing import Any, Callable
+from typing import Any, Callable, TYPE_CHECKING
 
 from rclpy.node import Node
+
+if TYPE_CHECKING:
+    from rclpy.qos import QoSProfile
+    from rclpy.subscription import Subscription
 
 #: messages queued for an executor that falls behind (100 ms of a 100 Hz IMU)
 DEFAULT_DEPTH = 10
@@ -87,8 +91,8 @@ class IntraProcessTopic:
                 callback(msg)
 
 
-def subscribe(node: Node, msg_type, topic: str, callback: Callable[[Any], None], qos,
-              local: IntraProcessTopic | None = None):
+def subscribe(node: Node, msg_type: type, topic: str, callback: Callable[[Any], None],
+              qos: QoSProfile, local: IntraProcessTopic | None = None) -> Subscription | None:
     """Subscribe ``callback`` to ``topic``: from ``local`` when given, else through DDS.
 
     Returns the rclpy subscription, or None for an in-process one.

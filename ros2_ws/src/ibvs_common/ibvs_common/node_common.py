@@ -6,15 +6,20 @@ Only conversions of message fields (frames.py does the frame conversions, no mat
 from __future__ import annotations
 
 import math
+from typing import Iterable, TYPE_CHECKING
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Imu, JointState
 
 from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
+
+if TYPE_CHECKING:
+    from builtin_interfaces.msg import Time
+    from geometry_msgs.msg import PolygonStamped, Quaternion, Vector3
 
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
 
@@ -48,12 +53,12 @@ FRAME_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
 PRODUCT_QOS = IMAGE_QOS          # the same profile: best effort, keep last 2
 
 
-def ns_to_stamp(ns: int, stamp) -> None:
+def ns_to_stamp(ns: int, stamp: Time) -> None:
     """Write integer nanoseconds into a builtin_interfaces/Time (in place)."""
     stamp.sec, stamp.nanosec = divmod(int(ns), NS_PER_S)
 
 
-def imu_attitude(msg) -> tuple[int, tuple, np.ndarray]:
+def imu_attitude(msg: Imu) -> tuple[int, tuple, np.ndarray]:
     """sensor_msgs/Imu -> (stamp ns, q_map_base (w, x, y, z), Omega_B FRD in rad/s), checked.
 
     For :meth:`AttitudeBuffer.add_map_base`, which turns the quaternion into R_IB only when a
@@ -110,27 +115,27 @@ class DeadlineTimer:
         self._callback()
 
 
-def polygon_points(msg) -> np.ndarray:
+def polygon_points(msg: PolygonStamped) -> np.ndarray:
     """geometry_msgs/PolygonStamped -> (N, 3) array."""
     return np.array([[p.x, p.y, p.z] for p in msg.polygon.points], dtype=float).reshape(-1, 3)
 
 
-def vector3(v) -> np.ndarray:
+def vector3(v: Vector3) -> np.ndarray:
     """geometry_msgs/Vector3 -> (3,) array."""
     return np.array([v.x, v.y, v.z], dtype=float)
 
 
-def quat_wxyz(q) -> np.ndarray:
+def quat_wxyz(q: Quaternion) -> np.ndarray:
     """geometry_msgs/Quaternion (x, y, z, w fields) -> (w, x, y, z) array."""
     return np.array([q.w, q.x, q.y, q.z], dtype=float)
 
 
-def set_quat(q_msg, q_wxyz: np.ndarray) -> None:
+def set_quat(q_msg: Quaternion, q_wxyz: np.ndarray) -> None:
     """Write a (w, x, y, z) quaternion into a geometry_msgs/Quaternion (in place)."""
     q_msg.w, q_msg.x, q_msg.y, q_msg.z = (float(x) for x in q_wxyz)
 
 
-def set_vector3(v_msg, v: np.ndarray) -> None:
+def set_vector3(v_msg: Vector3, v: np.ndarray) -> None:
     """Write a 3-vector into a geometry_msgs/Vector3 (in place)."""
     v_msg.x, v_msg.y, v_msg.z = (float(x) for x in v)
 
@@ -140,7 +145,7 @@ def set_vector3(v_msg, v: np.ndarray) -> None:
 # value arrays are empty. Stamped, so that a subscriber pairs the two by stamp: two topics are
 # not ordered with respect to each other (an executor that fell behind takes the next
 # landmarks before the last groups).
-def pad_groups_msg(stamp, frame_id: str, groups) -> JointState:
+def pad_groups_msg(stamp: Time, frame_id: str, groups: Iterable[str]) -> JointState:
     """Build the ``pad/groups`` message of one image (``stamp``: builtin_interfaces/Time)."""
     msg = JointState(name=[str(g) for g in groups])
     msg.header.stamp, msg.header.frame_id = stamp, frame_id

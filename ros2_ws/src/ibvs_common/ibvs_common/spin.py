@@ -37,10 +37,14 @@ import gc
 import os
 import signal
 import threading
+from typing import TYPE_CHECKING
 
 import rclpy
 from rclpy.executors import Executor, SingleThreadedExecutor
 from rclpy.node import Node
+
+if TYPE_CHECKING:
+    from rclpy.context import Context
 
 LOG_THROTTLE_S = 2.0
 SPIN_ONCE_TIMEOUT_S = 0.5               # s, longest wait for work before re-checking rclpy.ok
@@ -48,7 +52,7 @@ EXECUTOR_ENV = 'IBVS_EXECUTOR'          # 'events' (default when available) | 's
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
-def make_executor(context=None) -> Executor:
+def make_executor(context: Context | None = None) -> Executor:
     """Return the events executor when available (and not disabled), else a single-threaded one."""
     if os.environ.get(EXECUTOR_ENV, 'events') != 'single':
         try:

@@ -269,7 +269,7 @@ class ForceControllerNode(Node):
             self._features_pub.publish(features)
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the node (``ros2 run ibvs_control force_controller``); exit 1 on bad gains."""
     rclpy.init(args=args)
     node = None

@@ -481,7 +481,7 @@ class MavlinkBridgeNode(Node):
                           + (f', autopilot internal errors 0x{st.autopilot_internal_errors:x}'
                              if st.autopilot_internal_errors else ''))
 
-        def fmt(v, spec='.3f', none='unknown'):
+        def fmt(v: float | int | bool | None, spec: str = '.3f', none: str = 'unknown') -> str:
             return none if v is None else format(v, spec)
         values = {'link': 'up' if st.link_up else 'lost',
                   'heartbeat_age_s': f'{st.heartbeat_age_s:.2f}',
@@ -548,7 +548,7 @@ class MavlinkBridgeNode(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the node (``ros2 run ibvs_control mavlink_bridge``)."""
     rclpy.init(args=args)
     node = None

@@ -315,7 +315,7 @@ class ModeSupervisorNode(Node):
             self._publish_status(now_ns)
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the node (``ros2 run ibvs_control mode_supervisor``)."""
     rclpy.init(args=args)
     node = None

@@ -8,6 +8,8 @@ timeouts treat the camera as the dead camera it is (docs/design.md "Failure beha
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from rclpy.node import Node
 
@@ -15,6 +17,9 @@ from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_perception.messages import stamp_to_s
 from ibvs_common.param_descriptors import declare
 from ibvs_common.throttled_log import ThrottledLog
+
+if TYPE_CHECKING:
+    from builtin_interfaces.msg import Time
 
 PARAMETER = 'frozen_after_frames'
 DEFAULT_FROZEN_AFTER_FRAMES = 3
@@ -38,7 +43,7 @@ class FrozenCameraGuard:
         self.log = ThrottledLog(self.logger)
         self.dropped = 0              # images dropped as frozen since the start
 
-    def drop(self, gray: np.ndarray, stamp) -> bool:
+    def drop(self, gray: np.ndarray, stamp: Time) -> bool:
         """Check the image of ``stamp`` (builtin_interfaces/Time); True: drop it (frozen)."""
         was_frozen = self.check.frozen
         if not self.check.check(gray):

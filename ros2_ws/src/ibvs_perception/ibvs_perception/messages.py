@@ -5,6 +5,8 @@ CameraModelError) with a readable reason that the node logs, throttled.
 """
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from geometry_msgs.msg import Point32, PolygonStamped
@@ -14,8 +16,12 @@ from sensor_msgs.msg import CameraInfo, Image, Imu
 
 from ibvs_perception.core.image import image_to_mono8
 
+if TYPE_CHECKING:
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header
 
-def stamp_to_s(stamp) -> float:
+
+def stamp_to_s(stamp: Time) -> float:
     """builtin_interfaces/Time -> seconds (float)."""
     return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
 
@@ -47,7 +53,8 @@ def attitude_from_imu(msg: Imu) -> tuple[float, tuple, np.ndarray]:
     return stamp_ns / NS_PER_S, q_map_base, omega_B
 
 
-def polygon_from_vectors(header, frame_id: str, vectors: np.ndarray | None) -> PolygonStamped:
+def polygon_from_vectors(header: Header, frame_id: str,
+                         vectors: np.ndarray | None) -> PolygonStamped:
     """Build a PolygonStamped whose points are the rows of ``vectors`` (empty for None)."""
     msg = PolygonStamped()
     msg.header.stamp = header.stamp

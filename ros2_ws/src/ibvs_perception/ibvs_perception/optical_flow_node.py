@@ -209,7 +209,7 @@ class OpticalFlowNode(Node):
         return None, None
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the node (console script `optical_flow`)."""
     rclpy.init(args=args)
     node = None

@@ -90,7 +90,7 @@ class PadDetectorNode(Node):
         self.pub_groups.publish(pad_groups_msg(msg.header.stamp, self.frame_id, names))
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the node (console script `pad_detector`)."""
     rclpy.init(args=args)
     node = None

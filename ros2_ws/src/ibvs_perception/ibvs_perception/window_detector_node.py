@@ -167,7 +167,7 @@ class WindowDetectorNode(Node):
         return out
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the node (console script `window_detector`)."""
     rclpy.init(args=args)
     node = None

@@ -284,7 +284,7 @@ class Px4SimNode(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the node until Ctrl-C."""
     # an image publisher like the sim: its shared-memory segment holds the images it sends
     use_dds_profile_here()

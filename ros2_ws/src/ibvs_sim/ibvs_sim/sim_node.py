@@ -415,7 +415,7 @@ class SimNode(Node):
             self.sim.products.note_status(stamp_ns, mode)
 
     def _product_callback(self, topic: str):
-        def note(msg) -> None:
+        def note(msg: PolygonStamped | Vector3Stamped | JointState) -> None:
             stamp_ns = stamp_to_ns(msg.header.stamp)
             if self.sim.products.note(topic, stamp_ns):
                 self.get_logger().info(
@@ -582,7 +582,7 @@ class SimNode(Node):
         super().destroy_node()
 
 
-def main(args=None) -> None:
+def main(args: list[str] | None = None) -> None:
     """Run the sim node until Ctrl-C (demo_nodes_py pattern)."""
     # the images' shared-memory segment is the sim's: lossless under a plain `ros2 run` too
     use_dds_profile_here()

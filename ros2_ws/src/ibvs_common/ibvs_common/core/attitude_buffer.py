@@ -9,6 +9,7 @@ from __future__ import annotations
 import bisect
 from dataclasses import dataclass, field
 import math
+from typing import Sequence
 
 import numpy as np
 
@@ -91,7 +92,8 @@ class AttitudeBuffer:
             raise ValueError('IMU sample with a non-finite stamp/rate or an invalid attitude')
         return self._insert(float(stamp_s), R_IB, None, omega_B)
 
-    def add_map_base(self, stamp_s: float, q_map_base, omega_B) -> bool:
+    def add_map_base(self, stamp_s: float, q_map_base: Sequence[float] | np.ndarray,
+                     omega_B: np.ndarray) -> bool:
         """Insert a sample given by a ROS attitude quaternion (base_link FLU in map ENU).
 
         ``q_map_base``: (w, x, y, z), unit within 10 % (normalised here); ``omega_B``: body

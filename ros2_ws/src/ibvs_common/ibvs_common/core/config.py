@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -46,7 +47,7 @@ def load_yaml(path: str | os.PathLike) -> dict:
     return data
 
 
-def get_key(data: dict, key: str, path: str | os.PathLike):
+def get_key(data: dict, key: str, path: str | os.PathLike) -> Any:
     node = data
     for part in key.split('.'):
         if not isinstance(node, dict) or part not in node:

@@ -42,7 +42,7 @@ def has_aruco_detector() -> bool:
     return hasattr(_aruco(), 'ArucoDetector')
 
 
-def aruco_parameters():
+def aruco_parameters() -> cv2.aruco.DetectorParameters:
     """Return default ArUco detector parameters (a ``cv2.aruco.DetectorParameters``)."""
     aruco = _aruco()
     if has_aruco_detector():
@@ -60,7 +60,7 @@ class ArucoMarkerDetector:
         self._detector = (self._aruco.ArucoDetector(dictionary, parameters)
                           if has_aruco_detector() else None)
 
-    def set_parameters(self, parameters) -> None:
+    def set_parameters(self, parameters: cv2.aruco.DetectorParameters) -> None:
         """Use ``parameters`` from the next :meth:`detect` on."""
         self._parameters = parameters
         if self._detector is not None:
@@ -79,7 +79,7 @@ class ArucoMarkerDetector:
         return corners, ids
 
 
-def aruco_marker_image(dictionary, marker_id: int, side_px: int,
+def aruco_marker_image(dictionary: cv2.aruco.Dictionary, marker_id: int, side_px: int,
                        border_bits: int = 1) -> np.ndarray:
     """Return the mono8 image (side_px, side_px) of one marker, black border included."""
     aruco = _aruco()

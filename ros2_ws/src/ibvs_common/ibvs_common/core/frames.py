@@ -19,6 +19,7 @@ store ``(x, y, z, w)``: use :func:`quat_wxyz_to_xyzw` / :func:`quat_xyzw_to_wxyz
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import numpy as np
 
@@ -127,7 +128,7 @@ def euler_zyx_from_rot(R_IB: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
-def yaw_and_cos_tilt_from_quat(q_wxyz) -> tuple[float, float]:
+def yaw_and_cos_tilt_from_quat(q_wxyz: Sequence[float] | np.ndarray) -> tuple[float, float]:
     """(yaw in rad, cos of the tilt) of an R_IB quaternion (FRD in NED, w x y z).
 
     yaw as :func:`euler_zyx_from_rot` (``atan2(R[1, 0], R[0, 0])``), cos tilt = ``R[2, 2]`` =
@@ -246,7 +247,7 @@ def R_IB_from_rot_map_base(R_map_base: np.ndarray) -> np.ndarray:
     return R_I_MAP @ np.asarray(R_map_base, dtype=float) @ R_FLU_FRD
 
 
-def R_IB_from_quat_map_base(q_wxyz) -> np.ndarray:
+def R_IB_from_quat_map_base(q_wxyz: Sequence[float] | np.ndarray) -> np.ndarray:
     """Paper's R_IB (FRD in NED) from a ROS attitude quaternion (FLU in ENU, w x y z).
 
     ``R_IB_from_rot_map_base(rot_from_quat(q))`` (tested equal) with the two fixed axis swaps

@@ -5,6 +5,12 @@ Stamps, deadlines and clock readings are kept as ``int`` nanoseconds, as rclpy's
 without the rounding of float seconds (a float64 of today's system time in seconds resolves
 ~0.2 us). Seconds appear only at the boundary with the maths (``t_ns / NS_PER_S``).
 """
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from builtin_interfaces.msg import Time
 
 #: nanoseconds per second
 NS_PER_S = 1_000_000_000
@@ -15,6 +21,6 @@ def s_to_ns(t_s: float) -> int:
     return int(round(float(t_s) * NS_PER_S))
 
 
-def stamp_to_ns(stamp) -> int:
+def stamp_to_ns(stamp: Time) -> int:
     """Integer nanoseconds of a ``builtin_interfaces/Time`` (anything with sec and nanosec)."""
     return int(stamp.sec) * NS_PER_S + int(stamp.nanosec)

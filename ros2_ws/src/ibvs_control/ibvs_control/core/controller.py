@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -23,6 +24,10 @@ from ibvs_common.core.features import (
 from ibvs_common.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.observer import DisturbanceObserver
+
+if TYPE_CHECKING:
+    from typing import TypeVar
+    GainsT = TypeVar('GainsT')     # one of the *Gains dataclasses (ControllerConfig.from_params)
 
 MAX_INTEGRATION_STEP_S = 0.1   # a longer gap between frames is not integrated as flow
 # m, the window-plane distances at which d_o times the wall flow is taken as the velocity
@@ -77,7 +82,7 @@ class ControllerConfig:
         height estimate.
         Raises GainError (a ValueError).
         """
-        def group(prefix: str, kind):
+        def group(prefix: str, kind: type[GainsT]) -> GainsT:
             known = {f.name for f in kind.__dataclass_fields__.values()}
             vals = {k[len(prefix) + 1:]: float(v) for k, v in params.items()
                     if k.startswith(prefix + '.')}

@@ -7,7 +7,7 @@ timing layer's business (core/timing.py), not this module's.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 
@@ -46,7 +46,7 @@ class PadPairing:
         self._landmarks[int(stamp_ns)] = bearings
         return self._pair(int(stamp_ns))
 
-    def add_groups(self, stamp_ns: int, groups) -> tuple | None:
+    def add_groups(self, stamp_ns: int, groups: Iterable[str]) -> tuple | None:
         """Hold a groups message; return (stamp_ns, bearings, groups) if it completes a pair."""
         self._groups[int(stamp_ns)] = tuple(groups)
         return self._pair(int(stamp_ns))

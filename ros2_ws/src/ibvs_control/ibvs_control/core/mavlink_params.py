@@ -132,7 +132,7 @@ class AutopilotParams:
                     f"ArduPilot's default {ARDUPILOT_ANGLE_BOOST_DEFAULT}")
         return reads, changed
 
-    def on_param(self, raw_name, value: float) -> Changed:
+    def on_param(self, raw_name: bytes | str, value: float) -> Changed:
         """Take one PARAM_VALUE (name as bytes or str, value decoded); return what changed."""
         name = raw_name.decode('ascii', 'replace') if isinstance(raw_name, bytes) else raw_name
         name = name.rstrip('\x00')

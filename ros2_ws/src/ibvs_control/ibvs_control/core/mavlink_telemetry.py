@@ -28,6 +28,7 @@ import lzma
 import math
 import re
 import struct
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -86,7 +87,7 @@ class ThrustSample:
     thrust: float                   # normalised [0, 1]
 
 
-def decode_event(msg) -> tuple[int, int, int, bytes] | None:
+def decode_event(msg: Any) -> tuple[int, int, int, bytes] | None:
     """(id, sequence, log_levels, arguments) of a PX4 EVENT (410), or None.
 
     pymavlink 2.4.50's dialects lack EVENT: it arrives as UNKNOWN_410 whose ``data`` is the
@@ -173,7 +174,7 @@ class Telemetry:
         self.armable = None
 
     # --- messages ------------------------------------------------------------------------------
-    def on_message(self, msg, ros_ns: int | None) -> tuple:
+    def on_message(self, msg: Any, ros_ns: int | None) -> tuple:
         """Take one autopilot message; return what it produced: (IMU, accel, thrust) samples."""
         self._ros_ns = ros_ns
         kind = msg.get_type()
@@ -302,7 +303,7 @@ USED_UNREQUESTED = (MavMsgId.HEARTBEAT, MavMsgId.TIMESYNC, MavMsgId.PARAM_VALUE,
                     MavMsgId.COMMAND_ACK, MavMsgId.STATUSTEXT, MavMsgId.EVENT)
 
 
-def message_ids(names) -> tuple[int, ...]:
+def message_ids(names: Iterable[str]) -> tuple[int, ...]:
     """Return the message ids of MAVLink message names ('ATTITUDE', ...).
 
     Raises ValueError naming an unknown one.

@@ -74,7 +74,7 @@ class Frame:
     expired: bool = False
     extras: dict = field(default_factory=dict)
 
-    def get(self, kind: InputKind):
+    def get(self, kind: InputKind) -> Any:
         """Return the value of a product of this frame, or None."""
         return self.inputs.get(kind)
 
@@ -129,7 +129,7 @@ class FrameAssembler:
             watch.forget()
 
     # --- inputs ------------------------------------------------------------------------
-    def add_input(self, kind: InputKind, stamp_ns: int, value) -> bool:
+    def add_input(self, kind: InputKind, stamp_ns: int, value: Any) -> bool:
         """Keep one product; False if this kind already has a value at this stamp.
 
         A product stamped more than ``MAX_BACKSTEP_S`` before the newest of its kind first
@@ -173,7 +173,7 @@ class FrameAssembler:
         """Whether a frame with this stamp is open and not yet released."""
         return any(p.stamp_ns == int(stamp_ns) for p in self._pending)
 
-    def open(self, stamp_ns: int, tag, now_ns: int) -> bool:
+    def open(self, stamp_ns: int, tag: Any, now_ns: int) -> bool:
         """Open the frame of ``stamp_ns``; False if it is open, released, or older than one."""
         stamp_ns = int(stamp_ns)
         if (self.released_through_ns is not None and stamp_ns <= self.released_through_ns) \

@@ -43,6 +43,7 @@ import math
 import os
 import threading
 import time
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -136,7 +137,8 @@ class NedToI:
     origin_I: tuple
 
     @classmethod
-    def from_start(cls, start_I, floor_z: float, rest_height_m: float) -> 'NedToI':
+    def from_start(cls, start_I: Sequence[float] | np.ndarray, floor_z: float,
+                   rest_height_m: float) -> 'NedToI':
         """Take off below the scenario's start: its (x, y), on the floor (z = floor - rest)."""
         x, y = float(start_I[0]), float(start_I[1])
         if not all(math.isfinite(v) for v in (x, y, floor_z, rest_height_m)) \
@@ -145,15 +147,15 @@ class NedToI:
                                 f'{rest_height_m}')
         return cls((x, y, float(floor_z) - float(rest_height_m)))
 
-    def to_I(self, p_ned) -> np.ndarray:
+    def to_I(self, p_ned: np.ndarray) -> np.ndarray:
         """Return the {I} position (m) of a local NED position (m)."""
         return np.asarray(p_ned, dtype=float) + np.asarray(self.origin_I)
 
-    def to_ned(self, xi_I) -> np.ndarray:
+    def to_ned(self, xi_I: Sequence[float] | np.ndarray) -> np.ndarray:
         """Return the local NED position (m) of an {I} position (m)."""
         return np.asarray(xi_I, dtype=float) - np.asarray(self.origin_I)
 
-    def takeoff_altitude(self, start_I) -> float:
+    def takeoff_altitude(self, start_I: Sequence[float] | np.ndarray) -> float:
         """Return the height (m) above home of the start position ``start_I`` ({I})."""
         return float(-self.to_ned(start_I)[2])
 
@@ -181,7 +183,7 @@ class TruthSample:
                            self.p_ned_raw.copy())
 
 
-def hil_state_sample(msg, home: tuple[float, float, float], frame: NedToI,
+def hil_state_sample(msg: Any, home: tuple[float, float, float], frame: NedToI,
                      p_ned: np.ndarray | None = None) -> TruthSample:
     """Convert a HIL_STATE_QUATERNION (pymavlink message or same fields) to {I}.
 
@@ -226,7 +228,7 @@ class PositionFilter:
         self.p: np.ndarray | None = None
         self._t: float | None = None
 
-    def update(self, t_s: float, fix, v) -> np.ndarray:
+    def update(self, t_s: float, fix: np.ndarray, v: np.ndarray) -> np.ndarray:
         """Return the filtered position after a fix (m) and a velocity (m/s) at ``t_s``."""
         fix = np.asarray(fix, dtype=float)
         dt = None if self._t is None else float(t_s) - self._t
@@ -291,7 +293,7 @@ class ContactWatch:
         self.collided = False
         self._vz_before = 0.0
 
-    def check(self, t_s: float, xi_I, v_I) -> SimEvent | None:
+    def check(self, t_s: float, xi_I: np.ndarray, v_I: np.ndarray) -> SimEvent | None:
         """Return the event of this sample (time ``t_s`` on the caller's clock), if any."""
         xi, v = np.asarray(xi_I, dtype=float), np.asarray(v_I, dtype=float)
         clearance, surface = min_clearance(xi, self.world, self.radius, self.height)

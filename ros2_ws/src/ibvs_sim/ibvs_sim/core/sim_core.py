@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import enum
 import math
 import time
-from typing import Callable, Protocol
+from typing import Callable, Collection, Protocol, Sequence
 
 import numpy as np
 
@@ -352,7 +352,7 @@ class GraphProducts:
         self.status_expected = False
         self.statuses: list[tuple[int, int]] = []     # (stamp ns, mode), newest last
 
-    def expect(self, frame_ns: int, cameras, publishers: dict) -> None:
+    def expect(self, frame_ns: int, cameras: Collection[str], publishers: dict) -> None:
         """Expect the products of the frame at ``frame_ns`` (images of ``cameras`` went out)."""
         self.frame_ns = int(frame_ns)
         self.expected = {t for t, cam in self.products.items()
@@ -404,7 +404,8 @@ class GraphProducts:
         return gone
 
 
-def fault_windows(name: str, flat) -> tuple[tuple[float, float], ...]:
+def fault_windows(name: str, flat: Sequence[float] | Sequence[Sequence[float]]
+                  ) -> tuple[tuple[float, float], ...]:
     """Return the (start, end) sim-time windows (s) of a sequence start, end, start, end, ...
 
     The sequence may be flat or of pairs. ValueError, naming ``name``, for an odd or empty
