@@ -32,6 +32,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Imu
 from std_msgs.msg import UInt8
 
+from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.stamps import NS_PER_S, s_to_ns, stamp_to_ns
 
 IMU_MIN_MESSAGES = 10
@@ -119,14 +120,17 @@ class KeepUp:
         self._frames: collections.deque = collections.deque(maxlen=frames)   # (stamp, arrival)
         self._answers: dict[int, int] = {}            # product stamp -> its arrival (ns)
         self._grace_ns = s_to_ns(grace_s)
+        self._backsteps = BackstepWatch()
 
     def note_frame(self, stamp_ns: int, received_ns: int) -> None:
-        """Take one frame (repeats of the newest stamp are ignored)."""
-        if not self._frames or stamp_ns > self._frames[-1][0]:
-            self._frames.append((stamp_ns, received_ns))
-        elif stamp_ns < self._frames[-1][0]:          # the clock went back: start again
+        """Take one frame; a stamp not newer than the newest one is ignored.
+
+        A clock step back (``clock_step.BackstepWatch``) starts the frames and answers again.
+        """
+        if self._backsteps.observe(stamp_ns):         # the clock stepped back: start again
             self._frames.clear()
             self._answers.clear()
+        if not self._frames or stamp_ns > self._frames[-1][0]:
             self._frames.append((stamp_ns, received_ns))
         oldest = self._frames[0][0]
         for stamp in [t for t in self._answers if t < oldest]:
