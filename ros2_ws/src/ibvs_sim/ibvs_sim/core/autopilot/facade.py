@@ -136,11 +136,9 @@ class Autopilot:
             self._timesync_requests.send_if_due(state)
 
     def _on_timesync(self, msg, state: VehicleStateView) -> None:
-        """Answer a request (tc1 = 0); hand an answer to the check of our own requests."""
-        if int(msg.tc1) == 0:
-            self._timesync.on_timesync(msg, state)
-        else:
-            self._timesync_requests.on_answer(msg, state)
+        """Give TIMESYNC to both parts: each takes its own kind (request tc1 = 0, answer)."""
+        self._timesync.on_timesync(msg, state)
+        self._timesync_requests.on_answer(msg, state)
 
     def attitude_reference(self, state: VehicleStateView) -> AttitudeReference:
         """Return the inner-loop reference for the current mode (does not change the mode)."""

@@ -86,9 +86,11 @@ class TimesyncRequester:
         self.counters.timesync_requests_sent += 1
 
     def on_answer(self, msg: Any, state: VehicleStateView) -> None:
-        """Check an answer (tc1 != 0): ts1 one of our requests, tc1 a positive time."""
+        """Check an answer (tc1 != 0; a request is the responder's): ts1 ours, tc1 > 0."""
         ts1, tc1 = int(msg.ts1), int(msg.tc1)
-        if ts1 not in self._pending or tc1 <= 0:
+        if tc1 == 0:
+            return
+        if ts1 not in self._pending or tc1 < 0:
             self.counters.timesync_answers_foreign += 1
             return
         self._pending.remove(ts1)
