@@ -119,6 +119,61 @@ def test_lockstep_reads_mavlink_only_between_frames(configs, pacing, receiving_s
         assert ap.receiving_polls - receiving >= 1
 
 
+def test_lockstep_moves_the_clock_before_the_autopilot_sends_anything_of_the_new_time(configs):
+    # On a vehicle no autopilot message of time t reaches the companion before its clock reads
+    # t. A /clock published only with the images lagged the autopilot's frame-time telemetry
+    # (and its TIMESYNC) by a frame: the bridge's clock sync took 5 such samples in a row as a
+    # time jump (ROS - boot = -20 ms) and the lockstep run stalled (2026-11-27).
+    ap, clock = FakeAutopilot(), FakeClock()
+    events = []
+    ap_poll = ap.poll
+
+    def poll(state, receive=True, telemetry=True):
+        events.append(('poll', round(state.t * 1e9), receive))
+        ap_poll(state, receive, telemetry)
+
+    ap.poll = poll
+    world, pad, vehicle = configs
+    sim = Simulation(world, pad, vehicle, ap, SimConfig(render=False, pacing=Pacing.LOCKSTEP),
+                     wall_clock=clock, clock_sink=lambda t_ns: events.append(('clock', t_ns)))
+    assert sim.tick().t_ns == 0
+    for k in range(1, 4):
+        ap.last_setpoint_time_boot_ms = 20 * (k - 1)
+        assert sim.tick().t_ns == 20_000_000 * k
+    clock_times = [e[1] for e in events if e[0] == 'clock']
+    assert clock_times == [0, 20_000_000, 40_000_000, 60_000_000]
+    period_ns, published, frame_polls = sim.period_ns, -1, 0
+    for e in events:
+        if e[0] == 'clock':
+            published = e[1]
+            continue
+        _, t, receive = e
+        if t % period_ns == 0 or receive:
+            # the frame-time telemetry, and every poll that reads (answers TIMESYNC): the
+            # clock already reads their time
+            assert t <= published, events
+            frame_polls += t % period_ns == 0
+        else:
+            # a substep's telemetry (the 100 Hz IMU between frames): within the frame period
+            # that the clock moves through next (one /clock per frame in lockstep)
+            assert published < t < published + period_ns, events
+    assert frame_polls >= 4
+
+
+def test_free_running_sim_leaves_its_clock_to_the_node(configs):
+    # realtime: the node publishes /clock at every tick as sim time runs; no per-frame sink
+    calls = []
+    world, pad, vehicle = configs
+    clock = FakeClock()
+    sim = Simulation(world, pad, vehicle, FakeAutopilot(),
+                     SimConfig(render=False, pacing=Pacing.REALTIME), wall_clock=clock,
+                     clock_sink=calls.append)
+    sim.tick()
+    clock.now += 0.1
+    sim.tick()
+    assert calls == []
+
+
 def test_realtime_paces_by_the_wall_clock(configs):
     ap, clock = FakeAutopilot(), FakeClock()
     sim = _sim(configs, ap, clock, pacing=Pacing.REALTIME)

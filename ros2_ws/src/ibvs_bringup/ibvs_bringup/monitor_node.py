@@ -34,7 +34,8 @@ FLOW_TOPICS = {'flow_front': 'front_camera/translational_flow',
                'flow_down': 'down_camera/translational_flow'}
 # the MAVLink bridge's /diagnostics values kept once per message (1 Hz) for summary.json
 BRIDGE_KEYS = ('engage_state', 'setpoint_source', 'hover_thrust', 'hover_estimate_std',
-               'clock_synced', 'clock_offset_ms', 'clock_skew_ppm', 'timesync_resets',
+               'clock_synced', 'clock_offset_ms', 'clock_skew_ppm', 'timesync_accepted',
+               'timesync_rejected_rtt', 'timesync_rejected_outliers', 'timesync_resets',
                'setpoint_rate_hz')
 BRIDGE_HISTORY_LEN = 120
 

@@ -295,7 +295,7 @@ class SimNode(Node):
             wind=wind, cameras=CAMERAS, read_noise_std=cfg.read_noise_std,
             noise_seed=cfg.seed)
         self.sim = Simulation(world, pad, vehicle, self.autopilot, sim_config,
-                              products=products)
+                              products=products, clock_sink=self._publish_clock)
         reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=EVENTS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)

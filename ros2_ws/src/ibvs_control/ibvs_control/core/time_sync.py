@@ -51,7 +51,9 @@ Tracking
     skew stays 0.0 and the mapped stamps repeat bit for bit).
 Outliers
     A sample farther than ``max_deviation_s`` (10 ms) from the prediction is not used (e.g.
-    -20 ms with rtt 0 when our ``/clock`` lags the sim by one frame); ``max_consecutive_outliers``
+    -20 ms with rtt 0 when our ``/clock`` lags a lockstep sim by one frame: the sim moves its
+    clock before its autopilot answers, so only a ``/clock`` delayed in delivery does it);
+    ``max_consecutive_outliers``
     (5) in a row mean a time jump (a clock was set): reset, and re-initialise from those
     outliers (the newest ``init_samples`` of them: synced again at once, no imu/data gap; a
     gap of 0.2 s or more is an IMU dropout to the supervisor, FAILSAFE in flight). A jump

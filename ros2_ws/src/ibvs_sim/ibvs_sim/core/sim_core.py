@@ -464,10 +464,21 @@ class Simulation:
     def __init__(self, world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                  autopilot: ReferenceSource, config: SimConfig,
                  wall_clock: Callable[[], float] = time.monotonic,
-                 products: GraphProducts | None = None) -> None:
+                 products: GraphProducts | None = None,
+                 clock_sink: Callable[[int], None] | None = None) -> None:
+        """Compose the parts; ``clock_sink(t_ns)``: lockstep, the clock moves first.
+
+        ``clock_sink`` (the node's ``/clock`` publisher) is called in lockstep with a frame's
+        sim time (ns) before anything of that time leaves the sim: the autopilot's telemetry
+        (IMU, attitude, its own TIMESYNC requests) and answers, and the frame itself. On a
+        vehicle no message of time t reaches the companion before its clock reads t; a
+        lockstep ``/clock`` published only with the images lagged the autopilot's messages
+        by a frame, and the bridge's clock sync read them as a time jump (docs/sim.md).
+        """
         self.world, self.vehicle, self.config = world, vehicle, config
         self.autopilot = autopilot
         self.wall_clock = wall_clock
+        self.clock_sink = clock_sink
         self.params = PlantParams.from_vehicle(vehicle, floor_z=world.floor_z)
         self.plant = QuadrotorPlant(self.params)
         self.controller = AttitudeController(self.params)
@@ -633,8 +644,15 @@ class Simulation:
         # Telemetry due at the frame time (IMU, attitude) leaves before the frame is rendered
         # and published, as a camera-IMU synchronised vehicle delivers it: otherwise the
         # graph derotates the frame with an attitude extrapolated over a whole frame period.
+        # Lockstep: the clock moves first (clock_sink).
+        self._clock_moves()
         self.autopilot.poll(self.state_view(), receive=receive)
         return self._emit(new_events)
+
+    def _clock_moves(self) -> None:
+        """Lockstep: hand the frame's sim time to ``clock_sink`` before its telemetry."""
+        if self.clock_sink is not None and self.config.pacing is Pacing.LOCKSTEP:
+            self.clock_sink(self.t_ns)
 
     def poll_before_start(self) -> bool:
         """Serve the autopilot's link before frame 0; return whether setpoints stream already.
@@ -649,6 +667,7 @@ class Simulation:
 
     def _first_frame(self) -> FrameOutput:
         # the telemetry due at t = 0 leaves before frame 0, as before every later frame
+        self._clock_moves()
         self.autopilot.poll(self.state_view(), receive=self.config.pacing is Pacing.REALTIME)
         return self._emit([])
 
