@@ -50,11 +50,11 @@ def configs():
     return load_world(), load_pad_layout(), load_vehicle()
 
 
-def _sim(configs, ap, clock=None, products=None, **kw):
+def _sim(configs, ap, clock=None, products=None, clock_sink=None, **kw):
     world, pad, vehicle = configs
     cfg = SimConfig(render=kw.pop('render', False), **kw)
     return Simulation(world, pad, vehicle, ap, cfg, wall_clock=clock or FakeClock(),
-                      products=products)
+                      products=products, clock_sink=clock_sink)
 
 
 def test_first_frame_is_the_initial_condition_with_images(configs):
@@ -133,9 +133,8 @@ def test_lockstep_moves_the_clock_before_the_autopilot_sends_anything_of_the_new
         ap_poll(state, receive, telemetry)
 
     ap.poll = poll
-    world, pad, vehicle = configs
-    sim = Simulation(world, pad, vehicle, ap, SimConfig(render=False, pacing=Pacing.LOCKSTEP),
-                     wall_clock=clock, clock_sink=lambda t_ns: events.append(('clock', t_ns)))
+    sim = _sim(configs, ap, clock, pacing=Pacing.LOCKSTEP,
+               clock_sink=lambda t_ns: events.append(('clock', t_ns)))
     assert sim.tick().t_ns == 0
     for k in range(1, 4):
         ap.last_setpoint_time_boot_ms = 20 * (k - 1)
@@ -162,12 +161,8 @@ def test_lockstep_moves_the_clock_before_the_autopilot_sends_anything_of_the_new
 
 def test_free_running_sim_leaves_its_clock_to_the_node(configs):
     # realtime: the node publishes /clock at every tick as sim time runs; no per-frame sink
-    calls = []
-    world, pad, vehicle = configs
-    clock = FakeClock()
-    sim = Simulation(world, pad, vehicle, FakeAutopilot(),
-                     SimConfig(render=False, pacing=Pacing.REALTIME), wall_clock=clock,
-                     clock_sink=calls.append)
+    calls, clock = [], FakeClock()
+    sim = _sim(configs, FakeAutopilot(), clock, pacing=Pacing.REALTIME, clock_sink=calls.append)
     sim.tick()
     clock.now += 0.1
     sim.tick()

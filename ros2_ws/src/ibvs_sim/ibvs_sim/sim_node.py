@@ -538,6 +538,8 @@ class SimNode(Node):
 
     def _publish_frame(self, out: FrameOutput) -> None:
         stamp = stamp_from_ns(out.t_ns)
+        # a guard, no-op as the sim runs: the clock already moved to the frame's time
+        # (lockstep: Simulation.clock_sink before the frame's telemetry; realtime: each tick)
         self._publish_clock(out.t_ns)
         images, withheld, frozen = self.faults.apply(out.t, out.images)
         # lockstep: the graph may have nothing to answer (its mode's camera is off), or drop
