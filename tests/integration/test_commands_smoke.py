@@ -20,7 +20,8 @@ BENCH_ARGS = {'bench_perception.py': ['--frames', '5'], 'bench_sim.py': ['--fram
               'bench_log_throttle.py': ['--calls', '50'], 'bench_gc_pause.py': ['--repeats', '3'],
               'bench_latency.py': ['--smoke', '--grouped'],
               'bench_window_robustness.py': ['--smoke'], 'bench_idle_cpu.py': ['--smoke'],
-              'bench_pad_groups.py': ['--poses', '2'], 'bench_lockstep.py': ['--smoke']}
+              'bench_pad_groups.py': ['--poses', '2'], 'bench_lockstep.py': ['--smoke'],
+              'bench_mavlink_receive.py': ['--smoke']}
 
 
 def run(args, cwd, timeout=600):

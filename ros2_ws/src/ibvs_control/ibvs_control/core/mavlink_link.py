@@ -276,7 +276,7 @@ class MavlinkLink:
         if self._conn is not None:
             for _ in range(max_messages):
                 try:
-                    msg = self._conn.recv_msg()
+                    msg = self._next_message()
                 except Exception as exc:  # socket/serial error: reopen on the next period
                     self._error(f'receive failed on {self.config.url}: {exc}')
                     self.close()
@@ -294,6 +294,27 @@ class MavlinkLink:
             self._check_peers()
         self._supervise()
         return messages
+
+    def _next_message(self):
+        """Return the next message pending on the connection, or None.
+
+        pymavlink's ``recv_msg`` without its ``post_message``: that bookkeeping (per-system
+        message dictionaries, sequence-loss counts, flight-mode strings) is used nowhere here,
+        and it took a third of the CPU of each of the ~280 messages a second of the attitude,
+        IMU and thrust streams (benchmarks/bench_mavlink_receive.py: 14.0 -> 8.7 us a message,
+        docs/performance.md "Idle CPU"). Kept from ``recv_msg``: the read
+        (``recv``; a UDP server learns its clients there), the switch to the MAVLink version of
+        the first bytes, and the parse (signature checks included: a rejected message is
+        BAD_DATA). A UDP read is one datagram, a stream read what the parser needs next.
+        """
+        conn = self._conn
+        while True:
+            data = conn.recv(conn.mav.bytes_needed())
+            if data and conn.first_byte:
+                conn.auto_mavlink_version(data)
+            msg = conn.mav.parse_char(data)
+            if msg is not None or not data:
+                return msg
 
     def pop_events(self) -> list[tuple[str, str]]:
         """(level, text) since the last call: connection errors, a second UDP peer.
