@@ -16,6 +16,13 @@ stime of that process over ``--window-s`` after ``--settle-s``), repeated ``--re
 - ``no autopilot``: the composed process with nothing on the other end (its floor: timers,
   DDS).
 
+- ``wake-up reference``: no ROS: a bare Python thread woken by ``REFERENCE_WAKEUPS_HZ``
+  ATTITUDE_QUATERNION datagrams a second (select, recvfrom, pymavlink's parse), as the
+  bridge's reader thread is by the autopilot's streams. It does nothing else, so its CPU is
+  what this machine charges today for a wake-up with a fixed piece of Python work. Idle
+  figures of different hours compare only together with it (the same graph read 5.5 % at
+  14:43 and 9.3 % at 17:15 on 2026-11-27: docs/performance.md "Idle CPU").
+
 Autopilot: ``stand-in`` (default; the sim's PX4-like autopilot in its own process, streams
 at 100 Hz like the bridge asks) or ``px4-sih`` (../shared/px4-sitl, instance 5+; skipped with a
 message when absent). Nothing subscribes to imu/data outside the measured process.
@@ -36,6 +43,29 @@ import time
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CLK_TCK = os.sysconf('SC_CLK_TCK')
 STAND_IN_RATE_HZ = 100.0
+REFERENCE_WAKEUPS_HZ = 150.0    # the bridge's reader thread: ~150 wake-ups/s for ~280 messages
+# the wake-up reference's receiver: a thread in select + recvfrom, as MavlinkReader waits, that
+# parses each datagram with pymavlink (a fixed piece of Python work per wake-up)
+REFERENCE_RECEIVER = '''
+import os, select, socket, sys, threading, time
+os.environ['MAVLINK20'] = '1'
+from pymavlink.dialects.v20 import common as mavlink
+parser = mavlink.MAVLink(None)
+sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+sock.bind(('127.0.0.1', 0))
+sock.setblocking(False)
+def read():
+    while True:
+        if select.select([sock], [], [], 0.1)[0]:
+            try:
+                while True:
+                    parser.parse_buffer(sock.recvfrom(2048)[0])
+            except BlockingIOError:
+                pass
+threading.Thread(target=read, daemon=True).start()
+print(sock.getsockname()[1], flush=True)
+time.sleep(3600)
+'''
 
 
 def cpu_seconds(pid: int) -> float:
@@ -75,6 +105,43 @@ def measure(url: str | None, extra: list, settle_s: float, window_s: float) -> f
     finally:
         proc.terminate()
         proc.wait(timeout=30)
+
+
+def wakeup_reference(settle_s: float, window_s: float) -> float:
+    """% of one core of a bare Python receiver woken REFERENCE_WAKEUPS_HZ times a second."""
+    proc = subprocess.Popen([sys.executable, '-c', REFERENCE_RECEIVER], stdout=subprocess.PIPE,
+                            text=True)
+    stop = threading.Event()
+    try:
+        port = int(proc.stdout.readline())
+        sender = threading.Thread(target=_send_datagrams, args=(port, stop), daemon=True)
+        sender.start()
+        time.sleep(min(settle_s, 2.0))
+        a = cpu_seconds(proc.pid)
+        time.sleep(window_s)
+        return 100.0 * (cpu_seconds(proc.pid) - a) / window_s
+    finally:
+        stop.set()
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def _send_datagrams(port: int, stop: threading.Event) -> None:
+    """Send an ATTITUDE_QUATERNION (MAVLink 2) REFERENCE_WAKEUPS_HZ times a second."""
+    import socket
+    os.environ['MAVLINK20'] = '1'
+    from pymavlink.dialects.v20 import common as mavlink
+    enc = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    frame = enc.attitude_quaternion_encode(1, 1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3).pack(enc)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    period, t = 1.0 / REFERENCE_WAKEUPS_HZ, time.monotonic()
+    try:
+        while not stop.is_set():
+            sock.sendto(frame, ('127.0.0.1', port))
+            t += period
+            time.sleep(max(0.0, t - time.monotonic()))
+    finally:
+        sock.close()
 
 
 CASES = {
@@ -139,9 +206,15 @@ def main(argv: list | None = None) -> int:
             results[c].append(run_case(c, a.autopilot, a.settle_s, a.window_s))
     results['no autopilot'] = [measure(None, [], a.settle_s, a.window_s)
                                for _ in range(a.repeats)]
+    results['wake-up reference'] = [wakeup_reference(a.settle_s, a.window_s)
+                                    for _ in range(a.repeats)]
     for c, v in results.items():
         print(f'{c:26s} median {statistics.median(v):5.1f} %   runs '
               + ', '.join(f'{x:.1f}' for x in v))
+    ref = statistics.median(results['wake-up reference'])
+    print(f'wake-up reference: {REFERENCE_WAKEUPS_HZ:g} wake-ups/s of a bare Python reader cost '
+          f'{ref:.2f} % here, {ref / 100.0 / REFERENCE_WAKEUPS_HZ * 1e6:.0f} us each '
+          '(compare idle figures of different days only with it)')
     return 0
 
 
