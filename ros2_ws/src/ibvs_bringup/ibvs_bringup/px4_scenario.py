@@ -32,8 +32,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ibvs_bringup import graph, report
-from ibvs_bringup.px4_sih import (free_instance, Pilot, px4_boot_parameters, Px4Sitl,
-                                  SITL_NICE)
+from ibvs_bringup.px4_sih import (free_instance, MAV_CMD_DO_REPOSITION, Pilot,
+                                  px4_boot_parameters, Px4Sitl, SITL_NICE)
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.px4_plant import find_px4_sitl, NedToI, sih_parameters
 from ibvs_sim.core.world import load_world
@@ -247,6 +247,13 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
         settled = time.monotonic() - moving_at >= REPOSITION_STILL_S
         if not there and since_move > REPOSITION_WAIT_S \
                 and (settled or since_move > REPOSITION_MAX_WAIT_S):
+            # each correction in the run's output: a start hold that does not converge (2 of
+            # 5 runs on 2026-11-27 evening stayed 0.65-1.07 m low) is read from these lines
+            print(f'start hold: reposition {info["repositions"] + 1} by '
+                  f'{np.round(err, 2).tolist()} m NED, {yaw_err:+.3f} rad '
+                  f'({"settled" if settled else "in motion"}, true '
+                  f'speed {float(np.linalg.norm(monitor.log.v[-1])):.2f} m/s; the last one\'s '
+                  f'COMMAND_ACK {pilot.acks.get(MAV_CMD_DO_REPOSITION, "none")})', flush=True)
             moved_at = time.monotonic()
             info['repositions'] += pilot.reposition_by(err, yaw_err)
     print('preflight:\n' + format_checklist(monitor.health.checklist()), flush=True)
