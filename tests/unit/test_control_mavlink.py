@@ -1490,3 +1490,42 @@ def test_the_bridge_logs_the_links_errors_and_reports_them_on_diagnostics():
         assert st.counters['peers'] == 0
     finally:
         bridge.close()
+
+
+# --- the ROS clock read only when needed (reader thread) -----------------------------------
+
+def test_reader_poll_reads_the_ros_clock_only_for_messages_that_need_it():
+    """poll(ros_clock=...): high-rate telemetry alone reads no clock; TIMESYNC reads it first."""
+    enc = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    bridge = make_bridge(free_udp_port())
+    reads = []
+
+    def ros_clock():
+        reads.append(len(reads))
+        return 5_000_000_000 + len(reads)
+
+    def feed(*messages):
+        bridge.link.poll = lambda: list(messages)
+
+    attitude = enc.attitude_quaternion_encode(10, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    imu = enc.highres_imu_encode(10_000, 0.0, 0.0, -9.8, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+    thrust = enc.attitude_target_encode(10, 7, [1.0, 0.0, 0.0, 0.0], 0, 0, 0, 0.5)
+    try:
+        feed(attitude, imu, thrust)
+        bridge.poll(supervise=False, ros_clock=ros_clock)
+        assert reads == []                          # nothing here needed the ROS time
+        # a TIMESYNC request of the autopilot: our answer's tc1 is the ROS time, read for it
+        request = enc.timesync_encode(0, 123_000)
+        feed(attitude, request)
+        bridge.poll(supervise=False, ros_clock=ros_clock)
+        assert reads == [0] and bridge._ros_ns == 5_000_000_001
+        # the periodic poll supervises: it reads the clock once even with telemetry alone
+        feed(attitude)
+        bridge.poll(supervise=True, ros_clock=ros_clock)
+        assert reads == [0, 1] and bridge._ros_ns == 5_000_000_002
+        # ros_ns given (no ros_clock): taken as before
+        feed(attitude)
+        bridge.poll(7_000_000_000, supervise=False)
+        assert bridge._ros_ns == 7_000_000_000 and len(reads) == 2
+    finally:
+        bridge.close()

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import threading
+from typing import Callable
 
 import numpy as np
 import rclpy
@@ -385,7 +386,7 @@ class MavlinkBridgeNode(Node):
         The supervision step runs here only after messages other than the high-rate
         telemetry (``MavlinkBridge.poll``); the stream tick runs it in any case.
         """
-        self._receive(self._ros_ns(), supervise=False)
+        self._receive(None, supervise=False, ros_clock=self._ros_ns)
 
     def _on_reader_error(self, text: str) -> None:
         self.log.error(f'MAVLink receive step failed: {text}', LOG_THROTTLE_S)
@@ -406,9 +407,10 @@ class MavlinkBridgeNode(Node):
         with self._lock:
             self._bridge.heartbeat()
 
-    def _receive(self, ros_ns: int, supervise: bool = True) -> None:
+    def _receive(self, ros_ns: int | None, supervise: bool = True,
+                 ros_clock: Callable[[], int] | None = None) -> None:
         """Lock held: read what is pending, run the sequencer, publish new IMU samples."""
-        for sample in self._bridge.poll(ros_ns, supervise):
+        for sample in self._bridge.poll(ros_ns, supervise, ros_clock):
             self._publish_imu(self._imu_msg(sample))
         self._log_events()
 
