@@ -47,8 +47,7 @@ REFERENCE_WAKEUPS_HZ = 150.0    # the bridge's reader thread: ~150 wake-ups/s fo
 # the wake-up reference's receiver: a thread in select + recvfrom, as MavlinkReader waits, that
 # parses each datagram with pymavlink (a fixed piece of Python work per wake-up)
 REFERENCE_RECEIVER = '''
-import os, select, socket, sys, threading, time
-os.environ['MAVLINK20'] = '1'
+import select, socket, threading, time
 from pymavlink.dialects.v20 import common as mavlink
 parser = mavlink.MAVLink(None)
 sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -113,7 +112,10 @@ def wakeup_reference(settle_s: float, window_s: float) -> float:
                             text=True)
     stop = threading.Event()
     try:
-        port = int(proc.stdout.readline())
+        line = proc.stdout.readline()
+        if not line.strip().isdigit():
+            raise RuntimeError(f'wake-up reference receiver did not start (said {line!r})')
+        port = int(line)
         sender = threading.Thread(target=_send_datagrams, args=(port, stop), daemon=True)
         sender.start()
         time.sleep(min(settle_s, 2.0))
@@ -129,7 +131,6 @@ def wakeup_reference(settle_s: float, window_s: float) -> float:
 def _send_datagrams(port: int, stop: threading.Event) -> None:
     """Send an ATTITUDE_QUATERNION (MAVLink 2) REFERENCE_WAKEUPS_HZ times a second."""
     import socket
-    os.environ['MAVLINK20'] = '1'
     from pymavlink.dialects.v20 import common as mavlink
     enc = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
     frame = enc.attitude_quaternion_encode(1, 1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3).pack(enc)
@@ -214,7 +215,7 @@ def main(argv: list | None = None) -> int:
     ref = statistics.median(results['wake-up reference'])
     print(f'wake-up reference: {REFERENCE_WAKEUPS_HZ:g} wake-ups/s of a bare Python reader cost '
           f'{ref:.2f} % here, {ref / 100.0 / REFERENCE_WAKEUPS_HZ * 1e6:.0f} us each '
-          '(compare idle figures of different days only with it)')
+          '(compare idle figures of different hours only with it)')
     return 0
 
 

@@ -247,8 +247,8 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
         settled = time.monotonic() - moving_at >= REPOSITION_STILL_S
         if not there and since_move > REPOSITION_WAIT_S \
                 and (settled or since_move > REPOSITION_MAX_WAIT_S):
-            # each correction in the run's output: a start hold that does not converge (2 of
-            # 5 runs on 2026-11-27 evening stayed 0.65-1.07 m low) is read from these lines
+            # each correction in the run's output, so that a start hold that does not converge
+            # can be read from it (docs/px4_sih.md)
             print(f'start hold: reposition {info["repositions"] + 1} by '
                   f'{np.round(err, 2).tolist()} m NED, {yaw_err:+.3f} rad '
                   f'({"settled" if settled else "in motion"}, true '
