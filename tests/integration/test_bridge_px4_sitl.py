@@ -49,6 +49,7 @@ from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge  # noqa
 from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
 from ibvs_control.core.mavlink_sequencer import px4_main_mode  # noqa: E402
 from ibvs_bringup.px4_sih import renice_threads, SITL_NICE  # noqa: E402
+from ibvs_sim.core.autopilot import AutopilotConfig  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 SHARED = REPO.parent / 'shared'
@@ -718,6 +719,9 @@ def test_px4_imu_and_clock_sync_on_the_system_clock(px4):
     said = [t for _, t in run.events if 'offboard loss' in t or 'dead-bridge' in t]
     print(f'PX4 offboard-loss parameters {run.bridge.params.dead_bridge_params}: {said}')
     assert run.bridge.params.dead_bridge_params == {'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 0.0}
+    # the sim's PX4-like autopilot fails safe after the same offboard loss as the real one
+    assert AutopilotConfig().offboard_timeout_s == run.bridge.params.dead_bridge_params[
+        'COM_OF_LOSS_T']
     assert run.bridge.params.dead_bridge_failsafe is False
     assert len(said) == 1 and 'COM_OBL_RC_ACT = 0 (Position mode)' in said[0], said
 

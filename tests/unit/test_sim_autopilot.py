@@ -772,10 +772,10 @@ def test_offboard_loss_lands_and_needs_an_explicit_switch_back(rig):
     assert rig.ap.awaits_setpoints                      # before any engagement: the graph's
     go_offboard(rig)
     rig.send_setpoint(int(rig.t * 1000), q=(np.cos(0.15), 0.0, np.sin(0.15), 0.0), thrust=0.8)
-    for _ in range(200):                 # 0.4 s without setpoints: still offboard
+    for _ in range(450):                 # 0.9 s without setpoints: still offboard
         rig.poll(0.002)
     assert rig.ap.mode.name == 'OFFBOARD'
-    for _ in range(60):                  # past 0.5 s
+    for _ in range(60):                  # past COM_OF_LOSS_T (1 s)
         rig.poll(0.002)
     assert rig.ap.mode.name == 'AUTO_LAND'
     assert not rig.ap.awaits_setpoints                  # lockstep no longer waits for them
@@ -804,7 +804,7 @@ def test_failsafe_keeps_yaw():
     try:
         r.poll()
         go_offboard(r)
-        for _ in range(300):
+        for _ in range(550):             # 1.1 s without setpoints: the failsafe
             r.poll(0.002)
         ref = r.ap.attitude_reference(r.state())
         q_level_yaw = np.array([np.cos(0.6), 0.0, 0.0, np.sin(0.6)])

@@ -89,18 +89,18 @@ def test_offboard_needs_half_a_second_of_stream_then_is_accepted():
 def test_a_gap_longer_than_the_timeout_restarts_the_stream():
     p = Parts()
     p.stream(0.0, 1.0)
-    p.wall.now += 0.6
-    p.stream(1.6, 1.8)                         # 0.6 s gap > 0.5 s: a new stream from 1.6 s
-    assert not p.setpoints.healthy(1.8)
-    p.stream(1.82, 2.1)
-    assert p.setpoints.healthy(2.1)
+    p.wall.now += 1.1
+    p.stream(2.1, 2.3)                         # 1.1 s gap > 1 s: a new stream from 2.1 s
+    assert not p.setpoints.healthy(2.3)
+    p.stream(2.32, 2.6)
+    assert p.setpoints.healthy(2.6)
 
 
 def test_stream_loss_on_sim_time_and_on_the_wall_clock():
     p = Parts()
     p.stream(0.0, 1.0)
-    assert p.setpoints.lost(1.5) == (False, False)                  # exactly 0.5 s: not lost
-    assert p.setpoints.lost(1.51) == (True, False)
+    assert p.setpoints.lost(2.0) == (False, False)                  # exactly 1 s: not lost
+    assert p.setpoints.lost(2.01) == (True, False)
     p.wall.now += 2.01                                              # sim time stalled
     assert p.setpoints.lost(1.0) == (False, True)
     assert OffboardSetpoints(p.config, p.counters, RateLimitedLog(5.0, p.wall),
@@ -111,16 +111,16 @@ def test_offboard_loss_enters_the_land_failsafe_once_and_it_stays():
     p = Parts()
     p.stream(0.0, 1.0)
     assert p.modes.request_offboard(state(1.0))
-    assert not p.modes.check_offboard_loss(state(1.4))
-    assert p.modes.check_offboard_loss(state(1.6))
+    assert not p.modes.check_offboard_loss(state(1.9))              # COM_OF_LOSS_T 1 s
+    assert p.modes.check_offboard_loss(state(2.1))
     assert (p.modes.mode, p.modes.failsafe_active) == (FlightMode.AUTO_LAND, True)
     assert p.counters.failsafe_events == 1
-    assert not p.modes.check_offboard_loss(state(1.7))              # not in OFFBOARD any more
-    p.wall.now += 0.6
-    p.stream(1.7, 1.9)                                              # setpoints come back
+    assert not p.modes.check_offboard_loss(state(2.2))              # not in OFFBOARD any more
+    p.wall.now += 1.2
+    p.stream(2.2, 2.4)                                              # setpoints come back
     assert p.modes.mode is FlightMode.AUTO_LAND                     # the failsafe stays
-    p.stream(1.92, 2.3)
-    assert p.modes.request_offboard(state(2.3))
+    p.stream(2.42, 2.8)
+    assert p.modes.request_offboard(state(2.8))
     assert (p.modes.mode, p.modes.failsafe_active) == (FlightMode.OFFBOARD, False)
 
 

@@ -36,7 +36,7 @@ class AutopilotConfig:
     hover_thrust: float = 0.5
     system_id: int = 1
     component_id: int = MAV_COMP_ID_AUTOPILOT1
-    offboard_timeout_s: float = 0.5         # PX4 COM_OF_LOSS_T; sim time
+    offboard_timeout_s: float = 1.0         # PX4 COM_OF_LOSS_T (v1.16 default); sim time
     offboard_timeout_wall_s: float = 2.0    # wall-clock bound on the same loss (lockstep stall)
     offboard_stream_min_s: float = 0.5      # setpoints needed this long before OFFBOARD
     signing_key_file: str | None = None
