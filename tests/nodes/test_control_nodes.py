@@ -211,6 +211,8 @@ def test_supervisor_whole_mode_sequence_on_sim_time(ctx):
     for _ in range(10):
         step(front_flow=np.zeros(3))
     assert call(executor, feed.node, 'ibvs/start').success
+    assert feed.modes[-1:] == [0]          # applied at the next frame, not between frames
+    step(front_flow=np.zeros(3))
     assert spin_until(executor, lambda: feed.modes[-1:] == [1], 2.0)
     while d_wall() > 0.75:                 # mode 1: approach, the window fully visible
         xi = xi + [v * dt, 0, 0]
@@ -265,6 +267,7 @@ def test_supervisor_after_a_clock_step_back_idle_goes_on_and_flight_fails_safe(c
         step()
     assert [mode_from_status(m)[0] for m in feed.statuses] == fed and feed.modes == [0]
     assert call(executor, feed.node, 'ibvs/start').success
+    step()                                           # the start is applied at a frame
     assert spin_until(executor, lambda: feed.modes[-1:] == [1], 2.0)
     for _ in range(5):
         step()
@@ -291,7 +294,9 @@ def test_supervisor_stale_input_failsafe_and_abort(ctx):
         feed.frame(sup.get_clock().now().nanoseconds * 1e-9, xi, front_flow=np.zeros(3))
         spin_for(executor, 0.02)
     assert call(executor, feed.node, 'ibvs/start').success
-    # inputs stop: the IMU goes stale after 0.2 s -> FAILSAFE (5), logged with its reason
+    feed.frame(sup.get_clock().now().nanoseconds * 1e-9, xi, front_flow=np.zeros(3))
+    # the start at that frame; then inputs stop: the IMU goes stale after 0.2 s -> FAILSAFE
+    # (5), logged with its reason
     assert spin_until(executor, lambda: feed.modes[-1:] == [5], 3.0)
     assert feed.modes == [0, 1, 5]
     # a transition without a frame still gets a status (stamped now): the controller answers

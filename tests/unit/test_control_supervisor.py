@@ -201,6 +201,52 @@ def test_auto_start_at_the_first_frame_at_or_after_its_time_and_only_once():
     assert sup.mode == Mode.FAILSAFE               # never started again by itself
 
 
+def test_a_start_request_is_checked_at_once_and_applied_at_the_next_frame():
+    """ibvs/start between frames: the mode changes at the next frame closed, not between.
+
+    So that frame's status announces WINDOW before any WINDOW frame needs the front flow,
+    which the perception's mode gating computes only once a status says so.
+    """
+    sup = ModeSupervisor(SupervisorConfig(r_w=WORLD.window.width))
+    xi = np.array([-2.0, 0.0, -1.6])
+    ok, msg = sup.request_start(0.0)
+    assert not ok and 'IMU' in msg                       # the checks of start(), at once
+    sup.on_imu(0.0, R)
+    sup.on_window(0.0, bearings(CORNERS, xi))
+    assert sup.end_frame(0.0) == [] and sup.mode == Mode.IDLE
+    ok, msg = sup.request_start(0.01)                    # between the frames 0.00 and 0.02
+    assert ok and 'next frame' in msg and sup.mode == Mode.IDLE and sup.transitions == []
+    sup.on_imu(0.02, R)
+    sup.on_window(0.02, bearings(CORNERS, xi))
+    (tr,) = sup.end_frame(0.02)
+    assert (tr.to_mode, tr.t, tr.reason) == (Mode.WINDOW, 0.02, 'ibvs/start, window detected')
+    assert sup.request_start(0.03) == (False, 'cannot start from mode WINDOW')
+
+
+def test_a_start_request_lapses_without_a_frame_on_abort_and_when_checks_fail():
+    xi = np.array([-2.0, 0.0, -1.6])
+
+    def ready():
+        sup = ModeSupervisor(SupervisorConfig(r_w=WORLD.window.width, window_timeout_s=0.5))
+        sup.on_imu(0.0, R)
+        sup.on_window(0.0, bearings(CORNERS, xi))
+        assert sup.request_start(0.0)[0]
+        return sup
+
+    sup = ready()                                        # frames stopped for 1 s
+    sup.on_imu(1.0, R)
+    sup.on_window(1.0, bearings(CORNERS, xi))
+    assert sup.end_frame(1.0) == [] and sup.mode == Mode.IDLE
+    assert 'no frame within 0.5 s' in sup.start_refusal
+    assert sup.end_frame(1.02) == [] and sup.start_refusal == ''   # applied once, or never
+    sup = ready()
+    sup.abort(0.01)
+    assert sup.mode == Mode.FAILSAFE and sup.end_frame(0.02) == []
+    sup = ready()                                        # the IMU stale by the next frame
+    assert sup.end_frame(0.3) == [] and sup.mode == Mode.IDLE     # imu_timeout_s 0.2 s
+    assert 'IMU' in sup.start_refusal
+
+
 def test_auto_start_is_off_by_default_and_needs_a_finite_time():
     sup = ModeSupervisor(SupervisorConfig())
     sup.on_imu(5.0, R)

@@ -28,7 +28,8 @@ Publishes ``ibvs/mode`` (std_msgs/UInt8, reliable, transient local, depth 1) at 
 every transition (each logged with its reason), and ``ibvs/supervisor_status``
 (diagnostic_msgs/DiagnosticArray, reliable) for every evaluated frame, stamped with it: the
 force controller flies that frame in that mode. Serves ``ibvs/start`` and ``ibvs/abort``
-(std_srvs/Trigger, success + message from the core).
+(std_srvs/Trigger, success + message from the core); an accepted start is applied when the
+next frame is closed (``ModeSupervisor.request_start``), an abort at once.
 
 ``pad/groups`` (sensor_msgs/JointState, the group names) is paired with the ``pad/landmarks``
 of the same stamp (PadPairing): the two topics are not ordered with respect to each other.
@@ -274,6 +275,8 @@ class ModeSupervisorNode(Node):
         self._core.end_frame(t)
         if self._core.auto_start_refusal:
             self._error(f'auto-start refused: {self._core.auto_start_refusal}')
+        if self._core.start_refusal:
+            self._error(f'ibvs/start dropped: {self._core.start_refusal}')
         self._publish_mode()
         self._publish_status(frame.stamp_ns)
         for kind, value in extras:
@@ -290,9 +293,8 @@ class ModeSupervisorNode(Node):
     # --- services and timer ----------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
-        response.success, response.message = self._core.start(self._now())
+        response.success, response.message = self._core.request_start(self._now())
         self.get_logger().info(f'ibvs/start: {response.message}')
-        self._publish_mode()
         return response
 
     def _on_abort(self, request: Trigger.Request, response: Trigger.Response

@@ -28,6 +28,11 @@ fixed order, once the frame's inputs are in) and closes the frame with :meth:`en
 that a transition happens at the frame whose inputs caused it, whatever their arrival order.
 ``auto_start_at_s`` >= 0 makes the supervisor start by itself at the first frame at or after
 that time (repeatable simulation runs; on a vehicle ``ibvs/start`` starts it).
+``ibvs/start`` (:meth:`request_start`) also starts at a frame: the request is checked at once
+and applied when the next frame is closed, whose status then announces WINDOW. Switched
+between frames instead, the first WINDOW frame's front flow would be held back by the
+perception's mode gating until that frame's own status, which waits for it: the frame went
+without its flow at its deadline (onboard) and stalled a lockstep sim (docs/bringup.md).
 """
 from __future__ import annotations
 
@@ -161,21 +166,45 @@ class ModeSupervisor:
         self._height_est: float | None = None
         self._t_below_shutdown: float | None = None     # first frame of the current run below
         self.auto_start_refusal = ''                    # why the last auto-start was refused
+        self.start_refusal = ''                         # why the last start request was dropped
+        self._start_requested_at: float | None = None   # t of an accepted ibvs/start request
 
     # --- commands ---------------------------------------------------------------------------
     def start(self, t: float, reason: str = 'start requested') -> tuple[bool, str]:
         """Leave IDLE for WINDOW if the window and the IMU are fresh."""
         if self.mode != Mode.IDLE:
             return False, f'cannot start from mode {self.mode.name}'
+        ok, message = self._start_checks(t)
+        if not ok:
+            return False, message
+        self._switch(t, Mode.WINDOW, f'{reason}, window detected')
+        return True, 'started: window approach (mode 1)'
+
+    def _start_checks(self, t: float) -> tuple[bool, str]:
         if not self._fresh('imu', t, self.config.imu_timeout_s):
             return False, 'IMU attitude is stale or missing'
         if self._corners is None or not self._fresh('window', t, self.config.window_timeout_s):
             return False, 'the full window is not detected'
-        self._switch(t, Mode.WINDOW, f'{reason}, window detected')
-        return True, 'started: window approach (mode 1)'
+        return True, ''
+
+    def request_start(self, t: float) -> tuple[bool, str]:
+        """Accept a start (``ibvs/start``) for the next frame if :meth:`start` would now.
+
+        The checks of :meth:`start` are made at ``t`` and again when :meth:`end_frame` applies
+        the request; it lapses if that frame's stamp is more than ``window_timeout_s`` after
+        ``t`` (frames stopped meanwhile), on :meth:`abort` and on a clock step.
+        """
+        if self.mode != Mode.IDLE:
+            return False, f'cannot start from mode {self.mode.name}'
+        ok, message = self._start_checks(t)
+        if not ok:
+            return False, message
+        self._start_requested_at = t
+        return True, 'start accepted: window approach (mode 1) from the next frame'
 
     def abort(self, t: float, reason: str = 'abort requested') -> tuple[bool, str]:
         """Go to FAILSAFE from any mode except SHUTDOWN (already landing the motors)."""
+        self._start_requested_at = None
         if self.mode in (Mode.FAILSAFE, Mode.SHUTDOWN):
             return False, f'already in {self.mode.name}'
         self._switch(t, Mode.FAILSAFE, reason)
@@ -192,6 +221,7 @@ class ModeSupervisor:
         self._last.clear()
         self._t_flow_down = None
         self._t_below_shutdown = None
+        self._start_requested_at = None
         if self.mode not in FLYING_MODES:
             return []
         return [self._switch(t, Mode.FAILSAFE, f'the clock went back by {back_s:.3f} s (a step '
@@ -286,10 +316,22 @@ class ModeSupervisor:
         """Close the frame of stamp t (its inputs were given): auto-start, then :meth:`update`.
 
         The auto-start is tried at each frame from ``auto_start_at_s`` on until it is accepted
-        (``auto_start_refusal`` says why it was not), never again after.
+        (``auto_start_refusal`` says why it was not), never again after. An accepted
+        :meth:`request_start` is applied here, once (``start_refusal`` says why it lapsed).
         """
         done = []
-        self.auto_start_refusal = ''
+        self.auto_start_refusal = self.start_refusal = ''
+        requested, self._start_requested_at = self._start_requested_at, None
+        if requested is not None and self.mode == Mode.IDLE:
+            if t - requested > self.config.window_timeout_s:
+                self.start_refusal = (f'no frame within {self.config.window_timeout_s:g} s of '
+                                      'the request')
+            else:
+                ok, message = self.start(t, 'ibvs/start')
+                if ok:
+                    done.append(self.transitions[-1])
+                else:
+                    self.start_refusal = message
         start_at = self.config.auto_start_at_s
         if 0.0 <= start_at <= t and self.mode == Mode.IDLE and not self.transitions:
             ok, message = self.start(t, f'auto-start at {start_at:g} s')
