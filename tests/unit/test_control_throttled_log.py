@@ -1,5 +1,5 @@
 """ThrottledLog: one message per call site per period, decided before rclpy is called."""
-from ibvs_common.throttled_log import ThrottledLog
+from ibvs_common.throttled_log import message_kind, ThrottledLog
 
 
 class FakeLogger:
@@ -67,3 +67,36 @@ def test_different_texts_from_one_call_site_share_its_throttle_as_in_rclpy():
     clock.t += 1.0
     report('third')
     assert [text for _, text in logger.lines] == ['first', 'third']
+
+
+def test_a_key_throttles_by_kind_instead_of_by_call_site():
+    log, logger, clock = make()
+    texts = ['setpoint source none -> level_hover', 'PX4 offboard loss: COM_OBL_RC_ACT = 0',
+             'imu/data: 3 sample(s) dropped (40 in all)',
+             'imu/data: 5 sample(s) dropped (45 in all)']
+    for text in texts:                       # one call site, as the bridge's event relay
+        log.warning(text, 2.0, key=message_kind(text))
+    # the one-off warning is not held back by the one before it; the two counts are one kind
+    assert [t for _, t in logger.lines] == texts[:3]
+    clock.t += 2.0
+    assert log.warning(texts[3], 2.0, key=message_kind(texts[3]))
+
+
+def test_message_kind_replaces_numbers_only():
+    assert message_kind('x 1.5e-3 s, -2 m, +7 (v1.16)') == 'x # s, # m, # (v#)'
+    assert message_kind('no numbers') == 'no numbers'
+
+
+def test_the_bridge_relays_each_kind_of_event_under_its_own_throttle():
+    """Two different warnings in one batch both go out (one call site relays them all)."""
+    from types import SimpleNamespace
+    from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
+    logger, clock = FakeLogger(), FakeClock()
+    events = [('warn', 'setpoint source none -> level_hover'),
+              ('warn', 'PX4 offboard loss: COM_OBL_RC_ACT = 0 (Position mode)'),
+              ('warn', 'setpoint source none -> level_hover')]
+    bridge = SimpleNamespace(pop_heading_warning=lambda: '', pop_events=lambda: events)
+    node = SimpleNamespace(get_logger=lambda: logger, _bridge=bridge,
+                           log=ThrottledLog(logger, clock))
+    MavlinkBridgeNode._log_events(node)
+    assert logger.lines == [('warning', events[0][1]), ('warning', events[1][1])]

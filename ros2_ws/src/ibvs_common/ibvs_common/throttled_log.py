@@ -11,9 +11,21 @@ line (``sys._getframe``) and calls the rclpy logger only for the messages that g
 """
 from __future__ import annotations
 
+import re
 import sys
 import time
-from typing import Callable
+from typing import Callable, Hashable
+
+_NUMBER = re.compile(r'[-+]?\d+(\.\d+)?([eE][-+]?\d+)?')
+
+
+def message_kind(text: str) -> str:
+    """Return ``text`` with its numbers replaced by ``#``: a key for messages of one kind.
+
+    'imu/data: 3 sample(s) dropped (40 in all)' and '... 5 ... (45 in all)' are one kind and
+    share a throttle; a message of another text is never held back by them.
+    """
+    return _NUMBER.sub('#', text)
 
 
 class ThrottledLog:
@@ -21,7 +33,9 @@ class ThrottledLog:
 
     ``log.error(text, period_s)``: logs ``text`` unless this call site logged less than
     ``period_s`` seconds ago (monotonic clock, so it also throttles while a lockstep sim's
-    ROS clock stands still). Returns True when the message went out.
+    ROS clock stands still). Returns True when the message went out. ``key``: throttle by it
+    instead of the call site, for one call site that relays messages of many kinds (the
+    MAVLink bridge's events: :func:`message_kind`).
     """
 
     def __init__(self, logger, clock: Callable[[], float] = time.monotonic) -> None:
@@ -29,9 +43,10 @@ class ThrottledLog:
         self._clock = clock
         self._last_s: dict[tuple, float] = {}
 
-    def _due(self, period_s: float) -> bool:
-        caller = sys._getframe(2)           # 0: _due, 1: info/warning/error, 2: the call site
-        key = (caller.f_code, caller.f_lineno)
+    def _due(self, period_s: float, key: Hashable | None) -> bool:
+        if key is None:
+            caller = sys._getframe(2)       # 0: _due, 1: info/warning/error, 2: the call site
+            key = (caller.f_code, caller.f_lineno)
         now = self._clock()
         last = self._last_s.get(key)
         if last is not None and now - last < period_s:
@@ -39,14 +54,14 @@ class ThrottledLog:
         self._last_s[key] = now
         return True
 
-    def info(self, text: str, period_s: float) -> bool:
-        """Log ``text`` at INFO unless this call site logged within ``period_s``."""
-        return self._due(period_s) and self._logger.info(text) is not False
+    def info(self, text: str, period_s: float, key: Hashable | None = None) -> bool:
+        """Log ``text`` at INFO unless this call site (or ``key``) logged within ``period_s``."""
+        return self._due(period_s, key) and self._logger.info(text) is not False
 
-    def warning(self, text: str, period_s: float) -> bool:
-        """Log ``text`` at WARN unless this call site logged within ``period_s``."""
-        return self._due(period_s) and self._logger.warning(text) is not False
+    def warning(self, text: str, period_s: float, key: Hashable | None = None) -> bool:
+        """Log ``text`` at WARN unless this call site (or ``key``) logged within ``period_s``."""
+        return self._due(period_s, key) and self._logger.warning(text) is not False
 
-    def error(self, text: str, period_s: float) -> bool:
-        """Log ``text`` at ERROR unless this call site logged within ``period_s``."""
-        return self._due(period_s) and self._logger.error(text) is not False
+    def error(self, text: str, period_s: float, key: Hashable | None = None) -> bool:
+        """Log ``text`` at ERROR unless this call site (or ``key``) logged within ``period_s``."""
+        return self._due(period_s, key) and self._logger.error(text) is not False

@@ -49,7 +49,7 @@ from ibvs_common.node_common import (
     set_vector3, stamp_to_ns, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
-from ibvs_common.throttled_log import ThrottledLog
+from ibvs_common.throttled_log import message_kind, ThrottledLog
 
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
 # PX4's onboard-link defaults that the bridge never reads (~300 of its ~400 messages/s,
@@ -531,10 +531,12 @@ class MavlinkBridgeNode(Node):
         if heading_warning:     # own call site: its throttle is not shared with the events'
             self.log.warning(heading_warning, LOG_THROTTLE_S)
         for level, text in self._bridge.pop_events():
+            # throttled per kind of message, not per this call site: a one-off warning (PX4's
+            # offboard-loss set-up) must not be held back by an unrelated one just before it
             if level == 'error':
-                self.log.error(text, LOG_THROTTLE_S)
+                self.log.error(text, LOG_THROTTLE_S, key=message_kind(text))
             elif level == 'warn':
-                self.log.warning(text, LOG_THROTTLE_S)
+                self.log.warning(text, LOG_THROTTLE_S, key=message_kind(text))
             elif level == 'reason-error':          # the autopilot's words: each one logged
                 log.error(text)                    # (the core repeats a text once per 5 s)
             elif level == 'reason-warn':
