@@ -75,18 +75,14 @@ def cpu_seconds(pid: int) -> float:
 
 
 def stand_in(url: str, stop: threading.Event) -> None:
-    """Serve the sim's PX4-like autopilot, level and still, on the wall clock (a thread)."""
-    import numpy as np
-    from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig, VehicleStateView
-    ap = Autopilot(AutopilotConfig(url=url, telemetry_default_hz=STAND_IN_RATE_HZ))
-    t0 = time.monotonic()
+    """Serve the sim's PX4-like autopilot, level and still, on the wall clock until ``stop``."""
+    from ibvs_sim.core.autopilot import AutopilotConfig
+    from ibvs_sim.core.autopilot.stand_in import HoverStandIn
+    served = HoverStandIn(AutopilotConfig(url=url, telemetry_default_hz=STAND_IN_RATE_HZ))
     try:
-        while not stop.is_set():
-            time.sleep(0.002)
-            ap.poll(VehicleStateView(time.monotonic() - t0, np.zeros(3), np.zeros(3), np.eye(3),
-                                     np.zeros(3), np.array([0.0, 0.0, -9.81])))
+        stop.wait()
     finally:
-        ap.close()
+        served.close()
 
 
 def measure(url: str | None, extra: list, settle_s: float, window_s: float) -> float:

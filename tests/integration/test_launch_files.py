@@ -29,7 +29,6 @@ from pathlib import Path
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
@@ -102,35 +101,12 @@ def _wait(condition, timeout_s: float, what: str, log: Path) -> None:
         time.sleep(0.2)
 
 
-class StandIn:
-    """The sim's PX4-like autopilot on UDP (wall clock), level and still, in a thread."""
-
-    def __init__(self) -> None:
-        from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
-        self.ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0'))
-        self.port = self.ap.local_port
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        from ibvs_sim.core.autopilot import VehicleStateView
-        t0 = time.monotonic()
-        while not self._stop.is_set():
-            time.sleep(0.002)
-            self.ap.poll(VehicleStateView(time.monotonic() - t0, np.zeros(3), np.zeros(3),
-                                          np.eye(3), np.zeros(3), np.array([0.0, 0.0, -9.81])))
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5.0)
-        self.ap.close()
-
-
 def test_onboard_launch_respawns_a_dead_perception_node_and_dies_with_its_launch(tmp_path):
-    autopilot = StandIn()
+    from ibvs_sim.core.autopilot import AutopilotConfig
+    from ibvs_sim.core.autopilot.stand_in import HoverStandIn
+    autopilot = HoverStandIn(AutopilotConfig(url='udpin:127.0.0.1:0'))
     log = tmp_path / 'launch.log'
-    proc = _launch('onboard.launch.py', [f'mavlink_url:=udpout:127.0.0.1:{autopilot.port}',
+    proc = _launch('onboard.launch.py', [f'mavlink_url:=udpout:127.0.0.1:{autopilot.local_port}',
                                          'layout:=processes'], log)
     try:
         _wait(lambda: len(_children(proc.pid)) == ONBOARD_NODES

@@ -172,8 +172,6 @@ class ModeSupervisor:
     # --- commands ---------------------------------------------------------------------------
     def start(self, t: float, reason: str = 'start requested') -> tuple[bool, str]:
         """Leave IDLE for WINDOW if the window and the IMU are fresh."""
-        if self.mode != Mode.IDLE:
-            return False, f'cannot start from mode {self.mode.name}'
         ok, message = self._start_checks(t)
         if not ok:
             return False, message
@@ -181,6 +179,8 @@ class ModeSupervisor:
         return True, 'started: window approach (mode 1)'
 
     def _start_checks(self, t: float) -> tuple[bool, str]:
+        if self.mode != Mode.IDLE:
+            return False, f'cannot start from mode {self.mode.name}'
         if not self._fresh('imu', t, self.config.imu_timeout_s):
             return False, 'IMU attitude is stale or missing'
         if self._corners is None or not self._fresh('window', t, self.config.window_timeout_s):
@@ -194,8 +194,6 @@ class ModeSupervisor:
         the request; it lapses if that frame's stamp is more than ``window_timeout_s`` after
         ``t`` (frames stopped meanwhile), on :meth:`abort` and on a clock step.
         """
-        if self.mode != Mode.IDLE:
-            return False, f'cannot start from mode {self.mode.name}'
         ok, message = self._start_checks(t)
         if not ok:
             return False, message
@@ -327,19 +325,20 @@ class ModeSupervisor:
                 self.start_refusal = (f'no frame within {self.config.window_timeout_s:g} s of '
                                       'the request')
             else:
-                ok, message = self.start(t, 'ibvs/start')
-                if ok:
-                    done.append(self.transitions[-1])
-                else:
-                    self.start_refusal = message
+                self.start_refusal = self._start_at_frame(t, 'ibvs/start', done)
         start_at = self.config.auto_start_at_s
         if 0.0 <= start_at <= t and self.mode == Mode.IDLE and not self.transitions:
-            ok, message = self.start(t, f'auto-start at {start_at:g} s')
-            if ok:
-                done.append(self.transitions[-1])
-            else:
-                self.auto_start_refusal = message
+            self.auto_start_refusal = self._start_at_frame(t, f'auto-start at {start_at:g} s',
+                                                           done)
         return done + self.update(t)
+
+    def _start_at_frame(self, t: float, reason: str, done: list) -> str:
+        """:meth:`start` at the frame t; its transition appended to ``done``, or the refusal."""
+        ok, message = self.start(t, reason)
+        if ok:
+            done.append(self.transitions[-1])
+            return ''
+        return message
 
     def update(self, t: float, apply_requests: bool = True) -> list[Transition]:
         """Apply requested transitions, then the staleness rules; return what changed.

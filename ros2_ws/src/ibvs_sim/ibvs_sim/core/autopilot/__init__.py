@@ -37,7 +37,9 @@ One concern per module (details, and how it differs from real PX4, in docs/sim_a
   ATTITUDE_QUATERNION and HIGHRES_IMU (50 Hz by default, paced in sim time, noisy),
   ATTITUDE_TARGET (the reference's thrust, 50 Hz), EXTENDED_SYS_STATE (landed state) and
   SYS_STATUS (pre-arm check passed) at 5 Hz, HEARTBEAT at 1 Hz wall time;
-- :mod:`~ibvs_sim.core.autopilot.facade`: :class:`Autopilot`, which composes them.
+- :mod:`~ibvs_sim.core.autopilot.facade`: :class:`Autopilot`, which composes them;
+- :mod:`~ibvs_sim.core.autopilot.stand_in`: :class:`HoverStandIn`, an Autopilot served on the
+  wall clock for a vehicle at rest (benchmarks, tests).
 """
 from ibvs_sim.core.autopilot.config import (AttitudeReference, AutopilotConfig,
                                             AutopilotCounters, VehicleStateView)
