@@ -13,6 +13,7 @@ import sys
 import time
 
 from ibvs_bringup import bag, graph
+from ibvs_common.node_common import LateImuReport
 from ibvs_bringup.ros2run import unavailable_reason
 from ibvs_bringup.run_scenario import random_initial_position
 import numpy as np
@@ -32,6 +33,17 @@ FRAME_S = 0.02               # camera frame period (s): a mode switch may move b
 # bit-identical (CI: 2.1e-5 m, 3.7e-5 m, 2.3e-3 m/s, 6.5e-4 m, 4.2e-3 m)
 REPEAT_TOLERANCE = {'clearance_m': 5e-4, 'landing_error_m': 1e-3, 'touchdown_speed_mps': 0.02,
                     'crossing_offset_y_m': 0.01, 'crossing_offset_z_m': 0.02}
+# ... and when a node reported an imu/data sample that came after an image that needed it
+# (LateImuReport; the sim holds each frame's images until its own subscription has the IMU
+# sample of their stamp, but a bridge preempted between its DDS readers can deliver that
+# sample to another node after the images). One such sample, made late on purpose at the front
+# flow at t = 2.5 s (2026-11-27/28): clearance +0.65 mm, landing error -0.5 mm; its attitude
+# propagated at every query of that node and stamp: clearance +1.6 mm, crossing z +0.9 mm,
+# landing -0.8 mm, LANDING one frame and SHUTDOWN two frames earlier. The CI run of
+# 2026-11-27 that failed the tolerance above: clearance +0.84 mm, crossing z +7.8 mm.
+LATE_IMU_TOLERANCE = {'clearance_m': 5e-3, 'landing_error_m': 5e-3, 'touchdown_speed_mps': 0.02,
+                      'crossing_offset_y_m': 0.02, 'crossing_offset_z_m': 0.03}
+LATE_IMU_FRAMES = 5          # mode switches within this many frames then
 # A frame the replay left out (or the recorder lost) moves the tracked corners of the frames
 # after it by up to 0.116 px, and the difference does not decay to zero (measured; bounded by
 # 0.25 px in test_a_dropped_frame_moves_the_track_by_a_bounded_sub_pixel_amount). CI once
@@ -117,6 +129,7 @@ def run_scenario(root, name: str, *args, timeout: float = RUN_TIMEOUT_S) -> dict
     summary['_wall_s'] = time.monotonic() - t0
     summary['_output'] = out
     summary['_log_warnings'] = _log_warnings(root / name / 'logs')
+    summary['_late_imu'] = _late_imu(root / name / 'logs')
     print(f"{name}: {summary['_wall_s']:.0f} s wall, success={summary['success']}")
     return summary
 
@@ -131,6 +144,13 @@ def _log_warnings(logs, per_node: int = 6) -> str:
             out.append(f'--- {path.stem}: {len(lines)} warning/error line(s), last:')
             out += lines[-per_node:]
     return '\n'.join(out)
+
+
+def _late_imu(logs) -> list:
+    """Every node's warnings about imu/data samples that came after their image."""
+    return [f'{path.stem}: {ln[:240]}' for path in sorted(logs.glob('*.log'))
+            for ln in path.read_text(errors='replace').splitlines()
+            if LateImuReport.TEXT in ln] if logs.is_dir() else []
 
 
 def assert_success(summary: dict) -> None:
@@ -222,12 +242,12 @@ def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path)
     the pad is not made in WINDOW: mode gating) and a frame's
     evaluation uses only the products its mode needs (timing.FrameAssembler), so the runs are
     bit-identical here (measured: plain, bag-recording, this run, and this run beside three
-    CPU hogs). One CI run, beside the SITL flights on the other worker, differed by 2e-5 m
-    (clearance) and 4e-3 m (crossing offset z), cause not found: the suspects are the order
-    in which two processes' messages reach a node (an IMU sample and the image of the same
-    stamp: interpolated vs gyro-propagated attitude). So the same mode sequence, mode
-    switches within one frame and the figures within REPEAT_TOLERANCE are required, and
-    whether the runs were bit-identical is printed.
+    CPU hogs). Two CI runs, beside the SITL flights on the other worker, differed: by 2e-5 m
+    (clearance) and 4e-3 m (crossing offset z), and by 8.4e-4 m and 7.8e-3 m. The cause that
+    fits (reproduced by holding one IMU sample back at the front flow): a node got an image
+    before the IMU sample of its stamp, which the sim had already seen, and answered it with a
+    gyro-propagated attitude, as a vehicle must. The nodes now report such a sample
+    (LateImuReport), and :func:`assert_repeats` judges the run by it.
     """
     _, first = reference
     second = run_scenario(tmp_path, 'pad-killed', '--kill-node', 'pad_detector',
@@ -272,7 +292,13 @@ def test_the_composed_layout_repeats_the_reference(reference, tmp_path):
 
 
 def assert_repeats(a: dict, b: dict) -> None:
-    """Assert that run b flew run a's flight (REPEAT_TOLERANCE, mode switches within a frame)."""
+    """Assert that run b flew run a's flight (REPEAT_TOLERANCE, mode switches within a frame).
+
+    Lockstep runs repeat bit for bit when every node had the IMU sample of each image stamp
+    before the image. When a node reported one that came later (its attitude there propagated,
+    LateImuReport), the flights may differ by what one such sample does: LATE_IMU_TOLERANCE.
+    Everything is printed before the first assertion (pytest cuts long assertion messages).
+    """
     pairs = {'clearance_m': (a['window']['min_clearance_m'], b['window']['min_clearance_m']),
              'landing_error_m': (a['landing']['error_m'], b['landing']['error_m']),
              'touchdown_speed_mps': (a['landing']['touchdown_speed_mps'],
@@ -281,19 +307,23 @@ def assert_repeats(a: dict, b: dict) -> None:
                           b['window']['crossing_offset_m']):
         pairs[f'crossing_offset_{axis}_m'] = (x, y)
     identical = all(x == y for x, y in pairs.values()) and a['modes'] == b['modes']
+    late = a.get('_late_imu', []) + b.get('_late_imu', [])
+    tolerance, frames = (LATE_IMU_TOLERANCE, LATE_IMU_FRAMES) if late else (REPEAT_TOLERANCE, 1)
     print(f'repeat: bit-identical {identical}; |difference| '
-          + ', '.join(f'{k} {abs(x - y):.2e}' for k, (x, y) in pairs.items()))
+          + ', '.join(f'{k} {abs(x - y):.2e}' for k, (x, y) in pairs.items())
+          + f'\nmodes: {a["modes"]}\n       {b["modes"]}\nlate imu/data samples: '
+          + ('\n'.join(late) if late else 'none'))
     assert_lockstep_clock_sync(b)
     assert_success(b)
     context = (a['modes'], b['modes'], a['timing'], b['timing'], b['_log_warnings'])
     for key, (x, y) in pairs.items():
-        assert abs(x - y) <= REPEAT_TOLERANCE[key], (key, x, y, context)
+        assert abs(x - y) <= tolerance[key], (key, x, y, late, context)
     assert [m['mode'] for m in a['modes']] == [m['mode'] for m in b['modes']], context
     # the transitions; not the first IDLE, whose t_start is the first supervisor status the
     # scenario's monitor heard (volatile QoS): a fresh-clone CI run's monitor matched the
     # composed process only at sim t = 0.12 s, in a flight otherwise bit-identical
     for ma, mb in zip(a['modes'][1:], b['modes'][1:]):
-        assert abs(ma['t_start_s'] - mb['t_start_s']) <= FRAME_S + 1e-9, context
+        assert abs(ma['t_start_s'] - mb['t_start_s']) <= frames * FRAME_S + 1e-9, context
 
 
 def _mode_times(summary: dict) -> dict:

@@ -134,6 +134,62 @@ def test_attitude_at_a_stamp_is_interpolated_or_propagated_never_waited_for():
         buf.add(1.1, np.full((3, 3), np.nan), w)
 
 
+def test_a_sample_that_comes_after_a_propagated_query_of_its_moment_is_counted_late():
+    """An image answered beyond the newest sample, then the sample of its moment: one late."""
+    w = np.array([0.3, -0.2, 0.5])
+    buf = AttitudeBuffer(AttitudeBufferConfig())
+    buf.add(1.00, rot(w * 0.00), w)
+    buf.add(1.01, rot(w * 0.01), w)
+    assert buf.attitude_at(1.005) is not None       # interpolated: no late sample can follow
+    buf.add(1.02, rot(w * 0.02), w)
+    assert buf.late_samples == 0 and buf.last_late is None
+    assert buf.attitude_at(1.03) is not None        # propagated 10 ms beyond 1.02
+    buf.add(1.03, rot(w * 0.03), w)                 # the sample of that image's moment
+    assert buf.late_samples == 1 and buf.last_late == (1.03, 1.03)
+    buf.add(1.04, rot(w * 0.04), w)                 # after it: on time
+    assert buf.late_samples == 1
+    # the derotation's gyro integral beyond the newest sample is a propagation too
+    assert buf.gyro_rotation(1.03, 1.045) is not None
+    buf.add(1.045, rot(w * 0.045), w)
+    assert buf.late_samples == 2 and buf.last_late == (1.045, 1.045)
+    # a clock step back forgets the queries of the old time: samples after it are not late
+    assert buf.attitude_at(1.06) is not None
+    assert buf.add(0.5, rot(w * 0.06), w) is True and buf.late_samples == 2
+
+
+class _Logger:
+    def __init__(self):
+        self.lines = []
+
+    def warning(self, text):
+        self.lines.append(text)
+
+
+def test_late_imu_samples_are_reported_in_one_throttled_warning_with_the_count():
+    from ibvs_common.node_common import LateImuReport
+    from ibvs_common.throttled_log import ThrottledLog
+    w, now = np.zeros(3), [0.0]
+    logger = _Logger()
+    report = LateImuReport(ThrottledLog(logger, clock=lambda: now[0]), 2.0, 'node: ')
+    buf = AttitudeBuffer(AttitudeBufferConfig())
+    buf.add(1.00, np.eye(3), w)
+    report.check(buf)
+    assert logger.lines == []                       # nothing late: nothing said
+    for k in (1, 2, 3):                             # three images answered before their IMU
+        buf.attitude_at(1.00 + 0.01 * k)
+        buf.add(1.00 + 0.01 * k, np.eye(3), w)
+        report.check(buf)
+        now[0] += 0.5
+    assert len(logger.lines) == 1                   # throttled: 2 s
+    assert logger.lines[0].startswith('node: imu/data sample of t = 1.010 s ')
+    assert LateImuReport.TEXT in logger.lines[0] and '1 late sample(s) in all' in logger.lines[0]
+    now[0] += 2.0
+    report.check(buf)                               # still unreported ones: said once more
+    report.check(buf)
+    assert len(logger.lines) == 2 and '3 late sample(s) in all' in logger.lines[1]
+    assert 'image of t = 1.030 s' in logger.lines[1]
+
+
 def test_a_sample_given_by_its_ros_quaternion_is_converted_only_when_read(monkeypatch):
     converted = []
     convert = attitude_buffer.R_IB_from_quat_map_base

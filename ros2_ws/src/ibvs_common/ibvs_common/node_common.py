@@ -1,7 +1,8 @@
 """Message <-> numpy helpers and QoS profiles shared by the nodes of every IBVS package.
 
-Only conversions of message fields (frames.py does the frame conversions, no maths), and
-:class:`DeadlineTimer`, the one-shot ROS-clock timer of the timing layer's frame deadlines.
+Only conversions of message fields (frames.py does the frame conversions, no maths),
+:class:`DeadlineTimer`, the one-shot ROS-clock timer of the timing layer's frame deadlines, and
+:class:`LateImuReport`, the nodes' warning about IMU samples that came after their image.
 """
 from __future__ import annotations
 
@@ -19,6 +20,8 @@ from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
 
 if TYPE_CHECKING:
     from builtin_interfaces.msg import Time
+    from ibvs_common.core.attitude_buffer import AttitudeBuffer
+    from ibvs_common.throttled_log import ThrottledLog
     from geometry_msgs.msg import PolygonStamped, Quaternion, Vector3
 
 MIN_TIMER_NS = 100_000          # a deadline already due fires on the next spin
@@ -113,6 +116,36 @@ class DeadlineTimer:
     def _fire(self) -> None:
         self._cancel()
         self._callback()
+
+
+class LateImuReport:
+    """Warn (throttled) when imu/data samples reach a node after an image that needed them.
+
+    Such an image was answered with an attitude propagated beyond the newest sample (never
+    held back: docs/design.md, "Time"), and the sample of its moment came afterwards
+    (:attr:`AttitudeBuffer.late_samples`). Onboard: the IMU path is slower than the camera's.
+    In a lockstep sim: the run's attitudes depended on delivery order, so it need not repeat
+    another bit for bit (tests/integration/test_bringup_whole_graph.py reads these lines).
+    """
+
+    TEXT = 'came after an image that needed it'     # what the tests look for
+
+    def __init__(self, log: ThrottledLog, period_s: float, prefix: str = '') -> None:
+        self._log, self._period_s, self._prefix = log, float(period_s), prefix
+        self._reported = 0
+
+    def check(self, buffer: AttitudeBuffer) -> None:
+        """Warn if ``buffer`` counted late samples since the last warning that went out."""
+        n = buffer.late_samples
+        if n == self._reported or buffer.last_late is None:
+            return
+        sample_s, image_s = buffer.last_late
+        if self._log.warning(
+                f'{self._prefix}imu/data sample of t = {sample_s:.3f} s {self.TEXT} (image of '
+                f't = {image_s:.3f} s, answered with a propagated attitude: the IMU is later '
+                f'than the camera); {n} late sample(s) in all', self._period_s,
+                key='late_imu'):
+            self._reported = n
 
 
 def polygon_points(msg: PolygonStamped) -> np.ndarray:

@@ -51,8 +51,8 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, mode_from_status, NS_PER_S, ns_to_stamp,
-    SENSOR_QOS, set_quat, set_vector3, vector3)
+    COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, LateImuReport, mode_from_status, NS_PER_S,
+    ns_to_stamp, SENSOR_QOS, set_quat, set_vector3, vector3)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -133,6 +133,7 @@ class ForceControllerNode(Node):
         self._attitudes = AttitudeBuffer(AttitudeBufferConfig(
             float(p['imu_history_s']), float(p['imu_max_extrapolation_s']),
             float(p['imu_max_interpolation_gap_s'])))
+        self._late_imu = LateImuReport(self.log, LOG_THROTTLE_S)
         # a frame = one supervisor status (tag: its mode), waiting for that mode's products
         self._frames = FrameAssembler(float(p['frame_deadline_s']),
                                       lambda mode: MODE_INPUTS[mode].needed)
@@ -169,6 +170,7 @@ class ForceControllerNode(Node):
         except ValueError as exc:
             self.log.error(f'imu/data refused: {exc}', LOG_THROTTLE_S)
             return
+        self._late_imu.check(self._attitudes)
         if stepped:
             self._clock_stepped('imu/data', 'IMU history')
             if self._specific_force is not None:

@@ -60,7 +60,7 @@ from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.frame_products import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, imu_attitude, MODE_QOS, NS_PER_S, SENSOR_QOS,
+    COMMAND_QOS, DeadlineTimer, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S, SENSOR_QOS,
     supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
@@ -124,6 +124,7 @@ class ModeSupervisorNode(Node):
         self._attitudes = AttitudeBuffer(AttitudeBufferConfig(
             float(p['imu_history_s']), float(p['imu_max_extrapolation_s']),
             float(p['imu_max_interpolation_gap_s'])))
+        self._late_imu = LateImuReport(self.log, LOG_THROTTLE_S)
         # frames of the current mode's camera wait for the products that mode needs
         self._frames = FrameAssembler(float(p['frame_deadline_s']), self._needed)
         self._clock_watch = BackstepWatch()    # the node clock, read in every callback
@@ -207,6 +208,7 @@ class ModeSupervisorNode(Node):
         except ValueError as exc:
             self._error(f'imu/data refused: {exc}')
             return
+        self._late_imu.check(self._attitudes)
         self._core.on_imu(stamp_ns / NS_PER_S)
         self._release()
 

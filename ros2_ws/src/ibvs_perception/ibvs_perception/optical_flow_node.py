@@ -48,7 +48,7 @@ from ibvs_perception.frozen_guard import FrozenCameraGuard
 from ibvs_perception.mode_gating import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
-from ibvs_common.node_common import IMAGE_QOS, stamp_to_ns
+from ibvs_common.node_common import IMAGE_QOS, LateImuReport, stamp_to_ns
 from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -104,6 +104,7 @@ class OpticalFlowNode(Node):
             self, InputKind.FLOW_FRONT if self.camera_name == FRONT else InputKind.FLOW_DOWN,
             self.process, f'{self.camera_name}_optical_flow')
         self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
+        self.late_imu = LateImuReport(self.log, THROTTLE_S, 'optical_flow: ')
         self.derotation = GyroDerotation(self.attitudes)
         self.estimator: FlowEstimator | None = None
         self.camera_key: tuple | None = None
@@ -141,6 +142,7 @@ class OpticalFlowNode(Node):
                                  'history dropped', THROTTLE_S)
         except ValueError as exc:
             self.log.error(f'optical_flow: IMU message dropped: {exc}', THROTTLE_S)
+        self.late_imu.check(self.attitudes)
 
     def window_before(self, stamp: float) -> PolygonStamped | None:
         """Return the newest window detection strictly older than ``stamp``, or None."""

@@ -38,7 +38,7 @@ from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8
 from ibvs_common.core.config import ConfigError, load_vehicle, load_window_layout
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
-from ibvs_common.node_common import IMAGE_QOS
+from ibvs_common.node_common import IMAGE_QOS, LateImuReport
 from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
 from ibvs_common.spin import spin_guarded
 from ibvs_common.throttled_log import ThrottledLog
@@ -85,6 +85,7 @@ class WindowDetectorNode(Node):
         values.update(window_width_m=layout.width, window_height_m=layout.height,
                       frame_band_m=layout.frame_band)
         self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
+        self.late_imu = LateImuReport(self.log, THROTTLE_S, 'window_detector: ')
         self.R_IC_prev: np.ndarray | None = None    # camera attitude at the previous image
         self.detector = WindowDetector(WindowDetectorConfig(**values))
         self.frozen = FrozenCameraGuard(self, 'front', 'window_detector')
@@ -111,6 +112,7 @@ class WindowDetectorNode(Node):
                                  'history dropped', THROTTLE_S)
         except ValueError as exc:
             self.log.error(f'window_detector: IMU message dropped: {exc}', THROTTLE_S)
+        self.late_imu.check(self.attitudes)
 
     def camera_rotation(self, stamp_s: float) -> np.ndarray | None:
         """Camera rotation since the previous image (WindowDetector.process), or None."""

@@ -59,6 +59,14 @@ class AttitudeBuffer:
     keeps every 100 Hz imu/data sample, but only the few around an image stamp are ever read
     (docs/performance.md, "Idle CPU").
 
+    Late samples: a query answered by propagation (beyond the newest sample) and a sample
+    stamped at or before that query's stamp arriving afterwards means the IMU reached this
+    node after an image that needed it (the image was answered with a propagated attitude,
+    never held back). :attr:`late_samples` counts them and :attr:`last_late` keeps the
+    newest (sample stamp, query stamp), for the nodes to report: onboard it says the IMU path
+    is slower than the camera's; in a lockstep sim it marks a run whose attitudes depended
+    on delivery order (docs/design.md, "Time").
+
     Samples may come a little out of order (they are sorted in). A sample stamped more than
     :data:`~ibvs_common.core.clock_step.MAX_BACKSTEP_S` before the newest one means the clock
     stepped back (:mod:`ibvs_common.core.clock_step`): the history is dropped first, so that
@@ -71,6 +79,9 @@ class AttitudeBuffer:
     _q: list = field(default_factory=list)       # unit q_map_base of an add_map_base sample
     _omega: list = field(default_factory=list)
     backsteps: BackstepWatch = field(default_factory=BackstepWatch)   # IMU stamps
+    late_samples: int = 0                        # samples at/before a propagated query's stamp
+    last_late: tuple[float, float] | None = None  # (sample stamp, query stamp) of the newest
+    _propagated_through: float | None = None     # newest stamp answered by propagation
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -112,11 +123,15 @@ class AttitudeBuffer:
     def clear(self) -> None:
         """Drop every sample."""
         del self._stamps[:], self._R[:], self._q[:], self._omega[:]
+        self._propagated_through = None
 
     def _insert(self, stamp_s: float, R_IB, q, omega_B: np.ndarray) -> bool:
         stepped = bool(self.backsteps.observe(round(stamp_s * NS_PER_S)))
         if stepped:
             self.clear()
+        if self._propagated_through is not None and stamp_s <= self._propagated_through:
+            self.late_samples += 1
+            self.last_late = (stamp_s, self._propagated_through)
         i = bisect.bisect_right(self._stamps, stamp_s)
         if i > 0 and self._stamps[i - 1] == stamp_s:
             self._R[i - 1], self._q[i - 1], self._omega[i - 1] = R_IB, q, omega_B
@@ -150,6 +165,7 @@ class AttitudeBuffer:
             dt = stamp_s - self._stamps[-1]
             if dt > cfg.max_extrapolation_s:
                 return None
+            self._note_propagated(stamp_s)
             return self._rotation(-1) @ exp_so3(self._omega[-1] * dt)
         if i == 0:
             return None
@@ -170,6 +186,8 @@ class AttitudeBuffer:
         if not self._stamps or not (np.isfinite(t0) and np.isfinite(t1)) or t1 < t0 \
                 or t0 < self._stamps[0] or t1 - self._stamps[-1] > cfg.max_extrapolation_s:
             return None
+        if t1 > self._stamps[-1]:
+            self._note_propagated(t1)
         dR = np.eye(3)
         n = len(self._stamps)
         for k in range(bisect.bisect_right(self._stamps, t0) - 1, n):
@@ -184,3 +202,8 @@ class AttitudeBuffer:
             omega = self._omega[k] if k + 1 == n else 0.5 * (self._omega[k] + self._omega[k + 1])
             dR = dR @ exp_so3(omega * (b - a))
         return dR
+
+    def _note_propagated(self, stamp_s: float) -> None:
+        """Remember that ``stamp_s`` was answered beyond the newest sample (late samples)."""
+        if self._propagated_through is None or stamp_s > self._propagated_through:
+            self._propagated_through = stamp_s
