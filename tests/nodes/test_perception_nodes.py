@@ -23,7 +23,7 @@ from std_msgs.msg import Float32
 from ibvs_common.core import frames
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.modes import Mode
-from ibvs_common.node_common import supervisor_status_msg
+from ibvs_common.node_common import LateImuReport, supervisor_status_msg
 from ibvs_sim.core.world import load_world
 from ibvs_control.core.frame_io import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
@@ -317,6 +317,44 @@ def test_down_optical_flow_node(ctx, renderers):
                       == n_before + 2)
     for msg in got['down_camera/translational_flow'][n_before:]:
         assert is_no_flow([msg.vector.x, msg.vector.y, msg.vector.z])
+
+
+class _Lines:
+    """Stands in for a node's rclpy logger: keeps what was logged."""
+
+    def __init__(self):
+        self.lines = []
+
+    def info(self, text):
+        self.lines.append(('info', text))
+
+    def warning(self, text):
+        self.lines.append(('warning', text))
+
+    def error(self, text):
+        self.lines.append(('error', text))
+
+
+def test_an_imu_sample_that_comes_after_its_image_is_reported_as_late(ctx, renderers):
+    """An image beyond the newest IMU sample is answered at once (propagated attitude); the
+    sample of its moment coming afterwards is warned about, and a sample after it is not."""
+    context, executor, nodes = ctx
+    node, helper, pubs, got = flow_node(context, nodes, 'down')
+    for n in (node, helper):
+        executor.add_node(n)
+    logged = _Lines()
+    node.log._logger = logged
+    pubs['down_camera/camera_info'].publish(info_msg('down'))
+    R = frames.rot_from_euler_zyx(0.05, -0.03, 0.4)
+    send_imu(executor, node, pubs, [(9.99 + 0.01 * k, R) for k in range(5)])   # to 10.03
+    img = renderers['down'].render(R, np.array([0.0, 0.1, -1.2]))
+    pubs['down_camera/image_raw'].publish(image_msg(img, 10.04))
+    assert spin_until(executor, lambda: len(got['down_camera/translational_flow']) >= 1)
+    send_imu(executor, node, pubs, [(10.04, R), (10.05, R)])
+    late = [(level, text) for level, text in logged.lines if LateImuReport.TEXT in text]
+    assert [level for level, _ in late] == ['warning'], logged.lines
+    assert 'sample of t = 10.040 s' in late[0][1] and '1 late sample(s) in all' in late[0][1]
+    assert node.attitudes.late_samples == 1
 
 
 def test_down_flow_is_computed_only_from_a_mode_that_uses_it(ctx, renderers):
