@@ -5,6 +5,7 @@ SingleThreadedExecutor with a deadline.
 """
 import os
 import time
+from unittest import mock
 
 import cv2
 import numpy as np
@@ -319,22 +320,6 @@ def test_down_optical_flow_node(ctx, renderers):
         assert is_no_flow([msg.vector.x, msg.vector.y, msg.vector.z])
 
 
-class _Lines:
-    """Stands in for a node's rclpy logger: keeps what was logged."""
-
-    def __init__(self):
-        self.lines = []
-
-    def info(self, text):
-        self.lines.append(('info', text))
-
-    def warning(self, text):
-        self.lines.append(('warning', text))
-
-    def error(self, text):
-        self.lines.append(('error', text))
-
-
 def test_an_imu_sample_that_comes_after_its_image_is_reported_as_late(ctx, renderers):
     """An image beyond the newest IMU sample is answered at once (propagated attitude); the
     sample of its moment coming afterwards is warned about, and a sample after it is not."""
@@ -342,8 +327,7 @@ def test_an_imu_sample_that_comes_after_its_image_is_reported_as_late(ctx, rende
     node, helper, pubs, got = flow_node(context, nodes, 'down')
     for n in (node, helper):
         executor.add_node(n)
-    logged = _Lines()
-    node.log._logger = logged
+    node.log._logger = logger = mock.Mock()          # what the node logs, by level
     pubs['down_camera/camera_info'].publish(info_msg('down'))
     R = frames.rot_from_euler_zyx(0.05, -0.03, 0.4)
     send_imu(executor, node, pubs, [(9.99 + 0.01 * k, R) for k in range(5)])   # to 10.03
@@ -351,8 +335,10 @@ def test_an_imu_sample_that_comes_after_its_image_is_reported_as_late(ctx, rende
     pubs['down_camera/image_raw'].publish(image_msg(img, 10.04))
     assert spin_until(executor, lambda: len(got['down_camera/translational_flow']) >= 1)
     send_imu(executor, node, pubs, [(10.04, R), (10.05, R)])
-    late = [(level, text) for level, text in logged.lines if LateImuReport.TEXT in text]
-    assert [level for level, _ in late] == ['warning'], logged.lines
+    late = [(level, call.args[0]) for level in ('info', 'warning', 'error')
+            for call in getattr(logger, level).call_args_list
+            if LateImuReport.TEXT in call.args[0]]
+    assert [level for level, _ in late] == ['warning'], logger.mock_calls
     assert 'sample of t = 10.040 s' in late[0][1] and '1 late sample(s) in all' in late[0][1]
     assert node.attitudes.late_samples == 1
 

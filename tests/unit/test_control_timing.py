@@ -1,4 +1,6 @@
 """The timing layer (core/timing.py) and one frame's message checks (core/frame_io.py)."""
+from unittest import mock
+
 import cv2
 import numpy as np
 import pytest
@@ -157,37 +159,31 @@ def test_a_sample_that_comes_after_a_propagated_query_of_its_moment_is_counted_l
     assert buf.add(0.5, rot(w * 0.06), w) is True and buf.late_samples == 2
 
 
-class _Logger:
-    def __init__(self):
-        self.lines = []
-
-    def warning(self, text):
-        self.lines.append(text)
-
-
 def test_late_imu_samples_are_reported_in_one_throttled_warning_with_the_count():
     from ibvs_common.node_common import LateImuReport
     from ibvs_common.throttled_log import ThrottledLog
     w, now = np.zeros(3), [0.0]
-    logger = _Logger()
+    logger = mock.Mock()
     report = LateImuReport(ThrottledLog(logger, clock=lambda: now[0]), 2.0, 'node: ')
+    lines = logger.warning.call_args_list
     buf = AttitudeBuffer(AttitudeBufferConfig())
     buf.add(1.00, np.eye(3), w)
     report.check(buf)
-    assert logger.lines == []                       # nothing late: nothing said
+    assert lines == []                              # nothing late: nothing said
     for k in (1, 2, 3):                             # three images answered before their IMU
         buf.attitude_at(1.00 + 0.01 * k)
         buf.add(1.00 + 0.01 * k, np.eye(3), w)
         report.check(buf)
         now[0] += 0.5
-    assert len(logger.lines) == 1                   # throttled: 2 s
-    assert logger.lines[0].startswith('node: imu/data sample of t = 1.010 s ')
-    assert LateImuReport.TEXT in logger.lines[0] and '1 late sample(s) in all' in logger.lines[0]
+    assert len(lines) == 1                          # throttled: 2 s
+    first = lines[0].args[0]
+    assert first.startswith('node: imu/data sample of t = 1.010 s ')
+    assert LateImuReport.TEXT in first and '1 late sample(s) in all' in first
     now[0] += 2.0
     report.check(buf)                               # still unreported ones: said once more
     report.check(buf)
-    assert len(logger.lines) == 2 and '3 late sample(s) in all' in logger.lines[1]
-    assert 'image of t = 1.030 s' in logger.lines[1]
+    assert len(lines) == 2 and '3 late sample(s) in all' in lines[1].args[0]
+    assert 'image of t = 1.030 s' in lines[1].args[0]
 
 
 def test_a_sample_given_by_its_ros_quaternion_is_converted_only_when_read(monkeypatch):
