@@ -37,7 +37,7 @@ REPEAT_TOLERANCE = {'clearance_m': 5e-4, 'landing_error_m': 1e-3, 'touchdown_spe
 # (LateImuReport; the sim holds each frame's images until its own subscription has the IMU
 # sample of their stamp, but a bridge preempted between its DDS readers can deliver that
 # sample to another node after the images). One such sample, made late on purpose at the front
-# flow at t = 2.5 s (2026-11-27/28): clearance +0.65 mm, landing error -0.5 mm; its attitude
+# flow at t = 2.5 s (2026-11-27): clearance +0.65 mm, landing error -0.5 mm; its attitude
 # propagated at every query of that node and stamp: clearance +1.6 mm, crossing z +0.9 mm,
 # landing -0.8 mm, LANDING one frame and SHUTDOWN two frames earlier. The CI run of
 # 2026-11-27 that failed the tolerance above: clearance +0.84 mm, crossing z +7.8 mm.
