@@ -1,0 +1,32 @@
+"""The PX4 SIH harness's start rule: near the start, and inside SPEC's box of random starts."""
+import numpy as np
+
+from ibvs_bringup.px4_scenario import at_start, in_box, START_TOLERANCE_M
+from ibvs_sim.core.world import load_world
+
+BOX = load_world().random_box          # x [-2.6, -1.8], y [-0.3, 0.3], z [-1.9, -1.35]
+START = np.array([-2.0, 0.1, -1.82])   # world.yaml's start, inside the box
+
+
+def test_the_box_is_world_yaml_s_and_holds_the_reference_start():
+    assert BOX['y'] == (-0.3, 0.3) and in_box(START, BOX)
+    assert not in_box(START + [0.0, 0.4, 0.0], BOX)
+
+
+def test_a_pose_near_the_start_but_outside_the_box_does_not_start():
+    # s30px4b: y = +0.50, 0.4 m from the start (inside the 0.5 m tolerance), outside the box
+    pose = np.array([-1.94, 0.50, -1.83])
+    assert np.linalg.norm(pose - START) < START_TOLERANCE_M
+    assert not at_start(pose, START, 0.0, BOX)
+    assert at_start(np.array([-1.94, 0.25, -1.83]), START, 0.0, BOX)
+
+
+def test_distance_and_heading_still_count_inside_the_box():
+    assert not at_start(np.array([-2.55, 0.1, -1.4]), START, 0.0, BOX)   # in the box, 0.7 m
+    assert not at_start(START, START, 0.06, BOX)                          # heading 0.06 rad
+    assert at_start(START, START, -0.04, BOX)
+
+
+def test_a_start_chosen_outside_the_box_is_judged_by_distance_alone():
+    start = np.array([-2.0, 0.6, -1.82])          # a user's --initial-position
+    assert at_start(start + [0.0, 0.1, 0.0], start, 0.0, BOX)
