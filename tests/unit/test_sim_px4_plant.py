@@ -260,3 +260,46 @@ def test_renice_threads_sets_every_thread_of_a_sitl_process():
         child.kill()
         child.wait()
     assert renice_threads(child.pid, 7).startswith('not reniced')       # gone: reported
+
+
+def test_mocap_pose_is_ned_about_home_with_zyx_euler_angles():
+    from ibvs_sim.core.px4_plant import MocapRelay
+    relay = MocapRelay(HOME, 50.0)
+    # 30 deg yaw about NED z (down), then nothing else: q = (cos 15, 0, 0, sin 15)
+    half = math.radians(15.0)
+    p, (roll, pitch, yaw) = relay.pose(hil(q=(math.cos(half), 0.0, 0.0, math.sin(half)),
+                                           lat=HOME[0] + 1e-5, alt=HOME[2] + 1.5))
+    assert p == pytest.approx([1e-5 * M_PER_DEG, 0.0, -1.5], abs=1e-3)   # 1.11 m N, 1.5 m up
+    assert (roll, pitch, yaw) == pytest.approx((0.0, 0.0, math.radians(30.0)), abs=1e-9)
+    # a 10 deg roll about the body x axis alone
+    half = math.radians(5.0)
+    _, (roll, pitch, yaw) = relay.pose(hil(q=(math.cos(half), math.sin(half), 0.0, 0.0)))
+    assert (roll, pitch, yaw) == pytest.approx((math.radians(10.0), 0.0, 0.0), abs=1e-9)
+
+
+def test_mocap_relay_sends_at_its_rate_and_the_origin_early_only():
+    from unittest import mock
+    from ibvs_sim.core.px4_plant import MocapRelay
+    relay = MocapRelay(HOME, 50.0, origin_for_s=2.0)
+    mav = mock.Mock()
+    for k in range(400):                               # 100 Hz samples for 4 s
+        relay.on_sample(mav, hil(lat=HOME[0] + 1e-7 * k), 6, 10.0 + 0.01 * k)
+    sent = mav.vision_position_estimate_send.call_args_list
+    assert len(sent) == relay.sent == 200              # 50 Hz of 100
+    usec, x, y, z, roll, pitch, yaw = sent[-1].args
+    assert usec == 0 and x == pytest.approx(398e-7 * M_PER_DEG, abs=2e-3)   # the latest
+    origins = mav.set_gps_global_origin_send.call_args_list
+    assert len(origins) == 3                          # at 0, 1 and 2 s, then no more
+    assert origins[0].args == (6, 473977420, 85455940, 489400)
+    # a sample that is not a pose is not sent
+    relay.on_sample(mav, hil(q=(math.nan, 0.0, 0.0, 1.0)), 6, 20.0)
+    assert relay.sent == 200
+    with pytest.raises(Px4PlantError):
+        MocapRelay(HOME, 0.0)
+
+
+def test_mocap_boot_parameters_turn_gps_and_magnetometer_off():
+    boot = px4_boot_parameters({}, 1.72, HOME, mocap=True)
+    assert (boot['EKF2_GPS_CTRL'], boot['EKF2_EV_CTRL'], boot['EKF2_HGT_REF'],
+            boot['EKF2_MAG_TYPE']) == (0, 11, 3, 5)
+    assert 'EKF2_EV_CTRL' not in px4_boot_parameters({}, 1.72, HOME)

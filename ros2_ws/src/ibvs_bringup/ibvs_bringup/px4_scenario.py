@@ -114,7 +114,8 @@ def run_px4_sih(opts: RunOptions) -> int:
     home = (float(p['home_lat_deg']), float(p['home_lon_deg']), float(p['home_alt_m']))
     frame = NedToI.from_start(xi0, world.floor_z, float(p['rest_height_m']))
     sih = sih_parameters(vehicle)
-    boot = px4_boot_parameters(sih, frame.takeoff_altitude(xi0), home)
+    mocap_hz = 0.0 if opts.px4_no_mocap else float(p['mocap_rate_hz'])
+    boot = px4_boot_parameters(sih, frame.takeoff_altitude(xi0), home, mocap=mocap_hz > 0.0)
     try:
         instance = opts.px4_instance if opts.px4_instance is not None else free_instance()
     except RuntimeError as exc:
@@ -126,7 +127,8 @@ def run_px4_sih(opts: RunOptions) -> int:
                                extra_imu_subscribers=1 if opts.bag else 0)
     specs = graph.px4_sih_graph(gopts, instance, {'home_lat_deg': home[0],
                                                   'home_lon_deg': home[1],
-                                                  'home_alt_m': home[2]})
+                                                  'home_alt_m': home[2],
+                                                  'mocap_rate_hz': mocap_hz})
     if opts.bag:
         specs.append(graph.tool_node('recorder', 'recorder', ({
             'use_sim_time': False,
@@ -155,17 +157,22 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
     rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
     monitor = pilot = None
     stop_reason = error = None
-    info: dict = {'px4_instance': instance, 'px4_parameters': boot}
+    info: dict = {'px4_instance': instance, 'px4_parameters': boot,
+                  'px4_estimator': 'mocap' if boot.get('EKF2_EV_CTRL') else 'gps'}
     codes = {}
     try:
+        # the graph first: with motion capture, px4_sim relays it to PX4, whose EKF2 (GPS off)
+        # has no position, and px4-sih start no "Ready for takeoff", before it comes
+        monitor = ScenarioMonitor(use_sim_time=False)
+        runner.start_layout(specs, opts.layout)
         t = time.monotonic()
         px4.start()
         info['px4_start_s'] = round(time.monotonic() - t, 2)
         info['px4_nice'] = px4.renice(SITL_NICE)
         print(f'run {opts.run_name}: PX4 SIH instance {instance} up in '
-              f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")})', flush=True)
-        monitor = ScenarioMonitor(use_sim_time=False)
-        runner.start_layout(specs, opts.layout)
+              f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")}), estimator on '
+              + ('motion capture' if boot.get('EKF2_EV_CTRL') else "SIH's GPS / baro / mag"),
+              flush=True)
         pilot = Pilot(instance)
         stop_reason = _flight(opts, monitor, runner, pilot, xi0, t_wall0, info,
                               {s.name for s in specs if s.respawn},

@@ -27,7 +27,8 @@ import tempfile
 import time
 from typing import Callable, TYPE_CHECKING
 
-from ibvs_sim.core.px4_plant import EARTH_RADIUS_M, find_px4_sitl, SIH_DEFAULT_HOME
+from ibvs_sim.core.px4_plant import (EARTH_RADIUS_M, find_px4_sitl, MOCAP_EKF2_PARAMETERS,
+                                     SIH_DEFAULT_HOME)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -147,17 +148,21 @@ class Px4Sitl:
 
 
 def px4_boot_parameters(sih: dict, takeoff_alt_m: float,
-                        home: tuple = SIH_DEFAULT_HOME, offboard_loss_s: float = 1.0) -> dict:
+                        home: tuple = SIH_DEFAULT_HOME, offboard_loss_s: float = 1.0,
+                        mocap: bool = False) -> dict:
     """Return the PX4 parameters of a px4-sih run: SIH's, home, take-off height, failsafes.
 
     ``takeoff_alt_m``: MIS_TAKEOFF_ALT, the start height above home (m). COM_OF_LOSS_T: the
     offboard-loss timeout (s, PX4's clock) after which PX4's own failsafe (land) acts.
+    ``mocap``: EKF2 on motion capture (px4_sim's MocapRelay), GPS and magnetometer off
+    (:data:`~ibvs_sim.core.px4_plant.MOCAP_EKF2_PARAMETERS`).
     """
     if not (math.isfinite(takeoff_alt_m) and takeoff_alt_m > 0.0):
         raise ValueError(f'take-off altitude must be > 0 m, got {takeoff_alt_m}')
     return {**sih, 'SIH_LOC_LAT0': home[0], 'SIH_LOC_LON0': home[1], 'SIH_LOC_H0': home[2],
             'MIS_TAKEOFF_ALT': round(float(takeoff_alt_m), 3),
-            'COM_OF_LOSS_T': float(offboard_loss_s)}
+            'COM_OF_LOSS_T': float(offboard_loss_s),
+            **(MOCAP_EKF2_PARAMETERS if mocap else {})}
 
 
 class Pilot:

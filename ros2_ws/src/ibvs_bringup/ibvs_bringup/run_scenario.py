@@ -74,6 +74,7 @@ class RunOptions:
     autopilot: str = 'sim'              # 'sim' | 'px4-sih' (PX4 SITL is plant and autopilot)
     px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
     px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
+    px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
     layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
     max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
 
@@ -478,6 +479,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--px4-flight-s', type=float, default=None, metavar='S',
                    help='px4-sih: stop S s (system clock) after ibvs/start (default 60, as a '
                         'sim run)')
+    p.add_argument('--px4-no-mocap', action='store_true',
+                   help="px4-sih: PX4's estimator on SIH's GPS, baro and magnetometer instead "
+                        'of the motion capture of params.yaml px4_sim mocap_rate_hz')
     a = p.parse_args(argv)
     xi0 = tuple(a.initial_position) if a.initial_position else None
     extra = {}
@@ -504,7 +508,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       imu_nan=tuple(a.imu_nan) if a.imu_nan else None,
                       max_sim_time_s=a.max_sim_time,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
-                      px4_flight_s=a.px4_flight_s,
+                      px4_flight_s=a.px4_flight_s, px4_no_mocap=a.px4_no_mocap,
                       layout=a.layout or DEFAULT_LAYOUT['onboard' if a.autopilot == 'px4-sih'
                                                         else 'sim'])
 

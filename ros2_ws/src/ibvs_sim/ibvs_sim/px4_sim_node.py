@@ -41,8 +41,8 @@ from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
 from ibvs_common.param_descriptors import declare_all
 from ibvs_common.spin import spin_guarded
-from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample, NedToI,
-                                     PositionFilter, px4_home, Px4PlantError,
+from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample, MocapRelay,
+                                     NedToI, PositionFilter, px4_home, Px4PlantError,
                                      SIH_DEFAULT_HOME, StateLink)
 from ibvs_sim.core.render import SceneRenderer
 from ibvs_sim.core.sensor_noise import ReadNoise
@@ -73,6 +73,7 @@ PARAMETERS = {
     'vehicle_file': '',
     'seed': 0,
     'camera_read_noise_std': 1.5,
+    'mocap_rate_hz': 50.0,
 }
 PARAMETER_SPECS = {
     'state_url': ("where PX4 SIH sends HIL_STATE_QUATERNION (pymavlink URL, "
@@ -105,6 +106,9 @@ PARAMETER_SPECS = {
     'seed': ('seed of the camera read noise', 0, None),
     'camera_read_noise_std': ("grey levels (of 255), std of the cameras' Gaussian read "
                               'noise; 0 = noise-free', 0.0, 255.0),
+    'mocap_rate_hz': ('Hz (steady clock), the ground truth sent back to PX4 as motion capture '
+                      '(VISION_POSITION_ESTIMATE, EKF origin = home) for its own estimator; '
+                      'PX4 must boot with MOCAP_EKF2_PARAMETERS; 0 = off', 0.0, 1000.0),
 }
 
 
@@ -126,6 +130,7 @@ class Px4SimConfig:
     vehicle_file: str
     seed: int
     read_noise_std: float
+    mocap_rate_hz: float
 
 
 def read_config(v: dict) -> Px4SimConfig:
@@ -146,7 +151,8 @@ def read_config(v: dict) -> Px4SimConfig:
         filter_tau_s=float(v['position_filter_tau_s']),
         airborne_m=float(v['airborne_clearance_m']), world_file=str(v['world_file']),
         pad_layout_file=str(v['pad_layout_file']), vehicle_file=str(v['vehicle_file']),
-        seed=int(v['seed']), read_noise_std=float(v['camera_read_noise_std']))
+        seed=int(v['seed']), read_noise_std=float(v['camera_read_noise_std']),
+        mocap_rate_hz=float(v['mocap_rate_hz']))
 
 
 class Px4SimNode(Node):
@@ -169,7 +175,8 @@ class Px4SimNode(Node):
         self.filter = PositionFilter(cfg.filter_tau_s)
         self.contacts = ContactWatch(world, vehicle.envelope_radius, vehicle.envelope_height,
                                      cfg.airborne_m)
-        self.link = StateLink(cfg.state_url, cfg.state_rate_hz, threaded=True)
+        self.mocap = MocapRelay(cfg.home, cfg.mocap_rate_hz) if cfg.mocap_rate_hz > 0 else None
+        self.link = StateLink(cfg.state_url, cfg.state_rate_hz, threaded=True, relay=self.mocap)
         self.frames = FrameClock(self.cameras['down'].rate_hz, time.time_ns())
         self.latency = AnswerLatency()
         self.latest = None              # (TruthSample, receipt ns, system clock)
@@ -199,7 +206,8 @@ class Px4SimNode(Node):
         self.get_logger().info(
             f'px4_sim: ground truth from {cfg.state_url} at {cfg.state_rate_hz:g} Hz; PX4 '
             f'home {cfg.home} = {{I}} {list(self.frame.origin_I)} (take-off point below the '
-            f'start {list(start)}); system clock, no /clock')
+            f'start {list(start)}); system clock, no /clock; motion capture to PX4 '
+            + (f'at {cfg.mocap_rate_hz:g} Hz' if self.mocap else 'off'))
 
     def _on_force(self, msg: Vector3Stamped) -> None:
         stamp_ns = stamp_to_ns(msg.header.stamp)
@@ -267,6 +275,7 @@ class Px4SimNode(Node):
                   'ground_truth_samples': self.link.received,
                   'ground_truth_bad': self.bad_samples,
                   'interval_requests': self.link.requests,
+                  'mocap_sent': self.mocap.sent if self.mocap else 0,
                   'render_median_ms': float(np.median(render)) if render.size else None,
                   **self.latency.stats()}
         status = DiagnosticStatus(

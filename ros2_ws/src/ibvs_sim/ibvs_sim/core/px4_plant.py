@@ -30,7 +30,11 @@ the pure parts:
 - :class:`StateLink`: the UDP endpoint where SIH sends HIL_STATE_QUATERNION
   (127.0.0.1:19410 + i); it asks for the rate with SET_MESSAGE_INTERVAL on that same link
   (PX4's mavlink instance 19450 + i -> 19410 + i, the one that streams the message; an interval
-  set on the GCS link changes only the GCS link's streams).
+  set on the GCS link changes only the GCS link's streams);
+- :class:`MocapRelay`: the lab's motion capture for PX4's own estimator (the paper's lab had
+  VICON): each ground-truth sample goes back to PX4 as VISION_POSITION_ESTIMATE on that link,
+  for EKF2 with GPS off (:data:`MOCAP_EKF2_PARAMETERS`). Only PX4 uses it: its hover before
+  the start holds, and its attitude estimate is aided as in the lab. The graph never sees it.
 
 Clocks: ``TruthSample.t_boot_s`` is PX4's boot clock; everything the node stamps is the system
 clock (``time.time_ns()``, ROS time with use_sim_time false), taken at the datagram's receipt.
@@ -48,7 +52,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ibvs_common.core.config import VehicleConfig
-from ibvs_common.core.frames import GRAVITY, exp_so3, rot_from_quat
+from ibvs_common.core.frames import euler_zyx_from_rot, exp_so3, GRAVITY, rot_from_quat
 from ibvs_sim.core.contacts import FLOOR, min_clearance
 from ibvs_sim.core.dynamics import N_ROTORS, PlantParams, State
 from ibvs_sim.core.sim_core import EventType, SimEvent
@@ -57,6 +61,13 @@ from ibvs_sim.core.world import WorldConfig
 EARTH_RADIUS_M = 6371000.0          # PX4's CONSTANTS_RADIUS_OF_EARTH (map_projection)
 HIL_STATE_QUATERNION_ID = 115
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
+#: PX4 v1.16 EKF2 on motion capture (:class:`MocapRelay`) instead of SIH's GPS, barometer and
+#: magnetometer: GNSS off, vision horizontal + vertical position and yaw (EKF2_EV_CTRL bits
+#: 0, 1, 3), vision as the height reference, no magnetometer heading. Measured in a 20 s
+#: hold (docs/px4_sih.md): truth std 0.35 / 0.54 / 0.35 m (N / E / D) on SIH's sensors,
+#: 0.15 / 0.35 / 0.09 m on mocap; heading estimate off by 0.034 rad, 0.006 rad.
+MOCAP_EKF2_PARAMETERS = {'EKF2_GPS_CTRL': 0, 'EKF2_EV_CTRL': 11, 'EKF2_HGT_REF': 3,
+                         'EKF2_MAG_TYPE': 5}
 # PX4 SIH's default home (SIH_LOC_LAT0 / LON0 / H0, PX4 v1.16 parameters.json)
 SIH_DEFAULT_HOME = (47.397742, 8.545594, 489.4)
 
@@ -183,6 +194,15 @@ class TruthSample:
                            self.p_ned_raw.copy())
 
 
+def _unit_quaternion(msg: Any) -> np.ndarray:
+    """HIL_STATE_QUATERNION's attitude (w, x, y, z); Px4PlantError unless a unit quaternion."""
+    q = np.asarray(msg.attitude_quaternion, dtype=float)
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 0.01:
+        raise Px4PlantError(f'HIL_STATE_QUATERNION attitude {q.tolist()} is not a unit '
+                            'quaternion')
+    return q
+
+
 def hil_state_sample(msg: Any, home: tuple[float, float, float], frame: NedToI,
                      p_ned: np.ndarray | None = None) -> TruthSample:
     """Convert a HIL_STATE_QUATERNION (pymavlink message or same fields) to {I}.
@@ -190,10 +210,7 @@ def hil_state_sample(msg: Any, home: tuple[float, float, float], frame: NedToI,
     ``p_ned``: a filtered local NED position to use instead of the message's quantised fix.
     Raises Px4PlantError for a non-finite or non-unit attitude (bad input is not rendered).
     """
-    q = np.asarray(msg.attitude_quaternion, dtype=float)
-    if q.shape != (4,) or not np.all(np.isfinite(q)) or abs(np.linalg.norm(q) - 1.0) > 0.01:
-        raise Px4PlantError(f'HIL_STATE_QUATERNION attitude {q.tolist()} is not a unit '
-                            'quaternion')
+    q = _unit_quaternion(msg)
     raw = geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, home)
     v = np.array([msg.vx, msg.vy, msg.vz], dtype=float) * 0.01
     w = np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed], dtype=float)
@@ -346,6 +363,67 @@ def find_px4_sitl(cwd: str | None = None, here: str | None = None) -> str:
         'IBVS_PX4_SITL_DIR pointing at it; it is not part of the repository')
 
 
+RATE_SLACK = 0.9      # a sample this fraction of the relay's period after the last one is sent
+#                       (samples come at SIH's period with jitter: 100 Hz -> 50 Hz, not 33)
+
+
+class MocapRelay:
+    """The ground truth back to PX4 as motion capture: VISION_POSITION_ESTIMATE, EKF origin.
+
+    :meth:`on_sample` takes each HIL_STATE_QUATERNION and, at about ``rate_hz`` (steady
+    clock, :data:`RATE_SLACK`), sends its pose: PX4's local NED about ``home``
+    (:func:`geodetic_to_ned`, PX4's own projection; the origin set below is home, so PX4's
+    local frame is this one) and the ZYX
+    Euler angles of its attitude (body FRD -> NED), ``usec`` 0: no TIMESYNC on that link, so
+    PX4 stamps it at receipt. EKF2 with GPS off has no global origin: SET_GPS_GLOBAL_ORIGIN =
+    home goes with it once a second for the first ``origin_for_s`` (PX4's take-off and
+    position hold need a global position). A sample that is not a pose (non-finite, not a
+    unit quaternion) is not sent. ``mav``: pymavlink's ``conn.mav``.
+    """
+
+    ORIGIN_PERIOD_S = 1.0
+
+    def __init__(self, home: tuple[float, float, float], rate_hz: float,
+                 origin_for_s: float = 10.0) -> None:
+        if not (math.isfinite(rate_hz) and rate_hz > 0.0):
+            raise Px4PlantError(f'mocap rate must be > 0 Hz, got {rate_hz}')
+        self.home = tuple(float(x) for x in home)
+        self.period_s = 1.0 / float(rate_hz)
+        self.origin_for_s = float(origin_for_s)
+        self.sent = 0
+        self._first: float | None = None
+        self._last = -math.inf
+        self._origin_at = -math.inf
+
+    def pose(self, msg: Any) -> tuple[np.ndarray, tuple[float, float, float]]:
+        """Return (NED position m about home, (roll, pitch, yaw) rad) of a sample."""
+        R_NB = rot_from_quat(_unit_quaternion(msg))
+        p = geodetic_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, self.home)
+        if not np.all(np.isfinite(p)):
+            raise Px4PlantError('HIL_STATE_QUATERNION has a non-finite position')
+        return p, euler_zyx_from_rot(R_NB)
+
+    def on_sample(self, mav: Any, msg: Any, target_system: int, now_steady_s: float) -> None:
+        """Send the sample's pose when due (and the origin, early on) through ``mav``."""
+        if self._first is None:
+            self._first = now_steady_s
+        if now_steady_s - self._first <= self.origin_for_s \
+                and now_steady_s - self._origin_at >= self.ORIGIN_PERIOD_S:
+            self._origin_at = now_steady_s
+            mav.set_gps_global_origin_send(int(target_system), int(round(self.home[0] * 1e7)),
+                                           int(round(self.home[1] * 1e7)),
+                                           int(round(self.home[2] * 1e3)))
+        if now_steady_s - self._last < RATE_SLACK * self.period_s:
+            return
+        try:
+            p, (roll, pitch, yaw) = self.pose(msg)
+        except (Px4PlantError, AttributeError, TypeError, ValueError):
+            return
+        self._last = now_steady_s
+        mav.vision_position_estimate_send(0, *(float(v) for v in p), roll, pitch, yaw)
+        self.sent += 1
+
+
 class StateLink:
     """SIH's ground-truth endpoint: receive HIL_STATE_QUATERNION, ask for its rate (UDP).
 
@@ -362,13 +440,14 @@ class StateLink:
     READ_WAIT_S = 0.05          # s (steady), the reader thread looks at its stop flag this often
 
     def __init__(self, url: str, rate_hz: float, request_period_s: float = 1.0,
-                 threaded: bool = False) -> None:
+                 threaded: bool = False, relay: MocapRelay | None = None) -> None:
         from ibvs_control.core.mavlink_udp import open_mavlink   # pymavlink only when used
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise Px4PlantError(f'state rate must be > 0 Hz, got {rate_hz}')
         self.rate_hz = float(rate_hz)
         self.request_period_s = float(request_period_s)
         self.conn = open_mavlink(url, source_system=255, source_component=191)
+        self.relay = relay                  # motion capture for PX4, sent as samples arrive
         self._asked_at = -math.inf
         self._times: list[float] = []       # steady s of the last received samples
         self.received = 0
@@ -401,6 +480,8 @@ class StateLink:
             self.target = (m.get_srcSystem(), m.get_srcComponent())
             self._queue.append((m, receipt_ns))
             self.received += 1
+            if self.relay is not None:
+                self.relay.on_sample(self.conn.mav, m, self.target[0], now)
             self._times = (self._times + [now])[-50:]
         self._maybe_request(now)
         return True
