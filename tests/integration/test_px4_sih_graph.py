@@ -34,7 +34,7 @@ import sys
 import numpy as np
 import pytest
 
-from ibvs_bringup.px4_scenario import START_SPEED_TOL_MPS, START_TOLERANCE_M
+from ibvs_bringup.px4_scenario import in_box, START_SPEED_TOL_MPS, START_TOLERANCE_M
 from ibvs_sim.core.px4_plant import find_px4_sitl
 from ibvs_sim.core.world import load_world
 
@@ -84,12 +84,16 @@ def test_px4_flies_the_graph_towards_the_window(px4_run):
     world = load_world()
     start = np.array(run['start_pose_I'])
     assert np.linalg.norm(start - world.initial_position_I) < START_TOLERANCE_M, start
+    assert in_box(start, world.random_box), start                  # SPEC's random-start box
     assert run['start_speed_mps'] < START_SPEED_TOL_MPS, run['start_speed_mps']
+    # PX4's own estimator on the relayed motion capture (params.yaml px4_sim mocap_rate_hz)
+    assert run['px4_estimator'] == 'mocap' and run['px4_parameters']['EKF2_GPS_CTRL'] == 0
     # the cameras were rendered from PX4's ground truth, at the rate asked
     timing = summary['timing']
     assert timing['pacing'] == 'px4_sih'
     assert timing['frames_published'] > 0
     assert timing['ground_truth_rate_hz'] > 40.0, timing          # asked 100, default 25
+    assert timing['mocap_sent'] > 0, timing
     # the graph answered the images and engaged PX4's OFFBOARD itself, on an armed vehicle
     assert timing['frames_answered'] > 0 and timing['latency_median_ms'] > 0.0
     modes = [m['mode'] for m in summary['modes']]
@@ -98,7 +102,7 @@ def test_px4_flies_the_graph_towards_the_window(px4_run):
     # engagement of 1.3 s on 2026-11-27 (a starved run: forces too old, held, FAILSAFE)
     states = [row.get('engage_state') for row in summary['bridge']]
     assert 'engage: set_mode -> engaged' in logs, (states, logs[-3000:])
-    assert 'ibvs/start: started' in out
+    assert 'ibvs/start: start accepted' in out       # the supervisor's answer (7ecf05d)
     # and flew towards the window (x along its normal), into no wall
     assert run['max_x_I'] - start[0] > MIN_APPROACH_M, (start, run['max_x_I'], modes)
     assert not any(e.get('type') == 'collision' for e in run['events']), run['events']
