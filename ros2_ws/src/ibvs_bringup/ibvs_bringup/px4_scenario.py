@@ -170,13 +170,13 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
         info['px4_start_s'] = round(time.monotonic() - t, 2)
         info['px4_nice'] = px4.renice(SITL_NICE)
         print(f'run {opts.run_name}: PX4 SIH instance {instance} up in '
-              f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")}), estimator on '
-              + ('motion capture' if boot.get('EKF2_EV_CTRL') else "SIH's GPS / baro / mag"),
+              f'{info["px4_start_s"]} s ({px4.env.get("PX4_WORKDIR")}), its estimator on '
+              f'{info["px4_estimator"]}',
               flush=True)
         pilot = Pilot(instance)
         stop_reason = _flight(opts, monitor, runner, pilot, xi0, t_wall0, info,
                               {s.name for s in specs if s.respawn},
-                              float(boot['MIS_TAKEOFF_ALT']), frame)
+                              float(boot['MIS_TAKEOFF_ALT']), frame, world)
     except _Stop as exc:
         error = str(exc)
     except RuntimeError as exc:               # PX4 did not start
@@ -211,7 +211,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
 
 
 def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
-            takeoff_alt_m: float, frame: NedToI) -> str:
+            takeoff_alt_m: float, frame: NedToI, world) -> str:
     """Take off, settle, preflight, ibvs/start, watch; return the stop reason."""
     import rclpy
     from std_srvs.srv import Trigger
@@ -248,7 +248,6 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
     # (DO_REPOSITION, PX4 stays in AUTO.LOITER), once it has settled after the last one
     # (REPOSITION_STILL_S, or REPOSITION_MAX_WAIT_S in motion), until the truth is
     # at the start while the preflight passes, then starts at once; the pose is reported.
-    world = load_world()
     target, yaw0 = frame.to_ned(xi0), float(world.initial_yaw)
     deadline = time.monotonic() + opts.preflight_timeout_s
     moved_at, moving_at, info['repositions'] = -np.inf, time.monotonic(), 0
