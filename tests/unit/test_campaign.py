@@ -186,6 +186,51 @@ def test_estimate_error_reaches_the_feature_sim_and_the_image_level_params(tmp_p
     assert e.value.code == 2
 
 
+def test_estimate_noise_defaults_to_the_params_file_and_reaches_both_levels(tmp_path,
+                                                                            monkeypatch):
+    """The estimate's wandering error: params.yaml's sim values unless --estimate-noise."""
+    import yaml
+    from ibvs_sim.core import feature_sim
+    installed = os.path.join(os.path.dirname(__file__), '..', '..', 'ros2_ws', 'src',
+                             'ibvs_bringup', 'config', 'params.yaml')
+    with open(installed, encoding='utf-8') as f:
+        sim = yaml.safe_load(f)['sim']['ros__parameters']
+    expected = (sim['attitude_noise_std_rad'], sim['attitude_noise_tau_s'])
+    assert expected[0] > 0.0                       # the default flies an estimate error
+    flown = []
+    real = feature_sim.run_feature_scenario
+
+    def spy(*args):
+        flown.append(args[-1])
+        return real(*args)
+    monkeypatch.setattr(feature_sim, 'run_feature_scenario', spy)
+    args = ['--runs', '1', '--levels', '0', '--results-root', str(tmp_path)]
+    cfg, *_ = campaign.parse_args(['--name', 'default', *args])
+    assert cfg.estimate_noise is None and 'estimate_noise' not in cfg.model('x')
+    (summary,) = run_campaign(cfg, workers=1, progress=None)
+    assert (flown[-1].attitude_noise_std, flown[-1].attitude_noise_tau_s) == \
+        pytest.approx(expected)
+    assert summary['run']['estimate_noise'] == pytest.approx(list(expected))
+    spec = run_specs(cfg, BOX)[0]
+    params = campaign.image_run_params(cfg, spec, campaign.run_wind(cfg, spec, 1.676))
+    assert params['sim']['ros__parameters']['attitude_noise_std_rad'] == expected[0]
+
+    cfg, *_ = campaign.parse_args(['--name', 'set', '--estimate-noise', '0.5', '3', *args])
+    assert cfg.estimate_noise == pytest.approx((math.radians(0.5), 3.0))
+    assert cfg.model('x')['estimate_noise'] == pytest.approx([math.radians(0.5), 3.0])
+    (summary,) = run_campaign(cfg, workers=1, progress=None)
+    assert (flown[-1].attitude_noise_std, flown[-1].attitude_noise_tau_s) == \
+        pytest.approx((math.radians(0.5), 3.0))
+    params = campaign.image_run_params(cfg, spec, campaign.run_wind(cfg, spec, 1.676))
+    sim = params['sim']['ros__parameters']
+    assert (sim['attitude_noise_std_rad'], sim['attitude_noise_tau_s']) == \
+        pytest.approx((math.radians(0.5), 3.0))
+    for bad in (['6', '2'], ['0.5', '-1'], ['nan', '2']):
+        with pytest.raises(SystemExit) as e:
+            campaign.parse_args(['--estimate-noise', *bad])
+        assert e.value.code == 2
+
+
 STAND_IN = """
 import json, os, sys
 import yaml

@@ -476,12 +476,16 @@ def test_telemetry_noise_and_fields():
         q_true = np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
         q_att = [np.array([m.q1, m.q2, m.q3, m.q4]) for m in att]
         errs = np.degrees([angle_between(q, q_true) for q in q_att])
-        assert 0.0 < errs.max() < 5 * 0.2 * np.sqrt(3)
-        # the estimator-like error wanders slowly: consecutive samples (4 ms) differ by far
-        # less than the error itself (white noise would differ by ~0.35 deg rms); the process
-        # steps every 10 ms by 0.2 deg * sqrt(3 (1 - exp(-2 * 0.01 / 5))) = 0.022 deg
+        cfg = r.ap.config
+        std_deg, tau = np.degrees(cfg.attitude_noise_std), cfg.attitude_noise_tau_s
+        assert 0.0 < errs.max() < 5 * std_deg * np.sqrt(3)
+        # the estimator-like error wanders slowly: the process steps every 10 ms (NOISE_GRID_S)
+        # by std * sqrt(3 (1 - exp(-2 * 0.01 / tau))) rms (0.12 deg at 0.7 deg, 2 s), so two
+        # samples 4 ms apart differ by at most that; white noise per sample would differ by
+        # std * sqrt(6) rms (1.7 deg)
+        grid_step = std_deg * np.sqrt(3.0 * (1.0 - np.exp(-2.0 * 0.01 / tau)))
         steps = np.degrees([angle_between(a, b) for a, b in zip(q_att[:-1], q_att[1:])])
-        assert np.sqrt(np.mean(steps ** 2)) < 0.03
+        assert np.sqrt(np.mean(steps ** 2)) < grid_step < 0.1 * std_deg * np.sqrt(6.0)
     finally:
         r.close()
 
@@ -517,19 +521,39 @@ def test_a_static_estimate_offset_is_reported_as_that_rotation_and_checked():
             AutopilotConfig(attitude_estimate_offset_rad=bad)
 
 
-def test_attitude_error_is_gauss_markov_with_the_configured_std():
-    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0', noise_seed=3))
+@pytest.mark.parametrize('std, tau', [(None, None), (np.radians(0.2), 5.0)],
+                         ids=['default', 'until-2026-11-28'])
+def test_attitude_error_is_gauss_markov_with_the_configured_std(std, tau):
+    """Stationary std and lag-1 autocorrelation exp(-dt / tau) of the estimate's error.
+
+    The closed forms of a first-order Gauss-Markov process sampled every dt = 20 ms, over
+    400 s (>= 80 correlation times), for the default (PX4 SIH's fit) and the old model.
+    """
+    config = {} if std is None else {'attitude_noise_std': std, 'attitude_noise_tau_s': tau}
+    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0', noise_seed=3, **config))
+    std, tau = ap.config.attitude_noise_std, ap.config.attitude_noise_tau_s
     try:
         errs = []
-        for k in range(20000):               # 400 s of 50 Hz samples = 80 correlation times
+        for k in range(20000):               # 400 s of 50 Hz samples
             q = ap._noisy_attitude(np.eye(3), 0.02 * k)
             errs.append(2.0 * np.asarray(q[1:]) * np.sign(q[0]))   # small-angle rotation vector
         errs = np.array(errs)
-        np.testing.assert_allclose(errs.std(axis=0), np.radians(0.2), rtol=0.2)
+        np.testing.assert_allclose(errs.std(axis=0), std, rtol=0.2)
         lag1 = np.mean([np.corrcoef(errs[:-1, i], errs[1:, i])[0, 1] for i in range(3)])
-        assert lag1 == pytest.approx(np.exp(-0.02 / 5.0), abs=0.01)
+        assert lag1 == pytest.approx(np.exp(-0.02 / tau), abs=0.01)
     finally:
         ap.close()
+
+
+def test_a_bad_attitude_noise_setting_is_refused():
+    """A negative, NaN or implausible (> 5.7 deg) std, or a negative time constant: ValueError."""
+    for bad in (-0.01, np.nan, 0.2):
+        with pytest.raises(ValueError, match='attitude_noise_std'):
+            AutopilotConfig(attitude_noise_std=bad)
+    for bad in (-1.0, np.inf):
+        with pytest.raises(ValueError, match='attitude_noise_tau_s'):
+            AutopilotConfig(attitude_noise_tau_s=bad)
+    assert AutopilotConfig(attitude_noise_std=0.0, attitude_noise_tau_s=0.0)   # off; white
 
 
 # --- parameters ---------------------------------------------------------------------------------

@@ -124,6 +124,9 @@ class CampaignConfig:
     # rad (roll, pitch): static error of the autopilot's attitude estimate, flown and read
     # (FeatureSimConfig / the sim's attitude_estimate_offset_rad); docs/design.md
     estimate_error_rad: tuple = (0.0, 0.0)
+    # (std rad, tau s) of the estimate's wandering error (Gauss-Markov per axis), flown and
+    # read at both levels; None: the params file's sim attitude_noise_std_rad / _tau_s
+    estimate_noise: tuple | None = None
     seed: int = 14                    # campaign seed (run i: SeedSequence([seed, i]))
     params_file: str | None = None    # None: the installed params.yaml
     results_root: str = DEFAULT_RESULTS_ROOT
@@ -147,7 +150,9 @@ class CampaignConfig:
                 'params_sha256': hashlib.sha256(params_text.encode()).hexdigest(),
                 # only when set: campaigns stored before it existed still resume
                 **({'estimate_error_rad': list(self.estimate_error_rad)}
-                   if any(self.estimate_error_rad) else {})}
+                   if any(self.estimate_error_rad) else {}),
+                **({'estimate_noise': list(self.estimate_noise)}
+                   if self.estimate_noise is not None else {})}
 
 
 @dataclass(frozen=True)
@@ -333,6 +338,14 @@ class _Setup:
     vehicle: object
     controller: object
     supervisor: object
+    estimate_noise: tuple          # (std rad, tau s): the params' sim attitude_noise_*
+
+
+def params_estimate_noise(params: dict) -> tuple[float, float]:
+    """(std rad, tau s) of the sim's attitude-estimate error in a params.yaml dict (0: none)."""
+    sim = (params.get('sim') or {}).get('ros__parameters') or {}
+    return (float(sim.get('attitude_noise_std_rad', 0.0)),
+            float(sim.get('attitude_noise_tau_s', 2.0)))
 
 
 def read_params(params_file: str | None) -> tuple[str, str]:
@@ -365,7 +378,7 @@ def load_setup(params_file: str | None, overrides: tuple) -> _Setup:
     except ValueError as exc:
         raise ValueError(f'law overrides in {params_file or "params.yaml"}: {exc}') from exc
     sup = supervisor_config(params)
-    return _Setup(world, pad, vehicle, ctrl, sup)
+    return _Setup(world, pad, vehicle, ctrl, sup, params_estimate_noise(params))
 
 
 def run_wind(cfg: CampaignConfig, spec: RunSpec, mass_kg: float) -> WindConfig:
@@ -376,7 +389,8 @@ def run_wind(cfg: CampaignConfig, spec: RunSpec, mass_kg: float) -> WindConfig:
                                  cfg.gust_components, spec.gust_seed)
 
 
-def _run_block(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: float) -> dict:
+def _run_block(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: float,
+               noise: tuple | None) -> dict:
     return {'campaign': cfg.name, 'feature_level': not cfg.image_level,
             'image_level': cfg.image_level, 'law': spec.law.label,
             'law_overrides': {k: v for k, v in spec.law.overrides},
@@ -385,6 +399,7 @@ def _run_block(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: 
             'index': spec.index, 'seed': cfg.seed, 'gust_seed': spec.gust_seed,
             'initial_position_I': list(spec.initial_position_I),
             'estimate_error_rad': list(cfg.estimate_error_rad),
+            'estimate_noise': None if noise is None else list(noise),
             'failure_cause': failure_cause(summary), 'wall_time_s': wall_s}
 
 
@@ -404,19 +419,22 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     from ibvs_sim.core import feature_sim
     setup = load_setup(cfg.params_file, spec.law.overrides)
     wind = run_wind(cfg, spec, setup.vehicle.mass)
+    noise_std, noise_tau = cfg.estimate_noise or setup.estimate_noise
     sim_cfg = feature_sim.FeatureSimConfig(
         initial_position_I=np.asarray(spec.initial_position_I, dtype=float),
         initial_yaw=setup.world.initial_yaw, wind=wind,
         crossing_law=setup.controller.crossing_law, max_time_s=MAX_SIM_TIME_S,
         flow_noise=cfg.flow_noise, bearing_noise_rad=cfg.bearing_noise_rad,
         attitude_estimate_offset_rad=tuple(cfg.estimate_error_rad),
+        attitude_noise_std=noise_std, attitude_noise_tau_s=noise_tau,
         seed=spec.gust_seed)
     t0 = time.monotonic()
     summary, flog = feature_sim.run_feature_scenario(setup.world, setup.pad, setup.vehicle,
                                                      setup.controller, setup.supervisor,
                                                      sim_cfg)
     summary = dict(summary)
-    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0)
+    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0,
+                                (noise_std, noise_tau))
     summary['run']['transitions'] = [f'-> {Mode(m).name} at t = {t:.2f} s: {why}'
                                      for m, t, why in flog.transitions]
     _write_summary(cfg, spec, summary)
@@ -447,6 +465,9 @@ def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind: WindConfig) -> di
     sim['wind_gust_frequency_hz'] = float(wind.gust_frequency_hz)
     sim['seed'] = int(wind.seed)
     sim['attitude_estimate_offset_rad'] = [float(a) for a in cfg.estimate_error_rad]
+    if cfg.estimate_noise is not None:
+        sim['attitude_noise_std_rad'], sim['attitude_noise_tau_s'] = (
+            float(x) for x in cfg.estimate_noise)
     return params
 
 
@@ -465,8 +486,9 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     os.makedirs(run_dir, exist_ok=True)
     wind = run_wind(cfg, spec, load_vehicle().mass)
     params_path = os.path.join(run_dir, 'params.yaml')
+    params = image_run_params(cfg, spec, wind)
     with open(params_path, 'w', encoding='utf-8') as f:
-        yaml.safe_dump(image_run_params(cfg, spec, wind), f, sort_keys=False)
+        yaml.safe_dump(params, f, sort_keys=False)
     cmd = [sys.executable, '-m', cfg.scenario_module, '--run-name', 'flight',
            '--results-root', run_dir, '--params-file', params_path, '--no-bag', '--no-plots',
            '--timeout', f'{cfg.run_timeout_s:g}', '--initial-position',
@@ -486,7 +508,8 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     if code not in (0, 1) or summary is None:
         return None
     summary['flight_run'] = summary.pop('run', {})
-    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0)
+    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0,
+                                params_estimate_noise(params))
     summary['run']['ros_domain_id'] = env.get('ROS_DOMAIN_ID')
     _write_summary(cfg, spec, summary)
     return summary
@@ -736,6 +759,12 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                    metavar=('ROLL_DEG', 'PITCH_DEG'),
                    help="static error of the autopilot's attitude estimate, flown and read "
                         '(docs/design.md "Attitude-estimate error"), each within +-11 deg')
+    p.add_argument('--estimate-noise', type=float, nargs=2, default=None,
+                   metavar=('STD_DEG', 'TAU_S'),
+                   help="wandering error of the autopilot's attitude estimate (Gauss-Markov per "
+                        'axis: std in deg, within [0, 5.7], correlation time in s), flown and '
+                        "read at both levels; default: the params file's sim "
+                        'attitude_noise_std_rad / attitude_noise_tau_s (PX4 SIH fit)')
     p.add_argument('--params-file', default=None, help='default: the installed params.yaml')
     p.add_argument('--results-root', default=DEFAULT_RESULTS_ROOT)
     p.add_argument('--no-plots', action='store_true')
@@ -756,6 +785,10 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
         p.error('--runs, --workers, --gust-components >= 1; levels and gust level >= 0')
     if not all(math.isfinite(x) and abs(x) <= 11.0 for x in a.estimate_error):
         p.error('--estimate-error: roll and pitch in degrees, each finite and within +-11')
+    if a.estimate_noise is not None and not (
+            all(math.isfinite(x) for x in a.estimate_noise)
+            and 0.0 <= a.estimate_noise[0] <= 5.7 and a.estimate_noise[1] >= 0.0):
+        p.error('--estimate-noise: std in degrees within [0, 5.7], time constant in s >= 0')
     if not all(c.isalnum() or c in '_.+-' for c in a.name) or a.name in ('', '.', '..'):
         p.error(f'bad --name {a.name!r}: use letters, digits, _ . + -')
     try:
@@ -777,6 +810,8 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          gust_components=a.gust_components, flow_noise=a.flow_noise,
                          bearing_noise_rad=a.bearing_noise, seed=a.seed,
                          estimate_error_rad=tuple(math.radians(x) for x in a.estimate_error),
+                         estimate_noise=None if a.estimate_noise is None else (
+                             math.radians(a.estimate_noise[0]), a.estimate_noise[1]),
                          params_file=a.params_file, results_root=a.results_root,
                          image_level=a.image_level, domain_base=a.domain_base,
                          run_timeout_s=a.run_timeout)

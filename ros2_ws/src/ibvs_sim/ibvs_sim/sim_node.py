@@ -111,6 +111,8 @@ PARAMETERS = {
     'start_on_setpoints': True,
     'telemetry_default_hz': 100.0,
     'attitude_estimate_offset_rad': [0.0, 0.0],
+    'attitude_noise_std_rad': 0.0122,
+    'attitude_noise_tau_s': 2.0,
     'fault_front_camera_off_s': [0.0, 0.0],
     'fault_down_camera_off_s': [0.0, 0.0],
     'fault_front_camera_freeze_s': [0.0, 0.0],
@@ -160,6 +162,11 @@ PARAMETER_SPECS = {
                                      'attitude estimate, reported and flown (an accelerometer '
                                      'bias b tilts it b / g; PX4 SIH: 1.5-1.8 deg), each within '
                                      '+-0.2',),
+    'attitude_noise_std_rad': ("rad, stationary std per axis of the autopilot's attitude-"
+                               'estimate error (Gauss-Markov), reported and flown (PX4 SIH on '
+                               'motion capture: 0.0122, 0.7 deg)', 0.0, 0.1),
+    'attitude_noise_tau_s': ('s (sim time), correlation time of that error; 0 = white',
+                             0.0, 600.0),
     'fault_front_camera_off_s': ('no front images in' + _FAULTS,),
     'fault_down_camera_off_s': ('no down images in' + _FAULTS,),
     'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULTS,),
@@ -195,6 +202,8 @@ class SimNodeConfig:
     start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
     telemetry_default_hz: float = 100.0
     attitude_estimate_offset_rad: tuple = (0.0, 0.0)   # rad (roll, pitch), the estimate's error
+    attitude_noise_std_rad: float = 0.0122   # rad, the estimate's wandering error (std per axis)
+    attitude_noise_tau_s: float = 2.0        # s (sim), its correlation time
     camera_off_s: dict = None                # fault injection: camera -> [start, end, ...] s
     camera_frozen_s: dict = None             # fault injection: camera -> [start, end, ...] s
     imu_off_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
@@ -281,7 +290,9 @@ class SimNode(Node):
             mass=vehicle.mass, floor_z=world.floor_z,
             telemetry_default_hz=cfg.telemetry_default_hz, imu_off_s=cfg.imu_off_s,
             imu_nan_s=cfg.imu_nan_s,
-            attitude_estimate_offset_rad=cfg.attitude_estimate_offset_rad))
+            attitude_estimate_offset_rad=cfg.attitude_estimate_offset_rad,
+            attitude_noise_std=cfg.attitude_noise_std_rad,
+            attitude_noise_tau_s=cfg.attitude_noise_tau_s))
         wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
                           gust_amplitude_N=cfg.wind_gust_amplitude_N,
                           gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
@@ -383,6 +394,8 @@ class SimNode(Node):
             telemetry_default_hz=telemetry_hz,
             attitude_estimate_offset_rad=tuple(
                 float(x) for x in v['attitude_estimate_offset_rad']),
+            attitude_noise_std_rad=float(v['attitude_noise_std_rad']),
+            attitude_noise_tau_s=float(v['attitude_noise_tau_s']),
             read_noise_std=noise,
             camera_off_s={cam: fault_windows(f'parameter fault_{cam}_camera_off_s',
                                              v[f'fault_{cam}_camera_off_s']) for cam in CAMERAS},

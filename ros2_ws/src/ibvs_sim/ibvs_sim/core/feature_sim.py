@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -36,6 +37,8 @@ from ibvs_common.core.frames import (
     bearings_C_to_I, bearings_I_to_C, e3, exp_so3, GRAVITY, log_so3, rot_z)
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import ModeSupervisor, SupervisorConfig
+from ibvs_sim.core.autopilot.config import AutopilotConfig
+from ibvs_sim.core.autopilot.noise import SensorNoise
 from ibvs_sim.core.contacts import floor_clearance, obstacle_clearance
 from ibvs_sim.core.dynamics import attitude_error, PlantParams, Wind, WindConfig
 from ibvs_sim.core.evaluation import evaluate_run, GroundTruthLog
@@ -65,6 +68,12 @@ class FeatureSimConfig:
     # holds the estimate at R_d, so the truth at R_d R_err^T), as the image-level sim's
     # autopilot (ibvs_sim.core.autopilot.noise); PX4 SIH showed 1.5-1.8 deg in one axis
     attitude_estimate_offset_rad: tuple = (0.0, 0.0)
+    # rad, std per axis of the estimate's wandering error (first-order Gauss-Markov, time
+    # constant attitude_noise_tau_s), composed with the offset: the image-level sim's model
+    # (noise.SensorNoise, seeded with ``seed``); 0 here (exact features for the tests), the
+    # campaigns take params.yaml's sim values (PX4 SIH's fit, 0.7 deg and 2 s)
+    attitude_noise_std: float = 0.0
+    attitude_noise_tau_s: float = 2.0
     thrust_tau: float = 0.03           # s
     shutdown_ramp_s: float = 2.0       # s, mode 4 thrust ramp
     max_time_s: float = 60.0
@@ -212,6 +221,21 @@ class InnerLoop:
         return R @ exp_so3(Omega_B * dt), Omega_B
 
 
+def estimate_error_model(config: FeatureSimConfig) -> Callable[[float], np.ndarray | None]:
+    """Return t (s) -> R_err (the autopilot's estimate is R_IB R_err), or None when exact.
+
+    The image-level sim autopilot's model (``noise.SensorNoise``): the static offset composed
+    with the Gauss-Markov error; t must not go back.
+    """
+    roll, pitch = (float(a) for a in config.attitude_estimate_offset_rad)
+    if not (roll or pitch or config.attitude_noise_std > 0.0):
+        return lambda t: None
+    return SensorNoise(AutopilotConfig(
+        attitude_noise_std=config.attitude_noise_std,
+        attitude_noise_tau_s=config.attitude_noise_tau_s,
+        attitude_estimate_offset_rad=(roll, pitch), noise_seed=int(config.seed))).attitude_error
+
+
 def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                          controller_config: ControllerConfig,
                          supervisor_config: SupervisorConfig,
@@ -239,9 +263,9 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     loop = InnerLoop(PlantParams.from_vehicle(vehicle), config.attitude_tau)
     Omega_B = np.zeros(3)
     accel_bias_B = np.asarray(config.accel_bias_B, dtype=float).reshape(3)
-    roll_err, pitch_err = (float(a) for a in config.attitude_estimate_offset_rad)
-    R_err = exp_so3(np.array([roll_err, pitch_err, 0.0])) if (roll_err or pitch_err) else None
+    estimate_error = estimate_error_model(config)
     while t <= config.max_time_s:
+        R_err = estimate_error(t)
         # --- one camera frame: sense, supervise, control ---------------------------------
         win_C = sensors.window(R, xi)
         pad_C, groups = sensors.pad_landmarks(R, xi)
@@ -287,6 +311,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             dt = config.physics_dt
             while pending and pending[0][0] <= t + 1e-9:   # the setpoint reaches the vehicle
                 _, R_d, thrust_d = pending.popleft()
+            R_err = estimate_error(t)
             # the loop holds the estimate R R_err at R_d: the truth goes to R_d R_err^T
             R, Omega_B = loop.step(R, Omega_B, R_d if R_err is None else R_d @ R_err.T, dt)
             thrust += (thrust_d - thrust) * min(dt / config.thrust_tau, 1.0)

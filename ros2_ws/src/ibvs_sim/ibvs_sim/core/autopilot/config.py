@@ -51,11 +51,13 @@ class AutopilotConfig:
     timesync_request_hz: float = 10.0       # own TIMESYNC requests, sim time (PX4: ~10 Hz)
     gyro_noise_std: float = 0.005           # rad/s, white, per axis
     accel_noise_std: float = 0.05           # m/s^2, white, per axis
-    attitude_noise_std: float = math.radians(0.2)  # rad, stationary std per axis
-    # An attitude estimator's error wanders slowly (first-order Gauss-Markov), it is not white
-    # from one sample to the next: white 0.2 deg per sample would read as ~0.25 rad/s of
-    # spurious rotation between two camera frames 20 ms apart.
-    attitude_noise_tau_s: float = 5.0              # s, correlation time of that error
+    # The estimate's error wanders (first-order Gauss-Markov per axis), it is not white from one
+    # sample to the next: white noise per sample would read as spurious rotation between two
+    # camera frames 20 ms apart. Fitted to PX4 v1.16 SIH's EKF2 on motion capture during a
+    # mission (docs/sim_autopilot.md "Attitude-estimate error"): std roll / pitch / yaw 1.02 /
+    # 0.43 / 0.51 deg (RMS over the axes 0.70), autocorrelation 1/e at 1.75-2.5 s.
+    attitude_noise_std: float = 0.0122      # rad (0.7 deg), stationary std per axis
+    attitude_noise_tau_s: float = 2.0       # s (sim), correlation time of that error
     # A static error of the estimate (roll, pitch; rad, body rotation vector (x, y, 0)): an
     # accelerometer bias b tilts an estimate that levels on it by b / g (PX4 SIH: 1.5-1.8 deg
     # in one axis). Reported and flown, as the noise above (noise.py).
@@ -88,6 +90,14 @@ class AutopilotConfig:
                              f'and within +-{MAX_ESTIMATE_OFFSET_RAD} rad, got '
                              f'{self.attitude_estimate_offset_rad!r}')
         self.attitude_estimate_offset_rad = offset
+        std_max = MAX_ESTIMATE_OFFSET_RAD / 2.0
+        std = self.attitude_noise_std
+        if not (math.isfinite(std) and 0.0 <= std <= std_max):
+            raise ValueError(f'attitude_noise_std must be finite and within [0, {std_max}] rad, '
+                             f'got {self.attitude_noise_std!r}')
+        if not (math.isfinite(self.attitude_noise_tau_s) and self.attitude_noise_tau_s >= 0.0):
+            raise ValueError('attitude_noise_tau_s must be finite and >= 0 (0: white), got '
+                             f'{self.attitude_noise_tau_s!r}')
 
     def imu_fault_at(self, t: float) -> str:
         """Return 'off', 'nan' or '' (no IMU fault) at sim time ``t`` (s)."""
