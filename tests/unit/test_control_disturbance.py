@@ -21,15 +21,18 @@ from ibvs_sim.core.world import load_world
 WORLD, PAD, VEHICLE = load_world(), load_pad_layout(), load_vehicle()
 
 
-def fly(law: str, wind_accel_I, accel_bias_B=(0.0, 0.0, 0.0), bias_tau_s: float = 0.0) -> dict:
+def fly(law: str, wind_accel_I, accel_bias_B=(0.0, 0.0, 0.0), bias_tau_s: float = 0.0,
+        landing_bias_tau_s: float = 0.0) -> dict:
     """Fly the reference start in a steady wind, with the IMU's accelerometer biased.
 
-    ``accel_bias_B``: body FRD, m/s^2. ``bias_tau_s``: the observer's velocity channel (0,
-    the default: the IMU channel alone).
+    ``accel_bias_B``: body FRD, m/s^2. ``bias_tau_s``, ``landing_bias_tau_s``: the
+    observer's velocity channel in WINDOW and in LANDING (0 here: the IMU channel alone;
+    params.yaml flies 0.2 and 0.1 s since 2026-11-28).
     """
     ctrl = ControllerConfig.from_params({'disturbance_law': law,
-                                         'observer.bias_tau_s': bias_tau_s}, VEHICLE,
-                                        WORLD.window.width, PAD)
+                                         'observer.bias_tau_s': bias_tau_s,
+                                         'observer.landing_bias_tau_s': landing_bias_tau_s},
+                                        VEHICLE, WORLD.window.width, PAD)
     cfg = FeatureSimConfig(initial_position_I=np.asarray(WORLD.initial_position_I, float),
                            wind_accel_I=np.asarray(wind_accel_I, float),
                            accel_bias_B=np.asarray(accel_bias_B, float), max_time_s=40.0)
@@ -218,8 +221,8 @@ def test_an_accelerometer_bias_reads_as_a_disturbance_and_the_integrals_take_it_
     The IMU observer alone cannot tell it from a wind: it pushes the vehicle sideways by the
     bias and the proportional image terms alone let it hit the frame. The integrals of
     observer_integral (and of integral) see the image offset and cancel it; so does the
-    observer's velocity channel (bias_tau_s 0.2, off by default), which sees no such push in
-    the flow.
+    observer's velocity channel (bias_tau_s 0.2, on by default since 2026-11-28), which sees
+    no such push in the flow.
     """
     bias = [0.0, 0.35, 0.0]
     assert not fly('observer', [0.0, 0.0, 0.0], bias)['success']
@@ -250,14 +253,15 @@ def test_a_roll_error_of_the_autopilots_estimate_is_taken_out_by_the_velocity_ch
     towards -y for a +roll error and +y for a -roll error (the truth rolled left pushes left,
     NED y east). Measured (2026-11-26): crossing offset y -0.247 / +0.245 m, clearance
     1.6 / 2.3 cm. The observer's velocity channel (bias_tau_s 0.2 s: the wall flow times the
-    window's distance; off by default, as PX4 SIH flew worse with it) sees the push:
+    window's distance; on by default since 2026-11-28) sees the push:
     -0.061 / +0.058 m, 15.0 cm, as without the error (docs/design.md "Attitude-estimate
     error").
     """
     offsets, clearances = {}, {}
     for tau in (0.0, 0.2):
         ctrl = ControllerConfig.from_params({'disturbance_law': 'observer_integral',
-                                             'observer.bias_tau_s': tau}, VEHICLE,
+                                             'observer.bias_tau_s': tau,
+                                             'observer.landing_bias_tau_s': 0.0}, VEHICLE,
                                             WORLD.window.width, PAD)
         for roll in (0.0297, -0.0297):
             cfg = FeatureSimConfig(initial_position_I=np.asarray(WORLD.initial_position_I,
@@ -271,3 +275,29 @@ def test_a_roll_error_of_the_autopilots_estimate_is_taken_out_by_the_velocity_ch
     assert offsets[0.0, 0.0297] < -0.15 and offsets[0.0, -0.0297] > 0.15, offsets
     assert abs(offsets[0.2, 0.0297]) < 0.1 and abs(offsets[0.2, -0.0297]) < 0.1, offsets
     assert min(clearances[0.2, r] for r in (0.0297, -0.0297)) > 0.12, clearances
+
+
+def test_the_landing_velocity_channel_holds_the_pad_under_a_wandering_estimate_error():
+    """PX4 SIH's estimate error (0.7 deg, 2 s Gauss-Markov), one start of a campaign.
+
+    Run 6 of the feature-level campaign s31f-vel (2026-11-28, no wind): with the IMU channel
+    alone the push g delta (invisible to the IMU) held the vehicle ~10 cm off the pad, the
+    smallest group left the down camera's view below ~0.3 m and the supervisor failed safe
+    ("pad stale"); with the velocity channel in LANDING (the floor flow times the pad-image
+    height, observer.landing_bias_tau_s) it lands. Defaults: params.yaml's.
+    """
+    start = np.array([-2.389609104913295, 0.13270611296926155, -1.6679840976743703])
+    cfg = FeatureSimConfig(initial_position_I=start, attitude_noise_std=np.radians(0.7),
+                           attitude_noise_tau_s=2.0, seed=1397888935, max_time_s=60.0)
+    flown = {}
+    for label, landing_tau in (('imu alone', 0.0), ('landing channel', 0.1)):
+        ctrl = ControllerConfig.from_params({'disturbance_law': 'observer_integral',
+                                             'observer.bias_tau_s': 0.0,
+                                             'observer.landing_bias_tau_s': landing_tau},
+                                            VEHICLE, WORLD.window.width, PAD)
+        flown[label], _ = run_feature_scenario(WORLD, PAD, VEHICLE, ctrl,
+                                               SupervisorConfig(r_w=WORLD.window.width), cfg)
+    alone, aided = flown['imu alone'], flown['landing channel']
+    assert not alone['success'] and alone['modes'][-1]['mode'] == 5, alone     # FAILSAFE
+    assert [m['mode'] for m in alone['modes']][:4] == [0, 1, 2, 3], alone      # in LANDING
+    assert aided['success'] and aided['landing']['error_m'] < 0.05, aided

@@ -113,3 +113,51 @@ def test_the_controller_feeds_the_window_distance_times_the_wall_flow():
     assert off._window_velocity(meas.phi_front_I, p_I, win) is None
     assert cfg.disturbance_law == DisturbanceLaw.OBSERVER_INTEGRAL
     ctrl.step(Mode.WINDOW, meas)                    # and step() takes it without complaint
+
+
+def test_a_step_time_constant_overrides_the_gains_and_a_zero_one_holds():
+    """update(bias_tau_s=...): LANDING's own time constant, with WINDOW's channel off."""
+    unseen = np.array([0.0, 0.12, 0.0])             # 0.7 deg of roll-estimate error
+    fast = DisturbanceObserver(ObserverGains(tau_s=0.5, bias_tau_s=0.0), M)
+    slow = DisturbanceObserver(ObserverGains(tau_s=0.5, bias_tau_s=0.0), M)
+    v_fast, v_slow = np.zeros(3), np.zeros(3)
+    for _ in range(int(round(1.0 / DT))):
+        v_fast, v_slow = v_fast + DT * unseen, v_slow + DT * unseen
+        fast.update(DT, -HOVER / M, HOVER, v_fast, bias_tau_s=0.1)
+        slow.update(DT, -HOVER / M, HOVER, v_slow, bias_tau_s=1.0)
+    assert np.linalg.norm(fast.bias - unseen) < np.linalg.norm(slow.bias - unseen)
+    fly(fast, 6.0, np.zeros(3), unseen)            # the gains' own 0: velocity ignored, held
+    held = fast.bias.copy()
+    assert np.linalg.norm(held - unseen) < 0.03
+    for _ in range(50):
+        fast.update(DT, -HOVER / M, HOVER, np.array([5.0, 5.0, 0.0]), bias_tau_s=0.0)
+    assert np.array_equal(fast.bias, held)
+    for bad in ({'landing_bias_tau_s': -0.1}, {'landing_bias_tau_s': float('nan')}):
+        with pytest.raises(GainError):
+            replace(ObserverGains(), **bad).validate()
+
+
+def test_the_controller_feeds_the_pad_height_times_the_floor_flow_in_landing():
+    """v = h phi_floor in LANDING: h from the smallest complete pad group (any offset)."""
+    from ibvs_sim.core.feature_sim import FeatureSensors
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    cfg = ControllerConfig.from_params({'disturbance_law': 'observer_integral',
+                                        'observer.landing_bias_tau_s': 0.1}, vehicle,
+                                       world.window.width, pad)
+    ctrl = IbvsController(cfg)
+    sensors = FeatureSensors(world, pad, vehicle, np.random.default_rng(0), 0.0, 0.0)
+    xi = np.array([0.05, -0.03, world.floor_z - 0.6])          # 0.6 m up, off the centre
+    v_true = np.array([0.1, -0.05, 0.25])
+    p_C, groups = sensors.pad_landmarks(np.eye(3), xi)
+    assert groups                                                 # the geometry sees a group
+    meas = Measurements(t=0.0, R_IB=np.eye(3), window_bearings_C=None, pad_bearings_C=p_C,
+                        phi_front_I=None, phi_down_I=sensors.flow_down(xi, v_true),
+                        pad_groups=tuple(groups))
+    height = ctrl._pad_height(meas, np.eye(3))
+    assert height == pytest.approx(0.6, rel=1e-6)
+    assert ctrl._landing_velocity(meas.phi_down_I, height) == pytest.approx(v_true, rel=1e-6)
+    assert ctrl._landing_velocity(meas.phi_down_I, None) is None       # no complete group
+    assert ctrl._landing_velocity(meas.phi_down_I, 0.01) is None       # implausible height
+    off = IbvsController(replace(cfg, observer=ObserverGains(landing_bias_tau_s=0.0)))
+    assert off._landing_velocity(meas.phi_down_I, height) is None
+    ctrl.step(Mode.LANDING, meas)                  # and step() takes it without complaint

@@ -174,20 +174,22 @@ class ObserverGains:
     mean over the frame) plus the force commanded over that frame, i.e. Delta / m for
     m v' = -F + m g e3 + Delta, low-passed; |d_hat| <= d_max. With bias_tau_s > 0, the
     flow's velocity corrects what the IMU cannot see (an attitude-estimate error's push),
-    low-passed with bias_tau_s, |.| <= bias_max, held where no velocity is measured
-    (observer.py).
+    low-passed with bias_tau_s in WINDOW and landing_bias_tau_s in LANDING, |.| <= bias_max,
+    held where no velocity is measured (observer.py).
     """
 
     tau_s: float = 0.5          # s, observer time constant
     d_max: float = 3.0          # m/s^2, largest disturbance compensated
-    bias_tau_s: float = 0.0     # s, velocity channel's correction time constant; 0 = IMU only
+    bias_tau_s: float = 0.2     # s, velocity channel's correction time constant in WINDOW
     bias_max: float = 1.0       # m/s^2, largest correction (~6 deg of tilt-estimate error)
+    landing_bias_tau_s: float = 0.1   # s, the same in LANDING (floor flow x pad height)
 
     def validate(self) -> None:
-        """Raise GainError unless tau_s, d_max, bias_max > 0 and bias_tau_s >= 0."""
-        if min(self.tau_s, self.d_max, self.bias_max) <= 0.0 or not self.bias_tau_s >= 0.0:
+        """Raise GainError unless tau_s, d_max, bias_max > 0 and both bias time constants >= 0."""
+        if min(self.tau_s, self.d_max, self.bias_max) <= 0.0 \
+                or not (self.bias_tau_s >= 0.0 and self.landing_bias_tau_s >= 0.0):
             raise GainError(f'observer tau_s, d_max, bias_max must be positive and '
-                            f'bias_tau_s >= 0: {self}')
+                            f'bias_tau_s, landing_bias_tau_s >= 0: {self}')
 
 
 def clamp_norm(v: np.ndarray, limit: float) -> np.ndarray:
@@ -239,6 +241,8 @@ GAIN_SPECS = {
                        'IMU cannot see (an attitude-estimate error); 0 = IMU only, >= 0',
                        0.0, None),
         'bias_max': ('m/s^2, largest such correction, > 0', 0.0, None),
+        'landing_bias_tau_s': ('s, the same correction in LANDING, from the floor flow times '
+                               'the pad-image height; 0 = held from WINDOW, >= 0', 0.0, None),
     },
     'crossing': {
         'kv': ('1/s, mode 2 flow damping (as K_d^t), > 0', 0.0, None),

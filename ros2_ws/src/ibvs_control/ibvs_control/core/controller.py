@@ -33,6 +33,7 @@ MAX_INTEGRATION_STEP_S = 0.1   # a longer gap between frames is not integrated a
 # m, the window-plane distances at which d_o times the wall flow is taken as the velocity
 # (closer, the corners leave the image; farther, the window is a few pixels)
 MIN_VELOCITY_DISTANCE_M, MAX_VELOCITY_DISTANCE_M = 0.2, 10.0
+MIN_LANDING_HEIGHT_M = 0.05     # m, pad-image heights below this give no landing velocity
 
 
 @dataclass(frozen=True)
@@ -77,7 +78,7 @@ class ControllerConfig:
         landing.lateral_scale_min, landing.vertical_schedule_height_m,
         landing.vertical_scale_min, disturbance_law, integral.ki_w, integral.ki_phi,
         integral.ki_t, integral.xi_max, integral.d_max, observer.tau_s, observer.d_max,
-        observer.bias_tau_s, observer.bias_max.
+        observer.bias_tau_s, observer.bias_max, observer.landing_bias_tau_s.
         ``pad`` gives the group sizes for the
         height estimate.
         Raises GainError (a ValueError).
@@ -225,17 +226,21 @@ class IbvsController:
             phi_w = window_flow(meas.phi_front_I, win.eta_w, win.l_e, win.alpha_w)
         if self._yaw_des is None:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
+        height = self._pad_height(meas, R_IB) if mode == Mode.LANDING else None
         observer = cfg.disturbance_law.uses_observer
         if observer:
-            v_I = (self._window_velocity(meas.phi_front_I, p_w_I, win)
-                   if mode == Mode.WINDOW else None)
-            self._observe(dt, meas.specific_force_I, R_IB, v_I)
+            v_I, bias_tau_s = None, None
+            if mode == Mode.WINDOW:
+                v_I = self._window_velocity(meas.phi_front_I, p_w_I, win)
+            elif mode == Mode.LANDING:
+                v_I = self._landing_velocity(phi_t, height)
+                bias_tau_s = cfg.observer.landing_bias_tau_s
+            self._observe(dt, meas.specific_force_I, R_IB, v_I, bias_tau_s)
         feats = FeatureSnapshot(
             q_w=None if win is None else win.q_w, q_w_bar=None if win is None else win.q_w_bar,
             q_t=q_t, phi_w=phi_w, phi_t=phi_t, alpha_w=None if win is None else win.alpha_w,
             eta_w=self._eta_w if win is None else win.eta_w,
             d_hat=self._d_hat if observer else None)
-        height = self._pad_height(meas, R_IB) if mode == Mode.LANDING else None
         F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t, height)
         if valid:
             self._F_last = F
@@ -243,7 +248,7 @@ class IbvsController:
         return ControlOutput(self._F_cmd, self._yaw_des, feats, valid)
 
     def _observe(self, dt: float, f_I: np.ndarray | None, R_IB: np.ndarray,
-                 v_I: np.ndarray | None = None) -> None:
+                 v_I: np.ndarray | None = None, bias_tau_s: float | None = None) -> None:
         """One step of the disturbance observer (observer.py): Delta/m = f_I + F_app / m.
 
         F_app, the force the vehicle applied over the interval, is the previous command's
@@ -251,10 +256,11 @@ class IbvsController:
         commanded): while the attitude loop lags a new command, the commanded direction is
         not yet the applied one, and their difference would read as a disturbance that the
         law then feeds back (measured on PX4 SIH: a growing oscillation in LANDING). v_I:
-        the metric velocity for the velocity channel (WINDOW only), or None.
+        the metric velocity for the velocity channel (WINDOW, LANDING), or None; bias_tau_s
+        its correction's time constant there (None: observer.bias_tau_s, WINDOW's).
         """
         F_app = float(np.linalg.norm(self._F_cmd)) * (R_IB @ e3)
-        self._observer.update(dt, f_I, F_app, v_I)
+        self._observer.update(dt, f_I, F_app, v_I, bias_tau_s)
 
     @property
     def _d_hat(self) -> np.ndarray:
@@ -275,6 +281,21 @@ class IbvsController:
         if not (math.isfinite(d_o) and MIN_VELOCITY_DISTANCE_M <= d_o <= MAX_VELOCITY_DISTANCE_M):
             return None
         return d_o * np.asarray(phi_front_I, dtype=float)
+
+    def _landing_velocity(self, phi_t_I: np.ndarray | None,
+                          height: float | None) -> np.ndarray | None:
+        """Return v (m/s, {I}) = h times the floor flow v / d_t (h: the pad-image height).
+
+        The markers lie on the floor, so the pad's height estimate is the flow's depth d_t.
+        None without the velocity channel, a floor flow or a plausible height.
+        """
+        if not self.config.observer.landing_bias_tau_s > 0.0 or phi_t_I is None \
+                or height is None:
+            return None
+        if not (math.isfinite(height)
+                and MIN_LANDING_HEIGHT_M <= height <= MAX_VELOCITY_DISTANCE_M):
+            return None
+        return height * np.asarray(phi_t_I, dtype=float)
 
     @property
     def disturbance_estimate(self) -> np.ndarray:

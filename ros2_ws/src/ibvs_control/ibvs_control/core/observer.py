@@ -14,18 +14,21 @@ tilted by delta flies the truth tilted by -delta and the thrust pushes the vehic
 reads the commanded direction (tilt and accelerometer bias cannot be told apart in hover).
 The same holds for an accelerometer bias the autopilot has levelled on.
 
-**Velocity channel** (``bias_tau_s`` > 0): where the graph measures the metric velocity (in
+**Velocity channel** (``bias_tau_s`` > 0 in WINDOW, ``landing_bias_tau_s`` > 0 in LANDING;
+0.2 and 0.1 s by default since 2026-11-28): where the graph measures the metric velocity (in
 WINDOW, the wall's translational flow v / d_o times the window plane's distance d_o from the
-corner bearings and the known width r_w), a momentum observer sees every push the vehicle
+corner bearings and the known width r_w; in LANDING, the floor's flow v / d_t times the
+pad-image height, controller.py), a momentum observer sees every push the vehicle
 feels: ``z' = g e3 - F_app / m + d_vel``, ``d_vel = (v - z) / tau_s`` (a first-order
 low-pass of the true Delta / m with time constant tau_s, no differentiation of v). The
 difference's horizontal part, ``b = (I - e3 e3^T)(d_vel - d_imu)``, is what the IMU cannot
 see (a tilt error pushes sideways; a vertical push, the thrust model's error, the IMU does
-see); it is low-passed with ``bias_tau_s``, clamped at ``bias_max``, and *held* where no
-velocity is measured (the blind crossing, the landing): an estimate error or a bias is
-constant over a flight. Horizontal only also keeps the flow's vertical errors (the
-derotation's, a distance error coupling the vertical acceleration) out of the thrust, as a
-PX4 SIH flight with all three axes suggested (docs/px4_sih.md). The estimate
+see); it is low-passed with the mode's time constant, clamped at ``bias_max``, and *held*
+where no velocity is measured (the blind crossing). An estimate error wanders (PX4 SIH's:
+0.7 deg in 2 s, docs/sim_autopilot.md), so LANDING learns it again from its own velocity.
+Horizontal only also keeps the flow's vertical errors (the derotation's, a distance error
+coupling the vertical acceleration) out of the thrust, as a PX4 SIH flight with all three
+axes suggested (docs/px4_sih.md). The estimate
 is always ``d_imu + b``: the IMU channel keeps its bandwidth for the wind, the velocity
 channel (noisier: flow noise times the distance, divided by tau_s) only sets the slow part.
 docs/design.md "Attitude-estimate error".
@@ -64,12 +67,14 @@ class DisturbanceObserver:
         return self.gains.bias_tau_s > 0.0
 
     def update(self, dt: float, f_I: np.ndarray | None, F_app: np.ndarray,
-               v_I: np.ndarray | None = None) -> None:
+               v_I: np.ndarray | None = None, bias_tau_s: float | None = None) -> None:
         """One step over ``dt`` (s): specific force f_I, applied force F_app (N), velocity v_I.
 
         f_I None or non-finite: the IMU channel holds. v_I (m/s, {I}) None, non-finite or the
         velocity channel off: the correction b holds and the velocity channel restarts at
-        its next measurement (bumpless: it starts from the current estimate).
+        its next measurement (bumpless: it starts from the current estimate). ``bias_tau_s``:
+        the correction's time constant for this step (None: the gains' ``bias_tau_s``; <= 0:
+        the channel off), as the source of v_I decides (controller.py: WINDOW or LANDING).
         """
         if dt <= 0.0:
             return
@@ -79,7 +84,8 @@ class DisturbanceObserver:
             d_meas = np.asarray(f_I, dtype=float) + F_app / self.mass
             self.d_imu = clamp_norm(self.d_imu + min(dt / g.tau_s, 1.0) * (d_meas - self.d_imu),
                                     g.d_max)
-        if not self.velocity_aided or v_I is None or not np.all(np.isfinite(v_I)):
+        tau_b = g.bias_tau_s if bias_tau_s is None else float(bias_tau_s)
+        if not tau_b > 0.0 or v_I is None or not np.all(np.isfinite(v_I)):
             self._z = None
             return
         v_I = np.asarray(v_I, dtype=float)
@@ -91,5 +97,5 @@ class DisturbanceObserver:
         self._d_vel = clamp_norm((v_I - self._z) / g.tau_s, g.d_max)
         unseen = self._d_vel - self.d_imu
         unseen[2] = 0.0                         # horizontal: the IMU sees vertical pushes
-        self.bias = clamp_norm(self.bias + min(dt / g.bias_tau_s, 1.0) * (unseen - self.bias),
+        self.bias = clamp_norm(self.bias + min(dt / tau_b, 1.0) * (unseen - self.bias),
                                g.bias_max)
