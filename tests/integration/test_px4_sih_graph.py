@@ -85,7 +85,9 @@ def test_px4_flies_the_graph_towards_the_window(px4_run):
     start = np.array(run['start_pose_I'])
     assert np.linalg.norm(start - world.initial_position_I) < START_TOLERANCE_M, start
     assert in_box(start, world.random_box), start                  # SPEC's random-start box
-    assert run['start_speed_mps'] < START_SPEED_TOL_MPS, run['start_speed_mps']
+    # judged < START_SPEED_TOL_MPS on the same sample, stored rounded to 1 mm/s (0.09996 m/s
+    # is stored as 0.1: this test failed on it, 2026-11-28)
+    assert run['start_speed_mps'] <= START_SPEED_TOL_MPS, run['start_speed_mps']
     # PX4's own estimator on the relayed motion capture (params.yaml px4_sim mocap_rate_hz)
     assert run['px4_estimator'] == 'mocap' and run['px4_parameters']['EKF2_GPS_CTRL'] == 0
     # the cameras were rendered from PX4's ground truth, at the rate asked
