@@ -342,10 +342,15 @@ class _Setup:
 
 
 def params_estimate_noise(params: dict) -> tuple[float, float]:
-    """(std rad, tau s) of the sim's attitude-estimate error in a params.yaml dict (0: none)."""
+    """(std rad, tau s) of the sim's attitude-estimate error in a params.yaml dict.
+
+    A file without them flies the sim autopilot's defaults, as the sim node would.
+    """
+    from ibvs_sim.core.autopilot.config import AutopilotConfig
     sim = (params.get('sim') or {}).get('ros__parameters') or {}
-    return (float(sim.get('attitude_noise_std_rad', 0.0)),
-            float(sim.get('attitude_noise_tau_s', 2.0)))
+    default = AutopilotConfig()
+    return (float(sim.get('attitude_noise_std_rad', default.attitude_noise_std)),
+            float(sim.get('attitude_noise_tau_s', default.attitude_noise_tau_s)))
 
 
 def read_params(params_file: str | None) -> tuple[str, str]:

@@ -54,8 +54,9 @@ class AutopilotConfig:
     # The estimate's error wanders (first-order Gauss-Markov per axis), it is not white from one
     # sample to the next: white noise per sample would read as spurious rotation between two
     # camera frames 20 ms apart. Fitted to PX4 v1.16 SIH's EKF2 on motion capture during a
-    # mission (docs/sim_autopilot.md "Attitude-estimate error"): std roll / pitch / yaw 1.02 /
-    # 0.43 / 0.51 deg (RMS over the axes 0.70), autocorrelation 1/e at 1.75-2.5 s.
+    # mission (docs/sim_autopilot.md "Attitude-estimate error: fitted to PX4 SIH"): std roll /
+    # pitch / yaw 1.02 / 0.43 / 0.51 deg (RMS over the axes 0.70), autocorrelation 1/e at
+    # 1.75-2.5 s.
     attitude_noise_std: float = 0.0122      # rad (0.7 deg), stationary std per axis
     attitude_noise_tau_s: float = 2.0       # s (sim), correlation time of that error
     # A static error of the estimate (roll, pitch; rad, body rotation vector (x, y, 0)): an
