@@ -25,7 +25,11 @@ sim error, PX4 SIH's 0.7 deg / 2 s; reference s31-ref14: ``python -m ibvs_bringu
 --name s31-ref14 --seed 14 --runs 86 --levels 0 0.5 --law paper --law observer_integral
 --workers 2``, 71 s, docs/design.md "A realistic estimate error"). This sample with the px4
 model (18 s idle): paper 17 / 20 and 0 / 20, the default 20 / 20 and 20 / 20, landing error
-p95 3.4 and 5.9 cm.
+p95 3.4 and 5.9 cm. Since the controller flies a loss of the pad on the centre carried by the
+floor flow (2026-11-28, docs/design.md "The pad through a short loss"; reference s32-ref14,
+the same command): paper 75 / 86 and 0 / 86, the default 86 / 86 and 84 / 86, landing error
+p95 4.7 / 5.6 cm (6.1 cm before at 0.5 m/s^2); this sample: paper 19 / 20 and 0 / 20, the
+default 20 / 20 and 20 / 20, p95 3.4 / 5.2 cm.
 """
 import os
 
@@ -41,15 +45,16 @@ RUNS = 20
 REFERENCES = {
     'exact': {('paper', 0.0): (86, 86), ('paper', 0.5): (3, 86),
               ('observer_integral', 0.0): (30, 30), ('observer_integral', 0.5): (30, 30)},
-    'px4': {('paper', 0.0): (65, 86), ('paper', 0.5): (0, 86),
+    'px4': {('paper', 0.0): (75, 86), ('paper', 0.5): (0, 86),
             ('observer_integral', 0.0): (86, 86), ('observer_integral', 0.5): (84, 86)},
 }
 ESTIMATE_NOISE = {'exact': (0.0, 2.0), 'px4': None}     # None: params.yaml's sim values
 # issue 14's landing target (p95 <= 5 cm) per model and level; with PX4's estimate error it is
-# missed at 0.5 m/s^2 (6.1 cm in the reference, 5.9 here): the SHUTDOWN drift (level from
-# 0.14 m, the wind and g delta push the vehicle before touchdown; docs/design.md, open)
+# still missed at 0.5 m/s^2 (5.6 cm in the reference, 5.2 here; 6.1 and 5.9 before the pad was
+# carried through a loss): the slow lateral law near the floor and the level SHUTDOWN
+# (docs/design.md, "Left open: the SHUTDOWN drift" and the paragraph after it)
 LANDING_P95_M = {('exact', 0.0): 0.05, ('exact', 0.5): 0.05,
-                 ('px4', 0.0): 0.05, ('px4', 0.5): 0.07}
+                 ('px4', 0.0): 0.05, ('px4', 0.5): 0.06}
 DEFAULT_LAW = 'observer_integral'           # params.yaml's
 
 

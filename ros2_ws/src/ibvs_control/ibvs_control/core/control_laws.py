@@ -63,6 +63,9 @@ class LandingGains:
     lateral_scale_min: float = 0.1
     vertical_schedule_height_m: float = 0.8
     vertical_scale_min: float = 0.1
+    # s (ROS clock, from the last pad frame's stamp): without a complete group, fly on the pad
+    # centre carried by the floor flow this long (pad_prediction.py); 0 = hold the last force
+    pad_prediction_s: float = 1.5
 
     def validate(self) -> None:
         """Raise GainError unless K_p^t, K_d^t are positive definite and phi*_t >= 0."""
@@ -75,6 +78,8 @@ class LandingGains:
                            getattr(self, f'{axis}_scale_min'))
             if height < 0.0 or not 0.0 < low <= 1.0:
                 raise GainError(f'{axis}_schedule_height_m >= 0 and 0 < {axis}_scale_min <= 1')
+        if not (np.isfinite(self.pad_prediction_s) and self.pad_prediction_s >= 0.0):
+            raise GainError(f'pad_prediction_s must be >= 0: {self.pad_prediction_s}')
 
     def lateral_scale(self, height_m: float | None) -> float:
         """Factor on K_p^t, K_d^t in the landing plane for an estimated height (m)."""
@@ -213,6 +218,10 @@ GAIN_SPECS = {
         'vertical_schedule_height_m': ('m, below this pad-image height the gains along eta_t '
                                        'scale with the height (0: off)', 0.0, None),
         'vertical_scale_min': ('lower bound of that vertical gain scale, (0, 1]', 0.0, 1.0),
+        'pad_prediction_s': ('s (ROS clock, from the last pad frame\'s stamp): LANDING frames '
+                             'without a complete pad group fly on the pad centre carried by '
+                             'the floor flow this long, then hold the last force; 0 = hold at '
+                             'once, >= 0 (pad_prediction.py)', 0.0, None),
     },
     'window': {
         'kp': ('1/s^2, k_p^w (k_d^w^2 / k_p^w > r_w / 2: Proposition prop:window)', 0.0, None),

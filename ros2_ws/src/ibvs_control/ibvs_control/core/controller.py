@@ -24,6 +24,7 @@ from ibvs_common.core.features import (
 from ibvs_common.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.observer import DisturbanceObserver
+from ibvs_control.core.pad_prediction import PadPrediction
 
 if TYPE_CHECKING:
     from typing import TypeVar
@@ -76,9 +77,9 @@ class ControllerConfig:
         window.phi_star, window.eps, window.delta, crossing.kv, crossing.ks, crossing.kf,
         crossing.phi_fwd_min, crossing_law, landing.lateral_schedule_height_m,
         landing.lateral_scale_min, landing.vertical_schedule_height_m,
-        landing.vertical_scale_min, disturbance_law, integral.ki_w, integral.ki_phi,
-        integral.ki_t, integral.xi_max, integral.d_max, observer.tau_s, observer.d_max,
-        observer.bias_tau_s, observer.bias_max, observer.landing_bias_tau_s.
+        landing.vertical_scale_min, landing.pad_prediction_s, disturbance_law, integral.ki_w,
+        integral.ki_phi, integral.ki_t, integral.xi_max, integral.d_max, observer.tau_s,
+        observer.d_max, observer.bias_tau_s, observer.bias_max, observer.landing_bias_tau_s.
         ``pad`` gives the group sizes for the
         height estimate.
         Raises GainError (a ValueError).
@@ -141,6 +142,7 @@ class FeatureSnapshot:
     alpha_w: float | None = None
     eta_w: np.ndarray | None = None
     d_hat: np.ndarray | None = None     # disturbance observer's Delta / m (m/s^2), else None
+    pad_predicted: bool = False         # q_t carried on the floor flow (pad_prediction.py)
 
 
 @dataclass(frozen=True)
@@ -183,6 +185,8 @@ class IbvsController:
         self._observer = DisturbanceObserver(self.config.observer, self.config.mass)
         self._d_hat_T2 = np.zeros(3)          # its value with the last window force
         self._F_cmd = self._hover()
+        self._pad_prediction = PadPrediction(self.config.landing.pad_prediction_s,
+                                             self.config.eta_t)
 
     def _hover(self) -> np.ndarray:
         return self.config.mass * GRAVITY * e3
@@ -226,7 +230,13 @@ class IbvsController:
             phi_w = window_flow(meas.phi_front_I, win.eta_w, win.l_e, win.alpha_w)
         if self._yaw_des is None:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
-        height = self._pad_height(meas, R_IB) if mode == Mode.LANDING else None
+        height, pad_predicted = None, False
+        if mode == Mode.LANDING:
+            if entering:
+                self._pad_prediction.reset()
+            pad = self._pad_prediction.step(meas.t, q_t, self._pad_height(meas, R_IB), phi_t)
+            if pad is not None:
+                q_t, height, pad_predicted = pad.q_t, pad.height_m, pad.predicted
         observer = cfg.disturbance_law.uses_observer
         if observer:
             v_I, bias_tau_s = None, None
@@ -240,7 +250,7 @@ class IbvsController:
             q_w=None if win is None else win.q_w, q_w_bar=None if win is None else win.q_w_bar,
             q_t=q_t, phi_w=phi_w, phi_t=phi_t, alpha_w=None if win is None else win.alpha_w,
             eta_w=self._eta_w if win is None else win.eta_w,
-            d_hat=self._d_hat if observer else None)
+            d_hat=self._d_hat if observer else None, pad_predicted=pad_predicted)
         F, valid = self._force(mode, entering, dt, win, q_t, phi_w, phi_t, height)
         if valid:
             self._F_last = F

@@ -232,6 +232,7 @@ def feature_vector(features: FeatureSnapshot) -> tuple[list[str], list[float]]:
     """Flatten a FeatureSnapshot for ibvs/features: names 'q_w.x', ..., 'alpha_w' (in {I}).
 
     Features that are not available (None) or not finite are left out of the message.
+    With q_t, 'pad_predicted' is 1 when q_t was carried on the floor flow (pad_prediction.py).
     """
     names, values = [], []
     for name in FEATURE_NAMES:
@@ -242,4 +243,7 @@ def feature_vector(features: FeatureSnapshot) -> tuple[list[str], list[float]]:
     if features.alpha_w is not None and np.isfinite(features.alpha_w):
         names.append('alpha_w')
         values.append(float(features.alpha_w))
+    if 'q_t.x' in names:        # 1: q_t carried on the floor flow through a pad loss
+        names.append('pad_predicted')
+        values.append(float(features.pad_predicted))
     return names, values

@@ -57,7 +57,7 @@ class SupervisorConfig:
     window_timeout_s: float = 0.5                  # mode 1: window lost far away -> failsafe
     front_flow_timeout_s: float = 0.5              # mode 1
     down_flow_timeout_s: float = 0.5               # modes 2, 3
-    pad_timeout_s: float = 1.0                     # mode 3
+    pad_timeout_s: float = 1.5                     # mode 3 (the controller carries the pad)
     crossing_min_angular_height_rad: float = 0.85  # window lost closer than this -> mode 2
     window_jump_rad: float = 0.1                   # corner jump between frames = loss
     window_jump_max_gap_s: float = 0.1             # jumps are judged only across shorter gaps

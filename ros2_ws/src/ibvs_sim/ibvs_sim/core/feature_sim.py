@@ -284,7 +284,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         supervisor.on_flow(t, 'down', phi_down)
         if not started:
             started, _ = supervisor.start(t)
-        supervisor.update(t)
+        supervisor.end_frame(t)             # the frame closed, as the supervisor node does
         mode = supervisor.mode
         out = controller.step(mode, Measurements(t, R_est, win_C, pad_C, phi_front, phi_down,
                                                  tuple(groups), specific_force_I=f_I_mean))
