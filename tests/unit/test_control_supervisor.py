@@ -33,7 +33,7 @@ def feed(sup, t, xi, v, window=True, pad=None, imu=True, down=True):
         sup.on_flow(t, 'front', v / (WORLD.wall_x - xi[0]))
     if down:
         sup.on_flow(t, 'down', v / -xi[2])
-    return sup.update(t)
+    return sup.end_frame(t)             # the frame closed, as the node does
 
 
 def started(xi=np.array([-2.0, 0.0, -1.6])):
@@ -298,3 +298,61 @@ def test_a_clock_step_back_in_flight_is_failsafe_and_in_idle_needs_fresh_inputs(
     sup = started()
     sup.abort(0.1)
     assert sup.clock_stepped_back(0.05, 0.2) == [] and sup.mode == Mode.FAILSAFE
+
+
+def land_until_the_pad_is_lost(sup, t, xi0, v, lost_below_m):
+    """LANDING frames from xi0 at v; the pad's groups C and D seen above lost_below_m only.
+
+    Returns the last frame's t and xi, and the first t at or below 0.14 m.
+    """
+    xi, t_014 = xi0, None
+    while sup.mode == Mode.LANDING and xi[2] < -0.09:
+        t += 0.02
+        xi = xi + v * 0.02
+        seen = -xi[2] > lost_below_m
+        if t_014 is None and -xi[2] <= 0.14:
+            t_014 = t
+        feed(sup, t, xi, v, window=False, pad=pad_groups(xi, ('C', 'D')) if seen else None)
+    return t, xi, t_014
+
+
+def test_the_carried_height_shuts_down_near_the_pad_and_off_it_only_at_the_floor():
+    """Mode 3 -> 4 on the pad-image height carried by the floor flow (pad_prediction.py).
+
+    The pad lost at 0.2 m (the smallest group out of the down camera's view near the floor),
+    descending at 0.1 m/s to 0.09 m, then still. Over the pad the carried height switches on
+    the same frame as the measured one would (0.14 m, within a frame). 6 cm off the pad (more
+    than shutdown_carried_offset_m) it waits shutdown_carried_wait_s (0.5 s) below the
+    shutdown height, for the controller to bring the vehicle back, then switches wherever it
+    is. With pad_prediction_s 0 the pad goes stale instead.
+    """
+    for offset_x, carry, expected in ((0.0, 1.5, Mode.SHUTDOWN), (0.06, 1.5, Mode.SHUTDOWN),
+                                      (0.0, 0.0, Mode.FAILSAFE)):
+        sup = ModeSupervisor(SupervisorConfig(r_w=WORLD.window.width, pad_prediction_s=carry))
+        feed(sup, 0.0, np.array([-2.0, 0.0, -1.6]), np.zeros(3))
+        sup.start(0.0)
+        t, _, _, _ = fly_through_the_window(sup)
+        assert sup.mode == Mode.LANDING
+        t, xi, t_014 = land_until_the_pad_is_lost(sup, t, np.array([offset_x, 0.0, -0.3]),
+                                                  np.array([0.0, 0.0, 0.1]), 0.2)
+        while sup.mode == Mode.LANDING:                 # still on the floor, no pad
+            t += 0.02
+            feed(sup, t, xi, np.zeros(3), window=False)
+        last = sup.transitions[-1]
+        assert sup.mode == expected, (offset_x, carry, last)
+        if offset_x == 0.0 and carry:
+            assert abs(last.t - t_014) < 0.03 and '0.0 cm off' in last.reason, last
+        elif offset_x:
+            assert abs(last.t - t_014 - 0.5) < 0.03 and '6.0 cm off' in last.reason, last
+        else:
+            assert 'pad stale' in last.reason
+
+
+def test_pad_prediction_parameters_are_checked():
+    for bad in ({'pad_prediction_s': -0.1}, {'shutdown_carried_offset_m': 0.0},
+                {'shutdown_carried_wait_s': 0.0}):
+        try:
+            SupervisorConfig.from_params(bad)
+        except ValueError:
+            continue
+        raise AssertionError(f'accepted {bad}')

@@ -24,7 +24,9 @@ complete group, moved each frame by the floor flow until a group is seen again o
   geometrically), the plane offset moves by the metric velocity h phi_t integrated.
 - Out: ``q_t = -r / |r|`` and ``h = eta_t^T r``, what the measurements would have given.
 
-ROS-free; one ``step`` per LANDING frame (IbvsController).
+ROS-free; one ``step`` per LANDING frame: IbvsController flies the estimate, ModeSupervisor
+takes its height for the 3 -> 4 switch (only within ``shutdown_carried_offset_m`` of the
+carried centre, supervisor.py).
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ class PadEstimate:
     q_t: np.ndarray
     height_m: float | None  # None: a pad seen through no group of known size
     predicted: bool         # True: carried on the flow since the last pad frame
+    r_I: np.ndarray | None = None   # m, {I}: the pad centre from the camera (None: no height)
 
 
 def pad_centre_from_feature(q_t: np.ndarray, height_m: float,
@@ -108,7 +111,8 @@ class PadPrediction:
                     self._r_I = pad_centre_from_feature(q_t, height_m, self.eta_t)
                 except ValueError:
                     pass
-            return PadEstimate(np.asarray(q_t, dtype=float), height_m, False)
+            return PadEstimate(np.asarray(q_t, dtype=float), height_m, False,
+                               None if self._r_I is None else self._r_I.copy())
         if (self._r_I is None or phi_t_I is None or self.max_age_s <= 0.0
                 or not 0.0 <= t - self._t_seen <= self.max_age_s or dt < 0.0):
             self._r_I = None
@@ -118,4 +122,5 @@ class PadPrediction:
         if not height > 0.0:
             self._r_I = None
             return None
-        return PadEstimate(-self._r_I / np.linalg.norm(self._r_I), height, True)
+        return PadEstimate(-self._r_I / np.linalg.norm(self._r_I), height, True,
+                           self._r_I.copy())

@@ -17,6 +17,11 @@ Transitions and their image cues (no position or velocity estimate is used):
 - 3 -> 4  the height estimated from the smallest complete pad group (known size c) is below
           ``shutdown_height_m`` (SPEC: an image criterion, -eta_t^T q_t of that group) on
           every pad frame for ``shutdown_confirm_s`` (one wrong frame cannot shut down).
+          A frame without a complete group takes the height carried by the floor flow
+          (pad_prediction.py, ``pad_prediction_s``), counted only while the carried pad
+          centre is within ``shutdown_carried_offset_m`` sideways, or once it has stayed
+          below the shutdown height for ``shutdown_carried_wait_s`` (at the floor). Checked
+          when the frame is closed (:meth:`end_frame`), with the frame's pad and floor flow.
 - any flying mode -> 5 (failsafe) when an input it needs is stale (timeouts), on ``abort``,
           when the crossing does not find the pad within ``crossing_timeout_s``, or when the
           node's clock stepped back (:meth:`clock_stepped_back`: no input's age can be
@@ -41,9 +46,11 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from ibvs_common.core.features import (
-    centroid_feature, distance_to_window_plane, edge_normals, pad_height_estimate,
-    window_axes, window_normal)
+    centroid_feature, distance_to_window_plane, edge_normals, pad_feature,
+    pad_height_estimate, window_axes, window_normal)
+from ibvs_common.core.frames import e3
 from ibvs_common.core.modes import FLYING_MODES, Mode
+from ibvs_control.core.pad_prediction import PadPrediction
 
 __all__ = ['Mode', 'ModeSupervisor', 'SupervisorConfig', 'Transition']
 
@@ -66,6 +73,9 @@ class SupervisorConfig:
     crossing_timeout_s: float = 10.0               # mode 2 without a pad -> failsafe
     shutdown_height_m: float = 0.14                # body height of the 3 -> 4 switch
     shutdown_confirm_s: float = 0.02               # ... on every pad frame for this long
+    pad_prediction_s: float = 1.5                  # mode 3: the pad carried on the floor flow
+    shutdown_carried_offset_m: float = 0.04        # ... shuts down within this of its centre
+    shutdown_carried_wait_s: float = 0.5           # ... or this long below the height anyway
     auto_start_at_s: float = -1.0                  # s; >= 0: start at the first frame then
     group_half_sides: dict = field(default_factory=lambda: {
         'A': 0.36, 'B': 0.20, 'C': 0.10, 'D': 0.045})   # from pad_layout.yaml (c per group)
@@ -83,6 +93,9 @@ class SupervisorConfig:
             if f.name == 'auto_start_at_s':
                 if not np.isfinite(v):
                     raise ValueError(f'supervisor parameter {f.name} must be finite, got {v}')
+            elif f.name == 'pad_prediction_s':
+                if not (np.isfinite(v) and v >= 0.0):
+                    raise ValueError(f'supervisor parameter {f.name} must be >= 0, got {v}')
             elif isinstance(v, float) and not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'supervisor parameter {f.name} must be > 0, got {v}')
         return cfg
@@ -119,6 +132,21 @@ PARAMETER_SPECS = {
                            '(0.02: two 50 Hz frames) before the 3 -> 4 switch, so that one '
                            'wrong frame cannot shut the motors down in the air, > 0',
                            0.0, None),
+    'pad_prediction_s': ('s (ROS clock, from the last pad frame\'s stamp): in mode 3, a frame '
+                         'without a complete pad group takes the pad centre carried by the '
+                         'floor flow this long (pad_prediction.py; the force_controller\'s '
+                         'landing.pad_prediction_s), for the 3 -> 4 switch only; 0 = pad '
+                         'frames only, >= 0', 0.0, None),
+    'shutdown_carried_offset_m': ('m: a carried pad-image height at or below '
+                                  'shutdown_height_m switches 3 -> 4 only while the carried '
+                                  'pad centre is within this horizontal distance of the camera '
+                                  '(where the smallest group would be in view), > 0',
+                                  0.0, None),
+    'shutdown_carried_wait_s': ('s (frame stamps, ROS clock): a carried pad-image height that '
+                                'stayed at or below shutdown_height_m this long switches '
+                                '3 -> 4 however far off the carried centre is (the vehicle is '
+                                'at the floor: the descent from 0.14 m takes ~0.7 s), > 0',
+                                0.0, None),
     'auto_start_at_s': ('s (ROS clock); >= 0: start by itself at the first frame at or after '
                         'this time (sim runs), < 0: only ibvs/start starts', None, None),
 }
@@ -165,6 +193,10 @@ class ModeSupervisor:
         self._landing_entered = False
         self._height_est: float | None = None
         self._t_below_shutdown: float | None = None     # first frame of the current run below
+        self._pad_prediction = PadPrediction(config.pad_prediction_s, e3)
+        self._frame_pad: tuple[np.ndarray, float | None] | None = None   # this frame's q_t, h
+        self._frame_phi_down: np.ndarray | None = None  # this frame's floor flow
+        self._t_carried_below: float | None = None      # first carried frame below, off-centre
         self.auto_start_refusal = ''                    # why the last auto-start was refused
         self.start_refusal = ''                         # why the last start request was dropped
         self._start_requested_at: float | None = None   # t of an accepted ibvs/start request
@@ -268,18 +300,53 @@ class ModeSupervisor:
         self._pad_seen = True
         sizes = [(self.config.group_half_sides.get(g), i) for i, g in enumerate(groups)]
         sizes = [(c, i) for c, i in sizes if c is not None]
+        height = None
         if sizes:
             c, i = min(sizes)
             try:
-                self._height_est = pad_height_estimate(p[4 * i:4 * i + 4], c)
+                height = pad_height_estimate(p[4 * i:4 * i + 4], c)
             except ValueError:                  # a marker not towards the floor: no estimate
-                self._height_est = None
+                pass
+        self._height_est = height
+        try:
+            self._frame_pad = (pad_feature(p), height)
+        except ValueError:                      # no usable group: as no pad this frame
+            self._frame_pad = None
         if self.mode == Mode.CROSSING and not self._landing_entered and self._crossed():
             self._request(Mode.LANDING, 'pad group seen after crossing the window plane')
-        if self.mode == Mode.LANDING and self._height_est is not None:
-            self._check_shutdown(t)
 
-    def _check_shutdown(self, t: float) -> None:
+    def _landing_frame(self, t: float) -> None:
+        """Mode 3, at the end of frame t: the pad-image height, measured or carried; 3 -> 4.
+
+        A carried height counts only while the carried centre is within
+        ``shutdown_carried_offset_m`` sideways (where the smallest group would be in view);
+        a carried frame farther off waits, unless the carried height has been below the
+        shutdown height for ``shutdown_carried_wait_s`` (the vehicle is then at the floor).
+        """
+        q_t, height = self._frame_pad if self._frame_pad is not None else (None, None)
+        pad = self._pad_prediction.step(t, q_t, height, self._frame_phi_down)
+        if pad is None or pad.height_m is None:
+            self._t_carried_below = None
+            return
+        self._height_est = pad.height_m
+        offset = None
+        if pad.predicted:
+            offset = float(np.hypot(pad.r_I[0], pad.r_I[1]))
+            below = pad.height_m <= self.config.shutdown_height_m
+            if not below:
+                self._t_carried_below = None
+            elif self._t_carried_below is None:
+                self._t_carried_below = t
+            waited = below and t - self._t_carried_below >= \
+                self.config.shutdown_carried_wait_s - 1e-9
+            if offset > self.config.shutdown_carried_offset_m and not waited:
+                self._t_below_shutdown = None
+                return
+        else:
+            self._t_carried_below = None
+        self._check_shutdown(t, offset)
+
+    def _check_shutdown(self, t: float, carried_offset: float | None) -> None:
         """3 -> 4 once the height stayed <= shutdown_height_m for shutdown_confirm_s."""
         if self._height_est > self.config.shutdown_height_m:
             self._t_below_shutdown = None
@@ -287,8 +354,10 @@ class ModeSupervisor:
         if self._t_below_shutdown is None:
             self._t_below_shutdown = t
         if t - self._t_below_shutdown >= self.config.shutdown_confirm_s - 1e-9:
+            how = ('pad-image' if carried_offset is None else
+                   f'carried (pad {100 * carried_offset:.1f} cm off, on the floor flow)')
             self._request(Mode.SHUTDOWN,
-                          f'pad-image height {self._height_est:.3f} m <= shutdown height '
+                          f'{how} height {self._height_est:.3f} m <= shutdown height '
                           f'since {self._t_below_shutdown:.3f} s')
 
     def on_flow(self, t: float, camera: str, phi_I: np.ndarray | None) -> None:
@@ -308,6 +377,7 @@ class ModeSupervisor:
                 self._travel_norm += float(self._eta_w @ phi) * max(t - self._t_flow_down, 0.0)
             self._t_flow_down = t
             self._last['down_flow'] = t
+            self._frame_phi_down = phi
 
     # --- evaluation -------------------------------------------------------------------------
     def end_frame(self, t: float) -> list[Transition]:
@@ -318,6 +388,9 @@ class ModeSupervisor:
         :meth:`request_start` is applied here, once (``start_refusal`` says why it lapsed).
         """
         done = []
+        if self.mode == Mode.LANDING:
+            self._landing_frame(t)
+        self._frame_pad = self._frame_phi_down = None
         self.auto_start_refusal = self.start_refusal = ''
         requested, self._start_requested_at = self._start_requested_at, None
         if requested is not None and self.mode == Mode.IDLE:
@@ -383,6 +456,7 @@ class ModeSupervisor:
             self._enter_crossing()
         if to_mode == Mode.LANDING:
             self._landing_entered = True
+            self._pad_prediction.reset()
         self.mode = to_mode
         self._t_mode = t
         self.transitions.append(tr)
