@@ -106,11 +106,14 @@ def test_no_carry_without_a_flow_past_the_age_or_when_off():
     assert pred.step(0.04, None, None, phi).predicted
     assert pred.step(0.06, None, None, None) is None                 # a frame without flow
     assert pred.step(0.08, None, None, phi) is None                  # ... drops the centre
-    pred.step(0.10, q_t, h, phi)
-    assert pred.step(0.60, None, None, phi) is not None              # 0.5 s after the pad
-    assert pred.step(0.62, None, None, phi) is None                  # older
-    seen_only = pred.step(0.64, q_t, None, phi)                      # no known group size
-    assert seen_only.height_m is None and pred.step(0.66, None, None, phi) is None
+    pred.step(0.09, q_t, h, phi)
+    assert pred.step(0.10, None, None, np.full(3, math.nan)) is None  # a NaN flow too
+    assert pred.step(0.11, None, None, phi) is None
+    pred.step(0.12, q_t, h, phi)
+    assert pred.step(0.62, None, None, phi) is not None              # 0.5 s after the pad
+    assert pred.step(0.64, None, None, phi) is None                  # older
+    seen_only = pred.step(0.66, q_t, None, phi)                      # no known group size
+    assert seen_only.height_m is None and pred.step(0.68, None, None, phi) is None
     off = PadPrediction(max_age_s=0.0, eta_t=e3)
     off.step(0.0, q_t, h, phi)
     assert off.step(0.02, None, None, phi) is None

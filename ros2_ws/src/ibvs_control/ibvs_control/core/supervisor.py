@@ -308,10 +308,11 @@ class ModeSupervisor:
             except ValueError:                  # a marker not towards the floor: no estimate
                 pass
         self._height_est = height
-        try:
-            self._frame_pad = (pad_feature(p), height)
-        except ValueError:                      # no usable group: as no pad this frame
-            self._frame_pad = None
+        if self.mode == Mode.LANDING:           # the frame's pad for _landing_frame
+            try:
+                self._frame_pad = (pad_feature(p), height)
+            except ValueError:                  # no usable group: as no pad this frame
+                self._frame_pad = None
         if self.mode == Mode.CROSSING and not self._landing_entered and self._crossed():
             self._request(Mode.LANDING, 'pad group seen after crossing the window plane')
 
