@@ -2,13 +2,15 @@
 import threading
 import time
 
+import numpy as np
 import pytest
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
+from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Imu
 
-from ibvs_common.intra_process import IntraProcessTopic, subscribe
+from ibvs_common.intra_process import (IntraProcessSubscription, IntraProcessTopic,
+                                       subscribe)
 from ibvs_common.node_common import SENSOR_QOS
 from ibvs_common.spin import make_executor
 
@@ -22,63 +24,71 @@ def spin_until(executor, done, timeout_s: float) -> bool:
     return done()
 
 
-def imu(sec: int) -> Imu:
+def imu(sec: int, nanosec: int = 0) -> Imu:
     msg = Imu()
     msg.header.stamp.sec = sec
+    msg.header.stamp.nanosec = nanosec
     msg.orientation.w = 1.0
     return msg
 
 
-@pytest.mark.parametrize('kind', ['events', 'single'])
-def test_messages_published_from_another_thread_arrive_in_the_executor_thread(context, kind):
-    executor = (make_executor(context) if kind == 'events'
-                else SingleThreadedExecutor(context=context))
-    node = rclpy.create_node(f'ip_pub_{kind}_{TAG}', context=context)
+def test_messages_published_from_another_thread_are_taken_in_order_by_each_subscriber():
+    """Pulled delivery: publish only keeps; each take hands over what came since, in order."""
+    topic = IntraProcessTopic('imu/data', depth=10)
+    a, b = [], []
+    topic.publish(imu(0))                       # no subscriber yet: nothing kept
+    assert topic.published == 0
+    sub_a = topic.subscribe(lambda m: a.append(m.header.stamp.sec))
+    sub_b = topic.subscribe(lambda m: b.append(m.header.stamp.sec))
+    assert topic.subscriber_count == 2
+    sender = threading.Thread(target=lambda: [topic.publish(imu(k)) for k in range(1, 6)],
+                              name='reader')
+    sender.start()
+    sender.join()
+    assert a == [] and b == []                  # nothing runs without a take
+    assert sub_a.take() == 5 and a == [1, 2, 3, 4, 5]
+    assert sub_a.take() == 0 and a == [1, 2, 3, 4, 5]       # each message once
+    topic.publish(imu(6))
+    assert sub_a.take() == 1 and a[-1] == 6
+    assert sub_b.take() == 6 and b == [1, 2, 3, 4, 5, 6]    # independent cursors
+    # keep-last: 15 published without a take -> the newest 10, the other 5 counted lost
+    for k in range(10, 25):
+        topic.publish(imu(k))
+    assert sub_a.take() == 10 and a[6:] == list(range(15, 25))
+    assert sub_a.lost == 5 and sub_a.taken == 16
+    assert sub_b.take() == 10 and sub_b.lost == 5
+
+
+def test_a_take_from_within_the_callback_hands_over_only_the_rest():
     topic = IntraProcessTopic('imu/data')
-    topic.attach_publisher(node)
-    got, threads = [], set()
+    got = []
+    sub = None
 
     def on_imu(msg):
         got.append(msg.header.stamp.sec)
-        threads.add(threading.current_thread().name)
+        if msg.header.stamp.sec == 2:
+            topic.publish(imu(9))               # arrives meanwhile (the reader thread)
+            sub.take()                          # e.g. a callback that takes again
 
-    assert subscribe(node, Imu, 'imu/data', on_imu, SENSOR_QOS, topic) is None
-    assert topic.subscriber_count == 1
-    topic.publish(imu(0))                       # node not spun yet: dropped, counted
-    assert topic.dropped == 1
-    executor.add_node(node)
-    try:
-        sender = threading.Thread(target=lambda: [topic.publish(imu(k)) for k in range(1, 6)],
-                                  name='reader')
-        sender.start()
-        sender.join()
-        assert spin_until(executor, lambda: len(got) == 5, 2.0)
-        assert got == [1, 2, 3, 4, 5]                    # in order, each once
-        assert threads == {threading.current_thread().name}
-        # keep-last: 15 published while the executor does not run -> the newest 10
-        for k in range(10, 25):
-            topic.publish(imu(k))
-        spin_until(executor, lambda: len(got) >= 15, 1.0)
-        executor.spin_once(timeout_sec=0.05)
-        assert got[5:] == list(range(15, 25)) and topic.dropped == 1 + 5
-        assert topic.delivered == 15
-    finally:
-        executor.shutdown()
-        node.destroy_node()
+    sub = topic.subscribe(on_imu)
+    for k in range(1, 5):
+        topic.publish(imu(k))
+    sub.take()
+    assert got == [1, 2, 3, 4, 9] and sub.taken == 5 and sub.lost == 0
 
 
 def test_subscribe_falls_back_to_dds_and_refuses_another_topic(context):
     node = rclpy.create_node(f'ip_dds_{TAG}', context=context)
     try:
         sub = subscribe(node, Imu, 'imu/data', lambda m: None, SENSOR_QOS, None)
-        assert sub is not None and sub.topic_name == '/imu/data'
+        assert sub.subscription.topic_name == '/imu/data'
+        assert sub.take() == 0                  # the executor delivers DDS messages
         with pytest.raises(ValueError, match='imu/data'):
             subscribe(node, Imu, 'imu/other', lambda m: None, SENSOR_QOS,
                       IntraProcessTopic('imu/data'))
-        topic = IntraProcessTopic('imu/data')
-        topic.attach_publisher(node)
-        with pytest.raises(RuntimeError):
-            topic.attach_publisher(node)
+        local = subscribe(node, Imu, 'imu/data', lambda m: None, SENSOR_QOS,
+                          IntraProcessTopic('imu/data'))
+        assert isinstance(local, IntraProcessSubscription)
         with pytest.raises(ValueError):
             IntraProcessTopic('imu/data', depth=0)
     finally:
@@ -102,15 +112,44 @@ def test_composed_nodes_take_imu_in_process_and_the_bridge_counts_them(context):
         # the setpoint stream's gate counts them: 5 >= min_imu_subscribers
         bridge._check_imu_consumers()
         assert bridge._bridge.stream_enabled
-        # a sample handed over reaches the five through the executor, as the object itself
-        executor = make_executor(context)
+        # a sample handed over reaches each of the five at its next take, the object itself
+        bridge._imu_local.publish(imu(7))
+        subs = bridge._imu_local._subscriptions
+        assert [s.take() for s in subs] == [1] * 5 and [s.take() for s in subs] == [0] * 5
+    finally:
         for node in nodes:
-            executor.add_node(node)
-        try:
-            bridge._imu_local.publish(imu(7))
-            assert spin_until(executor, lambda: bridge._imu_local.delivered == 1, 2.0)
-        finally:
-            executor.shutdown()
+            node.destroy_node()
+
+
+def test_composed_nodes_take_the_imu_samples_at_the_start_of_their_own_callbacks(context):
+    """Nothing runs per sample (an idle graph never wakes for the IMU); the supervisor's timer,
+    a product, a status and an image each take every sample published before them first, so
+    that the attitude at their stamps is there."""
+    from ibvs_bringup import composed, graph
+    from ibvs_common.core.modes import InputKind
+    from sensor_msgs.msg import Image
+    specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
+                                                   mavlink_url='udpin:127.0.0.1:0'))
+    nodes = composed.build_nodes(specs, context)
+    try:
+        by_name = {n.get_name(): n for n in nodes}
+        topic = by_name['mavlink_bridge']._imu_local
+        supervisor, controller = by_name['mode_supervisor'], by_name['force_controller']
+        front_flow, window = by_name['front_optical_flow'], by_name['window_detector']
+        for k in range(3):
+            topic.publish(imu(100, k * 10_000_000))             # 100 Hz
+        consumers = (supervisor._attitudes, controller._attitudes, front_flow.attitudes,
+                     window.attitudes)
+        assert [len(a) for a in consumers] == [0, 0, 0, 0]     # nothing delivered on publish
+        supervisor._on_timer()
+        controller._add(InputKind.FLOW_FRONT, 100_000_000_000, None, '')
+        front_flow.process(Image())            # a bad image: dropped after the take
+        window.process(Image())
+        assert [len(a) for a in consumers] == [3, 3, 3, 3]
+        assert supervisor._attitudes.newest_stamp == 100.02
+        topic.publish(imu(100, 30_000_000))
+        controller._on_status(DiagnosticArray())   # a malformed status: refused after the take
+        assert controller._imu.taken == 4 and len(controller._attitudes) == 4
     finally:
         for node in nodes:
             node.destroy_node()
@@ -160,12 +199,19 @@ def test_composed_nodes_get_their_own_parameters_and_remappings(context):
 
 
 def test_bridge_publishes_imu_through_dds_only_while_a_reader_is_matched(context):
-    """Composed: no DDS reader -> the DDS publish is skipped (in process only); a recorder
-    that subscribes gets every sample from its match on, as with rclcpp's intra-process."""
+    """Composed: no DDS reader -> the DDS publish is skipped (in process only) and the message
+    is built only when a co-located node takes it; a recorder that subscribes gets every
+    sample from its match on, as with rclcpp's intra-process publish."""
+    from ibvs_control.core.mavlink_telemetry import ImuSample
     from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
+
+    def sample(sec: int) -> ImuSample:
+        return ImuSample(sec * 1_000_000_000, np.array([1.0, 0.0, 0.0, 0.0]),
+                         np.array([0.1, 0.2, 0.3]), np.array([0.0, 0.0, 9.81]))
+
     topic = IntraProcessTopic('imu/data')
     local = []
-    topic.subscribe(local.append)
+    sub = topic.subscribe(local.append)
     bridge = MavlinkBridgeNode(
         node_name=f'ip_skip_{TAG}', context=context, imu_local=topic,
         parameter_overrides=[Parameter('url', value='udpin:127.0.0.1:0')])
@@ -173,19 +219,39 @@ def test_bridge_publishes_imu_through_dds_only_while_a_reader_is_matched(context
     executor = make_executor(context)
     executor.add_node(bridge)
     executor.add_node(recorder)
+    built = []
+    imu_msg = bridge._imu_msg
+    bridge._imu_msg = lambda s: built.append(s.stamp_ns) or imu_msg(s)
     try:
-        bridge._publish_imu(imu(1))
-        assert bridge.imu_dds_skipped == 1
-        assert spin_until(executor, lambda: len(local) == 1, 2.0)   # in process regardless
+        bridge._publish_imu(sample(1))
+        assert bridge.imu_dds_skipped == 1 and built == []          # kept, not built
+        assert sub.take() == 1 and len(local) == 1                  # in process regardless
+        assert built == [1_000_000_000]                             # built by the take
+        msg = local[0]
+        assert isinstance(msg, Imu) and msg.header.stamp.sec == 1 and msg.header.frame_id
+        assert msg.angular_velocity.z == 0.3 and msg.linear_acceleration.z == 9.81
         got = []
         recorder.create_subscription(Imu, 'imu/data', lambda m: got.append(m.header.stamp.sec),
                                      SENSOR_QOS)
         assert spin_until(executor, lambda: bridge._imu_pub.get_subscription_count() == 1, 5.0)
         for k in range(2, 5):
-            bridge._publish_imu(imu(k))
-        assert spin_until(executor, lambda: len(got) == 3 and len(local) == 4, 2.0)
+            bridge._publish_imu(sample(k))
+        assert spin_until(executor, lambda: len(got) == 3, 2.0)
+        assert sub.take() == 3 and len(local) == 4
         assert got == [2, 3, 4] and bridge.imu_dds_skipped == 1
+        assert [m.header.stamp.sec for m in local] == [1, 2, 3, 4]
     finally:
         executor.shutdown()
         recorder.destroy_node()
         bridge.destroy_node()
+
+
+def test_a_lazy_message_is_built_once_for_every_subscriber():
+    topic = IntraProcessTopic('imu/data')
+    a, b, made = [], [], []
+    sub_a, sub_b = topic.subscribe(a.append), topic.subscribe(b.append)
+    topic.publish_lazy(lambda: made.append(1) or imu(5))
+    assert made == []
+    sub_a.take()
+    sub_b.take()
+    assert made == [1] and a[0] is b[0] and a[0].header.stamp.sec == 5

@@ -149,11 +149,12 @@ class ForceControllerNode(Node):
                                                   COMMAND_QOS)
         self._features_pub = self.create_publisher(JointState, 'ibvs/features', COMMAND_QOS)
         # products and IMU first: at one wake-up rclpy takes them before a status
-        subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
+        # in process (composed), the IMU samples are taken at the start of every callback
+        self._imu = subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
         self.create_subscription(DiagnosticArray, 'ibvs/supervisor_status', self._on_status,
                                  FRAME_QOS)
-        self._deadline = DeadlineTimer(self, self._release)
+        self._deadline = DeadlineTimer(self, self._on_deadline)
         self.get_logger().info(f'force controller: gains {config.landing}, {config.window}, '
                                f'{config.crossing}, crossing law {config.crossing_law.value}, '
                                f'disturbance law {config.disturbance_law.value}'
@@ -197,6 +198,7 @@ class ForceControllerNode(Node):
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         """Open the frame the supervisor evaluated, to be answered in the mode it reports."""
+        self._imu.take()
         stamp_ns, number, err = mode_from_status(msg)
         mode, err = (None, err) if err else _mode(number)
         if err:
@@ -219,6 +221,7 @@ class ForceControllerNode(Node):
 
     def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
         """Keep one product (a bad one counts as 'not detected') and answer what it completes."""
+        self._imu.take()
         if err:
             self._refused(kind.value, err)
         steps = self._frames.clock_steps
@@ -226,6 +229,10 @@ class ForceControllerNode(Node):
             self.log.warning(f'duplicate {kind.value}: dropped', LOG_THROTTLE_S)
         if self._frames.clock_steps != steps:
             self._clock_stepped(kind.value, 'pending frames')
+        self._release()
+
+    def _on_deadline(self) -> None:
+        self._imu.take()
         self._release()
 
     def _release(self) -> None:

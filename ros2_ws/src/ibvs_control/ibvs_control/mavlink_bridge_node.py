@@ -310,8 +310,6 @@ class MavlinkBridgeNode(Node):
         self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
         self._imu_local = imu_local             # the composed container's co-located nodes
         self.imu_dds_skipped = 0                # samples not published through DDS (no reader)
-        if imu_local is not None:
-            imu_local.attach_publisher(self)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         # The heading subscription first: with both ready, the executor takes it first, so a
         # force finds the heading of its own stamp (the controller publishes the heading first).
@@ -411,23 +409,28 @@ class MavlinkBridgeNode(Node):
                  ros_clock: Callable[[], int] | None = None) -> None:
         """Lock held: read what is pending, run the sequencer, publish new IMU samples."""
         for sample in self._bridge.poll(ros_ns, supervise, ros_clock):
-            self._publish_imu(self._imu_msg(sample))
+            self._publish_imu(sample)
         self._log_events()
 
-    def _publish_imu(self, msg: Imu) -> None:
+    def _publish_imu(self, sample: ImuSample) -> None:
         """imu/data to the co-located nodes in process, and through DDS when anyone there takes it.
 
         As rclcpp's intra-process publish: the inter-process publish (serialisation, the
         middleware's write) is skipped while no DDS subscription is matched (in the composed
         container every onboard consumer is in process); a recorder or a node in another
-        process that subscribes gets the samples from its match on.
+        process that subscribes gets the samples from its match on. Without one, the message
+        is built only when a co-located node takes it (an idle graph never builds it). In
+        process first: a sample a DDS subscriber has is already there for the co-located
+        nodes' next take.
         """
-        if self._imu_local is None or self._imu_pub.get_subscription_count() > 0:
-            self._imu_pub.publish(msg)
-        else:
+        if self._imu_local is not None and self._imu_pub.get_subscription_count() == 0:
+            self._imu_local.publish_lazy(lambda: self._imu_msg(sample))
             self.imu_dds_skipped += 1
+            return
+        msg = self._imu_msg(sample)
         if self._imu_local is not None:
             self._imu_local.publish(msg)
+        self._imu_pub.publish(msg)
 
     def _check_imu_consumers(self) -> None:
         """Start the setpoint stream once imu/data has its consumers matched (then for good)."""

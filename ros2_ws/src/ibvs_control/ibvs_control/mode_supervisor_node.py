@@ -134,12 +134,13 @@ class ModeSupervisorNode(Node):
         self._mode_pub = self.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
                                                  COMMAND_QOS)
-        subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
+        # in process (composed), the IMU samples are taken at the start of every callback
+        self._imu = subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
         self.create_timer(1.0 / p['update_rate_hz'], self._on_timer)   # node clock
-        self._deadline = DeadlineTimer(self, self._release)
+        self._deadline = DeadlineTimer(self, self._on_deadline)
         self._publish_mode()
         self.get_logger().info(f'mode supervisor ready in {self._core.mode.name}: {config}')
 
@@ -214,6 +215,7 @@ class ModeSupervisorNode(Node):
 
     def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
         """Route one product: into its frame, or to the core at once (see the module doc)."""
+        self._imu.take()
         if err:
             self._error(f'{kind.value} refused: {err}')
         now_ns = self._now_ns()
@@ -229,6 +231,10 @@ class ModeSupervisorNode(Node):
                 or not (self._frames.is_pending(stamp_ns)
                         or self._frames.open(stamp_ns, camera, now_ns)):
             self._feed(kind, stamp_ns, value)        # other camera, or its frame is gone
+        self._release()
+
+    def _on_deadline(self) -> None:
+        self._imu.take()
         self._release()
 
     def _release(self) -> None:
@@ -295,12 +301,14 @@ class ModeSupervisorNode(Node):
     # --- services and timer ----------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
+        self._imu.take()                   # the start checks the IMU's age
         response.success, response.message = self._core.request_start(self._now())
         self.get_logger().info(f'ibvs/start: {response.message}')
         return response
 
     def _on_abort(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
+        self._imu.take()
         response.success, response.message = self._core.abort(self._now(), 'ibvs/abort called')
         self.get_logger().info(f'ibvs/abort: {response.message}')
         self._publish_mode()
@@ -313,6 +321,7 @@ class ModeSupervisorNode(Node):
         so that the controller answers it (in FAILSAFE: level, the bridge hands over) and the
         mode of every later stamp is known.
         """
+        self._imu.take()                   # the IMU's age: its staleness rule
         now_ns = self._now_ns()
         if self._core.update(now_ns / NS_PER_S, apply_requests=False):
             self._publish_mode()

@@ -115,8 +115,10 @@ class OpticalFlowNode(Node):
         self.pub_flow = self.create_publisher(Vector3Stamped, f'{prefix}/translational_flow', 10)
         self.pub_quality = self.create_publisher(
             Float32, f'{prefix}/translational_flow_quality', 10)
-        # IMU and window first: at one wake-up rclpy takes them before an image
-        subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data, imu_local)
+        # IMU and window first: at one wake-up rclpy takes them before an image (in process:
+        # the IMU is taken by each image, ibvs_common.intra_process)
+        self.imu = subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data,
+                             imu_local)
         if self.camera_name == FRONT:
             self.create_subscription(PolygonStamped, 'window/corners', self.on_window,
                                      qos_profile_sensor_data)
@@ -151,6 +153,7 @@ class OpticalFlowNode(Node):
 
     def process(self, msg: Image, publish: bool = True) -> None:
         """Track into one image and publish its flow (a mode-gating primer: track only)."""
+        self.imu.take()
         try:
             camera = camera_from_info(self.camera_info, msg)
             gray = mono8_from_image(msg)

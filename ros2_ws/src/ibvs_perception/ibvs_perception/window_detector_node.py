@@ -95,8 +95,10 @@ class WindowDetectorNode(Node):
         self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)
         self.pub_debug = self.create_publisher(Image, 'window/debug_image', 1) \
             if self.publish_debug else None
-        # IMU first: at one wake-up rclpy takes it before an image
-        subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data, imu_local)
+        # IMU first: at one wake-up rclpy takes it before an image (in process: taken by
+        # each image, ibvs_common.intra_process)
+        self.imu = subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data,
+                             imu_local)
         self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
         self.create_subscription(Image, 'front_camera/image_raw', self.gated.on_image,
@@ -126,6 +128,7 @@ class WindowDetectorNode(Node):
         """Detect the window in one image and publish (a mode-gating primer: nothing to do)."""
         if not publish:
             return
+        self.imu.take()
         corners = normals = gray = detection = None
         try:
             gray = mono8_from_image(msg)
