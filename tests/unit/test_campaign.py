@@ -75,9 +75,12 @@ def test_aggregate_statistics_by_hand():
     runs.append(_summary(success=False, error=0.20, td_speed=0.25, speed=0.6))  # landing error
     runs.append(_summary(success=False, crossed=False, landed=False, last_mode=1))  # stalled
     runs.append(_summary(law='other', level=0.0))
+    runs.append(_summary(law='other', level=0.0, last_mode=5))  # SPEC met, then FAILSAFE
     rows = aggregate(runs)
     assert [(r['law'], r['wind_level_mps2'], r['runs']) for r in rows] == \
-        [('closed', 0.2, 5), ('other', 0.0, 1)]
+        [('closed', 0.2, 5), ('other', 0.0, 2)]
+    assert [r['success_not_shutdown'] for r in rows] == [0, 1]
+    assert rows[1]['successes'] == 2 and rows[1]['failure_causes'] == {}
     r = rows[0]
     assert r['successes'] == 3 and r['success_rate'] == pytest.approx(0.6)
     assert r['success_ci95'] == pytest.approx(wilson_interval(3, 5))
@@ -93,6 +96,7 @@ def test_aggregate_statistics_by_hand():
     assert r['failure_causes'] == {'landing error': 1, 'stalled before window': 1}
     table = campaign.format_table(rows)
     assert '| closed | 0.2 | 3 / 5 | 60.0 % [23.1, 88.2] |' in table
+    assert table.splitlines()[-1].endswith('| - | 1 |')       # no failures, 1 not SHUTDOWN
 
 
 def test_law_spec_parse():
