@@ -11,9 +11,9 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
 from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, inside_spherical_polygon,
-                                       joint_grid_start, mid_bearings, second_plane_ratio,
-                                       solve_flow_c, solve_translational_flow,
-                                       wall_normal_from_corners)
+                                       joint_grid_start, LK_MOTION_MARGIN, mid_bearings,
+                                       pyramid_levels_for, second_plane_ratio, solve_flow_c,
+                                       solve_translational_flow, wall_normal_from_corners)
 from ibvs_perception.core.image import ImageFormatError, image_to_mono8
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
 from ibvs_sim.core.render import SceneRenderer
@@ -250,6 +250,117 @@ def test_rendered_flow_within_10_percent(scene, camera):
         assert 0.0 <= result.inlier_ratio <= 1.0
         errors.append(np.linalg.norm(result.phi_I - v / d) / np.linalg.norm(v / d))
     assert max(errors) <= 0.10, errors
+
+
+def test_pyramid_levels_reach_twice_the_motion_left():
+    assert LK_MOTION_MARGIN == 2.0
+    assert pyramid_levels_for(None, 2.0, 3) == 3                 # unknown: every level
+    assert pyramid_levels_for(float('nan'), 2.0, 3) == 3
+    assert pyramid_levels_for(0.0, 2.0, 3) == 0
+    assert pyramid_levels_for(1.0, 2.0, 3) == 0                  # reach 2 >= 2 x 1
+    assert pyramid_levels_for(1.01, 2.0, 3) == 1                 # reach 4
+    assert pyramid_levels_for(3.9, 2.0, 3) == 2                  # reach 8 >= 7.8
+    assert pyramid_levels_for(50.0, 2.0, 3) == 3                 # capped
+    assert pyramid_levels_for(50.0, 2.0, 0) == 0
+
+
+def _sequence(renderer, R0, omega, xi0, v, n):
+    """n images DT apart of a constant body rate omega (body FRD) and velocity v ({I})."""
+    out, R, xi = [], R0, xi0
+    for k in range(n):
+        out.append((renderer.render(R, xi), k * DT, R))
+        R, xi = R @ cv2.Rodrigues(omega * DT)[0], xi + v * DT
+    return out
+
+
+def test_a_pure_rotation_is_predicted_and_tracked_on_the_base_level(scene):
+    """1 rad/s of yaw and pitch over the floor, no translation: the features move ~8 px a
+    frame, the rotation predicts it all (what is left is LK's own noise), so after the first
+    frames the search runs on the base level only, and phi stays ~0 as without prediction."""
+    _, vehicle, renderers = scene
+    cam = vehicle.cameras['down']
+    frames_ = _sequence(renderers['down'], np.eye(3), np.array([0.0, 0.6, 0.8]),
+                        np.array([0.0, 0.0, -1.2]), np.zeros(3), 12)
+    results = {}
+    for predict in (True, False):
+        estimator = FlowEstimator(FlowConfig(lk_predict=predict), cam.model, cam.R_BC)
+        phis, levels, left, raw = [], [], [], []
+        for img, t, R in frames_:
+            before = estimator._points.copy()
+            r = estimator.process(img, t, R, frames.e3)
+            if r is not None and r.phi_I is not None:
+                phis.append(np.linalg.norm(r.phi_I))
+            levels.append(estimator.last_pyramid_levels)
+            left.append(estimator._rotation_motion_px)
+            if len(before) and len(estimator._points):
+                raw.append(np.median(np.linalg.norm(
+                    estimator._points[:10] - before[:10], axis=1)))
+        results[predict] = phis
+        if predict:
+            assert min(raw[2:]) > 5.0                    # the image moves ~8 px a frame
+            assert max(x for x in left[3:]) < 0.5        # nearly all of it predicted
+            assert levels[:2] == [None, 3] and set(levels[4:]) == {0}
+            assert estimator.retracks == 0
+        else:
+            assert set(levels[1:]) == {3}
+    assert len(results[True]) == len(results[False]) >= 10
+    assert max(results[True]) < 0.02 and max(results[False]) < 0.02     # v = 0: phi ~ 0
+
+
+def test_a_translation_is_predicted_by_each_tracks_own_motion(scene):
+    """0.5 m/s at 1.2 m over the floor, slow yaw: ~3 px a frame that the rotation does not
+    predict; each track's last motion does (to a fraction of a px), so the search drops to
+    the base level except just after new features (no motion yet), and phi is the same as
+    without the prediction to 1e-3 relative (and within 5 % of v / d)."""
+    _, vehicle, renderers = scene
+    cam = vehicle.cameras['down']
+    v = np.array([0.4, 0.3, 0.0])
+    frames_ = _sequence(renderers['down'], np.eye(3), np.array([0.0, 0.0, 0.3]),
+                        np.array([-0.3, -0.2, -1.2]), v, 16)
+    phis = {}
+    for predict in (True, False):
+        estimator = FlowEstimator(FlowConfig(lk_predict=predict), cam.model, cam.R_BC)
+        phis[predict], levels, by_motion, by_rotation = [], [], [], []
+        for img, t, R in frames_:
+            r = estimator.process(img, t, R, frames.e3)
+            phis[predict].append(None if r is None else r.phi_I)
+            levels.append(estimator.last_pyramid_levels)
+            by_motion.append(estimator._motion_px)
+            by_rotation.append(estimator._rotation_motion_px)
+        if predict:
+            assert min(by_rotation[3:]) > 2.0            # the translation, unpredicted
+            assert max(by_motion[3:]) < 0.5              # predicted by the track's motion
+            assert levels.count(0) >= 8 and estimator.retracks == 0
+    for a, b in zip(phis[True][2:], phis[False][2:]):
+        assert a is not None and b is not None
+        assert np.linalg.norm(a - b) <= 1e-3 * np.linalg.norm(b)
+        assert np.linalg.norm(a - v / 1.2) <= 0.05 * np.linalg.norm(v / 1.2)
+
+
+def test_a_sudden_unpredicted_jump_is_tracked_again_with_every_level(scene):
+    """After a still hover the search runs on the base level; an image 12 px away that no
+    prediction saw coming loses most tracks there, so it is searched again with all levels
+    (retracks), and the tracks survive it."""
+    _, vehicle, renderers = scene
+    cam = vehicle.cameras['down']
+    estimator = FlowEstimator(FlowConfig(), cam.model, cam.R_BC)
+    xi = np.array([0.0, 0.0, -1.2])
+    for k in range(6):
+        estimator.process(renderers['down'].render(np.eye(3), xi), k * DT, np.eye(3),
+                          frames.e3)
+    assert estimator.last_pyramid_levels == 0 and estimator.retracks == 0
+    n = estimator.n_points
+    jumped = xi + np.array([12.0 * 1.2 / float(cam.model.K[0, 0]), 0.0, 0.0])   # ~12 px
+    estimator.process(renderers['down'].render(np.eye(3), jumped), 6 * DT, np.eye(3),
+                      frames.e3)
+    assert estimator.retracks == 1 and estimator.last_pyramid_levels == 3
+    assert estimator.n_points >= 0.8 * n
+
+
+def test_flow_config_refuses_a_bad_capture():
+    for bad in (0.0, -1.0, float('nan'), float('inf')):
+        with pytest.raises(ValueError, match='lk_capture_px'):
+            FlowConfig(lk_capture_px=bad)
 
 
 def test_flow_refuses_a_stale_or_unknown_attitude(scene):
