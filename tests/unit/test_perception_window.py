@@ -327,6 +327,67 @@ def test_a_dropped_frame_moves_the_track_by_a_bounded_sub_pixel_amount(front):
         assert max(after) <= 0.25, (gap, after)
 
 
+def _approach(renderer, n, s_end, noise=None):
+    images, poses = [], []
+    for k, s in enumerate(np.linspace(0.0, s_end, n)):
+        R_IB, xi = smooth_attitude(s), START + s * (WINDOW_CENTRE - START)
+        image = renderer.render(R_IB, xi)
+        images.append(image if noise is None else noise.apply(image, k))
+        poses.append((R_IB, xi))
+    return images, poses
+
+
+def test_a_well_predicted_track_takes_one_outer_pass_as_accurate_as_two(world, front):
+    """A 50 Hz approach at 0.25 m/s: the outline's last motion predicts the next one to a
+    fraction of a px, so the tracked frames search the outer edges once, in the refine range;
+    the corners are as close to the truth as with both passes on every frame (read noise on)."""
+    cam, renderer = front
+    noise = ReadNoise(1.5, (cam.model.height, cam.model.width), seed=5, camera='front')
+    images, poses = _approach(renderer, 60, 0.2, noise)
+    errors, single = {}, {}
+    for one_pass in (True, False):
+        detector = WindowDetector(WindowDetectorConfig(single_pass_tracking=one_pass))
+        errors[one_pass] = []
+        for image, (R_IB, xi) in zip(images, poses):
+            detection = detector.process(image, cam.model).detection
+            assert detection is not None
+            uv, _ = true_corners_px(world, cam, R_IB, xi)
+            errors[one_pass].append(np.linalg.norm(detection.corners_px - uv, axis=1))
+        single[one_pass] = detector.single_passes
+    assert single[False] == 0 and single[True] >= 50        # the first two frames: both passes
+    one, two = np.concatenate(errors[True]), np.concatenate(errors[False])
+    assert np.median(one) <= 0.2 and np.percentile(one, 95) <= 0.5
+    assert abs(np.median(one) - np.median(two)) <= 0.03
+    assert np.percentile(one, 95) <= np.percentile(two, 95) + 0.05
+
+
+def test_an_unpredicted_shift_of_the_outline_is_searched_with_both_passes(world, front):
+    """After a steady track the image moves 2.5 px at once (no motion before predicted it):
+    the one pass from the predicted outline lands off its start by more than its half range,
+    so both passes run, and the corners are the truth's; the frame after (predicted badly)
+    and the one after it take both passes too, then the track is single-pass again."""
+    cam, renderer = front
+    images, poses = _approach(renderer, 18, 0.05)
+    detector = WindowDetector(WindowDetectorConfig())
+    for image in images[:10]:
+        assert detector.process(image, cam.model).detection is not None
+    assert detector.single_passes >= 7
+    before = detector.single_passes
+    R_IB, xi = poses[10]
+    shift = np.float32([[1.0, 0.0, 2.5], [0.0, 1.0, 0.0]])    # +2.5 px along the image x
+    shifted = cv2.warpAffine(images[10], shift, (cam.model.width, cam.model.height),
+                             flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    detection = detector.process(shifted, cam.model).detection
+    uv, _ = true_corners_px(world, cam, R_IB, xi)
+    assert detection is not None and detector.single_passes == before
+    assert np.max(np.abs(detection.corners_px - (uv + [2.5, 0.0]))) <= 0.5
+    assert detector.process(images[11], cam.model).detection is not None
+    assert detector.single_passes == before             # predicted 2.5 px off: both passes
+    for image in images[12:]:
+        assert detector.process(image, cam.model).detection is not None
+    assert detector.single_passes > before
+
+
 @pytest.mark.parametrize('axis', ['yaw', 'pitch'])
 def test_fast_rotation_is_tracked_with_the_gyro_prediction(world, front, axis):
     """50 Hz frames of an oscillation peaking at 5 rad/s, hovering at the start.

@@ -38,7 +38,16 @@ Algorithm (paper section Experiments: "ArUco border detection", made sub-pixel):
    beyond the window beside the band) is taken from the prediction, if the outer quad is a true
    perspective view of the band's rectangle (``max_shape_error``).
 3. Tracking. The same window is followed frame to frame: a corner displacement above
-   ``max_corner_jump_px`` is reported as a loss (``JUMP``), not followed. After
+   ``max_corner_jump_px`` is reported as a loss (``JUMP``), not followed. A tracked frame
+   starts from the last outline moved on by its last motion (constant image velocity of the
+   outer corners over one frame, when the two frames before were both detected and the gyro
+   prediction did not move the track). When that prediction was off by no more than
+   ``refine_half_width_px / 2`` in the frame before (:data:`SINGLE_PASS_MARGIN`), the outer
+   edges take one search of the refine range from it instead of the two passes (the first
+   one's wide range is for motion nobody predicted), and the result is kept if it lies within
+   that half range of the start; otherwise both passes run from the start as before
+   (``single_pass_tracking``). The start and the choice depend on the detections alone, not
+   on the IMU's timing. After
    ``reacquire_after_frames`` frames without a consistent window the tracker searches again;
    until then a frame that fails (noise, blur) keeps the tracked outline for the next one.
    Every frame without a window says why (``WindowResult.reason``, a :class:`Reject`).
@@ -104,6 +113,10 @@ _MEAN_DEPTH_FRACTION = 0.5
 #: where the band's level is read between the outer and the predicted inner edge (fractions
 #: of the predicted band width, from the outer edge)
 _BAND_LEVEL_SPAN = (0.25, 0.5)
+#: a tracked frame's outer edges take one search of the refine range when the outline
+#: prediction was off by at most refine_half_width_px / this in the frame before, and the
+#: result lies within that of the start (module doc, Tracking)
+SINGLE_PASS_MARGIN = 2.0
 
 
 class WindowStatus(enum.Enum):
@@ -149,6 +162,7 @@ class WindowDetectorConfig:
     samples_per_side: int = 40              # edge points searched per aperture side
     search_half_width_px: float = 8.0       # first-pass search range along the edge normal
     refine_half_width_px: float = 3.0       # second-pass search range
+    single_pass_tracking: bool = True       # a well predicted track: the second pass only
     min_edge_contrast: float = 6.0          # grey levels, floor of a valid edge step
     edge_contrast_fraction: float = 0.2     # valid edge step / the band's contrast to the wall
     min_edge_inlier_fraction: float = 0.5   # valid points per side, fraction of samples
@@ -199,6 +213,9 @@ PARAMETER_SPECS = {
     'samples_per_side': ('edge points searched per aperture side, >= 2', 2, 10000),
     'search_half_width_px': ('px: first-pass search range along the edge normal', 0.0, None),
     'refine_half_width_px': ('px: second-pass search range along the edge normal', 0.0, None),
+    'single_pass_tracking': ('a tracked frame whose outline the last motion predicted to '
+                             'within refine_half_width_px / 2 searches its outer edges in '
+                             'the second-pass range only (one pass instead of two)',),
     'min_edge_contrast': ('grey levels (of 255): floor of the step of a valid edge point',
                           0.0, 255.0),
     'edge_contrast_fraction': ('step of a valid edge point / the band contrast to the wall',
@@ -264,6 +281,9 @@ class WindowDetector:
         self._rotation_since = np.eye(3)      # camera rotation not yet applied to the track
         self._frames_since_seen = 0
         self._reject = Reject.NO_CANDIDATE    # furthest stage a candidate of this frame reached
+        self._motion_u: np.ndarray | None = None  # the outline's last motion (4, 2), undist. px
+        self._prediction_error_px: float | None = None  # how far the last start was off
+        self.single_passes = 0                # tracked frames whose outer edges took one pass
 
     def reset(self) -> None:
         """Forget the tracked window."""
@@ -272,6 +292,8 @@ class WindowDetector:
         self._last_outer_u = None
         self._rotation_since = np.eye(3)
         self._frames_since_seen = 0
+        self._motion_u = None
+        self._prediction_error_px = None
 
     # --- public ---------------------------------------------------------------------------
 
@@ -291,10 +313,20 @@ class WindowDetector:
         if rotation_C is not None and self._last_bearings is not None:
             self._predict(camera, np.asarray(rotation_C, dtype=float))
         if self._last_outer_u is not None:
-            # fast path: refine the tracked window from its last outline, no contour search
-            refined = self._refine(gray, camera, self._last_outer_u)
+            # fast path: refine the tracked window from its predicted outline, no contour search
+            last = self._last_outer_u
+            start = last if self._motion_u is None or self._frames_since_seen \
+                else last + self._motion_u
+            gap = self._frames_since_seen
+            refined = self._refine_tracked(gray, camera, start)
             if refined is not None:
-                return self._track([refined])
+                result = self._track([refined])
+                if result.status == WindowStatus.DETECTED:
+                    outer = refined[1]
+                    self._motion_u = None if gap else outer - last    # per frame only
+                    self._prediction_error_px = float(np.max(np.hypot(*(outer - start).T)))
+                return result
+        self._motion_u = self._prediction_error_px = None
         refined = []
         for ring in self._rings(gray, camera):
             # a component's first candidate that refines (its outer boundary's, else a hole's)
@@ -423,6 +455,9 @@ class WindowDetector:
             return
         self._rotation_since = np.eye(3)
         self._last_bearings, self._last_px = b, uv
+        # the outline moved by the rotation: its last motion and how well it was predicted
+        # say nothing of this frame (both passes, then a new motion)
+        self._motion_u = self._prediction_error_px = None
         if self._last_outer_u is not None:
             K = camera.K
             rays = np.column_stack([(self._last_outer_u - K[:2, 2]) / np.diag(K)[:2],
@@ -505,17 +540,38 @@ class WindowDetector:
             return None
         return order_corners_clockwise(corners)
 
-    def _refine(self, gray: np.ndarray, camera: CameraModel,
-                outer_u: np.ndarray) -> tuple[WindowDetection, np.ndarray] | None:
+    def _refine_tracked(self, gray: np.ndarray, camera: CameraModel, start_u: np.ndarray
+                        ) -> tuple[WindowDetection, np.ndarray] | None:
+        """:meth:`_refine` of the tracked window from its predicted outline (module doc).
+
+        One outer pass of the refine range when the last prediction was good and its result
+        stays near the start; else the two passes.
+        """
+        reach = self.config.refine_half_width_px / SINGLE_PASS_MARGIN
+        if self.config.single_pass_tracking and self._prediction_error_px is not None \
+                and self._prediction_error_px <= reach:
+            refined = self._refine(gray, camera, start_u, single_pass=True)
+            if refined is not None \
+                    and float(np.max(np.hypot(*(refined[1] - start_u).T))) <= reach:
+                self.single_passes += 1
+                return refined
+        return self._refine(gray, camera, start_u)
+
+    def _refine(self, gray: np.ndarray, camera: CameraModel, outer_u: np.ndarray,
+                single_pass: bool = False) -> tuple[WindowDetection, np.ndarray] | None:
         """Sub-pixel aperture corners of a candidate ring and its refined outer quad, or None.
 
-        Outer edges (light wall -> dark band, inwards) are fitted first; the aperture edges
-        are the first dark -> light step inwards of them, then fitted again in a narrow band.
-        All fits are straight lines in undistorted pixels.
+        Outer edges (light wall -> dark band, inwards) are fitted first, in two passes (the
+        search range, then the refine range around the first fit; ``single_pass``: the refine
+        range only, for a well predicted track); the aperture edges are the first dark -> light
+        step inwards of them, then fitted again in a narrow band. All fits are straight lines
+        in undistorted pixels.
         """
         cfg = self.config
         threshold = None
-        for half_width in (cfg.search_half_width_px, cfg.refine_half_width_px):
+        passes = (cfg.refine_half_width_px,) if single_pass \
+            else (cfg.search_half_width_px, cfg.refine_half_width_px)
+        for half_width in passes:
             outer_u, threshold = self._fit_quad(gray, camera, outer_u, half_width, _FALLING,
                                                 threshold)
             if outer_u is None:
