@@ -164,6 +164,39 @@ def test_tracking_is_kept_under_noise_and_motion_blur(scene, kind, value):
     assert statuses.count(WindowStatus.DETECTED) >= 0.9 * len(poses)
 
 
+@pytest.mark.parametrize('first, then', [('sim', 'dim room'), ('dim room', 'sim'),
+                                         ('sim', 'occluded'), ('sim', 'brick')])
+def test_a_tracked_aperture_whose_view_changes_is_searched_again(scene, first, then):
+    """Along one tracked approach the scene changes half-way: the room beyond the window goes
+    dark (the aperture's edges change polarity, or vanish), comes back, posts appear beside the
+    band, the wall turns to bricks. Before and after, the aperture takes one refine pass from
+    where the band's proportions put it (single_pass_tracking); at the change that pass fails
+    its checks and the aperture is searched as on a fresh frame, so no corner is wrong, and the
+    one pass resumes (a dark room gives no edge at all: its aperture comes from the
+    proportions, and stays searched)."""
+    world, cam, base, _ = scene
+    renderers = {name: bench.make_scene(base, name) for name in (first, then)}
+    detector, poses = WindowDetector(WindowDetectorConfig()), bench.approach(world, cam, 40)
+    inner = []
+    for k, (R_IB, xi) in enumerate(poses):
+        result = detector.process(renderers[first if k < 20 else then].render(R_IB, xi),
+                                  cam.model)
+        assert result.detection is not None, (k, result.reason)
+        err = np.linalg.norm(result.detection.corners_px
+                             - bench.true_corners_px(world, cam, R_IB, xi), axis=1)
+        assert err.max() <= 1.0, (k, err)
+        inner.append(detector.inner_single_passes)
+    one_pass = np.diff(inner)                   # 1 where the frame's aperture took one pass
+    if first != 'dim room':
+        assert one_pass[5:19].all()             # tracked in the first scene
+    if then != 'dim room':
+        assert one_pass[30:].all()              # and again in the second
+    if then == 'dim room':
+        assert not one_pass[20:].any()
+    if first == 'dim room':
+        assert not one_pass[:19].any()           # no edge to refine: searched every frame
+
+
 def _flat_camera() -> CameraModel:
     return CameraModel.from_camera_info(752, 480, [366.667, 0, 375.5, 0, 366.667, 239.5, 0, 0,
                                                    1], [0.0] * 5, 'plumb_bob')

@@ -45,9 +45,14 @@ Algorithm (paper section Experiments: "ArUco border detection", made sub-pixel):
    ``refine_half_width_px / 2`` in the frame before (:data:`SINGLE_PASS_MARGIN`), the outer
    edges take one search of the refine range from it instead of the two passes (the first
    one's wide range is for motion nobody predicted), and the result is kept if it lies within
-   that half range of the start; otherwise both passes run from the start as before
-   (``single_pass_tracking``). The start and the choice depend on the detections alone, not
-   on the IMU's timing. After
+   that half range of the start; otherwise both passes run from the start as before. The
+   aperture likewise: when it lay within that half range of where the band's proportions put
+   it in the frame before (and its search had measured all four sides), its edges take one
+   refine pass from this frame's prediction, with the polarity and band level of its last
+   search, instead of the search; any failed check and the search runs
+   (``single_pass_tracking``). The starts and the choices depend on the detections alone, not
+   on the IMU's timing; the aperture's start is this frame's prediction, not its own last
+   position, so that its sub-pixel noise does not carry the track's history. After
    ``reacquire_after_frames`` frames without a consistent window the tracker searches again;
    until then a frame that fails (noise, blur) keeps the tracked outline for the next one.
    Every frame without a window says why (``WindowResult.reason``, a :class:`Reject`).
@@ -162,7 +167,7 @@ class WindowDetectorConfig:
     samples_per_side: int = 40              # edge points searched per aperture side
     search_half_width_px: float = 8.0       # first-pass search range along the edge normal
     refine_half_width_px: float = 3.0       # second-pass search range
-    single_pass_tracking: bool = True       # a well predicted track: the second pass only
+    single_pass_tracking: bool = True       # a well predicted track: one refine pass per edge
     min_edge_contrast: float = 6.0          # grey levels, floor of a valid edge step
     edge_contrast_fraction: float = 0.2     # valid edge step / the band's contrast to the wall
     min_edge_inlier_fraction: float = 0.5   # valid points per side, fraction of samples
@@ -213,9 +218,10 @@ PARAMETER_SPECS = {
     'samples_per_side': ('edge points searched per aperture side, >= 2', 2, 10000),
     'search_half_width_px': ('px: first-pass search range along the edge normal', 0.0, None),
     'refine_half_width_px': ('px: second-pass search range along the edge normal', 0.0, None),
-    'single_pass_tracking': ('a tracked frame whose outline the last motion predicted to '
-                             'within refine_half_width_px / 2 searches its outer edges in '
-                             'the second-pass range only (one pass instead of two)',),
+    'single_pass_tracking': ('a tracked frame whose outline (its last motion) and aperture '
+                             "(the band's proportions) were predicted to within "
+                             'refine_half_width_px / 2 in the frame before takes one refine '
+                             'pass per edge instead of two passes / the aperture search',),
     'min_edge_contrast': ('grey levels (of 255): floor of the step of a valid edge point',
                           0.0, 255.0),
     'edge_contrast_fraction': ('step of a valid edge point / the band contrast to the wall',
@@ -283,7 +289,15 @@ class WindowDetector:
         self._reject = Reject.NO_CANDIDATE    # furthest stage a candidate of this frame reached
         self._motion_u: np.ndarray | None = None  # the outline's last motion (4, 2), undist. px
         self._prediction_error_px: float | None = None  # how far the last start was off
+        # the tracked aperture: how far it was from where the band's proportions put it last
+        # frame (undistorted px), and what the last search of it read: each side's polarity
+        # (4,) and the band's level per sample (4 samples_per_side,)
+        self._inner_error_px: float | None = None
+        self._inner_sign: np.ndarray | None = None
+        self._inner_level: np.ndarray | None = None
+        self._candidate_inner: tuple | None = None   # (quad, sign, level, one pass?) of a refine
         self.single_passes = 0                # tracked frames whose outer edges took one pass
+        self.inner_single_passes = 0          # ... whose aperture edges took one pass
 
     def reset(self) -> None:
         """Forget the tracked window."""
@@ -294,6 +308,11 @@ class WindowDetector:
         self._frames_since_seen = 0
         self._motion_u = None
         self._prediction_error_px = None
+        self._forget_inner()
+
+    def _forget_inner(self) -> None:
+        """Drop the tracked aperture: the next frame searches its edges."""
+        self._inner_error_px = self._inner_sign = self._inner_level = None
 
     # --- public ---------------------------------------------------------------------------
 
@@ -314,19 +333,21 @@ class WindowDetector:
             self._predict(camera, np.asarray(rotation_C, dtype=float))
         if self._last_outer_u is not None:
             # fast path: refine the tracked window from its predicted outline, no contour search
-            last = self._last_outer_u
-            start = last if self._motion_u is None or self._frames_since_seen \
-                else last + self._motion_u
-            gap = self._frames_since_seen
+            last, gap = self._last_outer_u, self._frames_since_seen
+            start = last + self._motion_u if self._motion_u is not None and not gap else last
             refined = self._refine_tracked(gray, camera, start)
             if refined is not None:
                 result = self._track([refined])
                 if result.status == WindowStatus.DETECTED:
                     outer = refined[1]
+                    inner, predicted, sign, level, _ = self._candidate_inner
                     self._motion_u = None if gap else outer - last    # per frame only
-                    self._prediction_error_px = float(np.max(np.hypot(*(outer - start).T)))
+                    self._prediction_error_px = _largest_distance(outer, start)
+                    self._inner_error_px = _largest_distance(inner, predicted)
+                    self._inner_sign, self._inner_level = sign, level
                 return result
         self._motion_u = self._prediction_error_px = None
+        self._forget_inner()
         refined = []
         for ring in self._rings(gray, camera):
             # a component's first candidate that refines (its outer boundary's, else a hole's)
@@ -456,8 +477,9 @@ class WindowDetector:
         self._rotation_since = np.eye(3)
         self._last_bearings, self._last_px = b, uv
         # the outline moved by the rotation: its last motion and how well it was predicted
-        # say nothing of this frame (both passes, then a new motion)
+        # say nothing of this frame (both passes and the aperture's search, then new motions)
         self._motion_u = self._prediction_error_px = None
+        self._forget_inner()
         if self._last_outer_u is not None:
             K = camera.K
             rays = np.column_stack([(self._last_outer_u - K[:2, 2]) / np.diag(K)[:2],
@@ -545,27 +567,41 @@ class WindowDetector:
         """:meth:`_refine` of the tracked window from its predicted outline (module doc).
 
         One outer pass of the refine range when the last prediction was good and its result
-        stays near the start; else the two passes.
+        stays near the start; else the two passes. Likewise the aperture: one refine pass from
+        where the band's proportions put it, with the polarity and band level of its last
+        search, when it lay near there last frame; else its search.
         """
-        reach = self.config.refine_half_width_px / SINGLE_PASS_MARGIN
-        if self.config.single_pass_tracking and self._prediction_error_px is not None \
+        cfg = self.config
+        reach = cfg.refine_half_width_px / SINGLE_PASS_MARGIN
+        inner_pass = cfg.single_pass_tracking and self._inner_error_px is not None \
+            and self._inner_error_px <= reach and self._inner_sign is not None
+        refined = None
+        if cfg.single_pass_tracking and self._prediction_error_px is not None \
                 and self._prediction_error_px <= reach:
-            refined = self._refine(gray, camera, start_u, single_pass=True)
-            if refined is not None \
-                    and float(np.max(np.hypot(*(refined[1] - start_u).T))) <= reach:
+            refined = self._refine(gray, camera, start_u, True, inner_pass)
+            if refined is not None and _largest_distance(refined[1], start_u) <= reach:
                 self.single_passes += 1
-                return refined
-        return self._refine(gray, camera, start_u)
+            else:
+                refined = None
+        if refined is None:
+            refined = self._refine(gray, camera, start_u, False, inner_pass)
+        if refined is not None and self._candidate_inner[4]:
+            self.inner_single_passes += 1
+        return refined
 
     def _refine(self, gray: np.ndarray, camera: CameraModel, outer_u: np.ndarray,
-                single_pass: bool = False) -> tuple[WindowDetection, np.ndarray] | None:
+                single_pass: bool = False, inner_pass: bool = False
+                ) -> tuple[WindowDetection, np.ndarray] | None:
         """Sub-pixel aperture corners of a candidate ring and its refined outer quad, or None.
 
         Outer edges (light wall -> dark band, inwards) are fitted first, in two passes (the
         search range, then the refine range around the first fit; ``single_pass``: the refine
         range only, for a well predicted track); the aperture edges are the first dark -> light
-        step inwards of them, then fitted again in a narrow band. All fits are straight lines
-        in undistorted pixels.
+        step inwards of them, then fitted again in a narrow band (``inner_pass``: first
+        refined once from where the band's proportions put them, :meth:`_inner_from_track`).
+        All fits are straight lines in undistorted pixels. The aperture's quad, its quad
+        predicted from the proportions, its polarities and band level and whether it took one
+        pass are left in ``_candidate_inner``.
         """
         cfg = self.config
         threshold = None
@@ -579,7 +615,10 @@ class WindowDetector:
         if not self._inside_image(camera, outer_u):
             return self._rejected(Reject.OUTSIDE)
         predicted = self._predicted_inner(outer_u)
-        inner_u = self._find_inner_quad(gray, camera, outer_u, predicted, threshold)
+        inner_u = self._inner_from_track(gray, camera, outer_u, predicted, threshold) \
+            if inner_pass else None
+        if inner_u is None:
+            inner_u = self._find_inner_quad(gray, camera, outer_u, predicted, threshold)
         if inner_u is None:
             return self._rejected(Reject.INNER_EDGES)
         if not cv2.isContourConvex(inner_u.astype(np.float32)):
@@ -758,15 +797,9 @@ class WindowDetector:
         """
         cfg = self.config
         n = cfg.samples_per_side
-        outer_lines = _side_lines_through(outer_u)
         pred_lines = _side_lines_through(predicted)
-        # predicted band width of each side: its outer line to the predicted inner side's middle
-        mid = 0.5 * (predicted + predicted[_NEXT])
-        band = np.abs(outer_lines[:, 0] * mid[:, 0] + outer_lines[:, 1] * mid[:, 1]
-                      + outer_lines[:, 2])
-        sides = np.linalg.norm(outer_u - outer_u[_NEXT], axis=1)
-        if not np.all(np.isfinite(band)) or band.min() < 2 * _BAND_PROBE_PX \
-                or band.max() > cfg.max_band_fraction * float(sides.min()):
+        band = self._band_widths(outer_u, predicted)
+        if band is None:
             return None
         offsets = np.arange(0.0, band.max() * (1.0 + cfg.max_band_deviation) + _BAND_REACH_PX
                             + 1e-9, _PROFILE_STEP_PX)
@@ -802,7 +835,59 @@ class WindowDetector:
                                              cfg.max_band_deviation * band):
             again = None if line is None else _near_or_none(again, pred, p, dev)
             final.append(pred if line is None else (line if again is None else again))
-        return _intersect_consecutive(final)
+        quad = _intersect_consecutive(final)
+        # a side taken from the proportions (no edge, e.g. a room as dark as the band) has no
+        # polarity to refine with: the next frame searches again
+        measured = all(line is not None for line in lines)
+        self._candidate_inner = (quad, predicted, side_sign if measured else None, level, False)
+        return quad
+
+    def _band_widths(self, outer_u: np.ndarray, predicted: np.ndarray) -> np.ndarray | None:
+        """Predicted band width (4,) of each side, px, or None when no band fits the quad.
+
+        Each outer side's line to the middle of the predicted aperture side; None when a width
+        is not finite, under twice ``_BAND_PROBE_PX`` or over ``max_band_fraction`` of the
+        shortest outer side.
+        """
+        outer_lines = _side_lines_through(outer_u)
+        mid = 0.5 * (predicted + predicted[_NEXT])
+        band = np.abs(outer_lines[:, 0] * mid[:, 0] + outer_lines[:, 1] * mid[:, 1]
+                      + outer_lines[:, 2])
+        sides = np.linalg.norm(outer_u - outer_u[_NEXT], axis=1)
+        if not np.all(np.isfinite(band)) or band.min() < 2 * _BAND_PROBE_PX \
+                or band.max() > self.config.max_band_fraction * float(sides.min()):
+            return None
+        return band
+
+    def _inner_from_track(self, gray: np.ndarray, camera: CameraModel, outer_u: np.ndarray,
+                          predicted: np.ndarray, threshold: float) -> np.ndarray | None:
+        """Return the aperture quad refined once from its predicted quad, or None (then search).
+
+        The refine pass of :meth:`_find_inner_quad` (refine range, the band lying outwards)
+        from ``predicted`` (where this frame's outer quad and the band's proportions put the
+        aperture: its samples, so its noise, do not depend on earlier frames) with the
+        polarity and band level its last search read: every side must be found, within
+        ``max_band_deviation`` band widths of the predicted side, and the quad within
+        ``refine_half_width_px / SINGLE_PASS_MARGIN`` of it. A room beyond the window that
+        turned from lighter to darker, a band whose level moved (exposure), a post: the
+        search runs as before.
+        """
+        cfg = self.config
+        band = self._band_widths(outer_u, predicted)
+        if band is None:
+            return None
+        lines, _ = self._fit_lines(gray, camera, predicted, cfg.refine_half_width_px,
+                                   self._inner_sign, threshold, band_level=self._inner_level)
+        for line, pred, p, dev in zip(lines, _side_lines_through(predicted), _sides(predicted),
+                                      cfg.max_band_deviation * band):
+            if line is None or _near_or_none(line, pred, p, dev) is None:
+                return None
+        quad = _intersect_consecutive(lines)
+        if quad is None or _largest_distance(quad, predicted) \
+                > cfg.refine_half_width_px / SINGLE_PASS_MARGIN:
+            return None
+        self._candidate_inner = (quad, predicted, self._inner_sign, self._inner_level, True)
+        return quad
 
     def _step_positions(self, grad: np.ndarray, offsets: np.ndarray, peak: np.ndarray,
                         threshold: float) -> tuple[np.ndarray, np.ndarray]:
@@ -971,6 +1056,11 @@ def _children_area(contours, hierarchy, child: int) -> float:
         total += cv2.contourArea(contours[child])
         child = hierarchy[child][0]
     return total
+
+
+def _largest_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Largest distance (px) between corresponding corners of two quads (4, 2)."""
+    return float(np.max(np.hypot(*(a - b).T)))
 
 
 def _quad_area(quad: np.ndarray) -> float:
