@@ -11,8 +11,14 @@ WINDOW. An autopilot holds its estimate, so an estimate rolled +d flies the trut
 which pushes the vehicle towards -y_I (docs/design.md "Attitude-estimate error"): this
 prints what a run's autopilot did, to compare with that.
 
-Usage: ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python scripts/estimate_error.py RUN_DIR
-[RUN_DIR ...]``. Figures: docs/px4_sih.md.
+``--increments``: instead, how fast the error moves over the whole bag, the structure function
+std(err(t + lag) - err(t)) per axis at ``INCREMENT_LAGS_S``: the truth interpolated on SO(3)
+to each imu/data stamp (from the two truth samples around it, at most ``MAX_TRUTH_GAP_S``
+apart), lags matched within ``LAG_TOLERANCE_S``. Its value at one camera frame is the attitude
+jitter that a derotated optical flow reads as rotation of the scene (docs/sim_autopilot.md).
+
+Usage: ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python scripts/estimate_error.py
+[--increments] RUN_DIR [RUN_DIR ...]``. Figures: docs/px4_sih.md, docs/sim_autopilot.md.
 """
 from __future__ import annotations
 
@@ -27,6 +33,9 @@ import numpy as np
 
 IMU_TOPIC, TRUTH_TOPIC = '/imu/data', '/sim/ground_truth/odom'
 MAX_PAIR_S = 0.006                  # s, largest stamp difference of a (truth, imu) pair
+INCREMENT_LAGS_S = (0.01, 0.02, 0.04, 0.1, 0.2, 0.5, 1.0)
+MAX_TRUTH_GAP_S = 0.025             # s, truth samples farther apart are not interpolated
+LAG_TOLERANCE_S = 0.003             # s, a pair of samples is at a lag within this
 _T_RE = re.compile(r't = ([0-9.]+) s')
 
 
@@ -99,10 +108,71 @@ def window_estimate_error(run_dir: str | Path) -> dict | None:
             'success': summary.get('success')}
 
 
+def error_series(bag_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(stamps (N,) s, errors (N, 3) rad): R_err = R_IB^T R_est at every imu/data stamp.
+
+    The truth R_IB at an imu/data stamp is interpolated on SO(3) between the truth samples
+    around it (at most MAX_TRUTH_GAP_S apart); stamps outside the truth are left out.
+    """
+    from ibvs_bringup.bag import deserialize, read_messages
+    from ibvs_common.core.frames import exp_so3, log_so3, R_IB_from_quat_map_base
+    est, truth = [], []
+    for topic, msgtype, _, data in read_messages(bag_dir, [IMU_TOPIC, TRUTH_TOPIC]):
+        msg = deserialize(data, msgtype)
+        q = msg.orientation if topic == IMU_TOPIC else msg.pose.pose.orientation
+        (est if topic == IMU_TOPIC else truth).append(
+            (_stamp_s(msg.header), R_IB_from_quat_map_base((q.w, q.x, q.y, q.z))))
+    est.sort(key=lambda x: x[0])
+    truth.sort(key=lambda x: x[0])
+    t_truth = np.array([t for t, _ in truth])
+    stamps, errors = [], []
+    for t, R_est in est:
+        i = int(np.searchsorted(t_truth, t, side='right'))
+        if i == 0 or i >= len(truth):
+            continue
+        (ta, Ra), (tb, Rb) = truth[i - 1], truth[i]
+        if tb - ta > MAX_TRUTH_GAP_S:
+            continue
+        R_true = Ra @ exp_so3((t - ta) / (tb - ta) * log_so3(Ra.T @ Rb))
+        stamps.append(t)
+        errors.append(log_so3(R_true.T @ R_est))
+    return np.array(stamps), np.array(errors).reshape(-1, 3)
+
+
+def increment_std(stamps: np.ndarray, errors: np.ndarray,
+                  lags: tuple = INCREMENT_LAGS_S) -> dict:
+    """{lag: (std of err(t + lag) - err(t) per axis (3,) rad, pairs)} of an error series."""
+    out = {}
+    for lag in lags:
+        j = np.searchsorted(stamps, stamps + lag)
+        i = np.nonzero(j < len(stamps))[0]
+        j = j[i]
+        good = np.abs(stamps[j] - stamps[i] - lag) <= LAG_TOLERANCE_S
+        d = errors[j[good]] - errors[i[good]]
+        out[lag] = (d.std(axis=0) if len(d) > 1 else np.full(3, np.nan), int(good.sum()))
+    return out
+
+
 def main(argv: list | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('runs', nargs='+', help='run_scenario result directories')
+    p.add_argument('--increments', action='store_true',
+                   help="the error's structure function over the whole bag (module doc)")
     a = p.parse_args(argv)
+    if a.increments:
+        for run in a.runs:
+            stamps, errors = error_series(Path(run) / 'bag')
+            if len(stamps) < 2:
+                print(f'{run}: no imu/data with ground truth around it')
+                continue
+            std = np.degrees(errors.std(axis=0))
+            print(f'{run}: {len(stamps)} samples, error std roll / pitch / yaw '
+                  f'{std[0]:.3f} / {std[1]:.3f} / {std[2]:.3f} deg')
+            for lag, (d, n) in increment_std(stamps, errors).items():
+                d = np.degrees(d)
+                print(f'  lag {lag:5.2f} s: increment std {d[0]:.4f} / {d[1]:.4f} / '
+                      f'{d[2]:.4f} deg ({n} pairs)')
+        return 0
     for run in a.runs:
         r = window_estimate_error(run)
         if r is None:

@@ -71,3 +71,42 @@ def test_only_the_first_window_interval_counts_and_a_run_without_one_gives_none(
         'mode IDLE -> WINDOW at t = 9.000 s: again', 'mode WINDOW -> CROSSING at t = 9.5 s: y',
     ]) == (1.0, 2.5)
     assert estimate_error.window_interval(['mode IDLE -> WINDOW at t = 1.0 s: start']) is None
+
+
+def test_the_increments_of_a_random_walk_error_grow_as_its_lag_s_square_root(tmp_path, capsys):
+    """A synthetic error that steps by N(0, 0.05 deg) per 10 ms imu/data sample in roll only,
+    the truth (50 Hz, rotating at 0.5 rad/s in yaw) interpolated to the IMU stamps: the
+    structure function is 0.05 deg sqrt(lag / 10 ms) in roll (the random walk's closed form)
+    and 0 in pitch and yaw (the interpolation of the truth adds nothing)."""
+    from ibvs_common.core.frames import exp_so3
+    run = tmp_path / 'walk'
+    run.mkdir()
+    rng = np.random.default_rng(4)
+    step = np.radians(0.05)
+    roll = np.cumsum(rng.normal(0.0, step, 2000))
+    with bag.BagWriter(run / 'bag') as w:
+        w.add_topic('imu/data', 'sensor_msgs/msg/Imu')
+        w.add_topic('sim/ground_truth/odom', 'nav_msgs/msg/Odometry')
+        for k in range(2000):                             # 20 s, imu 100 Hz, truth 50 Hz
+            t = 100.0 + 0.01 * k
+            R_IB = rot_z(0.5 * (t - 100.0)) @ rot_y(0.1)
+            if k % 2 == 0:
+                odom = Odometry()
+                _stamp(odom.header, t)
+                _set_q(odom.pose.pose.orientation, R_IB)
+                w.write('sim/ground_truth/odom', int(t * 1e9), serialize_message(odom))
+            imu = Imu()
+            _stamp(imu.header, t)
+            _set_q(imu.orientation, R_IB @ exp_so3(np.array([roll[k], 0.0, 0.0])))
+            w.write('imu/data', int(t * 1e9), serialize_message(imu))
+    stamps, errors = estimate_error.error_series(run / 'bag')
+    assert len(stamps) >= 1990
+    np.testing.assert_allclose(errors[:, 0], roll[:len(stamps)], atol=1e-6)
+    assert np.max(np.abs(errors[:, 1:])) < 1e-3 * step
+    inc = estimate_error.increment_std(stamps, errors, (0.01, 0.04, 0.16))
+    for lag, (d, n) in inc.items():
+        assert n > 1000
+        assert d[0] == pytest.approx(step * np.sqrt(lag / 0.01), rel=0.1), lag
+        assert d[1] < 1e-3 * step and d[2] < 1e-3 * step
+    assert estimate_error.main(['--increments', str(run)]) == 0
+    assert 'lag  0.02 s' in capsys.readouterr().out
