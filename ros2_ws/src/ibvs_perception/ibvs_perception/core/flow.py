@@ -57,7 +57,7 @@ import numpy as np
 from ibvs_common.core.camera import CameraModel
 from ibvs_common.core.features import (centroid_feature, edge_normals, window_axes,
                                        window_normal)
-from ibvs_common.core.frames import bearings_C_to_I
+from ibvs_common.core.frames import bearings_C_to_I, bearings_I_to_C
 
 #: largest condition number of the normal equations accepted (a degenerate point spread)
 _MAX_CONDITION = 1e8
@@ -457,8 +457,7 @@ class FlowEstimator:
         stamp0, ids0, p0 = self._history[-1]
         if stamp0 != self._stamp or len(ids0) != len(self._ids):
             return None
-        R_CI = np.asarray(R_IB) @ self.R_BC            # rows: b_C = p_I @ R_IC
-        by_rotation = self._project(p0 @ R_CI)
+        by_rotation = self._project(bearings_I_to_C(p0, R_IB, self.R_BC))
         moving = np.zeros(len(p0), dtype=bool)
         p = p0
         if len(self._history) >= 2:
@@ -469,7 +468,8 @@ class FlowEstimator:
                 p[i0] += (p0[i0] - p1[i1]) * ((stamp_s - stamp0) / (stamp0 - stamp1))
                 p[i0] /= np.linalg.norm(p[i0], axis=1, keepdims=True)
                 moving[i0] = True
-        by_motion = self._project(p @ R_CI) if moving.any() else by_rotation
+        by_motion = self._project(bearings_I_to_C(p, R_IB, self.R_BC)) if moving.any() \
+            else by_rotation
         return by_rotation, by_motion, moving
 
     def _project(self, b_C: np.ndarray) -> np.ndarray:
@@ -521,16 +521,11 @@ class FlowEstimator:
             ) -> tuple[np.ndarray, np.ndarray]:
         """One calcOpticalFlowPyrLK of the tracks: (points (N, 2), usable (N,))."""
         cfg = self.config
-        prev = self._points.reshape(-1, 1, 2)
-        if predicted is None:
-            cur, status, err = cv2.calcOpticalFlowPyrLK(
-                self._previous, gray, prev, None, winSize=self._win, maxLevel=levels,
-                criteria=self._criteria)
-        else:
-            cur, status, err = cv2.calcOpticalFlowPyrLK(
-                self._previous, gray, prev, predicted.reshape(-1, 1, 2).copy(),
-                winSize=self._win, maxLevel=levels, criteria=self._criteria,
-                flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+        start = None if predicted is None else predicted.reshape(-1, 1, 2).copy()
+        cur, status, err = cv2.calcOpticalFlowPyrLK(
+            self._previous, gray, self._points.reshape(-1, 1, 2), start, winSize=self._win,
+            maxLevel=levels, criteria=self._criteria,
+            flags=0 if start is None else cv2.OPTFLOW_USE_INITIAL_FLOW)
         cur = cur.reshape(-1, 2)
         h, w = gray.shape[:2]
         b = cfg.border_px

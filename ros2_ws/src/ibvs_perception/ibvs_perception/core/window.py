@@ -67,6 +67,7 @@ from dataclasses import dataclass
 import enum
 import functools
 import itertools
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -143,6 +144,16 @@ class Reject:
     JUMP = 'jump'                        # farther than max_corner_jump_px from the tracked one
     # the order of the stages, a reason later in it wins over an earlier one
     ORDER = (NO_CANDIDATE, OUTER_EDGES, OUTSIDE, INNER_EDGES, BAND_SHAPE)
+
+
+class _Aperture(NamedTuple):
+    """What one refine found of the aperture, for the track of the next frame."""
+
+    quad_u: np.ndarray | None         # (4, 2) undistorted px
+    predicted_u: np.ndarray           # (4, 2) where the band's proportions put it
+    sign: np.ndarray | None           # each side's polarity; None: a side not measured
+    level: np.ndarray                 # the band's level per sample
+    one_pass: bool                    # refined once from the prediction (no search)
 
 
 @dataclass(frozen=True)
@@ -295,7 +306,7 @@ class WindowDetector:
         self._inner_error_px: float | None = None
         self._inner_sign: np.ndarray | None = None
         self._inner_level: np.ndarray | None = None
-        self._candidate_inner: tuple | None = None   # (quad, sign, level, one pass?) of a refine
+        self._candidate_inner: _Aperture | None = None   # of the last refine
         self.single_passes = 0                # tracked frames whose outer edges took one pass
         self.inner_single_passes = 0          # ... whose aperture edges took one pass
 
@@ -340,11 +351,12 @@ class WindowDetector:
                 result = self._track([refined])
                 if result.status == WindowStatus.DETECTED:
                     outer = refined[1]
-                    inner, predicted, sign, level, _ = self._candidate_inner
+                    aperture = self._candidate_inner
                     self._motion_u = None if gap else outer - last    # per frame only
                     self._prediction_error_px = _largest_distance(outer, start)
-                    self._inner_error_px = _largest_distance(inner, predicted)
-                    self._inner_sign, self._inner_level = sign, level
+                    self._inner_error_px = _largest_distance(aperture.quad_u,
+                                                             aperture.predicted_u)
+                    self._inner_sign, self._inner_level = aperture.sign, aperture.level
                 return result
         self._motion_u = self._prediction_error_px = None
         self._forget_inner()
@@ -585,7 +597,7 @@ class WindowDetector:
                 refined = None
         if refined is None:
             refined = self._refine(gray, camera, start_u, False, inner_pass)
-        if refined is not None and self._candidate_inner[4]:
+        if refined is not None and self._candidate_inner.one_pass:
             self.inner_single_passes += 1
         return refined
 
@@ -839,7 +851,8 @@ class WindowDetector:
         # a side taken from the proportions (no edge, e.g. a room as dark as the band) has no
         # polarity to refine with: the next frame searches again
         measured = all(line is not None for line in lines)
-        self._candidate_inner = (quad, predicted, side_sign if measured else None, level, False)
+        self._candidate_inner = _Aperture(quad, predicted, side_sign if measured else None,
+                                          level, False)
         return quad
 
     def _band_widths(self, outer_u: np.ndarray, predicted: np.ndarray) -> np.ndarray | None:
@@ -886,7 +899,8 @@ class WindowDetector:
         if quad is None or _largest_distance(quad, predicted) \
                 > cfg.refine_half_width_px / SINGLE_PASS_MARGIN:
             return None
-        self._candidate_inner = (quad, predicted, self._inner_sign, self._inner_level, True)
+        self._candidate_inner = _Aperture(quad, predicted, self._inner_sign, self._inner_level,
+                                          True)
         return quad
 
     def _step_positions(self, grad: np.ndarray, offsets: np.ndarray, peak: np.ndarray,
