@@ -7,12 +7,18 @@ five nodes take every sample. Measured here, each case in a fresh process (CPU =
 stime of that process over ``--window-s`` after ``--settle-s``), repeated ``--repeats`` times:
 
 - ``composed``: the seven onboard nodes in one process (ibvs_bringup.composed), imu/data to
-  the co-located nodes in process (ibvs_common.intra_process);
-- ``composed, DDS imu``: the same with ``--no-intra-process`` (every node subscribes through DDS);
-- ``bridge alone``: the MAVLink bridge node only, with params.yaml's ``streams_off``;
+  the co-located nodes in process (ibvs_common.intra_process), the vehicle at rest (disarmed,
+  supervisor IDLE: the bridge slows the attitude, IMU and thrust streams to
+  ``quiet_telemetry_rate_hz``, docs/mavlink.md "Telemetry at rest"): the graph on the pad;
+- ``composed, full telemetry``: the same with ``quiet_telemetry_rate_hz:=0`` (100 Hz attitude
+  and IMU as in flight: the idle graph before 2026-12-02, and an idle graph while a pilot
+  flies);
+- ``composed, DDS imu``: full telemetry with ``--no-intra-process`` (every node subscribes
+  through DDS);
+- ``bridge alone``: the MAVLink bridge node only, with params.yaml's ``streams_off``, at rest;
 - ``bridge alone, streams on`` (``--autopilot px4-sih`` only): ``streams_off: ['']``, i.e.
-  PX4's default onboard streams left on. PX4 keeps a stream setting until it reboots, so every
-  case there gets a fresh PX4.
+  PX4's default onboard streams left on, full telemetry. PX4 keeps a stream setting until it
+  reboots, so every case there gets a fresh PX4.
 - ``no autopilot``: the composed process with nothing on the other end (its floor: timers,
   DDS).
 
@@ -23,9 +29,10 @@ stime of that process over ``--window-s`` after ``--settle-s``), repeated ``--re
   figures of different hours compare only together with it (the same graph read 5.5 % at
   14:43 and 9.3 % at 17:15 on 2026-11-27: docs/performance.md "Idle CPU").
 
-Autopilot: ``stand-in`` (default; the sim's PX4-like autopilot in its own process, streams
-at 100 Hz like the bridge asks) or ``px4-sih`` (../shared/px4-sitl, instance 5+; skipped with a
-message when absent). Nothing subscribes to imu/data outside the measured process.
+Autopilot: ``stand-in`` (default; the sim's PX4-like autopilot, disarmed and still, in a
+thread of this process, streams at the rates the bridge asks) or ``px4-sih``
+(../shared/px4-sitl, instance 5+; skipped with a message when absent). Nothing subscribes
+to imu/data outside the measured process.
 
 Usage: ``bench_idle_cpu.py [--autopilot stand-in|px4-sih] [--repeats N] [--window-s S]
 [--smoke]``. Figures: docs/performance.md "Idle CPU".
@@ -75,10 +82,11 @@ def cpu_seconds(pid: int) -> float:
 
 
 def stand_in(url: str, stop: threading.Event) -> None:
-    """Serve the sim's PX4-like autopilot, level and still, on the wall clock until ``stop``."""
+    """Serve the sim's PX4-like autopilot, disarmed, level and still, until ``stop``."""
     from ibvs_sim.core.autopilot import AutopilotConfig
     from ibvs_sim.core.autopilot.stand_in import HoverStandIn
-    served = HoverStandIn(AutopilotConfig(url=url, telemetry_default_hz=STAND_IN_RATE_HZ))
+    served = HoverStandIn(AutopilotConfig(url=url, telemetry_default_hz=STAND_IN_RATE_HZ,
+                                          start_armed=False))
     try:
         stop.wait()
     finally:
@@ -141,12 +149,14 @@ def _send_datagrams(port: int, stop: threading.Event) -> None:
         sock.close()
 
 
+FULL_TELEMETRY = ['-p', 'quiet_telemetry_rate_hz:=0.0']
 CASES = {
     'composed': [],
-    'composed, DDS imu': ['--no-intra-process'],
+    'composed, full telemetry': ['--ros-args'] + FULL_TELEMETRY,
+    'composed, DDS imu': ['--no-intra-process', '--ros-args'] + FULL_TELEMETRY,
     'bridge alone': ['--nodes', 'mavlink_bridge'],
     'bridge alone, streams on': ['--nodes', 'mavlink_bridge', '--ros-args', '-p',
-                                 "streams_off:=['']"],
+                                 "streams_off:=['']"] + FULL_TELEMETRY,
 }
 
 

@@ -168,9 +168,9 @@ def start(script: Path, args: list) -> dict:
 class Run:
     """The bridge core polled like the node; records what it got and what it made of it."""
 
-    def __init__(self, url: str) -> None:
+    def __init__(self, url: str, **config) -> None:
         cfg = BridgeConfig(link=LinkConfig(url=url), mass=1.0, max_thrust_factor=2.0,
-                           configured_hover_thrust=0.5, hover_thrust_source='config')
+                           configured_hover_thrust=0.5, hover_thrust_source='config', **config)
         self.bridge = MavlinkBridge(cfg)
         self.bridge.stream_enabled = False     # listen only
         self.polls = []   # (ROS ns of the poll, synced before, synced after, raw, samples)
@@ -185,6 +185,13 @@ class Run:
             self._raw = msgs
             return msgs
         self.bridge.link.poll = tee
+
+    def rate_hz(self, kind: str, last_s: float) -> float:
+        """Messages of ``kind`` a second received in the last ``last_s`` of the polls."""
+        t_end = self.polls[-1][0]
+        n = sum(1 for ros, _, _, raw, _ in self.polls if ros > t_end - last_s * 1e9
+                for m in raw if m.get_type() == kind)
+        return n / last_s
 
     def spin(self, seconds: float) -> None:
         b = self.bridge
@@ -706,12 +713,30 @@ def left_our_setpoint(f: Flight, since: float) -> float | None:
 
 
 def test_px4_imu_and_clock_sync_on_the_system_clock(px4):
-    # fresh after the boot, as the figures of docs/mavlink.md (the skew grows with load)
-    run = Run(px4['env']['PX4_OFFBOARD_URL'])
+    # fresh after the boot, as the figures of docs/mavlink.md (the skew grows with load);
+    # the 100 Hz attitude throughout (a vehicle at rest would get 10 Hz after 2 s: below)
+    run = Run(px4['env']['PX4_OFFBOARD_URL'], quiet_telemetry_rate_hz=0.0)
     try:
         run.spin(RUN_S)
     finally:
         run.close()
+    # At rest (disarmed, supervisor IDLE): PX4 itself sends the attitude at 10 Hz once asked,
+    # and at 100 Hz again right after an arm request (nothing else engages here).
+    rest = Run(px4['env']['PX4_OFFBOARD_URL'], quiet_telemetry_delay_s=0.5)
+    try:
+        rest.spin(3.0)
+        at_rest = rest.rate_hz('ATTITUDE_QUATERNION', 1.0), rest.rate_hz('HIGHRES_IMU', 1.0)
+        slowed = rest.bridge.status().telemetry_slowed
+        assert rest.bridge.request_arm()[0]
+        rest.spin(1.5)
+        after_arm = rest.rate_hz('ATTITUDE_QUATERNION', 1.0), rest.rate_hz('HIGHRES_IMU', 1.0)
+        print(f'PX4 at rest: attitude, IMU {at_rest} Hz; after an arm request {after_arm} Hz')
+        assert slowed and not rest.bridge.status().telemetry_slowed
+        assert all(7.0 <= r <= 13.0 for r in at_rest), at_rest
+        assert all(r >= 80.0 for r in after_arm), after_arm
+        assert not rest.bridge.link.heartbeat.armed        # an arm request alone arms nothing
+    finally:
+        rest.close()
     check(run, 'PX4 v1.16 SITL (SIH)')
     assert run.bridge.status().counters['timesync_answered'] >= 10   # PX4 asks us too
     # PX4's offboard-loss failsafe read and reported (INT32 decoded from PX4's bytewise

@@ -198,6 +198,38 @@ def test_composed_nodes_get_their_own_parameters_and_remappings(context):
             node.destroy_node()
 
 
+def test_a_users_ros_args_win_over_the_parameter_file_in_the_composed_layout(context):
+    """``composed --ros-args -p x:=v``: v, as for the node's own process (not params.yaml's).
+
+    rcl lets a node's own arguments (its parameter file) win over the global ones: passed as
+    global arguments only, the override was silently ignored (the idle benchmark's cases ran
+    with the file's values until 2026-12-02).
+    """
+    from ibvs_bringup import composed, graph
+    specs = [s for s in graph.onboard_graph(graph.GraphOptions(mavlink_url='udpin:127.0.0.1:0'))
+             if s.name in ('mavlink_bridge', 'window_detector')]
+    from_file = {}
+    nodes = composed.build_nodes(specs, context)
+    try:
+        from_file = {n.get_name(): n.get_parameter('use_sim_time').value for n in nodes}
+        bridge = next(n for n in nodes if n.get_name() == 'mavlink_bridge')
+        assert bridge.get_parameter('attitude_rate_hz').value == 100.0      # params.yaml
+    finally:
+        for node in nodes:
+            node.destroy_node()
+    nodes = composed.build_nodes(specs, context, user_ros_args=(
+        '--ros-args', '-p', 'attitude_rate_hz:=25.0', '-p', 'max_corner_jump_px:=12.5'))
+    try:
+        by_name = {n.get_name(): n for n in nodes}
+        assert by_name['mavlink_bridge'].get_parameter('attitude_rate_hz').value == 25.0
+        assert by_name['window_detector'].get_parameter('max_corner_jump_px').value == 12.5
+        assert {n.get_name(): n.get_parameter('use_sim_time').value for n in nodes} \
+            == from_file                                    # the rest as the file says
+    finally:
+        for node in nodes:
+            node.destroy_node()
+
+
 def test_bridge_publishes_imu_through_dds_only_while_a_reader_is_matched(context):
     """Composed: no DDS reader -> the DDS publish is skipped (in process only) and the message
     is built only when a co-located node takes it; a recorder that subscribes gets every

@@ -525,6 +525,16 @@ def test_an_idle_step_rate_of_2_hz_or_less_is_refused():
                      configured_hover_thrust=0.5, idle_tick_rate_hz=2.0)
 
 
+@pytest.mark.parametrize('field,value', [('quiet_telemetry_rate_hz', -1.0),
+                                         ('quiet_telemetry_rate_hz', float('nan')),
+                                         ('quiet_telemetry_delay_s', float('inf'))])
+def test_a_bad_telemetry_rate_at_rest_is_refused(field, value):
+    link = LinkConfig(url='udpin:127.0.0.1:9')
+    with pytest.raises(ValueError, match=field):
+        BridgeConfig(link=link, mass=MASS, max_thrust_factor=2.0,
+                     configured_hover_thrust=0.5, **{field: value})
+
+
 # --- engage and arm -----------------------------------------------------------------------------
 
 def test_px4_offboard_after_streaming_and_arms_only_when_asked(peer_bridge):
@@ -1016,6 +1026,72 @@ def test_imu_held_until_synced_then_stamped_boot_time_plus_offset(peer_bridge):
     assert same_rotation(quat_multiply([1, 0, 0, 0], s.q_wxyz), s.q_wxyz)
     st = bridge.status()
     assert st.time_sync.accepted >= 5 and st.time_sync.last_rtt_ns is not None
+
+
+def _asked(peer, msg_id, since=0):
+    """The intervals (us) asked for ``msg_id`` in SET_MESSAGE_INTERVAL ``since`` onwards."""
+    return [us for _, i, us in peer.intervals[since:] if i == msg_id]
+
+
+def test_telemetry_slows_at_rest_and_is_full_again_before_anything_engages(peer_bridge):
+    # Disarmed on the pad, supervisor IDLE: after the delay the attitude, IMU and thrust
+    # streams are asked at 10 Hz (1e5 us); the status streams keep their 5 Hz. A supervisor
+    # mode asks the full rates again before its first engagement command leaves.
+    peer, bridge = peer_bridge(peer_kw={'armed': False, 'landed': True},
+                               bridge_kw={'quiet_telemetry_delay_s': 0.3})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    ok, _ = spin(bridge, 4.0, until=lambda: _asked(peer, 83)[-1:] == [1e5]
+                 and bridge.streams.complete)
+    assert ok, peer.intervals
+    assert _asked(peer, 31) == [1e4, 1e5] and _asked(peer, 105) == [1e4, 1e5]
+    assert _asked(peer, 83) == [2e4, 1e5] and _asked(peer, 245) == [2e5]
+    assert bridge.status().telemetry_slowed
+    n, commands = len(peer.intervals), len(peer.commands)
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    assert not bridge.status().telemetry_slowed
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete
+                 and peer.set_mode_commands(), force_fn=feeder(bridge))
+    assert ok, bridge.sequencer.state
+    assert _asked(peer, 31, n) == [1e4] and _asked(peer, 105, n) == [1e4] \
+        and _asked(peer, 83, n) == [2e4]
+    first_full = min(t for t, i, _ in peer.intervals[n:] if i == 31)
+    engage_cmds = [t for t, m in peer.commands[commands:]
+                   if m.command != mavutil.mavlink.MAV_CMD_SET_MESSAGE_INTERVAL]
+    assert first_full <= min(engage_cmds)
+
+
+@pytest.mark.parametrize('how', ['arm request', 'pilot arms'])
+def test_telemetry_full_again_on_an_arm_request_or_an_armed_vehicle(peer_bridge, how):
+    peer, bridge = peer_bridge(peer_kw={'armed': False, 'landed': True},
+                               bridge_kw={'quiet_telemetry_delay_s': 0.3})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.status().telemetry_slowed
+                 and bridge.streams.complete)
+    assert ok
+    n = len(peer.intervals)
+    if how == 'arm request':
+        assert bridge.request_arm()[0]
+    else:
+        peer.armed = True                       # armed by its pilot: seen at the HEARTBEAT
+    ok, _ = spin(bridge, 2.0, until=lambda: _asked(peer, 31, n) == [1e4]
+                 and bridge.streams.complete)
+    assert ok, peer.intervals[n:]
+    assert not bridge.status().telemetry_slowed
+    spin(bridge, 0.6)                           # longer than the delay: stays full
+    assert _asked(peer, 31, n) == [1e4] and not bridge.status().telemetry_slowed
+
+
+def test_telemetry_never_slows_when_off_or_armed(peer_bridge):
+    for peer_kw, bridge_kw in (({'armed': False, 'landed': True},
+                                {'quiet_telemetry_rate_hz': 0.0}), ({'armed': True}, {})):
+        peer, bridge = peer_bridge(peer_kw=peer_kw, bridge_kw={
+            'quiet_telemetry_delay_s': 0.2, **bridge_kw})
+        wait_link(bridge)
+        bridge.on_supervisor_mode(Mode.IDLE)
+        spin(bridge, 1.0)
+        assert _asked(peer, 31) == [1e4] and not bridge.status().telemetry_slowed
 
 
 def test_autopilot_reboot_holds_the_imu_until_synced_again(peer_bridge):

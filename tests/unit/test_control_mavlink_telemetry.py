@@ -17,7 +17,8 @@ from pymavlink import mavutil  # noqa: E402
 
 from ibvs_common.core.frames import GRAVITY  # noqa: E402
 from ibvs_control.core.mavlink_telemetry import (  # noqa: E402
-    decode_event, load_px4_events, message_ids, StreamRequests, streams_for, Telemetry)
+    decode_event, load_px4_events, message_ids, QuietTelemetry, StreamRequests, streams_for,
+    Telemetry)
 from ibvs_control.core.time_sync import TimeSync  # noqa: E402
 
 PX4_EVENTS = Path(__file__).resolve().parents[3] / 'shared' / 'px4-sitl' / 'etc' / 'extras' \
@@ -135,3 +136,30 @@ def test_stream_requests_one_at_a_time_until_acknowledged():
     assert r.refused == [105]
     r.reset()
     assert not r.complete and r.step(2.0) == (31, 100.0)
+
+
+def test_stream_rate_retargeted_asks_again_even_while_in_flight():
+    r = StreamRequests([(31, 100.0), (83, 50.0)])
+    assert r.step(0.0) == (31, 100.0)
+    assert r.set_rate(31, 10.0)                  # changed while its request is in flight ...
+    assert r.on_ack(0) == '' and not r.complete  # ... that ACK does not complete it
+    assert r.step(0.1) == (31, 10.0)
+    assert r.on_ack(0) == ''
+    assert not r.set_rate(31, 10.0)              # the same rate: nothing to ask
+    assert r.step(0.2) == (83, 50.0) and 'refused' in r.on_ack(4)
+    assert not r.set_rate(83, 5.0) and r.step(0.3) is None and r.complete  # refused: given up
+    assert r.rate(31) == 10.0 and r.rate(999) is None
+
+
+def test_quiet_telemetry_after_the_delay_and_at_once_back():
+    q = QuietTelemetry({31: 100.0, 105: 100.0, 83: 50.0, 1: 5.0}, quiet_rate_hz=10.0,
+                       delay_s=2.0)
+    assert q.update(True, 0.0) is None and q.update(True, 1.99) is None and not q.active
+    assert q.update(True, 2.0) == {31: 10.0, 105: 10.0, 83: 10.0, 1: 5.0}   # never faster
+    assert q.update(True, 5.0) is None and q.active
+    assert q.update(False, 5.01) == {31: 100.0, 105: 100.0, 83: 50.0, 1: 5.0}
+    assert q.update(True, 5.02) is None and q.update(True, 6.9) is None     # delay again
+    assert q.update(True, 7.02)[31] == 10.0
+    assert q.reset()[31] == 100.0 and not q.active
+    off = QuietTelemetry({31: 100.0}, quiet_rate_hz=0.0, delay_s=0.0)
+    assert off.update(True, 0.0) is None and off.update(True, 100.0) is None and not off.active

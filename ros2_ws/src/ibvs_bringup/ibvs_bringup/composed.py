@@ -62,8 +62,14 @@ def node_class(package: str, executable: str) -> type[Node]:
     return getattr(__import__(module, fromlist=[name]), name)
 
 
-def build_nodes(specs: list, context: Context, intra_process: bool = True) -> list:
+def build_nodes(specs: list, context: Context, intra_process: bool = True,
+                user_ros_args: tuple = ()) -> list:
     """Instantiate every spec's node class with its name and per-run overrides.
+
+    ``user_ros_args`` (``--ros-args ...`` of the command line) follow each node's own tail, so
+    that a user's ``-p name:=value`` wins over the parameter file as it does for a node's own
+    process (rcl gives a node's own arguments precedence over the global ones: as global
+    arguments only, the file's value would silently win).
 
     When the MAVLink bridge is among them, its imu/data goes to the others in process
     (``ibvs_common.intra_process``: every node class with an ``imu_local`` argument takes it
@@ -79,8 +85,8 @@ def build_nodes(specs: list, context: Context, intra_process: bool = True) -> li
                  and 'imu_local' in inspect.signature(cls).parameters else {})
         # the node's own command-line tail, as its process would get it: parameter files,
         # overrides and remappings apply to this node only
-        nodes.append(cls(node_name=spec.name, context=context, cli_args=spec.ros_args(),
-                         **extra))
+        nodes.append(cls(node_name=spec.name, context=context,
+                         cli_args=list(spec.ros_args()) + list(user_ros_args), **extra))
     return nodes
 
 
@@ -143,7 +149,8 @@ def main(argv: list | None = None) -> int:
     nodes = []
     try:
         nodes = build_nodes(specs, rclpy.get_default_context(),
-                            intra_process=not a.no_intra_process)
+                            intra_process=not a.no_intra_process,
+                            user_ros_args=tuple(user_ros_args))
         spin_guarded_nodes(nodes)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -95,6 +95,8 @@ PARAMETERS = {
     'timesync_max_consecutive_outliers': 5,
     'stream_rate_hz': 30.0,
     'idle_tick_rate_hz': 10.0,
+    'quiet_telemetry_rate_hz': 10.0,
+    'quiet_telemetry_delay_s': 2.0,
     'heartbeat_rate_hz': 1.0,
     'diagnostics_rate_hz': 1.0,
     'hold_last_s': 0.25,
@@ -177,6 +179,12 @@ PARAMETER_SPECS = {
     'idle_tick_rate_hz': ('Hz (steady clock), the same step while quiet (standby, supervisor '
                           'IDLE, clocks synced): also the keepalive stream rate then; > 2 '
                           '(PX4 wants > 2 Hz before OFFBOARD)', 2.0, None),
+    'quiet_telemetry_rate_hz': ('Hz, the attitude, IMU and thrust streams asked while the '
+                                'vehicle rests (disarmed, supervisor IDLE, no arm request), '
+                                'full rates again before anything engages; 0 = full rates '
+                                'always', 0.0, None),
+    'quiet_telemetry_delay_s': ('s (steady clock) at rest before the streams slow down',
+                                0.0, None),
     'heartbeat_rate_hz': ('Hz (steady clock timer), our HEARTBEAT; > 0', 0.0, None),
     'diagnostics_rate_hz': ('Hz (steady clock timer), /diagnostics; > 0', 0.0, None),
     'hold_last_s': ('s (ROS clock, vehicle time), the last valid setpoint is kept this long, '
@@ -280,6 +288,8 @@ def config_from_parameters(p: dict) -> BridgeConfig:
         heartbeat_request_hz=p['heartbeat_request_hz'],
         streams_off=message_ids(n for n in p['streams_off'] if n.strip()),
         stream_rate_hz=p['stream_rate_hz'], idle_tick_rate_hz=p['idle_tick_rate_hz'],
+        quiet_telemetry_rate_hz=p['quiet_telemetry_rate_hz'],
+        quiet_telemetry_delay_s=p['quiet_telemetry_delay_s'],
         time_sync=sync, hold_last_s=p['hold_last_s'], max_force_age_s=p['max_force_age_s'],
         max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
         shutdown_ramp_s=p['shutdown_ramp_s'], arm_on_start=bool(p['arm_on_start']),
@@ -494,6 +504,7 @@ class MavlinkBridgeNode(Node):
                   'custom_mode': str(st.custom_mode), 'engage_state': st.engage_state,
                   'supervisor_mode': st.supervisor_mode, 'streaming': str(st.streaming),
                   'arm_requested': str(st.arm_requested),
+                  'telemetry_slowed': str(st.telemetry_slowed),
                   'hover_thrust': fmt(st.hover_thrust),
                   'hover_thrust_seed': fmt(st.hover_thrust_seed),
                   'hover_thrust_source': st.hover_thrust_source,

@@ -29,7 +29,7 @@ import numpy as np
 
 from ibvs_control.core.mavlink_hover import (
     EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
-from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink
+from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink, MavMsgId
 from ibvs_control.core.mavlink_params import AutopilotParams, Changed
 from ibvs_control.core.mavlink_safety import SafetyConfig, SafetyMonitor
 from ibvs_control.core.mavlink_sequencer import (
@@ -38,7 +38,8 @@ from ibvs_control.core.mavlink_setpoints import (
     AttitudeTarget, HeadingPairing, RateMeter, SetpointShaper, SetpointSource, ShaperConfig,
     yaw_from_heading_quat)
 from ibvs_control.core.mavlink_telemetry import (
-    AccelSample, ImuSample, LandedState, StreamRequests, streams_for, Telemetry)
+    AccelSample, ImuSample, LandedState, QuietTelemetry, StreamRequests, streams_for,
+    Telemetry)
 from ibvs_common.core.modes import Mode
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_control.core.time_sync import (
@@ -80,6 +81,8 @@ class BridgeConfig:
     streams_off: tuple = ()                  # message ids whose streams are switched off
     stream_rate_hz: float = 30.0             # a repeat when no setpoint left for 1 / this
     idle_tick_rate_hz: float = 10.0          # the periodic step while quiet (see quiet)
+    quiet_telemetry_rate_hz: float = 10.0    # attitude/IMU/thrust streams while at rest, 0 off
+    quiet_telemetry_delay_s: float = 2.0     # s (steady clock) at rest before they slow down
     time_sync: TimeSyncConfig = field(default_factory=TimeSyncConfig)
     hold_last_s: float = 0.25                # s of vehicle time: no valid force -> hand back
     max_force_age_s: float = 0.25            # s (ROS clock), a force of an older image: refused
@@ -110,6 +113,10 @@ class BridgeConfig:
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
+        for name in ('quiet_telemetry_rate_hz', 'quiet_telemetry_delay_s'):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v >= 0.0):
+                raise ValueError(f'{name} must be finite and >= 0, got {v}')
 
 
 @dataclass(frozen=True)
@@ -143,6 +150,7 @@ class BridgeStatus:
     imu_dropped_unsynced: int
     link_error: str = ''                    # the connection's last error ('' if none)
     stale_setpoints: int = 0                # of rejected_setpoints: images too old
+    telemetry_slowed: bool = False          # the high-rate streams at their rate at rest
 
 
 def param_value(value: float, param_type: int, bytewise: bool) -> float:
@@ -170,6 +178,7 @@ class MavlinkBridge:
         self.timesync = TimesyncExchange(self.time_sync, self.link.send_timesync)
         self.telemetry = Telemetry(self.time_sync, clock, config.px4_events)
         self.streams: StreamRequests | None = None
+        self.quiet_telemetry: QuietTelemetry | None = None      # with the streams
         self.shaper = SetpointShaper(ShaperConfig(
             config.mass, config.max_thrust_factor, config.max_force_factor,
             config.max_tilt_rad, config.hold_last_s, config.shutdown_ramp_s,
@@ -224,8 +233,11 @@ class MavlinkBridge:
             return
         self._event('info', f'supervisor mode {self.supervisor_mode.name} -> {new.name}')
         self.supervisor_mode = new
-        # Engagement commands leave now, not at the next poll (before the next setpoint).
-        self._run_sequencer(self._clock())
+        # The full telemetry rates, then the engagement commands, leave now, not at the next
+        # poll (before the next setpoint).
+        now = self._clock()
+        self._request_streams(now)
+        self._run_sequencer(now)
 
     def on_supervisor_status(self, stamp_ns: int, mode: int | None) -> str:
         """Note the supervisor's mode for the frame of ``stamp_ns`` (ibvs/supervisor_status).
@@ -297,7 +309,9 @@ class MavlinkBridge:
             self._arm_pending = True
             return True, ('arm request noted: no autopilot yet; the bridge arms the vehicle once '
                           'it is in the offboard mode and armable')
-        return self.sequencer.request_arm()
+        answer = self.sequencer.request_arm()
+        self._request_streams(self._clock())       # full telemetry rates before arming
+        return answer
 
     def pop_heading_warning(self) -> str:
         """Text about forces flown without their heading since the last call, or ''."""
@@ -443,7 +457,8 @@ class MavlinkBridge:
                       'autopilot_reasons': tel.reasons,
                       'streams_refused': len(self.streams.refused) if self.streams else 0},
             time_sync=self.time_sync.status(), imu_dropped_unsynced=tel.imu_dropped_unsynced,
-            link_error=self.link.last_error, stale_setpoints=self.shaper.stale)
+            link_error=self.link.last_error, stale_setpoints=self.shaper.stale,
+            telemetry_slowed=bool(self.quiet_telemetry and self.quiet_telemetry.active))
 
     def close(self) -> None:
         """Close the link."""
@@ -511,6 +526,12 @@ class MavlinkBridge:
         self.streams = StreamRequests(streams_for(
             self.autopilot.value, c.attitude_rate_hz, c.imu_rate_hz, c.thrust_rate_hz,
             c.status_rate_hz, c.heartbeat_request_hz, c.streams_off))
+        imu = MavMsgId.SCALED_IMU if self.autopilot == Autopilot.ARDUPILOT \
+            else MavMsgId.HIGHRES_IMU
+        self.quiet_telemetry = QuietTelemetry(
+            {MavMsgId.ATTITUDE_QUATERNION: c.attitude_rate_hz, imu: c.imu_rate_hz,
+             MavMsgId.ATTITUDE_TARGET: c.thrust_rate_hz},
+            c.quiet_telemetry_rate_hz, c.quiet_telemetry_delay_s)
 
     def _on_link_state(self) -> None:
         """Link back / autopilot reboot: ask for the streams again, forget per-boot state."""
@@ -519,6 +540,8 @@ class MavlinkBridge:
         self._sync_reboots = self.time_sync.reboots
         if (up and not self._was_up) or rebooted:
             if self.streams is not None:
+                for msg_id, rate in self.quiet_telemetry.reset().items():
+                    self.streams.set_rate(msg_id, rate)
                 self.streams.reset()
             if self._was_up or rebooted:
                 self.telemetry.reset()
@@ -605,10 +628,36 @@ class MavlinkBridge:
         for name in reads:
             self.link.request_param(name)
         self._apply(changed)
-        if self.streams is not None:
-            req = self.streams.step(now)
-            if req is not None:
-                self.link.set_message_interval(*req)
+        self._request_streams(now)
+
+    @property
+    def at_rest(self) -> bool:
+        """Whether the telemetry may slow down: standby, supervisor IDLE, disarmed, no arm.
+
+        No arm request either; whether our setpoint stream is held or the clocks are synced
+        does not matter.
+        """
+        hb = self.link.heartbeat
+        seq = self.sequencer
+        return (seq is not None and seq.state == EngageState.STANDBY
+                and self.supervisor_mode == Mode.IDLE and hb is not None and not hb.armed
+                and not seq.arm_requested)
+
+    def _request_streams(self, now: float) -> None:
+        """Send the next stream request (one at a time), at the rates :attr:`at_rest` asks."""
+        if self.streams is None or not self.link.link_up:
+            return
+        rates = self.quiet_telemetry.update(self.at_rest, now)
+        if rates is not None:
+            changed = [i for i, r in rates.items() if self.streams.set_rate(i, r)]
+            if changed:
+                self._event('info', 'telemetry streams ' + (
+                    f'slowed to {self.config.quiet_telemetry_rate_hz:g} Hz at rest (disarmed, '
+                    'nothing engaging)' if self.quiet_telemetry.active
+                    else 'back to their full rates') + f': messages {changed}')
+        req = self.streams.step(now)
+        if req is not None:
+            self.link.set_message_interval(*req)
 
     def _may_stream(self) -> bool:
         return (self.link.link_up and self.stream_enabled and self.sequencer is not None

@@ -346,7 +346,8 @@ class StreamRequests:
     :meth:`step` returns the (id, rate) to request now (or None); :meth:`on_ack` takes the
     COMMAND_ACK of MAV_CMD_SET_MESSAGE_INTERVAL (the ACK names no message: hence one at a time).
     ACCEPTED: done. Another result: refused, not asked again (logged). No answer within
-    ``ack_timeout_s``: asked again, at most ``max_attempts`` times. :meth:`reset` starts over.
+    ``ack_timeout_s``: asked again, at most ``max_attempts`` times. :meth:`reset` starts over;
+    :meth:`set_rate` re-targets one stream (the bridge's quiet telemetry).
     """
 
     def __init__(self, streams: list[tuple[int, float]], ack_timeout_s: float = 0.5,
@@ -355,6 +356,7 @@ class StreamRequests:
         self.ack_timeout_s = ack_timeout_s
         self.max_attempts = max_attempts
         self._in_flight: _Stream | None = None
+        self._in_flight_rate = math.nan
         self._sent_t = -math.inf
         self.refused: list[int] = []
 
@@ -370,6 +372,23 @@ class StreamRequests:
         self._in_flight = None
         self.refused = []
 
+    def set_rate(self, msg_id: int, rate_hz: float) -> bool:
+        """Want ``msg_id`` at ``rate_hz`` from now on; return whether a new request is due.
+
+        A changed rate is asked for again (even while its previous request is in flight: that
+        ACK then does not complete it); a stream the autopilot refused stays given up.
+        """
+        s = next((x for x in self._streams if x.msg_id == int(msg_id)), None)
+        if s is None or s.rate_hz == float(rate_hz) or int(s.msg_id) in self.refused:
+            return False
+        s.rate_hz, s.done, s.attempts = float(rate_hz), False, 0
+        return True
+
+    def rate(self, msg_id: int) -> float | None:
+        """Return the rate wanted now for ``msg_id`` (None: not one of the streams)."""
+        s = next((x for x in self._streams if x.msg_id == int(msg_id)), None)
+        return None if s is None else s.rate_hz
+
     def step(self, now: float) -> tuple[int, float] | None:
         """Return the next request to send now, or None."""
         s = self._in_flight
@@ -382,6 +401,7 @@ class StreamRequests:
             return None
         self._in_flight.attempts += 1
         self._sent_t = now
+        self._in_flight_rate = self._in_flight.rate_hz
         return self._in_flight.msg_id, self._in_flight.rate_hz
 
     def on_ack(self, result: int) -> str:
@@ -389,10 +409,60 @@ class StreamRequests:
         s, self._in_flight = self._in_flight, None
         if s is None:
             return ''
-        s.done = True
         self._sent_t = -math.inf
+        if s.rate_hz != self._in_flight_rate:      # re-targeted meanwhile: ask the new rate
+            return ''
+        s.done = True
         if int(result) == 0 or s.rate_hz == 0.0:   # off: refused = no such stream there
             return ''
         self.refused.append(s.msg_id)
         return (f'the autopilot refused message {s.msg_id} at {s.rate_hz:g} Hz '
                 f'(SET_MESSAGE_INTERVAL result {int(result)}): not asked again')
+
+
+class QuietTelemetry:
+    """The high-rate streams slowed while the vehicle rests: disarmed, nothing engaging.
+
+    On the pad, before a flight, nothing of the graph uses the 100 Hz attitude and IMU (no
+    mode flies, the perception is mode-gated), yet each sample wakes the bridge's reader
+    thread: ~150 wake-ups a second, most of the idle graph's CPU (docs/performance.md). While
+    the bridge reports :meth:`update` ``wanted`` (the bridge: quiet, disarmed, no arm request)
+    for ``delay_s`` of the steady clock, every stream of ``full`` is asked for at
+    ``min(full rate, quiet_rate_hz)``; as soon as it is not wanted (an arm request, a
+    supervisor mode, the vehicle armed by its pilot, a link loss), at its full rate again:
+    the rates change before anything engages, never while the vehicle flies.
+    ``quiet_rate_hz`` 0: off (full rates always, as MAVROS streams them).
+    """
+
+    def __init__(self, full: dict[int, float], quiet_rate_hz: float, delay_s: float) -> None:
+        self.full = {int(i): float(r) for i, r in full.items()}
+        self.quiet_rate_hz = float(quiet_rate_hz)
+        self.delay_s = float(delay_s)
+        self.active = False
+        self._wanted_since: float | None = None
+
+    def update(self, wanted: bool, now: float) -> dict[int, float] | None:
+        """Return the rates to ask for if the state changes now, else None."""
+        if not wanted or self.quiet_rate_hz <= 0.0:
+            self._wanted_since = None
+            return self._switch(False)
+        if self._wanted_since is None:
+            self._wanted_since = now
+        return self._switch(now - self._wanted_since >= self.delay_s)
+
+    def reset(self) -> dict[int, float]:
+        """Full rates from now on (link back, autopilot reboot); return them."""
+        self._wanted_since, self.active = None, False
+        return dict(self.full)
+
+    def rates(self) -> dict[int, float]:
+        """Return the rates of the current state."""
+        if not self.active:
+            return dict(self.full)
+        return {i: min(r, self.quiet_rate_hz) for i, r in self.full.items()}
+
+    def _switch(self, active: bool) -> dict[int, float] | None:
+        if active == self.active:
+            return None
+        self.active = active
+        return self.rates()
