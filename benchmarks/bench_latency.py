@@ -12,17 +12,18 @@ Setup (issue 12, item 5):
   approach can be bit-identical, which the perception rightly takes for a frozen camera;
 - a PX4-like MAVLink stand-in on UDP loopback: the sim's autopilot (ibvs_sim.core.autopilot),
   in its own process on the wall clock, serving the same trajectory's attitude at 100 Hz and
-  answering TIMESYNC; it wakes on each datagram (select) and notes when each
-  SET_ATTITUDE_TARGET came off the wire.
+  answering TIMESYNC; it wakes on each datagram (select) or when a stream is due, and notes
+  when each SET_ATTITUDE_TARGET came off the wire.
 
 Prints, per run: median, p95, p99 and max of image stamp -> setpoint (ms) over the frames after
 the supervisor started, the fraction of those frames answered, where the time goes (median
 image stamp -> arrival at the replayer of the window corners, the wall flow, the supervisor's
 status and the force: the replayer spins between frames, so these include its own wake-up),
-CPU per node (% of one core)
-while replaying, and (first run) the CPU of the idle graph (linked, no images). Runs again with
-the pad detector killed and with the down camera stopped (inputs WINDOW mode does not use),
-and once more composed.
+CPU per node (% of one core) while replaying (and the harness's own: the stand-in and the
+replayer, which share the machine's two cores with the graph), and (first run) the CPU of
+the idle graph (linked, no images; the replayer has stopped watching imu/data by then, as
+nothing outside the graph reads it onboard). Runs again with the pad detector killed and
+with the down camera stopped (inputs WINDOW mode does not use), and once more composed.
 The frames are all of WINDOW mode: with mode gating (params.yaml ``mode_gating``) the pad
 detector and the floor flow only keep their images; ``--gating-ab`` compares with gating off.
 Needs a quiet machine for meaningful figures (the load average is printed). Every run's node
@@ -136,6 +137,7 @@ def stand_in(port: int, track, start_mono, stop, results) -> None:
     position the replayed frames' (linear in between).
     """
     from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig, VehicleStateView
+    from ibvs_sim.core.autopilot.stand_in import wait_s
     r_frames, xi = track
     ap = Autopilot(AutopilotConfig(url=f'udpin:127.0.0.1:{port}', telemetry_default_hz=100.0))
     mono0 = time.monotonic()
@@ -143,7 +145,7 @@ def stand_in(port: int, track, start_mono, stop, results) -> None:
     got = []
     fd = ap.fileno()
     while not stop.is_set():
-        select.select([fd], [], [], 0.002)
+        select.select([fd], [], [], wait_s(ap, time.monotonic() - mono0))
         now = time.monotonic()
         r = max(now - start_mono.value, 0.0) if start_mono.value > 0 else 0.0
         R, omega = sway(r)
@@ -199,7 +201,8 @@ class Replayer:
                                                     qos_profile_sensor_data)
                       for c in ('front', 'down')}
         self.imu_count = 0
-        self.node.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
+        self.imu_watch = self.node.create_subscription(Imu, 'imu/data', self._on_imu,
+                                                       qos_profile_sensor_data)
         self.arrivals: dict = {topic: {} for topic, _ in STAGES}   # topic: stamp ns -> rx ns
         for topic, type_name in STAGES:
             module, cls = type_name.rsplit('.', 1)
@@ -212,6 +215,17 @@ class Replayer:
 
     def _on_imu(self, msg) -> None:
         self.imu_count += 1
+
+    def stop_imu_watch(self) -> None:
+        """Unsubscribe from imu/data once the graph is ready (no DDS reader of it onboard).
+
+        While a reader outside the process is matched, the composed bridge also publishes every
+        sample through DDS (serialised in its reader thread): work the onboard graph does not
+        do, measured as the graph's until 2026-12-02.
+        """
+        if self.imu_watch is not None:
+            self.node.destroy_subscription(self.imu_watch)
+            self.imu_watch = None
 
     def _arrival(self, topic: str):
         seen = self.arrivals[topic]
@@ -290,6 +304,7 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
             raise RuntimeError(f'graph not ready after {LINK_TIMEOUT_S:.0f} s: {rep.imu_count} '
                                'imu/data samples (MAVLink link, TIMESYNC), ibvs/start '
                                f'{"ready" if rep.start.service_is_ready() else "not found"}')
+        rep.stop_imu_watch()
         if kill:
             next(c for c in runner.children if c.name == kill).proc.kill()
             pids.pop(kill)
@@ -302,14 +317,18 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
         t0 = time.monotonic() + 0.1
         start_mono.value = t0
         a = cpu_ticks(pids)
+        harness = {'stand-in': ap.pid, 'replayer': os.getpid()}
+        h = cpu_ticks(harness)
         for k in range(n_frames):
-            while time.monotonic() < t0 + k * FRAME_PERIOD_S:
-                rep.rclpy.spin_once(rep.node, timeout_sec=0.001)
+            # woken by what arrives or at the frame's time: no 1 ms poll of its own
+            while (wait := t0 + k * FRAME_PERIOD_S - time.monotonic()) > 0.0:
+                rep.rclpy.spin_once(rep.node, timeout_sec=wait)
             stamps.append(rep.publish(images, k, cameras))
             if k == START_AT_FRAME:
                 rep.start_future = rep.start.call_async(rep.start_request)
         seconds = time.monotonic() - t0
         out['cpu'] = cpu_percent(a, cpu_ticks(pids), seconds)
+        out['harness_cpu'] = cpu_percent(h, cpu_ticks(harness), seconds)
         rep.spin(0.5)
         out['started'] = bool(rep.start_future and rep.start_future.done()
                               and rep.start_future.result().success)
@@ -368,6 +387,9 @@ def report(r: dict) -> None:
     cpu = r['cpu']
     print('    CPU while replaying (% of one core): ' + ', '.join(
         f'{n} {v:.0f}' for n, v in sorted(cpu.items())) + f'; total {sum(cpu.values()):.0f}')
+    if r.get('harness_cpu'):
+        print('    CPU of the harness, same interval (% of one core): ' + ', '.join(
+            f'{n} {v:.0f}' for n, v in sorted(r['harness_cpu'].items())))
     if 'idle_cpu' in r:
         idle = r['idle_cpu']
         print('    CPU idle, no images (% of one core): ' + ', '.join(

@@ -1041,3 +1041,56 @@ def test_noise_depends_on_sim_time_not_on_the_sampling_history():
     finally:
         a.close()
         b.close()
+
+
+def test_next_telemetry_time_is_the_earliest_stream_due(rig):
+    # Before the first send nothing is due yet; after the first poll at t, the attitude and
+    # IMU asked at 200 Hz are next due 5 ms later (the thrust at 50 Hz 20 ms, the status at
+    # 5 Hz 200 ms): the earliest is t + 0.005. At 10 Hz, the thrust's 20 ms is the earliest.
+    fresh = make_rig()
+    try:
+        assert fresh.ap.next_telemetry_t() is None
+    finally:
+        fresh.close()
+    for interval_us in (5e3, 1e5):
+        for msg_id in (MSG_ID_ATTITUDE_QUATERNION, MSG_ID_HIGHRES_IMU):
+            ack = rig.command(CMD_SET_MESSAGE_INTERVAL, msg_id, interval_us)
+            assert ack.result == RESULT_ACCEPTED
+        rig.poll(0.5)                   # the changed streams restart their phase now
+        t_thrust = rig.ap.next_telemetry_t() if interval_us > 2e4 else None
+        rig.poll(0.001)
+        if t_thrust is None:
+            assert rig.ap.next_telemetry_t() == pytest.approx(rig.t - 0.001 + 0.005)
+        else:
+            assert rig.ap.next_telemetry_t() == pytest.approx(t_thrust)
+            assert t_thrust - rig.t <= 0.02
+
+
+def test_the_hover_stand_in_sleeps_until_a_stream_is_due_and_serves_it_on_time():
+    # The wall-clock stand-in of the benchmarks wakes when a stream is due (or a datagram
+    # comes), not every 2 ms: its 100 Hz attitude still arrives at 100 Hz, 10 ms apart.
+    from ibvs_sim.core.autopilot.stand_in import HoverStandIn, MAX_WAIT_S, wait_s
+    served = HoverStandIn(AutopilotConfig(url='udpin:127.0.0.1:0', telemetry_default_hz=100.0))
+    client = mavutil.mavlink_connection(f'udpout:127.0.0.1:{served.local_port}',
+                                        source_system=CLIENT_SYS, source_component=CLIENT_COMP,
+                                        dialect='common')
+    try:
+        client.mav.heartbeat_send(mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+                                  mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE)
+        arrivals = []
+        t_end = time.monotonic() + 1.5
+        while time.monotonic() < t_end:
+            m = client.recv_match(type='ATTITUDE_QUATERNION', blocking=True, timeout=0.1)
+            if m is not None:
+                arrivals.append(time.monotonic())
+        late = [t for t in arrivals if t > arrivals[0] + 0.5]          # after the start
+        assert 85 <= len(late) / (arrivals[-1] - arrivals[0] - 0.5) <= 115
+        assert np.median(np.diff(late)) == pytest.approx(0.01, abs=0.003)
+        ap = served.autopilot
+        due = ap.next_telemetry_t()
+        assert 0.0 <= wait_s(ap, due - 0.004) <= 0.004 + 1e-9      # until the stream is due
+        assert wait_s(ap, due + 1.0) == 0.0                         # overdue: at once
+        assert wait_s(ap, due - 5.0) == MAX_WAIT_S                  # never longer than this
+    finally:
+        client.close()
+        served.close()

@@ -113,6 +113,13 @@ class Autopilot:
         """UDP port the autopilot listens on (the kernel's pick for ``udpin:HOST:0``)."""
         return self._link.local_port
 
+    def next_telemetry_t(self) -> float | None:
+        """Sim time (s) at which a telemetry stream is next due; None before the first send.
+
+        A wall-clock server may sleep until then (or a datagram), instead of polling.
+        """
+        return self._telemetry.next_due_t()
+
     def poll(self, state: VehicleStateView, receive: bool = True,
              telemetry: bool = True) -> None:
         """Do one autopilot cycle at sim time ``state.t``; never blocks.

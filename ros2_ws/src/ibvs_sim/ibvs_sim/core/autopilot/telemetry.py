@@ -127,6 +127,12 @@ class Telemetry:
             if self._link.peer_known():
                 self.send_heartbeat()
 
+    def next_due_t(self) -> float | None:
+        """Sim time at which the next stream is due (None: none has been sent yet or on)."""
+        due = [s.next_due_t for s in self.streams.values()
+               if s.interval_s is not None and s.next_due_t is not None]
+        return min(due) if due else None
+
     def send_due(self, state: VehicleStateView) -> None:
         """Send the streams due at sim time ``state.t`` (once a peer is known)."""
         t = float(state.t)
