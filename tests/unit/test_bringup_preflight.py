@@ -9,16 +9,27 @@ S = 1_000_000_000
 
 def test_stamps_on_one_clock_agree_and_a_driver_on_another_clock_fails():
     now = 1_795_000_000 * S                                     # system time, ns
-    ok, detail = stamps_agree({'front camera': now - 20_000_000,
-                               'down camera': now - 25_000_000, 'imu': now - 5_000_000}, now)
+    ms = 1_000_000
+
+    def got(delay_ms, at_ns=now):
+        """(stamp, receipt) of a message received at at_ns, stamped delay_ms before."""
+        return at_ns - delay_ms * ms, at_ns
+    ok, detail = stamps_agree({'front camera': got(20), 'down camera': got(25),
+                               'imu': got(5)})
     assert ok and 'front camera -20 ms' in detail
+    # the 10 Hz imu/data of a vehicle at rest: its latest sample came 95 ms before the
+    # cameras' (with a 5 ms delay): on the same clock, so it agrees
+    assert stamps_agree({'front camera': got(20), 'down camera': got(25),
+                         'imu': got(5, now - 95 * ms)})[0]
     # a camera driver stamping since its own boot (or an IMU left on the autopilot's boot
     # clock: the 1970 stamps of an unsynced bridge) is far from the others
-    ok, _ = stamps_agree({'front camera': 12 * S, 'down camera': now, 'imu': now}, now)
+    ok, _ = stamps_agree({'front camera': (12 * S, now), 'down camera': got(0),
+                          'imu': got(0)})
     assert not ok
-    late = now - int((STAMP_AGREEMENT_S + 0.05) * S)             # an IMU 150 ms behind
-    assert not stamps_agree({'front camera': now, 'down camera': now, 'imu': late}, now)[0]
-    ok, detail = stamps_agree({'front camera': now, 'down camera': None, 'imu': now}, now)
+    late = int((STAMP_AGREEMENT_S + 0.05) * 1e3)                # an IMU 150 ms behind
+    assert not stamps_agree({'front camera': got(0), 'down camera': got(0),
+                             'imu': got(late)})[0]
+    ok, detail = stamps_agree({'front camera': got(0), 'down camera': None, 'imu': got(0)})
     assert not ok and 'down camera' in detail
 
 

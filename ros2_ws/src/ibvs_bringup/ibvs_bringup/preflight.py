@@ -3,9 +3,10 @@
 Checks: camera_info valid on both cameras, imu/data flowing, MAVLink link up in /diagnostics
 (a status of the bridge with 'mavlink' in its name at level OK), the bridge's clock synced with
 the autopilot (TIMESYNC, ``clock_synced`` in its diagnostics, with the offset), image and IMU
-stamps on one clock (both cameras' and the IMU's latest stamps within
-``STAMP_AGREEMENT_S`` of each other and of this node's ROS clock: a camera driver or an IMU
-mapping on another clock fails here), ibvs/mode present, window detected (4 corners on
+stamps on one clock (both cameras' and the IMU's latest stamps each within
+``STAMP_AGREEMENT_S`` of this node's ROS clock at their receipt, and of each other's such
+offsets: a camera driver or an IMU mapping on another clock fails here, whatever the streams'
+rates, e.g. the 10 Hz imu/data of a vehicle at rest), ibvs/mode present, window detected (4 corners on
 window/corners), and the perception keeping up with the front camera (``KeepUp``: of the last
 ``KEEP_UP_FRAMES`` front camera frames, at least ``KEEP_UP_MIN_ANSWERED`` answered on
 window/corners, median ``KEEP_UP_MAX_DELAY_S`` at most after the frame arrived, on the ROS
@@ -92,16 +93,22 @@ def diag_value(msg: DiagnosticArray, key: str) -> str | None:
     return None
 
 
-def stamps_agree(stamps: dict, now_ns: int, tolerance_s: float = STAMP_AGREEMENT_S
-                 ) -> tuple[bool, str]:
-    """Whether the latest stamps (name -> ns or None) agree with each other and with now."""
-    missing = [n for n, t in stamps.items() if t is None]
+def stamps_agree(stamps: dict, tolerance_s: float = STAMP_AGREEMENT_S) -> tuple[bool, str]:
+    """Whether the latest stamps are on the ROS clock: name -> (stamp ns, ROS ns at receipt).
+
+    Each stream's stamp minus the ROS time of its receipt (its delay, negative for a stamp in
+    the receiver's future) within ``tolerance_s``, and those offsets within ``tolerance_s`` of
+    each other. Comparing each stamp with its own receipt, not with the time of the check, is
+    what makes the check independent of the streams' rates (None: no message yet).
+    """
+    missing = [n for n, v in stamps.items() if v is None]
     if missing:
         return False, 'no stamp yet from ' + ', '.join(missing)
     tol = s_to_ns(tolerance_s)
-    offsets = {n: (t - now_ns) / NS_PER_S for n, t in stamps.items()}
-    detail = ', '.join(f'{n} {dt * 1e3:+.0f} ms' for n, dt in offsets.items()) + ' vs ROS time'
-    values = list(stamps.values()) + [now_ns]
+    offsets = {n: stamp - receipt for n, (stamp, receipt) in stamps.items()}
+    detail = ', '.join(f'{n} {dt / NS_PER_S * 1e3:+.0f} ms' for n, dt in offsets.items()) \
+        + ' vs ROS time at receipt'
+    values = list(offsets.values()) + [0]
     return max(values) - min(values) <= tol, detail
 
 
@@ -208,7 +215,7 @@ class GraphHealth:
 
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
-        self.stamps[f'{cam} camera'] = stamp_to_ns(msg.header.stamp)
+        self.stamps[f'{cam} camera'] = (stamp_to_ns(msg.header.stamp), self._ros_ns())
         if cam == 'front':
             self.front_keep_up.note_frame(stamp_to_ns(msg.header.stamp),
                                           self.node.get_clock().now().nanoseconds)
@@ -216,7 +223,10 @@ class GraphHealth:
     def _on_imu(self, msg: Imu) -> None:
         self.imu_count += 1
         self.imu_last = self.clock()
-        self.stamps['imu'] = stamp_to_ns(msg.header.stamp)
+        self.stamps['imu'] = (stamp_to_ns(msg.header.stamp), self._ros_ns())
+
+    def _ros_ns(self) -> int:
+        return self.node.get_clock().now().nanoseconds
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
         synced = diag_value(msg, 'clock_synced')
@@ -252,7 +262,7 @@ class GraphHealth:
                             self.clock_synced == 'yes',
                             'not reported' if self.clock_synced is None else
                             f'{self.clock_synced}, offset {self.clock_offset_ms} ms'))
-        agree, detail = stamps_agree(self.stamps, self.node.get_clock().now().nanoseconds)
+        agree, detail = stamps_agree(self.stamps)
         checks.append(Check('image and IMU stamps on one clock', agree, detail))
         checks.append(Check('ibvs/mode present', self.mode is not None,
                             'not received' if self.mode is None else f'mode {self.mode}'))
