@@ -6,12 +6,12 @@ the autopilot (TIMESYNC, ``clock_synced`` in its diagnostics, with the offset), 
 stamps on one clock (both cameras' and the IMU's latest stamps each within
 ``STAMP_AGREEMENT_S`` of this node's ROS clock at their receipt, and of each other's such
 offsets: a camera driver or an IMU mapping on another clock fails here, whatever the streams'
-rates, e.g. the 10 Hz imu/data of a vehicle at rest), ibvs/mode present, window detected (4 corners on
-window/corners), and the perception keeping up with the front camera (``KeepUp``: of the last
-``KEEP_UP_FRAMES`` front camera frames, at least ``KEEP_UP_MIN_ANSWERED`` answered on
-window/corners, median ``KEEP_UP_MAX_DELAY_S`` at most after the frame arrived, on the ROS
-clock: a computer that cannot keep up with 50 Hz, or a detector that is not running, fails
-here).
+rates, e.g. the 10 Hz imu/data of a vehicle at rest), ibvs/mode present, window detected
+(4 corners on window/corners), and the perception keeping up with the front camera
+(``KeepUp``: of the last ``KEEP_UP_FRAMES`` front camera frames, at least
+``KEEP_UP_MIN_ANSWERED`` answered on window/corners, median ``KEEP_UP_MAX_DELAY_S`` at most
+after the frame arrived, on the ROS clock: a computer that cannot keep up with 50 Hz, or a
+detector that is not running, fails here).
 ``GraphHealth`` can also be attached to another node
 (``run_scenario`` does) so that the same checks gate a scripted run.
 """
