@@ -1061,7 +1061,7 @@ def test_telemetry_slows_at_rest_and_is_full_again_before_anything_engages(peer_
     assert first_full <= min(engage_cmds)
 
 
-@pytest.mark.parametrize('how', ['arm request', 'pilot arms'])
+@pytest.mark.parametrize('how', ['arm request', 'pilot arms', 'frames'])
 def test_telemetry_full_again_on_an_arm_request_or_an_armed_vehicle(peer_bridge, how):
     peer, bridge = peer_bridge(peer_kw={'armed': False, 'landed': True},
                                bridge_kw={'quiet_telemetry_delay_s': 0.3})
@@ -1073,14 +1073,22 @@ def test_telemetry_full_again_on_an_arm_request_or_an_armed_vehicle(peer_bridge,
     n = len(peer.intervals)
     if how == 'arm request':
         assert bridge.request_arm()[0]
-    else:
+    elif how == 'pilot arms':
         peer.armed = True                       # armed by its pilot: seen at the HEARTBEAT
+    else:                                       # cameras on: the supervisor evaluates frames
+        assert bridge.on_supervisor_status(1_000_000_000, int(Mode.IDLE)) == ''
+        assert not bridge.status().telemetry_slowed      # asked in that call
+    feed = (lambda now: bridge.on_supervisor_status(int(now * 1e9), int(Mode.IDLE))) \
+        if how == 'frames' else None
     ok, _ = spin(bridge, 2.0, until=lambda: _asked(peer, 31, n) == [1e4]
-                 and bridge.streams.complete)
+                 and bridge.streams.complete, force_fn=feed)
     assert ok, peer.intervals[n:]
     assert not bridge.status().telemetry_slowed
-    spin(bridge, 0.6)                           # longer than the delay: stays full
+    spin(bridge, 0.8, force_fn=feed)            # longer than the delay: stays full
     assert _asked(peer, 31, n) == [1e4] and not bridge.status().telemetry_slowed
+    if how == 'frames':                         # the frames stop: at rest again after it
+        ok, _ = spin(bridge, 3.0, until=lambda: _asked(peer, 31, n)[-1] == 1e5)
+        assert ok and bridge.status().telemetry_slowed
 
 
 def test_telemetry_never_slows_when_off_or_armed(peer_bridge):

@@ -180,10 +180,11 @@ PARAMETER_SPECS = {
                           'IDLE, clocks synced): also the keepalive stream rate then; > 2 '
                           '(PX4 wants > 2 Hz before OFFBOARD)', 2.0, None),
     'quiet_telemetry_rate_hz': ('Hz, the attitude, IMU and thrust streams asked while the '
-                                'vehicle rests (disarmed, supervisor IDLE, no arm request), '
-                                'full rates again before anything engages; 0 = full rates '
-                                'always', 0.0, None),
-    'quiet_telemetry_delay_s': ('s (steady clock) at rest before the streams slow down',
+                                'vehicle rests (disarmed, supervisor IDLE, no arm request, '
+                                'no frame status), full rates again before anything engages '
+                                'or at the first frame; 0 = full rates always', 0.0, None),
+    'quiet_telemetry_delay_s': ('s (steady clock) at rest, and without a frame status, '
+                                'before the streams slow down',
                                 0.0, None),
     'heartbeat_rate_hz': ('Hz (steady clock timer), our HEARTBEAT; > 0', 0.0, None),
     'diagnostics_rate_hz': ('Hz (steady clock timer), /diagnostics; > 0', 0.0, None),

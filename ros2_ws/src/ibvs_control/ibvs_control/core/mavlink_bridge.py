@@ -211,6 +211,7 @@ class MavlinkBridge:
         self._setpoint_stamp_ns: int | None = None   # latest stamp of a force sent (ROS ns)
         self._status_modes: dict[int, Mode] = {}     # stamp ns -> supervisor mode of that frame
         self._stream_start: float | None = None
+        self._last_status_t: float | None = None     # steady time of the last frame status
         self._last_send_t: float | None = None
         self._last_tick_t: float | None = None
         self._was_up = False
@@ -252,6 +253,9 @@ class MavlinkBridge:
         self._status_modes[int(stamp_ns)] = m
         while len(self._status_modes) > STATUS_MODES_KEPT:
             del self._status_modes[min(self._status_modes)]
+        self._last_status_t = self._clock()
+        if self.quiet_telemetry is not None and self.quiet_telemetry.active:
+            self._request_streams(self._last_status_t)   # frames again: full rates now
         return ''
 
     def content_mode(self) -> Mode:
@@ -632,16 +636,21 @@ class MavlinkBridge:
 
     @property
     def at_rest(self) -> bool:
-        """Whether the telemetry may slow down: standby, supervisor IDLE, disarmed, no arm.
+        """Whether the telemetry may slow down: standby, supervisor IDLE, disarmed, no frames.
 
-        No arm request either; whether our setpoint stream is held or the clocks are synced
-        does not matter.
+        No arm request either, and no frame evaluated (``ibvs/supervisor_status``) for
+        ``quiet_telemetry_delay_s``: with the cameras on, the window detection of IDLE (the
+        start's check, the preflight's) derotates with the attitude at each image stamp, which
+        a 10 Hz stream cannot give within the nodes' extrapolation bound. Whether our setpoint
+        stream is held or the clocks are synced does not matter.
         """
         hb = self.link.heartbeat
         seq = self.sequencer
+        frames = self._last_status_t is not None and \
+            self._clock() - self._last_status_t < self.config.quiet_telemetry_delay_s
         return (seq is not None and seq.state == EngageState.STANDBY
                 and self.supervisor_mode == Mode.IDLE and hb is not None and not hb.armed
-                and not seq.arm_requested)
+                and not seq.arm_requested and not frames)
 
     def _request_streams(self, now: float) -> None:
         """Send the next stream request (one at a time), at the rates :attr:`at_rest` asks."""

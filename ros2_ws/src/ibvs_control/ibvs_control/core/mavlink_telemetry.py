@@ -423,15 +423,15 @@ class StreamRequests:
 class QuietTelemetry:
     """The high-rate streams slowed while the vehicle rests: disarmed, nothing engaging.
 
-    On the pad, before a flight, nothing of the graph uses the 100 Hz attitude and IMU (no
-    mode flies, the perception is mode-gated), yet each sample wakes the bridge's reader
-    thread: ~150 wake-ups a second, most of the idle graph's CPU (docs/performance.md). While
-    the bridge reports :meth:`update` ``wanted`` (the bridge: quiet, disarmed, no arm request)
-    for ``delay_s`` of the steady clock, every stream of ``full`` is asked for at
-    ``min(full rate, quiet_rate_hz)``; as soon as it is not wanted (an arm request, a
-    supervisor mode, the vehicle armed by its pilot, a link loss), at its full rate again:
-    the rates change before anything engages, never while the vehicle flies.
-    ``quiet_rate_hz`` 0: off (full rates always, as MAVROS streams them).
+    On the pad with the cameras off, nothing of the graph uses the 100 Hz attitude and IMU
+    (no mode flies, no frame is evaluated), yet each sample wakes the bridge's reader thread:
+    ~150 wake-ups a second, most of the idle graph's CPU (docs/performance.md). While the
+    bridge reports :meth:`update` ``wanted`` (its ``at_rest``: standby, IDLE, disarmed, no arm
+    request, no frame evaluated) for ``delay_s`` of the steady clock, every stream of ``full``
+    is asked for at ``min(full rate, quiet_rate_hz)``; as soon as it is not wanted (an arm
+    request, a supervisor mode, a frame status, the vehicle armed by its pilot, a link loss),
+    at its full rate again: the rates change before anything engages, never while the vehicle
+    flies. ``quiet_rate_hz`` 0: off (full rates always, as MAVROS streams them).
     """
 
     def __init__(self, full: dict[int, float], quiet_rate_hz: float, delay_s: float) -> None:
