@@ -320,3 +320,30 @@ def test_ardupilot_lands_by_its_gcs_failsafe_when_the_bridge_dies(tmp_path):
             assert disarmed is not None, 'ArduPilot did not land and disarm'
         finally:
             close_flight(f)
+
+
+def test_ardupilot_telemetry_slows_at_rest_and_is_full_again_on_an_arm_request(ardupilot):
+    # docs/mavlink.md "Telemetry at rest", on the real ArduCopter: disarmed, supervisor IDLE,
+    # no frames: ATTITUDE_QUATERNION and SCALED_IMU at 10 Hz once asked; 100 Hz again right
+    # after an arm request (which alone arms nothing: nothing engages here)
+    rest = Run(ardupilot['env']['AP_COMPANION_URL'], quiet_telemetry_delay_s=0.5)
+    try:
+        ok = False
+        t_end = time.monotonic() + 30.0
+        while time.monotonic() < t_end and not ok:
+            rest.spin(0.5)
+            ok = rest.bridge.status().telemetry_slowed and rest.bridge.streams.complete
+        assert ok, rest.bridge.status()
+        rest.spin(1.5)
+        at_rest = rest.rate_hz('ATTITUDE_QUATERNION', 1.0), rest.rate_hz('SCALED_IMU', 1.0)
+        assert rest.bridge.request_arm()[0]
+        rest.spin(1.5)
+        after_arm = rest.rate_hz('ATTITUDE_QUATERNION', 1.0), rest.rate_hz('SCALED_IMU', 1.0)
+        print(f'ArduCopter at rest: attitude, IMU {at_rest} Hz; after an arm request '
+              f'{after_arm} Hz')
+        assert all(7.0 <= r <= 13.0 for r in at_rest), at_rest
+        assert all(r >= 70.0 for r in after_arm), after_arm
+        assert not rest.bridge.status().telemetry_slowed
+        assert not rest.bridge.link.heartbeat.armed
+    finally:
+        rest.close()
