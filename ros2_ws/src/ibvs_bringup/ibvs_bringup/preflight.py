@@ -215,10 +215,10 @@ class GraphHealth:
 
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
-        self.stamps[f'{cam} camera'] = (stamp_to_ns(msg.header.stamp), self._ros_ns())
+        stamp, now = stamp_to_ns(msg.header.stamp), self._ros_ns()
+        self.stamps[f'{cam} camera'] = (stamp, now)
         if cam == 'front':
-            self.front_keep_up.note_frame(stamp_to_ns(msg.header.stamp),
-                                          self.node.get_clock().now().nanoseconds)
+            self.front_keep_up.note_frame(stamp, now)
 
     def _on_imu(self, msg: Imu) -> None:
         self.imu_count += 1
@@ -226,6 +226,7 @@ class GraphHealth:
         self.stamps['imu'] = (stamp_to_ns(msg.header.stamp), self._ros_ns())
 
     def _ros_ns(self) -> int:
+        """Return the watching node's ROS clock now (ns): receipts, keep-up, stamp agreement."""
         return self.node.get_clock().now().nanoseconds
 
     def _on_diag(self, msg: DiagnosticArray) -> None:
@@ -244,8 +245,7 @@ class GraphHealth:
 
     def _on_window(self, msg: PolygonStamped) -> None:
         self.window_corners = len(msg.polygon.points)
-        self.front_keep_up.note_answer(stamp_to_ns(msg.header.stamp),
-                                       self.node.get_clock().now().nanoseconds)
+        self.front_keep_up.note_answer(stamp_to_ns(msg.header.stamp), self._ros_ns())
 
     def checklist(self) -> list[Check]:
         """Return the current checklist."""
@@ -268,7 +268,7 @@ class GraphHealth:
                             'not received' if self.mode is None else f'mode {self.mode}'))
         checks.append(Check('window detected', self.window_corners == 4,
                             f'{self.window_corners} corners'))
-        keeps_up, detail = self.front_keep_up.check(self.node.get_clock().now().nanoseconds)
+        keeps_up, detail = self.front_keep_up.check(self._ros_ns())
         checks.append(Check('perception keeps up (window/corners per front frame)', keeps_up,
                             detail))
         return checks

@@ -378,16 +378,19 @@ class StreamRequests:
         A changed rate is asked for again (even while its previous request is in flight: that
         ACK then does not complete it); a stream the autopilot refused stays given up.
         """
-        s = next((x for x in self._streams if x.msg_id == int(msg_id)), None)
-        if s is None or s.rate_hz == float(rate_hz) or int(s.msg_id) in self.refused:
+        s = self._find(msg_id)
+        if s is None or s.rate_hz == float(rate_hz) or s.msg_id in self.refused:
             return False
         s.rate_hz, s.done, s.attempts = float(rate_hz), False, 0
         return True
 
     def rate(self, msg_id: int) -> float | None:
         """Return the rate wanted now for ``msg_id`` (None: not one of the streams)."""
-        s = next((x for x in self._streams if x.msg_id == int(msg_id)), None)
+        s = self._find(msg_id)
         return None if s is None else s.rate_hz
+
+    def _find(self, msg_id: int) -> _Stream | None:
+        return next((x for x in self._streams if x.msg_id == int(msg_id)), None)
 
     def step(self, now: float) -> tuple[int, float] | None:
         """Return the next request to send now, or None."""
@@ -453,7 +456,7 @@ class QuietTelemetry:
     def reset(self) -> dict[int, float]:
         """Full rates from now on (link back, autopilot reboot); return them."""
         self._wanted_since, self.active = None, False
-        return dict(self.full)
+        return self.rates()
 
     def rates(self) -> dict[int, float]:
         """Return the rates of the current state."""
