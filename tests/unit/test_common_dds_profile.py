@@ -52,3 +52,21 @@ def test_an_image_publisher_started_alone_takes_the_profile_before_rclpy_init(mo
     with pytest.raises(_InitReached):
         mod.main([])
     assert seen['profile'] and seen['profile'].endswith('fastdds.xml')
+
+
+def _duration_s(element: ET.Element, ns: dict) -> float:
+    sec = element.find('p:sec', ns)
+    nanosec = element.find('p:nanosec', ns)
+    return (int(sec.text) if sec is not None else 0) + \
+        (int(nanosec.text) * 1e-9 if nanosec is not None else 0.0)
+
+
+def test_dds_profile_unmatches_a_dead_reader_within_seconds():
+    """A SIGKILLed node's readers cost their publishers until the lease ends (fastdds.xml)."""
+    ns = {'p': 'http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles'}
+    root = ET.parse(dds_env_overrides({})[FASTDDS_PROFILE_ENV]).getroot()
+    discovery = root.find('.//p:participant/p:rtps/p:builtin/p:discovery_config', ns)
+    lease_s = _duration_s(discovery.find('p:leaseDuration', ns), ns)
+    announce_s = _duration_s(discovery.find('p:leaseAnnouncement', ns), ns)
+    assert 0.0 < lease_s <= 4.0             # dead readers unmatched before they cost (measured)
+    assert 0.0 < announce_s <= lease_s / 3  # two late announcements do not drop a live node
