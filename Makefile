@@ -6,7 +6,7 @@ SHELL := /bin/bash
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-PKGS := ibvs_common ibvs_control ibvs_perception ibvs_sim ibvs_bringup
+PKGS := ibvs_common ibvs_control ibvs_perception ibvs_sim ibvs_bringup ibvs_harness
 PKG_DIRS := $(addprefix ros2_ws/src/,$(PKGS))
 # A sourced ROS 2 Jazzy (/opt/ros/jazzy) provides rclpy and the messages: use it, skip the wheels.
 ifeq ($(ROS_DISTRO),jazzy)
@@ -63,7 +63,7 @@ $(VENV46)/.workspace: $(VENV46)/.deps $(PKG_DATA) Makefile scripts/ament_layout.
 	touch $@
 
 run: install
-	$(PY) -m ibvs_bringup.run_scenario $(RUN_ARGS)
+	$(PY) -m ibvs_harness.run_scenario $(RUN_ARGS)
 
 lint: install
 	$(PY) -m flake8 --max-line-length 99 ros2_ws/src tests scripts benchmarks
@@ -103,7 +103,7 @@ bench: install
 MC_ARGS ?=
 .PHONY: mc
 mc: install
-	$(PY) -m ibvs_bringup.campaign $(MC_ARGS)
+	$(PY) -m ibvs_harness.campaign $(MC_ARGS)
 
 clean:
 	rm -rf $(VENV) $(VENV46) build install log

@@ -163,7 +163,7 @@ CASES = {
 def run_case(name: str, autopilot: str, settle_s: float, window_s: float) -> float:
     """One measurement of one case against a fresh autopilot."""
     if autopilot == 'px4-sih':
-        from ibvs_bringup.px4_sih import free_instance, Px4Sitl
+        from ibvs_harness.px4_sih import free_instance, Px4Sitl
         px4 = Px4Sitl(instance=free_instance(), params={})
         px4.start()
         try:
@@ -171,7 +171,7 @@ def run_case(name: str, autopilot: str, settle_s: float, window_s: float) -> flo
                            window_s)
         finally:
             px4.stop()
-    from ibvs_bringup.run_scenario import free_udp_port
+    from ibvs_common.core.mavlink_connection import free_udp_port
     port = free_udp_port()
     stop = threading.Event()
     thread = threading.Thread(target=stand_in, args=(f'udpin:127.0.0.1:{port}', stop),
@@ -197,7 +197,7 @@ def main(argv: list | None = None) -> int:
     if a.smoke:
         a.repeats, a.settle_s, a.window_s = 1, 4.0, 1.0
     if a.autopilot == 'px4-sih':
-        from ibvs_bringup.px4_sih import find_px4_sitl
+        from ibvs_harness.px4_sih import find_px4_sitl
         try:
             find_px4_sitl()
         except (FileNotFoundError, RuntimeError) as exc:

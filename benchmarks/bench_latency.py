@@ -82,12 +82,12 @@ def sway(r: float) -> tuple[np.ndarray, np.ndarray]:
 
 def approach_track(n_frames: int) -> tuple[np.ndarray, np.ndarray]:
     """(replay times (s), xi_I (N, 3)) of the replayed frames, 50 Hz, from the reference run."""
-    from ibvs_bringup.run_scenario import MAX_SIM_TIME_S
+    from ibvs_harness.scenario import MAX_SIM_TIME_S
     from ibvs_common.core.config import load_pad_layout, load_vehicle
     from ibvs_sim.core.world import load_world
     from ibvs_control.core.controller import ControllerConfig
     from ibvs_control.core.supervisor import SupervisorConfig
-    from ibvs_sim.core import feature_sim
+    from ibvs_harness import feature_sim
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
     ctrl = ControllerConfig.from_params({}, vehicle, world.window.width)
     cfg = feature_sim.FeatureSimConfig(
@@ -270,7 +270,7 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
     """
     from ibvs_bringup import graph
     from ibvs_bringup.runner import ProcessRunner
-    from ibvs_bringup.run_scenario import free_udp_port
+    from ibvs_common.core.mavlink_connection import free_udp_port
     port = free_udp_port()
     ctx = mp.get_context('spawn')
     stop, results, start_mono = ctx.Event(), ctx.Queue(), ctx.Value('d', 0.0)

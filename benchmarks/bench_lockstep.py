@@ -1,6 +1,6 @@
 """Throughput of the whole graph in the lockstep simulator: sim time over wall time.
 
-Flies the reference scenario (``python -m ibvs_bringup.run_scenario``, lockstep, the graph as
+Flies the reference scenario (``python -m ibvs_harness.run_scenario``, lockstep, the graph as
 ``make run`` starts it, no plots) ``--runs`` times, one after the other, and reads each run's
 summary.json ``timing``: ``sim_over_wall`` (sim time / wall time from the sim's first frame to
 the end of the flight: process start-up and discovery are not counted; target >= 0.5 on this
@@ -42,7 +42,7 @@ def load_average() -> str:
 
 def fly(results: str, name: str, args) -> dict:
     """Fly one run; return its summary.json (raise on a run that could not be flown)."""
-    cmd = [sys.executable, '-m', 'ibvs_bringup.run_scenario', '--run-name', name,
+    cmd = [sys.executable, '-m', 'ibvs_harness.run_scenario', '--run-name', name,
            '--results-root', results, '--no-plots', '--layout', args.layout]
     if not args.bag:
         cmd.append('--no-bag')

@@ -19,7 +19,7 @@ import socket
 import statistics
 import time
 
-from ibvs_control.core.mavlink_link import LinkConfig, MavlinkLink, mavlink
+from ibvs_control.mavlink.link import LinkConfig, MavlinkLink, mavlink
 
 WAKE_GAP_S = 0.002
 

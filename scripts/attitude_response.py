@@ -122,7 +122,7 @@ def px4_response() -> dict:
     import os
     os.environ.setdefault('MAVLINK20', '1')
     from pymavlink import mavutil
-    from ibvs_bringup.px4_sih import free_instance, Pilot, Px4Sitl, px4_boot_parameters
+    from ibvs_harness.px4_sih import free_instance, Pilot, Px4Sitl, px4_boot_parameters
     from ibvs_common.core.config import load_vehicle
     from ibvs_common.core.frames import (euler_zyx_from_rot, quat_from_rot, rot_from_euler_zyx,
                                          rot_from_quat)
@@ -225,7 +225,7 @@ def main(argv: list | None = None) -> int:
         t, u, y = sim_response(axis, repeats=1 if a.smoke else 2)
         print(report('sim', axis, fit(t, u, y, coarse=a.smoke)), flush=True)
     if a.px4_sih and not a.smoke:
-        from ibvs_bringup.px4_sih import find_px4_sitl
+        from ibvs_harness.px4_sih import find_px4_sitl
         try:
             find_px4_sitl()
         except (FileNotFoundError, RuntimeError) as exc:

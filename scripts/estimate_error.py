@@ -64,7 +64,7 @@ def window_estimate_error(run_dir: str | Path) -> dict | None:
     Keys: ``window_s`` (start, end), ``error_deg`` (median roll, pitch, yaw error), ``pairs``
     (samples compared), ``y_I_m`` (truth y at the start and end of WINDOW), ``success``.
     """
-    from ibvs_bringup.bag import deserialize, read_messages
+    from ibvs_harness.bag import deserialize, read_messages
     from ibvs_common.core.frames import log_so3, R_IB_from_quat_map_base, vec_map_to_I
     run = Path(run_dir)
     try:
@@ -114,7 +114,7 @@ def error_series(bag_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
     The truth R_IB at an imu/data stamp is interpolated on SO(3) between the truth samples
     around it (at most MAX_TRUTH_GAP_S apart); stamps outside the truth are left out.
     """
-    from ibvs_bringup.bag import deserialize, read_messages
+    from ibvs_harness.bag import deserialize, read_messages
     from ibvs_common.core.frames import exp_so3, log_so3, R_IB_from_quat_map_base
     est, truth = [], []
     for topic, msgtype, _, data in read_messages(bag_dir, [IMU_TOPIC, TRUTH_TOPIC]):

@@ -3,7 +3,7 @@
 Uses ``../shared/px4-sitl`` (PX4 v1.16.0 SITL with its SIH simulator) next to the repository; the
 tests SKIP when it is absent (a user's clone does not have it). A fresh PX4 for every test (started
 in ~5 s, stopped at its end), so no test inherits another's vehicle state. No ROS: the bridge core
-(:class:`~ibvs_control.core.mavlink_bridge.MavlinkBridge`) runs with the shipped params.yaml
+(:class:`~ibvs_control.mavlink.bridge.MavlinkBridge`) runs with the shipped params.yaml
 (:func:`shipped_parameters`) on PX4's companion port (``udpin:``), polled every 4 ms (the node
 reads on arrival, MavlinkReader), with ROS time = ``time.time_ns()`` (the system time a camera
 driver stamps images in). In the flights a test controller sends, per 20 ms frame, a heading then a
@@ -45,10 +45,10 @@ from pymavlink import mavutil  # noqa: E402
 
 from ibvs_common.core.config import load_vehicle  # noqa: E402
 from ibvs_common.core.frames import GRAVITY  # noqa: E402
-from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge  # noqa: E402
-from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
-from ibvs_control.core.mavlink_sequencer import px4_main_mode  # noqa: E402
-from ibvs_bringup.px4_sih import renice_threads, SITL_NICE  # noqa: E402
+from ibvs_control.mavlink.bridge import BridgeConfig, MavlinkBridge  # noqa: E402
+from ibvs_control.mavlink.link import LinkConfig  # noqa: E402
+from ibvs_control.mavlink.sequencer import px4_main_mode  # noqa: E402
+from ibvs_harness.px4_sih import renice_threads, SITL_NICE  # noqa: E402
 from ibvs_sim.core.autopilot import AutopilotConfig  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -445,7 +445,7 @@ class Flight:
     """
 
     def __init__(self, url: str, truth: Truth, mass: float, **overrides) -> None:
-        from ibvs_control.core.mavlink_bridge import MavlinkBridge
+        from ibvs_control.mavlink.bridge import MavlinkBridge
         from ibvs_control.mavlink_bridge_node import config_from_parameters
         self.bridge = MavlinkBridge(config_from_parameters(shipped_parameters(
             url=url, **overrides)))

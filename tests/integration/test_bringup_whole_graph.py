@@ -1,6 +1,6 @@
 """The whole graph in lockstep: reference and random initial conditions, repeatability, replay.
 
-Each run is ``python -m ibvs_bringup.run_scenario`` in its own session (so that every process
+Each run is ``python -m ibvs_harness.run_scenario`` in its own session (so that every process
 it starts can be found and killed), with a wall-clock limit; SPEC.md section 5's success is
 read from its summary.json. Skipped, with the reason, while a node of the graph is missing.
 """
@@ -12,10 +12,11 @@ import subprocess
 import sys
 import time
 
-from ibvs_bringup import bag, graph
+from ibvs_bringup import graph
+from ibvs_harness import bag
 from ibvs_common.node_common import LateImuReport
 from ibvs_bringup.ros2run import unavailable_reason
-from ibvs_bringup.run_scenario import random_initial_position
+from ibvs_harness.scenario import random_initial_position
 import numpy as np
 import pytest
 
@@ -104,7 +105,7 @@ def _nice_session(leader: int, nice: int) -> None:
 
 def run_scenario(root, name: str, *args, timeout: float = RUN_TIMEOUT_S) -> dict:
     """Run one scenario; return its summary (with the wall time); never leaves a process."""
-    cmd = [sys.executable, '-m', 'ibvs_bringup.run_scenario', '--results-root', str(root),
+    cmd = [sys.executable, '-m', 'ibvs_harness.run_scenario', '--results-root', str(root),
            '--run-name', name, '--timeout', str(timeout - 30), *args]
     t0 = time.monotonic()
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.PIPE,

@@ -21,7 +21,7 @@ must update these numbers.
 Two estimate models, one case each (2026-11-28): ``exact`` (no attitude-estimate error, the
 model issue 14's targets were set on; reference: docs/performance.md "Campaign" for the
 paper, 30 / 30 and 30 / 30 for observer_integral, docs/design.md) and ``px4`` (params.yaml's
-sim error, PX4 SIH's 0.7 deg / 2 s; reference s31-ref14: ``python -m ibvs_bringup.campaign
+sim error, PX4 SIH's 0.7 deg / 2 s; reference s31-ref14: ``python -m ibvs_harness.campaign
 --name s31-ref14 --seed 14 --runs 86 --levels 0 0.5 --law paper --law observer_integral
 --workers 2``, 71 s, docs/design.md "A realistic estimate error"). This sample with the px4
 model (18 s idle): paper 17 / 20 and 0 / 20, the default 20 / 20 and 20 / 20, landing error
@@ -35,7 +35,7 @@ import os
 
 import pytest
 
-from ibvs_bringup.campaign import (
+from ibvs_harness.campaign import (
     CampaignConfig, LawSpec, run_campaign, wilson_interval, write_outputs)
 
 pytestmark = pytest.mark.slow

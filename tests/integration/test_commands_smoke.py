@@ -47,14 +47,14 @@ def test_benchmark_smoke_run(name, tmp_path):
 
 def test_readme_feature_level_run(tmp_path):
     """``make run RUN_ARGS="--feature-level"`` (README): the feature-level closed loop."""
-    run(['-m', 'ibvs_bringup.run_scenario', '--feature-level', '--no-plots',
+    run(['-m', 'ibvs_harness.run_scenario', '--feature-level', '--no-plots',
          '--results-root', str(tmp_path), '--run-name', 'feature'], cwd=tmp_path)
     summary = json.loads((tmp_path / 'feature' / 'summary.json').read_text())
     assert summary['success'] is True, summary
 
 
 def test_readme_run_help_lists_the_options(tmp_path):
-    out = run(['-m', 'ibvs_bringup.run_scenario', '--help'], cwd=tmp_path)
+    out = run(['-m', 'ibvs_harness.run_scenario', '--help'], cwd=tmp_path)
     for option in ('--feature-level', '--random-ic', '--wind', '--real-time-factor'):
         assert option in out
 

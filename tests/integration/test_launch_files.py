@@ -141,7 +141,7 @@ def test_sim_launch_flies_to_the_pad_on_ibvs_start_and_stops_on_ctrl_c(tmp_path)
     from rclpy.qos import DurabilityPolicy, QoSProfile
     from std_msgs.msg import String
     from std_srvs.srv import Trigger
-    from ibvs_bringup.run_scenario import free_udp_port
+    from ibvs_common.core.mavlink_connection import free_udp_port
     from ibvs_sim.core.evaluation import MAX_LANDING_ERROR_M, MAX_TOUCHDOWN_SPEED_MPS
 
     log = tmp_path / 'launch.log'

@@ -34,7 +34,7 @@ import sys
 import numpy as np
 import pytest
 
-from ibvs_bringup.px4_scenario import in_box, START_SPEED_TOL_MPS, START_TOLERANCE_M
+from ibvs_harness.px4_scenario import in_box, START_SPEED_TOL_MPS, START_TOLERANCE_M
 from ibvs_sim.core.px4_plant import find_px4_sitl
 from ibvs_sim.core.world import load_world
 
@@ -60,7 +60,7 @@ def px4_run(tmp_path_factory):
     except FileNotFoundError as exc:
         pytest.skip(f'PX4 SITL absent, px4-sih test skipped: {exc}')
     root = tmp_path_factory.mktemp('px4sih')
-    cmd = [sys.executable, '-m', 'ibvs_bringup.run_scenario', '--autopilot', 'px4-sih',
+    cmd = [sys.executable, '-m', 'ibvs_harness.run_scenario', '--autopilot', 'px4-sih',
            '--run-name', 'brief', '--results-root', str(root), '--no-bag', '--no-plots',
            '--px4-flight-s', str(FLIGHT_S), '--timeout', str(RUN_TIMEOUT_S - 60)]
     proc = subprocess.run(cmd, cwd=str(REPO), env=dict(os.environ), capture_output=True,

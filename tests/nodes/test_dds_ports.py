@@ -13,7 +13,7 @@ import time
 import pytest
 import rclpy
 
-from ibvs_bringup.run_scenario import SERVER_PORTS
+from ibvs_common.core.mavlink_connection import SERVER_PORTS
 
 
 def udp_ports_of_this_process() -> set[int]:

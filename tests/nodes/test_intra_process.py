@@ -234,7 +234,7 @@ def test_bridge_publishes_imu_through_dds_only_while_a_reader_is_matched(context
     """Composed: no DDS reader -> the DDS publish is skipped (in process only) and the message
     is built only when a co-located node takes it; a recorder that subscribes gets every
     sample from its match on, as with rclcpp's intra-process publish."""
-    from ibvs_control.core.mavlink_telemetry import ImuSample
+    from ibvs_control.mavlink.telemetry import ImuSample
     from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 
     def sample(sec: int) -> ImuSample:

@@ -16,9 +16,9 @@ import rclpy
 from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
 
-from ibvs_bringup.bag_player_node import PARAMETER_SPECS as PLAYER_SPECS
-from ibvs_bringup.recorder_node import RecorderNode
-from ibvs_bringup.run_scenario import free_udp_port
+from ibvs_harness.bag_player_node import PARAMETER_SPECS as PLAYER_SPECS
+from ibvs_harness.recorder_node import RecorderNode
+from ibvs_common.core.mavlink_connection import free_udp_port
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode

@@ -26,7 +26,7 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.modes import Mode
 from ibvs_common.node_common import LateImuReport, supervisor_status_msg
 from ibvs_sim.core.world import load_world
-from ibvs_control.core.frame_io import is_no_flow
+from ibvs_control.core.frame_inputs import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
 from ibvs_perception.window_detector_node import WindowDetectorNode

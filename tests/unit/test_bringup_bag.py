@@ -1,7 +1,7 @@
 """Bags: rclpy CDR bytes -> MCAP rosbag2 (rosbags) -> back; recorder and player nodes."""
 import time
 
-from ibvs_bringup import bag
+from ibvs_harness import bag
 import pytest
 import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -86,7 +86,7 @@ def test_the_player_node_exits_1_with_the_reason_for_a_bag_without_metadata(tmp_
     path = tmp_path / 'bag'
     _small_bag(path)
     (path / 'metadata.yaml').unlink()
-    out = subprocess.run([sys.executable, '-m', 'ibvs_bringup.bag_player_node', '--ros-args',
+    out = subprocess.run([sys.executable, '-m', 'ibvs_harness.bag_player_node', '--ros-args',
                           '-p', f'bag_path:={path}'], capture_output=True, text=True,
                          timeout=60)
     assert out.returncode == 1, out.stderr[-2000:]
@@ -110,8 +110,8 @@ def ros():
 
 
 def test_recorder_then_player_reproduce_topics_and_stamps(tmp_path, ros):
-    from ibvs_bringup.bag_player_node import BagPlayerNode
-    from ibvs_bringup.recorder_node import RecorderNode
+    from ibvs_harness.bag_player_node import BagPlayerNode
+    from ibvs_harness.recorder_node import RecorderNode
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.parameter import Parameter
     from rosgraph_msgs.msg import Clock

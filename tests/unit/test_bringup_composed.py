@@ -36,7 +36,7 @@ def test_a_bad_specs_file_is_refused_with_its_path(tmp_path, capsys):
 
 
 def test_the_runner_composes_the_onboard_specs_only(tmp_path, monkeypatch):
-    from ibvs_bringup import run_scenario
+    from ibvs_harness import run_scenario
     from ibvs_bringup.runner import COMPOSED_NAME, ProcessRunner
     started = []
     runner = ProcessRunner(log_dir=str(tmp_path))

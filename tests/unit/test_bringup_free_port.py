@@ -1,10 +1,10 @@
-"""run_scenario.free_udp_port: a port for a server that another process binds later."""
+"""mavlink_connection.free_udp_port: a port for a server that another process binds later."""
 import random
 import socket
 
 import pytest
 
-from ibvs_bringup.run_scenario import free_udp_port, PORT_TRIES, SERVER_PORTS
+from ibvs_common.core.mavlink_connection import free_udp_port, PORT_TRIES, SERVER_PORTS
 
 
 def ephemeral_range() -> range:

@@ -1,5 +1,5 @@
 """Plots and ground-truth features from a synthetic trajectory (no ROS)."""
-from ibvs_bringup import plots, report
+from ibvs_harness import plots, report
 from ibvs_common.core.config import load_pad_layout
 from ibvs_sim.core.world import load_world
 import numpy as np

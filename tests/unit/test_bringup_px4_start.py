@@ -1,7 +1,7 @@
 """The PX4 SIH harness's start rule: near the start, and inside SPEC's box of random starts."""
 import numpy as np
 
-from ibvs_bringup.px4_scenario import at_start, in_box, START_TOLERANCE_M
+from ibvs_harness.px4_scenario import at_start, in_box, START_TOLERANCE_M
 from ibvs_sim.core.world import load_world
 
 BOX = load_world().random_box          # x [-2.6, -1.8], y [-0.3, 0.3], z [-1.9, -1.35]

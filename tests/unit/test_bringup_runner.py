@@ -5,7 +5,7 @@ import sys
 import time
 
 from ibvs_bringup import parent_death, ros2run
-from ibvs_bringup.run_scenario import supervisor_transitions
+from ibvs_harness.scenario import supervisor_transitions
 from ibvs_bringup.runner import ProcessRunner
 import pytest
 
@@ -226,7 +226,8 @@ def test_runner_restarts_a_respawn_node_with_backoff_and_leaves_the_others(tmp_p
 
 def test_runner_and_run_scenario_refuse_a_missing_parameter_file(tmp_path, capsys):
     """Exit 2 with the reason, no traceback and nothing started (launch_ros only warns)."""
-    from ibvs_bringup import run_scenario, runner as runner_cli
+    from ibvs_bringup import runner as runner_cli
+    from ibvs_harness import run_scenario
     missing = str(tmp_path / 'typo.yaml')
     assert runner_cli.main(['onboard', '--params-file', missing]) == 2
     assert run_scenario.main(['--params-file', missing, '--results-root', str(tmp_path),

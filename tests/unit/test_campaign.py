@@ -5,8 +5,8 @@ import os
 
 import pytest
 
-from ibvs_bringup import campaign
-from ibvs_bringup.campaign import (
+from ibvs_harness import campaign
+from ibvs_harness.campaign import (
     aggregate, CampaignConfig, draw_run, failure_cause, LawSpec, run_campaign, run_specs,
     wilson_interval)
 
@@ -194,7 +194,7 @@ def test_estimate_noise_defaults_to_the_params_file_and_reaches_both_levels(tmp_
                                                                             monkeypatch):
     """The estimate's wandering error: params.yaml's sim values unless --estimate-noise."""
     import yaml
-    from ibvs_sim.core import feature_sim
+    from ibvs_harness import feature_sim
     installed = os.path.join(os.path.dirname(__file__), '..', '..', 'ros2_ws', 'src',
                              'ibvs_bringup', 'config', 'params.yaml')
     with open(installed, encoding='utf-8') as f:

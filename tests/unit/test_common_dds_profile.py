@@ -35,7 +35,7 @@ class _InitReached(Exception):
 
 
 @pytest.mark.parametrize('module', ['ibvs_sim.sim_node', 'ibvs_sim.px4_sim_node',
-                                    'ibvs_bringup.bag_player_node'])
+                                    'ibvs_harness.bag_player_node'])
 def test_an_image_publisher_started_alone_takes_the_profile_before_rclpy_init(module,
                                                                               monkeypatch):
     """`ros2 run` of the sim or the bag player: the profile is set before the participant."""

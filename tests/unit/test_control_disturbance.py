@@ -13,9 +13,9 @@ from ibvs_common.core.frames import bearings_I_to_C, e3, GRAVITY
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.control_laws import DisturbanceLaw, GainError, IntegralGains
 from ibvs_control.core.controller import ControllerConfig, IbvsController, Measurements
-from ibvs_control.core.frame_io import SpecificForceBuffer
+from ibvs_control.core.frame_inputs import SpecificForceBuffer
 from ibvs_control.core.supervisor import SupervisorConfig
-from ibvs_sim.core.feature_sim import FeatureSimConfig, run_feature_scenario
+from ibvs_harness.feature_sim import FeatureSimConfig, run_feature_scenario
 from ibvs_sim.core.world import load_world
 
 WORLD, PAD, VEHICLE = load_world(), load_pad_layout(), load_vehicle()

@@ -28,13 +28,13 @@ os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
 
 from ibvs_common.core.frames import GRAVITY, quat_multiply  # noqa: E402
-from ibvs_control.core.mavlink_bridge import (  # noqa: E402
+from ibvs_control.mavlink.bridge import (  # noqa: E402
     BridgeConfig, MavlinkBridge, SetpointSource)
-from ibvs_control.core.mavlink_hover import EstimatorConfig  # noqa: E402
-from ibvs_control.core.mavlink_link import LinkConfig  # noqa: E402
-from ibvs_control.core.mavlink_sequencer import EngageState, SequencerConfig  # noqa: E402
+from ibvs_control.mavlink.hover import EstimatorConfig  # noqa: E402
+from ibvs_control.mavlink.link import LinkConfig  # noqa: E402
+from ibvs_control.mavlink.sequencer import EngageState, SequencerConfig  # noqa: E402
 from ibvs_common.core.modes import Mode  # noqa: E402
-from ibvs_bringup.run_scenario import free_udp_port  # noqa: E402
+from ibvs_common.core.mavlink_connection import free_udp_port  # noqa: E402
 
 MASS = 1.676
 PX4_OFFBOARD = 6 << 16
@@ -1344,7 +1344,7 @@ def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params
 
 
 def test_param_value_decodes_px4_bytewise_integers_and_keeps_casts():
-    from ibvs_control.core.mavlink_bridge import param_value
+    from ibvs_control.mavlink.bridge import param_value
     as_float = struct.unpack('<f', struct.pack('<i', 4))[0]        # PX4's INT32 4 on the wire
     assert as_float != 4.0 and as_float > 0.0                     # a denormal, not 4.0
     assert param_value(as_float, 6, bytewise=True) == 4.0
@@ -1382,7 +1382,7 @@ def test_px4_offboard_loss_failsafe_is_read_and_reported(peer_bridge, params, ex
 # --- MavlinkReader: input handled as it arrives, no poll timer -------------------------------
 
 def _reader_link():
-    from ibvs_control.core.mavlink_link import MavlinkLink
+    from ibvs_control.mavlink.link import MavlinkLink
     link = MavlinkLink(LinkConfig(url='udpin:127.0.0.1:0', source_system=1))
     peer = mavutil.mavlink_connection(f'udpout:127.0.0.1:{link.local_port}', source_system=1,
                                       source_component=1)
@@ -1402,7 +1402,7 @@ def _wait_until(predicate, timeout_s=2.0):
 
 
 def test_reader_wakes_on_input_within_milliseconds_and_holds_the_lock():
-    from ibvs_control.core.mavlink_link import MavlinkReader
+    from ibvs_control.mavlink.link import MavlinkReader
     link, peer = _reader_link()
     lock = threading.Lock()
     handled = []                              # (receipt delay s, whether the lock was held)
@@ -1435,7 +1435,7 @@ def test_reader_wakes_on_input_within_milliseconds_and_holds_the_lock():
 
 
 def test_reader_follows_a_reopened_link_and_reports_errors_without_dying():
-    from ibvs_control.core.mavlink_link import MavlinkReader
+    from ibvs_control.mavlink.link import MavlinkReader
     link, peer = _reader_link()
     lock = threading.Lock()
     errors, calls = [], []
@@ -1467,7 +1467,7 @@ def test_reader_follows_a_reopened_link_and_reports_errors_without_dying():
 
 
 def test_reader_refuses_a_nonpositive_wait():
-    from ibvs_control.core.mavlink_link import MavlinkReader
+    from ibvs_control.mavlink.link import MavlinkReader
     link, peer = _reader_link()
     try:
         with pytest.raises(ValueError, match='wait_s'):
@@ -1506,7 +1506,7 @@ def test_reader_poll_supervises_only_after_messages_other_than_high_rate_telemet
 # --- MavlinkLink: connection errors and a second UDP peer are reported -----------------------
 
 def test_a_port_that_cannot_be_opened_is_reported_once_per_loss_with_its_reason():
-    from ibvs_control.core.mavlink_link import MavlinkLink
+    from ibvs_control.mavlink.link import MavlinkLink
     clock = FrozenClock()
     link = MavlinkLink(LinkConfig(url='/dev/ibvs-no-such-serial-port,921600',
                                   reconnect_period_s=1.0), clock=clock)

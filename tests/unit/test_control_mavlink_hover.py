@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from ibvs_common.core.frames import GRAVITY
-from ibvs_control.core.mavlink_hover import (
+from ibvs_control.mavlink.hover import (
     EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
 
 NS = 1_000_000_000

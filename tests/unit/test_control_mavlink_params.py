@@ -1,9 +1,9 @@
 """AutopilotParams: which autopilot parameters the bridge reads, when, and what they imply."""
 import pytest
 
-from ibvs_control.core.mavlink_hover import HoverThrustSeed
-from ibvs_control.core.mavlink_params import (ADVISORY_PARAM_READS, AutopilotParams, Changed)
-from ibvs_control.core.mavlink_sequencer import Autopilot
+from ibvs_control.mavlink.hover import HoverThrustSeed
+from ibvs_control.mavlink.params import (ADVISORY_PARAM_READS, AutopilotParams, Changed)
+from ibvs_control.mavlink.sequencer import Autopilot
 
 OURS = 245          # the bridge's MAVLink system id
 

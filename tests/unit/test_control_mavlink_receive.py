@@ -8,7 +8,7 @@ reads, and the rejection of a frame with a bad checksum, on real sockets.
 import socket
 import time
 
-from ibvs_control.core.mavlink_link import LinkConfig, MavlinkLink, mavlink
+from ibvs_control.mavlink.link import LinkConfig, MavlinkLink, mavlink
 
 ATTITUDE_QUATERNION = (1234, 1.0, 0.0, 0.0, 0.0, 0.1, -0.2, 0.3)
 

@@ -4,7 +4,7 @@ from pathlib import Path
 import pytest
 
 from ibvs_common.core.frames import GRAVITY
-from ibvs_control.core.mavlink_safety import POLICY, SafetyConfig, SafetyMonitor
+from ibvs_control.mavlink.safety import POLICY, SafetyConfig, SafetyMonitor
 
 DOC = Path(__file__).resolve().parents[2] / 'docs' / 'mavlink.md'
 MS = 1_000_000

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import pytest
 
-from ibvs_control.core.mavlink_sequencer import (
+from ibvs_control.mavlink.sequencer import (
     Autopilot, EngageSequencer, EngageState, MavCmd, MavResult, SequencerConfig,
     SequencerInputs)
 from ibvs_common.core.modes import Mode

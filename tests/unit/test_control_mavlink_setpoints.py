@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from ibvs_common.core.frames import GRAVITY
-from ibvs_control.core.mavlink_setpoints import (
+from ibvs_control.mavlink.setpoints import (
     HeadingPairing, RAMP_STALL_S, SetpointShaper, SetpointSource, ShaperConfig, ShutdownRamp)
 from ibvs_common.core.modes import Mode
 

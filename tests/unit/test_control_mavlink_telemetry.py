@@ -16,10 +16,10 @@ os.environ['MAVLINK20'] = '1'
 from pymavlink import mavutil  # noqa: E402
 
 from ibvs_common.core.frames import GRAVITY  # noqa: E402
-from ibvs_control.core.mavlink_telemetry import (  # noqa: E402
+from ibvs_control.mavlink.telemetry import (  # noqa: E402
     decode_event, load_px4_events, message_ids, QuietTelemetry, StreamRequests, streams_for,
     Telemetry)
-from ibvs_control.core.time_sync import TimeSync  # noqa: E402
+from ibvs_control.mavlink.time_sync import TimeSync  # noqa: E402
 
 PX4_EVENTS = Path(__file__).resolve().parents[3] / 'shared' / 'px4-sitl' / 'etc' / 'extras' \
     / 'all_events.json.xz'

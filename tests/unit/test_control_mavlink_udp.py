@@ -4,8 +4,8 @@ import socket
 
 import pytest
 
-from ibvs_control.core.mavlink_link import LinkConfig, MavlinkLink
-from ibvs_control.core.mavlink_udp import open_mavlink, PortInUse, udp_server_address
+from ibvs_control.mavlink.link import LinkConfig, MavlinkLink
+from ibvs_common.core.mavlink_connection import open_mavlink, PortInUse, udp_server_address
 
 
 def reuse_socket() -> socket.socket:

@@ -139,7 +139,7 @@ def test_a_step_time_constant_overrides_the_gains_and_a_zero_one_holds():
 
 def test_the_controller_feeds_the_pad_height_times_the_floor_flow_in_landing():
     """v = h phi_floor in LANDING: h from the smallest complete pad group (any offset)."""
-    from ibvs_sim.core.feature_sim import FeatureSensors
+    from ibvs_harness.feature_sim import FeatureSensors
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
     cfg = ControllerConfig.from_params({'disturbance_law': 'observer_integral',
                                         'observer.landing_bias_tau_s': 0.1}, vehicle,

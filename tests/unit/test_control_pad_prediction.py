@@ -15,14 +15,14 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.features import pad_feature
 from ibvs_common.core.frames import bearings_C_to_I, e3, rot_from_euler_zyx
 from ibvs_common.core.modes import Mode
-from ibvs_bringup import campaign
+from ibvs_harness import campaign
 from ibvs_control.core.controller import (
     ControllerConfig, FeatureSnapshot, IbvsController, Measurements)
-from ibvs_control.core.frame_io import feature_vector
+from ibvs_control.core.frame_inputs import feature_vector
 from ibvs_control.core.pad_prediction import (
     carry_pad_centre, pad_centre_from_feature, PadPrediction)
 from ibvs_sim.core.dynamics import WindConfig
-from ibvs_sim.core.feature_sim import FeatureSensors, FeatureSimConfig, run_feature_scenario
+from ibvs_harness.feature_sim import FeatureSensors, FeatureSimConfig, run_feature_scenario
 from ibvs_sim.core.world import load_world
 
 WORLD, PAD, VEHICLE = load_world(), load_pad_layout(), load_vehicle()

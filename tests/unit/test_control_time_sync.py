@@ -1,4 +1,4 @@
-"""The TIMESYNC clock-offset estimator (ibvs_control.core.time_sync) on synthetic round trips.
+"""The TIMESYNC clock-offset estimator (ibvs_control.mavlink.time_sync) on synthetic round trips.
 
 A synthetic link: the autopilot's boot clock is the ROS clock minus a known offset; a request
 sent at ROS time t reaches the autopilot after ``up`` ns (it answers with its boot time then)
@@ -11,7 +11,7 @@ formula.
 import numpy as np
 import pytest
 
-from ibvs_control.core.time_sync import TimeSync, TimeSyncConfig
+from ibvs_control.mavlink.time_sync import TimeSync, TimeSyncConfig
 
 MS = 1_000_000                                  # ns
 OFFSET = 1_700_000_000_123_456_789              # ns: ROS (system time) - boot, a real-looking one

@@ -5,7 +5,7 @@ import cv2
 import numpy as np
 import pytest
 
-from ibvs_control.core.frame_io import check_flow, PadPairing
+from ibvs_control.core.frame_inputs import check_flow, PadPairing
 from ibvs_common.core.modes import Mode
 from ibvs_common.core import attitude_buffer
 from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig

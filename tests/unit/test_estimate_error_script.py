@@ -9,7 +9,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Imu
 
-from ibvs_bringup import bag
+from ibvs_harness import bag
 from ibvs_common.core.frames import (quat_from_rot, rot_map_base_from_R_IB, rot_x, rot_y, rot_z,
                                      vec_I_to_map)
 

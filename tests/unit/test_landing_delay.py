@@ -9,8 +9,8 @@ the old low-altitude schedule; the shipped schedule (docs/design.md) lands throu
 import numpy as np
 import pytest
 
-from ibvs_bringup.campaign import load_setup
-from ibvs_sim.core.feature_sim import FeatureSimConfig, run_feature_scenario
+from ibvs_harness.campaign import load_setup
+from ibvs_harness.feature_sim import FeatureSimConfig, run_feature_scenario
 
 OLD_SCHEDULE = (('landing.lateral_schedule_height_m', 0.4), ('landing.lateral_scale_min', 0.25),
                 ('landing.vertical_schedule_height_m', 0.0))

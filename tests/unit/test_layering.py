@@ -1,10 +1,11 @@
-"""The packages' layering (issue 16, item 6), checked on the source: who may import whom.
+"""The packages' layering, checked on the source: who may import whom.
 
 ibvs_common is the base: frames, camera model, feature geometry, attitude buffer, config
-loading, node helpers. Perception and control depend on it and not on each other; the sim
-depends on control for its feature-level loop (the control laws), never on perception; only
-bringup sees everything. Every ibvs_* package a package imports is an exec_depend of its
-package.xml, so rosdep and colcon order the build as Python does.
+loading, the MAVLink connection, node helpers. Perception, control and the sim depend on it
+and not on each other; bringup (launch, node list, runner) starts them; only the experiment
+harness (ibvs_harness: scenario runs, campaigns, the feature-level loop) sees everything.
+Every ibvs_* package a package imports is an exec_depend of its package.xml, so rosdep and
+colcon order the build as Python does.
 """
 import ast
 from pathlib import Path
@@ -13,13 +14,16 @@ import xml.etree.ElementTree as ET
 import pytest
 
 SRC = Path(__file__).resolve().parents[2] / 'ros2_ws' / 'src'
-OURS = ('ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup')
+OURS = ('ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup',
+        'ibvs_harness')
 ALLOWED = {
     'ibvs_common': set(),
     'ibvs_control': {'ibvs_common'},
     'ibvs_perception': {'ibvs_common'},
-    'ibvs_sim': {'ibvs_common', 'ibvs_control'},
+    'ibvs_sim': {'ibvs_common'},
     'ibvs_bringup': {'ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim'},
+    'ibvs_harness': {'ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim',
+                     'ibvs_bringup'},
 }
 
 

@@ -712,8 +712,8 @@ def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list,
     autopilot's counters.
     ``seed``: the bridge's configured hover thrust (the sim's true one is 0.5).
     """
-    from ibvs_control.core.mavlink_bridge import BridgeConfig, MavlinkBridge
-    from ibvs_control.core.mavlink_link import LinkConfig
+    from ibvs_control.mavlink.bridge import BridgeConfig, MavlinkBridge
+    from ibvs_control.mavlink.link import LinkConfig
     ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0'))
     bridge = MavlinkBridge(BridgeConfig(
         link=LinkConfig(url=f'udpout:127.0.0.1:{ap.local_port}'), mass=1.676,

@@ -201,7 +201,7 @@ def test_wind_pushes_like_a_force(params):
 def test_feature_level_inner_loop_is_the_plant_model_without_rotors(params):
     """The feature-level loop's default inner loop: the same (wn, zeta, delay) as the plant,
     as a pure second-order response: the closed form to within the Euler step's error."""
-    from ibvs_sim.core.feature_sim import InnerLoop
+    from ibvs_harness.feature_sim import InnerLoop
     loop = InnerLoop(params)
     assert loop.delay_s == params.setpoint_delay_s
     dt, step = 0.001, 0.05

@@ -8,7 +8,7 @@ from ibvs_control.core.control_laws import CrossingLaw
 from ibvs_control.core.controller import ControllerConfig
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import SupervisorConfig
-from ibvs_sim.core.feature_sim import FeatureSimConfig, run_feature_scenario
+from ibvs_harness.feature_sim import FeatureSimConfig, run_feature_scenario
 
 WORLD, PAD, VEHICLE = load_world(), load_pad_layout(), load_vehicle()
 CTRL = ControllerConfig.from_params({}, VEHICLE, WORLD.window.width)
@@ -65,7 +65,7 @@ def test_the_estimate_error_model_is_the_sim_autopilots_and_is_flown():
     error size (params.yaml) still meets SPEC.md section 5 and differs from the exact run.
     """
     from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
-    from ibvs_sim.core.feature_sim import estimate_error_model
+    from ibvs_harness.feature_sim import estimate_error_model
     std, tau, seed = np.radians(0.7), 2.0, 11
     cfg = FeatureSimConfig(initial_position_I=WORLD.initial_position_I,
                            attitude_noise_std=std, attitude_noise_tau_s=tau, seed=seed)

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from ibvs_bringup import graph
-from ibvs_bringup.px4_sih import px4_boot_parameters
-from ibvs_bringup.run_scenario import parse_args
+from ibvs_harness.px4_sih import px4_boot_parameters
+from ibvs_harness.run_scenario import parse_args
 from ibvs_common.core.config import load_vehicle
 from ibvs_sim.core.px4_plant import (ContactWatch, find_px4_sitl, FrameClock, geodetic_to_ned,
                                      hil_state_sample, NedToI, PositionFilter, px4_home,
@@ -194,8 +194,8 @@ def test_autopilot_option_default_is_the_sim():
 
 
 def test_px4_sih_run_without_px4_fails_clearly(tmp_path, monkeypatch, capsys):
-    from ibvs_bringup import px4_scenario
-    from ibvs_bringup.run_scenario import prepare_out_dir
+    from ibvs_harness import px4_scenario
+    from ibvs_harness.scenario import prepare_out_dir
 
     def absent():
         raise FileNotFoundError('PX4 SITL not found (looked for px4-sih in /nowhere)')
@@ -243,7 +243,7 @@ def test_renice_threads_sets_every_thread_of_a_sitl_process():
     """Linux keeps a nice value per thread: each task of /proc/PID/task gets it."""
     import subprocess
     import sys
-    from ibvs_bringup.px4_sih import renice_threads
+    from ibvs_harness.px4_sih import renice_threads
     code = ('import threading, time\n'
             'for _ in range(3):\n'
             '    threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n'

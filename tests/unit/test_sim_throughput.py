@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from ibvs_bringup.preflight import GraphHealth
-from ibvs_bringup.run_scenario import flight_timing, main, MAX_SIM_TIME_S, parse_args
+from ibvs_harness.run_scenario import flight_timing, main, parse_args
+from ibvs_harness.scenario import MAX_SIM_TIME_S
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.frames import rot_from_euler_zyx
 from ibvs_sim.core.sim_core import (FrameOutput, ImuBeforeImages, Pacing, SimConfig,

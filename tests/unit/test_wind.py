@@ -13,7 +13,7 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_control.core.controller import ControllerConfig
 from ibvs_control.core.supervisor import SupervisorConfig
 from ibvs_sim.core.dynamics import Wind, WindConfig
-from ibvs_sim.core.feature_sim import FeatureSimConfig, run_feature_scenario
+from ibvs_harness.feature_sim import FeatureSimConfig, run_feature_scenario
 from ibvs_sim.core.world import load_world
 
 MASS = 1.676          # kg, SPEC.md's vehicle

@@ -19,16 +19,14 @@ setup(
     zip_safe=True,
     maintainer='IBVS team',
     maintainer_email='ibvs-team@example.com',
-    description=('Launch files, parameters, runner, bag record/replay, plots and reports of '
-                 'the IBVS window-and-landing stack.'),
+    description=('Launch files, parameters, node list, runner, composed container and '
+                 'preflight check of the IBVS window-and-landing stack.'),
     license='Apache-2.0',
     entry_points={
         'console_scripts': [
             'runner = ibvs_bringup.runner:main',
             'composed = ibvs_bringup.composed:main',
             'preflight = ibvs_bringup.preflight:main',
-            'recorder = ibvs_bringup.recorder_node:main',
-            'bag_player = ibvs_bringup.bag_player_node:main',
         ],
     },
 )

@@ -17,6 +17,7 @@ from ibvs_common.core import frames
 import numpy as np
 
 CONFIG_PACKAGE = 'ibvs_bringup'
+TOOLS_PACKAGE = 'ibvs_harness'     # the recorder and the bag player
 PARAMS_FILE_NAME = 'params.yaml'
 DEFAULT_MAVLINK_PORT = 14560
 CROSSING_LAWS = ('closed', 'intended', 'seed')
@@ -308,5 +309,5 @@ def onboard_graph(opts: GraphOptions = GraphOptions(use_sim_time=False)) -> list
 
 def tool_node(executable: str, name: str, parameters: tuple = (),
               remappings: tuple = ()) -> NodeSpec:
-    """Return a tool node of this package (recorder, bag player), not part of the flight graph."""
-    return NodeSpec(CONFIG_PACKAGE, executable, name, parameters, remappings, 'tool')
+    """Return a tool node of ibvs_harness (recorder, bag player), not part of the flight graph."""
+    return NodeSpec(TOOLS_PACKAGE, executable, name, parameters, remappings, 'tool')

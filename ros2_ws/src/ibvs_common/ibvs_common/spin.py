@@ -37,10 +37,10 @@ import gc
 import os
 import signal
 import threading
-from typing import TYPE_CHECKING
+from typing import Callable, TYPE_CHECKING
 
 import rclpy
-from rclpy.executors import Executor, SingleThreadedExecutor
+from rclpy.executors import Executor, ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
 if TYPE_CHECKING:
@@ -61,6 +61,31 @@ def make_executor(context: Context | None = None) -> Executor:
         except ImportError:
             pass
     return SingleThreadedExecutor(context=context)
+
+
+def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None = None,
+             refuse: tuple[type[BaseException], ...] = (ValueError,)) -> None:
+    """Run one node until Ctrl-C or SIGTERM: every console script's ``main()``.
+
+    The Jazzy demo_nodes_py pattern (init, build, spin, destroy, shut down) on
+    :func:`spin_guarded`. An exception of a type in ``refuse`` while building the node (a bad
+    parameter or configuration file, a port in use) is logged as fatal under ``name`` and the
+    process exits with status 1: a node never runs on a configuration it refused.
+    """
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = make_node()
+        spin_guarded(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except refuse as exc:
+        rclpy.logging.get_logger(name).fatal(f'cannot start: {exc}')
+        raise SystemExit(1) from exc
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
 
 
 def spin_guarded(node: Node) -> int:

@@ -27,8 +27,6 @@ ControllerConfig.from_params: bad gains -> GainError, the process exits with sta
 from __future__ import annotations
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -42,19 +40,19 @@ from ibvs_control.core.control_laws import (CrossingGains, GAIN_SPECS,
                                             IntegralGains, LandingGains, ObserverGains,
                                             WindowGains)
 from ibvs_control.core.controller import ControllerConfig, IbvsController
-from ibvs_control.core.frame_io import (feature_vector, heading_quat_enu_flu,
-                                        SpecificForceBuffer, step_controller)
+from ibvs_control.core.frame_inputs import (feature_vector, heading_quat_enu_flu,
+                                            SpecificForceBuffer, step_controller)
 from ibvs_common.core.frames import GRAVITY, MAP_FRAME, vec_flu_to_frd, vec_I_to_map
 from ibvs_common.core.modes import InputKind, Mode, MODE_INPUTS
 from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
                                               AttitudeBufferConfig)
 from ibvs_control.core.timing import Frame, FrameAssembler
-from ibvs_control.frame_products import FrameProductSubscriptions
+from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, LateImuReport, mode_from_status, NS_PER_S,
     ns_to_stamp, SENSOR_QOS, set_quat, set_vector3, vector3)
 from ibvs_common.param_descriptors import declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
@@ -280,17 +278,4 @@ class ForceControllerNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node (``ros2 run ibvs_control force_controller``); exit 1 on bad gains."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ForceControllerNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:   # GainError, ConfigError: never fly with a bad configuration
-        rclpy.logging.get_logger('force_controller').fatal(f'refusing to start: {exc}')
-        raise SystemExit(1)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(ForceControllerNode, 'force_controller', args)

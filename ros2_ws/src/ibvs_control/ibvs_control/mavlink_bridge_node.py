@@ -1,6 +1,6 @@
 """mavlink_bridge: ibvs/force_setpoint + ibvs/heading_setpoint -> SET_ATTITUDE_TARGET; IMU back.
 
-Thin ROS wrapper of :class:`ibvs_control.core.mavlink_bridge.MavlinkBridge` (docs/mavlink.md,
+Thin ROS wrapper of :class:`ibvs_control.mavlink.bridge.MavlinkBridge` (docs/mavlink.md,
 docs/interfaces.md). Subscribes ibvs/heading_setpoint (QuaternionStamped, map; created before
 the force subscription, so that when both wait the heading of a frame is taken first),
 ibvs/force_setpoint (Vector3Stamped, map, N), ibvs/mode (UInt8, transient local) and
@@ -23,9 +23,7 @@ import threading
 from typing import Callable
 
 import numpy as np
-import rclpy
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -36,19 +34,19 @@ from std_srvs.srv import Trigger
 
 from ibvs_common.core.config import ConfigError, load_vehicle
 from ibvs_common.core.frames import vec_map_to_I
-from ibvs_control.core.mavlink_bridge import BridgeConfig, BridgeStatus, MavlinkBridge
-from ibvs_control.core.mavlink_hover import EstimatorConfig
-from ibvs_control.core.mavlink_link import (
+from ibvs_control.mavlink.bridge import BridgeConfig, BridgeStatus, MavlinkBridge
+from ibvs_control.mavlink.hover import EstimatorConfig
+from ibvs_control.mavlink.link import (
     LinkConfig, load_signing_key, MavlinkReader, SigningError)
-from ibvs_control.core.mavlink_sequencer import SequencerConfig
-from ibvs_control.core.mavlink_telemetry import ImuSample, load_px4_events, message_ids
-from ibvs_control.core.time_sync import TimeSyncConfig
+from ibvs_control.mavlink.sequencer import SequencerConfig
+from ibvs_control.mavlink.telemetry import ImuSample, load_px4_events, message_ids
+from ibvs_control.mavlink.time_sync import TimeSyncConfig
 from ibvs_common.intra_process import IntraProcessTopic
 from ibvs_common.node_common import (
     COMMAND_QOS, FRAME_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat,
     set_vector3, stamp_to_ns, vector3)
 from ibvs_common.param_descriptors import declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import message_kind, ThrottledLog
 
 DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
@@ -569,18 +567,4 @@ class MavlinkBridgeNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node (``ros2 run ibvs_control mavlink_bridge``)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = MavlinkBridgeNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ValueError, SigningError) as exc:
-        # Bad parameters (signing key, vehicle file, rates): refuse to start.
-        rclpy.logging.get_logger('mavlink_bridge').fatal(f'refusing to start: {exc}')
-        raise SystemExit(1)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(MavlinkBridgeNode, 'mavlink_bridge', args, refuse=(ValueError, SigningError))

@@ -40,8 +40,6 @@ from dataclasses import fields
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from sensor_msgs.msg import Imu
@@ -58,12 +56,12 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
                                               AttitudeBufferConfig)
 from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_control.core.timing import Frame, FrameAssembler
-from ibvs_control.frame_products import FrameProductSubscriptions
+from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S, SENSOR_QOS,
     supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
@@ -330,17 +328,4 @@ class ModeSupervisorNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node (``ros2 run ibvs_control mode_supervisor``)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = ModeSupervisorNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:   # ConfigError or a bad parameter: refuse to start
-        rclpy.logging.get_logger('mode_supervisor').fatal(f'refusing to start: {exc}')
-        raise SystemExit(1)
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(ModeSupervisorNode, 'mode_supervisor', args)

@@ -11,7 +11,7 @@ enough inliers, else all three components NaN, "no valid flow at this stamp" (fi
 few inliers, no window, no attitude), so that the supervisor and the controller know per stamp
 whether a flow is coming; and `<camera>_camera/translational_flow_quality` (Float32 inlier
 ratio) for every estimate tried. The images of a frozen camera (``frozen_after_frames``
-bit-identical images in a row, :mod:`~ibvs_perception.frozen_guard`) are not processed and
+bit-identical images in a row, :mod:`~ibvs_perception.frozen_camera`) are not processed and
 get no message at all, as if the camera had delivered nothing.
 
 Each image is processed on arrival (timing layer, docs/design.md "Time"): its attitude is
@@ -25,8 +25,6 @@ recorded data, so lockstep runs repeat and bag replays reproduce.
 from __future__ import annotations
 
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
@@ -44,13 +42,13 @@ from ibvs_perception.core.derotation import GyroDerotation
 from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, PARAMETER_SPECS,
                                        wall_normal_from_corners)
 from ibvs_common.core.modes import InputKind
-from ibvs_perception.frozen_guard import FrozenCameraGuard
-from ibvs_perception.mode_gating import GatedImages
+from ibvs_perception.frozen_camera import FrozenCameraGuard
+from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_common.node_common import IMAGE_QOS, LateImuReport, stamp_to_ns
 from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
@@ -216,20 +214,7 @@ class OpticalFlowNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node (console script `optical_flow`)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = OpticalFlowNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:                     # a bad parameter: say which, exit
-        rclpy.logging.get_logger('optical_flow').fatal(f'cannot start: {exc}')
-        raise SystemExit(1) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(OpticalFlowNode, 'optical_flow', args)
 
 
 if __name__ == '__main__':

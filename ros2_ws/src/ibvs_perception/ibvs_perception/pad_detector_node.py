@@ -5,12 +5,10 @@ of the marker centres of every complete group, largest group first, layout id or
 when no group is complete) and one `pad/groups` (sensor_msgs/JointState: same stamp and
 frame, ``name`` = the groups in the landmarks' order, e.g. ['A', 'B']) per image;
 nothing for the images of a frozen camera (``frozen_after_frames`` bit-identical images in a
-row, :mod:`~ibvs_perception.frozen_guard`), as if the camera had delivered nothing.
+row, :mod:`~ibvs_perception.frozen_camera`), as if the camera had delivered nothing.
 """
 from __future__ import annotations
 
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
@@ -21,13 +19,13 @@ from sensor_msgs.msg import CameraInfo, Image, JointState
 from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
                                       PARAMETER_SPECS)
 from ibvs_common.core.modes import InputKind
-from ibvs_perception.frozen_guard import FrozenCameraGuard
-from ibvs_perception.mode_gating import GatedImages
+from ibvs_perception.frozen_camera import FrozenCameraGuard
+from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
 from ibvs_common.node_common import IMAGE_QOS, pad_groups_msg
 from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
@@ -92,20 +90,7 @@ class PadDetectorNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node (console script `pad_detector`)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = PadDetectorNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:                     # a bad parameter: say which, exit
-        rclpy.logging.get_logger('pad_detector').fatal(f'cannot start: {exc}')
-        raise SystemExit(1) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(PadDetectorNode, 'pad_detector', args)
 
 
 if __name__ == '__main__':

@@ -4,7 +4,7 @@ Publishes one `window/corners` and one `window/edge_normals` (PolygonStamped, op
 stamp of the image) for EVERY image: 4 unit bearings TL, TR, BR, BL / 4 unit normals h_i, or
 empty polygons when the window is not (fully) detected or its track was lost. Except for the
 images of a frozen camera (``frozen_after_frames`` bit-identical images in a row,
-:mod:`~ibvs_perception.frozen_guard`): nothing at all, as if the camera had delivered nothing.
+:mod:`~ibvs_perception.frozen_camera`): nothing at all, as if the camera had delivered nothing.
 
 Tracking with the gyro: the attitude at each image stamp (``imu/data``, interpolated or
 propagated, :class:`~ibvs_common.core.attitude_buffer.AttitudeBuffer`) gives the camera's rotation
@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-import rclpy
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
@@ -31,8 +29,8 @@ from sensor_msgs.msg import CameraInfo, Image, Imu
 from ibvs_perception.core.window import PARAMETER_SPECS, WindowDetector, WindowDetectorConfig
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.modes import InputKind
-from ibvs_perception.frozen_guard import FrozenCameraGuard
-from ibvs_perception.mode_gating import GatedImages
+from ibvs_perception.frozen_camera import FrozenCameraGuard
+from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       polygon_from_vectors, stamp_to_s)
 from ibvs_common.core.config import ConfigError, load_vehicle, load_window_layout
@@ -40,7 +38,7 @@ from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuf
                                               AttitudeBufferConfig)
 from ibvs_common.node_common import IMAGE_QOS, LateImuReport
 from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
@@ -174,20 +172,7 @@ class WindowDetectorNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the node (console script `window_detector`)."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = WindowDetectorNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:                     # a bad parameter: say which, exit
-        rclpy.logging.get_logger('window_detector').fatal(f'cannot start: {exc}')
-        raise SystemExit(1) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(WindowDetectorNode, 'window_detector', args)
 
 
 if __name__ == '__main__':

@@ -23,9 +23,7 @@ import math
 import time
 
 import numpy as np
-import rclpy
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
@@ -40,7 +38,7 @@ from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
 from ibvs_common.param_descriptors import declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample, MocapRelay,
                                      NedToI, PositionFilter, px4_home, Px4PlantError,
                                      SIH_DEFAULT_HOME, StateLink)
@@ -297,20 +295,7 @@ def main(args: list[str] | None = None) -> None:
     """Run the node until Ctrl-C."""
     # an image publisher like the sim: its shared-memory segment holds the images it sends
     use_dds_profile_here()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = Px4SimNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ConfigError, ValueError, OSError) as exc:    # OSError: the state port is taken
-        rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
-        raise SystemExit(1) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(Px4SimNode, NODE_NAME, args, refuse=(ConfigError, ValueError, OSError))
 
 
 if __name__ == '__main__':

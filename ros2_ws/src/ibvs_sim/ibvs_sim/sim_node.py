@@ -29,9 +29,7 @@ import math
 import time
 
 import numpy as np
-import rclpy
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
@@ -59,7 +57,7 @@ from ibvs_common.core.stamps import NS_PER_S
 from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.node_common import mode_from_status, stamp_to_ns
 from ibvs_common.param_descriptors import declare_all
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 
 NODE_NAME = 'sim'
 MAP_FRAME = 'map'
@@ -601,20 +599,7 @@ def main(args: list[str] | None = None) -> None:
     """Run the sim node until Ctrl-C (demo_nodes_py pattern)."""
     # the images' shared-memory segment is the sim's: lossless under a plain `ros2 run` too
     use_dds_profile_here()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = SimNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (ConfigError, ValueError, OSError) as exc:   # OSError: the MAVLink port is taken
-        rclpy.logging.get_logger(NODE_NAME).fatal(f'cannot start: {exc}')
-        raise SystemExit(1) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(SimNode, NODE_NAME, args, refuse=(ConfigError, ValueError, OSError))
 
 
 if __name__ == '__main__':

@@ -441,7 +441,7 @@ class StateLink:
 
     def __init__(self, url: str, rate_hz: float, request_period_s: float = 1.0,
                  threaded: bool = False, relay: MocapRelay | None = None) -> None:
-        from ibvs_control.core.mavlink_udp import open_mavlink   # pymavlink only when used
+        from ibvs_common.core.mavlink_connection import open_mavlink   # pymavlink only when used
         if not (math.isfinite(rate_hz) and rate_hz > 0.0):
             raise Px4PlantError(f'state rate must be > 0 Hz, got {rate_hz}')
         self.rate_hz = float(rate_hz)
@@ -518,7 +518,7 @@ class StateLink:
     @property
     def local_port(self) -> int | None:
         """UDP port the link listens on (the kernel's pick for ``udpin:HOST:0``)."""
-        from ibvs_control.core.mavlink_udp import local_port
+        from ibvs_common.core.mavlink_connection import local_port
         return local_port(self.conn)
 
     def close(self) -> None:

@@ -12,7 +12,7 @@ from typing import Any, Callable, Mapping
 
 from ibvs_sim.core.autopilot.config import (AutopilotConfig, AutopilotCounters, RateLimitedLog,
                                             VehicleStateView)
-from ibvs_control.core.mavlink_udp import local_port, open_mavlink
+from ibvs_common.core.mavlink_connection import local_port, open_mavlink
 from ibvs_sim.core.autopilot.protocol import (BROADCAST_ID, mavlink, MAVLINK_DIALECT,
                                               STATUSTEXT_LEN)
 

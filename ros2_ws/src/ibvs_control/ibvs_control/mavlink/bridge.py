@@ -1,14 +1,14 @@
 """The MAVLink bridge without ROS: a thin composition of its parts (docs/mavlink.md).
 
-- :mod:`~ibvs_control.core.mavlink_link`: connection, signing, heartbeats, link supervision;
-- :mod:`~ibvs_control.core.time_sync`: clock offset by TIMESYNC (and its message exchange);
-- :mod:`~ibvs_control.core.mavlink_telemetry`: autopilot messages -> imu/data samples, specific
+- :mod:`~ibvs_control.mavlink.link`: connection, signing, heartbeats, link supervision;
+- :mod:`~ibvs_control.mavlink.time_sync`: clock offset by TIMESYNC (and its message exchange);
+- :mod:`~ibvs_control.mavlink.telemetry`: autopilot messages -> imu/data samples, specific
   force, applied thrust, landed state, armability, the autopilot's reasons; stream requests;
-- :mod:`~ibvs_control.core.mavlink_setpoints`: force / heading pairing and SET_ATTITUDE_TARGET;
-- :mod:`~ibvs_control.core.mavlink_hover`: hover thrust seed and online estimate;
-- :mod:`~ibvs_control.core.mavlink_params`: the autopilot parameters read and what they imply;
-- :mod:`~ibvs_control.core.mavlink_safety`: the safety policy's table and detectors;
-- :mod:`~ibvs_control.core.mavlink_sequencer`: engage / arm / hand-back state machine.
+- :mod:`~ibvs_control.mavlink.setpoints`: force / heading pairing and SET_ATTITUDE_TARGET;
+- :mod:`~ibvs_control.mavlink.hover`: hover thrust seed and online estimate;
+- :mod:`~ibvs_control.mavlink.params`: the autopilot parameters read and what they imply;
+- :mod:`~ibvs_control.mavlink.safety`: the safety policy's table and detectors;
+- :mod:`~ibvs_control.mavlink.sequencer`: engage / arm / hand-back state machine.
 
 The node feeds :class:`MavlinkBridge` the force and heading setpoints, the supervisor's mode
 and arm requests, and calls :meth:`MavlinkBridge.poll` (receive: when input is pending, from
@@ -27,22 +27,22 @@ from typing import Callable
 
 import numpy as np
 
-from ibvs_control.core.mavlink_hover import (
+from ibvs_control.mavlink.hover import (
     EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
-from ibvs_control.core.mavlink_link import LinkConfig, MavAutopilot, MavlinkLink, MavMsgId
-from ibvs_control.core.mavlink_params import AutopilotParams, Changed
-from ibvs_control.core.mavlink_safety import SafetyConfig, SafetyMonitor
-from ibvs_control.core.mavlink_sequencer import (
+from ibvs_control.mavlink.link import LinkConfig, MavAutopilot, MavlinkLink, MavMsgId
+from ibvs_control.mavlink.params import AutopilotParams, Changed
+from ibvs_control.mavlink.safety import SafetyConfig, SafetyMonitor
+from ibvs_control.mavlink.sequencer import (
     Autopilot, EngageSequencer, EngageState, SequencerConfig, SequencerInputs)
-from ibvs_control.core.mavlink_setpoints import (
+from ibvs_control.mavlink.setpoints import (
     AttitudeTarget, HeadingPairing, RateMeter, SetpointShaper, SetpointSource, ShaperConfig,
     yaw_from_heading_quat)
-from ibvs_control.core.mavlink_telemetry import (
+from ibvs_control.mavlink.telemetry import (
     AccelSample, ImuSample, LandedState, QuietTelemetry, StreamRequests, streams_for,
     Telemetry)
 from ibvs_common.core.modes import Mode
 from ibvs_common.core.stamps import NS_PER_S
-from ibvs_control.core.time_sync import (
+from ibvs_control.mavlink.time_sync import (
     TimeSync, TimeSyncConfig, TimesyncExchange, TimeSyncStatus)
 
 __all__ = ['BridgeConfig', 'BridgeStatus', 'ImuSample', 'MavlinkBridge', 'SetpointSource']

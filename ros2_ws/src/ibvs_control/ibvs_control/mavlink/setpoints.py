@@ -37,7 +37,7 @@ from enum import Enum
 import numpy as np
 
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
-from ibvs_control.core.mavlink_safety import silence_s
+from ibvs_control.mavlink.safety import silence_s
 from ibvs_common.core.frames import (
     euler_zyx_from_rot, GRAVITY, quat_from_rot, R_IB_from_rot_map_base, rot_from_quat, rot_z)
 from ibvs_common.core.modes import Mode

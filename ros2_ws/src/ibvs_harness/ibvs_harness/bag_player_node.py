@@ -14,15 +14,13 @@ from dataclasses import dataclass
 import time
 
 from builtin_interfaces.msg import Time
-from ibvs_bringup import bag
-from ibvs_bringup.recorder_node import msg_class
-import rclpy
-from rclpy.executors import ExternalShutdownException
+from ibvs_harness import bag
+from ibvs_harness.recorder_node import msg_class
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.param_descriptors import declare
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 from rosgraph_msgs.msg import Clock
 
 INFO_SUFFIX = 'camera_info'
@@ -123,20 +121,7 @@ def main(args: list[str] | None = None) -> None:
     """Play the bag once, then keep the node alive until Ctrl-C / SIGTERM."""
     # the images' shared-memory segment is the player's: lossless under a plain `ros2 run` too
     use_dds_profile_here()
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = BagPlayerNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:          # bag.BagError, a missing bag_path: say why, exit 1
-        rclpy.logging.get_logger('bag_player').fatal(f'cannot play: {exc}')
-        raise SystemExit(1) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(BagPlayerNode, 'bag_player', args)
 
 
 if __name__ == '__main__':

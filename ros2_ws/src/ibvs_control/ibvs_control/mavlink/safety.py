@@ -2,7 +2,7 @@
 
 ROS-free, no I/O. :data:`POLICY` is the table written in docs/mavlink.md ("Safety policy"); a
 test checks that the two agree. :class:`SafetyMonitor` turns the bridge's inputs into the
-events the :class:`~ibvs_control.core.mavlink_sequencer.EngageSequencer` acts on:
+events the :class:`~ibvs_control.mavlink.sequencer.EngageSequencer` acts on:
 
 - forces lost: no valid ``ibvs/force_setpoint`` for ``hold_last_s`` of *vehicle* time (the
   ROS clock: system time on a vehicle, sim time in the sim, so a lockstep sim waiting for the

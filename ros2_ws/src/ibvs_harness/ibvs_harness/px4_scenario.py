@@ -5,7 +5,7 @@ the system clock (PX4 runs in real time; every node has use_sim_time false):
 
 1. PX4 SIH starts with the Pelican's parameters (vehicle.yaml), the home ``px4_sim`` maps from
    and MIS_TAKEOFF_ALT = the start height above the take-off point
-   (:mod:`ibvs_bringup.px4_sih`);
+   (:mod:`ibvs_harness.px4_sih`);
 2. the graph starts: ``px4_sim`` (cameras rendered from PX4's ground truth) and the onboard
    nodes with the shipped params.yaml, the bridge on PX4's companion port (udpin 14540 + i);
 3. the harness, as the pilot's GCS, arms PX4 and commands its take-off; PX4 climbs and holds
@@ -31,15 +31,18 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ibvs_bringup import graph, report
-from ibvs_bringup.px4_sih import (free_instance, MAV_CMD_DO_REPOSITION, Pilot,
+from ibvs_bringup import graph
+from ibvs_harness import report
+from ibvs_harness.scenario import (finish, missing_executables, run_block, supervisor_log,
+                                   supervisor_transitions)
+from ibvs_harness.px4_sih import (free_instance, MAV_CMD_DO_REPOSITION, Pilot,
                                   px4_boot_parameters, Px4Sitl, SITL_NICE)
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.px4_plant import find_px4_sitl, NedToI, sih_parameters
 from ibvs_sim.core.world import load_world
 
 if TYPE_CHECKING:
-    from ibvs_bringup.run_scenario import RunOptions
+    from ibvs_harness.scenario import RunOptions
 
 TAKEOFF_TIMEOUT_S = 60.0      # s (steady), PX4's take-off until it holds (AUTO.LOITER)
 TAKEOFF_REACHED = 0.8          # PX4's altitude estimate at this fraction of MIS_TAKEOFF_ALT
@@ -94,22 +97,20 @@ def px4_sim_section(params_file: str | None) -> dict:
 
 
 def _error_summary(opts, world, xi0, error: str) -> dict:
-    from ibvs_bringup.run_scenario import _run_block
     summary = report.summarize(report.RunLog(), world, 0.0, 0.0)
-    summary['run'] = _run_block(opts, xi0, autopilot='px4-sih', error=error)
+    summary['run'] = run_block(opts, xi0, autopilot='px4-sih', error=error)
     return summary
 
 
 def run_px4_sih(opts: RunOptions) -> int:
     """Fly the whole graph against PX4 SIH once; write results/<run>/ (exit code as run_graph)."""
-    from ibvs_bringup.run_scenario import _finish, _run_block, missing_executables
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
     xi0 = opts.initial_position or tuple(float(x) for x in world.initial_position_I)
     try:
         sitl_dir = find_px4_sitl()
     except FileNotFoundError as exc:
         print(f'--autopilot px4-sih: {exc}', file=sys.stderr)
-        return _finish(opts, _error_summary(opts, world, xi0, str(exc)), None)
+        return finish(opts, _error_summary(opts, world, xi0, str(exc)), None)
     p = px4_sim_section(opts.params_file)
     home = (float(p['home_lat_deg']), float(p['home_lon_deg']), float(p['home_alt_m']))
     frame = NedToI.from_start(xi0, world.floor_z, float(p['rest_height_m']))
@@ -119,7 +120,7 @@ def run_px4_sih(opts: RunOptions) -> int:
     try:
         instance = opts.px4_instance if opts.px4_instance is not None else free_instance()
     except RuntimeError as exc:
-        return _finish(opts, _error_summary(opts, world, xi0, str(exc)), None)
+        return finish(opts, _error_summary(opts, world, xi0, str(exc)), None)
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=False,
                                initial_position=opts.initial_position,
                                crossing_law=opts.crossing_law,
@@ -136,10 +137,10 @@ def run_px4_sih(opts: RunOptions) -> int:
             'image_every': int(opts.image_every)},)))
     missing = missing_executables(specs)
     if missing:
-        return _finish(opts, _error_summary(opts, world, xi0,
-                                            'nodes missing: ' + '; '.join(missing)), None)
+        return finish(opts, _error_summary(opts, world, xi0,
+                                           'nodes missing: ' + '; '.join(missing)), None)
     return _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs,
-                    _finish, _run_block, frame)
+                    finish, run_block, frame)
 
 
 def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, finish,
@@ -147,8 +148,7 @@ def _fly_px4(opts, world, pad, vehicle, xi0, sitl_dir, instance, boot, specs, fi
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
-    from ibvs_bringup.monitor_node import close_monitor, ScenarioMonitor
-    from ibvs_bringup.run_scenario import supervisor_log, supervisor_transitions
+    from ibvs_harness.monitor_node import close_monitor, ScenarioMonitor
     from ibvs_bringup.runner import ProcessRunner, Terminated
 
     t_wall0 = time.monotonic()

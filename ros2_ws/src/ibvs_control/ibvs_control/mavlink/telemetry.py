@@ -34,8 +34,8 @@ import numpy as np
 
 from ibvs_common.core.frames import (
     GRAVITY, quat_ned_frd_to_enu_flu, vec_frd_to_flu, yaw_and_cos_tilt_from_quat)
-from ibvs_control.core.mavlink_link import mavlink, MavMsgId
-from ibvs_control.core.time_sync import TimeSync
+from ibvs_control.mavlink.link import mavlink, MavMsgId
+from ibvs_control.mavlink.time_sync import TimeSync
 
 NS_PER_MS = 1_000_000
 NS_PER_US = 1_000

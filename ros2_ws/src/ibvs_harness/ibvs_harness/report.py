@@ -14,7 +14,7 @@ import json
 import os
 from typing import Any
 
-from ibvs_bringup.plots import RunData, TimeSeries
+from ibvs_harness.plots import RunData, TimeSeries
 from ibvs_common.core import features
 from ibvs_common.core.config import PadLayout
 from ibvs_sim.core.world import WorldConfig

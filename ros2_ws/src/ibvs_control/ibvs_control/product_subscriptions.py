@@ -2,9 +2,9 @@
 
 :class:`FrameProductSubscriptions` subscribes ``window/corners``, ``pad/landmarks`` +
 ``pad/groups`` and both ``<camera>_camera/translational_flow`` (``PRODUCT_QOS``: best effort,
-keep last 2), validates each message (:func:`~ibvs_control.core.frame_io.check_bearings`,
-:func:`~ibvs_control.core.frame_io.check_flow`), pairs the two pad halves by stamp
-(:class:`~ibvs_control.core.frame_io.PadPairing`) and hands every product to the node's
+keep last 2), validates each message (:func:`~ibvs_control.core.frame_inputs.check_bearings`,
+:func:`~ibvs_control.core.frame_inputs.check_flow`), pairs the two pad halves by stamp
+(:class:`~ibvs_control.core.frame_inputs.PadPairing`) and hands every product to the node's
 ``add(kind, stamp_ns, value, err)``:
 
 - WINDOW: the 4 corner bearings (optical frame, rows) or None (not detected / refused);
@@ -26,7 +26,7 @@ from sensor_msgs.msg import JointState
 from ibvs_common.core.modes import InputKind
 from ibvs_common.node_common import (
     pad_group_names, polygon_points, PRODUCT_QOS, stamp_to_ns, vector3)
-from ibvs_control.core.frame_io import check_bearings, check_flow, PadPairing
+from ibvs_control.core.frame_inputs import check_bearings, check_flow, PadPairing
 
 LANDMARKS_PER_GROUP = 4
 AddProduct = Callable[[InputKind, int, object, str], None]

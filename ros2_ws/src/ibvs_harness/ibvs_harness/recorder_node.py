@@ -13,14 +13,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 import importlib
 
-from ibvs_bringup import bag
-import rclpy
+from ibvs_harness import bag
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from ibvs_common.param_descriptors import declare
-from ibvs_common.spin import spin_guarded
+from ibvs_common.spin import run_node
 
 PARAMETER_SPECS = {   # description with unit, range (ibvs_common.param_descriptors)
     'bag_path': ('new directory of the bag (must not exist); required',),
@@ -119,17 +117,4 @@ class RecorderNode(Node):
 
 def main(args: list[str] | None = None) -> None:
     """Run the recorder until Ctrl-C / SIGTERM; the bag is closed either way."""
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = RecorderNode()
-        spin_guarded(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:          # a missing bag_path, a bad parameter: say why, exit 1
-        rclpy.logging.get_logger('recorder').fatal(f'cannot record: {exc}')
-        raise SystemExit(1) from exc
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(RecorderNode, 'recorder', args)

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from geometry_msgs.msg import Vector3Stamped
 from ibvs_bringup.preflight import BEST_EFFORT, GraphHealth, LATCHED
-from ibvs_bringup.report import FEATURE_VECTORS, named_vector, RunLog
+from ibvs_harness.report import FEATURE_VECTORS, named_vector, RunLog
 from diagnostic_msgs.msg import DiagnosticArray
 from ibvs_common.core import frames
 from ibvs_common.node_common import COMMAND_QOS, mode_from_status, NS_PER_S

@@ -30,7 +30,7 @@ import numpy as np
 os.environ['MAVLINK20'] = '1'  # before pymavlink.mavutil is imported: MAVLink 2 framing
 from pymavlink import mavutil  # noqa: E402  (must follow the MAVLINK20 switch)
 
-from ibvs_control.core.mavlink_udp import local_port, open_mavlink  # noqa: E402
+from ibvs_common.core.mavlink_connection import local_port, open_mavlink  # noqa: E402
 
 mavlink = mavutil.mavlink
 

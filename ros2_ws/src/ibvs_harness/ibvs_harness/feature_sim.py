@@ -9,7 +9,7 @@ the cameras' fields of view (CameraModel projection with distortion) and the wal
 deciding what is seen; the IMU's specific force v' - g e3, exact, averaged over each frame
 (the disturbance observer's input). Controller and supervisor: the ROS-free IBVS core,
 exactly as the nodes run it. Used by the tests of issue 2, by ``make run --
---feature-level`` and by the campaigns (``python -m ibvs_bringup.campaign``).
+--feature-level`` and by the campaigns (``python -m ibvs_harness.campaign``).
 
 Wind: the image-level simulator's model, :class:`ibvs_sim.core.dynamics.Wind` (steady force
 plus a seeded sum of sines per axis, docs/sim.md "Wind"). The point mass feels

@@ -1,6 +1,6 @@
 """Monte Carlo campaigns under wind at feature level (issue 14): ``make mc`` / this module.
 
-``python -m ibvs_bringup.campaign --name NAME [--runs N] [--levels 0 0.2 0.5 0.8] ...``
+``python -m ibvs_harness.campaign --name NAME [--runs N] [--levels 0 0.2 0.5 0.8] ...``
 
 For every law and wind level, ``runs`` flights of ibvs_sim's feature-level closed loop
 (``feature_sim.run_feature_scenario``: the ROS-free controller and supervisor as the nodes run
@@ -32,7 +32,7 @@ Output, ``<results-root>/<name>/`` (default results/campaign/<name>/):
 Parallel over processes (``--workers``, default ``os.cpu_count()``).
 
 ``--image-level``: the same runs through the whole graph in lockstep, one
-``python -m ibvs_bringup.run_scenario`` subprocess per run (no bag, no plots), each worker on
+``python -m ibvs_harness.run_scenario`` subprocess per run (no bag, no plots), each worker on
 its own ROS_DOMAIN_ID (``--domain-base`` + worker). The steady wind goes on its ``--wind``,
 the law's overrides and the gusts (amplitude, frequency, the sim's ``seed`` for the phases)
 in a per-run params.yaml (``--params-file``); the sim node has one gust sine per axis, so
@@ -132,7 +132,7 @@ class CampaignConfig:
     results_root: str = DEFAULT_RESULTS_ROOT
     image_level: bool = False         # True: the whole graph in lockstep (run_scenario)
     domain_base: int = 100            # image level: worker w uses ROS_DOMAIN_ID base + w
-    scenario_module: str = 'ibvs_bringup.run_scenario'   # image level: run as python -m
+    scenario_module: str = 'ibvs_harness.run_scenario'   # image level: run as python -m
     run_timeout_s: float = 900.0      # image level: wall-clock limit of one run
 
     @property
@@ -373,12 +373,12 @@ def read_params(params_file: str | None) -> tuple[str, str]:
 def load_setup(params_file: str | None, overrides: tuple) -> _Setup:
     """World, pad, vehicle and the controller/supervisor configs as the nodes build them.
 
-    ``ibvs_bringup.core_configs`` (gains, laws, window and pad layout files of each node's
+    ``ibvs_harness.core_configs`` (gains, laws, window and pad layout files of each node's
     section) with ``overrides`` applied to force_controller. Cached per (file, overrides) in a
     process.
     """
     import yaml
-    from ibvs_bringup.core_configs import controller_config, supervisor_config
+    from ibvs_harness.core_configs import controller_config, supervisor_config
     from ibvs_common.core.config import load_pad_layout, load_vehicle
     from ibvs_sim.core.world import load_world
     _, text = read_params(params_file)
@@ -401,7 +401,7 @@ def run_wind(cfg: CampaignConfig, spec: RunSpec, mass_kg: float) -> WindConfig:
                                  cfg.gust_components, spec.gust_seed)
 
 
-def _run_block(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: float,
+def run_record(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: float,
                noise: tuple | None) -> dict:
     return {'campaign': cfg.name, 'feature_level': not cfg.image_level,
             'image_level': cfg.image_level, 'law': spec.law.label,
@@ -416,7 +416,7 @@ def _run_block(cfg: CampaignConfig, spec: RunSpec, wind, summary: dict, wall_s: 
 
 
 def _write_summary(cfg: CampaignConfig, spec: RunSpec, summary: dict) -> None:
-    from ibvs_bringup.report import write_json
+    from ibvs_harness.report import write_json
     path = os.path.join(spec.run_dir(cfg.out_dir), 'summary.json')
     tmp = path + '.tmp'
     write_json(tmp, summary)
@@ -428,7 +428,7 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     if cfg.image_level:
         return fly_image_run(cfg, spec)
     from ibvs_common.core.modes import Mode
-    from ibvs_sim.core import feature_sim
+    from ibvs_harness import feature_sim
     setup = load_setup(cfg.params_file, spec.law.overrides)
     wind = run_wind(cfg, spec, setup.vehicle.mass)
     noise_std, noise_tau = cfg.estimate_noise or setup.estimate_noise
@@ -445,7 +445,7 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
                                                      setup.controller, setup.supervisor,
                                                      sim_cfg)
     summary = dict(summary)
-    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0,
+    summary['run'] = run_record(cfg, spec, wind, summary, time.monotonic() - t0,
                                 (noise_std, noise_tau))
     summary['run']['transitions'] = [f'-> {Mode(m).name} at t = {t:.2f} s: {why}'
                                      for m, t, why in flog.transitions]
@@ -484,7 +484,7 @@ def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind: WindConfig) -> di
 
 
 def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
-    """Fly one run through the whole graph (``python -m ibvs_bringup.run_scenario``).
+    """Fly one run through the whole graph (``python -m ibvs_harness.run_scenario``).
 
     Lockstep sim time; no bag, no plots; ROS_DOMAIN_ID from this process's environment (set
     per worker by :func:`run_campaign`). The flight's own directory is ``<run>/flight/``
@@ -520,7 +520,7 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     if code not in (0, 1) or summary is None:
         return None
     summary['flight_run'] = summary.pop('run', {})
-    summary['run'] = _run_block(cfg, spec, wind, summary, time.monotonic() - t0,
+    summary['run'] = run_record(cfg, spec, wind, summary, time.monotonic() - t0,
                                 params_estimate_noise(params))
     summary['run']['ros_domain_id'] = env.get('ROS_DOMAIN_ID')
     _write_summary(cfg, spec, summary)
@@ -739,7 +739,7 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                                                   float | None]:
     """Parse the command line into (config, workers, plots, aggregate_only, max_wall_s)."""
     p = argparse.ArgumentParser(
-        prog='python -m ibvs_bringup.campaign',
+        prog='python -m ibvs_harness.campaign',
         description='Monte Carlo campaign under wind, feature level (issue 14): N random '
                     'starts in the SPEC box per law and wind level; resumable.')
     p.add_argument('--name', default='feature',

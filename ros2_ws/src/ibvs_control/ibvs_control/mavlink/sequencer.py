@@ -2,7 +2,7 @@
 
 The sequencer decides *which commands* to send to the autopilot, *when*, and whether setpoints
 stream at all; the bridge sends them. It carries out the safety policy of
-:mod:`~ibvs_control.core.mavlink_safety` (the table in docs/mavlink.md). Sequences:
+:mod:`~ibvs_control.mavlink.safety` (the table in docs/mavlink.md). Sequences:
 
 Engage (the supervisor leaves IDLE for WINDOW / CROSSING / LANDING; at least one IDLE report
 since the last engagement, so a bridge restarted mid-flight never takes the vehicle by itself)

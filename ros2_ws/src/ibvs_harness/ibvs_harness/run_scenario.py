@@ -14,148 +14,29 @@ Exit code: 0 success, 1 the flight failed SPEC.md's criteria, 2 the run could no
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, field
 import os
-import random
-import re
-import shutil
-import socket
 import sys
 import time
-from typing import Iterable, TYPE_CHECKING
+from typing import TYPE_CHECKING
 
-from ibvs_bringup import graph, plots, report
-from ibvs_bringup.runner import (COMPOSED_NAME, DEFAULT_LAYOUT, LAYOUTS, ProcessRunner,
-                                 raise_on_sigterm, Terminated)
+from ibvs_bringup import graph
+from ibvs_bringup.runner import (DEFAULT_LAYOUT, LAYOUTS, ProcessRunner, raise_on_sigterm,
+                                 Terminated)
 from ibvs_common.core.config import load_pad_layout, load_vehicle, PadLayout
+from ibvs_harness import plots, report
+from ibvs_common.core.mavlink_connection import free_udp_port
+from ibvs_harness.scenario import (AUTOPILOTS, DEFAULT_IMAGE_EVERY, FAILSAFE_MODE, finish,
+                                   IDLE_MODE, MAX_SIM_TIME_S, missing_executables,
+                                   prepare_out_dir, random_initial_position, run_block,
+                                   RunOptions, SHUTDOWN_GRACE_S, SHUTDOWN_MODE,
+                                   supervisor_log, supervisor_transitions)
 from ibvs_sim.core.world import load_world, WorldConfig
 import numpy as np
 
 if TYPE_CHECKING:
-    from ibvs_bringup.monitor_node import ScenarioMonitor
-    from ibvs_sim.core.feature_sim import FeatureSimLog
+    from ibvs_harness.monitor_node import ScenarioMonitor
+    from ibvs_harness.feature_sim import FeatureSimLog
     from rclpy.executors import Executor
-
-MAX_SIM_TIME_S = 60.0
-SHUTDOWN_GRACE_S = 3.0        # sim s after touchdown in mode 4 to wait for the disarm
-IDLE_MODE = 0
-FAILSAFE_MODE = 5
-SHUTDOWN_MODE = 4
-DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
-AUTOPILOTS = ('sim', 'px4-sih')   # --autopilot: the first is the default
-
-
-@dataclass
-class RunOptions:
-    """Everything one run needs (from the command line or a test)."""
-
-    run_name: str
-    results_root: str = 'results'
-    initial_position: tuple | None = None
-    wind: tuple | None = None
-    crossing_law: str | None = None
-    bag: bool = True
-    image_every: int = DEFAULT_IMAGE_EVERY
-    feature_level: bool = False
-    timeout_s: float = 900.0            # wall clock, whole run
-    preflight_timeout_s: float = 120.0  # wall clock
-    mavlink_port: int | None = None     # None: a free port
-    params_file: str | None = None
-    real_time_factor: float | None = None   # free-running sim at this factor (None: lockstep)
-    kill_node: str | None = None        # fault injection: SIGKILL this node ...
-    kill_at_s: float = 2.0              # ... at this sim time (perception nodes come back)
-    # fault injection: camera -> [start, end, start, end, ...] (sim s), one or more windows
-    camera_off: dict = field(default_factory=dict)
-    camera_freeze: dict = field(default_factory=dict)
-    imu_off: tuple | None = None        # fault injection: [start, end] sim s without IMU
-    imu_nan: tuple | None = None        # fault injection: [start, end] sim s of NaN IMU
-    plots: bool = True
-    extra: dict = field(default_factory=dict)
-    autopilot: str = 'sim'              # 'sim' | 'px4-sih' (PX4 SITL is plant and autopilot)
-    px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
-    px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
-    px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
-    layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
-    max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
-
-    @property
-    def out_dir(self) -> str:
-        return os.path.join(self.results_root, self.run_name)
-
-
-def random_initial_position(seed: int, world: WorldConfig | None = None) -> tuple:
-    """Draw an initial position uniformly from world.yaml's random box (SPEC.md section 2)."""
-    box = (world or load_world()).random_box
-    rng = np.random.default_rng(seed)
-    return tuple(float(rng.uniform(*box[k])) for k in ('x', 'y', 'z'))
-
-
-#: Where free_udp_port looks. Below the UDP ports Fast DDS binds in every ROS process: its
-#: well-known ports (7400 + 250 x domain + ...) and, measured (Jazzy, Fast DDS 2.14), one
-#: socket on 0.0.0.0:7000 + k, the first k free, per participant process (a graph of 10
-#: processes holds 7000-7009; a sim started after the check lost port 7003 that way in CI).
-#: Below the kernel's ephemeral range (32768-60999 by default) too, and above the UDP ports PX4
-#: and ArduPilot SITL bind (4560, 5501-5510) and the usual local services (mDNS 5353, SIP 5060).
-SERVER_PORTS = range(6100, 6900)
-PORT_TRIES = 50
-
-
-def free_udp_port(rng: random.Random | None = None) -> int:
-    """Return a UDP port on 127.0.0.1, free right now, for a server another process binds later.
-
-    The sim's autopilot binds it a few seconds after this check, when its process is up. A
-    port the kernel hands out (bind to port 0) lies in the ephemeral range, where every client
-    socket opened meanwhile (a bridge's udpout, a DDS participant of another domain) may take
-    it: a CI run once lost the sim to "Address already in use" that way. So the port is drawn
-    at random from SERVER_PORTS, which nothing takes without asking for it by number.
-    Between this check and the bind, another process may still take it: a server in this
-    process binds port 0 instead and reads its port back (the links' ``local_port``).
-    """
-    rng = rng or random.SystemRandom()
-    for _ in range(PORT_TRIES):
-        port = rng.choice(SERVER_PORTS)
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-            try:
-                s.bind(('127.0.0.1', port))
-            except OSError:
-                continue
-        return port
-    raise OSError(f'no free UDP port in {SERVER_PORTS.start}-{SERVER_PORTS.stop - 1} after '
-                  f'{PORT_TRIES} tries')
-
-
-def prepare_out_dir(opts: RunOptions) -> str:
-    """Create an empty results/<run>/ (a previous run of the same name is replaced)."""
-    if not re.fullmatch(r'[A-Za-z0-9_.+-]+', opts.run_name) or opts.run_name in ('.', '..'):
-        raise ValueError(f'bad run name {opts.run_name!r}: use letters, digits, _ . + -')
-    out = opts.out_dir
-    if os.path.isdir(out):
-        shutil.rmtree(out)
-    os.makedirs(out)
-    return out
-
-
-def _run_block(opts: RunOptions, initial_position, **more) -> dict:
-    return {'name': opts.run_name, 'layout': opts.layout,
-            'initial_position_I': list(initial_position),
-            'wind_N': list(opts.wind) if opts.wind else [0.0, 0.0, 0.0],
-            'crossing_law': opts.crossing_law or 'params.yaml',
-            'feature_level': opts.feature_level, **opts.extra, **more}
-
-
-def _finish(opts: RunOptions, summary: dict, data: plots.RunData | None) -> int:
-    report.write_json(os.path.join(opts.out_dir, 'summary.json'), summary)
-    if data is not None and opts.plots:
-        plots.plot_run(data, opts.out_dir)
-    w, ld = summary.get('window', {}), summary.get('landing', {})
-    print(f"run {opts.run_name}: success={summary.get('success')} "
-          f"crossed={w.get('crossed')} clearance={w.get('min_clearance_m')} "
-          f"landed={ld.get('landed')} error={ld.get('error_m')} "
-          f"td_speed={ld.get('touchdown_speed_mps')} duration={summary.get('duration_s')} "
-          f"-> {opts.out_dir}", flush=True)
-    if summary.get('run', {}).get('error'):
-        return 2
-    return 0 if summary.get('success') else 1
 
 
 # --- feature-level run ----------------------------------------------------------------------
@@ -163,8 +44,8 @@ def _finish(opts: RunOptions, summary: dict, data: plots.RunData | None) -> int:
 def run_feature_level(opts: RunOptions) -> int:
     """Fly ibvs_sim's feature-level closed loop and report it like a graph run."""
     try:
-        from ibvs_sim.core import feature_sim
-        from ibvs_bringup.core_configs import controller_config, supervisor_config
+        from ibvs_harness import feature_sim
+        from ibvs_harness.core_configs import controller_config, supervisor_config
         from ibvs_control.core.control_laws import CrossingLaw
     except ImportError as exc:
         print(f'--feature-level: the feature-level simulation is not available ({exc})',
@@ -184,9 +65,9 @@ def run_feature_level(opts: RunOptions) -> int:
                                        crossing_law=law, max_time_s=MAX_SIM_TIME_S)
     t0 = time.monotonic()
     summary, flog = feature_sim.run_feature_scenario(world, pad, vehicle, ctrl, sup, cfg)
-    summary = dict(summary, run=_run_block(opts, xi0, wall_time_s=time.monotonic() - t0,
-                                           stop_reason='feature-level run ended'))
-    return _finish(opts, summary, feature_run_data(flog, world, pad))
+    summary = dict(summary, run=run_block(opts, xi0, wall_time_s=time.monotonic() - t0,
+                                          stop_reason='feature-level run ended'))
+    return finish(opts, summary, feature_run_data(flog, world, pad))
 
 
 def feature_run_data(flog: FeatureSimLog, world: WorldConfig, pad: PadLayout
@@ -206,24 +87,6 @@ def feature_run_data(flog: FeatureSimLog, world: WorldConfig, pad: PadLayout
 
 
 # --- whole-graph run ------------------------------------------------------------------------
-
-TRANSITION_LINE = re.compile(r'\]: (mode \w+ -> \w+ at t = .*)$')
-
-
-def supervisor_log(out_dir: str) -> str:
-    """Return the log holding the supervisor's lines: its own, or the composed process's."""
-    own = os.path.join(out_dir, 'logs', 'mode_supervisor.log')
-    return own if os.path.exists(own) else os.path.join(out_dir, 'logs', f'{COMPOSED_NAME}.log')
-
-
-def supervisor_transitions(log_path: str) -> list[str]:
-    """Return the mode supervisor's transition lines ('mode A -> B at t = ... s: reason')."""
-    try:
-        with open(log_path, errors='replace') as f:
-            return [m.group(1) for m in map(TRANSITION_LINE.search, f) if m]
-    except OSError:
-        return []
-
 
 def graph_specs(opts: RunOptions, port: int, initial_position: tuple) -> list:
     """Return the node specs of a run: the sim graph plus the recorder."""
@@ -247,12 +110,6 @@ def graph_specs(opts: RunOptions, port: int, initial_position: tuple) -> list:
             'use_sim_time': True, 'bag_path': os.path.abspath(os.path.join(opts.out_dir, 'bag')),
             'image_every': int(opts.image_every)},)))
     return specs
-
-
-def missing_executables(specs: Iterable[graph.NodeSpec]) -> list[str]:
-    """Return why nodes of ``specs`` cannot start here (empty: all present)."""
-    from ibvs_bringup.ros2run import unavailable_reason
-    return [r for r in (unavailable_reason(s.package, s.executable) for s in specs) if r]
 
 
 class _Stop(Exception):
@@ -356,7 +213,7 @@ def flight_timing(monitor: ScenarioMonitor | None, wall_end: float) -> dict:
 def run_graph(opts: RunOptions) -> int:
     """Fly the whole graph once; write results/<run>/."""
     import rclpy
-    from ibvs_bringup.monitor_node import close_monitor, ScenarioMonitor
+    from ibvs_harness.monitor_node import close_monitor, ScenarioMonitor
     from ibvs_common.spin import make_executor
     from rclpy.executors import ExternalShutdownException
     from rclpy.signals import SignalHandlerOptions
@@ -368,9 +225,9 @@ def run_graph(opts: RunOptions) -> int:
     missing = missing_executables(specs)
     if missing:
         summary = report.summarize(report.RunLog(), world, 0.0, 0.0)
-        summary['run'] = _run_block(opts, xi0, error='nodes missing: ' + '; '.join(missing))
+        summary['run'] = run_block(opts, xi0, error='nodes missing: ' + '; '.join(missing))
         print('cannot fly: ' + '; '.join(missing), file=sys.stderr)
-        return _finish(opts, summary, None)
+        return finish(opts, summary, None)
     t_wall0 = time.monotonic()
     runner = ProcessRunner(log_dir=os.path.join(opts.out_dir, 'logs'))
     # our own SIGINT/SIGTERM handling (KeyboardInterrupt / Terminated): rclpy must not shut
@@ -402,12 +259,12 @@ def run_graph(opts: RunOptions) -> int:
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
     summary['timing'] = {**sim_stats, **flight}
     summary['bridge'] = bridge        # the bridge's /diagnostics, once a second (sim time t)
-    summary['run'] = _run_block(opts, xi0, stop_reason=stop_reason, error=error,
-                                wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
-                                node_restarts=restarts,
-                                events=log.events,
-                                transitions=supervisor_transitions(supervisor_log(opts.out_dir)))
-    return _finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
+    summary['run'] = run_block(opts, xi0, stop_reason=stop_reason, error=error,
+                               wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
+                               node_restarts=restarts,
+                               events=log.events,
+                               transitions=supervisor_transitions(supervisor_log(opts.out_dir)))
+    return finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
 
 
 def _flat(windows: list) -> tuple:
@@ -529,7 +386,7 @@ def main(argv: list | None = None) -> int:
         return 2
     raise_on_sigterm()
     if opts.autopilot == 'px4-sih' and not opts.feature_level:
-        from ibvs_bringup.px4_scenario import run_px4_sih
+        from ibvs_harness.px4_scenario import run_px4_sih
         return run_px4_sih(opts)
     return run_feature_level(opts) if opts.feature_level else run_graph(opts)
 

@@ -4,7 +4,7 @@ Required (the engage sequencer waits for them, then falls back or refuses after
 ``timeout_s`` of the bridge's clock):
 
 - the hover-thrust parameter, PX4 ``MPC_THR_HOVER`` / ArduPilot ``MOT_THST_HOVER``: the seed
-  of the online hover-thrust estimate (:class:`~ibvs_control.core.mavlink_hover.HoverThrustSeed`,
+  of the online hover-thrust estimate (:class:`~ibvs_control.mavlink.hover.HoverThrustSeed`,
   when it is to come from the autopilot);
 - on ArduPilot, ``GUID_OPTIONS`` (bit 3: GUIDED_NOGPS takes thrust, not climb rate) and
   ``ATC_ANGLE_BOOST`` (ArduPilot divides the thrust by cos(tilt) itself: the bridge then sends
@@ -25,8 +25,8 @@ import math
 
 import numpy as np
 
-from ibvs_control.core.mavlink_hover import HoverThrustSeed
-from ibvs_control.core.mavlink_sequencer import Autopilot
+from ibvs_control.mavlink.hover import HoverThrustSeed
+from ibvs_control.mavlink.sequencer import Autopilot
 
 HOVER_PARAM = {Autopilot.PX4: 'MPC_THR_HOVER', Autopilot.ARDUPILOT: 'MOT_THST_HOVER'}
 GUID_OPTIONS_PARAM = 'GUID_OPTIONS'

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import errno
 import os
+import random
 import socket
 
 os.environ['MAVLINK20'] = '1'  # before pymavlink.mavutil is imported: MAVLink 2 framing
@@ -69,3 +70,37 @@ def local_port(conn: mavutil.mavfile | None) -> int | None:
         return int(conn.port.getsockname()[1])
     except (AttributeError, OSError, IndexError):   # closed, serial, unix socket
         return None
+
+
+#: Where free_udp_port looks. Below the UDP ports Fast DDS binds in every ROS process: its
+#: well-known ports (7400 + 250 x domain + ...) and, measured (Jazzy, Fast DDS 2.14), one
+#: socket on 0.0.0.0:7000 + k, the first k free, per participant process (a graph of 10
+#: processes holds 7000-7009; a sim started after the check lost port 7003 that way in CI).
+#: Below the kernel's ephemeral range (32768-60999 by default) too, and above the UDP ports PX4
+#: and ArduPilot SITL bind (4560, 5501-5510) and the usual local services (mDNS 5353, SIP 5060).
+SERVER_PORTS = range(6100, 6900)
+PORT_TRIES = 50
+
+
+def free_udp_port(rng: random.Random | None = None) -> int:
+    """Return a UDP port on 127.0.0.1, free right now, for a server another process binds later.
+
+    The sim's autopilot binds it a few seconds after this check, when its process is up. A
+    port the kernel hands out (bind to port 0) lies in the ephemeral range, where every client
+    socket opened meanwhile (a bridge's udpout, a DDS participant of another domain) may take
+    it: a CI run once lost the sim to "Address already in use" that way. So the port is drawn
+    at random from SERVER_PORTS, which nothing takes without asking for it by number.
+    Between this check and the bind, another process may still take it: a server in this
+    process binds port 0 instead and reads its port back (the links' ``local_port``).
+    """
+    rng = rng or random.SystemRandom()
+    for _ in range(PORT_TRIES):
+        port = rng.choice(SERVER_PORTS)
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind(('127.0.0.1', port))
+            except OSError:
+                continue
+        return port
+    raise OSError(f'no free UDP port in {SERVER_PORTS.start}-{SERVER_PORTS.stop - 1} after '
+                  f'{PORT_TRIES} tries')

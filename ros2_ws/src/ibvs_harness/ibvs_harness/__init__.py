@@ -1,0 +1,1 @@
+"""The experiment harness: scenario runs, campaigns, reports, plots, bags, feature-level loop."""

@@ -1,0 +1,133 @@
+"""What every scenario run shares: its options, its start, its results directory and its end.
+
+Used by :mod:`~ibvs_harness.run_scenario` (the sim), :mod:`~ibvs_harness.px4_scenario` (PX4
+SIH) and the campaigns: the options of one run, the random initial condition, a free UDP port
+for the sim's autopilot, ``results/<run>/``, the ``run`` block of summary.json, the closing
+line, and the supervisor's transitions read from its log.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import os
+import re
+import shutil
+from typing import Iterable
+
+from ibvs_bringup import graph
+from ibvs_bringup.runner import COMPOSED_NAME
+from ibvs_harness import plots, report
+from ibvs_sim.core.world import load_world, WorldConfig
+import numpy as np
+
+MAX_SIM_TIME_S = 60.0
+SHUTDOWN_GRACE_S = 3.0        # sim s after touchdown in mode 4 to wait for the disarm
+IDLE_MODE = 0
+FAILSAFE_MODE = 5
+SHUTDOWN_MODE = 4
+DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
+AUTOPILOTS = ('sim', 'px4-sih')   # --autopilot: the first is the default
+
+
+@dataclass
+class RunOptions:
+    """Everything one run needs (from the command line or a test)."""
+
+    run_name: str
+    results_root: str = 'results'
+    initial_position: tuple | None = None
+    wind: tuple | None = None
+    crossing_law: str | None = None
+    bag: bool = True
+    image_every: int = DEFAULT_IMAGE_EVERY
+    feature_level: bool = False
+    timeout_s: float = 900.0            # wall clock, whole run
+    preflight_timeout_s: float = 120.0  # wall clock
+    mavlink_port: int | None = None     # None: a free port
+    params_file: str | None = None
+    real_time_factor: float | None = None   # free-running sim at this factor (None: lockstep)
+    kill_node: str | None = None        # fault injection: SIGKILL this node ...
+    kill_at_s: float = 2.0              # ... at this sim time (perception nodes come back)
+    # fault injection: camera -> [start, end, start, end, ...] (sim s), one or more windows
+    camera_off: dict = field(default_factory=dict)
+    camera_freeze: dict = field(default_factory=dict)
+    imu_off: tuple | None = None        # fault injection: [start, end] sim s without IMU
+    imu_nan: tuple | None = None        # fault injection: [start, end] sim s of NaN IMU
+    plots: bool = True
+    extra: dict = field(default_factory=dict)
+    autopilot: str = 'sim'              # 'sim' | 'px4-sih' (PX4 SITL is plant and autopilot)
+    px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
+    px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
+    px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
+    layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
+    max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
+
+    @property
+    def out_dir(self) -> str:
+        return os.path.join(self.results_root, self.run_name)
+
+
+def random_initial_position(seed: int, world: WorldConfig | None = None) -> tuple:
+    """Draw an initial position uniformly from world.yaml's random box (SPEC.md section 2)."""
+    box = (world or load_world()).random_box
+    rng = np.random.default_rng(seed)
+    return tuple(float(rng.uniform(*box[k])) for k in ('x', 'y', 'z'))
+
+
+def prepare_out_dir(opts: RunOptions) -> str:
+    """Create an empty results/<run>/ (a previous run of the same name is replaced)."""
+    if not re.fullmatch(r'[A-Za-z0-9_.+-]+', opts.run_name) or opts.run_name in ('.', '..'):
+        raise ValueError(f'bad run name {opts.run_name!r}: use letters, digits, _ . + -')
+    out = opts.out_dir
+    if os.path.isdir(out):
+        shutil.rmtree(out)
+    os.makedirs(out)
+    return out
+
+
+def run_block(opts: RunOptions, initial_position, **more) -> dict:
+    """Return the ``run`` block of summary.json: the options that made the run, and ``more``."""
+    return {'name': opts.run_name, 'layout': opts.layout,
+            'initial_position_I': list(initial_position),
+            'wind_N': list(opts.wind) if opts.wind else [0.0, 0.0, 0.0],
+            'crossing_law': opts.crossing_law or 'params.yaml',
+            'feature_level': opts.feature_level, **opts.extra, **more}
+
+
+def finish(opts: RunOptions, summary: dict, data: plots.RunData | None) -> int:
+    """Write summary.json and the plots, print the closing line; return the exit code."""
+    report.write_json(os.path.join(opts.out_dir, 'summary.json'), summary)
+    if data is not None and opts.plots:
+        plots.plot_run(data, opts.out_dir)
+    w, ld = summary.get('window', {}), summary.get('landing', {})
+    print(f"run {opts.run_name}: success={summary.get('success')} "
+          f"crossed={w.get('crossed')} clearance={w.get('min_clearance_m')} "
+          f"landed={ld.get('landed')} error={ld.get('error_m')} "
+          f"td_speed={ld.get('touchdown_speed_mps')} duration={summary.get('duration_s')} "
+          f"-> {opts.out_dir}", flush=True)
+    if summary.get('run', {}).get('error'):
+        return 2
+    return 0 if summary.get('success') else 1
+
+
+TRANSITION_LINE = re.compile(r'\]: (mode \w+ -> \w+ at t = .*)$')
+
+
+def supervisor_log(out_dir: str) -> str:
+    """Return the log holding the supervisor's lines: its own, or the composed process's."""
+    own = os.path.join(out_dir, 'logs', 'mode_supervisor.log')
+    return own if os.path.exists(own) else os.path.join(out_dir, 'logs', f'{COMPOSED_NAME}.log')
+
+
+def supervisor_transitions(log_path: str) -> list[str]:
+    """Return the mode supervisor's transition lines ('mode A -> B at t = ... s: reason')."""
+    try:
+        with open(log_path, errors='replace') as f:
+            return [m.group(1) for m in map(TRANSITION_LINE.search, f) if m]
+    except OSError:
+        return []
+
+
+def missing_executables(specs: Iterable[graph.NodeSpec]) -> list[str]:
+    """Return why nodes of ``specs`` cannot start here (empty: all present)."""
+    from ibvs_bringup.ros2run import unavailable_reason
+    return [r for r in (unavailable_reason(s.package, s.executable) for s in specs) if r]
