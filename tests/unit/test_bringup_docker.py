@@ -9,7 +9,7 @@ import yaml
 ROOT = Path(__file__).resolve().parents[2]
 DOCKER = ROOT / 'docker'
 SRC = ROOT / 'ros2_ws' / 'src'
-PACKAGES = ('ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup')
+PACKAGES = tuple(sorted(p.parent.name for p in SRC.glob('*/package.xml')))
 # Keys checked against ros/rosdistro rosdep/python.yaml (2026-08): present for Ubuntu ...
 ROSDEP_PYTHON_KEYS = {'python3-numpy', 'python3-opencv', 'python3-yaml', 'python3-matplotlib',
                       'python3-pytest', 'python3-pymavlink-pip', 'python3-rosbags-pip'}
@@ -41,6 +41,13 @@ def test_dockerfile_base_copies_and_entrypoint_exist():
     assert 'source /opt/ros/jazzy/setup.bash' in script and '/ws/install/setup.bash' in script
     run = ' '.join(a for op, a in ins if op == 'RUN')
     assert 'rosdep install --from-paths src' in run and 'colcon build' in run
+
+
+def test_dockerfile_copies_every_package_xml_before_rosdep():
+    copied = {shlex.split(arg)[0] for op, arg in _instructions() if op == 'COPY'}
+    assert len(PACKAGES) >= 6, PACKAGES
+    for package in PACKAGES:
+        assert f'ros2_ws/src/{package}/package.xml' in copied, package
 
 
 def test_dockerfile_skips_and_installs_every_key_rosdep_lacks():
