@@ -70,17 +70,20 @@ lint: install
 	$(PY) -m pydocstyle --convention=pep257 --add-ignore=D100,D101,D102,D103,D104,D105,D107 \
 		ros2_ws/src tests scripts benchmarks
 
+# Each package's own tests (unit and node tests with real rclpy; what `colcon test` runs on a
+# Jazzy install) and the repository-wide ones (layering, docker, docs, scripts, benchmarks).
+PKG_TESTS := $(addsuffix /test,$(PKG_DIRS)) tests/repo
 unit: install
-	$(PY) -m pytest -q tests/unit
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) -m 'not slow' $(PKG_TESTS)
 
-# Unit tests on OpenCV 4.6 / numpy 1.26, with .venv-cv46 as the only install prefix. Not the
-# `slow` ones (of tests/unit: the fifty random starts of the feature-level loop, a statistic of
+# The package tests on OpenCV 4.6 / numpy 1.26, with .venv-cv46 as the only install prefix. Not
+# the `slow` ones (e.g. the fifty random starts of the feature-level loop, a statistic of
 # the control law that the main run checks; 2 minutes of CI on a slow machine): the feature
 # loop itself runs here in its other tests.
 unit-cv46: $(VENV46)/.workspace
 	$(PY46) -c 'import cv2, numpy; print("OpenCV", cv2.__version__, "numpy", numpy.__version__)'
 	AMENT_PREFIX_PATH=$(CURDIR)/$(VENV46) $(PY46) -m pytest -q -n $(PYTEST_WORKERS) \
-		-m 'not slow' tests/unit
+		-m 'not slow' $(PKG_TESTS)
 
 integration: install
 	$(PY) -m pytest -q tests/integration
@@ -91,8 +94,8 @@ integration: install
 test:
 	$(MAKE) -j2 $(VENV)/.deps $(VENV46)/.deps
 	$(MAKE) lint
-	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=20 tests \
-		$(addsuffix /test,$(PKG_DIRS))
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadgroup --durations=20 tests/integration \
+		$(PKG_TESTS)
 	$(MAKE) unit-cv46
 
 bench: install

@@ -174,7 +174,7 @@ class Autopilot:
                 and self._modes.armed and self._modes.mode is FlightMode.OFFBOARD):
             self.counters.setpoints_applied += 1
 
-    # The noise model's entry points, as tests/unit/test_sim_autopilot.py reaches them.
+    # The noise model's entry points, as ibvs_sim/test/test_sim_autopilot.py reaches them.
 
     def _noisy_attitude(self, R_IB: np.ndarray, t: float) -> np.ndarray:
         return self._noise.noisy_attitude(R_IB, t)

@@ -195,8 +195,8 @@ def test_estimate_noise_defaults_to_the_params_file_and_reaches_both_levels(tmp_
     """The estimate's wandering error: params.yaml's sim values unless --estimate-noise."""
     import yaml
     from ibvs_harness import feature_sim
-    installed = os.path.join(os.path.dirname(__file__), '..', '..', 'ros2_ws', 'src',
-                             'ibvs_bringup', 'config', 'params.yaml')
+    from ibvs_bringup.graph import default_params_file
+    installed = default_params_file()
     with open(installed, encoding='utf-8') as f:
         sim = yaml.safe_load(f)['sim']['ros__parameters']
     expected = (sim['attitude_noise_std_rad'], sim['attitude_noise_tau_s'])

@@ -1314,15 +1314,6 @@ def test_bad_force_is_never_sent_held_then_level_hover_outside_an_engagement(pee
     assert bridge.on_heading(stamp, np.array([2.0, 0, 0, 0])) != ''
 
 
-def test_code_defaults_equal_params_yaml():
-    import yaml
-    from pathlib import Path
-    from ibvs_control.mavlink_bridge_node import PARAMETERS
-    path = Path(__file__).resolve().parents[2] / 'ros2_ws/src/ibvs_bringup/config/params.yaml'
-    section = yaml.safe_load(path.read_text())['mavlink_bridge']['ros__parameters']
-    assert section == PARAMETERS
-
-
 @pytest.mark.parametrize('params, expected, says', [
     ({'FS_GCS_ENABLE': 5, 'SYSID_MYGCS': 1}, True, 'dead-bridge failsafe: FS_GCS_ENABLE = 5'),
     ({'FS_GCS_ENABLE': 0, 'SYSID_MYGCS': 1}, False, 'no dead-bridge failsafe (FS_GCS_ENABLE = 0)'),

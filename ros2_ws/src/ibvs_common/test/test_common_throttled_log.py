@@ -1,27 +1,6 @@
 """ThrottledLog: one message per call site per period, decided before rclpy is called."""
+from ibvs_common.testing import FakeClock, FakeLogger
 from ibvs_common.throttled_log import message_kind, ThrottledLog
-
-
-class FakeLogger:
-    def __init__(self):
-        self.lines = []
-
-    def info(self, text):
-        self.lines.append(('info', text))
-
-    def warning(self, text):
-        self.lines.append(('warning', text))
-
-    def error(self, text):
-        self.lines.append(('error', text))
-
-
-class FakeClock:
-    def __init__(self):
-        self.t = 100.0
-
-    def __call__(self):
-        return self.t
 
 
 def make():
@@ -85,18 +64,3 @@ def test_a_key_throttles_by_kind_instead_of_by_call_site():
 def test_message_kind_replaces_numbers_only():
     assert message_kind('x 1.5e-3 s, -2 m, +7 (v1.16)') == 'x # s, # m, # (v#)'
     assert message_kind('no numbers') == 'no numbers'
-
-
-def test_the_bridge_relays_each_kind_of_event_under_its_own_throttle():
-    """Two different warnings in one batch both go out (one call site relays them all)."""
-    from types import SimpleNamespace
-    from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
-    logger, clock = FakeLogger(), FakeClock()
-    events = [('warn', 'setpoint source none -> level_hover'),
-              ('warn', 'PX4 offboard loss: COM_OBL_RC_ACT = 0 (Position mode)'),
-              ('warn', 'setpoint source none -> level_hover')]
-    bridge = SimpleNamespace(pop_heading_warning=lambda: '', pop_events=lambda: events)
-    node = SimpleNamespace(get_logger=lambda: logger, _bridge=bridge,
-                           log=ThrottledLog(logger, clock))
-    MavlinkBridgeNode._log_events(node)
-    assert logger.lines == [('warning', events[0][1]), ('warning', events[1][1])]

@@ -1,9 +1,6 @@
 """The project's Fast DDS profile: added for the graph, taken by an image publisher alone."""
-import importlib
 import os
 import xml.etree.ElementTree as ET
-
-import pytest
 
 from ibvs_common.dds_profile import (dds_env_overrides, FASTDDS_PROFILE_ENV, FASTDDS_RMW,
                                      RMW_ENV, use_dds_profile_here)
@@ -28,30 +25,6 @@ def test_use_dds_profile_here_sets_it_once_and_keeps_the_users(monkeypatch):
     assert set_here[FASTDDS_PROFILE_ENV].endswith('fastdds.xml')
     monkeypatch.setenv(FASTDDS_PROFILE_ENV, '/mine.xml')     # the user's choice stays
     assert use_dds_profile_here() == {} and os.environ[FASTDDS_PROFILE_ENV] == '/mine.xml'
-
-
-class _InitReached(Exception):
-    pass
-
-
-@pytest.mark.parametrize('module', ['ibvs_sim.sim_node', 'ibvs_sim.px4_sim_node',
-                                    'ibvs_harness.bag_player_node'])
-def test_an_image_publisher_started_alone_takes_the_profile_before_rclpy_init(module,
-                                                                              monkeypatch):
-    """`ros2 run` of the sim or the bag player: the profile is set before the participant."""
-    mod = importlib.import_module(module)
-    monkeypatch.delenv(FASTDDS_PROFILE_ENV, raising=False)
-    monkeypatch.delenv(RMW_ENV, raising=False)
-    seen = {}
-
-    def init(*args, **kwargs):
-        seen['profile'] = os.environ.get(FASTDDS_PROFILE_ENV)
-        raise _InitReached
-
-    monkeypatch.setattr(mod.rclpy, 'init', init)
-    with pytest.raises(_InitReached):
-        mod.main([])
-    assert seen['profile'] and seen['profile'].endswith('fastdds.xml')
 
 
 def _duration_s(element: ET.Element, ns: dict) -> float:

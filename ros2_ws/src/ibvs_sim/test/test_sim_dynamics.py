@@ -7,6 +7,7 @@ import pytest
 from ibvs_common.core.config import load_vehicle
 from ibvs_common.core.frames import (GRAVITY, euler_zyx_from_rot, exp_so3, quat_from_rot,
                                      rot_from_euler_zyx)
+from ibvs_sim.testing import second_order_step
 from ibvs_sim.core.dynamics import (AttitudeController, Mixer, PlantParams, QuadrotorPlant,
                                     State, Wind, WindConfig, hover_state)
 
@@ -120,17 +121,6 @@ def _step_response(params, roll=0.0, pitch=0.0, yaw=0.0, duration=0.6):
     return np.array(t), np.array(angles)
 
 
-def _second_order_step(t, wn, zeta):
-    """Return the unit step response of theta'' + 2 zeta wn theta' + wn^2 theta = wn^2.
-
-    Textbook closed form, 0 < zeta < 1; 0 for t < 0.
-    """
-    t = np.maximum(np.asarray(t, float), 0.0)
-    wd = wn * math.sqrt(1.0 - zeta ** 2)
-    return 1.0 - np.exp(-zeta * wn * t) * (np.cos(wd * t)
-                                           + zeta / math.sqrt(1.0 - zeta ** 2) * np.sin(wd * t))
-
-
 @pytest.mark.parametrize('axis, step', [(0, 0.05), (1, -0.08)])
 def test_inner_loop_roll_pitch_step_follows_the_second_order_model(params, axis, step):
     """vehicle.yaml's loop (PX4 SIH's fit): nothing before the setpoint delay, then the
@@ -143,7 +133,7 @@ def test_inner_loop_roll_pitch_step_follows_the_second_order_model(params, axis,
     assert params.setpoint_delay_s > 0.0
     assert np.all(np.abs(a[t <= delay]) < 1e-9)          # the setpoint has not arrived yet
     wn, zeta = params.attitude_wn, params.attitude_zeta
-    model = _second_order_step(t - delay, wn, zeta)
+    model = second_order_step(t - delay, wn, zeta)
 
     def t63(x):
         return t[np.argmax(x >= 1.0 - math.exp(-1.0))]
@@ -196,28 +186,6 @@ def test_wind_pushes_like_a_force(params):
     s = _run(plant, s, lambda _: np.full(4, params.mass * GRAVITY / 4), t,
              delta=np.array([0.0, 0.5, 0.0]))
     assert s.xi_I[1] == pytest.approx(0.5 * t ** 2 / (2 * params.mass), rel=0.02)
-
-
-def test_feature_level_inner_loop_is_the_plant_model_without_rotors(params):
-    """The feature-level loop's default inner loop: the same (wn, zeta, delay) as the plant,
-    as a pure second-order response: the closed form to within the Euler step's error."""
-    from ibvs_harness.feature_sim import InnerLoop
-    loop = InnerLoop(params)
-    assert loop.delay_s == params.setpoint_delay_s
-    dt, step = 0.001, 0.05
-    R_d = rot_from_euler_zyx(step, 0.0, 0.0)
-    R, Omega = np.eye(3), np.zeros(3)
-    t = np.arange(1, 1001) * dt
-    roll = []
-    for _ in t:
-        R, Omega = loop.step(R, Omega, R_d, dt)
-        roll.append(euler_zyx_from_rot(R)[0] / step)
-    model = _second_order_step(t, params.attitude_wn, params.attitude_zeta)
-    assert np.max(np.abs(np.array(roll) - model)) < 0.01
-    first_order = InnerLoop(params, tau=0.05)
-    assert first_order.delay_s == 0.0
-    R1, _ = first_order.step(np.eye(3), np.zeros(3), R_d, 0.05)
-    assert euler_zyx_from_rot(R1)[0] == pytest.approx(step)       # dt / tau = 1: there
 
 
 @pytest.mark.parametrize('key, value', [('setpoint_delay', -0.01), ('setpoint_delay', 0.5),

@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 os.environ['MAVLINK20'] = '1'
-from ibvs_common.core.frames import GRAVITY, rot_from_euler_zyx, rot_x  # noqa: E402
+from ibvs_common.core.frames import GRAVITY, rot_x  # noqa: E402
+from ibvs_sim.testing import hover_state, INITIAL_XI  # noqa: E402
 from ibvs_sim.core.autopilot import (Autopilot, AutopilotConfig,  # noqa: E402
                                      VehicleStateView)
 from pymavlink import mavutil  # noqa: E402
@@ -26,7 +27,6 @@ mavlink = mavutil.mavlink
 
 CLIENT_SYS = 255
 CLIENT_COMP = 191                  # MAV_COMP_ID_ONBOARD_COMPUTER
-INITIAL_XI = (-2.0, 0.1, -1.82)    # SPEC.md initial condition, {I} NED, m
 MAX_DRAIN = 20000
 ACK_WAIT_S = 2.0                   # wall bound of every request/answer exchange
 
@@ -39,16 +39,6 @@ class FakeWallClock:
 
     def __call__(self) -> float:
         return self.now
-
-
-def hover_state(t: float, xi=INITIAL_XI, v=(0.0, 0.0, 0.0), roll: float = 0.0,
-                pitch: float = 0.0, yaw: float = 0.0,
-                omega=(0.0, 0.0, 0.0)) -> VehicleStateView:
-    """Ground truth of a vehicle at ``xi`` ({I} NED) with the given attitude; IMU at rest."""
-    R = rot_from_euler_zyx(roll, pitch, yaw)
-    return VehicleStateView(t=t, xi_I=np.array(xi, dtype=float), v_I=np.array(v, dtype=float),
-                            R_IB=R, Omega_B=np.array(omega, dtype=float),
-                            accel_B_specific=R.T @ np.array([0.0, 0.0, -GRAVITY]))
 
 
 @dataclass
@@ -699,95 +689,6 @@ def test_timesync_answered_before_the_first_frame_once_time_is_not_zero():
         assert [(m.tc1, m.ts1) for m in replies] == [(500_000_000, 99)]
     finally:
         r.close()
-
-
-def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list, object, object]:
-    """The sim's lockstep exchange with the real bridge core, without ROS or physics.
-
-    As sim_core / sim_node do: the autopilot is served before frame 0 without telemetry; each
-    frame's telemetry leaves before the frame is published; the frame's time becomes the
-    bridge's ROS time (/clock); the controller answers each published frame with a force of
-    its stamp; the next 20 ms are simulated once a setpoint with time_boot_ms >= the frame's ms
-    arrived. Returns the stamps of the IMU samples the bridge published, the bridge and the
-    autopilot's counters.
-    ``seed``: the bridge's configured hover thrust (the sim's true one is 0.5).
-    """
-    from ibvs_control.mavlink.bridge import BridgeConfig, MavlinkBridge
-    from ibvs_control.mavlink.link import LinkConfig
-    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0'))
-    bridge = MavlinkBridge(BridgeConfig(
-        link=LinkConfig(url=f'udpout:127.0.0.1:{ap.local_port}'), mass=1.676,
-        max_thrust_factor=2.0, configured_hover_thrust=seed, hover_thrust_source='config'))
-    stamps, hover = [], np.array([0.0, 0.0, 1.676 * GRAVITY])
-    t_ns, ros_ns, answered_frame = 0, 0, None
-    deadline = time.monotonic() + 10.0
-    try:
-        while ap.last_setpoint_time_boot_ms is None and time.monotonic() < deadline:
-            ap.poll(hover_state(0.0), telemetry=False)          # poll_before_start
-            bridge.heartbeat()
-            stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]
-            bridge.stream()
-            time.sleep(0.001)
-        ap.poll(hover_state(0.0), receive=False)                # frame 0's telemetry, frame 0
-        while t_ns < frames * 20_000_000 and time.monotonic() < deadline:
-            ap.poll(hover_state(t_ns / 1e9))                     # tick: read between frames
-            time.sleep(0.001)
-            stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]
-            if answered_frame != ros_ns:                         # the controller's answer
-                answered_frame = ros_ns
-                bridge.on_force(ros_ns, hover)
-            bridge.stream()
-            if ap.last_setpoint_time_boot_ms >= t_ns // 1_000_000:
-                t_ns += 20_000_000                               # step_frame ...
-                ap.poll(hover_state(t_ns / 1e9), receive=False)  # ... its telemetry ...
-                time.sleep(0.002)
-                stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]   # ... (old /clock)
-                ros_ns = t_ns                                    # ... then /clock
-        assert t_ns == frames * 20_000_000, 'lockstep stalled'
-        return stamps, bridge, ap.counters
-    finally:
-        bridge.close()
-        ap.close()
-
-
-def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
-    stamps, bridge, ap_counters = lockstep_with_the_bridge()
-    ts = bridge.time_sync
-    assert ts.synced and ts.offset_ns == 0 and ts.skew == 0.0
-    assert ts.rejected_outliers == 0 and ts.resets == 0
-    # no answer at t = 0 and no request at ROS time 0: synced during frame 1, so the samples
-    # of t = 0 and 0.02 s are dropped and the first published one is t = 0.04 s
-    # (a sample may come twice: SET_MESSAGE_INTERVAL re-phases a stream at the current time)
-    assert bridge.imu_dropped_unsynced == 2
-    assert stamps == sorted(stamps)
-    assert sorted(set(stamps)) == [k * 20_000_000 for k in range(2, 11)]
-    # the other way, as with PX4: the autopilot's own requests (10 Hz of sim time from
-    # t = 0.02 s: 0.02, 0.12) answered by the real bridge core, each answer checked; the
-    # first one reaches the bridge while its ROS time is still 0 (frame 1's /clock comes
-    # after its telemetry) and is not answered (tc1 = 0 would read as a request)
-    assert ap_counters.timesync_requests_sent == 2
-    assert ap_counters.timesync_answers_received == 1
-    assert ap_counters.timesync_answers_foreign == 0
-    assert bridge.status().counters['timesync_answered'] == 1
-    again, bridge2, _ = lockstep_with_the_bridge()
-    assert sorted(set(again)) == sorted(set(stamps))
-    # the hover-thrust estimate learns from the sim's ATTITUDE_TARGET and HIGHRES_IMU, and the
-    # value a setpoint uses is the same in two runs (samples >= 0.1 s older than its stamp)
-    assert bridge.estimator.accepted > 0
-    for b in (bridge, bridge2):
-        assert b.hover_for_stamp(200_000_000) == pytest.approx(0.5, abs=0.01)
-    assert [bridge.hover_for_stamp(k * 20_000_000) for k in range(11)] == \
-        [bridge2.hover_for_stamp(k * 20_000_000) for k in range(11)]
-
-
-def test_hover_thrust_learnt_in_lockstep_from_a_wrong_seed():
-    # The bridge seeded at 0.45 learns the sim's true 0.5 (vehicle.yaml) from the sim
-    # autopilot's ATTITUDE_TARGET thrust and HIGHRES_IMU specific force, as on PX4.
-    _, bridge, _ = lockstep_with_the_bridge(frames=150, seed=0.45)
-    est = bridge.estimator
-    print(f'\nsim autopilot, 3 s in lockstep: hover thrust estimate {est.theta:.4f} (std '
-          f'{est.std:.4f}, {est.accepted} samples) from the seed 0.45; true 0.5')
-    assert est.theta == pytest.approx(0.5, abs=0.005) and est.accepted >= 140
 
 
 # --- failsafe -----------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from ibvs_sim.core.sim_core import (FrameOutput, ImuBeforeImages, Pacing, SimCon
                                     Simulation, wall_budget)
 from ibvs_sim.core.world import load_world
 
-from sim_fakes import HoverAutopilot
+from ibvs_sim.testing import HoverAutopilot
 
 
 @pytest.fixture(scope='module')

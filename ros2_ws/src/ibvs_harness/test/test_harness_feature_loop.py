@@ -9,6 +9,9 @@ from ibvs_control.core.controller import ControllerConfig
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.supervisor import SupervisorConfig
 from ibvs_harness.feature_sim import FeatureSimConfig, run_feature_scenario
+from ibvs_common.core.frames import euler_zyx_from_rot, rot_from_euler_zyx
+from ibvs_sim.core.dynamics import PlantParams
+from ibvs_sim.testing import second_order_step
 
 WORLD, PAD, VEHICLE = load_world(), load_pad_layout(), load_vehicle()
 CTRL = ControllerConfig.from_params({}, VEHICLE, WORLD.window.width)
@@ -137,3 +140,30 @@ def test_crossing_threshold_is_above_every_start_in_the_box():
         bottom = top + np.array([0.0, 0.0, w.height])
         angle = np.arccos(top @ bottom / np.linalg.norm(top) / np.linalg.norm(bottom))
         assert angle < SUP.crossing_min_angular_height_rad - 0.1, (ic, angle)
+
+
+@pytest.fixture(scope='module')
+def params():
+    return PlantParams.from_vehicle(load_vehicle())
+
+
+def test_feature_level_inner_loop_is_the_plant_model_without_rotors(params):
+    """The feature-level loop's default inner loop: the same (wn, zeta, delay) as the plant,
+    as a pure second-order response: the closed form to within the Euler step's error."""
+    from ibvs_harness.feature_sim import InnerLoop
+    loop = InnerLoop(params)
+    assert loop.delay_s == params.setpoint_delay_s
+    dt, step = 0.001, 0.05
+    R_d = rot_from_euler_zyx(step, 0.0, 0.0)
+    R, Omega = np.eye(3), np.zeros(3)
+    t = np.arange(1, 1001) * dt
+    roll = []
+    for _ in t:
+        R, Omega = loop.step(R, Omega, R_d, dt)
+        roll.append(euler_zyx_from_rot(R)[0] / step)
+    model = second_order_step(t, params.attitude_wn, params.attitude_zeta)
+    assert np.max(np.abs(np.array(roll) - model)) < 0.01
+    first_order = InnerLoop(params, tau=0.05)
+    assert first_order.delay_s == 0.0
+    R1, _ = first_order.step(np.eye(3), np.zeros(3), R_d, 0.05)
+    assert euler_zyx_from_rot(R1)[0] == pytest.approx(step)       # dt / tau = 1: there

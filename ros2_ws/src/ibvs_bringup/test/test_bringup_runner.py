@@ -5,7 +5,6 @@ import sys
 import time
 
 from ibvs_bringup import parent_death, ros2run
-from ibvs_harness.scenario import supervisor_transitions
 from ibvs_bringup.runner import ProcessRunner
 import pytest
 
@@ -174,30 +173,6 @@ def test_resolver_finds_console_scripts_and_reports_unknown_ones(monkeypatch, tm
     assert 'no_such_package' in ros2run.unavailable_reason('no_such_package', 'x')
 
 
-def test_ros2run_script_runs_a_console_script_with_ros_args():
-    script = os.path.join(os.path.dirname(__file__), '..', '..', 'scripts', 'ros2run')
-    out = subprocess.run([script, 'ibvs_bringup', 'runner', '--help'], capture_output=True,
-                         text=True, timeout=60, env=dict(os.environ, PYTHON=PY))
-    assert out.returncode == 0 and 'graph' in out.stdout
-    bad = subprocess.run([script, 'ibvs_bringup', 'nope'], capture_output=True, text=True,
-                         timeout=60, env=dict(os.environ, PYTHON=PY))
-    assert bad.returncode == 1 and 'no executable' in bad.stderr
-
-
-def test_supervisor_transitions_are_read_from_its_log(tmp_path):
-    log = tmp_path / 'mode_supervisor.log'
-    log.write_text(
-        '[INFO] [1.0] [mode_supervisor]: mode supervisor ready in IDLE: SupervisorConfig()\n'
-        '[INFO] [2.0] [mode_supervisor]: mode IDLE -> WINDOW at t = 1.000 s: start requested\n'
-        '[ERROR] [3.0] [mode_supervisor]: a refused message\n'
-        '[INFO] [4.0] [mode_supervisor]: mode WINDOW -> FAILSAFE at t = 5.620 s: '
-        'window stale for more than 0.5 s in WINDOW\n')
-    assert supervisor_transitions(str(log)) == [
-        'mode IDLE -> WINDOW at t = 1.000 s: start requested',
-        'mode WINDOW -> FAILSAFE at t = 5.620 s: window stale for more than 0.5 s in WINDOW']
-    assert supervisor_transitions(str(tmp_path / 'missing.log')) == []
-
-
 def test_runner_restarts_a_respawn_node_with_backoff_and_leaves_the_others(tmp_path):
     """As on a vehicle: the graph keeps running; perception nodes come back, doubling waits."""
     import time as _time
@@ -222,16 +197,3 @@ def test_runner_restarts_a_respawn_node_with_backoff_and_leaves_the_others(tmp_p
         assert 'steady' in runner.running() and 'fatal' not in runner.running()
     finally:
         runner.stop()
-
-
-def test_runner_and_run_scenario_refuse_a_missing_parameter_file(tmp_path, capsys):
-    """Exit 2 with the reason, no traceback and nothing started (launch_ros only warns)."""
-    from ibvs_bringup import runner as runner_cli
-    from ibvs_harness import run_scenario
-    missing = str(tmp_path / 'typo.yaml')
-    assert runner_cli.main(['onboard', '--params-file', missing]) == 2
-    assert run_scenario.main(['--params-file', missing, '--results-root', str(tmp_path),
-                              '--run-name', 'x']) == 2
-    err = capsys.readouterr().err
-    assert err.count(f"parameter file '{missing}' cannot be read") == 2
-    assert 'Traceback' not in err and not (tmp_path / 'x').exists()

@@ -13,7 +13,7 @@ Opt-in (``IBVS_CLOCK_STEP_TEST=1``), never in ``make test``: stepping the machin
 would disturb everything running beside it (the SITL flights, timeouts on the wall clock).
 The clock is set back to where it would have been (monotonic time elapsed) in any case.
 Run it alone: ``IBVS_CLOCK_STEP_TEST=1 .venv/bin/python -m pytest -s
-tests/nodes/test_system_clock_step.py``.
+ros2_ws/src/ibvs_control/test/test_control_system_clock_step.py``.
 """
 import os
 import sys

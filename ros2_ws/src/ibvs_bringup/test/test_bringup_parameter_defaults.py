@@ -20,8 +20,7 @@ from ibvs_control.mode_supervisor_node import ModeSupervisorNode
 from ibvs_sim.px4_sim_node import Px4SimNode
 from ibvs_sim.sim_node import SimNode
 
-PARAMS = (Path(__file__).resolve().parents[2] / 'ros2_ws' / 'src' / 'ibvs_bringup' / 'config'
-          / 'params.yaml')
+PARAMS = Path(__file__).resolve().parents[1] / 'config' / 'params.yaml'
 SECTIONS = yaml.safe_load(PARAMS.read_text())
 TAG = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
 # keys that differ per instance by design (set in params.yaml for each instance)

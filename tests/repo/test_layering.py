@@ -27,10 +27,14 @@ ALLOWED = {
 }
 
 
-def imported_packages(package: str) -> dict[str, list[str]]:
-    """Map each other ibvs_* package that ``package``'s modules import to the importers."""
+def imported_packages(package: str, folder: str | None = None) -> dict[str, list[str]]:
+    """Map each other ibvs_* package that ``package``'s modules import to the importers.
+
+    ``folder``: the package's subfolder to read (default: its Python package; 'test': its
+    tests).
+    """
     found: dict[str, list[str]] = {}
-    for path in sorted((SRC / package / package).rglob('*.py')):
+    for path in sorted((SRC / package / (folder or package)).rglob('*.py')):
         for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
             if isinstance(node, ast.Import):
                 names = [a.name for a in node.names]
@@ -45,9 +49,9 @@ def imported_packages(package: str) -> dict[str, list[str]]:
     return found
 
 
-def exec_depends(package: str) -> set[str]:
+def exec_depends(package: str, tags: tuple = ('exec_depend',)) -> set[str]:
     root = ET.parse(SRC / package / 'package.xml').getroot()
-    return {e.text.strip() for e in root.findall('exec_depend')}
+    return {e.text.strip() for tag in tags for e in root.findall(tag)}
 
 
 def test_the_checker_sees_a_known_import():
@@ -66,6 +70,33 @@ def test_a_package_imports_only_the_layers_below_it(package):
 def test_every_imported_package_is_an_exec_depend(package):
     missing = set(imported_packages(package)) - exec_depends(package)
     assert not missing, f'{package}/package.xml lacks exec_depend {sorted(missing)}'
+
+
+@pytest.mark.parametrize('package', OURS)
+def test_every_package_a_test_imports_is_an_exec_or_test_depend(package):
+    # colcon test runs each package's test/ with only its declared dependencies installed
+    deps = exec_depends(package, ('exec_depend', 'test_depend'))
+    missing = set(imported_packages(package, 'test')) - deps
+    assert not missing, f'{package}/package.xml lacks test_depend {sorted(missing)}'
+
+
+def test_the_dependencies_with_the_tests_ones_have_no_cycle():
+    # colcon orders packages on every dependency kind: a test_depend on a package above
+    # would make a cycle it cannot build
+    graph = {p: exec_depends(p, ('exec_depend', 'test_depend')) & set(OURS) for p in OURS}
+    done, path = set(), []
+
+    def visit(p):
+        assert p not in path, f'dependency cycle: {" -> ".join(path + [p])}'
+        if p in done:
+            return
+        path.append(p)
+        for q in sorted(graph[p]):
+            visit(q)
+        path.pop()
+        done.add(p)
+    for p in OURS:
+        visit(p)
 
 
 def test_only_the_sim_side_reads_the_world_file():

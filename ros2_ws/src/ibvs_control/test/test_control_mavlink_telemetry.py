@@ -20,8 +20,9 @@ from ibvs_control.mavlink.telemetry import (  # noqa: E402
     decode_event, load_px4_events, message_ids, QuietTelemetry, StreamRequests, streams_for,
     Telemetry)
 from ibvs_control.mavlink.time_sync import TimeSync  # noqa: E402
+from ibvs_common.testing import shared_dir  # noqa: E402
 
-PX4_EVENTS = Path(__file__).resolve().parents[3] / 'shared' / 'px4-sitl' / 'etc' / 'extras' \
+PX4_EVENTS = (shared_dir() or Path('/nonexistent')) / 'px4-sitl' / 'etc' / 'extras' \
     / 'all_events.json.xz'
 mav = mavutil.mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
 

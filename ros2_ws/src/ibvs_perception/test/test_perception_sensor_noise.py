@@ -10,7 +10,7 @@ from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_sim.core.sensor_noise import BANK_MARGIN_PX, ReadNoise
 from ibvs_sim.core.sim_core import CameraFaults, fault_windows, Pacing, SimConfig, Simulation
 
-from sim_fakes import HoverAutopilot
+from ibvs_sim.testing import HoverAutopilot
 
 SHAPE = (480, 752)
 

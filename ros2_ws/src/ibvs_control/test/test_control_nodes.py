@@ -8,7 +8,6 @@ import os
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -34,7 +33,6 @@ from ibvs_control.mode_supervisor_node import ModeSupervisorNode
 from ibvs_common.node_common import (
     COMMAND_QOS, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS, supervisor_status_msg)
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'unit'))
 from test_control_mavlink import FakeAutopilot, same_rotation  # noqa: E402
 
 VEHICLE = load_vehicle()

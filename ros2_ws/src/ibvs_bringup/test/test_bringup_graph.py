@@ -11,7 +11,7 @@ import types
 from ibvs_bringup import graph, parent_death
 import pytest
 
-SRC = Path(__file__).resolve().parents[2] / 'ros2_ws' / 'src'
+SRC = Path(__file__).resolve().parents[2]      # ros2_ws/src
 LAUNCH = SRC / 'ibvs_bringup' / 'launch'
 PARAMS = str(SRC / 'ibvs_bringup' / 'config' / 'params.yaml')
 EXPECTED_NODES = {'sim', 'window_detector', 'pad_detector', 'front_optical_flow',
