@@ -63,8 +63,6 @@ the image); edge i joins corner i and i+1 and h_i = unit(p_i x p_(i+1)) (paper, 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-import enum
 import functools
 import itertools
 from typing import NamedTuple
@@ -73,12 +71,13 @@ import cv2
 import numpy as np
 
 from ibvs_common.core.camera import CameraModel
-from ibvs_common.core.features import edge_normals
 
-N_CORNERS = 4
-#: index of corner i+1 and of corner i-1 (cyclic; np.roll costs ~10 us on 4 rows)
-_NEXT = np.array([1, 2, 3, 0])
-_PREVIOUS = np.array([3, 0, 1, 2])
+from .config import PARAMETER_SPECS, SINGLE_PASS_MARGIN, WindowDetectorConfig  # noqa: F401
+from .geometry import (_distort_px, _edge_normals, _intersect_consecutive, _largest_distance,
+                       _NEXT, _quad_area, _side_lines_through, _SIDE_MARGIN, _sides,
+                       _undistorted_px, N_CORNERS, order_corners_clockwise)
+from .results import Reject, WindowDetection, WindowResult, WindowStatus
+
 #: binary value of "dark" pixels after the inverted adaptive threshold
 _DARK = 255
 #: the step of the intensity profiles along the edge normal, px
@@ -87,8 +86,6 @@ _PROFILE_STEP_PX = 0.5
 _CENTROID_HALF_WIDTH = 3
 #: small pixel offset used to map an undistorted normal into the distorted image, px
 _NORMAL_PROBE_PX = 1.0
-#: fraction of each side left out at both ends (near the corners the other band interferes)
-_SIDE_MARGIN = 0.1
 #: points per side checked to lie inside the image (edges are curved there)
 _OUTLINE_SAMPLES = 9
 #: where the band's dark level is read, inwards of the outer edge, px
@@ -96,10 +93,6 @@ _BAND_PROBE_PX = 1.5
 #: polarity of a step along the inward normal
 _RISING = 1
 _FALLING = -1
-#: |sin| of the angle between two edges below which their intersection is refused
-_MIN_SIN_EDGE_ANGLE = 0.2
-#: |p_i x p_(i+1)| below which an edge normal is degenerate (features.edge_normals raises)
-_MIN_EDGE_NORMAL = 1e-9
 #: a band edge's dark side reaches the band's level within this distance of the step, px
 #: (a blurred edge spans ~2 px; a texture step beside the band does not lead into it)
 _BAND_REACH_PX = 2.0
@@ -119,31 +112,6 @@ _MEAN_DEPTH_FRACTION = 0.5
 #: where the band's level is read between the outer and the predicted inner edge (fractions
 #: of the predicted band width, from the outer edge)
 _BAND_LEVEL_SPAN = (0.25, 0.5)
-#: a tracked frame's outer edges take one search of the refine range when the outline
-#: prediction was off by at most refine_half_width_px / this in the frame before, and the
-#: result lies within that of the start (module doc, Tracking)
-SINGLE_PASS_MARGIN = 2.0
-
-
-class WindowStatus(enum.Enum):
-    """Outcome of one frame."""
-
-    DETECTED = 'detected'        # the tracked window, fully visible
-    NOT_FOUND = 'not_found'      # no (fully visible) window in the image
-    JUMP = 'jump'                # a window, but too far from the tracked one: reported as lost
-
-
-class Reject:
-    """Why a frame gave no window (``WindowResult.reason``): the furthest stage reached."""
-
-    NO_CANDIDATE = 'no candidate'        # no dark convex quad of plausible size and shape
-    OUTER_EDGES = 'outer edges'          # too few wall -> band edge points on a side
-    OUTSIDE = 'outside image'            # the band is not fully border_margin_px inside
-    INNER_EDGES = 'inner edges'          # aperture edges unusable and no band geometry fallback
-    BAND_SHAPE = 'band shape'            # aperture / outer area ratio or proportions out of range
-    JUMP = 'jump'                        # farther than max_corner_jump_px from the tracked one
-    # the order of the stages, a reason later in it wins over an earlier one
-    ORDER = (NO_CANDIDATE, OUTER_EDGES, OUTSIDE, INNER_EDGES, BAND_SHAPE)
 
 
 class _Aperture(NamedTuple):
@@ -154,137 +122,6 @@ class _Aperture(NamedTuple):
     sign: np.ndarray | None           # each side's polarity; None: a side not measured
     level: np.ndarray                 # the band's level per sample
     one_pass: bool                    # refined once from the prediction (no search)
-
-
-@dataclass(frozen=True)
-class WindowDetectorConfig:
-    """Tuning of :class:`WindowDetector` (pixels are full-resolution pixels unless noted)."""
-
-    detection_scale: float = 0.5            # image scale of the contour search, (0, 1]
-    threshold_block_px: int = 31            # adaptive threshold window at detection scale, odd
-    threshold_offset: float = 4.0           # grey levels, floor of the offset below
-    #                                         the local mean counted as dark
-    threshold_contrast_fraction: float = 0.15  # offset / local contrast (max - min in a block)
-    min_area_fraction: float = 0.01         # outer quad area / image area, lower bound
-    max_area_fraction: float = 0.98         # outer quad area / image area, upper bound
-    min_aspect_ratio: float = 0.35          # aperture width / height (image), lower bound
-    max_aspect_ratio: float = 3.0           # aperture width / height (image), upper bound
-    min_hole_area_ratio: float = 0.5        # aperture area / outer area (thin dark band)
-    max_hole_area_ratio: float = 0.93
-    min_holes_fraction: float = 0.25        # light area inside the ring / outer area (search)
-    max_band_fraction: float = 0.25         # band width / shortest outer side, upper bound
-    approx_tolerance: float = 0.04          # approxPolyDP tolerance / contour perimeter
-    border_margin_px: float = 4.0           # the band must stay this far from the image border
-    samples_per_side: int = 40              # edge points searched per aperture side
-    search_half_width_px: float = 8.0       # first-pass search range along the edge normal
-    refine_half_width_px: float = 3.0       # second-pass search range
-    single_pass_tracking: bool = True       # a well predicted track: one refine pass per edge
-    min_edge_contrast: float = 6.0          # grey levels, floor of a valid edge step
-    edge_contrast_fraction: float = 0.2     # valid edge step / the band's contrast to the wall
-    min_edge_inlier_fraction: float = 0.5   # valid points per side, fraction of samples
-    line_inlier_px: float = 1.0             # residual gate of the line fit, undistorted px
-    max_corner_jump_px: float = 30.0        # largest corner displacement between frames
-    reacquire_after_frames: int = 10        # frames without the tracked window before a search
-    window_width_m: float = 1.2             # aperture width (world.yaml window.width), m
-    window_height_m: float = 1.0            # aperture height, m
-    frame_band_m: float = 0.08              # band width around the aperture, m
-    max_band_deviation: float = 0.5         # measured inner side off its predicted line / band
-    max_shape_error: float = 0.02           # band quad vs a view of its rectangle (fallback;
-    #                                         sim views <= 0.003, a floor patch 0.097)
-
-    def __post_init__(self) -> None:
-        """Raise ValueError naming the parameter for what a range cannot check."""
-        block = self.threshold_block_px
-        if block % 2 != 1 or block < 3:    # cv2.adaptiveThreshold: else cv2.error per image
-            raise ValueError(f'parameter threshold_block_px must be odd and >= 3, got {block}')
-        for low, high in (('min_area_fraction', 'max_area_fraction'),
-                          ('min_aspect_ratio', 'max_aspect_ratio'),
-                          ('min_hole_area_ratio', 'max_hole_area_ratio')):
-            if not getattr(self, low) <= getattr(self, high):
-                raise ValueError(f'parameter {low} ({getattr(self, low)}) must be <= {high} '
-                                 f'({getattr(self, high)})')
-
-
-#: spec of each WindowDetectorConfig field as a ROS parameter (description with unit, inclusive
-#: range; ibvs_common.param_descriptors); pixels are full-resolution pixels unless noted
-PARAMETER_SPECS = {
-    'detection_scale': ('image scale of the contour search, (0, 1]', 0.01, 1.0),
-    'threshold_block_px': ('px at detection scale, odd, >= 3: adaptive threshold window',
-                           3, 1001),
-    'threshold_offset': ('grey levels (of 255): floor of the offset below the local mean '
-                         'counted as dark', 0.0, 255.0),
-    'threshold_contrast_fraction': ('offset below the local mean counted as dark / the local '
-                                    'contrast (max - min in the threshold window)', 0.0, 1.0),
-    'min_area_fraction': ('outer band quad area / image area, lower bound', 0.0, 1.0),
-    'max_area_fraction': ('outer band quad area / image area, upper bound', 0.0, 1.0),
-    'min_aspect_ratio': ('width / height of the quad in the image, lower bound', 0.0, None),
-    'max_aspect_ratio': ('width / height of the quad in the image, upper bound', 0.0, None),
-    'min_hole_area_ratio': ('aperture area / outer band area, lower bound', 0.0, 1.0),
-    'max_hole_area_ratio': ('aperture area / outer band area, upper bound', 0.0, 1.0),
-    'min_holes_fraction': ('light area inside a dark ring / its area (search), lower bound',
-                           0.0, 1.0),
-    'max_band_fraction': ('band width / shortest outer side, upper bound', 0.0, 1.0),
-    'approx_tolerance': ('approxPolyDP tolerance / contour perimeter', 0.0, 1.0),
-    'border_margin_px': ('px: the whole band must be this far inside the image', 0.0, None),
-    'samples_per_side': ('edge points searched per aperture side, >= 2', 2, 10000),
-    'search_half_width_px': ('px: first-pass search range along the edge normal', 0.0, None),
-    'refine_half_width_px': ('px: second-pass search range along the edge normal', 0.0, None),
-    'single_pass_tracking': ('a tracked frame whose outline (its last motion) and aperture '
-                             "(the band's proportions) were predicted to within "
-                             'refine_half_width_px / 2 in the frame before takes one refine '
-                             'pass per edge instead of two passes / the aperture search',),
-    'min_edge_contrast': ('grey levels (of 255): floor of the step of a valid edge point',
-                          0.0, 255.0),
-    'edge_contrast_fraction': ('step of a valid edge point / the band contrast to the wall',
-                               0.0, 1.0),
-    'min_edge_inlier_fraction': ('valid edge points per side / samples_per_side', 0.0, 1.0),
-    'line_inlier_px': ('px (undistorted): residual gate of the line fit', 0.0, None),
-    'max_corner_jump_px': ('px: a larger corner motion between frames is a loss', 0.0, None),
-    'reacquire_after_frames': ('frames without the tracked window before a new search',
-                               0, None),
-    'window_width_m': ('m: aperture width (the world\'s window), for the band proportions',
-                       0.0, None),
-    'window_height_m': ('m: aperture height, for the band proportions', 0.0, None),
-    'frame_band_m': ('m: width of the dark band around the aperture', 0.0, None),
-    'max_band_deviation': ('measured aperture side off its line predicted from the band '
-                           'proportions / predicted band width, upper bound', 0.0, None),
-    'max_shape_error': ('band quad vs a perspective view of its known rectangle (relative); '
-                        'checked when an aperture side is taken from the proportions',
-                        0.0, None),
-}
-
-
-@dataclass(frozen=True)
-class WindowDetection:
-    """One detected window in the optical frame of the camera."""
-
-    corners_px: np.ndarray      # (4, 2) distorted pixels, TL, TR, BR, BL
-    bearings_C: np.ndarray      # (4, 3) undistorted unit bearings, same order
-    edge_normals_C: np.ndarray  # (4, 3) h_i = unit(p_i x p_(i+1)), edge i joins i and i+1
-
-
-@dataclass(frozen=True)
-class WindowResult:
-    """What one frame gives: a status and, when DETECTED, the detection."""
-
-    status: WindowStatus
-    detection: WindowDetection | None = None
-    reason: str = ''            # why not DETECTED (a Reject constant), '' when detected
-
-
-def order_corners_clockwise(quad_px: np.ndarray) -> np.ndarray:
-    """Order 4 image points TL, TR, BR, BL (clockwise in the image, y down).
-
-    The start is the corner whose direction from the centroid is closest to the image's
-    up-left diagonal, which holds for camera rolls below 45 degrees.
-    """
-    quad = np.asarray(quad_px, dtype=float).reshape(N_CORNERS, 2)
-    d = quad - quad.mean(axis=0)
-    angle = np.arctan2(d[:, 1], d[:, 0])          # clockwise on screen with y down
-    quad = quad[np.argsort(angle)]
-    d = quad - quad.mean(axis=0)
-    start = int(np.argmax(-(d[:, 0] + d[:, 1])))  # farthest along (-1, -1)
-    return np.roll(quad, -start, axis=0)
 
 
 class WindowDetector:
@@ -1029,23 +866,6 @@ def _without_small_components(binary: np.ndarray, min_area: float) -> np.ndarray
     return np.where(keep, _DARK, 0).astype(np.uint8)[labels]
 
 
-def _side_lines_through(quad: np.ndarray) -> np.ndarray:
-    """Lines (4, 3) (nx, ny, c) through the sides of a quad, |n| = 1 (nan for a null side).
-
-    Side i joins corner i and i+1; the line is the cross product (a, 1) x (b, 1) written out.
-    """
-    a, b = quad, quad[_NEXT]
-    lines = np.column_stack([a[:, 1] - b[:, 1], b[:, 0] - a[:, 0],
-                             a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]])
-    with np.errstate(invalid='ignore', divide='ignore'):
-        return lines / np.sqrt(lines[:, 0] * lines[:, 0] + lines[:, 1] * lines[:, 1])[:, None]
-
-
-def _sides(quad: np.ndarray) -> list[np.ndarray]:
-    """End points (2, 2) of the 4 sides of a quad: side i joins corner i and i+1."""
-    return [np.array([quad[k], quad[(k + 1) % N_CORNERS]]) for k in range(N_CORNERS)]
-
-
 @functools.lru_cache(maxsize=8)
 def _side_fractions(n: int) -> np.ndarray:
     """Where the n samples of a side lie, fractions of it from corner i (read-only, cached)."""
@@ -1070,17 +890,6 @@ def _children_area(contours, hierarchy, child: int) -> float:
         total += cv2.contourArea(contours[child])
         child = hierarchy[child][0]
     return total
-
-
-def _largest_distance(a: np.ndarray, b: np.ndarray) -> float:
-    """Largest distance (px) between corresponding corners of two quads (4, 2)."""
-    return float(np.max(np.hypot(*(a - b).T)))
-
-
-def _quad_area(quad: np.ndarray) -> float:
-    """Area of a simple polygon (shoelace)."""
-    x, y = quad[:, 0], quad[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
 
 
 def _profiles(gray: np.ndarray, camera: CameraModel, samples_u: np.ndarray,
@@ -1110,19 +919,6 @@ def _profiles(gray: np.ndarray, camera: CameraModel, samples_u: np.ndarray,
     # the parallel profiles' mean (an exact integer sum divided once, as ndarray.mean)
     return (profile.reshape(n, len(along), m).sum(axis=1, dtype=float) / len(along),
             base, normal_d)
-
-
-def _undistorted_px(camera: CameraModel, uv: np.ndarray) -> np.ndarray:
-    """Distorted pixels -> ideal pinhole pixels K [x/z, y/z, 1] (same K, no distortion)."""
-    xy = camera.pixels_to_normalized(uv)
-    return xy * np.array([camera.K[0, 0], camera.K[1, 1]]) + camera.K[:2, 2]
-
-
-def _distort_px(camera: CameraModel, uv_u: np.ndarray) -> np.ndarray:
-    """Ideal pinhole pixels (N, 2) -> distorted pixels (N, 2) (``normalized_to_pixels``)."""
-    uv_u = np.asarray(uv_u, dtype=float)
-    K = camera.K
-    return camera.normalized_to_pixels((uv_u - K[:2, 2]) / np.array([K[0, 0], K[1, 1]]))
 
 
 def _robust_lines(points: np.ndarray, valid: np.ndarray, inlier_px: float,
@@ -1165,34 +961,3 @@ def _robust_lines(points: np.ndarray, valid: np.ndarray, inlier_px: float,
     c = -(normal[:, 0] * centre[:, 0] + normal[:, 1] * centre[:, 1])
     return [np.array([normal[i, 0], normal[i, 1], c[i]]) if fitted[i] else None
             for i in range(k)]
-
-
-def _edge_normals(p: np.ndarray) -> np.ndarray:
-    """Edge normals (4, 3) h_i = unit(p_i x p_(i+1)) of corner bearings p (4, 3).
-
-    :func:`ibvs_common.core.features.edge_normals` (the same values) for the 4 edges at once;
-    it is called instead for a degenerate edge, and raises.
-    """
-    q = p[_NEXT]
-    h = np.column_stack([p[:, 1] * q[:, 2] - p[:, 2] * q[:, 1],
-                         p[:, 2] * q[:, 0] - p[:, 0] * q[:, 2],
-                         p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0]])
-    norm = np.linalg.norm(h, axis=1)
-    if np.any(~(norm >= _MIN_EDGE_NORMAL)):
-        return edge_normals(p)
-    return h / norm[:, None]
-
-
-def _intersect_consecutive(lines: list[np.ndarray] | np.ndarray) -> np.ndarray | None:
-    """Corners (4, 2): corner i = line i-1 x line i (homogeneous cross product), or None.
-
-    None when two consecutive lines meet at |sin| < _MIN_SIN_EDGE_ANGLE (unit normals).
-    """
-    l2 = np.asarray(lines, dtype=float).reshape(N_CORNERS, 3)
-    l1 = l2[_PREVIOUS]
-    cross_z = l1[:, 0] * l2[:, 1] - l1[:, 1] * l2[:, 0]
-    if np.any(np.abs(cross_z) < _MIN_SIN_EDGE_ANGLE):
-        return None
-    x = l1[:, 1] * l2[:, 2] - l1[:, 2] * l2[:, 1]
-    y = l1[:, 2] * l2[:, 0] - l1[:, 0] * l2[:, 2]
-    return np.column_stack([x / cross_z, y / cross_z])
