@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 #: a tracked frame's outer edges take one search of the refine range when the outline
 #: prediction was off by at most refine_half_width_px / this in the frame before, and the
-#: result lies within that of the start (module doc, Tracking)
+#: result lies within that of the start (the tracker's single pass, `WindowTracker.refine`)
 SINGLE_PASS_MARGIN = 2.0
 
 

@@ -27,6 +27,11 @@ class Reject:
     # the order of the stages, a reason later in it wins over an earlier one
     ORDER = (NO_CANDIDATE, OUTER_EDGES, OUTSIDE, INNER_EDGES, BAND_SHAPE)
 
+    @staticmethod
+    def furthest(reason: str, other: str) -> str:
+        """Return the one of two reasons (of ``ORDER``) later in ``ORDER``, ``other`` on a tie."""
+        return other if Reject.ORDER.index(other) >= Reject.ORDER.index(reason) else reason
+
 
 @dataclass(frozen=True)
 class WindowDetection:
