@@ -1,9 +1,10 @@
 """Sub-pixel edges of a candidate: its band's outer quad and the aperture inside it.
 
-Each side of a quad is sampled in undistorted px, the samples mapped into the distorted image,
-and an intensity profile read along the local image normal; the edge is the centroid of the
-gradient of the step of the expected polarity that leads into the band. Robust lines through
-each side's edge points (undistorted px) intersect in the refined corners.
+Each side of a quad is sampled in undistorted px (where a straight 3-D edge stays straight),
+the samples are mapped into the distorted image and an intensity profile is read along the
+local image normal; the edge is the gradient centroid of the step of the expected polarity
+that leads into the band. A robust line through each side's edge points gives the corners.
+The aperture is the band's inner edge, near where the band's proportions put it.
 """
 from __future__ import annotations
 

@@ -3,8 +3,8 @@
 A tracked frame refines the window from its last outline, moved by the camera's rotation
 (gyro) and by the outline's last motion, instead of searching the whole image; a well
 predicted track takes one refine pass per edge. A corner jump above ``max_corner_jump_px`` is
-a loss, not followed; after ``reacquire_after_frames`` frames without the window the next
-window found is taken.
+a loss, not followed; after ``reacquire_after_frames`` frames without the window the largest
+window found is taken anew.
 """
 from __future__ import annotations
 
