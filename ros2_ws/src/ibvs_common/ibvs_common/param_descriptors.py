@@ -1,10 +1,11 @@
-"""Declare ROS parameters with descriptors: the one helper of every flight-path node.
+"""Declare ROS parameters with descriptors: the one helper of every node.
 
-A parameter's documentation lives next to its default as a *spec*, a plain tuple (core
-modules stay free of ROS): ``(description,)`` for a string, bool or list parameter and
-``(description, lo, hi)`` for an integer or a double one: its inclusive range, ``None`` for an
-unbounded side. The description names the unit and, for a time, its clock (ROS clock: sim
-time under ``use_sim_time``; or the steady/wall clock).
+A node's parameters are the :func:`~ibvs_common.core.params.param` fields of its config
+dataclass (core/params.py: default, description, range, unit in one place);
+:func:`declare_config` declares them all and returns the dataclass built from their values.
+Underneath, a parameter's *spec* is a plain tuple: ``(description,)`` for a string, bool or
+list parameter and ``(description, lo, hi)`` for an integer or a double one: its inclusive
+range, ``None`` for an unbounded side.
 
 :func:`declare` builds the :class:`ParameterDescriptor` (description, ``IntegerRange`` or
 ``FloatingPointRange`` with step 0, ``read_only``) and declares the parameter. Every node of
@@ -24,12 +25,12 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.exceptions import ParameterException
 from rclpy.node import Node
 
+from ibvs_common.core import params
+
 INT64_MIN, INT64_MAX = -2 ** 63, 2 ** 63 - 1
 
 
-def is_numeric(value: Any) -> bool:
-    """Return True for an integer or double parameter value (bool is neither)."""
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
+is_numeric = params.is_numeric
 
 
 def descriptor(name: str, default: Any, spec: tuple | str,
@@ -61,13 +62,27 @@ def descriptor(name: str, default: Any, spec: tuple | str,
     return out
 
 
-def declare(node: Node, name: str, default: Any, spec: tuple | str) -> Any:
-    """Declare ``name`` (read-only, with its descriptor) on ``node``; return its value.
+def declare_config(node: Node, cls: type, prefix: str = '', **fixed: Any) -> Any:
+    """Declare every parameter of config dataclass ``cls``; return it built from their values.
+
+    ``fixed``: its fields that are not parameters (values from files). Raises ValueError
+    naming the parameter for a value of the wrong type or out of range, and whatever the
+    dataclass's own checks raise.
+    """
+    values = {name: declare(node, name, default, spec.as_tuple(default), spec.read_only)
+              for name, (default, spec) in params.parameters(cls, prefix).items()}
+    return params.build(cls, values, prefix, **fixed)
+
+
+def declare(node: Node, name: str, default: Any, spec: tuple | str,
+            read_only: bool = True) -> Any:
+    """Declare ``name`` (read-only unless told, with its descriptor) on ``node``; return its value.
 
     Raises ValueError naming the parameter for a value of the wrong type or out of range.
     """
     try:
-        return node.declare_parameter(name, default, descriptor(name, default, spec)).value
+        return node.declare_parameter(name, default,
+                                      descriptor(name, default, spec, read_only)).value
     except ParameterException as exc:     # str: '<message>: <name>', the name said first
         text = str(exc).removesuffix(f': {name}')
         raise ValueError(f'parameter {name}: {text}') from exc

@@ -36,38 +36,24 @@ from sensor_msgs.msg import Imu, JointState
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
-from ibvs_control.core.control_laws import (CrossingGains, GAIN_SPECS,
-                                            IntegralGains, LandingGains, ObserverGains,
-                                            WindowGains)
-from ibvs_control.core.controller import ControllerConfig, IbvsController
+from ibvs_control.config import ForceControllerNodeConfig
+from ibvs_control.core.controller import IbvsController
 from ibvs_control.core.frame_inputs import (feature_vector, heading_quat_enu_flu,
                                             SpecificForceBuffer, step_controller)
 from ibvs_common.core.frames import GRAVITY, MAP_FRAME, vec_flu_to_frd, vec_I_to_map
 from ibvs_common.core.modes import InputKind, Mode, MODE_INPUTS
-from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
-                                              AttitudeBufferConfig)
+from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, LateImuReport, mode_from_status, NS_PER_S,
     ns_to_stamp, SENSOR_QOS, set_quat, set_vector3, vector3)
-from ibvs_common.param_descriptors import declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
 MIN_SPECIFIC_FORCE = 0.3 * GRAVITY   # m/s^2, least accelerometer reading used in flight
-
-
-def _gain_defaults() -> dict:
-    """Parameter names and defaults of the gains (the paper's, from the core dataclasses)."""
-    out = {}
-    for prefix, kind in (('landing', LandingGains), ('window', WindowGains),
-                         ('crossing', CrossingGains), ('integral', IntegralGains),
-                         ('observer', ObserverGains)):
-        for f in kind.__dataclass_fields__.values():
-            out[f'{prefix}.{f.name}'] = float(f.default)
-    return out
 
 
 def _mode(number) -> tuple[Mode | None, str]:
@@ -78,39 +64,6 @@ def _mode(number) -> tuple[Mode | None, str]:
         return None, f'unknown mode {number!r}: ignored'
 
 
-GAIN_PARAMETERS = _gain_defaults()
-PARAMETERS = {
-    'crossing_law': 'closed',
-    'disturbance_law': 'observer_integral',
-    'frame_deadline_s': 0.04,
-    'imu_history_s': 1.0,
-    'imu_max_extrapolation_s': 0.05,
-    'imu_max_interpolation_gap_s': 0.2,
-    'vehicle_file': '',
-    'window_layout_file': '',
-    'pad_layout_file': '',
-}
-# description with unit, inclusive range (ibvs_common.param_descriptors)
-GAIN_PARAMETER_SPECS = {f'{prefix}.{name}': spec for prefix, specs in GAIN_SPECS.items()
-                        for name, spec in specs.items()}
-PARAMETER_SPECS = {
-    'crossing_law': ('mode 2 law: closed | intended | seed (SPEC.md section 3)',),
-    'disturbance_law': ("window and landing laws: 'paper' (proportional) | 'integral' (with "
-                        "integral action on the image errors, integral.*) | 'observer' (with "
-                        'a disturbance observer on imu/data specific force, observer.*) | '
-                        "'observer_integral' (both: the observer for the wind, the integrals "
-                        'for accelerometer bias and attitude-estimate error); docs/design.md',),
-    'frame_deadline_s': ('s (ROS clock, from the frame stamp): a frame waits at most this for '
-                         'the products its mode needs', 0.0, None),
-    **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
-    'vehicle_file': ("vehicle YAML (mass, camera mounts); '' = the installed vehicle.yaml",),
-    'window_layout_file': ("window layout YAML (r_w, the window's known width: gain "
-                           "condition); '' = the installed window_layout.yaml",),
-    'pad_layout_file': ("pad layout YAML (group sizes, height cue); '' = the installed "
-                        'pad_layout.yaml',),
-}
-
-
 class ForceControllerNode(Node):
     """ROS side of the outer-loop IBVS controller."""
 
@@ -118,22 +71,16 @@ class ForceControllerNode(Node):
                  imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        p = declare_all(self, {**GAIN_PARAMETERS, **PARAMETERS},
-                        {**GAIN_PARAMETER_SPECS, **PARAMETER_SPECS})
-        vehicle = load_vehicle(p['vehicle_file'] or None)
-        r_w = load_window_layout(p['window_layout_file'] or None).width
-        gains = {k: p[k] for k in GAIN_PARAMETERS}
-        gains['crossing_law'] = p['crossing_law']
-        gains['disturbance_law'] = p['disturbance_law']
-        pad = load_pad_layout(p['pad_layout_file'] or None)
-        config = ControllerConfig.from_params(gains, vehicle, r_w, pad)   # raises GainError
+        cfg = declare_config(self, ForceControllerNodeConfig)
+        vehicle = load_vehicle(cfg.vehicle_file or None)
+        r_w = load_window_layout(cfg.window_layout_file or None).width
+        pad = load_pad_layout(cfg.pad_layout_file or None)
+        config = cfg.controller_config(vehicle, r_w, pad)   # raises GainError
         self._controller = IbvsController(config)
-        self._attitudes = AttitudeBuffer(AttitudeBufferConfig(
-            float(p['imu_history_s']), float(p['imu_max_extrapolation_s']),
-            float(p['imu_max_interpolation_gap_s'])))
+        self._attitudes = AttitudeBuffer(cfg.imu)
         self._late_imu = LateImuReport(self.log, LOG_THROTTLE_S)
         # a frame = one supervisor status (tag: its mode), waiting for that mode's products
-        self._frames = FrameAssembler(float(p['frame_deadline_s']),
+        self._frames = FrameAssembler(cfg.frame_deadline_s,
                                       lambda mode: MODE_INPUTS[mode].needed)
         # the disturbance observer's input: imu/data's specific force, per answered frame
         self._specific_force = SpecificForceBuffer() \

@@ -36,8 +36,6 @@ of the same stamp (PadPairing): the two topics are not ordered with respect to e
 """
 from __future__ import annotations
 
-from dataclasses import fields
-
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 import numpy as np
 from rclpy.node import Node
@@ -50,54 +48,21 @@ from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.modes import CAMERA_OF, InputKind, Mode, MODE_INPUTS
-from ibvs_control.core.supervisor import (
-    ModeSupervisor, PARAMETER_SPECS as CORE_SPECS, SupervisorConfig)
-from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
-                                              AttitudeBufferConfig)
+from ibvs_control.config import ModeSupervisorNodeConfig
+from ibvs_control.core.supervisor import ModeSupervisor
+from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S, SENSOR_QOS,
     supervisor_status_msg)
-from ibvs_common.param_descriptors import declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
 CAMERA_NAME = {InputKind.WINDOW: 'front', InputKind.PAD: 'down'}
-# Core parameters from files, not parameters: r_w from window_layout.yaml, the group sizes
-# from pad_layout.yaml.
-FROM_FILES = ('r_w', 'group_half_sides')
-PARAMETERS = {
-    'update_rate_hz': 20.0,
-    'frame_deadline_s': 0.04,
-    'imu_history_s': 1.0,
-    'imu_max_extrapolation_s': 0.05,
-    'imu_max_interpolation_gap_s': 0.2,
-    'vehicle_file': '',
-    'window_layout_file': '',
-    'pad_layout_file': '',
-}
-# description with unit, inclusive range (ibvs_common.param_descriptors)
-PARAMETER_SPECS = {
-    'update_rate_hz': ('Hz (ROS clock timer): the staleness rules are applied this often '
-                       'when inputs stop, > 0', 0.0, None),
-    'frame_deadline_s': ('s (ROS clock, from the frame stamp): a frame waits at most this for '
-                         'the products its mode needs', 0.0, None),
-    **{f'imu_{k}': v for k, v in ATTITUDE_BUFFER_SPECS.items()},
-    'vehicle_file': ("vehicle YAML (camera mounts R_BC); '' = the installed vehicle.yaml",),
-    'window_layout_file': ("window layout YAML (r_w, the window's known width); '' = the "
-                           'installed window_layout.yaml',),
-    'pad_layout_file': ("pad layout YAML (group half sides); '' = the installed "
-                        'pad_layout.yaml',),
-}
-
-
-def _core_defaults() -> dict:
-    """Supervisor thresholds and timeouts (floats) with the core's defaults."""
-    return {f.name: float(f.default) for f in fields(SupervisorConfig)
-            if f.name not in FROM_FILES}
 
 
 class ModeSupervisorNode(Node):
@@ -107,24 +72,17 @@ class ModeSupervisorNode(Node):
                  imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        core_params = _core_defaults()
-        p = declare_all(self, {**core_params, **PARAMETERS}, {**CORE_SPECS, **PARAMETER_SPECS})
-        vehicle = load_vehicle(p['vehicle_file'] or None)
-        pad = load_pad_layout(p['pad_layout_file'] or None)
-        window = load_window_layout(p['window_layout_file'] or None)
-        config = SupervisorConfig.from_params(
-            {**{k: float(p[k]) for k in core_params}, 'r_w': window.width,
-             'group_half_sides': {g.name: g.c for g in pad.groups}})
-        if not float(p['update_rate_hz']) > 0.0:
-            raise ValueError(f"update_rate_hz must be > 0, got {p['update_rate_hz']}")
+        cfg = declare_config(self, ModeSupervisorNodeConfig)
+        vehicle = load_vehicle(cfg.vehicle_file or None)
+        pad = load_pad_layout(cfg.pad_layout_file or None)
+        window = load_window_layout(cfg.window_layout_file or None)
+        config = cfg.supervisor_config(window.width, pad)
         self._core = ModeSupervisor(config)
         self._R_BC = {name: vehicle.cameras[name].R_BC for name in ('front', 'down')}
-        self._attitudes = AttitudeBuffer(AttitudeBufferConfig(
-            float(p['imu_history_s']), float(p['imu_max_extrapolation_s']),
-            float(p['imu_max_interpolation_gap_s'])))
+        self._attitudes = AttitudeBuffer(cfg.imu)
         self._late_imu = LateImuReport(self.log, LOG_THROTTLE_S)
         # frames of the current mode's camera wait for the products that mode needs
-        self._frames = FrameAssembler(float(p['frame_deadline_s']), self._needed)
+        self._frames = FrameAssembler(cfg.frame_deadline_s, self._needed)
         self._clock_watch = BackstepWatch()    # the node clock, read in every callback
         self._n_reported = 0
         self._published: Mode | None = None
@@ -137,7 +95,7 @@ class ModeSupervisorNode(Node):
         self._products = FrameProductSubscriptions(self, self._add)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
-        self.create_timer(1.0 / p['update_rate_hz'], self._on_timer)   # node clock
+        self.create_timer(1.0 / cfg.update_rate_hz, self._on_timer)   # node clock
         self._deadline = DeadlineTimer(self, self._on_deadline)
         self._publish_mode()
         self.get_logger().info(f'mode supervisor ready in {self._core.mode.name}: {config}')

@@ -1,6 +1,6 @@
 """The frozen-camera guard of the perception nodes (parameter, check, log; no maths).
 
-Every node that consumes a camera's images declares ``frozen_after_frames`` and asks
+Every node that consumes a camera's images has ``frozen_after_frames`` (config.py) and asks
 :meth:`FrozenCameraGuard.drop` before processing an image: an image of a frozen stream
 (:class:`~ibvs_perception.core.freeze.FrozenImageCheck`) is neither processed nor answered, as
 if the camera had delivered nothing, so that the supervisor's frame deadline and staleness
@@ -15,28 +15,20 @@ from rclpy.node import Node
 
 from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_perception.messages import stamp_to_s
-from ibvs_common.param_descriptors import declare
 from ibvs_common.throttled_log import ThrottledLog
 
 if TYPE_CHECKING:
     from builtin_interfaces.msg import Time
 
-PARAMETER = 'frozen_after_frames'
-DEFAULT_FROZEN_AFTER_FRAMES = 3
-DESCRIPTION = ('frames: a camera whose consecutive images are bit-identical to their '
-               'predecessor this many times in a row is frozen (a hung driver re-stamping its '
-               "last buffer: a live sensor's read noise never repeats); its images are then "
-               'dropped, nothing is published for them; integer >= 1')
-SPEC = (DESCRIPTION, 1, None)
 THROTTLE_S = 2.0
 
 
 class FrozenCameraGuard:
-    """Declare the parameter, check each image, log and count the dropped ones."""
+    """Check each image, log and count the dropped ones."""
 
-    def __init__(self, node: Node, camera: str, log_prefix: str) -> None:
-        value = declare(node, PARAMETER, DEFAULT_FROZEN_AFTER_FRAMES, SPEC)  # ValueError: bad
-        self.check = FrozenImageCheck(value)        # ValueError for a bad value
+    def __init__(self, node: Node, camera: str, log_prefix: str, frozen_after_frames: int
+                 ) -> None:
+        self.check = FrozenImageCheck(frozen_after_frames)   # ValueError for a bad value
         self.camera = camera
         self.prefix = log_prefix
         self.logger = node.get_logger()

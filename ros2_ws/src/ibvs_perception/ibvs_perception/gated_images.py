@@ -16,31 +16,18 @@ from sensor_msgs.msg import Image
 
 from ibvs_common.core.modes import InputKind, modes_using
 from ibvs_common.node_common import COMMAND_QOS, mode_from_status, stamp_to_ns
-from ibvs_common.param_descriptors import declare
 from ibvs_common.throttled_log import ThrottledLog
 from ibvs_perception.core.mode_gate import ModeGate
 
 THROTTLE_S = 2.0
-SPECS = {
-    'mode_gating': ('compute this product only for the images of a mode that uses it '
-                    '(ibvs/supervisor_status; every image before the first status); false: '
-                    'every image',),
-    'mode_gate_depth': ('images kept unprocessed while the mode does not use the product, '
-                        'processed at once if the mode switches to one that does within '
-                        'them (the status of a frame arrives after its image); >= 2', 2, 50),
-}
-DEFAULTS = {'mode_gating': True, 'mode_gate_depth': 4}
 
 
 class GatedImages:
     """Route a node's images through a :class:`ModeGate` for the product ``kind``."""
 
     def __init__(self, node: Node, kind: InputKind,
-                 process: Callable[[Image, bool], None], log_prefix: str) -> None:
-        enabled = bool(declare(node, 'mode_gating', DEFAULTS['mode_gating'],
-                               SPECS['mode_gating']))
-        depth = int(declare(node, 'mode_gate_depth', DEFAULTS['mode_gate_depth'],
-                            SPECS['mode_gate_depth']))
+                 process: Callable[[Image, bool], None], log_prefix: str,
+                 enabled: bool, depth: int) -> None:
         self.gate = ModeGate(modes_using(kind), depth, enabled)
         self.process = process
         self.prefix = log_prefix

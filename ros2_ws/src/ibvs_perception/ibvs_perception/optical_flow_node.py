@@ -33,21 +33,20 @@ from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.config import ConfigError, load_vehicle
 from ibvs_common.core.frames import e3, MAP_FRAME, vec_I_to_map
-from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
-                                              AttitudeBufferConfig)
+from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import Float32
 
 from ibvs_perception.core.derotation import GyroDerotation
-from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, PARAMETER_SPECS,
-                                       wall_normal_from_corners)
+from ibvs_perception.config import OpticalFlowNodeConfig
+from ibvs_perception.core.flow import FlowEstimator, wall_normal_from_corners
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
 from ibvs_common.node_common import IMAGE_QOS, LateImuReport, stamp_to_ns
-from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
@@ -56,17 +55,6 @@ FRONT, DOWN = 'front', 'down'
 N_WINDOW_CORNERS = 4
 NO_FLOW = (float('nan'),) * 3    # the "no valid flow at this stamp" vector (docs/interfaces.md)
 WINDOW_HISTORY = 10          # recent window detections kept (newest last)
-NODE_SPECS = {
-    'camera': ("'front' (the wall plane, needs window/corners) | 'down' (the floor): the "
-               'camera, its topics and its mount R_BC',),
-    'vehicle_file': ("vehicle YAML (camera mounts R_BC); '' = the installed vehicle.yaml",),
-    'max_window_age_s': ('s (stamps, ROS clock), front: the wall plane comes from the newest '
-                         'window corners older than the image, at most this older, > 0',
-                         0.0, None),
-    'floor_second_plane': ('front: the floor (eta = e3) as a second plane that may be in view '
-                           'below the wall, at an unknown distance (two-plane flow model, '
-                           'docs/perception.md); down: unused',),
-}
 
 
 class OpticalFlowNode(Node):
@@ -76,32 +64,23 @@ class OpticalFlowNode(Node):
                  imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        self.camera_name = declare(self, 'camera', DOWN, NODE_SPECS['camera'])
-        if self.camera_name not in (FRONT, DOWN):
-            raise ValueError(f"parameter camera must be 'front' or 'down', "
-                             f'got {self.camera_name!r}')
-        vehicle_file = declare(self, 'vehicle_file', '', NODE_SPECS['vehicle_file'])
-        self.max_window_age_s = float(declare(self, 'max_window_age_s', 0.2,
-                                              NODE_SPECS['max_window_age_s']))
-        if not self.max_window_age_s > 0.0:
-            raise ValueError(f'parameter max_window_age_s must be > 0, '
-                             f'got {self.max_window_age_s}')
-        self.floor_second_plane = bool(declare(self, 'floor_second_plane', True,
-                                               NODE_SPECS['floor_second_plane']))
-        flow_values = declare_all(self, dataclass_defaults(FlowConfig), PARAMETER_SPECS)
-        buffer_values = declare_all(self, dataclass_defaults(AttitudeBufferConfig),
-                                    ATTITUDE_BUFFER_SPECS, prefix='imu_')
+        cfg = declare_config(self, OpticalFlowNodeConfig)   # ValueError: a bad parameter
+        self.camera_name = cfg.camera
+        self.max_window_age_s = cfg.max_window_age_s
+        self.floor_second_plane = cfg.floor_second_plane
         try:
-            self.R_BC = load_vehicle(vehicle_file or None).cameras[self.camera_name].R_BC
+            self.R_BC = load_vehicle(cfg.vehicle_file or None).cameras[self.camera_name].R_BC
         except (ConfigError, KeyError) as exc:
             self.get_logger().fatal(f'optical_flow: cannot load the camera mount: {exc}')
             raise
-        self.flow_config = FlowConfig(**flow_values)   # ValueError: what a range cannot check
-        self.frozen = FrozenCameraGuard(self, self.camera_name, 'optical_flow')
+        self.flow_config = cfg.flow
+        self.frozen = FrozenCameraGuard(self, self.camera_name, 'optical_flow',
+                                        cfg.images.frozen_after_frames)
         self.gated = GatedImages(
             self, InputKind.FLOW_FRONT if self.camera_name == FRONT else InputKind.FLOW_DOWN,
-            self.process, f'{self.camera_name}_optical_flow')
-        self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
+            self.process, f'{self.camera_name}_optical_flow', cfg.images.mode_gating,
+            cfg.images.mode_gate_depth)
+        self.attitudes = AttitudeBuffer(cfg.imu)
         self.late_imu = LateImuReport(self.log, THROTTLE_S, 'optical_flow: ')
         self.derotation = GyroDerotation(self.attitudes)
         self.estimator: FlowEstimator | None = None

@@ -16,24 +16,19 @@ from geometry_msgs.msg import PolygonStamped
 from ibvs_common.core.config import ConfigError, load_pad_layout
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
-from ibvs_perception.core.pad import (PadConfigError, PadDetector, PadDetectorConfig,
-                                      PARAMETER_SPECS)
+from ibvs_perception.core.pad import PadConfigError, PadDetector
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
 from ibvs_common.node_common import IMAGE_QOS, pad_groups_msg
-from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
+from ibvs_common.param_descriptors import declare_config
+from ibvs_perception.config import PadDetectorNodeConfig
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
-NODE_SPECS = {
-    'pad_layout_file': ("pad layout YAML (ArUco dictionary, groups, marker sizes); '' = the "
-                        'installed pad_layout.yaml',),
-    'frame_id': ('frame of the published bearings (the down camera optical frame)',),
-}
 
 
 class PadDetectorNode(Node):
@@ -42,18 +37,18 @@ class PadDetectorNode(Node):
     def __init__(self, node_name: str = 'pad_detector', **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        values = declare_all(self, dataclass_defaults(PadDetectorConfig), PARAMETER_SPECS)
-        layout_file = declare(self, 'pad_layout_file', '', NODE_SPECS['pad_layout_file'])
-        self.frame_id = declare(self, 'frame_id', 'down_camera_optical_frame',
-                                NODE_SPECS['frame_id'])
-        config = PadDetectorConfig(**values)     # ValueError: a parameter a range cannot check
+        cfg = declare_config(self, PadDetectorNodeConfig)   # ValueError: a bad parameter
+        self.frame_id = cfg.frame_id
         try:
-            self.detector = PadDetector(load_pad_layout(layout_file or None), config)
+            self.detector = PadDetector(load_pad_layout(cfg.pad_layout_file or None),
+                                        cfg.detector)
         except (ConfigError, PadConfigError) as exc:
             self.get_logger().fatal(f'pad_detector: cannot load the pad layout: {exc}')
             raise
-        self.frozen = FrozenCameraGuard(self, 'down', 'pad_detector')
-        self.gated = GatedImages(self, InputKind.PAD, self.process, 'pad_detector')
+        self.frozen = FrozenCameraGuard(self, 'down', 'pad_detector',
+                                        cfg.images.frozen_after_frames)
+        self.gated = GatedImages(self, InputKind.PAD, self.process, 'pad_detector',
+                                 cfg.images.mode_gating, cfg.images.mode_gate_depth)
         self.camera_info: CameraInfo | None = None
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
         self.pub_groups = self.create_publisher(JointState, 'pad/groups', 10)

@@ -18,6 +18,8 @@ the controller.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 from rclpy.node import Node
@@ -26,7 +28,8 @@ from rclpy.qos import qos_profile_sensor_data
 from geometry_msgs.msg import PolygonStamped
 from sensor_msgs.msg import CameraInfo, Image, Imu
 
-from ibvs_perception.core.window import PARAMETER_SPECS, WindowDetector, WindowDetectorConfig
+from ibvs_perception.config import WindowDetectorNodeConfig
+from ibvs_perception.core.window import WindowDetector
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
@@ -34,26 +37,15 @@ from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       polygon_from_vectors, stamp_to_s)
 from ibvs_common.core.config import ConfigError, load_vehicle, load_window_layout
-from ibvs_common.core.attitude_buffer import (ATTITUDE_BUFFER_SPECS, AttitudeBuffer,
-                                              AttitudeBufferConfig)
+from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from ibvs_common.node_common import IMAGE_QOS, LateImuReport
-from ibvs_common.param_descriptors import dataclass_defaults, declare, declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 THROTTLE_S = 2.0
 DEBUG_AXIS_PX = 40      # length of the drawn image axes, px
 DEBUG_COLOUR = (0, 255, 0)
-NODE_SPECS = {
-    'frame_id': ('frame of the published bearings (the front camera optical frame)',),
-    'publish_debug_image': ('publish window/debug_image (bgr8, the detection drawn)',),
-    'vehicle_file': ("vehicle YAML (the front camera's mount R_BC, for the gyro prediction); "
-                     "'' = the installed vehicle.yaml",),
-    'window_layout_file': ("window layout YAML (aperture size and frame band: the band's "
-                           "proportions); '' = the installed window_layout.yaml",),
-}
-# WindowDetectorConfig fields that come from the window layout file, not from parameters
-LAYOUT_FIELDS = ('window_width_m', 'window_height_m', 'frame_band_m')
 
 
 class WindowDetectorNode(Node):
@@ -63,31 +55,27 @@ class WindowDetectorNode(Node):
                  imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        values = declare_all(self, dataclass_defaults(WindowDetectorConfig, LAYOUT_FIELDS),
-                             {k: v for k, v in PARAMETER_SPECS.items() if k not in LAYOUT_FIELDS})
-        self.frame_id = declare(self, 'frame_id', 'front_camera_optical_frame',
-                                NODE_SPECS['frame_id'])
-        self.publish_debug = bool(declare(self, 'publish_debug_image', False,
-                                          NODE_SPECS['publish_debug_image']))
-        vehicle_file = declare(self, 'vehicle_file', '', NODE_SPECS['vehicle_file'])
-        layout_file = declare(self, 'window_layout_file', '', NODE_SPECS['window_layout_file'])
-        buffer_values = declare_all(self, dataclass_defaults(AttitudeBufferConfig),
-                                    ATTITUDE_BUFFER_SPECS, prefix='imu_')
+        cfg = declare_config(self, WindowDetectorNodeConfig)
+        self.frame_id = cfg.frame_id
+        self.publish_debug = cfg.publish_debug_image
         try:
-            self.R_BC = load_vehicle(vehicle_file or None).cameras['front'].R_BC
-            layout = load_window_layout(layout_file or None)
+            self.R_BC = load_vehicle(cfg.vehicle_file or None).cameras['front'].R_BC
+            layout = load_window_layout(cfg.window_layout_file or None)
         except (ConfigError, KeyError) as exc:
             self.get_logger().fatal(f'window_detector: cannot load the camera mount or the '
                                     f'window layout: {exc}')
             raise
-        values.update(window_width_m=layout.width, window_height_m=layout.height,
-                      frame_band_m=layout.frame_band)
-        self.attitudes = AttitudeBuffer(AttitudeBufferConfig(**buffer_values))
+        detector_config = dataclasses.replace(
+            cfg.detector, window_width_m=layout.width, window_height_m=layout.height,
+            frame_band_m=layout.frame_band)
+        self.attitudes = AttitudeBuffer(cfg.imu)
         self.late_imu = LateImuReport(self.log, THROTTLE_S, 'window_detector: ')
         self.R_IC_prev: np.ndarray | None = None    # camera attitude at the previous image
-        self.detector = WindowDetector(WindowDetectorConfig(**values))
-        self.frozen = FrozenCameraGuard(self, 'front', 'window_detector')
-        self.gated = GatedImages(self, InputKind.WINDOW, self.process, 'window_detector')
+        self.detector = WindowDetector(detector_config)
+        self.frozen = FrozenCameraGuard(self, 'front', 'window_detector',
+                                        cfg.images.frozen_after_frames)
+        self.gated = GatedImages(self, InputKind.WINDOW, self.process, 'window_detector',
+                                 cfg.images.mode_gating, cfg.images.mode_gate_depth)
         self.camera_info: CameraInfo | None = None
         self.pub_corners = self.create_publisher(PolygonStamped, 'window/corners', 10)
         self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)

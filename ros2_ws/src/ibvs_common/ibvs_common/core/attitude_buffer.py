@@ -13,6 +13,7 @@ from typing import Sequence
 
 import numpy as np
 
+from ibvs_common.core.params import param
 from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_common.core.frames import exp_so3, is_rotation, log_so3, R_IB_from_quat_map_base
@@ -22,26 +23,20 @@ from ibvs_common.core.frames import exp_so3, is_rotation, log_so3, R_IB_from_qua
 class AttitudeBufferConfig:
     """Sizes and tolerances of :class:`AttitudeBuffer` (seconds of the stamps' clock)."""
 
-    history_s: float = 1.0              # samples older than newest - history_s are dropped
-    max_extrapolation_s: float = 0.05   # propagation beyond the newest sample, at most
-    max_interpolation_gap_s: float = 0.2  # two samples farther apart are not interpolated
+    history_s: float = param(1.0, 's (IMU stamps, ROS clock), IMU attitudes kept, > 0', 0.0)
+    max_extrapolation_s: float = param(
+        0.05,
+        's (IMU stamps, ROS clock), the attitude is propagated with the gyro at most this far '
+        'beyond the newest sample, > 0', 0.0)
+    max_interpolation_gap_s: float = param(
+        0.2, 's (IMU stamps, ROS clock), two IMU samples farther apart are not interpolated, > 0',
+        0.0)
 
     def __post_init__(self) -> None:
         for name in ('history_s', 'max_extrapolation_s', 'max_interpolation_gap_s'):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'{name} must be finite and > 0, got {v}')
-
-
-#: spec of each AttitudeBufferConfig field as a ROS parameter, declared as ``imu_<field>``
-#: (description with unit, inclusive range; ibvs_common.param_descriptors)
-ATTITUDE_BUFFER_SPECS = {
-    'history_s': ('s (IMU stamps, ROS clock), IMU attitudes kept, > 0', 0.0, None),
-    'max_extrapolation_s': ('s (IMU stamps, ROS clock), the attitude is propagated with the '
-                            'gyro at most this far beyond the newest sample, > 0', 0.0, None),
-    'max_interpolation_gap_s': ('s (IMU stamps, ROS clock), two IMU samples farther apart are '
-                                'not interpolated, > 0', 0.0, None),
-}
 
 
 @dataclass

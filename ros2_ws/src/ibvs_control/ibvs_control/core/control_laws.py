@@ -11,6 +11,7 @@ from enum import Enum
 
 import numpy as np
 
+from ibvs_common.core.params import param
 from ibvs_common.core.frames import GRAVITY, e3, proj_orth
 
 
@@ -51,21 +52,31 @@ class DisturbanceLaw(str, Enum):
 class LandingGains:
     """K_p^t = kp_xy pi_eta + kp_z eta eta^T, K_d^t likewise (1/s^2, 1/s); phi*_t (1/s)."""
 
-    kp_xy: float = 4.0
-    kp_z: float = 1.75
-    kd_xy: float = 4.0
-    kd_z: float = 4.0
-    phi_t_star: float = 0.0     # eq:FT2 robust variant when > 0
+    kp_xy: float = param(4.0, '1/s^2, K_p^t horizontal (mass-normalised), > 0', 0.0)
+    kp_z: float = param(1.75, '1/s^2, K_p^t along eta_t (mass-normalised), > 0', 0.0)
+    kd_xy: float = param(4.0, '1/s, K_d^t horizontal (mass-normalised), > 0', 0.0)
+    kd_z: float = param(4.0, '1/s, K_d^t along eta_t (mass-normalised), > 0', 0.0)
+    phi_t_star: float = param(0.0, '1/s, phi*_t: eq:FT2 robust variant when > 0', 0.0)
     # Below these image-estimated heights (m) the in-plane and the vertical gains shrink in
     # proportion to the height, so that K/d stays within what the attitude and thrust loops
     # and the graph's delay allow (0 disables; docs/design.md "low-altitude gain schedule").
-    lateral_schedule_height_m: float = 1.5
-    lateral_scale_min: float = 0.1
-    vertical_schedule_height_m: float = 0.8
-    vertical_scale_min: float = 0.1
+    lateral_schedule_height_m: float = param(
+        1.5, 'm, below this pad-image height the lateral gains scale with the height (0: off)',
+        0.0)
+    lateral_scale_min: float = param(
+        0.1, 'lower bound of that lateral gain scale, (0, 1]', 0.0, 1.0)
+    vertical_schedule_height_m: float = param(
+        0.8, 'm, below this pad-image height the gains along eta_t scale with the height (0: off)',
+        0.0)
+    vertical_scale_min: float = param(
+        0.1, 'lower bound of that vertical gain scale, (0, 1]', 0.0, 1.0)
     # s (ROS clock, from the last pad frame's stamp): without a complete group, fly on the pad
     # centre carried by the floor flow this long (pad_prediction.py); 0 = hold the last force
-    pad_prediction_s: float = 1.5
+    pad_prediction_s: float = param(
+        1.5,
+        "s (ROS clock, from the last pad frame's stamp): LANDING frames without a complete pad "
+        'group fly on the pad centre carried by the floor flow this long, then hold the last '
+        'force; 0 = hold at once, >= 0 (pad_prediction.py)', 0.0)
 
     def validate(self) -> None:
         """Raise GainError unless K_p^t, K_d^t are positive definite and phi*_t >= 0."""
@@ -101,12 +112,13 @@ def _schedule(height_m: float | None, below_m: float, low: float) -> float:
 class WindowGains:
     """Gains of eq:Fw (k_p^w 1/s^2, k_d^w 1/s, k_phi^w 1/s, phi*_w 1/s) and eq:alphaw."""
 
-    kp: float = 1.0
-    kd: float = 0.8
-    k_phi: float = 1.0
-    phi_star: float = 0.3
-    eps: float = 0.2
-    delta: float = 0.05
+    kp: float = param(
+        1.0, '1/s^2, k_p^w (k_d^w^2 / k_p^w > r_w / 2: Proposition prop:window)', 0.0)
+    kd: float = param(0.8, '1/s, k_d^w, > 0', 0.0)
+    k_phi: float = param(1.0, '1/s, k_phi^w, > 0', 0.0)
+    phi_star: float = param(0.3, '1/s, phi*_w, > 0', 0.0)
+    eps: float = param(0.2, 'alpha_w threshold epsilon (dimensionless), > 0', 0.0)
+    delta: float = param(0.05, 'alpha_w threshold delta (dimensionless), > 0', 0.0)
 
     def validate(self, r_w: float) -> None:
         """Proposition prop:window: k_d^2/k_p > r_w/2, positive gains, phi*_w > 0."""
@@ -130,10 +142,10 @@ class CrossingGains:
     kf (phi_fwd_ref - eta^T phi_t), phi_fwd_ref = max(eta^T phi_t(T2), phi_fwd_min).
     """
 
-    kv: float = 4.0             # 1/s, flow damping (as K_d^t)
-    ks: float = 2.0             # 1/s^2, flow-integral stiffness
-    kf: float = 2.0             # 1/s, forward flow tracking
-    phi_fwd_min: float = 0.15   # 1/s, minimum forward flow through the window
+    kv: float = param(4.0, '1/s, mode 2 flow damping (as K_d^t), > 0', 0.0)
+    ks: float = param(2.0, '1/s^2, mode 2 flow-integral stiffness, > 0', 0.0)
+    kf: float = param(2.0, '1/s, mode 2 forward-flow tracking, > 0', 0.0)
+    phi_fwd_min: float = param(0.15, '1/s, minimum forward flow through the window, > 0', 0.0)
 
     def validate(self) -> None:
         """Raise GainError unless every gain is positive."""
@@ -153,11 +165,16 @@ class IntegralGains:
     ki_w < k_p^w k_d^w / d_max and ki_t < k_p^t k_d^t / d_max (horizontal gains).
     """
 
-    ki_w: float = 0.2           # 1/s^3, window lateral/vertical image error
-    ki_phi: float = 0.5         # 1/s^2, window forward flow error
-    ki_t: float = 1.0           # 1/s^3, landing horizontal image error
-    xi_max: float = 2.0         # m/s^2, largest integral acceleration (anti-windup)
-    d_max: float = 3.0          # m, largest distance to the window or pad of the condition
+    ki_w: float = param(
+        0.2, '1/s^3, window image-error integral (disturbance_law integral; '
+        '< k_p^w k_d^w / d_max)', 0.0)
+    ki_phi: float = param(0.5, '1/s^2, window forward-flow-error integral, > 0', 0.0)
+    ki_t: float = param(
+        1.0, '1/s^3, landing horizontal image-error integral (< k_p^t k_d^t / d_max)', 0.0)
+    xi_max: float = param(
+        2.0, 'm/s^2, largest integral acceleration per law (anti-windup), > 0', 0.0)
+    d_max: float = param(
+        3.0, 'm, largest window / pad distance of the integral gains condition, > 0', 0.0)
 
     def validate(self, window: 'WindowGains', landing: LandingGains) -> None:
         """Raise GainError unless positive and within the frozen-distance conditions."""
@@ -183,11 +200,18 @@ class ObserverGains:
     held where no velocity is measured (observer.py).
     """
 
-    tau_s: float = 0.5          # s, observer time constant
-    d_max: float = 3.0          # m/s^2, largest disturbance compensated
-    bias_tau_s: float = 0.2     # s, velocity channel's correction time constant in WINDOW
-    bias_max: float = 1.0       # m/s^2, largest correction (~6 deg of tilt-estimate error)
-    landing_bias_tau_s: float = 0.1   # s, the same in LANDING (floor flow x pad height)
+    tau_s: float = param(
+        0.5, 's, disturbance observer time constant (disturbance_law observer), > 0', 0.0)
+    d_max: float = param(3.0, 'm/s^2, largest disturbance the observer compensates, > 0', 0.0)
+    bias_tau_s: float = param(
+        0.2,
+        "s, time constant of the flow-velocity channel's correction of what the IMU cannot see "
+        '(an attitude-estimate error); 0 = IMU only, >= 0', 0.0)
+    bias_max: float = param(1.0, 'm/s^2, largest such correction, > 0', 0.0)
+    landing_bias_tau_s: float = param(
+        0.1,
+        's, the same correction in LANDING, from the floor flow times the pad-image height; 0 = '
+        'held from WINDOW, >= 0', 0.0)
 
     def validate(self) -> None:
         """Raise GainError unless tau_s, d_max, bias_max > 0 and both bias time constants >= 0."""
@@ -201,65 +225,6 @@ def clamp_norm(v: np.ndarray, limit: float) -> np.ndarray:
     """Return v scaled down to norm ``limit`` when longer (the integrators' anti-windup)."""
     n = float(np.linalg.norm(v))
     return v if n <= limit else v * (limit / n)
-
-
-#: spec of each gain as a ROS parameter ``<prefix>.<field>`` (description with unit, inclusive
-#: range; ibvs_common.param_descriptors); the paper's conditions are checked by validate()
-GAIN_SPECS = {
-    'landing': {
-        'kp_xy': ('1/s^2, K_p^t horizontal (mass-normalised), > 0', 0.0, None),
-        'kp_z': ('1/s^2, K_p^t along eta_t (mass-normalised), > 0', 0.0, None),
-        'kd_xy': ('1/s, K_d^t horizontal (mass-normalised), > 0', 0.0, None),
-        'kd_z': ('1/s, K_d^t along eta_t (mass-normalised), > 0', 0.0, None),
-        'phi_t_star': ('1/s, phi*_t: eq:FT2 robust variant when > 0', 0.0, None),
-        'lateral_schedule_height_m': ('m, below this pad-image height the lateral gains scale '
-                                      'with the height (0: off)', 0.0, None),
-        'lateral_scale_min': ('lower bound of that lateral gain scale, (0, 1]', 0.0, 1.0),
-        'vertical_schedule_height_m': ('m, below this pad-image height the gains along eta_t '
-                                       'scale with the height (0: off)', 0.0, None),
-        'vertical_scale_min': ('lower bound of that vertical gain scale, (0, 1]', 0.0, 1.0),
-        'pad_prediction_s': ('s (ROS clock, from the last pad frame\'s stamp): LANDING frames '
-                             'without a complete pad group fly on the pad centre carried by '
-                             'the floor flow this long, then hold the last force; 0 = hold at '
-                             'once, >= 0 (pad_prediction.py)', 0.0, None),
-    },
-    'window': {
-        'kp': ('1/s^2, k_p^w (k_d^w^2 / k_p^w > r_w / 2: Proposition prop:window)', 0.0, None),
-        'kd': ('1/s, k_d^w, > 0', 0.0, None),
-        'k_phi': ('1/s, k_phi^w, > 0', 0.0, None),
-        'phi_star': ('1/s, phi*_w, > 0', 0.0, None),
-        'eps': ('alpha_w threshold epsilon (dimensionless), > 0', 0.0, None),
-        'delta': ('alpha_w threshold delta (dimensionless), > 0', 0.0, None),
-    },
-    'integral': {
-        'ki_w': ('1/s^3, window image-error integral (disturbance_law integral; < k_p^w '
-                 'k_d^w / d_max)', 0.0, None),
-        'ki_phi': ('1/s^2, window forward-flow-error integral, > 0', 0.0, None),
-        'ki_t': ('1/s^3, landing horizontal image-error integral (< k_p^t k_d^t / d_max)',
-                 0.0, None),
-        'xi_max': ('m/s^2, largest integral acceleration per law (anti-windup), > 0',
-                   0.0, None),
-        'd_max': ('m, largest window / pad distance of the integral gains condition, > 0',
-                  0.0, None),
-    },
-    'observer': {
-        'tau_s': ('s, disturbance observer time constant (disturbance_law observer), > 0',
-                  0.0, None),
-        'd_max': ('m/s^2, largest disturbance the observer compensates, > 0', 0.0, None),
-        'bias_tau_s': ("s, time constant of the flow-velocity channel's correction of what the "
-                       'IMU cannot see (an attitude-estimate error); 0 = IMU only, >= 0',
-                       0.0, None),
-        'bias_max': ('m/s^2, largest such correction, > 0', 0.0, None),
-        'landing_bias_tau_s': ('s, the same correction in LANDING, from the floor flow times '
-                               'the pad-image height; 0 = held from WINDOW, >= 0', 0.0, None),
-    },
-    'crossing': {
-        'kv': ('1/s, mode 2 flow damping (as K_d^t), > 0', 0.0, None),
-        'ks': ('1/s^2, mode 2 flow-integral stiffness, > 0', 0.0, None),
-        'kf': ('1/s, mode 2 forward-flow tracking, > 0', 0.0, None),
-        'phi_fwd_min': ('1/s, minimum forward flow through the window, > 0', 0.0, None),
-    },
-}
 
 
 def gain_matrix(k_xy: float, k_z: float, eta: np.ndarray = e3) -> np.ndarray:

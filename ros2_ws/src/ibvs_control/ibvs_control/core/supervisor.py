@@ -45,6 +45,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from ibvs_common.core.params import param
 from ibvs_common.core.features import (
     centroid_feature, distance_to_window_plane, edge_normals, pad_feature,
     pad_height_estimate, window_axes, window_normal)
@@ -60,36 +61,59 @@ class SupervisorConfig:
     """Thresholds and timeouts of the supervisor (seconds, metres, radians)."""
 
     r_w: float = 1.2                               # m, known window width
-    imu_timeout_s: float = 0.2
-    window_timeout_s: float = 0.5                  # mode 1: window lost far away -> failsafe
-    front_flow_timeout_s: float = 0.5              # mode 1
-    down_flow_timeout_s: float = 0.5               # modes 2, 3
-    pad_timeout_s: float = 1.5                     # mode 3 (the controller carries the pad)
-    crossing_min_angular_height_rad: float = 0.85  # window lost closer than this -> mode 2
-    window_jump_rad: float = 0.1                   # corner jump between frames = loss
-    window_jump_max_gap_s: float = 0.1             # jumps are judged only across shorter gaps
-    crossing_margin_m: float = 0.5                 # travel past the wall plane before mode 3
-    crossing_fallback_travel: float = 1.0          # d-normalised travel if d_t is unknown
-    crossing_timeout_s: float = 10.0               # mode 2 without a pad -> failsafe
-    shutdown_height_m: float = 0.14                # body height of the 3 -> 4 switch
-    shutdown_confirm_s: float = 0.02               # ... on every pad frame for this long
-    pad_prediction_s: float = 1.5                  # mode 3: the pad carried on the floor flow
-    shutdown_carried_offset_m: float = 0.04        # ... shuts down within this of its centre
-    shutdown_carried_wait_s: float = 0.5           # ... or this long below the height anyway
-    auto_start_at_s: float = -1.0                  # s; >= 0: start at the first frame then
+    imu_timeout_s: float = param(
+        0.2, 's (ROS clock), IMU older than this: failsafe (flying modes), > 0', 0.0)
+    window_timeout_s: float = param(
+        0.5, 's (ROS clock), mode 1: window lost far away this long -> failsafe, > 0', 0.0)
+    front_flow_timeout_s: float = param(
+        0.5, 's (ROS clock), mode 1: no wall flow this long -> failsafe, > 0', 0.0)
+    down_flow_timeout_s: float = param(
+        0.5, 's (ROS clock), modes 2-3: no floor flow this long -> failsafe, > 0', 0.0)
+    pad_timeout_s: float = param(
+        1.5, 's (ROS clock), mode 3: no pad this long -> failsafe, > 0', 0.0)
+    crossing_min_angular_height_rad: float = param(
+        0.85, 'rad, window lost while its angular height is this big -> mode 2 (crossing), > 0',
+        0.0)
+    window_jump_rad: float = param(
+        0.1, 'rad, a corner jump this big between frames = window lost, > 0', 0.0)
+    window_jump_max_gap_s: float = param(
+        0.1, 's (stamps, ROS clock), jumps are judged only across shorter gaps, > 0', 0.0)
+    crossing_margin_m: float = param(0.5, 'm, travel past the wall plane before mode 3, > 0', 0.0)
+    crossing_fallback_travel: float = param(
+        1.0, 'travel / height (dimensionless) when the height is unknown, > 0', 0.0)
+    crossing_timeout_s: float = param(
+        10.0, 's (ROS clock), mode 2 without a pad this long -> failsafe, > 0', 0.0)
+    shutdown_height_m: float = param(
+        0.14, 'm, pad-image height of the 3 -> 4 (shutdown) switch, > 0', 0.0)
+    shutdown_confirm_s: float = param(
+        0.02, 's (frame stamps, ROS clock): the pad-image height must stay at or below '
+        'shutdown_height_m on every pad frame for this long (0.02: two 50 Hz frames) before the '
+        '3 -> 4 switch, so that one wrong frame cannot shut the motors down in the air, > 0', 0.0)
+    pad_prediction_s: float = param(
+        1.5,
+        "s (ROS clock, from the last pad frame's stamp): in mode 3, a frame without a complete "
+        'pad group takes the pad centre carried by the floor flow this long (pad_prediction.py; '
+        "the force_controller's landing.pad_prediction_s), for the 3 -> 4 switch only; 0 = pad "
+        'frames only, >= 0', 0.0)
+    shutdown_carried_offset_m: float = param(
+        0.04,
+        'm: a carried pad-image height at or below shutdown_height_m switches 3 -> 4 only while '
+        'the carried pad centre is within this horizontal distance of the camera (where the '
+        'smallest group would be in view), > 0', 0.0)
+    shutdown_carried_wait_s: float = param(
+        0.5, 's (frame stamps, ROS clock): a carried pad-image height that stayed at or below '
+        'shutdown_height_m this long switches 3 -> 4 however far off the carried centre is (the '
+        'vehicle is at the floor: the descent from 0.14 m takes ~0.7 s), > 0', 0.0)
+    auto_start_at_s: float = param(
+        -1.0, 's (ROS clock); >= 0: start by itself at the first frame at or after this time (sim '
+        'runs), < 0: only ibvs/start starts')
     group_half_sides: dict = field(default_factory=lambda: {
         'A': 0.36, 'B': 0.20, 'C': 0.10, 'D': 0.045})   # from pad_layout.yaml (c per group)
 
-    @classmethod
-    def from_params(cls, params: dict) -> 'SupervisorConfig':
-        """Build from a flat dict; unknown keys raise ValueError, missing keys keep defaults."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(params) - known
-        if unknown:
-            raise ValueError(f'unknown supervisor parameter(s): {sorted(unknown)}')
-        cfg = cls(**params)
-        for f in fields(cls):
-            v = getattr(cfg, f.name)
+    def __post_init__(self) -> None:
+        """Raise ValueError for a threshold or timeout that is not > 0 (see each field)."""
+        for f in fields(self):
+            v = getattr(self, f.name)
             if f.name == 'auto_start_at_s':
                 if not np.isfinite(v):
                     raise ValueError(f'supervisor parameter {f.name} must be finite, got {v}')
@@ -98,58 +122,15 @@ class SupervisorConfig:
                     raise ValueError(f'supervisor parameter {f.name} must be >= 0, got {v}')
             elif isinstance(v, float) and not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'supervisor parameter {f.name} must be > 0, got {v}')
-        return cfg
 
-
-#: spec of each SupervisorConfig field declared as a ROS parameter (description with unit,
-#: inclusive range; ibvs_common.param_descriptors); r_w and group_half_sides come from files.
-#: Times are on the ROS clock (sim time under use_sim_time); from_params checks > 0.
-PARAMETER_SPECS = {
-    'imu_timeout_s': ('s (ROS clock), IMU older than this: failsafe (flying modes), > 0',
-                      0.0, None),
-    'window_timeout_s': ('s (ROS clock), mode 1: window lost far away this long -> failsafe, '
-                         '> 0', 0.0, None),
-    'front_flow_timeout_s': ('s (ROS clock), mode 1: no wall flow this long -> failsafe, > 0',
-                             0.0, None),
-    'down_flow_timeout_s': ('s (ROS clock), modes 2-3: no floor flow this long -> failsafe, '
-                            '> 0', 0.0, None),
-    'pad_timeout_s': ('s (ROS clock), mode 3: no pad this long -> failsafe, > 0', 0.0, None),
-    'crossing_min_angular_height_rad': ('rad, window lost while its angular height is this '
-                                        'big -> mode 2 (crossing), > 0', 0.0, None),
-    'window_jump_rad': ('rad, a corner jump this big between frames = window lost, > 0',
-                        0.0, None),
-    'window_jump_max_gap_s': ('s (stamps, ROS clock), jumps are judged only across shorter '
-                              'gaps, > 0', 0.0, None),
-    'crossing_margin_m': ('m, travel past the wall plane before mode 3, > 0', 0.0, None),
-    'crossing_fallback_travel': ('travel / height (dimensionless) when the height is '
-                                 'unknown, > 0', 0.0, None),
-    'crossing_timeout_s': ('s (ROS clock), mode 2 without a pad this long -> failsafe, > 0',
-                           0.0, None),
-    'shutdown_height_m': ('m, pad-image height of the 3 -> 4 (shutdown) switch, > 0',
-                          0.0, None),
-    'shutdown_confirm_s': ('s (frame stamps, ROS clock): the pad-image height must stay at '
-                           'or below shutdown_height_m on every pad frame for this long '
-                           '(0.02: two 50 Hz frames) before the 3 -> 4 switch, so that one '
-                           'wrong frame cannot shut the motors down in the air, > 0',
-                           0.0, None),
-    'pad_prediction_s': ('s (ROS clock, from the last pad frame\'s stamp): in mode 3, a frame '
-                         'without a complete pad group takes the pad centre carried by the '
-                         'floor flow this long (pad_prediction.py; the force_controller\'s '
-                         'landing.pad_prediction_s), for the 3 -> 4 switch only; 0 = pad '
-                         'frames only, >= 0', 0.0, None),
-    'shutdown_carried_offset_m': ('m: a carried pad-image height at or below '
-                                  'shutdown_height_m switches 3 -> 4 only while the carried '
-                                  'pad centre is within this horizontal distance of the camera '
-                                  '(where the smallest group would be in view), > 0',
-                                  0.0, None),
-    'shutdown_carried_wait_s': ('s (frame stamps, ROS clock): a carried pad-image height that '
-                                'stayed at or below shutdown_height_m this long switches '
-                                '3 -> 4 however far off the carried centre is (the vehicle is '
-                                'at the floor: the descent from 0.14 m takes ~0.7 s), > 0',
-                                0.0, None),
-    'auto_start_at_s': ('s (ROS clock); >= 0: start by itself at the first frame at or after '
-                        'this time (sim runs), < 0: only ibvs/start starts', None, None),
-}
+    @classmethod
+    def from_params(cls, params: dict) -> 'SupervisorConfig':
+        """Build from a flat dict; unknown keys raise ValueError, missing keys keep defaults."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(params) - known
+        if unknown:
+            raise ValueError(f'unknown supervisor parameter(s): {sorted(unknown)}')
+        return cls(**params)
 
 
 @dataclass(frozen=True)

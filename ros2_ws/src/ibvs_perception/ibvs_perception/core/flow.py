@@ -54,6 +54,7 @@ import math
 import cv2
 import numpy as np
 
+from ibvs_common.core.params import param
 from ibvs_common.core.camera import CameraModel
 from ibvs_common.core.features import (centroid_feature, edge_normals, window_axes,
                                        window_normal)
@@ -70,32 +71,58 @@ LK_MOTION_MARGIN = 2.0
 class FlowConfig:
     """Tuning of :class:`FlowEstimator` (pixels are distorted image pixels)."""
 
-    grid_cols: int = 8                      # replenishment grid
-    grid_rows: int = 6
-    min_tracks_per_cell: int = 3            # a cell with fewer tracks gets new features
-    features_per_cell: int = 6              # goodFeaturesToTrack budget per replenished cell
-    replenish_every_n_frames: int = 5       # replenish period (frames)
-    min_tracks: int = 60                    # fewer tracks: replenish at once
-    quality_level: float = 0.02             # goodFeaturesToTrack quality (fraction of best)
-    min_distance_px: float = 10.0           # between features
-    lk_window_px: int = 15                  # LK window side
-    lk_pyramid_levels: int = 3              # LK pyramid levels above the base image, at most
-    lk_predict: bool = True                 # start each track where the IMU rotation moves it
-    lk_capture_px: float = 3.0              # px, a level-0 search's reach (doubles per level)
-    lk_retrack_lost_fraction: float = 0.2   # fewer levels lost more tracks: redone with all
-    lk_max_error: float = 25.0              # LK mean absolute patch error, grey levels
-    border_px: float = 8.0                  # tracks closer to the border are dropped
-    inlier_threshold_px: float = 0.5        # residual of an inlier track, px over one frame
-    huber_iterations: int = 4               # IRLS iterations before the inlier gate
-    two_plane_iterations: int = 2           # with a second plane: s / phi refits
-    min_inliers: int = 20                   # fewer inliers: no flow published
-    min_inlier_ratio: float = 0.3           # inliers / tracks below this: no flow
-    min_cos_plane: float = 0.05             # eta^T p below this (grazing, or off-plane): dropped
-    exclusion_margin_rad: float = 0.02      # widening of the excluded window aperture
-    min_frame_gap_s: float = 1e-4           # consecutive image stamps: accepted gap
-    max_frame_gap_s: float = 0.1
-    slow_motion_px: float = 2.0             # derotated motion per frame below this: baseline
-    max_baseline_frames: int = 5            # ... over up to this many frames (>= 1)
+    grid_cols: int = param(8, 'columns of the feature replenishment grid', 1, 1000)
+    grid_rows: int = param(6, 'rows of the feature replenishment grid', 1, 1000)
+    min_tracks_per_cell: int = param(3, 'tracks: a grid cell with fewer gets new features', 0)
+    features_per_cell: int = param(6, 'goodFeaturesToTrack budget per replenished cell', 1)
+    replenish_every_n_frames: int = param(5, 'frames: replenishment period', 1)
+    min_tracks: int = param(60, 'tracks: fewer, replenish at once', 0)
+    quality_level: float = param(
+        0.02, 'goodFeaturesToTrack quality, fraction of the best corner, (0, 1]', 0.0, 1.0)
+    min_distance_px: float = param(10.0, 'px, least distance between features', 0.0)
+    lk_window_px: int = param(15, 'px, side of the Lucas-Kanade window, >= 3', 3, 1001)
+    lk_pyramid_levels: int = param(
+        3,
+        'Lucas-Kanade pyramid levels above the base image; with lk_predict the most used (fewer '
+        'while the motion left after the prediction is small)', 0, 20)
+    lk_predict: bool = param(
+        True,
+        'start each track where the IMU rotation between the two images moves it, and use only '
+        'the pyramid levels that the motion left asks for')
+    lk_capture_px: float = param(
+        3.0, 'px: the motion a base-level Lucas-Kanade search converges from (each pyramid level '
+        "doubles it); the levels used reach twice the previous image's 95th-percentile motion "
+        'left after the prediction, > 0', 0.0)
+    lk_retrack_lost_fraction: float = param(
+        0.2,
+        'a search with fewer pyramid levels that loses more than this fraction of the tracks is '
+        'done again with all lk_pyramid_levels', 0.0, 1.0)
+    lk_max_error: float = param(
+        25.0, 'grey levels (of 255), largest LK mean absolute patch error', 0.0)
+    border_px: float = param(8.0, 'px, tracks closer to the image border are dropped', 0.0)
+    inlier_threshold_px: float = param(0.5, 'px over one frame, residual of an inlier track', 0.0)
+    huber_iterations: int = param(4, 'IRLS (Huber) iterations before the inlier gate', 0, 1000)
+    two_plane_iterations: int = param(
+        2,
+        'refits of the second plane distance ratio s and phi when a second plane may be in view '
+        '(front camera: the floor)', 0, 100)
+    min_inliers: int = param(20, 'inliers: fewer, no flow published (NaN)', 0)
+    min_inlier_ratio: float = param(
+        0.3, 'inliers / tracks below this: no flow published (NaN)', 0.0, 1.0)
+    min_cos_plane: float = param(
+        0.05, 'eta^T p below this: the point is not on the plane (dropped)', -1.0, 1.0)
+    exclusion_margin_rad: float = param(0.02, 'rad, widening of the excluded window aperture', 0.0)
+    min_frame_gap_s: float = param(
+        1e-4, 's (image stamps, ROS clock), smallest accepted gap between consecutive images', 0.0)
+    max_frame_gap_s: float = param(
+        0.1, 's (image stamps, ROS clock), largest accepted gap between consecutive images', 0.0)
+    slow_motion_px: float = param(
+        2.0,
+        'px per frame: when the derotated image motion is slower, phi is estimated over several '
+        'frames (a longer baseline), up to max_baseline_frames', 0.0)
+    max_baseline_frames: int = param(
+        5, 'frames: the longest baseline of a slow-motion estimate (1: always frame to frame)', 1,
+        50)
 
     def __post_init__(self) -> None:
         """Raise ValueError naming the parameter for what a range cannot check."""
@@ -107,54 +134,6 @@ class FlowConfig:
         if not self.min_frame_gap_s <= self.max_frame_gap_s:
             raise ValueError(f'parameter min_frame_gap_s ({self.min_frame_gap_s}) must be <= '
                              f'max_frame_gap_s ({self.max_frame_gap_s})')
-
-
-#: spec of each FlowConfig field as a ROS parameter (description with unit, inclusive range;
-#: ibvs_common.param_descriptors); pixels are distorted image pixels
-PARAMETER_SPECS = {
-    'grid_cols': ('columns of the feature replenishment grid', 1, 1000),
-    'grid_rows': ('rows of the feature replenishment grid', 1, 1000),
-    'min_tracks_per_cell': ('tracks: a grid cell with fewer gets new features', 0, None),
-    'features_per_cell': ('goodFeaturesToTrack budget per replenished cell', 1, None),
-    'replenish_every_n_frames': ('frames: replenishment period', 1, None),
-    'min_tracks': ('tracks: fewer, replenish at once', 0, None),
-    'quality_level': ('goodFeaturesToTrack quality, fraction of the best corner, (0, 1]',
-                      0.0, 1.0),
-    'min_distance_px': ('px, least distance between features', 0.0, None),
-    'lk_window_px': ('px, side of the Lucas-Kanade window, >= 3', 3, 1001),
-    'lk_pyramid_levels': ('Lucas-Kanade pyramid levels above the base image; with lk_predict '
-                          'the most used (fewer while the motion left after the prediction '
-                          'is small)', 0, 20),
-    'lk_predict': ('start each track where the IMU rotation between the two images moves it, '
-                   'and use only the pyramid levels that the motion left asks for',),
-    'lk_capture_px': ('px: the motion a base-level Lucas-Kanade search converges from (each '
-                      'pyramid level doubles it); the levels used reach twice the previous '
-                      "image's 95th-percentile motion left after the prediction, > 0",
-                      0.0, None),
-    'lk_retrack_lost_fraction': ('a search with fewer pyramid levels that loses more than '
-                                 'this fraction of the tracks is done again with all '
-                                 'lk_pyramid_levels', 0.0, 1.0),
-    'lk_max_error': ('grey levels (of 255), largest LK mean absolute patch error', 0.0, None),
-    'border_px': ('px, tracks closer to the image border are dropped', 0.0, None),
-    'inlier_threshold_px': ('px over one frame, residual of an inlier track', 0.0, None),
-    'huber_iterations': ('IRLS (Huber) iterations before the inlier gate', 0, 1000),
-    'two_plane_iterations': ('refits of the second plane distance ratio s and phi when a '
-                             'second plane may be in view (front camera: the floor)', 0, 100),
-    'min_inliers': ('inliers: fewer, no flow published (NaN)', 0, None),
-    'min_inlier_ratio': ('inliers / tracks below this: no flow published (NaN)', 0.0, 1.0),
-    'min_cos_plane': ('eta^T p below this: the point is not on the plane (dropped)',
-                      -1.0, 1.0),
-    'exclusion_margin_rad': ('rad, widening of the excluded window aperture', 0.0, None),
-    'min_frame_gap_s': ('s (image stamps, ROS clock), smallest accepted gap between '
-                        'consecutive images', 0.0, None),
-    'max_frame_gap_s': ('s (image stamps, ROS clock), largest accepted gap between '
-                        'consecutive images', 0.0, None),
-    'slow_motion_px': ('px per frame: when the derotated image motion is slower, phi is '
-                       'estimated over several frames (a longer baseline), up to '
-                       'max_baseline_frames', 0.0, None),
-    'max_baseline_frames': ('frames: the longest baseline of a slow-motion estimate (1: '
-                            'always frame to frame)', 1, 50),
-}
 
 
 @dataclass(frozen=True)

@@ -42,6 +42,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ibvs_common.core.params import param
 from ibvs_common.core.camera import CameraModel
 from ibvs_common.core.config import MarkerGroup, PadLayout
 from ibvs_common.core.cv_compat import aruco_parameters, ArucoMarkerDetector
@@ -67,27 +68,66 @@ MODULES_PER_SIDE = 6     # DICT_4X4: 4 data bits + 2 border modules per side
 class PadDetectorConfig:
     """Tuning of the ArUco detector (OpenCV DetectorParameters names, pixels)."""
 
-    adaptive_thresh_win_size_min: int = 21    # px (one window: min = max, fastest)
-    adaptive_thresh_win_size_max: int = 21    # px
-    adaptive_thresh_win_size_step: int = 10   # px
-    adaptive_thresh_constant: float = 30.0    # grey levels below the local mean = black
-    min_marker_perimeter_rate: float = 0.04   # marker perimeter / max image side
-    min_corner_distance_rate: float = 0.1     # min corner distance / marker perimeter
-    corner_refinement_win_size: int = 5       # px, sub-pixel corner refinement window
-    corner_refinement_max_iterations: int = 30
-    corner_refinement_min_accuracy: float = 0.01  # px
-    relative_corner_refinement_win_size: float = 0.3  # window / module size (as ArUco's)
-    roi_margin_fraction: float = 0.1      # ROI margin / larger side of the markers' bounding box
-    roi_margin_px: int = 12               # px, added to the ROI margin
-    full_search_every_n_frames: int = 50  # whole-image search at least this often; 0: only on loss
-    roi_max_age_s: float = 0.03           # s, an older region (frames skipped) is not trusted
-    max_layout_error: float = 0.1   # group check: corner error allowed / marker side ...
-    max_layout_error_px: float = 3.0  # px ... plus this (small markers' corner noise)
-    small_marker_px: float = 20.0   # px: a group predicted this small is searched upscaled
-    small_marker_min_px: float = 8.0  # px: ... unless smaller than this (0: pass off)
-    small_marker_target_px: float = 24.0  # px: upscale factor ~ this / predicted side
-    use_ipp: bool = False     # OpenCV's Intel IPP paths inside process() (module docstring)
-    opencv_threads: int = 1   # OpenCV threads inside process(); 0: leave OpenCV's setting
+    adaptive_thresh_win_size_min: int = param(
+        21, 'px: smallest ArUco adaptive threshold window, >= 3 (min = max: one pass, fastest)', 3,
+        1001)
+    adaptive_thresh_win_size_max: int = param(
+        21, 'px: largest ArUco adaptive threshold window, >= min', 3, 1001)
+    adaptive_thresh_win_size_step: int = param(
+        10, 'px: step between adaptive threshold windows, > 0', 1, 1000)
+    adaptive_thresh_constant: float = param(
+        30.0, 'grey levels (of 255) below the local mean counted as black', 0.0, 255.0)
+    min_marker_perimeter_rate: float = param(
+        0.04,
+        'marker perimeter / largest side of the whole image, lower bound (the same px in the '
+        'tracked region)', 0.0, 4.0)
+    min_corner_distance_rate: float = param(
+        0.1, "candidate's min corner distance / its perimeter", 0.0, 1.0)
+    corner_refinement_win_size: int = param(5, 'px: sub-pixel corner refinement window', 1, 100)
+    corner_refinement_max_iterations: int = param(
+        30, 'iterations of the sub-pixel corner refinement', 1, 10000)
+    corner_refinement_min_accuracy: float = param(
+        0.01, 'px: the corner refinement stops below this change', 0.0)
+    relative_corner_refinement_win_size: float = param(
+        0.3, 'corner refinement window / marker module size', 0.0)
+    roi_margin_fraction: float = param(
+        0.1, "tracking: the next frame's search region is the last markers' bounding box grown by "
+        'this fraction of its larger side', 0.0)
+    roi_margin_px: int = param(12, 'px added to the tracking region margin', 0)
+    full_search_every_n_frames: int = param(
+        50, 'frames: whole-image search at least this often (0: only on a loss)', 0)
+    roi_max_age_s: float = param(
+        0.03,
+        's (image stamps, ROS clock): a tracking region older than this (frames skipped) is not '
+        'used', 0.0)
+    max_layout_error: float = param(
+        0.1,
+        "a complete group whose marker corners miss the group's layout (the homography of its 4 "
+        "marker centres) by more than this fraction of a marker's side in the image plus "
+        'max_layout_error_px is rejected (a foreign marker carrying a pad id)', 0.0)
+    max_layout_error_px: float = param(
+        3.0,
+        'px (undistorted): added to the allowed corner error of the layout check (corner noise '
+        'of small markers)', 0.0)
+    small_marker_px: float = param(
+        20.0,
+        'px: small-marker pass: an incomplete group whose smallest marker, predicted through a '
+        'complete group, is below this is searched again in an upscaled crop around it (0: off)',
+        0.0)
+    small_marker_min_px: float = param(
+        8.0,
+        'px: the small-marker pass skips a group predicted smaller than this (too few pixels per'
+        ' module to decode)', 0.0)
+    small_marker_target_px: float = param(
+        24.0,
+        'px: the small-marker crop is upscaled by an integer factor (2-4) bringing the predicted'
+        ' smallest marker near this', 1.0)
+    use_ipp: bool = param(
+        False,
+        "OpenCV's Intel IPP inside the detector (off: its CPU dispatch traps to the hypervisor "
+        'on VMs)')
+    opencv_threads: int = param(
+        1, "OpenCV threads inside the detector (0: leave OpenCV's setting)", 0, 1024)
 
     def __post_init__(self) -> None:
         """Raise ValueError naming the parameter for what a range cannot check (OpenCV)."""
@@ -99,56 +139,6 @@ class PadDetectorConfig:
         if not self.adaptive_thresh_win_size_step > 0:
             raise ValueError('parameter adaptive_thresh_win_size_step must be > 0, got '
                              f'{self.adaptive_thresh_win_size_step}')
-
-
-#: spec of each PadDetectorConfig field as a ROS parameter (description with unit, inclusive
-#: range; ibvs_common.param_descriptors)
-PARAMETER_SPECS = {
-    'adaptive_thresh_win_size_min': ('px: smallest ArUco adaptive threshold window, >= 3 '
-                                     '(min = max: one pass, fastest)', 3, 1001),
-    'adaptive_thresh_win_size_max': ('px: largest ArUco adaptive threshold window, >= min',
-                                     3, 1001),
-    'adaptive_thresh_win_size_step': ('px: step between adaptive threshold windows, > 0',
-                                      1, 1000),
-    'adaptive_thresh_constant': ('grey levels (of 255) below the local mean counted as black',
-                                 0.0, 255.0),
-    'min_marker_perimeter_rate': ('marker perimeter / largest side of the whole image, lower '
-                                  'bound (the same px in the tracked region)', 0.0, 4.0),
-    'min_corner_distance_rate': ("candidate's min corner distance / its perimeter", 0.0, 1.0),
-    'corner_refinement_win_size': ('px: sub-pixel corner refinement window', 1, 100),
-    'corner_refinement_max_iterations': ('iterations of the sub-pixel corner refinement',
-                                         1, 10000),
-    'corner_refinement_min_accuracy': ('px: the corner refinement stops below this change',
-                                       0.0, None),
-    'relative_corner_refinement_win_size': ('corner refinement window / marker module size',
-                                            0.0, None),
-    'roi_margin_fraction': ("tracking: the next frame's search region is the last markers' "
-                            'bounding box grown by this fraction of its larger side',
-                            0.0, None),
-    'roi_margin_px': ('px added to the tracking region margin', 0, None),
-    'full_search_every_n_frames': ('frames: whole-image search at least this often (0: only '
-                                   'on a loss)', 0, None),
-    'roi_max_age_s': ('s (image stamps, ROS clock): a tracking region older than this (frames '
-                      'skipped) is not used', 0.0, None),
-    'max_layout_error': ("a complete group whose marker corners miss the group's layout "
-                         '(the homography of its 4 marker centres) by more than this '
-                         "fraction of a marker's side in the image plus max_layout_error_px "
-                         'is rejected (a foreign marker carrying a pad id)', 0.0, None),
-    'max_layout_error_px': ('px (undistorted): added to the allowed corner error of the '
-                            'layout check (corner noise of small markers)', 0.0, None),
-    'small_marker_px': ('px: small-marker pass: an incomplete group whose smallest marker, '
-                        'predicted through a complete group, is below this is searched again '
-                        'in an upscaled crop around it (0: off)', 0.0, None),
-    'small_marker_min_px': ('px: the small-marker pass skips a group predicted smaller than '
-                            'this (too few pixels per module to decode)', 0.0, None),
-    'small_marker_target_px': ('px: the small-marker crop is upscaled by an integer factor '
-                               '(2-4) bringing the predicted smallest marker near this',
-                               1.0, None),
-    'use_ipp': ("OpenCV's Intel IPP inside the detector (off: its CPU dispatch traps to the "
-                'hypervisor on VMs)',),
-    'opencv_threads': ('OpenCV threads inside the detector (0: leave OpenCV\'s setting)',
-                       0, 1024),
-}
 
 
 @dataclass(frozen=True)

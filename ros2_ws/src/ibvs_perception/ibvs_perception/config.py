@@ -1,0 +1,86 @@
+"""The typed configurations of the perception nodes (ROS-free).
+
+Each field is a ROS parameter (:func:`~ibvs_common.core.params.param`) or a group of them;
+the nodes declare them with ``declare_config``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ibvs_common.core.attitude_buffer import AttitudeBufferConfig
+from ibvs_common.core.params import group, param
+from ibvs_perception.core.flow import FlowConfig
+from ibvs_perception.core.pad import PadDetectorConfig
+from ibvs_perception.core.window import WindowDetectorConfig
+
+VEHICLE_FILE = "vehicle YAML (the camera mounts R_BC); '' = the installed vehicle.yaml"
+
+
+@dataclass(frozen=True)
+class ImageInputConfig:
+    """How every perception node takes its camera's images (mode gating, frozen camera)."""
+
+    mode_gating: bool = param(
+        True, 'compute this product only for the images of a mode that uses it '
+        '(ibvs/supervisor_status; every image before the first status); false: every image')
+    mode_gate_depth: int = param(
+        4, 'images kept unprocessed while the mode does not use the product, processed at once '
+        'if the mode switches to one that does within them (the status of a frame arrives '
+        'after its image); >= 2', 2, 50)
+    frozen_after_frames: int = param(
+        3, 'frames: a camera whose consecutive images are bit-identical to their predecessor '
+        "this many times in a row is frozen (a hung driver re-stamping its last buffer: a live "
+        "sensor's read noise never repeats); its images are then dropped, nothing is published "
+        'for them; integer >= 1', 1)
+
+
+@dataclass(frozen=True)
+class WindowDetectorNodeConfig:
+    """Parameters of the ``window_detector`` node."""
+
+    frame_id: str = param('front_camera_optical_frame',
+                          'frame of the published bearings (the front camera optical frame)')
+    publish_debug_image: bool = param(False,
+                                      'publish window/debug_image (bgr8, the detection drawn)')
+    vehicle_file: str = param('', VEHICLE_FILE + ' (the front mount, for the gyro prediction)')
+    window_layout_file: str = param(
+        '', "window layout YAML (aperture size and frame band: the band's proportions); '' = "
+        'the installed window_layout.yaml')
+    detector: WindowDetectorConfig = group(WindowDetectorConfig)
+    imu: AttitudeBufferConfig = group(AttitudeBufferConfig, 'imu_')
+    images: ImageInputConfig = group(ImageInputConfig)
+
+
+@dataclass(frozen=True)
+class PadDetectorNodeConfig:
+    """Parameters of the ``pad_detector`` node."""
+
+    pad_layout_file: str = param('', "pad layout YAML (ArUco dictionary, groups, marker "
+                                 "sizes); '' = the installed pad_layout.yaml")
+    frame_id: str = param('down_camera_optical_frame',
+                          'frame of the published bearings (the down camera optical frame)')
+    detector: PadDetectorConfig = group(PadDetectorConfig)
+    images: ImageInputConfig = group(ImageInputConfig)
+
+
+@dataclass(frozen=True)
+class OpticalFlowNodeConfig:
+    """Parameters of an ``optical_flow`` node (one per camera)."""
+
+    camera: str = param('down', "'front' (the wall plane, needs window/corners) | 'down' (the "
+                        'floor): the camera, its topics and its mount R_BC')
+    vehicle_file: str = param('', VEHICLE_FILE)
+    max_window_age_s: float = param(
+        0.2, 's (stamps, ROS clock), front: the wall plane comes from the newest window corners '
+        'older than the image, at most this older, > 0', 1e-6)
+    floor_second_plane: bool = param(
+        True, 'front: the floor (eta = e3) as a second plane that may be in view below the '
+        'wall, at an unknown distance (two-plane flow model, docs/perception.md); down: unused')
+    flow: FlowConfig = group(FlowConfig)
+    imu: AttitudeBufferConfig = group(AttitudeBufferConfig, 'imu_')
+    images: ImageInputConfig = group(ImageInputConfig)
+
+    def __post_init__(self) -> None:
+        """Raise ValueError for a camera that is neither 'front' nor 'down'."""
+        if self.camera not in ('front', 'down'):
+            raise ValueError(f"parameter camera must be 'front' or 'down', got {self.camera!r}")
