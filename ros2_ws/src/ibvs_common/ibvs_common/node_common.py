@@ -196,6 +196,11 @@ def pad_group_names(msg: JointState) -> tuple[str, ...]:
 # mode for that frame).
 STATUS_NAME = 'mode_supervisor'
 STATUS_MODE_KEY = 'mode'
+# ... and, for a status of an evaluated frame, the frame's camera and the frame stride the
+# graph computes from this frame on (ibvs_common.core.frame_grid): the perception nodes of
+# that camera compute every stride-th frame counted from this one
+STATUS_CAMERA_KEY = 'camera'
+STATUS_STRIDE_KEY = 'frame_stride'
 
 
 def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes,
@@ -207,6 +212,18 @@ def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes
     msg = DiagnosticArray(status=[status])
     ns_to_stamp(stamp_ns, msg.header.stamp)
     return msg
+
+
+def grid_from_status(msg: DiagnosticArray) -> tuple[str, int] | None:
+    """Return (camera, frame stride) of a status of an evaluated frame, else None."""
+    for status in msg.status:
+        if status.name != STATUS_NAME:
+            continue
+        values = {kv.key: kv.value for kv in status.values}
+        camera, stride = values.get(STATUS_CAMERA_KEY, ''), values.get(STATUS_STRIDE_KEY, '')
+        if camera and stride.isdigit() and int(stride) >= 1:
+            return camera, int(stride)
+    return None
 
 
 def mode_from_status(msg: DiagnosticArray) -> tuple[int, int | None, str]:

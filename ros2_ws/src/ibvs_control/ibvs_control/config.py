@@ -16,10 +16,12 @@ from ibvs_control.core.control_laws import (
     CrossingGains, CrossingLaw, DisturbanceLaw, GainError, IntegralGains, LandingGains,
     ObserverGains, WindowGains)
 from ibvs_control.core.controller import ControllerConfig
+from ibvs_control.core.rate_governor import GovernorConfig
 from ibvs_control.core.supervisor import SupervisorConfig
 
-FRAME_DEADLINE = ('s (ROS clock, from the frame stamp): a frame waits at most this for the '
-                  'products its mode needs')
+FRAME_DEADLINE = ("s (ROS clock, from the frame's first product, never before its stamp): a "
+                  'frame waits at most this for the other products its mode needs, then it is '
+                  'skipped')
 VEHICLE_FILE = "vehicle YAML (mass, camera mounts); '' = the installed vehicle.yaml"
 WINDOW_LAYOUT_FILE = ("window layout YAML (r_w, the window's known width); '' = the installed "
                       'window_layout.yaml')
@@ -38,6 +40,7 @@ class ModeSupervisorNodeConfig:
     window_layout_file: str = param('', WINDOW_LAYOUT_FILE)
     pad_layout_file: str = param('', PAD_LAYOUT_FILE)
     supervisor: SupervisorConfig = group(SupervisorConfig)
+    governor: GovernorConfig = group(GovernorConfig)
     imu: AttitudeBufferConfig = group(AttitudeBufferConfig, 'imu_')
 
     def supervisor_config(self, r_w: float, pad: PadLayout) -> SupervisorConfig:

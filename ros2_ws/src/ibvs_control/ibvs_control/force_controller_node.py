@@ -1,28 +1,11 @@
 """force_controller: detections + flows + IMU + mode -> the paper's force F and a heading.
 
-Thin ROS wrapper of :class:`ibvs_control.core.controller.IbvsController` on the timing layer
-(core/timing.py, docs/design.md "Time"). The supervisor's ``ibvs/supervisor_status`` names
-each frame it evaluated and that frame's mode; the controller answers every such frame
-exactly once, in that mode, as soon as the products the mode needs (window + front flow in
-WINDOW, down flow in CROSSING, pad + down flow in LANDING, window in IDLE) of that stamp are
-in, or when the ROS clock reaches the stamp + ``frame_deadline_s`` (then without them: the
-core holds its last valid force). The attitude is the IMU's interpolated at the stamp, or
-propagated to it with the gyro; never waited for. It publishes, stamped with the frame:
-
-- ``ibvs/force_setpoint`` (geometry_msgs/Vector3Stamped, frame map, newtons),
-- ``ibvs/heading_setpoint`` (geometry_msgs/QuaternionStamped, frame map; yaw-only attitude of
-  base_link), published before the force,
-- ``ibvs/features`` (sensor_msgs/JointState as a named stamped vector: name = 'q_w.x', ...,
-  'q_w_bar.*', 'q_t.*', 'phi_w.*', 'phi_t.*', 'eta_w.*', 'alpha_w'; position = values in {I};
-  unavailable features are left out).
-
-Every evaluated frame is answered exactly once in every mode (IDLE included: the core gives
-hover). Without statuses (supervisor dead) nothing is answered: the bridge's safety policy
-then hands the vehicle back to the autopilot. When the stamps of the statuses, of a product
-kind or of the IMU go back (a clock step, :mod:`ibvs_common.core.clock_step`), the frames or
-the IMU history they feed are dropped and start again from the next input, instead of
-refusing every stamp for the length of the step. Gains are checked at start by
-ControllerConfig.from_params: bad gains -> GainError, the process exits with status 1.
+Thin ROS wrapper of :class:`~ibvs_control.core.controller.IbvsController` on the timing layer
+(core/timing.py; docs/design.md "Time"). Each ``ibvs/supervisor_status`` of a frame is
+answered once, in its mode, from that frame's products (they come by its deadline, or the
+frame is skipped: never flown on a stale or missing product), with the IMU attitude at the
+stamp. Publishes, stamped with the frame: ``ibvs/heading_setpoint``, ``ibvs/force_setpoint``
+(map, N) and ``ibvs/features`` (docs/interfaces.md).
 """
 from __future__ import annotations
 
@@ -86,6 +69,7 @@ class ForceControllerNode(Node):
         self._specific_force = SpecificForceBuffer() \
             if config.disturbance_law.uses_observer else None
         self._t_answered: float | None = None
+        self.skipped = 0                        # frames not answered: a product never came
         self._status_stamps = BackstepWatch()   # one publisher's stream: back = clock step
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
@@ -189,10 +173,13 @@ class ForceControllerNode(Node):
 
     # --- output ----------------------------------------------------------------------------
     def _answer(self, frame: Frame) -> None:
-        if frame.missing:
+        if not frame.complete:      # never answered from a stale or missing product
+            self.skipped += 1
             self.log.warning(
-                f'frame {frame.stamp_ns / NS_PER_S:.3f} s answered at its deadline without '
-                f'{", ".join(k.value for k in frame.missing)} (late or lost)', LOG_THROTTLE_S)
+                f'frame {frame.stamp_ns / NS_PER_S:.3f} s skipped: no '
+                f'{", ".join(k.value for k in frame.missing)} by its deadline (late or lost); '
+                f'{self.skipped} skipped in all', LOG_THROTTLE_S)
+            return
         t = frame.stamp_ns / NS_PER_S
         f_I = None
         if self._specific_force is not None:

@@ -1,42 +1,15 @@
-"""mode_supervisor: the flight-mode state machine on ROS (SPEC.md section 3).
+"""mode_supervisor: the flight-mode state machine on ROS (docs/spec.md section 3).
 
-Thin ROS wrapper of :class:`ibvs_control.core.supervisor.ModeSupervisor` on the timing layer
-(core/timing.py, docs/design.md "Time"). The current mode is evaluated frame by frame on the
-frames of its camera (front for IDLE and WINDOW, down for the others): a frame is released
-when the products the mode needs are in (WINDOW: window + front flow; CROSSING: down flow;
-LANDING: pad + down flow; IDLE: window) or when the ROS clock reaches its stamp +
-``frame_deadline_s``; then its products are converted to {I} (bearings: optical -> body FRD
-by the camera mount R_BC of vehicle.yaml -> {I} by the IMU attitude interpolated at the
-stamp, or propagated to it; flows: map -> {I}), given to the core in a fixed order and the
-frame is closed (``end_frame``: auto-start, triggers, staleness). The frame's products that
-its mode does not wait for (e.g. the pad in CROSSING) are given to the core after the close;
-products of the other camera, and products arriving after their frame was released, on
-arrival. So the mode of each frame depends on that frame's needed inputs and on what came
-before it, not on the order in which DDS delivered them, and an input the mode does not use
-never delays a frame. A timer on the
-node clock (``update_rate_hz``) applies the staleness rules when inputs stop altogether.
-
-Clock steps (:mod:`ibvs_common.core.clock_step`): every callback reads the node clock through
-a watch. When it went back by more than ``MAX_BACKSTEP_S`` (the system clock stepped back),
-the frames and the IMU history are dropped and the core takes every input as missing:
-FAILSAFE in a flying mode (:meth:`ModeSupervisor.clock_stepped_back`). The watchdog timer
-cannot be relied on for this: rcl does not see a step of system time and would hold the
-timer for the length of the step. The stamps of the IMU and of each product kind are
-watched too (a camera or a bag on a clock of its own): the history they feed starts again.
-
-Publishes ``ibvs/mode`` (std_msgs/UInt8, reliable, transient local, depth 1) at start and on
-every transition (each logged with its reason), and ``ibvs/supervisor_status``
-(diagnostic_msgs/DiagnosticArray, reliable) for every evaluated frame, stamped with it: the
-force controller flies that frame in that mode. Serves ``ibvs/start`` and ``ibvs/abort``
-(std_srvs/Trigger, success + message from the core); an accepted start is applied when the
-next frame is closed (``ModeSupervisor.request_start``), an abort at once.
-
-``pad/groups`` (sensor_msgs/JointState, the group names) is paired with the ``pad/landmarks``
-of the same stamp (PadPairing): the two topics are not ordered with respect to each other.
+Thin ROS wrapper of :class:`~ibvs_control.core.supervisor.ModeSupervisor` on the timing layer
+(core/timing.py; docs/design.md "Time"): the mode is evaluated frame by frame on its camera's
+frames, each once the products its mode needs are in, or skipped at its deadline. It chooses
+the frame stride the graph can hold (core/rate_governor.py), publishes ``ibvs/mode``, one
+``ibvs/supervisor_status`` per evaluated frame (its mode and stride) and its frame counts on
+``/diagnostics``, and serves ``ibvs/start`` and ``ibvs/abort``.
 """
 from __future__ import annotations
 
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 import numpy as np
 from rclpy.node import Node
 
@@ -47,8 +20,11 @@ from std_srvs.srv import Trigger
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_common.core.frames import bearings_C_to_I
-from ibvs_common.core.modes import CAMERA_OF, InputKind, Mode, MODE_INPUTS
+from ibvs_common.core.frame_grid import period_ns
+from ibvs_common.core.modes import CAMERA_OF, Camera, InputKind, Mode, MODE_INPUTS
 from ibvs_control.config import ModeSupervisorNodeConfig
+from ibvs_control.core.frame_stats import FrameStats
+from ibvs_control.core.rate_governor import RateGovernor, SupervisorGrids
 from ibvs_control.core.supervisor import ModeSupervisor
 from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from ibvs_common.core.clock_step import BackstepWatch
@@ -56,13 +32,14 @@ from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S, SENSOR_QOS,
-    supervisor_status_msg)
+    STATUS_CAMERA_KEY, STATUS_STRIDE_KEY, supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
 
 LOG_THROTTLE_S = 2.0
-CAMERA_NAME = {InputKind.WINDOW: 'front', InputKind.PAD: 'down'}
+DIAGNOSTICS_PERIOD_S = 1.0          # s (ROS clock) between /diagnostics
+DIAGNOSTICS_NAME = 'mode_supervisor: frames'
 
 
 class ModeSupervisorNode(Node):
@@ -83,6 +60,13 @@ class ModeSupervisorNode(Node):
         self._late_imu = LateImuReport(self.log, LOG_THROTTLE_S)
         # frames of the current mode's camera wait for the products that mode needs
         self._frames = FrameAssembler(cfg.frame_deadline_s, self._needed)
+        self._governor = RateGovernor(cfg.governor)
+        self._lead_ns = int(round(cfg.governor.stride_down_lead_s * NS_PER_S))
+        self._rate_hz = {cam: vehicle.cameras[cam.value].rate_hz for cam in Camera}
+        self._grids = SupervisorGrids({cam: period_ns(rate) for cam, rate in
+                                       self._rate_hz.items()})
+        self._stats = FrameStats()
+        self._newest_ns = 0                     # newest frame stamp released
         self._clock_watch = BackstepWatch()    # the node clock, read in every callback
         self._n_reported = 0
         self._published: Mode | None = None
@@ -90,12 +74,15 @@ class ModeSupervisorNode(Node):
         self._mode_pub = self.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
                                                  COMMAND_QOS)
+        self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
+                                                      COMMAND_QOS)
         # in process (composed), the IMU samples are taken at the start of every callback
         self._imu = subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
         self.create_timer(1.0 / cfg.update_rate_hz, self._on_timer)   # node clock
+        self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)   # node clock
         self._deadline = DeadlineTimer(self, self._on_deadline)
         self._publish_mode()
         self.get_logger().info(f'mode supervisor ready in {self._core.mode.name}: {config}')
@@ -118,6 +105,7 @@ class ModeSupervisorNode(Node):
                        'system clock?): frames and IMU history dropped, every input missing '
                        'until it comes again', LOG_THROTTLE_S)
         self._frames.reset()
+        self._grids.reset()
         self._attitudes.clear()
         self._deadline.arm(None)
         if self._core.clock_stepped_back(now_ns / NS_PER_S, back_ns / NS_PER_S):
@@ -183,11 +171,27 @@ class ModeSupervisorNode(Node):
             self.log.warning(f'{kind.value} stamps went back (a clock step): pending frames '
                              'dropped', LOG_THROTTLE_S)
         camera = CAMERA_OF[kind]
-        if camera != MODE_INPUTS[self._core.mode].camera \
-                or not (self._frames.is_pending(stamp_ns)
-                        or self._frames.open(stamp_ns, camera, now_ns)):
-            self._feed(kind, stamp_ns, value)        # other camera, or its frame is gone
+        if camera != MODE_INPUTS[self._core.mode].camera:
+            self._feed(kind, stamp_ns, value)        # the other camera: on arrival
+        elif self._frames.was_skipped(stamp_ns):     # never applied to a frame it missed
+            self._stats.late_dropped += 1
+            self.log.warning(f'{kind.value} of t = {stamp_ns / NS_PER_S:.3f} s came after its '
+                             'frame was skipped: dropped', LOG_THROTTLE_S)
+        elif not self._frames.is_pending(stamp_ns):
+            self._new_frame(kind, camera, stamp_ns, value, now_ns)
         self._release()
+
+    def _new_frame(self, kind: InputKind, camera: Camera, stamp_ns: int, value,
+                   now_ns: int) -> None:
+        """Open the frame of a product of the mode's camera (if on the grid and not done)."""
+        if self._grids.stride(camera) != self._governor.stride:   # the mode's camera changed
+            self._grids.set_stride(camera, self._governor.stride, stamp_ns, self._lead_ns)
+        if not self._grids.on_grid(camera, stamp_ns):
+            self._stats.off_grid_dropped += 1        # a frame the graph does not compute now
+        elif self._frames.open(stamp_ns, camera, now_ns):
+            self._stats.opened(camera.value, stamp_ns, now_ns)
+        else:
+            self._feed(kind, stamp_ns, value)        # its frame was evaluated: after it
 
     def _on_deadline(self) -> None:
         self._imu.take()
@@ -225,34 +229,86 @@ class ModeSupervisorNode(Node):
         the order in which they arrived (e.g. the pad seen in CROSSING).
         """
         t = frame.stamp_ns / NS_PER_S
-        for kind, value in frame.inputs.items():      # timing.EVALUATION_ORDER
-            self._feed(kind, frame.stamp_ns, value)
         extras = [(k, v) for k, v in frame.extras.items() if CAMERA_OF[k] == frame.tag]
         if frame.tag != MODE_INPUTS[self._core.mode].camera:
             for kind, value in extras:  # the mode moved to the other camera: products only
                 self._feed(kind, frame.stamp_ns, value)
             return
-        if frame.missing:
-            self.log.warning(
-                f'frame {t:.3f} s evaluated at its deadline without '
-                f'{", ".join(k.value for k in frame.missing)} (late or lost)', LOG_THROTTLE_S)
+        if not frame.complete:
+            self._skip(frame)
+            return
+        for kind, value in frame.inputs.items():      # timing.EVALUATION_ORDER
+            self._feed(kind, frame.stamp_ns, value)
+        self._observe_rate(frame)
         self._core.end_frame(t)
         if self._core.auto_start_refusal:
             self._error(f'auto-start refused: {self._core.auto_start_refusal}')
         if self._core.start_refusal:
             self._error(f'ibvs/start dropped: {self._core.start_refusal}')
         self._publish_mode()
-        self._publish_status(frame.stamp_ns)
+        self._publish_status(frame.stamp_ns, frame.tag)
         for kind, value in extras:
             self._feed(kind, frame.stamp_ns, value)
 
-    def _publish_status(self, stamp_ns: int) -> None:
+    def _skip(self, frame: Frame) -> None:
+        """Skip a frame without a product its mode needs: count it, maybe FAILSAFE."""
+        t = frame.stamp_ns / NS_PER_S
+        missing = tuple(k.value for k in frame.missing)
+        self._stats.frame(frame.stamp_ns, missing)
+        self._newest_ns = max(self._newest_ns, frame.stamp_ns)
+        self.log.warning(f'frame {t:.3f} s skipped: no {", ".join(missing)} by its deadline '
+                         f'(late or lost); {self._stats.skipped} skipped in all', LOG_THROTTLE_S)
+        self._governor_step(frame, complete=False)
+        if self._core.frame_skipped(t, missing):
+            self._publish_mode()
+            self._publish_status(frame.stamp_ns)
+
+    def _observe_rate(self, frame: Frame) -> None:
+        """Count a complete frame and let the governor see it."""
+        self._stats.frame(frame.stamp_ns)
+        self._newest_ns = max(self._newest_ns, frame.stamp_ns)
+        self._governor_step(frame, complete=True)
+
+    def _governor_step(self, frame: Frame, complete: bool) -> None:
+        stride = self._governor.observe(frame.stamp_ns / NS_PER_S, complete)
+        if stride is None:
+            return
+        camera = frame.tag
+        old = self._grids.stride(camera)
+        self._grids.set_stride(camera, stride, frame.stamp_ns, self._lead_ns)
+        rate = self._rate_hz[camera]
+        self.get_logger().info(f'frame stride {old} -> {stride} at t = '
+                               f'{frame.stamp_ns / NS_PER_S:.3f} s: the {camera.value} camera\'s '
+                               f'every {stride}. frame ({rate / stride:.1f} Hz) '
+                               f'{"(frames were skipped)" if stride > old else "(none skipped)"}')
+
+    def _publish_status(self, stamp_ns: int, camera: Camera | None = None) -> None:
+        """Publish the mode of frame ``stamp_ns`` (with its camera and stride) or of a time."""
         mode = self._core.mode
         level = DiagnosticStatus.WARN if mode == Mode.FAILSAFE else DiagnosticStatus.OK
         height = self._core.height_estimate
         values = {'pad_height_estimate_m': 'none' if height is None else f'{height:.4f}'}
+        if camera is not None:
+            values[STATUS_CAMERA_KEY] = camera.value
+            values[STATUS_STRIDE_KEY] = str(self._grids.stride(camera))
         self._status_pub.publish(supervisor_status_msg(stamp_ns, int(mode), mode.name, level,
                                                        values))
+
+    def _publish_diagnostics(self) -> None:
+        """Publish the frame counts, the control rate held and the stride on /diagnostics."""
+        camera = MODE_INPUTS[self._core.mode].camera
+        values = self._stats.values(self._newest_ns, self._grids.stride(camera), camera.value)
+        degraded = int(values['frames_skipped_last_s']) > 0 or self._grids.stride(camera) > 1
+        status = DiagnosticStatus(
+            level=DiagnosticStatus.WARN if degraded else DiagnosticStatus.OK,
+            name=DIAGNOSTICS_NAME, hardware_id='companion computer',
+            message=(f"{values['control_rate_hz']} Hz held, every {values['frame_stride']}. "
+                     f"{camera.value} frame, {values['frames_skipped_last_s']} skipped in the "
+                     'last second'),
+            values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self._diagnostics_pub.publish(msg)
 
     # --- services and timer ----------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response

@@ -377,6 +377,7 @@ def test_controller_observer_reads_imu_specific_force_in_flu(ctx):
             msg.linear_acceleration.y, msg.linear_acceleration.z = 0.5, GRAVITY
             feed.imu.publish(msg)
             feed.imu.publish(imu_msg(t - 0.02 + sub + 0.001))   # zeros: not a flying reading
+        feed.corners.publish(polygon(t, [], 'front_camera_optical_frame'))   # IDLE's product
         spin_for(executor, 0.003)
         status(feed, t, 0)     # answered before the next: the subscriptions keep 2 frames
         assert spin_until(executor, lambda: len(feed.forces) > i and len(feed.features) > i,
@@ -387,22 +388,32 @@ def test_controller_observer_reads_imu_specific_force_in_flu(ctx):
 
 
 def test_controller_answers_every_status_once_in_idle(ctx):
+    """Each status is answered once, from its frame's products; a frame without one is not.
+
+    IDLE needs the window product (detected or not): a frame whose window detection never
+    came is skipped at its deadline (never answered from a missing product), and counted.
+    """
     _, executor, _ = ctx
     fc, feed = controller_with_feeder(ctx, '')
     spin_for(executor, 0.3)
     xi = np.array([-2.0, 0.1, -1.82])
-    sent = []
+    sent, skipped = [], []
     for i in range(12):
-        t = 10.0 + 0.02 * i      # stamps long past on the system clock: deadlines expired
+        t = 10.0 + 0.02 * i      # stamps long past on the system clock: deadlines from arrival
         feed.imu.publish(imu_msg(t - 0.001))
-        if i % 3:   # every third frame the window detector says nothing: answered anyway
+        if i % 3:   # every third frame the window detector says nothing: skipped
             feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+            sent.append(int(round(t * 1e9)))
+        else:
+            skipped.append(int(round(t * 1e9)))
         spin_for(executor, 0.01)
         status(feed, t, 0)
-        sent.append(int(round(t * 1e9)))
-        assert spin_until(executor, lambda: len(feed.forces) >= len(sent), 2.0)
+        if i % 3:
+            assert spin_until(executor, lambda: len(feed.forces) >= len(sent), 2.0)
+        else:
+            assert spin_until(executor, lambda: fc.skipped >= len(skipped), 2.0)
     spin_for(executor, 0.2)
-    assert stamps_of(feed.forces) == sent
+    assert stamps_of(feed.forces) == sent and fc.skipped == len(skipped)
     hover_map = vec_I_to_map(np.array([0, 0, VEHICLE.mass * GRAVITY]))
     for f in feed.forces:
         assert f.header.frame_id == 'map'
@@ -415,12 +426,16 @@ def test_controller_answers_every_status_once_in_idle(ctx):
     # a status a little out of order (within MAX_BACKSTEP_S) or repeated: dropped
     n = len(feed.forces)
     for t in (10.15, 11.0, 11.0):                    # one at a time: FRAME_QOS keeps 2
+        feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+        spin_for(executor, 0.01)
         status(feed, t, 0)
         spin_for(executor, 0.1)
     assert stamps_of(feed.forces[n:]) == [int(11.0 * 1e9)]
     # a status 1 s back: the clock stepped back, the frames start again from it (before,
     # every status up to 11.0 s would have been dropped as older than one answered)
     status(feed, 10.0, 0)
+    spin_for(executor, 0.01)
+    feed.corners.publish(polygon(10.0, corners_C(xi), 'front_camera_optical_frame'))
     assert spin_until(executor, lambda: len(feed.forces) == n + 2, 2.0)
     assert stamps_of(feed.forces[n:]) == [int(11.0 * 1e9), int(10.0 * 1e9)]
 
@@ -449,9 +464,12 @@ def test_controller_that_fell_behind_answers_the_newest_frames_not_a_backlog(ctx
 
 
 def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clock(ctx):
-    """WINDOW needs the front flow: no answer while sim time stands still, one at stamp + 40 ms.
+    """WINDOW needs the front flow: no answer while sim time stands still, skipped after.
 
-    An unneeded product (the pad, whose detector is dead here) never delays a frame.
+    The deadline counts from the frame's first input (here its status) on the ROS clock, so
+    a late camera's frame still gets its products; a frame without them by then is skipped,
+    never answered. An unneeded product (the pad, whose detector is dead here) never delays
+    a frame.
     """
     _, executor, _ = ctx
     fc, feed = controller_with_feeder(ctx, '7', use_sim_time=True, frame_deadline_s=0.04)
@@ -463,23 +481,37 @@ def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clo
     feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
     status(feed, t, 1)
     spin_for(executor, 0.5)            # half a second of wall clock, sim time stands still
-    assert feed.forces == []
+    assert feed.forces == [] and fc.skipped == 0
     feed.clock.publish(Clock(clock=stamp(t + 0.039)))
     spin_for(executor, 0.2)
-    assert feed.forces == []
+    assert feed.forces == [] and fc.skipped == 0
     feed.clock.publish(Clock(clock=stamp(t + 0.041)))
-    assert spin_until(executor, lambda: len(feed.forces) == 1, 2.0)
-    assert stamps_of(feed.forces) == [int(t * 1e9)]
-    # next frame: window + front flow of its stamp, no pad at all -> answered at once
+    assert spin_until(executor, lambda: fc.skipped == 1, 2.0)
+    feed.front.publish(flow_msg(t, np.zeros(3)))      # too late: its frame was skipped
+    spin_for(executor, 0.2)
+    assert feed.forces == []
+    # next frame, as a late camera delivers it: its status and window come 30 ms after its
+    # stamp, its front flow 35 ms later still (65 ms after the stamp): answered
     t2 = t + 0.06
-    feed.clock.publish(Clock(clock=stamp(t2)))
+    feed.clock.publish(Clock(clock=stamp(t2 + 0.03)))
     spin_for(executor, 0.1)
     feed.imu.publish(imu_msg(t2))
     feed.corners.publish(polygon(t2, corners_C(xi), 'front_camera_optical_frame'))
-    feed.front.publish(flow_msg(t2, np.zeros(3)))
     status(feed, t2, 1)
+    spin_for(executor, 0.1)
+    feed.clock.publish(Clock(clock=stamp(t2 + 0.065)))
+    spin_for(executor, 0.1)
+    feed.front.publish(flow_msg(t2, np.zeros(3)))
+    assert spin_until(executor, lambda: len(feed.forces) == 1, 2.0)
+    assert stamps_of(feed.forces) == [int(round(t2 * 1e9))]
+    # and one with window + front flow of its stamp, no pad at all: answered at once
+    t3 = t2 + 0.02
+    feed.imu.publish(imu_msg(t3))
+    feed.corners.publish(polygon(t3, corners_C(xi), 'front_camera_optical_frame'))
+    feed.front.publish(flow_msg(t3, np.zeros(3)))
+    status(feed, t3, 1)
     assert spin_until(executor, lambda: len(feed.forces) == 2, 2.0)
-    assert stamps_of(feed.forces[1:]) == [int(round(t2 * 1e9))]
+    assert stamps_of(feed.forces[1:]) == [int(round(t3 * 1e9))]
 
 
 def test_controller_bad_inputs_still_answered_without_nan(ctx):
@@ -502,6 +534,9 @@ def test_controller_bad_inputs_still_answered_without_nan(ctx):
     nan_imu = imu_msg(20.1)
     nan_imu.orientation.w = float('nan')
     feed.imu.publish(nan_imu)
+    feed.corners.publish(polygon(20.1, corners_C(xi), 'front_camera_optical_frame'))
+    feed.front.publish(flow_msg(20.1, np.zeros(3)))
+    spin_for(executor, 0.02)
     status(feed, 20.1, 1)
     assert spin_until(executor, lambda: len(feed.forces) >= 4, 2.0)
     for f in feed.forces:

@@ -1,5 +1,6 @@
 """Mode supervisor as a pure state machine: triggers, once-only switch, staleness, abort."""
 import numpy as np
+import pytest
 
 from ibvs_common.core.config import load_pad_layout
 from ibvs_sim.core.world import load_world
@@ -356,3 +357,36 @@ def test_pad_prediction_parameters_are_checked():
         except ValueError:
             continue
         raise AssertionError(f'accepted {bad}')
+
+
+def test_skipped_frames_end_a_flying_mode_after_their_timeout_a_complete_one_resets_it():
+    """Frames skipped in a row (a needed product late or lost) for > 0.2 s: FAILSAFE.
+
+    Each skipped frame is counted and nothing of it is used; a complete frame between ends
+    the run. Decided on the frames' stamps, before the bridge's 0.25 s hold runs out.
+    """
+    sup = started()
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    feed(sup, 0.02, xi, v)                             # a complete frame at 0.02
+    for k in range(2, 12):                             # skipped 0.04 ... 0.22: 0.2 s
+        assert sup.frame_skipped(0.02 * k, ('flow_front',)) == []
+        sup.on_imu(0.02 * k, R)
+    feed(sup, 0.24, xi, v)                             # complete: the run ends
+    assert sup.mode == Mode.WINDOW and sup.skipped_frames == 10
+    for k in range(13, 24):                            # skipped 0.26 ... 0.46
+        sup.on_imu(0.02 * k, R)
+        done = sup.frame_skipped(0.02 * k, ('window',))
+        if 0.02 * k - 0.24 <= 0.2 + 1e-9:
+            assert done == [] and sup.mode == Mode.WINDOW
+    assert sup.mode == Mode.FAILSAFE
+    reason = sup.transitions[-1].reason
+    assert 'skipped in a row without window' in reason and '0.2 s' in reason
+    assert sup.transitions[-1].t == pytest.approx(0.46)
+
+
+def test_skipped_frames_in_idle_do_not_fail_safe():
+    sup = ModeSupervisor(SupervisorConfig())
+    for k in range(50):
+        sup.on_imu(0.02 * k, R)
+        assert sup.frame_skipped(0.02 * k, ('window',)) == []
+    assert sup.mode == Mode.IDLE

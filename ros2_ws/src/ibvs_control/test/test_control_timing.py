@@ -87,8 +87,10 @@ def test_frames_leave_in_stamp_order_and_a_late_or_repeated_one_is_refused():
     a.open(120 * MS, Mode.SHUTDOWN, now_ns=121 * MS)      # needs nothing: ready at once
     a.open(100 * MS, Mode.WINDOW, now_ns=121 * MS)        # older, waiting
     assert a.release(now_ns=121 * MS) == []               # 120 does not overtake 100
-    out = a.release(now_ns=140 * MS)                      # 100 expires, then 120 goes
+    assert a.release(now_ns=160 * MS) == []               # 100 opened at 121: waits 40 ms
+    out = a.release(now_ns=161 * MS)                      # 100 expires, then 120 goes
     assert [f.stamp_ns for f in out] == [100 * MS, 120 * MS]
+    assert not out[0].complete and out[1].complete and a.was_skipped(100 * MS)
     assert not a.open(110 * MS, Mode.IDLE, now_ns=141 * MS)   # older than one answered
     assert not a.open(120 * MS, Mode.IDLE, now_ns=141 * MS)   # answered already
     a.open(160 * MS, Mode.IDLE, now_ns=161 * MS)

@@ -13,7 +13,8 @@ from ibvs_perception.core.flow import FlowConfig
 from ibvs_perception.core.pad import PadDetectorConfig
 from ibvs_perception.core.window import WindowDetectorConfig
 
-VEHICLE_FILE = "vehicle YAML (the camera mounts R_BC); '' = the installed vehicle.yaml"
+VEHICLE_FILE = ("vehicle YAML (the camera's calibration: mount, frame, rate, time offset); '' "
+                '= the installed vehicle.yaml')
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,10 @@ class ImageInputConfig:
         4, 'images kept unprocessed while the mode does not use the product, processed at once '
         'if the mode switches to one that does within them (the status of a frame arrives '
         'after its image); >= 2', 2, 50)
+    image_transport: str = param(
+        'raw', "'raw' (sensor_msgs/Image on <camera>_camera/image_raw) | 'compressed' "
+        '(sensor_msgs/CompressedImage on <camera>_camera/image_raw/compressed, decoded to '
+        'mono8)')
     frozen_after_frames: int = param(
         3, 'frames: a camera whose consecutive images are bit-identical to their predecessor '
         "this many times in a row is frozen (a hung driver re-stamping its last buffer: a live "
@@ -38,8 +43,6 @@ class ImageInputConfig:
 class WindowDetectorNodeConfig:
     """Parameters of the ``window_detector`` node."""
 
-    frame_id: str = param('front_camera_optical_frame',
-                          'frame of the published bearings (the front camera optical frame)')
     publish_debug_image: bool = param(False,
                                       'publish window/debug_image (bgr8, the detection drawn)')
     vehicle_file: str = param('', VEHICLE_FILE + ' (the front mount, for the gyro prediction)')
@@ -57,8 +60,7 @@ class PadDetectorNodeConfig:
 
     pad_layout_file: str = param('', "pad layout YAML (ArUco dictionary, groups, marker "
                                  "sizes); '' = the installed pad_layout.yaml")
-    frame_id: str = param('down_camera_optical_frame',
-                          'frame of the published bearings (the down camera optical frame)')
+    vehicle_file: str = param('', VEHICLE_FILE + ' (the down camera: frame, rate, time offset)')
     detector: PadDetectorConfig = group(PadDetectorConfig)
     images: ImageInputConfig = group(ImageInputConfig)
 

@@ -1,10 +1,12 @@
-"""The node side of mode gating (parameters, the supervisor-status subscription; no maths).
+"""Which images a perception node computes: the frame grid and the modes that use them.
 
 Every perception node hands its images to :meth:`GatedImages.on_image` instead of processing
-them itself: :class:`~ibvs_perception.core.mode_gate.ModeGate` decides, from the modes on
-``ibvs/supervisor_status``, which ones the node's ``process(msg, publish)`` gets (docs/
-interfaces.md, "Mode gating"). The product's modes come from the one mode table,
-``ibvs_common.core.modes.MODE_INPUTS``.
+them itself. From ``ibvs/supervisor_status``: the frame stride (only every stride-th frame of
+this camera is computed, the same in every node: ibvs_common.core.frame_grid) and the modes
+(:class:`~ibvs_perception.core.mode_gate.ModeGate`: a product is computed only for the
+images of a mode that uses it, docs/interfaces.md "Mode gating"). Counts the frames it
+leaves out by the grid and the frames that never came (dropped on the way: a node behind
+takes the newest image).
 """
 from __future__ import annotations
 
@@ -14,8 +16,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 
+from ibvs_common.core.frame_grid import FrameGrid
 from ibvs_common.core.modes import InputKind, modes_using
-from ibvs_common.node_common import COMMAND_QOS, mode_from_status, stamp_to_ns
+from ibvs_common.node_common import COMMAND_QOS, grid_from_status, mode_from_status, stamp_to_ns
 from ibvs_common.throttled_log import ThrottledLog
 from ibvs_perception.core.mode_gate import ModeGate
 
@@ -27,23 +30,44 @@ class GatedImages:
 
     def __init__(self, node: Node, kind: InputKind,
                  process: Callable[[Image, bool], None], log_prefix: str,
-                 enabled: bool, depth: int) -> None:
+                 enabled: bool, depth: int, camera: str, period_ns: int) -> None:
         self.gate = ModeGate(modes_using(kind), depth, enabled)
         self.process = process
         self.prefix = log_prefix
+        self.camera = camera
+        self.grid = FrameGrid(int(period_ns))
+        self.off_grid = 0             # images left out: not on the frame grid
+        self.missed = 0               # grid frames that never came (dropped on the way)
+        self._last_index: int | None = None
         self.log = ThrottledLog(node.get_logger())
         if enabled:
             node.create_subscription(DiagnosticArray, 'ibvs/supervisor_status',
                                      self.on_status, COMMAND_QOS)
 
     def on_image(self, msg: Image) -> None:
-        for gated in self.gate.on_image(stamp_to_ns(msg.header.stamp), msg):
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if not self.grid.on_grid(stamp_ns):
+            self.off_grid += 1
+            return
+        self._count_missed(stamp_ns)
+        for gated in self.gate.on_image(stamp_ns, msg):
             self.process(gated.item, gated.publish)
+
+    def _count_missed(self, stamp_ns: int) -> None:
+        """Count the grid frames between this image and the last one (none came for them)."""
+        period = self.grid.period_ns
+        index = (stamp_ns + period // 2) // period            # frames since the clock's epoch
+        if self._last_index is not None and index > self._last_index:
+            self.missed += max((index - self._last_index) // self.grid.stride - 1, 0)
+        self._last_index = index
 
     def on_status(self, msg: DiagnosticArray) -> None:
         stamp_ns, mode, err = mode_from_status(msg)
         if err:
             self.log.error(f'{self.prefix}: ibvs/supervisor_status refused: {err}', THROTTLE_S)
             return
+        grid = grid_from_status(msg)
+        if grid is not None and grid[0] == self.camera:     # counted from this frame on
+            self.grid = self.grid.with_stride(grid[1], stamp_ns)
         for gated in self.gate.on_status(stamp_ns, mode):
             self.process(gated.item, gated.publish)

@@ -40,12 +40,14 @@ from std_msgs.msg import Float32
 from ibvs_perception.core.derotation import GyroDerotation
 from ibvs_perception.config import OpticalFlowNodeConfig
 from ibvs_perception.core.flow import FlowEstimator, wall_normal_from_corners
+from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
+from ibvs_perception.camera_input import CameraInput
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
-from ibvs_common.node_common import IMAGE_QOS, LateImuReport, stamp_to_ns
+from ibvs_common.node_common import LateImuReport, stamp_to_ns
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
@@ -69,17 +71,18 @@ class OpticalFlowNode(Node):
         self.max_window_age_s = cfg.max_window_age_s
         self.floor_second_plane = cfg.floor_second_plane
         try:
-            self.R_BC = load_vehicle(cfg.vehicle_file or None).cameras[self.camera_name].R_BC
+            camera = load_vehicle(cfg.vehicle_file or None).cameras[self.camera_name]
         except (ConfigError, KeyError) as exc:
             self.get_logger().fatal(f'optical_flow: cannot load the camera mount: {exc}')
             raise
+        self.R_BC = camera.R_BC
         self.flow_config = cfg.flow
         self.frozen = FrozenCameraGuard(self, self.camera_name, 'optical_flow',
                                         cfg.images.frozen_after_frames)
         self.gated = GatedImages(
             self, InputKind.FLOW_FRONT if self.camera_name == FRONT else InputKind.FLOW_DOWN,
             self.process, f'{self.camera_name}_optical_flow', cfg.images.mode_gating,
-            cfg.images.mode_gate_depth)
+            cfg.images.mode_gate_depth, camera.name, period_ns(camera.rate_hz))
         self.attitudes = AttitudeBuffer(cfg.imu)
         self.late_imu = LateImuReport(self.log, THROTTLE_S, 'optical_flow: ')
         self.derotation = GyroDerotation(self.attitudes)
@@ -101,8 +104,8 @@ class OpticalFlowNode(Node):
                                      qos_profile_sensor_data)
         self.create_subscription(CameraInfo, f'{prefix}/camera_info', self.on_info,
                                  qos_profile_sensor_data)
-        self.create_subscription(Image, f'{prefix}/image_raw', self.gated.on_image,
-                                 IMAGE_QOS)
+        self.images = CameraInput(self, camera, cfg.images.image_transport,
+                                  self.gated.on_image, f'{self.camera_name}_optical_flow')
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

@@ -13,16 +13,18 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped
-from ibvs_common.core.config import ConfigError, load_pad_layout
+from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from sensor_msgs.msg import CameraInfo, Image, JointState
 
 from ibvs_perception.core.pad import PadConfigError, PadDetector
+from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
+from ibvs_perception.camera_input import CameraInput
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
-from ibvs_common.node_common import IMAGE_QOS, pad_groups_msg
+from ibvs_common.node_common import pad_groups_msg
 from ibvs_common.param_descriptors import declare_config
 from ibvs_perception.config import PadDetectorNodeConfig
 from ibvs_common.spin import run_node
@@ -38,24 +40,27 @@ class PadDetectorNode(Node):
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         cfg = declare_config(self, PadDetectorNodeConfig)   # ValueError: a bad parameter
-        self.frame_id = cfg.frame_id
         try:
             self.detector = PadDetector(load_pad_layout(cfg.pad_layout_file or None),
                                         cfg.detector)
-        except (ConfigError, PadConfigError) as exc:
-            self.get_logger().fatal(f'pad_detector: cannot load the pad layout: {exc}')
+            camera = load_vehicle(cfg.vehicle_file or None).cameras['down']
+        except (ConfigError, PadConfigError, KeyError) as exc:
+            self.get_logger().fatal(f'pad_detector: cannot load the pad layout or the down '
+                                    f'camera: {exc}')
             raise
+        self.frame_id = camera.frame_id
         self.frozen = FrozenCameraGuard(self, 'down', 'pad_detector',
                                         cfg.images.frozen_after_frames)
         self.gated = GatedImages(self, InputKind.PAD, self.process, 'pad_detector',
-                                 cfg.images.mode_gating, cfg.images.mode_gate_depth)
+                                 cfg.images.mode_gating, cfg.images.mode_gate_depth,
+                                 camera.name, period_ns(camera.rate_hz))
         self.camera_info: CameraInfo | None = None
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
         self.pub_groups = self.create_publisher(JointState, 'pad/groups', 10)
         self.create_subscription(CameraInfo, 'down_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
-        self.create_subscription(Image, 'down_camera/image_raw', self.gated.on_image,
-                                 IMAGE_QOS)
+        self.images = CameraInput(self, camera, cfg.images.image_transport,
+                                  self.gated.on_image, 'pad_detector')
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

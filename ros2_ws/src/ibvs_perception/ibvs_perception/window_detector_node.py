@@ -31,14 +31,16 @@ from sensor_msgs.msg import CameraInfo, Image, Imu
 from ibvs_perception.config import WindowDetectorNodeConfig
 from ibvs_perception.core.window import WindowDetector
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
+from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
+from ibvs_perception.camera_input import CameraInput
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       polygon_from_vectors, stamp_to_s)
 from ibvs_common.core.config import ConfigError, load_vehicle, load_window_layout
 from ibvs_common.core.attitude_buffer import AttitudeBuffer
-from ibvs_common.node_common import IMAGE_QOS, LateImuReport
+from ibvs_common.node_common import LateImuReport
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
@@ -56,15 +58,15 @@ class WindowDetectorNode(Node):
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         cfg = declare_config(self, WindowDetectorNodeConfig)
-        self.frame_id = cfg.frame_id
         self.publish_debug = cfg.publish_debug_image
         try:
-            self.R_BC = load_vehicle(cfg.vehicle_file or None).cameras['front'].R_BC
+            camera = load_vehicle(cfg.vehicle_file or None).cameras['front']
             layout = load_window_layout(cfg.window_layout_file or None)
         except (ConfigError, KeyError) as exc:
             self.get_logger().fatal(f'window_detector: cannot load the camera mount or the '
                                     f'window layout: {exc}')
             raise
+        self.R_BC, self.frame_id = camera.R_BC, camera.frame_id
         detector_config = dataclasses.replace(
             cfg.detector, window_width_m=layout.width, window_height_m=layout.height,
             frame_band_m=layout.frame_band)
@@ -75,7 +77,8 @@ class WindowDetectorNode(Node):
         self.frozen = FrozenCameraGuard(self, 'front', 'window_detector',
                                         cfg.images.frozen_after_frames)
         self.gated = GatedImages(self, InputKind.WINDOW, self.process, 'window_detector',
-                                 cfg.images.mode_gating, cfg.images.mode_gate_depth)
+                                 cfg.images.mode_gating, cfg.images.mode_gate_depth,
+                                 camera.name, period_ns(camera.rate_hz))
         self.camera_info: CameraInfo | None = None
         self.pub_corners = self.create_publisher(PolygonStamped, 'window/corners', 10)
         self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)
@@ -87,8 +90,8 @@ class WindowDetectorNode(Node):
                              imu_local)
         self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
                                  qos_profile_sensor_data)
-        self.create_subscription(Image, 'front_camera/image_raw', self.gated.on_image,
-                                 IMAGE_QOS)
+        self.images = CameraInput(self, camera, cfg.images.image_transport,
+                                  self.gated.on_image, 'window_detector')
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

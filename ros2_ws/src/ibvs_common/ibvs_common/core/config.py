@@ -6,7 +6,7 @@ the file and key at fault; they never return partially filled objects.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 import os
 from pathlib import Path
 from typing import Any
@@ -140,13 +140,20 @@ def load_window_layout(path: str | os.PathLike | None = None) -> WindowLayout:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """One camera: intrinsics (as CameraInfo carries them), mount, rate and frame id."""
+    """One camera: intrinsics (as CameraInfo carries them), mount, rate, timing, frame id.
+
+    ``t_BC``: the camera's optical centre in body FRD (m), the lever arm from the body origin;
+    ``time_offset_s``: the camera-IMU time offset (kalibr's ``timeshift_cam_imu``): the
+    image taken at stamp s was exposed at IMU time s + time_offset_s.
+    """
 
     name: str
     frame_id: str
     R_BC: np.ndarray        # optical -> body FRD
     model: CameraModel
     rate_hz: float
+    t_BC: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    time_offset_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -173,11 +180,18 @@ def load_vehicle(path: str | os.PathLike | None = None) -> VehicleConfig:
             R_BC = np.array(c['R_BC'], dtype=float)
             model = CameraModel.from_camera_info(int(c['width']), int(c['height']), c['K'],
                                                  c['D'], str(c['distortion_model']))
-            cam = CameraConfig(name, str(c['frame_id']), R_BC, model, float(c['rate_hz']))
+            t_BC = np.array(c.get('t_BC', (0.0, 0.0, 0.0)), dtype=float).reshape(3)
+            cam = CameraConfig(name, str(c['frame_id']), R_BC, model, float(c['rate_hz']),
+                               t_BC, float(c.get('time_offset_s', 0.0)))
         except (KeyError, TypeError, ValueError, CameraModelError) as exc:
             raise ConfigError(f'{path}: cameras.{name} invalid: {exc}') from exc
         if not is_rotation(R_BC):
             raise ConfigError(f'{path}: cameras.{name}.R_BC is not a rotation matrix')
+        if not (np.all(np.isfinite(cam.t_BC)) and np.linalg.norm(cam.t_BC) < 1.0):
+            raise ConfigError(f'{path}: cameras.{name}.t_BC must be finite and under 1 m')
+        if not (cam.rate_hz > 0.0 and abs(cam.time_offset_s) < 1.0):
+            raise ConfigError(f'{path}: cameras.{name}: rate_hz must be > 0 and '
+                              '|time_offset_s| < 1 s')
         cameras[name] = cam
     try:
         v = VehicleConfig(float(get_key(d, 'mass', path)), float(get_key(d, 'arm_length', path)),

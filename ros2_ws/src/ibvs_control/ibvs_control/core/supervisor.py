@@ -104,6 +104,11 @@ class SupervisorConfig:
         0.5, 's (frame stamps, ROS clock): a carried pad-image height that stayed at or below '
         'shutdown_height_m this long switches 3 -> 4 however far off the carried centre is (the '
         'vehicle is at the floor: the descent from 0.14 m takes ~0.7 s), > 0', 0.0)
+    skipped_frames_timeout_s: float = param(
+        0.2, 's (frame stamps, ROS clock): frames of the mode\'s camera skipped (a product the '
+        'mode needs late or lost) with no complete frame for this long -> failsafe; shorter '
+        'than the bridge\'s hold_last_s, so that the supervisor decides before the bridge hands '
+        'the vehicle back, > 0', 0.0)
     auto_start_at_s: float = param(
         -1.0, 's (ROS clock); >= 0: start by itself at the first frame at or after this time (sim '
         'runs), < 0: only ibvs/start starts')
@@ -181,6 +186,9 @@ class ModeSupervisor:
         self.auto_start_refusal = ''                    # why the last auto-start was refused
         self.start_refusal = ''                         # why the last start request was dropped
         self._start_requested_at: float | None = None   # t of an accepted ibvs/start request
+        self._t_complete: float | None = None           # stamp of the last complete frame
+        self._skipped_run: list[tuple[float, tuple]] = []   # frames skipped since, (t, missing)
+        self.skipped_frames = 0                         # frames skipped in all
 
     # --- commands ---------------------------------------------------------------------------
     def start(self, t: float, reason: str = 'start requested') -> tuple[bool, str]:
@@ -370,6 +378,8 @@ class ModeSupervisor:
         :meth:`request_start` is applied here, once (``start_refusal`` says why it lapsed).
         """
         done = []
+        self._t_complete = t
+        self._skipped_run.clear()
         if self.mode == Mode.LANDING:
             self._landing_frame(t)
         self._frame_pad = self._frame_phi_down = None
@@ -394,6 +404,16 @@ class ModeSupervisor:
             done.append(self.transitions[-1])
             return ''
         return message
+
+    def frame_skipped(self, t: float, missing: tuple[str, ...]) -> list[Transition]:
+        """Take a frame of stamp t skipped for want of ``missing`` products; return changes.
+
+        Nothing of the frame is used. Frames skipped with no complete frame for
+        ``skipped_frames_timeout_s`` end a flying mode in FAILSAFE (:meth:`update`).
+        """
+        self.skipped_frames += 1
+        self._skipped_run.append((t, tuple(missing)))
+        return self.update(t, apply_requests=False)
 
     def update(self, t: float, apply_requests: bool = True) -> list[Transition]:
         """Apply requested transitions, then the staleness rules; return what changed.
@@ -471,6 +491,19 @@ class ModeSupervisor:
     def _crossed(self) -> bool:
         return self._travel_needed is not None and self._travel_norm >= self._travel_needed
 
+    def _skipped_for_long(self, t: float) -> str | None:
+        """Return why to fail safe when frames have been skipped for too long, else None."""
+        if not self._skipped_run:
+            return None
+        since = max(self._t_complete if self._t_complete is not None else -np.inf,
+                    self._t_mode)
+        if t - since <= self.config.skipped_frames_timeout_s:
+            return None
+        missing = sorted({k for _, m in self._skipped_run for k in m})
+        return (f'{len(self._skipped_run)} frames skipped in a row without '
+                f'{", ".join(missing)} (late or lost) for more than '
+                f'{self.config.skipped_frames_timeout_s} s in {self.mode.name}')
+
     def _stale_input(self, t: float) -> str | None:
         cfg = self.config
         if not self._fresh('imu', t, cfg.imu_timeout_s):
@@ -480,6 +513,9 @@ class ModeSupervisor:
                  Mode.CROSSING: (('down_flow', cfg.down_flow_timeout_s),),
                  Mode.LANDING: (('down_flow', cfg.down_flow_timeout_s),
                                 ('pad', cfg.pad_timeout_s))}.get(self.mode, ())
+        skipped = self._skipped_for_long(t)
+        if skipped is not None:
+            return skipped
         for name, timeout in needs:
             # an input counts from the mode's start: give it one timeout to appear
             last = max(self._last.get(name, -np.inf), self._t_mode)

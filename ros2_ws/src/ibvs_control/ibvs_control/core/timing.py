@@ -15,14 +15,17 @@ Frames and the inputs a mode needs (:data:`ibvs_common.core.modes.MODE_INPUTS`)
     FAILSAFE need nothing. The IMU is needed by every flying mode but never waited for.
 
 Deadlines (:class:`FrameAssembler`)
-    Nodes compute on arrival. A frame is released as soon as the products its mode needs are
-    in, or when the ROS clock reaches ``stamp + deadline`` (``frame_deadline_s``), whichever
-    comes first; then it is evaluated with what it has and a missing product counts as "not
-    detected" (the supervisor's staleness timeouts turn a product missing for long into
-    FAILSAFE). A product the mode does not need never delays a frame. Frames leave in stamp
-    order. Onboard the deadline bounds the latency a late or dead input can add; in lockstep
-    the ROS clock does not move while the graph computes, so a deadline cannot expire before
-    an input that is coming, and runs repeat.
+    Nodes compute on arrival. A frame opens when its first product arrives and is released
+    as soon as the products its mode needs are in, or when the ROS clock reaches its deadline,
+    ``frame_deadline_s`` after it opened (never before ``stamp + frame_deadline_s``),
+    whichever comes first. A camera delivers its images 20-40 ms after their stamp, and a
+    busy computer computes them later still: the wait counts from the first product, so it
+    holds whatever the delivery latency. A frame released without every product it needs is
+    *skipped*: no evaluation, no force (the products that do come later are dropped, never
+    applied to a frame they missed); the supervisor fails safe when frames are skipped for
+    long. A product the mode does not need never delays a frame. Frames leave in stamp order.
+    In lockstep the ROS clock does not move while the graph computes, so a deadline cannot
+    expire before an input that is coming, and runs repeat.
 
 Attitude at a stamp (:class:`ibvs_common.core.attitude_buffer.AttitudeBuffer`)
     Interpolated on SO(3) between the IMU samples around the stamp, or propagated from the
@@ -42,7 +45,7 @@ Clock steps (:mod:`ibvs_common.core.clock_step`)
 from __future__ import annotations
 
 import bisect
-from collections import OrderedDict
+from collections import deque, OrderedDict
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
@@ -64,7 +67,7 @@ class Frame:
     ``extras`` the other products of this stamp that had arrived by the release (a node that
     uses them at all uses them only after the frame: see :class:`FrameAssembler`);
     ``missing`` the needed ones that had not arrived at release (``expired``: released by its
-    deadline).
+    deadline); a frame with a missing product is skipped.
     """
 
     stamp_ns: int
@@ -77,6 +80,11 @@ class Frame:
     def get(self, kind: InputKind) -> Any:
         """Return the value of a product of this frame, or None."""
         return self.inputs.get(kind)
+
+    @property
+    def complete(self) -> bool:
+        """Whether every product the frame's mode needs came by its deadline."""
+        return not self.missing
 
 
 @dataclass
@@ -110,6 +118,7 @@ class FrameAssembler:
         self.depth = int(depth)
         self.released_through_ns: int | None = None
         self.expired = 0                      # frames released by their deadline
+        self._skipped: deque[int] = deque(maxlen=self.depth)   # stamps of frames expired
         self._inputs: dict[InputKind, OrderedDict] = {k: OrderedDict() for k in InputKind}
         self._pending: list[_Pending] = []    # in stamp order
         self._backsteps = {k: BackstepWatch() for k in InputKind}
@@ -123,6 +132,7 @@ class FrameAssembler:
         """Forget every frame and product (the ROS clock stepped back)."""
         self.released_through_ns = None
         self._pending.clear()
+        self._skipped.clear()
         for store in self._inputs.values():
             store.clear()
         for watch in self._backsteps.values():
@@ -173,13 +183,22 @@ class FrameAssembler:
         """Whether a frame with this stamp is open and not yet released."""
         return any(p.stamp_ns == int(stamp_ns) for p in self._pending)
 
+    def was_skipped(self, stamp_ns: int) -> bool:
+        """Whether the frame of ``stamp_ns`` was released without a product it needed."""
+        return int(stamp_ns) in self._skipped
+
     def open(self, stamp_ns: int, tag: Any, now_ns: int) -> bool:
-        """Open the frame of ``stamp_ns``; False if it is open, released, or older than one."""
+        """Open the frame of ``stamp_ns``; False if it is open, released, or older than one.
+
+        Its deadline is ``frame_deadline_s`` from ``now_ns`` (its first product's arrival),
+        and never before ``stamp + frame_deadline_s``.
+        """
         stamp_ns = int(stamp_ns)
         if (self.released_through_ns is not None and stamp_ns <= self.released_through_ns) \
                 or self.is_pending(stamp_ns):
             return False
-        bisect.insort(self._pending, _Pending(stamp_ns, tag, stamp_ns + self.deadline_ns),
+        deadline_ns = max(int(now_ns), stamp_ns) + self.deadline_ns
+        bisect.insort(self._pending, _Pending(stamp_ns, tag, deadline_ns),
                       key=lambda p: p.stamp_ns)
         return True
 
@@ -200,6 +219,8 @@ class FrameAssembler:
             self._pending.pop(0)
             self.released_through_ns = p.stamp_ns
             self.expired += int(expired)
+            if missing:
+                self._skipped.append(p.stamp_ns)
             present = {k: self._inputs[k][p.stamp_ns] for k in EVALUATION_ORDER
                        if p.stamp_ns in self._inputs[k]}
             out.append(Frame(p.stamp_ns, p.tag,

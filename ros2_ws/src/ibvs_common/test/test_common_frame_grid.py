@@ -1,0 +1,49 @@
+"""The frame grid: every node picks the same frames from the same stamps."""
+import pytest
+
+from ibvs_common.core.frame_grid import FrameGrid, MAX_STRIDE, period_ns
+
+MS = 1_000_000
+
+
+def test_stride_one_takes_every_frame():
+    grid = FrameGrid(20 * MS)
+    assert all(grid.on_grid(k * 20 * MS + 3) for k in range(100))
+
+
+def test_every_stride_th_frame_from_the_reference_frame_despite_jitter():
+    # a 50 Hz camera whose stamps start at an arbitrary phase and jitter by +-4 ms
+    ref = 1_700_000_000_123_456_789
+    jitter = [0, 3, -4, 2, -1, 4, -3, 1]
+    stamps = [ref + k * 20 * MS + jitter[k % len(jitter)] * MS for k in range(40)]
+    for stride in (2, 4):
+        grid = FrameGrid(20 * MS, stride, ref)
+        picked = [k for k, s in enumerate(stamps) if grid.on_grid(s)]
+        assert picked == list(range(0, 40, stride))
+
+
+def test_two_nodes_with_references_a_stride_apart_pick_the_same_frames():
+    stamps = [5 * MS + k * 33_333_333 for k in range(30)]       # 30 Hz
+    p = period_ns(30.0)
+    a = FrameGrid(p, 2, stamps[4])
+    b = FrameGrid(p, 2, stamps[10])      # a later status: the same grid
+    assert [a.on_grid(s) for s in stamps] == [b.on_grid(s) for s in stamps]
+
+
+def test_with_stride_keeps_the_period_and_moves_the_reference():
+    grid = FrameGrid(20 * MS).with_stride(4, 100 * MS)
+    assert (grid.period_ns, grid.stride, grid.ref_ns) == (20 * MS, 4, 100 * MS)
+    assert grid.on_grid(180 * MS) and not grid.on_grid(160 * MS)
+
+
+@pytest.mark.parametrize('period, stride', [(0, 1), (-5, 1), (20 * MS, 0),
+                                            (20 * MS, MAX_STRIDE + 1)])
+def test_a_bad_grid_is_refused(period, stride):
+    with pytest.raises(ValueError):
+        FrameGrid(period, stride)
+
+
+def test_period_of_a_rate():
+    assert period_ns(50.0) == 20 * MS and period_ns(30.0) == 33_333_333
+    with pytest.raises(ValueError):
+        period_ns(0.0)

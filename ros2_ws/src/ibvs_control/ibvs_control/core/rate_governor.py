@@ -1,0 +1,122 @@
+"""The control rate the graph can hold: every frame, or every 2nd, 4th... (ROS-free).
+
+A computer that cannot compute every camera frame in time skips frames (a product late or
+lost: the frame is skipped, never flown on stale data). Skipped at random, the products of
+one image rarely all come, and the control rate collapses. :class:`RateGovernor` watches the
+frames of the mode's camera and, when frames are skipped, doubles the frame stride, so that
+every node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when
+none is skipped for a while it tries half the stride again, backing off after each failed
+try. :class:`SupervisorGrids` is the supervisor's view of which frames to expect.
+Times are frame stamps (s, ROS clock).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+from ibvs_common.core.frame_grid import FrameGrid, MAX_STRIDE
+from ibvs_common.core.params import param
+
+
+@dataclass(frozen=True)
+class GovernorConfig:
+    """When the frame stride goes up and down."""
+
+    max_frame_stride: int = param(
+        4, 'frames: the largest stride the governor uses (4: 12.5 Hz of a 50 Hz camera), '
+        '1 = every frame always', 1, MAX_STRIDE)
+    stride_window_frames: int = param(
+        10, 'frames: the recent frames of the mode\'s camera the governor looks at', 2, 100)
+    stride_up_skipped: int = param(
+        2, 'frames: this many skipped among the recent ones double the stride', 1, 100)
+    stride_down_hold_s: float = param(
+        2.0, 's (frame stamps): no frame skipped for this long at a stride: try half of it '
+        '(after a try that failed, twice as long each time, up to stride_down_hold_max_s)',
+        0.0)
+    stride_down_hold_max_s: float = param(
+        16.0, 's (frame stamps): the longest wait before trying a smaller stride', 0.0)
+    stride_down_lead_s: float = param(
+        0.1, 's (frame stamps): a smaller stride is expected only from this long after its '
+        'decision (the perception nodes learn it from the frame status first)', 0.0)
+
+    def __post_init__(self) -> None:
+        """Raise ValueError for thresholds that cannot work together."""
+        if self.stride_up_skipped > self.stride_window_frames:
+            raise ValueError('stride_up_skipped must be <= stride_window_frames, got '
+                             f'{self.stride_up_skipped} > {self.stride_window_frames}')
+        if self.stride_down_hold_max_s < self.stride_down_hold_s:
+            raise ValueError('stride_down_hold_max_s must be >= stride_down_hold_s')
+
+
+class RateGovernor:
+    """Choose the frame stride from which frames of the mode's camera were skipped."""
+
+    def __init__(self, config: GovernorConfig) -> None:
+        self.config = config
+        self.stride = 1
+        self.changes = 0
+        self._recent: deque[bool] = deque(maxlen=config.stride_window_frames)
+        self._t_change: float | None = None
+        self._hold_s = config.stride_down_hold_s
+        self._probing = False           # the last change was a try of a smaller stride
+
+    def observe(self, t: float, complete: bool) -> int | None:
+        """Take one frame of the current grid (stamp t); return the new stride if it changed."""
+        cfg = self.config
+        if self._t_change is None:
+            self._t_change = t
+        self._recent.append(bool(complete))
+        skipped = sum(1 for ok in self._recent if not ok)
+        if skipped >= cfg.stride_up_skipped and self.stride < cfg.max_frame_stride:
+            if self._probing:       # the smaller stride did not hold: wait longer next time
+                self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
+            return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
+        if self._probing and t - self._t_change >= self._hold_s:
+            self._probing = False   # the try held: the next one waits the shortest time
+            self._hold_s = cfg.stride_down_hold_s
+        if self.stride > 1 and skipped == 0 and t - self._t_change >= self._hold_s:
+            return self._change(t, self.stride // 2, probing=True)
+        return None
+
+    def _change(self, t: float, stride: int, probing: bool) -> int:
+        self.stride, self._t_change, self._probing = stride, t, probing
+        self._recent.clear()
+        self.changes += 1
+        return stride
+
+
+class SupervisorGrids:
+    """The frames of each camera the supervisor expects: the grid, with a lead for finer ones.
+
+    A larger stride is expected at once (the nodes just stop computing frames the supervisor
+    no longer waits for); a smaller one only ``lead_ns`` after the decision, once the nodes
+    have it.
+    """
+
+    def __init__(self, periods_ns: dict) -> None:
+        self._grid = {cam: FrameGrid(p) for cam, p in periods_ns.items()}
+        self._before: dict = {}         # camera -> (grid until from_ns, from_ns)
+
+    def stride(self, camera) -> int:
+        """Return the camera's current stride."""
+        return self._grid[camera].stride
+
+    def on_grid(self, camera, stamp_ns: int) -> bool:
+        """Whether the supervisor expects the frame of ``stamp_ns`` of ``camera``."""
+        before = self._before.get(camera)
+        if before is not None and stamp_ns < before[1]:
+            return before[0].on_grid(stamp_ns)
+        return self._grid[camera].on_grid(stamp_ns)
+
+    def set_stride(self, camera, stride: int, ref_ns: int, lead_ns: int) -> None:
+        """Use ``stride`` from the frame ``ref_ns`` on (a smaller one from ``lead_ns`` later)."""
+        old = self._grid[camera]
+        self._grid[camera] = old.with_stride(stride, ref_ns)
+        self._before.pop(camera, None)
+        if stride < old.stride:
+            self._before[camera] = (old, int(ref_ns) + int(lead_ns))
+
+    def reset(self) -> None:
+        """Every frame again (the clock stepped back: old references mean nothing)."""
+        self._grid = {cam: FrameGrid(g.period_ns) for cam, g in self._grid.items()}
+        self._before.clear()

@@ -1,0 +1,87 @@
+"""The rate governor: a larger stride when frames are skipped, a smaller one tried later."""
+import pytest
+
+from ibvs_control.core.rate_governor import GovernorConfig, RateGovernor, SupervisorGrids
+
+MS = 1_000_000
+
+
+def run(gov, t0, n, complete, period=0.02):
+    """Feed n frames (complete: bool or callable of the index); return the changes (t, stride)."""
+    out = []
+    for k in range(n):
+        t = t0 + k * period * gov.stride
+        ok = complete(k) if callable(complete) else complete
+        s = gov.observe(t, ok)
+        if s is not None:
+            out.append((round(t, 6), s))
+    return out
+
+
+def test_complete_frames_keep_every_frame():
+    gov = RateGovernor(GovernorConfig())
+    assert run(gov, 0.0, 500, True) == [] and gov.stride == 1
+
+
+def test_two_skipped_in_ten_double_the_stride_up_to_the_largest():
+    gov = RateGovernor(GovernorConfig(max_frame_stride=4))
+    changes = run(gov, 0.0, 40, lambda k: k % 3 != 0)
+    assert [s for _, s in changes] == [2, 4] and gov.stride == 4
+    assert run(gov, 1.0, 40, False) == []            # never above max_frame_stride
+
+
+def test_a_smaller_stride_is_tried_after_the_hold_and_kept_if_it_holds():
+    cfg = GovernorConfig(stride_down_hold_s=2.0)
+    gov = RateGovernor(cfg)
+    run(gov, 0.0, 2, False)                          # 2 skipped: stride 2 at t = 0.02
+    assert gov.stride == 2
+    changes = run(gov, 0.06, 100, True)              # 40 ms frames: 4 s of complete ones
+    assert changes and changes[0][1] == 1
+    assert changes[0][0] == pytest.approx(0.02 + 2.0, abs=0.05)
+    assert len(changes) == 1 and gov.stride == 1     # and kept
+
+
+def test_a_failed_try_doubles_the_wait_before_the_next():
+    cfg = GovernorConfig(stride_down_hold_s=1.0, stride_down_hold_max_s=8.0)
+    gov = RateGovernor(cfg)
+    run(gov, 0.0, 2, False)                          # stride 2
+    t = 0.02
+    waits = []
+    for _ in range(4):
+        # complete frames at stride 2 until the governor tries stride 1 ...
+        k = 0
+        while gov.stride == 2:
+            t += 0.04
+            gov.observe(t, True)
+            k += 1
+        waits.append(round(k * 0.04, 2))
+        # ... where frames are skipped at once: back to 2
+        for _ in range(2):
+            t += 0.02
+            gov.observe(t, False)
+        assert gov.stride == 2
+    assert waits[1] == pytest.approx(2 * waits[0], abs=0.05)
+    assert waits[2] == pytest.approx(4 * waits[0], abs=0.05)
+    assert waits[3] == pytest.approx(8.0, abs=0.05)   # capped
+
+
+def test_bad_governor_thresholds_are_refused():
+    with pytest.raises(ValueError):
+        GovernorConfig(stride_window_frames=3, stride_up_skipped=4)
+    with pytest.raises(ValueError):
+        GovernorConfig(stride_down_hold_s=5.0, stride_down_hold_max_s=1.0)
+
+
+def test_supervisor_grids_expect_a_larger_stride_at_once_and_a_smaller_one_after_the_lead():
+    grids = SupervisorGrids({'front': 20 * MS})
+    assert all(grids.on_grid('front', k * 20 * MS) for k in range(10))
+    grids.set_stride('front', 2, 100 * MS, lead_ns=100 * MS)
+    assert not grids.on_grid('front', 120 * MS) and grids.on_grid('front', 140 * MS)
+    grids.set_stride('front', 1, 200 * MS, lead_ns=100 * MS)
+    # frames before 300 ms still on the stride-2 grid (the nodes may not compute the others)
+    assert grids.on_grid('front', 220 * MS) and not grids.on_grid('front', 240 * MS)
+    assert grids.on_grid('front', 300 * MS) and grids.on_grid('front', 320 * MS)
+    assert grids.stride('front') == 1
+    grids.set_stride('front', 4, 400 * MS, lead_ns=100 * MS)
+    grids.reset()
+    assert grids.stride('front') == 1 and grids.on_grid('front', 420 * MS)
