@@ -12,7 +12,8 @@ SRC = ROOT / 'ros2_ws' / 'src'
 PACKAGES = tuple(sorted(p.parent.name for p in SRC.glob('*/package.xml')))
 # Keys checked against ros/rosdistro rosdep/python.yaml (2026-08): present for Ubuntu ...
 ROSDEP_PYTHON_KEYS = {'python3-numpy', 'python3-opencv', 'python3-yaml', 'python3-matplotlib',
-                      'python3-pytest', 'python3-pymavlink-pip', 'python3-rosbags-pip'}
+                      'python3-pytest', 'python3-pymavlink-pip', 'python3-rosbags-pip',
+                      'python3-serial'}
 # ... and absent (the Dockerfile must skip them and install the dependency itself).
 NOT_ROSDEP_KEYS = {'python3-pymavlink': 'pymavlink', 'python3-rosbags': 'rosbags'}
 
@@ -122,3 +123,14 @@ def test_launch_arguments_used_by_compose_are_declared():
             for arg in cmd[4:]:
                 name = arg.split(':=')[0]
                 assert f"DeclareLaunchArgument('{name}'" in text, (cmd[3], name)
+
+
+def test_compose_maps_the_serial_autopilot_device_for_the_serial_service():
+    """The onboard graph on a serial autopilot link gets the device and the dialout group."""
+    compose = yaml.safe_load((DOCKER / 'compose.yaml').read_text())
+    service = compose['services']['onboard-serial']
+    assert any('/dev/tty' in d for d in service['devices']), service
+    assert 'dialout' in service['group_add'], service
+    command = ' '.join(service['command'])
+    assert 'mavlink_url:=' in command and 'MAVLINK_DEVICE' in command, command
+    assert service['restart'] == 'unless-stopped'
