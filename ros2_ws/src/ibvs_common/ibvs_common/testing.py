@@ -1,4 +1,4 @@
-"""Test set-up shared by every package's tests (pytest): DDS isolation and an rclpy context.
+"""Test support shared by every package's tests and the benchmarks (never on the flight path).
 
 :func:`isolate_dds` gives each pytest process its own DDS domain on loopback, so parallel
 runs (and developers' shells) never see each other's topics. Under pytest-xdist the workers
@@ -6,12 +6,17 @@ inherit the controller's environment, so each worker moves to a domain of its ow
 controller's domain + 1 + the worker's number (``PYTEST_XDIST_WORKER`` = gw0, gw1, ...).
 :func:`rclpy_context` is the node tests' fixture body: a fresh context, shut down after.
 :func:`shared_dir` finds the SITL firmware and the spec that tests needing them use (they skip
-without it).
+without it). :class:`SerialCable` joins two pseudo-terminals like a serial cable at a baud
+rate, for a MAVLink link over a "serial port" without hardware.
 """
 from __future__ import annotations
 
 import os
 from pathlib import Path
+import select
+import threading
+import time
+import tty
 from typing import Iterator
 
 import rclpy
@@ -83,3 +88,66 @@ class FakeClock:
 
     def __call__(self):
         return self.t
+
+
+class SerialCable:
+    """Two pseudo-terminals joined like a serial cable at ``baud`` (8N1: baud / 10 bytes/s).
+
+    ``ends`` are the two device paths (``/dev/pts/N``): open each with pymavlink or pyserial
+    as ``/dev/pts/N,<baud>``. A thread moves the bytes each way no faster than the baud rate
+    allows, in order, as a UART does; nothing is lost (a real UART's overrun is not modelled).
+    """
+
+    def __init__(self, baud: int = 921600) -> None:
+        self.bytes_per_s = baud / 10.0
+        self._fds = []
+        self.ends = []
+        masters = []
+        for _ in range(2):
+            master, slave = os.openpty()
+            tty.setraw(slave)               # no echo, no line discipline: bytes as they are
+            self._fds += [master, slave]
+            masters.append(master)
+            self.ends.append(os.ttyname(slave))
+        self._masters = masters
+        self.moved = [0, 0]                 # bytes moved end 0 -> 1, end 1 -> 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name='serial-cable', daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        queues = [bytearray(), bytearray()]       # bytes on the wire towards the other end
+        free_at = [0.0, 0.0]                      # when each direction's wire is free again
+        while not self._stop.is_set():
+            now = time.monotonic()
+            waits = [max(free_at[i] - now, 0.0) for i in (0, 1) if queues[i]]
+            ready, _, _ = select.select(self._masters, [], [], min(waits + [0.05]))
+            now = time.monotonic()
+            for i, fd in enumerate(self._masters):
+                if fd in ready:
+                    try:
+                        queues[i] += os.read(fd, 4096)
+                    except OSError:               # the other side closed its end
+                        pass
+            for i in (0, 1):
+                if not queues[i] or free_at[i] > now:
+                    continue
+                # what the wire carried since it was last free, at most what is queued
+                n = max(1, min(len(queues[i]), int(self.bytes_per_s * 0.002)))
+                try:
+                    os.write(self._masters[1 - i], bytes(queues[i][:n]))
+                except OSError:
+                    pass
+                del queues[i][:n]
+                self.moved[i] += n
+                free_at[i] = max(free_at[i], now) + n / self.bytes_per_s
+
+    def close(self) -> None:
+        """Stop moving bytes and close both ends."""
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        for fd in self._fds:
+            try:
+                os.close(fd)
+            except OSError:
+                pass

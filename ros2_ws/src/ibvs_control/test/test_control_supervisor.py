@@ -390,3 +390,13 @@ def test_skipped_frames_in_idle_do_not_fail_safe():
         sup.on_imu(0.02 * k, R)
         assert sup.frame_skipped(0.02 * k, ('window',)) == []
     assert sup.mode == Mode.IDLE
+
+
+def test_at_a_coarse_stride_it_takes_three_skipped_frames_as_well_as_the_timeout():
+    sup = started()
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    feed(sup, 0.08, xi, v)                             # complete, then every 80 ms skipped
+    for k, t in enumerate((0.16, 0.24, 0.32)):
+        sup.on_imu(t, R)
+        sup.frame_skipped(t, ('flow_front',))
+        assert sup.mode == (Mode.WINDOW if k < 2 else Mode.FAILSAFE), (t, sup.mode)

@@ -95,6 +95,8 @@ class FeatureSimLog:
     phi_t: list = field(default_factory=list)
     phi_w: list = field(default_factory=list)
     transitions: list = field(default_factory=list)   # the supervisor's: (to mode, t s, reason)
+    R_IB: list = field(default_factory=list)          # true attitude at each frame (t_ctrl)
+    Omega_B: list = field(default_factory=list)       # true body rates at each frame, rad/s
 
 
 class FeatureSensors:
@@ -296,6 +298,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             thrust_new *= shutdown_thrust_scale(t - t_shutdown, config.shutdown_ramp_s)
         pending.append((t + config.command_delay_s + loop.delay_s, sp.R_IB_des, thrust_new))
         log.t_ctrl.append(t)
+        log.R_IB.append(R.copy())
+        log.Omega_B.append(np.array(Omega_B, dtype=float))
         log.F_I.append(out.F_I)
         log.mode.append(int(mode))
         log.q_w_bar.append(out.features.q_w_bar)

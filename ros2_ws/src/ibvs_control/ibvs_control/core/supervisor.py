@@ -106,9 +106,12 @@ class SupervisorConfig:
         'vehicle is at the floor: the descent from 0.14 m takes ~0.7 s), > 0', 0.0)
     skipped_frames_timeout_s: float = param(
         0.2, 's (frame stamps, ROS clock): frames of the mode\'s camera skipped (a product the '
-        'mode needs late or lost) with no complete frame for this long -> failsafe; shorter '
-        'than the bridge\'s hold_last_s, so that the supervisor decides before the bridge hands '
-        'the vehicle back, > 0', 0.0)
+        'mode needs late or lost) with no complete frame for this long, and at least '
+        'skipped_frames_in_a_row of them -> failsafe; shorter than the bridge\'s hold_last_s, '
+        'so that the supervisor decides before the bridge hands the vehicle back, > 0', 0.0)
+    skipped_frames_in_a_row: int = param(
+        3, 'frames: the fewest skipped frames in a row that fail safe (with '
+        'skipped_frames_timeout_s; at a frame stride of 4, 0.2 s is under 3 frames)', 1, 1000)
     auto_start_at_s: float = param(
         -1.0, 's (ROS clock); >= 0: start by itself at the first frame at or after this time (sim '
         'runs), < 0: only ibvs/start starts')
@@ -127,6 +130,8 @@ class SupervisorConfig:
                     raise ValueError(f'supervisor parameter {f.name} must be >= 0, got {v}')
             elif isinstance(v, float) and not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f'supervisor parameter {f.name} must be > 0, got {v}')
+            elif isinstance(v, int) and not isinstance(v, bool) and v < 1:
+                raise ValueError(f'supervisor parameter {f.name} must be >= 1, got {v}')
 
     @classmethod
     def from_params(cls, params: dict) -> 'SupervisorConfig':
@@ -497,7 +502,8 @@ class ModeSupervisor:
             return None
         since = max(self._t_complete if self._t_complete is not None else -np.inf,
                     self._t_mode)
-        if t - since <= self.config.skipped_frames_timeout_s:
+        if t - since <= self.config.skipped_frames_timeout_s \
+                or len(self._skipped_run) < self.config.skipped_frames_in_a_row:
             return None
         missing = sorted({k for _, m in self._skipped_run for k in m})
         return (f'{len(self._skipped_run)} frames skipped in a row without '

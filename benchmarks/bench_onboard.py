@@ -1,0 +1,439 @@
+#!/usr/bin/env python3
+"""The onboard graph on a vehicle's sensors and computer: late cameras, 30 Hz, a slower CPU.
+
+Replays a whole flight's camera frames to the onboard graph (``ibvs_bringup.composed`` with
+the installed params.yaml, system time, as on the vehicle) against the sim's PX4-like
+autopilot stand-in serving that flight's attitude at 100 Hz, and prints per case:
+
+- frames answered: camera frames of the mode's camera after the start that got a
+  SET_ATTITUDE_TARGET (a frame stride of 2 answers half of them by design);
+- the control rate held (answered frames per second) and the largest frame stride used;
+- the latency added after the image arrived: setpoint on the wire minus the image's delivery
+  (median, p99), as issue 46 and 48 state their targets;
+- the modes reached (time after the start) and the CPU of the graph (% of one core);
+- a machine-speed reference taken in the same run on the graph's core (a pure-Python loop of
+  3 M iterations; ~0.2 s at this machine's fastest), so that a figure can be judged at any
+  hour.
+
+The flight: the feature-level reference run (deterministic, ibvs_harness.feature_sim), its
+true pose at each frame rendered by the sim's renderer for both cameras (with the sim's read
+noise), after 1 s of hover at its start; ``ibvs/start`` at 1 s. The graph flies open loop
+(its setpoints do not move the replayed vehicle), which is enough to measure what it answers
+and the modes its images lead it through.
+
+Cases (``--case``, repeatable; default: all): camera delivery ``--latency-ms`` after the
+stamp (with ``--jitter-ms``), ``--rate-hz`` 50 or 30, the graph ``--cpu`` full (both cores),
+one (pinned to one core), half (one core shared with one busy process) or third (two busy
+processes), and the autopilot link over UDP or a serial cable (two pseudo-terminals at
+921600 baud, ibvs_common.testing.SerialCable).
+
+Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
+benchmarks/bench_onboard.py [--case NAME] [--repeats N] [--smoke]``. Needs a quiet machine
+for meaningful figures (the load average and the speed reference are printed).
+"""
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import select
+import sys
+import time
+
+import numpy as np
+
+HOVER_S = 1.0                    # s of hover at the start pose before the flight
+START_AT_S = 1.0                 # ibvs/start at this replay time
+WARMUP_S = 1.0                   # s after the start not counted (engage, first flows)
+MATCH_NS = 1_500_000             # a setpoint's time_boot_ms is ms-rounded: match within 1.5 ms
+LINK_TIMEOUT_S = 60.0
+CLK_TCK = os.sysconf('SC_CLK_TCK')
+SERIAL_BAUD = 921600
+GRAPH_CORE, HARNESS_CORE = 1, 0
+ALL_CORES = os.sched_getaffinity(0)
+CACHE_DIR = os.path.join('results', 'bench_onboard')
+MODE_NAMES = {0: 'IDLE', 1: 'WINDOW', 2: 'CROSSING', 3: 'LANDING', 4: 'SHUTDOWN', 5: 'FAILSAFE'}
+# (name, keyword arguments of run_once)
+CASES = (
+    ('punctual 50 Hz', {}),
+    ('late 30 ms', {'latency_ms': 30.0, 'jitter_ms': 5.0}),
+    ('late 30 ms, serial', {'latency_ms': 30.0, 'jitter_ms': 5.0, 'link': 'serial'}),
+    ('late 30 ms, 30 Hz', {'latency_ms': 30.0, 'jitter_ms': 5.0, 'rate_hz': 30.0}),
+    ('one core', {'latency_ms': 30.0, 'cpu': 'one'}),
+    ('half a core', {'latency_ms': 30.0, 'cpu': 'half'}),
+    ('a third of a core', {'latency_ms': 30.0, 'cpu': 'third'}),
+)
+BUSY = {'full': 0, 'one': 0, 'half': 1, 'third': 2}
+
+
+# --- the flight ------------------------------------------------------------------------------
+
+def reference_flight(rate_hz: float, max_s: float | None = None) -> dict:
+    """The feature-level reference flight at the camera rate: replay times, poses, rates.
+
+    Returns ``r`` (replay time of each frame, s), ``xi`` (N, 3), ``R`` (N, 3, 3), ``omega``
+    (N, 3), with HOVER_S of the start pose first.
+    """
+    from ibvs_common.core.config import load_pad_layout, load_vehicle
+    from ibvs_common.core.frames import quat_from_rot, rot_from_quat
+    from ibvs_control.config import ForceControllerNodeConfig, ModeSupervisorNodeConfig
+    from ibvs_harness import feature_sim
+    from ibvs_harness.scenario import MAX_SIM_TIME_S
+    from ibvs_sim.core.world import load_world
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    ctrl = ForceControllerNodeConfig().controller_config(vehicle, world.window.width, pad)
+    sup = ModeSupervisorNodeConfig().supervisor_config(world.window.width, pad)
+    cfg = feature_sim.FeatureSimConfig(
+        initial_position_I=np.asarray(world.initial_position_I, float),
+        initial_yaw=world.initial_yaw, wind_accel_I=np.zeros(3),
+        crossing_law=ctrl.crossing_law, max_time_s=MAX_SIM_TIME_S)
+    _, log = feature_sim.run_feature_scenario(world, pad, vehicle, ctrl, sup, cfg)
+    t_ctrl = np.asarray(log.t_ctrl)
+    q = np.array([quat_from_rot(R) for R in log.R_IB])
+    t_end = t_ctrl[-1] + HOVER_S
+    if max_s is not None:
+        t_end = min(t_end, max_s)
+    r = np.arange(0.0, t_end, 1.0 / rate_hz)
+    t_flight = np.clip(r - HOVER_S, 0.0, t_ctrl[-1])
+    xi_t, xi = log.truth.arrays()[:2]
+    xi_f = np.stack([np.interp(t_flight, xi_t, xi[:, i]) for i in range(3)], axis=1)
+    # attitude: the nearest logged frames' quaternions interpolated and renormalised
+    qi = np.stack([np.interp(t_flight, t_ctrl, q[:, i]) for i in range(4)], axis=1)
+    qi /= np.linalg.norm(qi, axis=1, keepdims=True)
+    omega = np.stack([np.interp(t_flight, t_ctrl, np.asarray(log.Omega_B)[:, i])
+                      for i in range(3)], axis=1)
+    omega[r < HOVER_S] = 0.0
+    return {'r': r, 'xi': xi_f, 'R': np.array([rot_from_quat(x) for x in qi]),
+            'omega': omega, 'transitions': log.transitions}
+
+
+def render(flight: dict, rate_hz: float, smoke: bool) -> dict:
+    """Both cameras' mono8 frames of the flight (cached under results/bench_onboard/)."""
+    from ibvs_common.core.config import load_pad_layout, load_vehicle
+    from ibvs_sim.core.render import SceneRenderer
+    from ibvs_sim.core.sensor_noise import ReadNoise
+    from ibvs_sim.core.world import load_world
+    path = os.path.join(CACHE_DIR, f'frames_{int(rate_hz)}hz{"_smoke" if smoke else ""}.npz')
+    n = len(flight['r'])
+    if os.path.exists(path):
+        with np.load(path) as cached:
+            if cached['front'].shape[0] == n:
+                return {'front': cached['front'], 'down': cached['down']}
+    world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
+    out = {}
+    for cam in ('front', 'down'):
+        model = vehicle.cameras[cam].model
+        renderer = SceneRenderer(world, pad, vehicle.cameras[cam])
+        noise = ReadNoise(2.0, (model.height, model.width), 0, cam)
+        out[cam] = np.stack([noise.apply(renderer.render(flight['R'][k], flight['xi'][k]), k)
+                             for k in range(n)])
+    os.makedirs(CACHE_DIR, exist_ok=True)
+    np.savez(path, **out)
+    return out
+
+
+# --- the autopilot stand-in ------------------------------------------------------------------
+
+def stand_in(url: str, flight: dict, start_mono, stop, results) -> None:
+    """Serve the sim's PX4-like autopilot on the wall clock; put (time_boot_ms, rx ns) pairs."""
+    os.sched_setaffinity(0, {HARNESS_CORE})
+    from ibvs_common.core.frames import GRAVITY
+    from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig, VehicleStateView
+    from ibvs_sim.core.autopilot.stand_in import wait_s
+    ap = Autopilot(AutopilotConfig(url=url, telemetry_default_hz=100.0))
+    mono0 = time.monotonic()
+    sys_minus_mono_ns = time.time_ns() - time.monotonic_ns()
+    got = []
+    fd = ap.fileno()
+    r_frames = flight['r']
+    while not stop.is_set():
+        select.select([fd] if fd is not None else [], [], [], wait_s(ap, time.monotonic() - mono0))
+        now = time.monotonic()
+        r = max(now - start_mono.value, 0.0) if start_mono.value > 0 else 0.0
+        k = min(int(np.searchsorted(r_frames, r)), len(r_frames) - 1)
+        R = flight['R'][k]
+        ap.poll(VehicleStateView(now - mono0, flight['xi'][k], np.zeros(3), R,
+                                 flight['omega'][k], R.T @ np.array([0.0, 0.0, -GRAVITY])))
+        while ap.new_setpoints:
+            ms, wall = ap.new_setpoints.popleft()
+            got.append((ms, int(wall * 1e9) + sys_minus_mono_ns))
+    ap.close()
+    results.put((got, sys_minus_mono_ns + int(mono0 * 1e9)))
+
+
+def busy_loop(core: int, stop) -> None:
+    """A competing process: spin on ``core`` until told to stop (a camera driver, a recorder)."""
+    os.sched_setaffinity(0, {core})
+    x = 0
+    while not stop.is_set():
+        for _ in range(100_000):
+            x += 1
+
+
+def speed_reference(core: int) -> float:
+    """Seconds of a pure-Python loop of 3 M iterations on ``core`` (this machine's speed)."""
+    ctx = mp.get_context('spawn')
+    q = ctx.Queue()
+    p = ctx.Process(target=_timed_loop, args=(core, q))
+    p.start()
+    p.join(60.0)
+    return q.get(timeout=5.0)
+
+
+def _timed_loop(core: int, q) -> None:
+    os.sched_setaffinity(0, {core})
+    t0 = time.perf_counter()
+    x = 0
+    for i in range(3_000_000):
+        x += i
+    q.put(time.perf_counter() - t0)
+
+
+# --- the replay ------------------------------------------------------------------------------
+
+class Replayer:
+    """The benchmark's ROS node: camera publishers, the mode and diagnostics, ibvs/start."""
+
+    def __init__(self) -> None:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import CameraInfo, Image
+        from std_msgs.msg import UInt8
+        from std_srvs.srv import Trigger
+        from ibvs_common.core.config import load_vehicle
+        from ibvs_common.node_common import COMMAND_QOS, MODE_QOS
+        from ibvs_sim.sim_node import camera_info_msg, image_msg
+        self.rclpy = rclpy
+        self.image_msg, self.info_msg = image_msg, camera_info_msg
+        self.node = rclpy.create_node('bench_onboard_replayer')
+        self.cameras = load_vehicle().cameras
+        self.images = {c: self.node.create_publisher(Image, f'{c}_camera/image_raw',
+                                                     qos_profile_sensor_data)
+                       for c in ('front', 'down')}
+        self.infos = {c: self.node.create_publisher(CameraInfo, f'{c}_camera/camera_info',
+                                                    qos_profile_sensor_data)
+                      for c in ('front', 'down')}
+        self.modes: list = []                     # (system ns, mode)
+        self.rates: list = []                     # (system ns, control rate, stride)
+        self.node.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag,
+                                      COMMAND_QOS)
+        self.start = self.node.create_client(Trigger, 'ibvs/start')
+        self.start_request = Trigger.Request()
+        self.start_future = None
+
+    def _on_mode(self, msg) -> None:
+        self.modes.append((time.time_ns(), int(msg.data)))
+
+    def _on_diag(self, msg) -> None:
+        for s in msg.status:
+            if s.name == 'mode_supervisor: frames':
+                v = {kv.key: kv.value for kv in s.values}
+                self.rates.append((time.time_ns(), float(v['control_rate_hz']),
+                                   int(v['frame_stride'])))
+
+    def spin(self, seconds: float) -> None:
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0.0:
+            self.rclpy.spin_once(self.node, timeout_sec=min(0.01, left))
+
+    def publish(self, frames: dict, k: int, stamp_ns: int) -> None:
+        from builtin_interfaces.msg import Time
+        stamp = Time(sec=stamp_ns // 1_000_000_000, nanosec=stamp_ns % 1_000_000_000)
+        for c in ('front', 'down'):
+            cam = self.cameras[c]
+            self.infos[c].publish(self.info_msg(cam.model, stamp, cam.frame_id))
+            self.images[c].publish(self.image_msg(frames[c][k], stamp, cam.frame_id))
+
+    def close(self) -> None:
+        self.node.destroy_node()
+
+
+def cpu_ticks(pids: dict) -> dict:
+    """Return utime + stime (clock ticks) of each named process and its children threads."""
+    out = {}
+    for name, pid in pids.items():
+        try:
+            with open(f'/proc/{pid}/stat') as f:
+                fields = f.read().rsplit(')', 1)[1].split()
+            out[name] = int(fields[11]) + int(fields[12])
+        except (OSError, IndexError, ValueError):
+            out[name] = None
+    return out
+
+
+def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
+             latency_ms: float = 0.0, jitter_ms: float = 0.0, cpu: str = 'full',
+             link: str = 'udp', layout: str = 'composed', seed: int = 0) -> dict:
+    """One replay of the flight through a fresh onboard graph; return its figures."""
+    from ibvs_bringup.runner import ProcessRunner
+    from ibvs_common.core.mavlink_connection import free_udp_port
+    from ibvs_common.testing import SerialCable
+    ctx = mp.get_context('spawn')
+    stop, results, start_mono = ctx.Event(), ctx.Queue(), ctx.Value('d', 0.0)
+    cable = None
+    if link == 'serial':
+        cable = SerialCable(SERIAL_BAUD)
+        graph_url, ap_url = (f'{end},{SERIAL_BAUD}' for end in cable.ends)
+    else:
+        port = free_udp_port()
+        graph_url, ap_url = f'udpout:127.0.0.1:{port}', f'udpin:127.0.0.1:{port}'
+    ap = ctx.Process(target=stand_in, args=(ap_url, flight, start_mono, stop, results))
+    ap.start()
+    load_stop = ctx.Event()
+    loads = [ctx.Process(target=busy_loop, args=(GRAPH_CORE, load_stop))
+             for _ in range(BUSY[cpu])]
+    for p in loads:
+        p.start()
+    pin = [] if cpu == 'full' else ['taskset', '-c', str(GRAPH_CORE)]
+    runner = ProcessRunner(log_dir=os.path.join(CACHE_DIR, name.replace(' ', '_')))
+    os.sched_setaffinity(0, {HARNESS_CORE} if cpu != 'full' else ALL_CORES)
+    rep = Replayer()
+    rng = np.random.default_rng(seed)
+    period_ns = int(round(1e9 / rate_hz))
+    out = {'name': name, 'rate_hz': rate_hz, 'latency_ms': latency_ms, 'cpu': cpu, 'link': link}
+    delivered = {}
+    try:
+        argv = pin + [sys.executable, '-m', 'ibvs_bringup.composed', '--mavlink-url', graph_url]
+        if layout == 'composed':
+            runner.start('composed', argv)
+        else:
+            from ibvs_bringup import graph
+            runner.start_graph(graph.onboard_graph(graph.GraphOptions(
+                use_sim_time=False, mavlink_url=graph_url)))
+        pids = {c.name: c.proc.pid for c in runner.children}
+        deadline = time.monotonic() + LINK_TIMEOUT_S
+        while not rep.start.service_is_ready() and time.monotonic() < deadline:
+            rep.spin(0.1)
+            if runner.dead():
+                raise RuntimeError(f'a node died at start: {runner.dead()}')
+        rep.spin(3.0)                        # the link, TIMESYNC and the telemetry settle
+        t0_ns = time.time_ns() + 200_000_000
+        t0_mono = time.monotonic() + 0.2
+        start_mono.value = t0_mono
+        a = cpu_ticks(pids)
+        n = len(flight['r'])
+        late = np.maximum(latency_ms + rng.uniform(-jitter_ms, jitter_ms, n), 0.0) * 1e-3
+        stamps = []
+        for k in range(n):
+            send_at = t0_mono + k / rate_hz + late[k]
+            while (wait := send_at - time.monotonic()) > 0.0:
+                rep.rclpy.spin_once(rep.node, timeout_sec=wait)
+            stamp_ns = t0_ns + k * period_ns
+            rep.publish(frames, k, stamp_ns)
+            delivered[stamp_ns] = time.time_ns()
+            stamps.append(stamp_ns)
+            if rep.start_future is None and flight['r'][k] >= START_AT_S:
+                rep.start_future = rep.start.call_async(rep.start_request)
+        seconds = time.monotonic() - t0_mono
+        out['cpu_pct'] = {k: 100.0 * (b - a[k]) / CLK_TCK / seconds
+                          for k, b in cpu_ticks(pids).items() if b is not None and a[k]}
+        rep.spin(1.0)
+        out['started'] = bool(rep.start_future and rep.start_future.done()
+                              and rep.start_future.result().success)
+    finally:
+        stop.set()
+        load_stop.set()
+        try:
+            got, boot_to_sys_ns = results.get(timeout=20.0)
+            ap.join(timeout=10.0)
+        finally:
+            runner.stop()
+            rep.close()
+            for p in loads:
+                p.join(timeout=5.0)
+            if cable is not None:
+                out['serial_bytes'] = list(cable.moved)
+                cable.close()
+    return summarise(out, rep, got, boot_to_sys_ns, stamps, delivered, t0_ns)
+
+
+def summarise(out: dict, rep: Replayer, got: list, boot_to_sys_ns: int, stamps: list,
+              delivered: dict, t0_ns: int) -> dict:
+    """Match setpoints to frames; figures over the frames after start + warm-up."""
+    stamps = np.array(stamps, dtype=np.int64)
+    start_ns = t0_ns + int((START_AT_S + WARMUP_S) * 1e9)
+    modes = [(ns, m) for ns, m in rep.modes]
+    end_ns = next((ns for ns, m in modes if m in (4, 5)), stamps[-1] + 1)
+    counted = stamps[(stamps >= start_ns) & (stamps < end_ns)]
+    answered, lat = set(), []
+    for ms, rx_ns in got:
+        s = ms * 1_000_000 + boot_to_sys_ns
+        i = int(np.searchsorted(counted, s))
+        for j in (i - 1, i):
+            if 0 <= j < len(counted) and abs(int(counted[j]) - s) <= MATCH_NS \
+                    and j not in answered:
+                answered.add(j)
+                lat.append((rx_ns - delivered[int(counted[j])]) / 1e6)
+                break
+    span_s = max((int(counted[-1]) - int(counted[0])) / 1e9, 1e-9) if len(counted) else 1e-9
+    out.update(frames=len(counted), answered=len(answered), latency_ms=np.array(lat),
+               rate_held_hz=len(answered) / span_s,
+               max_stride=max((s for _, _, s in rep.rates), default=1),
+               modes=[(MODE_NAMES.get(m, str(m)), (ns - t0_ns) / 1e9 - START_AT_S)
+                      for ns, m in modes])
+    return out
+
+
+def report(r: dict) -> None:
+    lat = r['latency_ms']
+    frac = 100.0 * r['answered'] / max(r['frames'], 1)
+    line = (f"{r['name']:22s} answered {r['answered']}/{r['frames']} ({frac:.1f} %), "
+            f"rate held {r['rate_held_hz']:.1f} Hz, max stride {r['max_stride']}")
+    if len(lat):
+        line += (f"; after arrival median {np.median(lat):.1f} ms, "
+                 f"p99 {np.percentile(lat, 99):.1f} ms")
+    print(line + ('' if r.get('started') else '  (the supervisor did not start)'))
+    print('    modes: ' + ' -> '.join(f'{m} {t:+.2f} s' for m, t in r['modes']))
+    cpu = r.get('cpu_pct', {})
+    print('    CPU (% of one core): ' + ', '.join(f'{n} {v:.0f}' for n, v in cpu.items())
+          + (f"; serial bytes {r['serial_bytes']}" if 'serial_bytes' in r else ''))
+
+
+def main(argv: list | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument('--case', action='append', default=[], choices=[c[0] for c in CASES])
+    p.add_argument('--repeats', type=int, default=1)
+    p.add_argument('--layout', choices=('composed', 'processes'), default='composed')
+    p.add_argument('--smoke', action='store_true',
+                   help='4 s of the flight, the first case only (CI: the command still runs)')
+    args = p.parse_args(argv)
+    from ibvs_bringup.graph import ensure_ament_prefix_path
+    from ibvs_common.dds_profile import use_dds_profile_here
+    from ibvs_common.testing import isolate_dds
+    ensure_ament_prefix_path()
+    isolate_dds()                # a DDS domain of its own: no other graph on this machine
+    use_dds_profile_here()                           # the graph's shared-memory profile
+    import rclpy
+    cases = [(n, kw) for n, kw in CASES if not args.case or n in args.case]
+    if args.smoke:
+        cases = cases[:1]
+    print(f'load average {os.getloadavg()[0]:.2f}; speed reference (3 M-iteration Python loop '
+          f'on core {GRAPH_CORE}): {speed_reference(GRAPH_CORE):.3f} s')
+    flights, frames = {}, {}
+    rclpy.init()
+    try:
+        run_cases(cases, args, flights, frames)
+    finally:
+        rclpy.try_shutdown()
+    print(f'speed reference at the end: {speed_reference(GRAPH_CORE):.3f} s')
+    return 0
+
+
+def run_cases(cases: list, args, flights: dict, frames: dict) -> None:
+    """Each case once per repeat, rendering each camera rate's frames once."""
+    for _ in range(args.repeats):
+        for name, kw in cases:
+            rate = kw.get('rate_hz', 50.0)
+            if rate not in flights:
+                flights[rate] = reference_flight(rate, 4.0 if args.smoke else None)
+                t0 = time.monotonic()
+                frames[rate] = render(flights[rate], rate, args.smoke)
+                print(f'{len(flights[rate]["r"])} frames at {rate:g} Hz ready '
+                      f'({time.monotonic() - t0:.1f} s)')
+            report(run_once(name, flights[rate], frames[rate], layout=args.layout, **kw))
+
+
+if __name__ == '__main__':
+    sys.exit(main())
