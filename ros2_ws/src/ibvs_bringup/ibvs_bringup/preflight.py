@@ -11,7 +11,10 @@ rates, e.g. the 10 Hz imu/data of a vehicle at rest), ibvs/mode present, window 
 (``KeepUp``: of the last ``KEEP_UP_FRAMES`` front camera frames, at least
 ``KEEP_UP_MIN_ANSWERED`` answered on window/corners, median ``KEEP_UP_MAX_DELAY_S`` at most
 after the frame arrived, on the ROS clock: a computer that cannot keep up with 50 Hz, or a
-detector that is not running, fails here).
+detector that is not running, fails here), and each camera's timing (``CameraTiming``: its
+frame rate from the stamps within ``RATE_TOLERANCE`` of vehicle.yaml's ``rate_hz``, and its
+delivery latency, stamp to arrival, median at most ``MAX_DELIVERY_S``: a driver that stamps
+at the end of the transfer, or a latency the frame deadlines cannot cover, fails here).
 ``GraphHealth`` can also be attached to another node
 (``run_scenario`` does) so that the same checks gate a scripted run.
 """
@@ -34,6 +37,7 @@ from sensor_msgs.msg import CameraInfo, Imu
 from std_msgs.msg import UInt8
 
 from ibvs_common.core.clock_step import BackstepWatch
+from ibvs_common.core.config import load_vehicle
 from ibvs_common.core.stamps import NS_PER_S, s_to_ns, stamp_to_ns
 
 IMU_MIN_MESSAGES = 10
@@ -46,6 +50,9 @@ KEEP_UP_MAX_DELAY_S = 0.020   # s (ROS clock), median frame arrival -> window/co
 #                               one frame period, the detector keeps up with 50 Hz
 KEEP_UP_GRACE_S = 0.25        # s (ROS clock), frames that arrived less than this ago are not
 #                               judged yet (the bridge's max_force_age_s: later is no use)
+CAMERA_TIMING_FRAMES = 50     # frames each camera's timing is judged on
+RATE_TOLERANCE = 0.1          # measured frame rate within 10 % of vehicle.yaml's rate_hz
+MAX_DELIVERY_S = 0.1          # s, median stamp -> arrival (a USB / MIPI camera: 20-40 ms)
 BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -163,6 +170,43 @@ class KeepUp:
         return len(delays) / len(judged) >= min_answered and median_s <= max_delay_s, detail
 
 
+class CameraTiming:
+    """A camera's frame rate (from its stamps) and delivery latency (stamp to arrival). ROS-free.
+
+    ``note`` takes each frame's stamp and its arrival (ns, ROS clock); ``check`` compares the
+    median stamp interval with the rate the graph was configured for (vehicle.yaml), and the
+    median delivery with ``MAX_DELIVERY_S``.
+    """
+
+    def __init__(self, frames: int = CAMERA_TIMING_FRAMES) -> None:
+        self._frames: collections.deque = collections.deque(maxlen=frames)
+
+    def note(self, stamp_ns: int, received_ns: int) -> None:
+        """Take one frame (a stamp not newer than the last one starts again)."""
+        if self._frames and stamp_ns <= self._frames[-1][0]:
+            self._frames.clear()
+        self._frames.append((int(stamp_ns), int(received_ns)))
+
+    def check(self, rate_hz: float, min_frames: int = KEEP_UP_MIN_FRAMES,
+              tolerance: float = RATE_TOLERANCE,
+              max_delivery_s: float = MAX_DELIVERY_S) -> tuple[bool, str]:
+        """Return (ok, detail): the measured rate and delivery latency against the limits."""
+        if len(self._frames) < min_frames:
+            return False, f'{len(self._frames)} frames yet (needs {min_frames})'
+        stamps = [s for s, _ in self._frames]
+        period = sorted(b - a for a, b in zip(stamps, stamps[1:]))[len(stamps) // 2 - 1]
+        measured = NS_PER_S / period
+        delivery = sorted(rx - s for s, rx in self._frames)
+        median, p95 = delivery[len(delivery) // 2], delivery[int(0.95 * (len(delivery) - 1))]
+        detail = (f'{measured:.1f} Hz (vehicle.yaml {rate_hz:g} Hz), delivered '
+                  f'{median / 1e6:.1f} ms after the stamp (p95 {p95 / 1e6:.1f} ms)')
+        # a stamp a little ahead of the receiver's clock (a simulator's /clock, which arrives
+        # after its images) is within the clocks' agreement, checked by stamps_agree
+        ok = abs(measured - rate_hz) <= tolerance * rate_hz \
+            and -s_to_ns(STAMP_AGREEMENT_S) <= median <= s_to_ns(max_delivery_s)
+        return ok, detail
+
+
 def link_up(msg: DiagnosticArray) -> bool | None:
     """Return the MAVLink link state reported in a DiagnosticArray (None if not reported)."""
     states = [s.level == DiagnosticStatus.OK for s in msg.status if 'mavlink' in s.name.lower()]
@@ -172,9 +216,12 @@ def link_up(msg: DiagnosticArray) -> bool | None:
 class GraphHealth:
     """Subscriptions that watch the graph's vital signs on a given node."""
 
-    def __init__(self, node: Node, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, node: Node, clock: Callable[[], float] = time.monotonic,
+                 rates_hz: dict | None = None) -> None:
         self.clock = clock
         self.node = node
+        self.rates_hz = rates_hz or {cam: c.rate_hz for cam, c in load_vehicle().cameras.items()}
+        self.camera_timing = {cam: CameraTiming() for cam in ('front', 'down')}
         self.stamps: dict = {'front camera': None, 'down camera': None, 'imu': None}
         self.clock_synced: str | None = None
         self.clock_offset_ms: str | None = None
@@ -217,6 +264,7 @@ class GraphHealth:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
         stamp, now = stamp_to_ns(msg.header.stamp), self._ros_ns()
         self.stamps[f'{cam} camera'] = (stamp, now)
+        self.camera_timing[cam].note(stamp, now)
         if cam == 'front':
             self.front_keep_up.note_frame(stamp, now)
 
@@ -264,6 +312,9 @@ class GraphHealth:
                             f'{self.clock_synced}, offset {self.clock_offset_ms} ms'))
         agree, detail = stamps_agree(self.stamps)
         checks.append(Check('image and IMU stamps on one clock', agree, detail))
+        for cam, timing in self.camera_timing.items():
+            ok, detail = timing.check(self.rates_hz[cam])
+            checks.append(Check(f'{cam} camera rate and delivery latency', ok, detail))
         checks.append(Check('ibvs/mode present', self.mode is not None,
                             'not received' if self.mode is None else f'mode {self.mode}'))
         checks.append(Check('window detected', self.window_corners == 4,

@@ -100,3 +100,23 @@ def test_keep_up_judges_nothing_too_early_and_restarts_after_a_clock_step_back()
     keep.note_frame(T0 - S, T0 - S)                   # the system clock stepped back by 1 s
     ok, detail = keep.check(T0 - S)
     assert not ok and 'to judge yet' in detail
+
+
+def test_camera_timing_judges_the_rate_from_the_stamps_and_the_delivery_latency():
+    from ibvs_bringup.preflight import CameraTiming
+    ms = 1_000_000
+    timing = CameraTiming()
+    assert not timing.check(50.0)[0]                       # nothing yet
+    for k in range(50):                                    # 50 Hz, delivered 30 ms later
+        timing.note(k * 20 * ms, k * 20 * ms + (30 + k % 3) * ms)
+    ok, detail = timing.check(50.0)
+    assert ok and '50.0 Hz' in detail and '31.0 ms after the stamp' in detail, detail
+    assert not timing.check(30.0)[0]                       # vehicle.yaml says 30 Hz: wrong
+    late = CameraTiming()
+    for k in range(50):                                    # stamped at the end of a transfer
+        late.note(k * 20 * ms, k * 20 * ms + 150 * ms)     # ... or far too late to fly on
+    assert not late.check(50.0)[0]
+    future = CameraTiming()
+    for k in range(50):                                    # stamps far ahead of the clock
+        future.note(k * 20 * ms, k * 20 * ms - 150 * ms)
+    assert not future.check(50.0)[0]
