@@ -8,7 +8,8 @@
 - :mod:`~ibvs_control.mavlink.hover`: hover thrust seed and online estimate;
 - :mod:`~ibvs_control.mavlink.params`: the autopilot parameters read and what they imply;
 - :mod:`~ibvs_control.mavlink.safety`: the safety policy's table and detectors;
-- :mod:`~ibvs_control.mavlink.sequencer`: engage / arm / hand-back state machine.
+- :mod:`~ibvs_control.mavlink.sequencer`: engage / arm / hand-back state machine (one
+  strategy per autopilot).
 
 The node feeds :class:`MavlinkBridge` the force and heading setpoints, the supervisor's mode
 and arm requests, and calls :meth:`MavlinkBridge.poll` (receive: when input is pending, from
@@ -33,7 +34,7 @@ from ibvs_control.mavlink.link import LinkConfig, MavAutopilot, MavlinkLink, Mav
 from ibvs_control.mavlink.params import AutopilotParams, Changed
 from ibvs_control.mavlink.safety import SafetyConfig, SafetyMonitor
 from ibvs_control.mavlink.sequencer import (
-    Autopilot, EngageSequencer, EngageState, SequencerConfig, SequencerInputs)
+    Autopilot, engage_sequencer, EngageSequencer, EngageState, SequencerConfig, SequencerInputs)
 from ibvs_control.mavlink.setpoints import (
     AttitudeTarget, HeadingPairing, RateMeter, SetpointShaper, SetpointSource, ShaperConfig,
     yaw_from_heading_quat)
@@ -524,7 +525,7 @@ class MavlinkBridge:
         if self.autopilot is None:
             return
         self.params.autopilot = self.autopilot
-        self.sequencer = EngageSequencer(replace(self.config.sequencer, autopilot=self.autopilot))
+        self.sequencer = engage_sequencer(self.autopilot, self.config.sequencer)
         self.sequencer.arm_requested = self._arm_pending
         c = self.config
         self.streams = StreamRequests(streams_for(
