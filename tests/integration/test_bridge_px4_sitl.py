@@ -379,8 +379,9 @@ MAX_TILT = np.radians(25.0)
 
 def shipped_parameters(**overrides) -> dict:
     """The bridge's parameters as params.yaml ships them (onboard), with test overrides."""
-    from ibvs_control.mavlink_bridge_node import PARAMETERS
-    p = dict(PARAMETERS)
+    from ibvs_common.core.params import defaults
+    from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
+    p = defaults(MavlinkBridgeNodeConfig)
     p.update(yaml.safe_load(PARAMS_YAML.read_text())['mavlink_bridge']['ros__parameters'])
     p.update(overrides)
     return p
@@ -446,9 +447,10 @@ class Flight:
 
     def __init__(self, url: str, truth: Truth, mass: float, **overrides) -> None:
         from ibvs_control.mavlink.bridge import MavlinkBridge
-        from ibvs_control.mavlink_bridge_node import config_from_parameters
-        self.bridge = MavlinkBridge(config_from_parameters(shipped_parameters(
-            url=url, **overrides)))
+        from ibvs_common.core.params import build
+        from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
+        self.bridge = MavlinkBridge(build(MavlinkBridgeNodeConfig, shipped_parameters(
+            url=url, **overrides)).bridge_config())
         self.truth = truth
         self.mass = mass                   # what the test controller assumes (vehicle.yaml)
         self.events, self.imu, self.raw = [], [], []   # imu: (receipt ns, sample); raw: (t, msg)

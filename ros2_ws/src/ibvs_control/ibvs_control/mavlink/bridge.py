@@ -21,20 +21,20 @@ time in the sim): the clock of the stamps, of the clock sync and of the safety's
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 import struct
 import time
 from typing import Callable
 
 import numpy as np
 
-from ibvs_control.mavlink.hover import (
-    EstimatorConfig, HoverThrustEstimator, HoverThrustSeed)
-from ibvs_control.mavlink.link import LinkConfig, MavAutopilot, MavlinkLink, MavMsgId
+from ibvs_control.mavlink.config import BridgeConfig
+from ibvs_control.mavlink.hover import HoverThrustEstimator, HoverThrustSeed
+from ibvs_control.mavlink.link import MavAutopilot, MavlinkLink, MavMsgId
 from ibvs_control.mavlink.params import AutopilotParams, Changed
-from ibvs_control.mavlink.safety import SafetyConfig, SafetyMonitor
+from ibvs_control.mavlink.safety import SafetyMonitor
 from ibvs_control.mavlink.sequencer import (
-    Autopilot, engage_sequencer, EngageSequencer, EngageState, SequencerConfig, SequencerInputs)
+    Autopilot, engage_sequencer, EngageSequencer, EngageState, SequencerInputs)
 from ibvs_control.mavlink.setpoints import (
     AttitudeTarget, HeadingPairing, RateMeter, SetpointShaper, SetpointSource, ShaperConfig,
     yaw_from_heading_quat)
@@ -44,7 +44,7 @@ from ibvs_control.mavlink.telemetry import (
 from ibvs_common.core.modes import Mode
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_control.mavlink.time_sync import (
-    TimeSync, TimeSyncConfig, TimesyncExchange, TimeSyncStatus)
+    TimeSync, TimesyncExchange, TimeSyncStatus)
 
 __all__ = ['BridgeConfig', 'BridgeStatus', 'ImuSample', 'MavlinkBridge', 'SetpointSource']
 
@@ -60,64 +60,6 @@ MAV_CMD_SET_MESSAGE_INTERVAL = 511
 # the streams that arrive at 50-100 Hz and need no supervision step of their own (poll)
 HIGH_RATE_TYPES = frozenset(('ATTITUDE_QUATERNION', 'HIGHRES_IMU', 'SCALED_IMU',
                              'ATTITUDE_TARGET'))
-
-
-@dataclass(frozen=True)
-class BridgeConfig:
-    """Everything the bridge core needs (node parameters + vehicle.yaml)."""
-
-    link: LinkConfig
-    mass: float                              # kg (vehicle.yaml)
-    max_thrust_factor: float                 # max thrust / (m g) (vehicle.yaml)
-    configured_hover_thrust: float           # normalised (vehicle.yaml or parameter)
-    autopilot: str = 'auto'                  # 'auto' (from HEARTBEAT) | 'px4' | 'ardupilot'
-    hover_thrust_source: str = 'autopilot'   # seed: 'autopilot' (parameter read) | 'config'
-    param_timeout_s: float = 3.0             # parameter reads unanswered: fallback/refuse
-    param_retry_s: float = 0.5
-    attitude_rate_hz: float = 100.0          # ATTITUDE_QUATERNION requested rate
-    imu_rate_hz: float = 100.0               # HIGHRES_IMU (PX4) / SCALED_IMU (ArduPilot)
-    thrust_rate_hz: float = 50.0             # ATTITUDE_TARGET (the applied thrust)
-    status_rate_hz: float = 5.0              # EXTENDED_SYS_STATE and SYS_STATUS
-    heartbeat_request_hz: float = 5.0        # ArduPilot's HEARTBEAT (PX4's is fixed at 1 Hz)
-    streams_off: tuple = ()                  # message ids whose streams are switched off
-    stream_rate_hz: float = 30.0             # a repeat when no setpoint left for 1 / this
-    idle_tick_rate_hz: float = 10.0          # the periodic step while quiet (see quiet)
-    quiet_telemetry_rate_hz: float = 10.0    # attitude/IMU/thrust streams while at rest, 0 off
-    quiet_telemetry_delay_s: float = 2.0     # s (steady clock) at rest before they slow down
-    time_sync: TimeSyncConfig = field(default_factory=TimeSyncConfig)
-    hold_last_s: float = 0.25                # s of vehicle time: no valid force -> hand back
-    max_force_age_s: float = 0.25            # s (ROS clock), a force of an older image: refused
-    max_force_factor: float = 3.0            # |F| above factor * m g is out of range
-    max_tilt_rad: float = 0.6                # tilt limit of the thrust direction
-    shutdown_ramp_s: float = 2.0             # SHUTDOWN: thrust ramp time to 0
-    arm_on_start: bool = False               # an arm request from the start (sim scenario)
-    px4_events: dict | None = None           # PX4 event id -> text (all_events.json), or None
-    sequencer: SequencerConfig = field(default_factory=SequencerConfig)
-    estimator: EstimatorConfig = field(default_factory=EstimatorConfig)
-    safety: SafetyConfig = field(default_factory=SafetyConfig)
-
-    def __post_init__(self):
-        if self.autopilot not in ('auto', 'px4', 'ardupilot'):
-            raise ValueError(f"autopilot must be 'auto', 'px4' or 'ardupilot', not "
-                             f'{self.autopilot!r}')
-        if self.hover_thrust_source not in ('autopilot', 'config'):
-            raise ValueError("hover_thrust_source must be 'autopilot' or 'config'")
-        if not self.idle_tick_rate_hz > 2.0:
-            raise ValueError(f'idle_tick_rate_hz must be > 2 (PX4 needs a setpoint stream '
-                             f'above 2 Hz before OFFBOARD), got {self.idle_tick_rate_hz}')
-        if not 0.05 <= self.configured_hover_thrust <= 0.95:
-            raise ValueError(f'configured hover thrust {self.configured_hover_thrust} outside '
-                             '[0.05, 0.95]')
-        for name in ('param_timeout_s', 'param_retry_s', 'attitude_rate_hz', 'imu_rate_hz',
-                     'thrust_rate_hz', 'status_rate_hz', 'heartbeat_request_hz',
-                     'stream_rate_hz', 'idle_tick_rate_hz'):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0.0):
-                raise ValueError(f'{name} must be finite and > 0, got {v}')
-        for name in ('quiet_telemetry_rate_hz', 'quiet_telemetry_delay_s'):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0.0):
-                raise ValueError(f'{name} must be finite and >= 0, got {v}')
 
 
 @dataclass(frozen=True)

@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import math
 
 from ibvs_common.core.frames import GRAVITY
+from ibvs_common.core.params import param
 from ibvs_common.core.stamps import NS_PER_S
 
 HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover thrust outside this is refused
@@ -83,12 +84,14 @@ class HoverThrustSeed:
 class EstimatorConfig:
     """Settings of :class:`HoverThrustEstimator` (node parameters ``hover_estimator_*``)."""
 
-    enabled: bool = True            # False: the seed is used as it is
-    process_noise: float = 0.0036   # hover thrust random walk, 1/sqrt(s) (PX4 HTE_HT_NOISE)
-    accel_noise: float = 2.0        # m/s^2, std of one accelerometer sample (vibration)
+    enabled: bool = param(True, 'estimate the hover thrust online (IMU vs applied thrust)')
+    process_noise: float = param(0.0036, '1/sqrt(s), hover thrust random walk', 0.0, None)
+    #                                (PX4 HTE_HT_NOISE)
+    accel_noise: float = param(2.0, 'm/s^2, accelerometer noise of one sample', 0.0, None)
     initial_std: float = 0.1        # std of the seed (PX4 HTE_HT_ERR_INIT)
     gate: float = 3.0               # innovation gate, std (PX4 HTE_ACC_GATE)
-    max_deviation: float = 0.3      # estimate bounded to seed * (1 -/+ this)
+    max_deviation: float = param(0.3, 'the estimate stays within seed * (1 -/+ this)',
+                                 0.0, 1.0)
     max_pairing_s: float = 0.1      # thrust sample at most this older than the IMU sample
     margin_s: float = 0.1           # value_at(t) uses samples at least this older than t
 

@@ -76,6 +76,7 @@ from dataclasses import dataclass
 import math
 import statistics
 
+from ibvs_common.core.params import param
 from ibvs_common.core.stamps import NS_PER_S
 
 NS_PER_MS = 1_000_000
@@ -87,16 +88,24 @@ RTT_WARN_EVERY = 20                    # warn after this many RTT rejections in 
 
 @dataclass(frozen=True)
 class TimeSyncConfig:
-    """Settings of :class:`TimeSync` (node parameters ``timesync_*``, params.yaml)."""
+    """Settings of :class:`TimeSync` (node parameters ``timesync_*``)."""
 
-    period_s: float = 0.1                  # s of ROS time between requests once synced
-    init_request_period_s: float = 0.05    # s of steady clock between requests while unsynced
-    init_samples: int = 5                  # accepted samples whose median starts the estimate
-    max_rtt_s: float = 0.010               # s, round trips above this are rejected
-    alpha: float = 0.05                    # smoothing gain of the tracked offset, (0, 1]
-    beta: float = 0.002                    # smoothing gain of the tracked skew, (0, 1]
-    max_deviation_s: float = 0.010         # s, a sample this far from the estimate: outlier
-    max_consecutive_outliers: int = 5      # that many outliers in a row: time jump, reset
+    period_s: float = param(0.1, 's (ROS clock) between TIMESYNC requests once synced',
+                            0.0, None)
+    init_request_period_s: float = param(
+        0.05, 's (steady clock) between TIMESYNC requests while unsynced', 0.0, None)
+    init_samples: int = param(5, 'accepted TIMESYNC samples whose median starts the offset',
+                              1, None)
+    max_rtt_s: float = param(0.010, 's (ROS clock), TIMESYNC round trips above this are '
+                             'rejected', 0.0, None)
+    alpha: float = param(0.05, 'smoothing gain of the clock offset per accepted sample',
+                         0.0, 1.0)
+    beta: float = param(0.002, 'smoothing gain of the clock skew per accepted sample',
+                        0.0, 1.0)
+    max_deviation_s: float = param(0.010, 's (ROS clock), a sample this far from the offset '
+                                   'is an outlier', 0.0, None)
+    max_consecutive_outliers: int = param(
+        5, 'outliers in a row taken as a time jump: reset, re-sync', 0, None)
 
     def __post_init__(self):
         for name in ('period_s', 'init_request_period_s', 'max_rtt_s', 'max_deviation_s'):
