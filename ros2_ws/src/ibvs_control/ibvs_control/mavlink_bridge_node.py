@@ -66,7 +66,7 @@ class MavlinkBridgeNode(Node):
         self._bridge = MavlinkBridge(self._config)
         self._lock = threading.Lock()           # the core: reader thread vs. executor
         self._min_imu_subscribers = cfg.min_imu_subscribers
-        self._bridge.stream_enabled = self._min_imu_subscribers == 0
+        self._bridge.setpoints.enabled = self._min_imu_subscribers == 0
 
         self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
         self._imu_local = imu_local             # the composed container's co-located nodes
@@ -157,7 +157,7 @@ class MavlinkBridgeNode(Node):
                 return
             ros_ns = self._ros_ns()
             self._receive(ros_ns)
-            if not self._bridge.stream_enabled:
+            if not self._bridge.setpoints.enabled:
                 self._check_imu_consumers()
             self._bridge.stream(ros_ns)    # a repeat if no setpoint left for 1 / stream_rate_hz
             self._log_events()
@@ -198,7 +198,7 @@ class MavlinkBridgeNode(Node):
         matched = self._imu_pub.get_subscription_count() + (
             0 if self._imu_local is None else self._imu_local.subscriber_count)
         if matched >= self._min_imu_subscribers:
-            self._bridge.stream_enabled = True
+            self._bridge.setpoints.enabled = True
             self.get_logger().info(f'imu/data matched {matched} subscribers: setpoint stream on')
         else:
             self.log.info(

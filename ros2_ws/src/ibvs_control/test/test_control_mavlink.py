@@ -268,6 +268,11 @@ class FrozenClock:
         return self.t
 
 
+def seq(bridge):
+    """The bridge's engage sequencer (None before the autopilot is known)."""
+    return bridge.engagement.sequencer
+
+
 def ros_now(bridge):
     """The bridge's ROS time for poll() (None: the bridge was made without a ROS clock)."""
     clock = getattr(bridge, 'test_ros_clock', None)
@@ -334,13 +339,13 @@ def peer_bridge(request):
 
 def wait_link(bridge):
     """Spin until the link is up and the clocks are synced (a FrozenClock is moved on)."""
-    clock = bridge._clock
+    clock = bridge.clock
 
     def on_tick():
         if isinstance(clock, FrozenClock):
             clock.t += 0.002
     ok, _ = spin(bridge, 3.0, until=lambda: bridge.link.link_up
-                 and bridge.sequencer is not None and bridge.time_sync.synced,
+                 and seq(bridge) is not None and bridge.time_sync.synced,
                  on_tick=on_tick)
     assert ok, f'link never came up or never synced: {bridge.time_sync.status()}'
 
@@ -387,9 +392,9 @@ def engage(bridge, peer, mode=Mode.WINDOW, arm=False):
     if arm:
         bridge.request_arm()
     bridge.on_supervisor_mode(mode)
-    ok, _ = spin(bridge, 5.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 5.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, f'{bridge.sequencer.state}: {bridge.sequencer.last_reason}'
+    assert ok, f'{seq(bridge).state}: {seq(bridge).last_reason}'
 
 
 # --- setpoint content ----------------------------------------------------------------------------
@@ -439,8 +444,8 @@ def test_thrust_scales_with_configured_and_autopilot_hover(peer_bridge):
 
     peer2, bridge2 = peer_bridge(peer_kw={'params': {'MPC_THR_HOVER': 0.35}},
                                  bridge_kw={'source': 'autopilot'})
-    ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.seed.value is not None)
-    assert ok and bridge2.seed.value == pytest.approx(0.35, abs=1e-6)
+    ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.hover.seed.value is not None)
+    assert ok and bridge2.hover.seed.value == pytest.approx(0.35, abs=1e-6)
     assert 'MPC_THR_HOVER' in bridge2.status().hover_thrust_source
     bridge2.on_heading(3_000_000_000, heading_msg_quat(0.0))
     bridge2.on_force(3_000_000_000, HOVER_F)
@@ -456,17 +461,17 @@ def test_ardupilot_angle_boost_means_the_vertical_component_is_sent(peer_bridge,
         'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.4, 'ATC_ANGLE_BOOST': boost}},
         bridge_kw={'source': 'autopilot'})
     ok, _ = spin(bridge, 3.0, until=lambda: bridge.params.angle_boost is not None
-                 and bridge.sequencer.state == EngageState.STANDBY)
+                 and seq(bridge).state == EngageState.STANDBY)
     assert ok
     tilt = np.radians(20.0)
     F = MASS * GRAVITY * np.array([np.tan(tilt), 0.0, 1.0])    # F_z = m g: level flight
     thrust, _ = None, None
     bridge.on_heading(3_000_000_000, heading_msg_quat(0.0))
     bridge.on_force(3_000_000_000, F)
-    thrust = bridge._current.thrust
+    thrust = bridge.setpoints.current.thrust
     expected = 0.4 if boost else 0.4 / np.cos(tilt)
     assert thrust == pytest.approx(expected, rel=1e-6)
-    assert bridge.shaper.tilt_boost_by_autopilot == bool(boost)
+    assert bridge.setpoints.shaper.tilt_boost_by_autopilot == bool(boost)
 
 
 def test_setpoints_leave_at_the_force_rate_and_repeats_only_fill_gaps(peer_bridge):
@@ -503,7 +508,7 @@ def test_the_step_slows_to_the_idle_rate_only_while_quiet(peer_bridge):
     peer, bridge = peer_bridge()
     wait_link(bridge)
     spin(bridge, 0.3)
-    assert bridge.sequencer.state == EngageState.STANDBY and bridge.quiet
+    assert seq(bridge).state == EngageState.STANDBY and bridge.quiet
     n0, due, t0 = len(peer.setpoints), 0, time.monotonic()
     while time.monotonic() - t0 < 1.0:
         if bridge.tick_due():
@@ -543,26 +548,26 @@ def test_px4_offboard_after_streaming_and_arms_only_when_asked(peer_bridge):
     bridge.on_supervisor_mode(Mode.IDLE)
     spin(bridge, 1.3, force_fn=feeder(bridge))
     assert peer.set_mode_commands() == []          # IDLE: stream, do not switch
-    assert bridge.sequencer.state == EngageState.STANDBY
+    assert seq(bridge).state == EngageState.STANDBY
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.WAIT_ARM,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.WAIT_ARM,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 6.0)      # custom mode enabled, OFFBOARD main mode
     assert t_mode - peer.setpoints[0][0] > 0.98    # > 1 s of stream first
     spin(bridge, 1.5, force_fn=feeder(bridge))
     assert peer.arm_commands() == [] and not peer.armed        # never arms by itself
-    assert bridge.sequencer.state == EngageState.WAIT_ARM
+    assert seq(bridge).state == EngageState.WAIT_ARM
     ok, text = bridge.request_arm()
     assert ok and 'arm' in text
     t_req = time.monotonic()
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     [(t_arm, arm)] = peer.arm_commands()           # exactly one ARM
     assert arm.param1 == 1.0 and t_arm >= t_req and peer.armed
-    assert not bridge.sequencer.arm_requested      # used up
+    assert not seq(bridge).arm_requested      # used up
 
 
 def test_arming_waits_until_armable_retries_with_backoff_and_logs_the_reasons(peer_bridge):
@@ -571,17 +576,17 @@ def test_arming_waits_until_armable_retries_with_backoff_and_logs_the_reasons(pe
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.request_arm()
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ARMING,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.ARMING,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason        # PX4: OFFBOARD though not armable yet
+    assert ok, seq(bridge).last_reason        # PX4: OFFBOARD though not armable yet
     spin(bridge, 1.0, force_fn=feeder(bridge))
     assert peer.arm_commands() == []               # not armable: nothing sent
     assert bridge.status().armable is False
     peer.refuse_arm = 3                            # armable, but refused three times
     peer.armable = True
-    ok, _ = spin(bridge, 8.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 8.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     times = [t for t, _ in peer.arm_commands()]
     assert len(times) == 4
     gaps = np.diff(times)                          # 0.3, 0.6, 1.2 s (retry 0.3 s, doubling)
@@ -595,8 +600,8 @@ def test_px4_switch_requested_immediately_still_waits_for_stream(peer_bridge):
     peer, bridge = peer_bridge()
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer is not None
-                 and bridge.sequencer.state == EngageState.ENGAGED, force_fn=feeder(bridge))
+    ok, _ = spin(bridge, 4.0, until=lambda: seq(bridge) is not None
+                 and seq(bridge).state == EngageState.ENGAGED, force_fn=feeder(bridge))
     assert ok
     t_mode, _ = peer.set_mode_commands()[0]
     assert t_mode - peer.setpoints[0][0] > 0.98
@@ -610,7 +615,7 @@ def test_no_engagement_without_an_idle_report_first(peer_bridge):
     bridge.on_supervisor_mode(Mode.WINDOW)
     spin(bridge, 1.5, force_fn=feeder(bridge))
     assert peer.set_mode_commands() == []
-    assert bridge.sequencer.state == EngageState.STANDBY
+    assert seq(bridge).state == EngageState.STANDBY
 
 
 def test_ardupilot_guided_nogps_with_guid_options_bit3(peer_bridge):
@@ -622,14 +627,14 @@ def test_ardupilot_guided_nogps_with_guid_options_bit3(peer_bridge):
     spin(bridge, 1.5, force_fn=feeder(bridge))
     assert peer.setpoints == []                    # ArduPilot: nothing before the switch
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 4.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 20.0)
     assert peer.setpoints[0][0] >= t_mode - 0.01
     assert peer.custom_mode == 20 and peer.armed
-    assert bridge.seed.value == pytest.approx(0.3)
+    assert bridge.hover.seed.value == pytest.approx(0.3)
 
 
 @pytest.mark.parametrize('guid_options', [0, 7, None])
@@ -641,9 +646,9 @@ def test_ardupilot_refuses_without_guid_options_bit3(peer_bridge, guid_options):
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 2.5, until=lambda: bridge.sequencer.state == EngageState.REFUSED)
+    ok, _ = spin(bridge, 2.5, until=lambda: seq(bridge).state == EngageState.REFUSED)
     assert ok
-    assert 'GUID_OPTIONS' in bridge.sequencer.last_reason
+    assert 'GUID_OPTIONS' in seq(bridge).last_reason
     spin(bridge, 0.3)
     assert peer.set_mode_commands() == [] and peer.arm_commands() == []
     assert peer.setpoints == []
@@ -655,13 +660,13 @@ def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     spin(bridge, 1.3, force_fn=feeder(bridge))     # > prestream_s (1.0 s) of stream
-    assert bridge.sequencer.state == EngageState.STANDBY and peer.set_mode_commands() == []
+    assert seq(bridge).state == EngageState.STANDBY and peer.set_mode_commands() == []
     bridge.on_supervisor_mode(Mode.WINDOW)         # no poll between this and the next force
-    assert bridge.sequencer.state == EngageState.SET_MODE
+    assert seq(bridge).state == EngageState.SET_MODE
     stamp = ros_now(bridge) + 7 * MS
     bridge.on_heading(stamp, heading_msg_quat(0.0))
     bridge.on_force(stamp, HOVER_F)
-    ms = bridge.stamp_to_boot_ms(stamp)
+    ms = bridge.setpoints.stamp_to_boot_ms(stamp)
     assert wait_peer(lambda: peer.set_mode_commands() and sent_for(peer, ms))
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 6.0)
@@ -675,10 +680,10 @@ def test_silent_controller_px4_stops_streaming_after_hold_last(peer_bridge):
     peer, bridge = peer_bridge(bridge_kw={'hold_last_s': 0.25})
     engage(bridge, peer)
     t_last = time.monotonic()
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD)
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD)
     t_held = time.monotonic()
-    assert ok, bridge.sequencer.last_reason
-    assert 'offboard-loss failsafe' in bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
+    assert 'offboard-loss failsafe' in seq(bridge).last_reason
     assert 0.2 <= t_held - t_last <= 0.45          # hold_last_s of vehicle (ROS) time
     n = len(peer.setpoints)
     spin(bridge, 1.0)
@@ -710,13 +715,13 @@ def test_forces_of_old_images_are_not_flown_and_hand_the_vehicle_back(peer_bridg
     assert bridge.status().stale_setpoints == 0
     flown = last_setpoint(peer)
     assert flown.thrust > 0.5                      # the tilted force, 0.1 s old: flown
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD,
                  force_fn=behind(0.3))
-    assert ok, bridge.sequencer.last_reason
-    assert 'offboard-loss failsafe' in bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
+    assert 'offboard-loss failsafe' in seq(bridge).last_reason
     st = bridge.status()
     assert st.stale_setpoints > 5 and st.rejected_setpoints == st.stale_setpoints
-    assert 'ms old' in bridge.shaper.last_error
+    assert 'ms old' in bridge.setpoints.shaper.last_error
 
 
 def test_silent_controller_ardupilot_commands_land(peer_bridge):
@@ -725,16 +730,16 @@ def test_silent_controller_ardupilot_commands_land(peer_bridge):
         bridge_kw={'source': 'autopilot', 'hold_last_s': 0.25})
     engage(bridge, peer)
     ok, _ = spin(bridge, 2.0, until=lambda: peer.custom_mode == AP_LAND)
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     _, m = peer.set_mode_commands()[-1]
     assert (m.param1, m.param2) == (1.0, 9.0)      # ArduCopter LAND
     ok, _ = spin(bridge, 1.0, until=lambda: not bridge.status().streaming)
-    assert ok and bridge.sequencer.state == EngageState.LANDING
+    assert ok and seq(bridge).state == EngageState.LANDING
     n = len(peer.setpoints)
     spin(bridge, 0.5)
     assert len(peer.setpoints) <= n + 1
     peer.landed = True                             # it lands: disarm (ArduPilot would itself)
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.DONE)
     assert ok and not peer.armed
     assert all(int(m.param2) != FORCE_MAGIC for _, m in peer.disarm_commands())
 
@@ -773,7 +778,7 @@ def test_a_mode_taken_by_the_pilot_stops_the_stream_at_once_for_good(peer_bridge
     engage(bridge, peer)
     taken = PX4_POSCTL if kind == 'px4' else AP_GUIDED    # GUIDED obeys attitude targets too
     peer.custom_mode = taken
-    ok, _ = spin(bridge, 1.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+    ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.HELD,
                  force_fn=feeder(bridge))
     assert ok
     t_held = time.monotonic()
@@ -784,7 +789,7 @@ def test_a_mode_taken_by_the_pilot_stops_the_stream_at_once_for_good(peer_bridge
     # only a new start (supervisor IDLE, then flying again) engages again
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
     assert ok
 
@@ -800,7 +805,7 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     peer.heartbeats_on = False
     ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up, force_fn=feeder(bridge))
     t_lost = time.monotonic()
-    assert ok and bridge.sequencer.state == EngageState.NO_LINK
+    assert ok and seq(bridge).state == EngageState.NO_LINK
     spin(bridge, 0.7, force_fn=feeder(bridge))
     assert max(t for t, _ in peer.setpoints) <= t_lost + 0.05     # nothing while lost
     assert bridge.link.counters.link_losses == 1
@@ -808,9 +813,9 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     assert bridge.link._conn.port.getsockname()[1] == own_port   # ... one source address
     peer.custom_mode = PX4_POSCTL                  # the autopilot's failsafe took over
     peer.heartbeats_on = True
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     spin(bridge, 1.0, force_fn=feeder(bridge))
     assert len(peer.set_mode_commands()) == n_modes
     assert bridge.link.counters.reconnects == 1
@@ -829,7 +834,7 @@ def test_link_back_still_offboard_applies_the_input_loss_action(peer_bridge):
     assert ok
     peer.heartbeats_on = True
     ok, _ = spin(bridge, 3.0, until=lambda: peer.custom_mode == AP_LAND)
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
 
 
 def test_link_lost_in_the_shutdown_ends_disarmed(peer_bridge):
@@ -841,8 +846,8 @@ def test_link_lost_in_the_shutdown_ends_disarmed(peer_bridge):
     assert ok
     peer.landed = True                             # meanwhile on the ground, still armed
     peer.heartbeats_on = True
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
-    assert ok, bridge.sequencer.last_reason
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.DONE)
+    assert ok, seq(bridge).last_reason
     assert not peer.armed and int(peer.disarm_commands()[-1][1].param2) == 0
 
 
@@ -853,9 +858,9 @@ def test_shutdown_ramps_thrust_then_forces_disarm_only_under_the_touchdown_rule(
     engage(bridge, peer, mode=Mode.LANDING)
     bridge.on_supervisor_mode(Mode.SHUTDOWN)
     t_sd = time.monotonic()
-    ok, _ = spin(bridge, 5.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
+    ok, _ = spin(bridge, 5.0, until=lambda: seq(bridge).state == EngageState.DONE,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     assert not peer.armed
     ramp = [(t, m.thrust) for t, m in peer.setpoints if t >= t_sd]
     thrusts = np.array([th for _, th in ramp])
@@ -870,7 +875,7 @@ def test_shutdown_ramps_thrust_then_forces_disarm_only_under_the_touchdown_rule(
     # forced >= disarm_force_after_s (0.3 s) after the first refusal, never with a plain one
     assert disarms[-1][0] - disarms[0][0] >= 0.3 - 0.02
     assert np.min(np.diff([t for t, _ in disarms])) >= 0.25
-    assert bridge.sequencer.disarm_forced
+    assert seq(bridge).disarm_forced
 
 
 def test_shutdown_in_the_air_is_never_forced_and_lands(peer_bridge):
@@ -881,9 +886,9 @@ def test_shutdown_in_the_air_is_never_forced_and_lands(peer_bridge):
     peer.specific_force = np.array([0.0, 0.0, -0.1 * GRAVITY])
     ok, _ = spin(bridge, 3.0, until=lambda: peer.custom_mode == PX4_AUTO_LAND,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     assert all(int(m.param2) != FORCE_MAGIC for _, m in peer.disarm_commands())
-    assert peer.armed and bridge.sequencer.state == EngageState.LANDING
+    assert peer.armed and seq(bridge).state == EngageState.LANDING
 
 
 def test_landed_state_gives_a_plain_disarm(peer_bridge):
@@ -891,7 +896,7 @@ def test_landed_state_gives_a_plain_disarm(peer_bridge):
     engage(bridge, peer, mode=Mode.LANDING)
     peer.landed = True
     bridge.on_supervisor_mode(Mode.SHUTDOWN)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.DONE,
                  force_fn=feeder(bridge))
     assert ok
     assert [int(m.param2) for _, m in peer.disarm_commands()] == [0]
@@ -905,8 +910,8 @@ def test_streams_requested_at_their_rates_and_again_after_a_link_loss(peer_bridg
         if kind == 'ardupilot' else {}
     peer, bridge = peer_bridge(peer_kw={'kind': kind, 'params': params},
                                bridge_kw={'source': 'autopilot' if params else 'config'})
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams is not None
-                 and bridge.streams.complete)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams is not None
+                 and bridge.rates.streams.complete)
     assert ok
     asked = {i: us for _, i, us in peer.intervals}
     imu = 105 if kind == 'px4' else 26
@@ -955,21 +960,22 @@ def test_hover_thrust_estimated_from_the_vehicles_response(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'params': {'MPC_THR_HOVER': 0.5}, 'thrust': 0.4},
                                bridge_kw={'source': 'autopilot', 'estimator': True})
     wait_link(bridge)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.estimator.accepted >= 50
-                 and abs(bridge.hover_now() - 0.4) < 0.005)
-    assert ok, (bridge.hover_now(), bridge.estimator.accepted, bridge.estimator.rejected)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.hover.estimator.accepted >= 50
+                 and abs(bridge.hover.now() - 0.4) < 0.005)
+    est = bridge.hover.estimator
+    assert ok, (bridge.hover.now(), est.accepted, est.rejected)
     stamp = ros_now(bridge)
     bridge.on_heading(stamp, heading_msg_quat(0.0))
     bridge.on_force(stamp, HOVER_F)
-    assert bridge._current.thrust == pytest.approx(0.4, abs=0.006)
+    assert bridge.setpoints.current.thrust == pytest.approx(0.4, abs=0.006)
     st = bridge.status()
     assert st.hover_thrust_seed == pytest.approx(0.5) and 'estimate' in st.hover_thrust_source
     # on the ground (landed) nothing is learnt
     peer.landed = True
     spin(bridge, 0.3)
-    n = bridge.estimator.accepted
+    n = bridge.hover.estimator.accepted
     spin(bridge, 0.3)
-    assert bridge.estimator.accepted == n
+    assert bridge.hover.estimator.accepted == n
 
 
 # --- signing ------------------------------------------------------------------------------------
@@ -990,7 +996,7 @@ def test_signing_unsigned_or_wrong_key_rejected(peer_bridge):
     for b in (bridge, bridge2):
         assert not b.link.link_up
         assert b.link.counters.received == 0 and b.link.counters.bad_data > 0
-        assert b.sequencer is None
+        assert b.engagement.sequencer is None
 
 
 # --- clock sync and IMU stamps ----------------------------------------------------------------
@@ -1000,7 +1006,7 @@ def test_imu_held_until_synced_then_stamped_boot_time_plus_offset(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'yaw_ned': np.pi / 2, 'timesync_on': False},
                                ros_offset_ns=OFFSET)
     ok, samples = spin(bridge, 2.0, until=lambda: bridge.link.link_up
-                       and bridge.imu_dropped_unsynced >= 10)
+                       and bridge.telemetry.imu_dropped_unsynced >= 10)
     assert ok and samples == []
     assert peer.timesync_seen, 'the bridge asks'
     assert all(m.ts1 > OFFSET for m in peer.timesync_seen)       # ts1 = its ROS time
@@ -1042,7 +1048,7 @@ def test_telemetry_slows_at_rest_and_is_full_again_before_anything_engages(peer_
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     ok, _ = spin(bridge, 4.0, until=lambda: _asked(peer, 83)[-1:] == [1e5]
-                 and bridge.streams.complete)
+                 and bridge.rates.streams.complete)
     assert ok, peer.intervals
     assert _asked(peer, 31) == [1e4, 1e5] and _asked(peer, 105) == [1e4, 1e5]
     assert _asked(peer, 83) == [2e4, 1e5] and _asked(peer, 245) == [2e5]
@@ -1050,9 +1056,9 @@ def test_telemetry_slows_at_rest_and_is_full_again_before_anything_engages(peer_
     n, commands = len(peer.intervals), len(peer.commands)
     bridge.on_supervisor_mode(Mode.WINDOW)
     assert not bridge.status().telemetry_slowed
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams.complete
                  and peer.set_mode_commands(), force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.state
+    assert ok, seq(bridge).state
     assert _asked(peer, 31, n) == [1e4] and _asked(peer, 105, n) == [1e4] \
         and _asked(peer, 83, n) == [2e4]
     first_full = min(t for t, i, _ in peer.intervals[n:] if i == 31)
@@ -1068,7 +1074,7 @@ def test_telemetry_full_again_on_an_arm_request_or_an_armed_vehicle(peer_bridge,
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     ok, _ = spin(bridge, 4.0, until=lambda: bridge.status().telemetry_slowed
-                 and bridge.streams.complete)
+                 and bridge.rates.streams.complete)
     assert ok
     n = len(peer.intervals)
     if how == 'arm request':
@@ -1081,7 +1087,7 @@ def test_telemetry_full_again_on_an_arm_request_or_an_armed_vehicle(peer_bridge,
     feed = (lambda now: bridge.on_supervisor_status(int(now * 1e9), int(Mode.IDLE))) \
         if how == 'frames' else None
     ok, _ = spin(bridge, 2.0, until=lambda: _asked(peer, 31, n) == [1e4]
-                 and bridge.streams.complete, force_fn=feed)
+                 and bridge.rates.streams.complete, force_fn=feed)
     assert ok, peer.intervals[n:]
     assert not bridge.status().telemetry_slowed
     spin(bridge, 0.8, force_fn=feed)            # longer than the delay: stays full
@@ -1112,7 +1118,7 @@ def test_autopilot_reboot_holds_the_imu_until_synced_again(peer_bridge):
                                ros_clock=lambda: frames() + OFFSET)
     wait_link(bridge)
     assert bridge.time_sync.offset_ns == OFFSET
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams.complete)
     assert ok
     requested = len(peer.intervals)
     assert requested > 0
@@ -1139,7 +1145,7 @@ def test_a_time_jump_resyncs_but_is_no_reboot(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'boot_clock': frames},
                                ros_clock=lambda: frames() + OFFSET + step[0])
     wait_link(bridge)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams.complete)
     assert ok
     requested = len(peer.intervals)
     assert requested > 0
@@ -1170,17 +1176,17 @@ def test_no_timesync_while_the_ros_time_is_zero(peer_bridge):
     # answer tc1 = 0 (a request!) would be meaningless.
     peer, bridge = peer_bridge(peer_kw={'timesync_requests': True}, ros_clock=lambda: 0)
     ok, samples = spin(bridge, 1.5, until=lambda: bridge.link.link_up
-                       and bridge.imu_dropped_unsynced > 20)
+                       and bridge.telemetry.imu_dropped_unsynced > 20)
     spin(bridge, 0.3)
     assert bridge.link.link_up
     assert peer.timesync_seen == [] and peer.timesync_answers == []
-    assert samples == [] and bridge.imu_dropped_unsynced > 0
+    assert samples == [] and bridge.telemetry.imu_dropped_unsynced > 0
     assert bridge.status().counters['timesync_answered'] == 0
 
 
 def test_setpoint_time_boot_ms_is_the_force_stamp_mapped_at_each_send(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'timesync_on': False}, ros_offset_ns=OFFSET)
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.link.link_up and bridge.sequencer)
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.link.link_up and seq(bridge))
     assert ok
     bridge.on_heading(OFFSET + 1_234 * MS, heading_msg_quat(0.0))
     bridge.on_force(OFFSET + 1_234 * MS, HOVER_F)
@@ -1257,11 +1263,11 @@ def test_stream_held_sends_nothing_then_fallback_carries_no_newer_time(peer_brid
     # hover before any force) carries time_boot_ms 0, never the autopilot's current time,
     # which a lockstep sim would take for the answer to its newest frame.
     peer, bridge = peer_bridge()
-    bridge.stream_enabled = False
+    bridge.setpoints.enabled = False
     wait_link(bridge)
     spin(bridge, 0.3)
     assert peer.setpoints == []
-    bridge.stream_enabled = True
+    bridge.setpoints.enabled = True
     ok, _ = spin(bridge, 1.0, until=lambda: len(peer.setpoints) >= 3)
     assert ok
     assert {m.time_boot_ms for _, m in peer.setpoints} == {0}
@@ -1277,14 +1283,14 @@ def test_content_follows_the_status_of_the_force_stamp_not_the_latest_mode(peer_
     assert bridge.on_supervisor_status(1_040_000_000, 99) != ''      # refused
     bridge.on_supervisor_mode(int(Mode.SHUTDOWN))
     bridge.on_force(1_000_000_000, 1.2 * HOVER_F)
-    assert bridge.content_mode() == Mode.LANDING
-    assert bridge.setpoint_source == SetpointSource.IBVS
+    assert bridge.setpoints.content_mode() == Mode.LANDING
+    assert bridge.setpoints.source == SetpointSource.IBVS
     bridge.on_force(1_020_000_000, 1.2 * HOVER_F)
-    assert bridge.content_mode() == Mode.SHUTDOWN
-    assert bridge.setpoint_source == SetpointSource.SHUTDOWN_RAMP
+    assert bridge.setpoints.content_mode() == Mode.SHUTDOWN
+    assert bridge.setpoints.source == SetpointSource.SHUTDOWN_RAMP
     # a force without a status of its own: the latest ibvs/mode
     bridge.on_force(1_060_000_000, HOVER_F)
-    assert bridge.content_mode() == Mode.SHUTDOWN
+    assert bridge.setpoints.content_mode() == Mode.SHUTDOWN
 
 
 def test_bad_force_is_never_sent_held_then_level_hover_outside_an_engagement(peer_bridge):
@@ -1300,11 +1306,11 @@ def test_bad_force_is_never_sent_held_then_level_hover_outside_an_engagement(pee
                 np.array([0.0, 0.0, -5.0])):
         assert bridge.on_force(stamp + FRAME_NS, bad) != ''
     spin(bridge, 0.1)
-    assert bridge.setpoint_source == SetpointSource.HOLD_LAST
+    assert bridge.setpoints.source == SetpointSource.HOLD_LAST
     assert same_rotation(last_setpoint(peer).q, good_q)
-    assert last_setpoint(peer).time_boot_ms == bridge.stamp_to_boot_ms(stamp + FRAME_NS)
+    assert last_setpoint(peer).time_boot_ms == bridge.setpoints.stamp_to_boot_ms(stamp + FRAME_NS)
     spin(bridge, 0.4)
-    assert bridge.setpoint_source == SetpointSource.LEVEL_HOVER     # standby: not engaged
+    assert bridge.setpoints.source == SetpointSource.LEVEL_HOVER     # standby: not engaged
     m = last_setpoint(peer)
     assert same_rotation(m.q, [np.cos(0.25), 0.0, 0.0, np.sin(0.25)])   # level, yaw 0.5
     assert m.thrust == pytest.approx(0.5)
@@ -1331,11 +1337,11 @@ def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params
     events = [text for _, text in bridge.pop_events()]
     if says:
         assert sum(says in t for t in events) == 1, events
-    assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight
+    assert seq(bridge).state == EngageState.STANDBY       # it never blocks preflight
 
 
 def test_param_value_decodes_px4_bytewise_integers_and_keeps_casts():
-    from ibvs_control.mavlink.bridge import param_value
+    from ibvs_control.mavlink.params import param_value
     as_float = struct.unpack('<f', struct.pack('<i', 4))[0]        # PX4's INT32 4 on the wire
     assert as_float != 4.0 and as_float > 0.0                     # a denormal, not 4.0
     assert param_value(as_float, 6, bytewise=True) == 4.0
@@ -1367,7 +1373,7 @@ def test_px4_offboard_loss_failsafe_is_read_and_reported(peer_bridge, params, ex
         assert sum(says in t for t in events) == 1, events
     else:
         assert not [t for t in events if 'offboard loss' in t or 'dead-bridge' in t], events
-    assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight
+    assert seq(bridge).state == EngageState.STANDBY       # it never blocks preflight
 
 
 # --- MavlinkReader: input handled as it arrives, no poll timer -------------------------------
@@ -1593,14 +1599,14 @@ def test_reader_poll_reads_the_ros_clock_only_for_messages_that_need_it():
         request = enc.timesync_encode(0, 123_000)
         feed(attitude, request)
         bridge.poll(supervise=False, ros_clock=ros_clock)
-        assert reads == [0] and bridge._ros_ns == 5_000_000_001
+        assert reads == [0] and bridge.ros.ns == 5_000_000_001
         # the periodic poll supervises: it reads the clock once even with telemetry alone
         feed(attitude)
         bridge.poll(supervise=True, ros_clock=ros_clock)
-        assert reads == [0, 1] and bridge._ros_ns == 5_000_000_002
+        assert reads == [0, 1] and bridge.ros.ns == 5_000_000_002
         # ros_ns given (no ros_clock): taken as before
         feed(attitude)
         bridge.poll(7_000_000_000, supervise=False)
-        assert bridge._ros_ns == 7_000_000_000 and len(reads) == 2
+        assert bridge.ros.ns == 7_000_000_000 and len(reads) == 2
     finally:
         bridge.close()

@@ -193,3 +193,32 @@ class HoverThrustEstimator:
                 break
             value = theta
         return value
+
+
+class HoverThrust:
+    """The hover thrust the setpoints use: the online estimate, else the seed, else configured."""
+
+    def __init__(self, configured: float, from_autopilot: bool,
+                 config: EstimatorConfig) -> None:
+        self.configured = configured
+        self.seed = HoverThrustSeed(configured, from_autopilot)
+        self.estimator = HoverThrustEstimator(config)
+
+    def now(self) -> float | None:
+        """Return the estimate now, else the seed (None: neither known yet)."""
+        v = self.estimator.value_at(None)
+        return self.seed.value if v is None else v
+
+    def current(self) -> float:
+        """Return the value now, the configured one while none is known."""
+        return self.now() or self.configured
+
+    def at_boot_ns(self, boot_ns: int | None) -> float:
+        """Return the estimate of the samples at least ``margin_s`` older than ``boot_ns``.
+
+        None (unsynced, unknown): the latest; no seed yet: the configured value.
+        """
+        v = self.estimator.value_at(boot_ns)
+        if v is None:
+            v = self.seed.value
+        return self.configured if v is None else v

@@ -428,3 +428,25 @@ class TimesyncExchange:
         if tc1 > 0:
             return self.sync.on_reply(tc1, ts1, int(ros_ns))
         return []
+
+
+class RosTime:
+    """The latest ROS time the node gave the bridge (ns): the clock of stamps and vehicle time.
+
+    System time on a vehicle, sim time in the sim; None or 0 while unknown (no ``/clock`` yet).
+    """
+
+    def __init__(self) -> None:
+        self.ns: int | None = None
+
+    def set(self, ros_ns: int | None, force: bool = False) -> None:
+        """Take ``ros_ns``; None keeps the latest unless ``force``."""
+        if ros_ns is not None or force:
+            self.ns = None if ros_ns is None else int(ros_ns)
+
+    @property
+    def vehicle_s(self) -> float | None:
+        """Vehicle time: the ROS clock (s), None while unknown."""
+        if self.ns is None or self.ns <= 0:
+            return None
+        return self.ns / NS_PER_S
