@@ -6,11 +6,14 @@ HEARTBEAT, ATTITUDE_QUATERNION, the IMU's specific force (HIGHRES_IMU as PX4, SC
 milli-g as ArduPilot), ATTITUDE_TARGET (the thrust it applies), EXTENDED_SYS_STATE and
 SYS_STATUS, answers parameter reads, commands (plain disarm refused unless landed; arming
 refused unless armable; ArduPilot refuses HIGHRES_IMU) and TIMESYNC as PX4 does, and records
-every SET_ATTITUDE_TARGET and COMMAND_LONG with its arrival time. Its boot clock is a
-:class:`FrameClock` (whole 20 ms frames, as the lockstep sim's), and the bridge's ROS clock is
-the same clock plus a chosen offset: a TIMESYNC round trip inside one frame measures the offset
-exactly, so mapped times are exact. Expected values come from geometry (a pure yaw rotation,
-the nose-down pitch needed to accelerate forward), from the clocks' offset, and from the
+every SET_ATTITUDE_TARGET and COMMAND_LONG with its arrival time. Nothing waits in real time:
+the bridge and the peer share one test clock (:class:`FrozenClock`) that :func:`spin` moves on
+by 2 ms per step, stepping the peer, then the bridge (loopback datagrams are queued by the time
+sendto returns). The peer's boot clock is a :class:`FrameClock` of it (whole 20 ms frames, as
+the lockstep sim's), and the bridge's ROS clock is that clock plus a chosen offset: a TIMESYNC
+round trip inside one frame measures the offset exactly, so mapped times are exact.
+Expected values come from geometry (a pure yaw rotation, the nose-down pitch needed to
+accelerate forward), from the clocks' offset, and from the
 MAVLink/PX4/ArduPilot documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196,
 AUTO.LAND = main 4 / sub 6, ArduCopter LAND = 9).
 """
@@ -45,19 +48,35 @@ KEY = bytes(range(32))
 MS = 1_000_000                                  # ns
 OFFSET = 1_700_000_000_123_456_789              # ns, ROS (system time) - autopilot boot time
 FRAME_NS = 20 * MS
+TICK_S = 0.002                                  # s of the test clock per spin() step
 FORCE_MAGIC = 21196
 HOVER_F = np.array([0.0, 0.0, MASS * GRAVITY])     # level: the setpoint is a pure yaw
 
 
-class FrameClock:
-    """An autopilot boot clock in whole 20 ms frames (ns), 1 s at creation, never 0."""
+class FrozenClock:
+    """The test's steady clock (s): it moves only when the test advances it."""
 
-    def __init__(self, start_ns=1_000 * MS):
-        self.start_ns = start_ns
-        self.t0 = time.monotonic_ns()
+    def __init__(self, t=100.0):
+        self.t = t
 
     def __call__(self):
-        return self.start_ns + (time.monotonic_ns() - self.t0) // FRAME_NS * FRAME_NS
+        return self.t
+
+    def advance(self, dt):
+        self.t += dt
+
+
+class FrameClock:
+    """An autopilot boot clock in whole 20 ms frames (ns) of ``clock``, 1 s at creation."""
+
+    def __init__(self, clock, start_ns=1_000 * MS):
+        self.clock = clock
+        self.start_ns = start_ns
+        self.t0 = clock()
+
+    def __call__(self):
+        elapsed_ns = round((self.clock() - self.t0) * 1e9)
+        return self.start_ns + elapsed_ns // FRAME_NS * FRAME_NS
 
 
 def rotmat(q):
@@ -72,13 +91,15 @@ class FakeAutopilot:
 
     It listens on a port the kernel picks (``udpin:127.0.0.1:0``): ``udp_port``. No other
     process can take that port between a check and the bind, as with a port chosen first.
+    No thread: :meth:`step` runs one pass of its loop at the time of ``clock``.
     """
 
-    def __init__(self, kind='px4', armed=True, params=None, key=None, yaw_ned=0.0,
+    def __init__(self, clock, kind='px4', armed=True, params=None, key=None, yaw_ned=0.0,
                  boot_clock=None, timesync_on=True, timesync_requests=False, landed=False,
                  armable=True, specific_force=(0.0, 0.0, -GRAVITY), thrust=0.5):
         self.kind = kind
-        self.boot_clock = boot_clock if boot_clock is not None else FrameClock()
+        self.clock = clock
+        self.boot_clock = boot_clock if boot_clock is not None else FrameClock(clock)
         self.timesync_on = timesync_on              # answer TIMESYNC requests
         self.timesync_requests = timesync_requests  # send our own, as PX4 does
         self.timesync_seen = []    # requests (tc1 == 0) received: msg
@@ -104,14 +125,9 @@ class FakeAutopilot:
         self.intervals = []        # (t_rx, msg id, interval us) of SET_MESSAGE_INTERVAL
         self.sources = set()       # (host, port) the bridge sent from
         self.signed = []           # _signed flag of every message received
-        self.t0 = time.monotonic()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        self._next = {'hb': 0.0, 'att': 0.0, 'ts': 0.0, 'status': 0.0}
 
     def close(self):
-        self._stop.set()
-        self._thread.join(timeout=2.0)
         self.conn.close()
 
     def boot_ms(self):
@@ -120,46 +136,51 @@ class FakeAutopilot:
     def statustext(self, text, severity=2):
         self.conn.mav.statustext_send(severity, text.encode())
 
-    def _run(self):
-        next_hb = next_att = next_ts = next_status = 0.0
+    def step(self):
+        """One pass at the clock's time: what is due is sent, what came in is handled."""
+        now = self.clock()
+        nxt = self._next
         kind = {'px4': mavutil.mavlink.MAV_AUTOPILOT_PX4,
                 'ardupilot': mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA}[self.kind]
-        while not self._stop.is_set():
-            now = time.monotonic()
-            alive = self.heartbeats_on and self.conn.clients
-            if now >= next_hb:
-                next_hb = now + 0.1
-                if alive:
-                    base = 1 | (128 if self.armed else 0)
-                    self.conn.mav.heartbeat_send(2, kind, base, self.custom_mode, 4)
-            if now >= next_att and alive:
-                next_att = now + 0.02
-                h = self.yaw_ned / 2.0
-                ms = self.boot_ms()
-                self.attitude_ms.append(ms)
-                self.conn.mav.attitude_quaternion_send(ms, np.cos(h), 0.0, 0.0, np.sin(h),
-                                                       0.1, 0.2, 0.3)
-                self.conn.mav.attitude_target_send(ms, 7, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
-                                                   float(self.thrust))
-                f = self.specific_force
-                if self.kind == 'px4':
-                    self.conn.mav.highres_imu_send(ms * 1000, *map(float, f), 0.0, 0.0, 0.0, 0.0,
-                                                   0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0x3F)
-                else:
-                    mg = np.round(f / GRAVITY * 1000.0).astype(int)
-                    self.conn.mav.scaled_imu_send(ms, *map(int, mg), 0, 0, 0, 0, 0, 0)
-            if now >= next_status and alive:
-                next_status = now + 0.1
-                self.conn.mav.extended_sys_state_send(0, 1 if self.landed else 2)
-                self.conn.mav.sys_status_send(0, 0, (1 << 28) if self.armable else 0, 0, 0,
-                                              -1, -1, 0, 0, 0, 0, 0, 0)
-            if self.timesync_requests and now >= next_ts and self.conn.clients:
-                next_ts = now + 0.2
-                self.conn.mav.timesync_send(0, self.boot_clock())
+        alive = self.heartbeats_on and self.conn.clients
+        if now >= nxt['hb']:
+            nxt['hb'] = now + 0.1
+            if alive:
+                base = 1 | (128 if self.armed else 0)
+                self.conn.mav.heartbeat_send(2, kind, base, self.custom_mode, 4)
+        if now >= nxt['att'] and alive:
+            nxt['att'] = now + 0.02
+            h = self.yaw_ned / 2.0
+            ms = self.boot_ms()
+            self.attitude_ms.append(ms)
+            self.conn.mav.attitude_quaternion_send(ms, np.cos(h), 0.0, 0.0, np.sin(h),
+                                                   0.1, 0.2, 0.3)
+            self.conn.mav.attitude_target_send(ms, 7, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                               float(self.thrust))
+            f = self.specific_force
+            if self.kind == 'px4':
+                self.conn.mav.highres_imu_send(ms * 1000, *map(float, f), 0.0, 0.0, 0.0, 0.0,
+                                               0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0x3F)
+            else:
+                mg = np.round(f / GRAVITY * 1000.0).astype(int)
+                self.conn.mav.scaled_imu_send(ms, *map(int, mg), 0, 0, 0, 0, 0, 0)
+        if now >= nxt['status'] and alive:
+            nxt['status'] = now + 0.1
+            self.conn.mav.extended_sys_state_send(0, 1 if self.landed else 2)
+            self.conn.mav.sys_status_send(0, 0, (1 << 28) if self.armable else 0, 0, 0,
+                                          -1, -1, 0, 0, 0, 0, 0, 0)
+        if self.timesync_requests and now >= nxt['ts'] and self.conn.clients:
+            nxt['ts'] = now + 0.2
+            self.conn.mav.timesync_send(0, self.boot_clock())
+        self.receive()
+
+    def receive(self):
+        """Handle every datagram that came in (stamped with the clock's time)."""
+        now = self.clock()
+        while True:
             msg = self.conn.recv_msg()
             if msg is None:
-                select.select([self.conn.port], [], [], 0.001)   # wake on a datagram
-                continue
+                return
             self._handle(msg, now)
 
     def _handle(self, msg, now):
@@ -258,16 +279,6 @@ def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
     return bridge
 
 
-class FrozenClock:
-    """A monotonic clock that only moves when the test advances it."""
-
-    def __init__(self, t=100.0):
-        self.t = t
-
-    def __call__(self):
-        return self.t
-
-
 def seq(bridge):
     """The bridge's engage sequencer (None before the autopilot is known)."""
     return bridge.engagement.sequencer
@@ -279,22 +290,22 @@ def ros_now(bridge):
     return None if clock is None else clock()
 
 
-def spin(bridge, seconds, until=None, force_hz=50.0, force_fn=None, on_tick=None):
-    """Tick the bridge like the node's timers; stop early when until() is true.
+def spin(bridge, seconds, until=None, force_hz=50.0, force_fn=None):
+    """Step the peer, then tick the bridge like the node's timers, every 2 ms of the clock.
 
-    ``force_fn(now)``: called at ``force_hz``, e.g. to feed forces like the controller.
-    ``on_tick()``: called every loop (e.g. to move a FrozenClock on).
+    Stops early when until() is true. ``force_fn(now)``: called at ``force_hz``, e.g. to feed
+    forces like the controller.
     """
-    t_end = time.monotonic() + seconds
+    clock = bridge.clock
+    t_end = clock() + seconds
     next_force = next_hb = 0.0
     samples = []
-    while time.monotonic() < t_end:
-        now = time.monotonic()
+    while clock() < t_end:
+        now = clock()
+        bridge.test_peer.step()
         if force_fn is not None and now >= next_force:
             next_force = now + 1.0 / force_hz
             force_fn(now)
-        if on_tick is not None:
-            on_tick()
         if now >= next_hb:
             next_hb = now + 0.2
             bridge.heartbeat()
@@ -303,7 +314,7 @@ def spin(bridge, seconds, until=None, force_hz=50.0, force_fn=None, on_tick=None
         bridge.stream(ros)
         if until is not None and until():
             return True, samples
-        time.sleep(0.002)
+        clock.advance(TICK_S)
     return False, samples
 
 
@@ -321,14 +332,20 @@ def peer_bridge(request):
     made = []
 
     def factory(peer_kw=None, bridge_kw=None, ros_offset_ns=0, ros_clock=None):
-        """Peer + bridge; the bridge's ROS clock = the peer's boot clock + ros_offset_ns."""
+        """Peer + bridge on one test clock (``bridge_kw['clock']`` or a new one).
+
+        The bridge's ROS clock = the peer's boot clock + ros_offset_ns.
+        """
+        bridge_kw = dict(bridge_kw or {})
+        clock = bridge_kw.setdefault('clock', FrozenClock())
         peer_kw = dict(peer_kw or {})
-        boot = peer_kw.setdefault('boot_clock', FrameClock())
-        peer = FakeAutopilot(**peer_kw)
+        boot = peer_kw.setdefault('boot_clock', FrameClock(clock))
+        peer = FakeAutopilot(clock, **peer_kw)
         if ros_clock is None:
             def ros_clock():
                 return boot() + ros_offset_ns
-        bridge = make_bridge(peer.udp_port, ros_clock=ros_clock, **(bridge_kw or {}))
+        bridge = make_bridge(peer.udp_port, ros_clock=ros_clock, **bridge_kw)
+        bridge.test_peer = peer
         made.append((peer, bridge))
         return peer, bridge
     yield factory
@@ -338,15 +355,9 @@ def peer_bridge(request):
 
 
 def wait_link(bridge):
-    """Spin until the link is up and the clocks are synced (a FrozenClock is moved on)."""
-    clock = bridge.clock
-
-    def on_tick():
-        if isinstance(clock, FrozenClock):
-            clock.t += 0.002
+    """Spin until the link is up and the clocks are synced."""
     ok, _ = spin(bridge, 3.0, until=lambda: bridge.link.link_up
-                 and seq(bridge) is not None and bridge.time_sync.synced,
-                 on_tick=on_tick)
+                 and seq(bridge) is not None and bridge.time_sync.synced)
     assert ok, f'link never came up or never synced: {bridge.time_sync.status()}'
 
 
@@ -368,11 +379,17 @@ def sent_for(peer, ms):
     return [m for _, m in list(peer.setpoints) if m.time_boot_ms == ms]
 
 
-def wait_peer(until, timeout_s=1.0):
-    """Wait for the peer's receiving thread, without ticking the bridge."""
+def wait_peer(peer, until, timeout_s=1.0):
+    """Let the peer take what the bridge sent, without ticking the bridge or the test clock.
+
+    Loopback datagrams are queued when sendto returns; one still on its way is waited for on
+    the socket, at most ``timeout_s`` (real time) in all.
+    """
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not until():
-        time.sleep(0.005)
+    peer.receive()
+    while not until() and time.monotonic() < deadline:
+        select.select([peer.conn.port], [], [], max(0.0, deadline - time.monotonic()))
+        peer.receive()
     return until()
 
 
@@ -486,15 +503,15 @@ def test_setpoints_leave_at_the_force_rate_and_repeats_only_fill_gaps(peer_bridg
     def counted(now):
         forces.append(now)
         feed(now)
-    n0, t0 = len(peer.setpoints), time.monotonic()
+    n0, t0 = len(peer.setpoints), bridge.clock()
     spin(bridge, 2.0, force_fn=counted, force_hz=50.0)
-    time.sleep(0.05)
-    dt = time.monotonic() - t0
+    peer.receive()
+    dt = bridge.clock() - t0
     with_forces, force_rate = (len(peer.setpoints) - n0) / dt, len(forces) / dt
-    n0, t0 = len(peer.setpoints), time.monotonic()
+    n0, t0 = len(peer.setpoints), bridge.clock()
     spin(bridge, 2.0)
-    time.sleep(0.05)
-    repeats = (len(peer.setpoints) - n0) / (time.monotonic() - t0)
+    peer.receive()
+    repeats = (len(peer.setpoints) - n0) / (bridge.clock() - t0)
     print(f'\nsetpoint rate: {with_forces:.1f} Hz with forces at {force_rate:.1f} Hz, '
           f'{repeats:.1f} Hz without')
     assert force_rate * 0.97 <= with_forces <= force_rate * 1.1
@@ -509,14 +526,16 @@ def test_the_step_slows_to_the_idle_rate_only_while_quiet(peer_bridge):
     wait_link(bridge)
     spin(bridge, 0.3)
     assert seq(bridge).state == EngageState.STANDBY and bridge.quiet
-    n0, due, t0 = len(peer.setpoints), 0, time.monotonic()
-    while time.monotonic() - t0 < 1.0:
+    clock = bridge.clock
+    n0, due, t0 = len(peer.setpoints), 0, clock()
+    while clock() - t0 < 1.0:                      # the node's 30 Hz timer
+        peer.step()
         if bridge.tick_due():
             due += 1
             bridge.poll(ros_now(bridge))
             bridge.stream(ros_now(bridge))
-        time.sleep(1.0 / 30.0)
-    time.sleep(0.05)
+        clock.advance(1.0 / 30.0)
+    peer.receive()
     assert 8 <= due <= 11
     assert 8 <= len(peer.setpoints) - n0 <= 11
     bridge.on_supervisor_mode(Mode.WINDOW)          # engaging: every step again
@@ -561,7 +580,7 @@ def test_px4_offboard_after_streaming_and_arms_only_when_asked(peer_bridge):
     assert seq(bridge).state == EngageState.WAIT_ARM
     ok, text = bridge.request_arm()
     assert ok and 'arm' in text
-    t_req = time.monotonic()
+    t_req = bridge.clock()
     ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
     assert ok, seq(bridge).last_reason
@@ -667,7 +686,7 @@ def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
     bridge.on_heading(stamp, heading_msg_quat(0.0))
     bridge.on_force(stamp, HOVER_F)
     ms = bridge.setpoints.stamp_to_boot_ms(stamp)
-    assert wait_peer(lambda: peer.set_mode_commands() and sent_for(peer, ms))
+    assert wait_peer(peer, lambda: peer.set_mode_commands() and sent_for(peer, ms))
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 6.0)
     t_sp = min(t for t, sp in list(peer.setpoints) if sp.time_boot_ms == ms)
@@ -679,9 +698,9 @@ def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
 def test_silent_controller_px4_stops_streaming_after_hold_last(peer_bridge):
     peer, bridge = peer_bridge(bridge_kw={'hold_last_s': 0.25})
     engage(bridge, peer)
-    t_last = time.monotonic()
+    t_last = bridge.clock()
     ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD)
-    t_held = time.monotonic()
+    t_held = bridge.clock()
     assert ok, seq(bridge).last_reason
     assert 'offboard-loss failsafe' in seq(bridge).last_reason
     assert 0.2 <= t_held - t_last <= 0.45          # hold_last_s of vehicle (ROS) time
@@ -781,7 +800,7 @@ def test_a_mode_taken_by_the_pilot_stops_the_stream_at_once_for_good(peer_bridge
     ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.HELD,
                  force_fn=feeder(bridge))
     assert ok
-    t_held = time.monotonic()
+    t_held = bridge.clock()
     n_modes = len(peer.set_mode_commands())
     spin(bridge, 1.5, force_fn=feeder(bridge))      # the controller goes on: nothing flies
     assert max(t for t, _ in peer.setpoints) <= t_held + 0.05
@@ -804,7 +823,7 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     assert own_port in {port for _, port in peer.sources}
     peer.heartbeats_on = False
     ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up, force_fn=feeder(bridge))
-    t_lost = time.monotonic()
+    t_lost = bridge.clock()
     assert ok and seq(bridge).state == EngageState.NO_LINK
     spin(bridge, 0.7, force_fn=feeder(bridge))
     assert max(t for t, _ in peer.setpoints) <= t_lost + 0.05     # nothing while lost
@@ -857,7 +876,7 @@ def test_shutdown_ramps_thrust_then_forces_disarm_only_under_the_touchdown_rule(
     peer, bridge = peer_bridge(bridge_kw={'shutdown_ramp_s': 0.6})
     engage(bridge, peer, mode=Mode.LANDING)
     bridge.on_supervisor_mode(Mode.SHUTDOWN)
-    t_sd = time.monotonic()
+    t_sd = bridge.clock()
     ok, _ = spin(bridge, 5.0, until=lambda: seq(bridge).state == EngageState.DONE,
                  force_fn=feeder(bridge))
     assert ok, seq(bridge).last_reason
@@ -1109,12 +1128,13 @@ def test_telemetry_never_slows_when_off_or_armed(peer_bridge):
 
 
 def test_autopilot_reboot_holds_the_imu_until_synced_again(peer_bridge):
-    frames = FrameClock(start_ns=100_000 * MS)     # booted 100 s ago
+    clock = FrozenClock()
+    frames = FrameClock(clock, start_ns=100_000 * MS)     # booted 100 s ago
     boot_epoch = [0]                                # ns of `frames` at the last boot
 
     def boot():
         return frames() - boot_epoch[0]
-    peer, bridge = peer_bridge(peer_kw={'boot_clock': boot},
+    peer, bridge = peer_bridge(peer_kw={'boot_clock': boot}, bridge_kw={'clock': clock},
                                ros_clock=lambda: frames() + OFFSET)
     wait_link(bridge)
     assert bridge.time_sync.offset_ns == OFFSET
@@ -1140,9 +1160,10 @@ def test_a_time_jump_resyncs_but_is_no_reboot(peer_bridge):
     # The companion's system clock is stepped by 3 s (chrony's makestep) while the autopilot
     # runs on: the clock sync re-initialises from the streak of outliers, and nothing
     # per-boot is redone (streams asked again, landed state and ground contact forgotten).
-    frames = FrameClock(start_ns=100_000 * MS)
+    clock = FrozenClock()
+    frames = FrameClock(clock, start_ns=100_000 * MS)
     step = [0]
-    peer, bridge = peer_bridge(peer_kw={'boot_clock': frames},
+    peer, bridge = peer_bridge(peer_kw={'boot_clock': frames}, bridge_kw={'clock': clock},
                                ros_clock=lambda: frames() + OFFSET + step[0])
     wait_link(bridge)
     ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams.complete)
@@ -1198,7 +1219,7 @@ def test_setpoint_time_boot_ms_is_the_force_stamp_mapped_at_each_send(peer_bridg
     # The next frame's stamp 1254.5 ms after boot on the ROS clock: rounded to 1255 (halves up).
     bridge.on_heading(OFFSET + 1_254_500_000, heading_msg_quat(0.0))
     bridge.on_force(OFFSET + 1_254_500_000, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1255))
+    assert wait_peer(peer, lambda: sent_for(peer, 1255))
     assert sent_for(peer, 1254) == []
 
 
@@ -1223,10 +1244,10 @@ def test_heading_before_force_sent_at_once_with_the_heading_of_the_same_stamp(pe
     bridge.on_heading(S0, heading_msg_quat(0.1))
     bridge.on_heading(S1, heading_msg_quat(0.2))   # a newer heading is already there ...
     bridge.on_force(S0, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1000))  # ... at once, no timer ...
+    assert wait_peer(peer, lambda: sent_for(peer, 1000))  # ... at once, no timer ...
     assert same_rotation(sent_for(peer, 1000)[0].q, level_q(0.1))   # ... with its own stamp's
     bridge.on_force(S1, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1020))
+    assert wait_peer(peer, lambda: sent_for(peer, 1020))
     assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.2))
     assert bridge.status().counters['headings_missing'] == 0
 
@@ -1238,7 +1259,7 @@ def test_force_without_its_heading_flies_at_once_with_the_latest_and_is_counted(
     bridge.on_heading(S0, heading_msg_quat(0.3))
     bridge.on_force(S0, HOVER_F)
     bridge.on_force(S1, HOVER_F)                   # its heading is not there: no waiting
-    assert wait_peer(lambda: sent_for(peer, 1020))
+    assert wait_peer(peer, lambda: sent_for(peer, 1020))
     assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.3))   # the latest heading
     assert bridge.status().counters['headings_missing'] == 1
     assert 'without the heading' in bridge.pop_heading_warning()
@@ -1246,15 +1267,15 @@ def test_force_without_its_heading_flies_at_once_with_the_latest_and_is_counted(
     # the late heading of S1 never changes what was sent for S1; it is the latest for S2
     assert bridge.on_heading(S1, heading_msg_quat(0.5)) == ''
     for _ in range(5):
-        clock.t += 0.04
+        clock.advance(0.04)
         bridge.stream()
-    assert wait_peer(lambda: len(sent_for(peer, 1020)) >= 6)
+    assert wait_peer(peer, lambda: len(sent_for(peer, 1020)) >= 6)
     first = sent_for(peer, 1020)[0]
     for m in sent_for(peer, 1020):                 # every repeat is what was sent
         assert np.allclose(m.q, first.q, atol=0.0) and m.thrust == first.thrust
     assert bridge.status().counters['late_headings'] == 1
     bridge.on_force(S2, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1040))
+    assert wait_peer(peer, lambda: sent_for(peer, 1040))
     assert same_rotation(sent_for(peer, 1040)[0].q, level_q(0.5))
 
 
@@ -1418,7 +1439,6 @@ def test_reader_wakes_on_input_within_milliseconds_and_holds_the_lock():
             sent.append(time.monotonic())
             _send_heartbeat(peer)
             assert _wait_until(lambda: len(handled) == len(sent))
-            time.sleep(0.05)
         delays = [d for d, _ in handled]
         # woken by the socket, not by the 0.5 s wait: well under one camera period
         assert max(delays) < 0.02, delays
@@ -1543,8 +1563,11 @@ def test_a_second_udp_sender_is_warned_about_once_and_counted():
         assert f'second address 127.0.0.1:{tool_port}' in events[0][1]
         assert link.counters.peers == 2 and link.target_system == 1
         # all silent, then the autopilot again from a new port (ArduPilot restarted: it sends
-        # from an ephemeral port): only noted
-        time.sleep(1.1)
+        # from an ephemeral port): only noted. Silent for 1.1 s of pymavlink's clock (wall
+        # time): every sender's last-heard time set back by that much
+        alive = link._conn.clients_last_alive
+        for address in alive:
+            alive[address] -= 1.1
         restarted = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1,
                                                source_component=1)
         _send_heartbeat(restarted)
