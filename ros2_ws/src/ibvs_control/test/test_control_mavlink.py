@@ -261,6 +261,26 @@ class FakeAutopilot:
                 and m.param1 == 0.0]
 
 
+class PeerThread:
+    """Runs a FakeAutopilot on the real clock in a thread, for a ROS node's real timers."""
+
+    def __init__(self, peer):
+        self.peer = peer
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peer.step()
+            select.select([self.peer.conn.port], [], [], 0.001)   # wake on a datagram
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.peer.close()
+
+
 def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
                 hold_last_s=5.0, clock=None, ros_clock=None, estimator=False, arm=False, **kw):
     """A bridge on udpout to ``port``; ``ros_clock()`` (ns) is what spin() passes to poll()."""
