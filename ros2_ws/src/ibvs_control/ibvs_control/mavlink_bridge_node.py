@@ -1,20 +1,10 @@
 """mavlink_bridge: ibvs/force_setpoint + ibvs/heading_setpoint -> SET_ATTITUDE_TARGET; IMU back.
 
-Thin ROS wrapper of :class:`ibvs_control.mavlink.bridge.MavlinkBridge` (docs/mavlink.md,
-docs/interfaces.md). Subscribes ibvs/heading_setpoint (QuaternionStamped, map; created before
-the force subscription, so that when both wait the heading of a frame is taken first),
-ibvs/force_setpoint (Vector3Stamped, map, N), ibvs/mode (UInt8, transient local) and
-ibvs/supervisor_status (DiagnosticArray, the mode of each frame); publishes imu/data
-(sensor_msgs/Imu, base_link in map; stamps = the autopilot's sample times on the ROS clock by
-MAVLink TIMESYNC, nothing before the clocks are synced) and /diagnostics; serves ibvs/arm
-(std_srvs/Trigger: the bridge never arms the vehicle unless asked, here or by arm_on_start).
-MAVLink input is handled as it arrives: a reader thread (``MavlinkReader``) waits on the
-link's socket and runs the core's receive step under the node's lock, which every callback
-also holds, so the core is never used from two threads at once. The stream timer (link
-supervision, engage sequencing, a setpoint repeat when due; ``stream_rate_hz``) and the
-heartbeat timer run on the steady clock: the autopilot's offboard timeout counts in its own
-time, and a lockstep sim's /clock waits for our setpoints. The ROS time goes to the core with
-every call.
+Thin ROS wrapper of :class:`ibvs_control.mavlink.bridge.MavlinkBridge`: its parameters are
+:class:`~ibvs_control.mavlink.config.MavlinkBridgeNodeConfig`; a reader thread
+(``MavlinkReader``) handles MAVLink input as it arrives, under the lock every callback holds;
+the stream, heartbeat and diagnostics timers run on the steady clock. Topics, services and
+threading: docs/mavlink.md and docs/interfaces.md.
 """
 from __future__ import annotations
 

@@ -1,40 +1,10 @@
 """Hover thrust: the autopilot's parameter as a seed, then estimated online (ROS-free, no I/O).
 
-The bridge normalises the collective thrust as ``thrust = |F| / (m g) * hover_thrust``, so
-``hover_thrust`` (the normalised thrust that holds the vehicle) scales every setpoint. Its seed
-is the autopilot's own parameter, MPC_THR_HOVER (PX4) or MOT_THST_HOVER (ArduPilot), else the
-configured value (:class:`HoverThrustSeed`). Neither is right on a real vehicle: PX4 keeps
-MPC_THR_HOVER as its estimator's starting value only (MPC_USE_HTE = 1), ArduPilot does not learn
-MOT_THST_HOVER in GUIDED_NOGPS. So :class:`HoverThrustEstimator` estimates it from the vehicle's
-own response, as PX4's mc_hover_thrust_estimator does (docs/mavlink.md "Hover thrust").
-
-Model (assumptions)
-    The rotors' collective thrust is along body -z and proportional to the normalised thrust
-    the autopilot applies (linear thrust model, as the autopilots' thrust linearisation and the
-    bridge's own normalisation assume): T = m g u / theta, with theta the hover thrust. The
-    accelerometer measures the specific force f = (thrust + aerodynamic + contact forces) / m,
-    so along body z, with no contact and drag along body z neglected (rotor drag is mainly
-    horizontal):  a = -f_z = g u b / theta.  u is the thrust the autopilot reports it applies
-    (ATTITUDE_TARGET, any mode); b = 1 / cos(tilt) when the autopilot boosts its thrust in a
-    tilt itself (ArduPilot ATC_ANGLE_BOOST = 1: ATTITUDE_TARGET reports the thrust before the
-    boost), else 1 (PX4 applies the thrust as sent). Motor lag and vibration are noise to
-    average: the estimate moves slowly.
-Filter
-    One-state extended Kalman filter on theta (PX4's ZeroOrderHoverThrustEkf in the body axis):
-    prediction P += q dt (process noise ``process_noise`` per sqrt(s), PX4's HTE_HT_NOISE);
-    measurement h = g u b / theta, H = -g u b / theta^2, innovation y = a - h, S = H^2 P + R
-    with R = ``accel_noise``^2; a sample with y^2 > gate^2 S is rejected (counted); otherwise
-    K = P H / S, theta += K y, P -= K H P. Used only airborne (armed, landed state "in air" or
-    "take-off" or not reported), with u in [0.1, 0.9] and within 0.6 - 1.6 x the estimate
-    (ground contact breaks the model: the ground carries what the thrust does not, and a land
-    detector still says "in the air" for a while after a touchdown at low thrust), |f| below
-    3 g, and a thrust sample at most ``max_pairing_s`` older than the IMU sample. The estimate
-    is bounded to seed * (1 -/+ ``max_deviation``) within [0.05, 0.95].
-Determinism
-    :meth:`HoverThrustEstimator.value_at` gives the estimate of the samples at least ``margin_s``
-    older than a setpoint's stamp (autopilot boot time): in a lockstep sim those samples have
-    all arrived when the setpoint is computed, so the setpoint's thrust does not depend on when
-    the bridge happened to read them.
+Every setpoint's thrust is ``|F| / (m g) * hover_thrust``. :class:`HoverThrustSeed` takes the
+autopilot's MPC_THR_HOVER / MOT_THST_HOVER (else the configured value);
+:class:`HoverThrustEstimator` estimates it from the IMU against the applied thrust (a
+one-state EKF, as PX4's mc_hover_thrust_estimator); :class:`HoverThrust` is the value in use.
+Model, filter, gates and determinism: docs/mavlink.md, "Hover thrust".
 """
 from __future__ import annotations
 
