@@ -85,7 +85,7 @@ def gcs_mode(f: Flight, mode: int) -> None:
 
 def ready(f: Flight) -> None:
     ok = f.spin(15.0, until=lambda: f.bridge.link.link_up and f.bridge.time_sync.synced
-                and f.bridge.streams is not None and f.bridge.streams.complete
+                and f.bridge.rates.streams is not None and f.bridge.rates.streams.complete
                 and f.truth.z is not None and f.state() == 'standby')
     assert ok, f'not ready: {f.state()}, {f.bridge.status()}'
 
@@ -98,7 +98,7 @@ def ap_take_off(f: Flight, z_ref: float = -2.5) -> None:
     f.bridge.request_arm()
     f.bridge.on_supervisor_mode(1)
     f.z_ref = z_ref
-    assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+    assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.reason()
     assert f.spin(10.0, until=lambda: f.truth.z < z_ref + 0.4), f'z {f.truth.z}'
     f.spin(1.0)
 
@@ -123,9 +123,10 @@ def test_ardupilot_arms_when_armable_only_on_request_flies_learns_hover_and_land
         # stock ArduCopter (FS_GCS_ENABLE = 0): the bridge warns that nothing lands a dead bridge
         assert f.spin(5.0, until=lambda: f.bridge.params.dead_bridge_failsafe is not None)
         assert f.bridge.params.dead_bridge_failsafe is False
-        assert f.bridge.streams.refused == []                   # every request accepted ...
+        assert f.bridge.rates.streams.refused == []                   # every request accepted ...
         assert not [c for c in f.commands if c[1] == 511 and c[2][0] == 105]   # no HIGHRES_IMU
-        assert f.bridge.params.angle_boost == 1 and f.bridge.shaper.tilt_boost_by_autopilot
+        assert f.bridge.params.angle_boost == 1
+        assert f.bridge.setpoints.shaper.tilt_boost_by_autopilot
         # Engaged long before the pre-arm checks pass: ArduPilot keeps its own mode until it
         # is armable (its RC mode switch is applied ~1.5 s after boot: a GUIDED_NOGPS set
         # before that was replaced, docs/mavlink.md "Safety policy"), then GUIDED_NOGPS,
@@ -142,7 +143,7 @@ def test_ardupilot_arms_when_armable_only_on_request_flies_learns_hover_and_land
             assert f.state() == 'set_mode' and f.hb().custom_mode != GUIDED_NOGPS
             assert not [c for c in f.commands if c[1] == 176] and f.sent == []
         assert f.spin(40.0, until=lambda: f.state() == 'wait_arm'), \
-            f.bridge.sequencer.last_reason
+            f.bridge.engagement.sequencer.last_reason
         assert f.hb().custom_mode == GUIDED_NOGPS and not f.hb().armed
         armable_t = [t for t, m in f.messages('SYS_STATUS', t_engage)
                      if m.onboard_control_sensors_health & (1 << 28)][0]
@@ -151,7 +152,7 @@ def test_ardupilot_arms_when_armable_only_on_request_flies_learns_hover_and_land
         t_req = time.monotonic()
         assert f.bridge.request_arm()[0]
         f.z_ref = -3.0
-        assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+        assert f.spin(60.0, until=lambda: f.state() == 'engaged'), f.reason()
         t_armed = time.monotonic()
         arms = [c for c in f.commands if c[1] == 400 and c[2][0] == 1.0]
         reasons = [t for lv, t in f.events if lv.startswith('reason')]
@@ -182,14 +183,14 @@ def test_ardupilot_arms_when_armable_only_on_request_flies_learns_hover_and_land
         a_tilt = vertical_accel(f, 0.8)
         f.pitch, f.vz_ref = 0.0, None
         f.spin(1.5)
-        est, std = f.bridge.hover_now(), f.bridge.estimator.std
+        est, std = f.bridge.hover.now(), f.bridge.hover.estimator.std
         deg = {k: np.degrees(v) for k, v in errors.items()}
         print(f'ArduPilot steps, mean error after 1.2 s (yaw 2.5 s): roll 10 deg '
               f'{deg["roll"]:+.2f}, pitch -10 deg {deg["pitch"]:+.2f}, yaw +30 deg '
               f'{deg["yaw"]:+.2f} deg; vertical acceleration level {a_level:+.2f}, at 20 deg '
               f'{a_tilt:+.2f} m/s^2 (NED); hover thrust estimate {est:.4f} (std {std:.4f}, '
-              f'{f.bridge.estimator.accepted} samples; seed MOT_THST_HOVER '
-              f'{f.bridge.seed.value:.3f})')
+              f'{f.bridge.hover.estimator.accepted} samples; seed MOT_THST_HOVER '
+              f'{f.bridge.hover.seed.value:.3f})')
         assert abs(errors['roll']) < np.radians(1.5) and abs(errors['pitch']) < np.radians(1.5)
         assert abs(errors['yaw']) < np.radians(3.0)
         assert abs(a_tilt - a_level) < 0.35       # double boost: -0.63 m/s^2 (6.4 % of g)
@@ -250,7 +251,7 @@ def test_ardupilot_freeze_pilot_takeover_and_touchdown_disarm(ardupilot):
         # The pilot takes ALT_HOLD: setpoints stop at once (heartbeat at 5 Hz), for good.
         t_cmd = time.monotonic()
         gcs_mode(f, ALT_HOLD)
-        assert f.spin(3.0, until=lambda: f.state() == 'held'), f.bridge.sequencer.last_reason
+        assert f.spin(3.0, until=lambda: f.state() == 'held'), f.reason()
         t_held = time.monotonic()
         f.spin(1.0)
         assert f.hb().custom_mode == ALT_HOLD and f.sent[-1][0] <= t_held + 0.05
@@ -260,17 +261,18 @@ def test_ardupilot_freeze_pilot_takeover_and_touchdown_disarm(ardupilot):
         f.bridge.on_supervisor_mode(0)
         f.bridge.on_supervisor_mode(3)
         f.z_ref = f.truth.z
-        assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+        assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.reason()
         f.vz_ref = 0.5
         assert f.spin(15.0, until=lambda: f.truth.z > -0.05), f'z {f.truth.z}'
         f.spin(0.5)
         t_sd = time.monotonic()
         f.bridge.on_supervisor_mode(4)
-        assert f.spin(12.0, until=lambda: f.state() == 'done'), f.bridge.sequencer.last_reason
+        assert f.spin(12.0, until=lambda: f.state() == 'done'), f.reason()
         disarms = [c[2] for c in f.commands if c[0] >= t_sd and c[1] == 400]
         print(f'ArduPilot touchdown: disarmed {time.monotonic() - t_sd:.2f} s after SHUTDOWN '
               f'(ramp 2 s), disarm commands {disarms}, landed state '
-              f'{f.bridge.telemetry.landed_state}, forced {f.bridge.sequencer.disarm_forced}')
+              f'{f.bridge.telemetry.landed_state}, forced '
+              f'{f.bridge.engagement.sequencer.disarm_forced}')
         assert not f.hb().armed
     finally:
         f.truth.close()
@@ -332,7 +334,7 @@ def test_ardupilot_telemetry_slows_at_rest_and_is_full_again_on_an_arm_request(a
         t_end = time.monotonic() + 30.0
         while time.monotonic() < t_end and not ok:
             rest.spin(0.5)
-            ok = rest.bridge.status().telemetry_slowed and rest.bridge.streams.complete
+            ok = rest.bridge.status().telemetry_slowed and rest.bridge.rates.streams.complete
         assert ok, rest.bridge.status()
         rest.spin(1.5)
         at_rest = rest.rate_hz('ATTITUDE_QUATERNION', 1.0), rest.rate_hz('SCALED_IMU', 1.0)

@@ -172,7 +172,7 @@ class Run:
         cfg = BridgeConfig(link=LinkConfig(url=url), mass=1.0, max_thrust_factor=2.0,
                            configured_hover_thrust=0.5, hover_thrust_source='config', **config)
         self.bridge = MavlinkBridge(cfg)
-        self.bridge.stream_enabled = False     # listen only
+        self.bridge.setpoints.enabled = False     # listen only
         self.polls = []   # (ROS ns of the poll, synced before, synced after, raw, samples)
         self.events = []
         self.reset_ns = []    # ROS ns of the polls in which the bridge's clock sync reset
@@ -316,7 +316,7 @@ class Run:
                 f'stamp over {len(ages)} samples '
                 f'(of {len(every)}, those within {AFTER_JUMP_S} s after a jump left out): '
                 f'{spread_ms(ages)}; '
-                f'{self.bridge.imu_dropped_unsynced} dropped while unsynced')
+                f'{self.bridge.telemetry.imu_dropped_unsynced} dropped while unsynced')
 
 
 def spread_ms(values: np.ndarray) -> str:
@@ -379,8 +379,9 @@ MAX_TILT = np.radians(25.0)
 
 def shipped_parameters(**overrides) -> dict:
     """The bridge's parameters as params.yaml ships them (onboard), with test overrides."""
-    from ibvs_control.mavlink_bridge_node import PARAMETERS
-    p = dict(PARAMETERS)
+    from ibvs_common.core.params import defaults
+    from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
+    p = defaults(MavlinkBridgeNodeConfig)
     p.update(yaml.safe_load(PARAMS_YAML.read_text())['mavlink_bridge']['ros__parameters'])
     p.update(overrides)
     return p
@@ -446,9 +447,10 @@ class Flight:
 
     def __init__(self, url: str, truth: Truth, mass: float, **overrides) -> None:
         from ibvs_control.mavlink.bridge import MavlinkBridge
-        from ibvs_control.mavlink_bridge_node import config_from_parameters
-        self.bridge = MavlinkBridge(config_from_parameters(shipped_parameters(
-            url=url, **overrides)))
+        from ibvs_common.core.params import build
+        from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
+        self.bridge = MavlinkBridge(build(MavlinkBridgeNodeConfig, shipped_parameters(
+            url=url, **overrides)).bridge_config())
         self.truth = truth
         self.mass = mass                   # what the test controller assumes (vehicle.yaml)
         self.events, self.imu, self.raw = [], [], []   # imu: (receipt ns, sample); raw: (t, msg)
@@ -580,7 +582,12 @@ class Flight:
         return [(t, m) for t, m in self.raw if t >= since and m.get_type() == kind]
 
     def state(self):
-        return self.bridge.sequencer.state.value if self.bridge.sequencer else 'no_link'
+        seq = self.bridge.engagement.sequencer
+        return seq.state.value if seq else 'no_link'
+
+    def reason(self):
+        seq = self.bridge.engagement.sequencer
+        return seq.last_reason if seq else ''
 
     def hb(self):
         return self.bridge.link.heartbeat
@@ -651,7 +658,7 @@ def px4_flight(px4, **overrides) -> Flight:
 
 def ready(f: Flight) -> None:
     ok = f.spin(10.0, until=lambda: f.bridge.link.link_up and f.bridge.time_sync.synced
-                and f.bridge.streams is not None and f.bridge.streams.complete
+                and f.bridge.rates.streams is not None and f.bridge.rates.streams.complete
                 and f.truth.z is not None and f.state() == 'standby')
     assert ok, f'not ready: {f.state()}, {f.bridge.status()}'
 
@@ -664,7 +671,7 @@ def px4_take_off(f: Flight, z_ref: float = -2.0, arm: bool = True) -> None:
     f.spin(0.3)
     f.bridge.on_supervisor_mode(1)
     ok = f.spin(5.0, until=lambda: f.state() in ('wait_arm', 'engaged'))
-    assert ok, f'{f.state()}: {f.bridge.sequencer.last_reason}'
+    assert ok, f'{f.state()}: {f.bridge.engagement.sequencer.last_reason}'
     if f.state() == 'wait_arm' and arm:
         assert f.bridge.request_arm()[0]
     f.z_ref = z_ref
@@ -673,7 +680,7 @@ def px4_take_off(f: Flight, z_ref: float = -2.0, arm: bool = True) -> None:
     # SYS_STATUS's pre-arm bit, as it should: wait for PX4, not only for the bridge
     if not f.spin(ARM_WAIT_S, until=lambda: f.state() == 'engaged'):
         f.skip_if_sensors_lost('PX4 never became armable')
-    assert f.state() == 'engaged', f.bridge.sequencer.last_reason
+    assert f.state() == 'engaged', f.bridge.engagement.sequencer.last_reason
     assert f.spin(10.0, until=lambda: f.truth.z < z_ref + 0.3), f'z {f.truth.z}'
 
 
@@ -767,14 +774,14 @@ def test_px4_engages_arms_only_on_request_tracks_steps_learns_hover_then_fails_s
         f.z_ref = f.truth.z
         f.spin(0.3)
         f.bridge.on_supervisor_mode(1)
-        assert f.spin(5.0, until=lambda: f.state() == 'wait_arm'), f.bridge.sequencer.last_reason
+        assert f.spin(5.0, until=lambda: f.state() == 'wait_arm'), f.reason()
         assert px4_main_mode(f.hb().custom_mode) == 6 and not f.hb().armed
         f.spin(2.0)                                            # engaged, disarmed: no ARM
         assert [c for c in f.commands if c[1] == 400] == [] and not f.hb().armed
         t_req = time.monotonic()
         assert f.bridge.request_arm()[0]
         f.z_ref = -2.0
-        assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+        assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.reason()
         arms = [c for c in f.commands if c[1] == 400 and c[2][0] == 1.0]
         assert len(arms) == 1 and arms[0][0] >= t_req
         climbed = f.spin(10.0, until=lambda: f.truth.z < -1.7)
@@ -793,14 +800,14 @@ def test_px4_engages_arms_only_on_request_tracks_steps_learns_hover_then_fails_s
         dt = time.monotonic() - t_steps
         sp_rate = len([s for s in f.sent if s[0] >= t_steps]) / dt
         force_rate = len([t for t in f.forces if t >= t_steps]) / dt
-        est, std = f.bridge.hover_now(), f.bridge.estimator.std
-        n_est = f.bridge.estimator.accepted
+        est, std = f.bridge.hover.now(), f.bridge.hover.estimator.std
+        n_est = f.bridge.hover.estimator.accepted
         deg = {k: np.degrees(v) for k, v in errors.items()}
         print(f'\nPX4 SIH steps, mean error after 1.2 s (yaw 2.5 s): roll 10 deg '
               f'{deg["roll"]:+.2f}, pitch -10 deg {deg["pitch"]:+.2f}, yaw +30 deg '
               f'{deg["yaw"]:+.2f} deg; hover thrust estimate '
               f'{est:.4f} (std {std:.4f}, {n_est} samples; SIH {PX4_HOVER_SIH:.4f}, seed '
-              f'MPC_THR_HOVER {f.bridge.seed.value:.3f}); SET_ATTITUDE_TARGET at '
+              f'MPC_THR_HOVER {f.bridge.hover.seed.value:.3f}); SET_ATTITUDE_TARGET at '
               f'{sp_rate:.1f} Hz with the forces at {force_rate:.1f} Hz')
         if f.state() != 'engaged' or not force_rate * 0.97 <= sp_rate:
             # the old flake's signature (setpoints stopped mid-flight): a stall of the harness
@@ -867,7 +874,7 @@ def test_px4_pilot_takeover_failsafe_land_mode_and_touchdown_disarm(px4):
         assert f.state() == 'engaged', 'PX4 took POSCTL without RC?'
         t_cmd = time.monotonic()
         f.bridge.link.send_command_long(176, (1.0, 4.0, 3.0))  # as a GCS would
-        assert f.spin(3.0, until=lambda: f.state() == 'held'), f.bridge.sequencer.last_reason
+        assert f.spin(3.0, until=lambda: f.state() == 'held'), f.reason()
         t_held = time.monotonic()
         f.spin(1.5)
         assert f.sent[-1][0] <= t_held + 0.05
@@ -878,7 +885,7 @@ def test_px4_pilot_takeover_failsafe_land_mode_and_touchdown_disarm(px4):
         f.bridge.on_supervisor_mode(0)
         f.bridge.on_supervisor_mode(1)
         f.z_ref = f.truth.z
-        assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.bridge.sequencer.last_reason
+        assert f.spin(5.0, until=lambda: f.state() == 'engaged'), f.reason()
         f.spin(1.0)
         t_fs = time.monotonic()
         f.bridge.on_supervisor_mode(5)
@@ -900,7 +907,7 @@ def test_px4_pilot_takeover_failsafe_land_mode_and_touchdown_disarm(px4):
         f.spin(0.5)
         t_sd = time.monotonic()
         f.bridge.on_supervisor_mode(4)
-        assert f.spin(10.0, until=lambda: f.state() == 'done'), f.bridge.sequencer.last_reason
+        assert f.spin(10.0, until=lambda: f.state() == 'done'), f.reason()
         disarms = [c for c in f.commands if c[0] >= t_sd and c[1] == 400]
         print(f'PX4 touchdown: disarmed {time.monotonic() - t_sd:.2f} s after SHUTDOWN (ramp '
               f'2 s), disarm commands {[c[2] for c in disarms]}, landed state '
@@ -908,7 +915,7 @@ def test_px4_pilot_takeover_failsafe_land_mode_and_touchdown_disarm(px4):
         # PX4's land detector may still say "in the air" 2 s after the ramp (measured: 2 of 4
         # runs): the touchdown rule then forces the disarm, on the ground only
         assert not f.hb().armed
-        assert not f.bridge.sequencer.disarm_forced or f.truth.z > -0.1, f.truth.z
+        assert not f.bridge.engagement.sequencer.disarm_forced or f.truth.z > -0.1, f.truth.z
     finally:
         close_flight(f)
 
@@ -1008,7 +1015,7 @@ def test_px4_reconnects_after_a_restart(px4):
         px4['env'] = start(px4['script'], px4['args'])         # same instance, same ports
         t_up = time.monotonic()
         assert f.spin(15.0, until=lambda: f.bridge.link.link_up and f.bridge.time_sync.synced
-                      and f.bridge.streams.complete and f.messages('HEARTBEAT', t_up))
+                      and f.bridge.rates.streams.complete and f.messages('HEARTBEAT', t_up))
         t_sync = time.monotonic()
         n0, t0 = len(f.messages('ATTITUDE_QUATERNION')), time.monotonic()
         f.spin(2.0)

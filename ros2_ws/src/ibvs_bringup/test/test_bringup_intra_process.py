@@ -111,7 +111,7 @@ def test_composed_nodes_take_imu_in_process_and_the_bridge_counts_them(context):
             assert '/imu/data' not in [s.topic_name for s in node.subscriptions], node.get_name()
         # the setpoint stream's gate counts them: 5 >= min_imu_subscribers
         bridge._check_imu_consumers()
-        assert bridge._bridge.stream_enabled
+        assert bridge._bridge.setpoints.enabled
         # a sample handed over reaches each of the five at its next take, the object itself
         bridge._imu_local.publish(imu(7))
         subs = bridge._imu_local._subscriptions
@@ -164,9 +164,9 @@ def test_bridge_counts_in_process_subscribers_for_its_stream_gate(context):
         parameter_overrides=[Parameter('url', value='udpin:127.0.0.1:0'),
                              Parameter('min_imu_subscribers', value=1)])
     try:
-        assert not bridge._bridge.stream_enabled
+        assert not bridge._bridge.setpoints.enabled
         bridge._check_imu_consumers()
-        assert bridge._bridge.stream_enabled
+        assert bridge._bridge.setpoints.enabled
     finally:
         bridge.destroy_node()
 

@@ -1,24 +1,13 @@
 """mavlink_bridge: ibvs/force_setpoint + ibvs/heading_setpoint -> SET_ATTITUDE_TARGET; IMU back.
 
-Thin ROS wrapper of :class:`ibvs_control.mavlink.bridge.MavlinkBridge` (docs/mavlink.md,
-docs/interfaces.md). Subscribes ibvs/heading_setpoint (QuaternionStamped, map; created before
-the force subscription, so that when both wait the heading of a frame is taken first),
-ibvs/force_setpoint (Vector3Stamped, map, N), ibvs/mode (UInt8, transient local) and
-ibvs/supervisor_status (DiagnosticArray, the mode of each frame); publishes imu/data
-(sensor_msgs/Imu, base_link in map; stamps = the autopilot's sample times on the ROS clock by
-MAVLink TIMESYNC, nothing before the clocks are synced) and /diagnostics; serves ibvs/arm
-(std_srvs/Trigger: the bridge never arms the vehicle unless asked, here or by arm_on_start).
-MAVLink input is handled as it arrives: a reader thread (``MavlinkReader``) waits on the
-link's socket and runs the core's receive step under the node's lock, which every callback
-also holds, so the core is never used from two threads at once. The stream timer (link
-supervision, engage sequencing, a setpoint repeat when due; ``stream_rate_hz``) and the
-heartbeat timer run on the steady clock: the autopilot's offboard timeout counts in its own
-time, and a lockstep sim's /clock waits for our setpoints. The ROS time goes to the core with
-every call.
+Thin ROS wrapper of :class:`ibvs_control.mavlink.bridge.MavlinkBridge`: its parameters are
+:class:`~ibvs_control.mavlink.config.MavlinkBridgeNodeConfig`; a reader thread
+(``MavlinkReader``) handles MAVLink input as it arrives, under the lock every callback holds;
+the stream, heartbeat and diagnostics timers run on the steady clock. Topics, services and
+threading: docs/mavlink.md and docs/interfaces.md.
 """
 from __future__ import annotations
 
-import math
 import threading
 from typing import Callable
 
@@ -32,267 +21,22 @@ from sensor_msgs.msg import Imu
 from std_msgs.msg import UInt8
 from std_srvs.srv import Trigger
 
-from ibvs_common.core.config import ConfigError, load_vehicle
 from ibvs_common.core.frames import vec_map_to_I
-from ibvs_control.mavlink.bridge import BridgeConfig, BridgeStatus, MavlinkBridge
-from ibvs_control.mavlink.hover import EstimatorConfig
-from ibvs_control.mavlink.link import (
-    LinkConfig, load_signing_key, MavlinkReader, SigningError)
-from ibvs_control.mavlink.sequencer import SequencerConfig
-from ibvs_control.mavlink.telemetry import ImuSample, load_px4_events, message_ids
-from ibvs_control.mavlink.time_sync import TimeSyncConfig
 from ibvs_common.intra_process import IntraProcessTopic
 from ibvs_common.node_common import (
     COMMAND_QOS, FRAME_QOS, MODE_QOS, mode_from_status, ns_to_stamp, quat_wxyz, set_quat,
     set_vector3, stamp_to_ns, vector3)
-from ibvs_common.param_descriptors import declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import message_kind, ThrottledLog
+from ibvs_control.mavlink.bridge import BridgeStatus, MavlinkBridge
+from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
+from ibvs_control.mavlink.link import MavlinkReader, SigningError
+from ibvs_control.mavlink.telemetry import ImuSample
 
-DEFAULT_COVARIANCE = [1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4]
-# PX4's onboard-link defaults that the bridge never reads (~300 of its ~400 messages/s,
-# measured on PX4 v1.16 SITL): each costs the bridge a parse in Python (docs/mavlink.md)
-DEFAULT_STREAMS_OFF = ('ATTITUDE', 'GLOBAL_POSITION_INT', 'LOCAL_POSITION_NED', 'ODOMETRY',
-                       'ALTITUDE', 'DISTANCE_SENSOR', 'POSITION_TARGET_LOCAL_NED',
-                       'SERVO_OUTPUT_RAW', 'VFR_HUD', 'GPS_RAW_INT')
 UNKNOWN_COVARIANCE = np.array([-1.0] + [0.0] * 8)   # sensor_msgs/Imu: [0] = -1 "not provided"
 LOG_THROTTLE_S = 2.0
-MIN_HEARTBEAT_TIMEOUT_S = 3.0               # >= 3 periods of the autopilots' 1 Hz heartbeat
 READER_WAIT_S = 0.1     # s (steady clock), the reader looks at a reopened link this often
-PARAMETERS = {
-    'url': 'udpin:0.0.0.0:14540',
-    'source_system': 1,
-    'target_system': 0,
-    'target_component': 0,
-    'heartbeat_timeout_s': 3.5,
-    'reconnect_period_s': 1.0,
-    'signing_key_file': '',
-    'signing_link_id': 0,
-    'autopilot': 'auto',
-    'hover_thrust_source': 'autopilot',
-    'hover_thrust': -1.0,
-    'hover_estimator_enabled': True,
-    'hover_estimator_process_noise': 0.0036,
-    'hover_estimator_accel_noise': 2.0,
-    'hover_estimator_max_deviation': 0.3,
-    'vehicle_file': '',
-    'param_timeout_s': 3.0,
-    'attitude_rate_hz': 100.0,
-    'streams_off': list(DEFAULT_STREAMS_OFF),
-    'imu_rate_hz': 100.0,
-    'thrust_rate_hz': 50.0,
-    'status_rate_hz': 5.0,
-    'heartbeat_request_hz': 5.0,
-    'timesync_period_s': 0.1,
-    'timesync_init_request_period_s': 0.05,
-    'timesync_init_samples': 5,
-    'timesync_max_rtt_s': 0.010,
-    'timesync_alpha': 0.05,
-    'timesync_beta': 0.002,
-    'timesync_max_deviation_s': 0.010,
-    'timesync_max_consecutive_outliers': 5,
-    'stream_rate_hz': 30.0,
-    'idle_tick_rate_hz': 10.0,
-    'quiet_telemetry_rate_hz': 10.0,
-    'quiet_telemetry_delay_s': 2.0,
-    'heartbeat_rate_hz': 1.0,
-    'diagnostics_rate_hz': 1.0,
-    'hold_last_s': 0.25,
-    'max_force_age_s': 0.25,
-    'max_force_factor': 3.0,
-    'max_tilt_rad': 0.6,
-    'shutdown_ramp_s': 2.0,
-    'min_imu_subscribers': 0,
-    'prestream_s': 1.2,
-    'command_retry_s': 1.0,
-    'max_attempts': 5,
-    'arm_on_start': False,
-    'arm_backoff_max_s': 8.0,
-    'arm_timeout_s': 60.0,
-    'armable_unknown_wait_s': 1.0,
-    'disarm_force_after_s': 1.0,
-    'disarm_timeout_s': 10.0,
-    'input_loss_action': 'auto',
-    'px4_events_file': '',
-    'frame_id': 'base_link',
-    'orientation_covariance': DEFAULT_COVARIANCE,
-    'angular_velocity_covariance': DEFAULT_COVARIANCE,
-    'linear_acceleration_covariance': DEFAULT_COVARIANCE,
-}
-# Spec of each parameter: description with unit (and clock: ROS = the node's clock, sim time
-# under use_sim_time; steady = monotonic), inclusive range (ibvs_common.param_descriptors).
-PARAMETER_SPECS = {
-    'url': ("MAVLink endpoint (pymavlink URL): PX4 'udpin:0.0.0.0:14540', serial "
-            "'/dev/ttyUSB0,921600'; a udpin port is ours alone (one another socket holds is "
-            "refused and retried every reconnect_period_s)",),
-    'source_system': ("our MAVLink system id (the vehicle's)", 1, 255),
-    'target_system': ("autopilot system id; 0 = learn from its first HEARTBEAT", 0, 255),
-    'target_component': ("autopilot component id; 0 = learn from its first HEARTBEAT",
-                         0, 255),
-    'heartbeat_timeout_s': ('s (steady clock), no autopilot HEARTBEAT this long: link lost; '
-                            f'>= {MIN_HEARTBEAT_TIMEOUT_S} (3 heartbeat periods)',
-                            MIN_HEARTBEAT_TIMEOUT_S, None),
-    'reconnect_period_s': ('s (steady clock), reopen a broken socket / serial port this often',
-                           0.0, None),
-    'signing_key_file': ("MAVLink 2 signing key file (32 bytes raw or 64 hex); '' = signing "
-                         'off',),
-    'signing_link_id': ('MAVLink 2 signing link id', 0, 255),
-    'autopilot': ('auto (from HEARTBEAT) | px4 | ardupilot',),
-    'hover_thrust_source': ('hover thrust seed: autopilot (MPC_THR_HOVER / MOT_THST_HOVER) | '
-                            'config',),
-    'hover_thrust': ('normalised thrust (0, 1]; <= 0 = the vehicle.yaml hover_thrust',
-                     None, 1.0),
-    'hover_estimator_enabled': ('estimate the hover thrust online (IMU vs applied thrust)',),
-    'hover_estimator_process_noise': ('1/sqrt(s), hover thrust random walk', 0.0, None),
-    'hover_estimator_accel_noise': ('m/s^2, accelerometer noise of one sample', 0.0, None),
-    'hover_estimator_max_deviation': ('the estimate stays within seed * (1 -/+ this)',
-                                      0.0, 1.0),
-    'vehicle_file': ("vehicle YAML (mass, max thrust); '' = the installed vehicle.yaml",),
-    'param_timeout_s': ('s (steady clock), unanswered autopilot parameter reads: fallback / '
-                        'refuse', 0.0, None),
-    'attitude_rate_hz': ('Hz, ATTITUDE_QUATERNION stream asked of the autopilot', 0.0, None),
-    'imu_rate_hz': ('Hz, HIGHRES_IMU (PX4) / SCALED_IMU (ArduPilot) stream asked', 0.0, None),
-    'thrust_rate_hz': ('Hz, ATTITUDE_TARGET stream asked (the thrust applied)', 0.0, None),
-    'status_rate_hz': ('Hz, EXTENDED_SYS_STATE and SYS_STATUS streams asked', 0.0, None),
-    'heartbeat_request_hz': ("Hz, ArduPilot's HEARTBEAT stream asked (PX4's is 1 Hz)",
-                             0.0, None),
-    'streams_off': ('MAVLink message names whose streams are switched off on this link '
-                    '(SET_MESSAGE_INTERVAL -1): what the autopilot streams by default and the '
-                    "bridge does not read; never one it reads. [''] = none",),
-    'timesync_period_s': ('s (ROS clock) between TIMESYNC requests once synced', 0.0, None),
-    'timesync_init_request_period_s': ('s (steady clock) between TIMESYNC requests while '
-                                       'unsynced', 0.0, None),
-    'timesync_init_samples': ('accepted TIMESYNC samples whose median starts the offset',
-                              1, None),
-    'timesync_max_rtt_s': ('s (ROS clock), TIMESYNC round trips above this are rejected',
-                           0.0, None),
-    'timesync_alpha': ('smoothing gain of the clock offset per accepted sample', 0.0, 1.0),
-    'timesync_beta': ('smoothing gain of the clock skew per accepted sample', 0.0, 1.0),
-    'timesync_max_deviation_s': ('s (ROS clock), a sample this far from the offset is an '
-                                 'outlier', 0.0, None),
-    'timesync_max_consecutive_outliers': ('outliers in a row taken as a time jump: reset, '
-                                          're-sync', 0, None),
-    'stream_rate_hz': ('Hz (steady clock timer), setpoint repeat when none left for 1/this, '
-                       'link supervision, engage sequencing; > 0', 0.0, None),
-    'idle_tick_rate_hz': ('Hz (steady clock), the same step while quiet (standby, supervisor '
-                          'IDLE, clocks synced): also the keepalive stream rate then; > 2 '
-                          '(PX4 wants > 2 Hz before OFFBOARD)', 2.0, None),
-    'quiet_telemetry_rate_hz': ('Hz, the attitude, IMU and thrust streams asked while the '
-                                'vehicle rests (disarmed, supervisor IDLE, no arm request, '
-                                'no frame status), full rates again before anything engages '
-                                'or at the first frame; 0 = full rates always', 0.0, None),
-    'quiet_telemetry_delay_s': ('s (steady clock) at rest, and without a frame status, '
-                                'before the streams slow down',
-                                0.0, None),
-    'heartbeat_rate_hz': ('Hz (steady clock timer), our HEARTBEAT; > 0', 0.0, None),
-    'diagnostics_rate_hz': ('Hz (steady clock timer), /diagnostics; > 0', 0.0, None),
-    'hold_last_s': ('s (ROS clock, vehicle time), the last valid setpoint is kept this long, '
-                    'then the vehicle is handed back (input_loss_action)', 0.0, None),
-    'max_force_age_s': ('s (ROS clock), a force computed from an image older than this when '
-                        'it arrives is refused (not flown: the held setpoint goes on, and '
-                        'after hold_last_s of refusals the vehicle is handed back): a graph '
-                        'that falls behind does not fly old images; 0 = off', 0.0, None),
-    'max_force_factor': ('|F| above this factor * m g is refused', 0.0, None),
-    'max_tilt_rad': ('rad, tilt limit of the thrust direction', 0.0, math.pi),
-    'shutdown_ramp_s': ('s (ROS clock, force stamps), SHUTDOWN: thrust ramp to 0, then disarm',
-                        0.0, None),
-    'min_imu_subscribers': ('no setpoint stream until imu/data has matched this many '
-                            'subscribers', 0, None),
-    'prestream_s': ('s (steady clock), PX4: setpoint stream before OFFBOARD (> 1 s)',
-                    0.0, None),
-    'command_retry_s': ('s (steady clock), resend an ineffective command after this',
-                        0.0, None),
-    'max_attempts': ('mode-switch attempts before FAILED', 1, None),
-    'arm_on_start': ('true: an arm request from the start (sim scenario only); otherwise only '
-                     'the ibvs/arm service arms',),
-    'arm_backoff_max_s': ('s (steady clock), arming retries back off (doubling) up to this',
-                          0.0, None),
-    'arm_timeout_s': ('s (steady clock), arming refused this long: FAILED', 0.0, None),
-    'armable_unknown_wait_s': ('s (steady clock), disarmed and no SYS_STATUS pre-arm report '
-                               'yet: the mode switch waits this long for one, then tries',
-                               0.0, None),
-    'disarm_force_after_s': ('s (ROS clock, IMU stamps), touchdown rule: evidence and first '
-                             'refusal this old before a forced disarm', 0.0, None),
-    'disarm_timeout_s': ("s (steady clock), still armed this long after the ramp: the "
-                         "autopilot's land mode", 0.0, None),
-    'input_loss_action': ('forces lost: stop | land | auto (PX4: stop, ArduPilot: land)',),
-    'px4_events_file': ("PX4 all_events.json(.xz) to name EVENT ids; '' = ids only",),
-    'frame_id': ('frame_id of imu/data',),
-    'orientation_covariance': ('rad^2, imu/data orientation covariance (row-major 3x3)',),
-    'angular_velocity_covariance': ('(rad/s)^2, imu/data angular velocity covariance '
-                                    '(row-major 3x3)',),
-    'linear_acceleration_covariance': ('(m/s^2)^2, imu/data linear acceleration covariance '
-                                       '(row-major 3x3)',),
-}
-
-
-def config_from_parameters(p: dict) -> BridgeConfig:
-    """Return the typed configuration of the parameters (PARAMETERS keys); ValueError: why.
-
-    Also used by the SITL tests to run the core with the shipped params.yaml.
-    """
-    try:
-        vehicle = load_vehicle(p['vehicle_file'] or None)
-    except ConfigError as exc:
-        raise ValueError(str(exc)) from exc
-    key = None
-    if p['signing_key_file']:
-        key = load_signing_key(p['signing_key_file'])
-    if not p['heartbeat_timeout_s'] >= MIN_HEARTBEAT_TIMEOUT_S:
-        raise ValueError(f'heartbeat_timeout_s must be >= {MIN_HEARTBEAT_TIMEOUT_S} s (3 '
-                         f'heartbeat periods), got {p["heartbeat_timeout_s"]}')
-    events = None
-    if p['px4_events_file']:
-        try:
-            events = load_px4_events(p['px4_events_file'])
-        except (OSError, ValueError) as exc:
-            raise ValueError(f'px4_events_file {p["px4_events_file"]}: {exc}') from exc
-    hover = p['hover_thrust'] if p['hover_thrust'] > 0.0 else vehicle.hover_thrust
-    link = LinkConfig(url=p['url'], source_system=p['source_system'],
-                      target_system=p['target_system'],
-                      target_component=p['target_component'],
-                      heartbeat_timeout_s=p['heartbeat_timeout_s'],
-                      reconnect_period_s=p['reconnect_period_s'], signing_key=key,
-                      signing_link_id=p['signing_link_id'])
-    seq = SequencerConfig(prestream_s=p['prestream_s'],
-                          command_retry_s=p['command_retry_s'],
-                          max_attempts=p['max_attempts'],
-                          arm_backoff_max_s=p['arm_backoff_max_s'],
-                          arm_timeout_s=p['arm_timeout_s'],
-                          armable_unknown_wait_s=p['armable_unknown_wait_s'],
-                          disarm_force_after_s=p['disarm_force_after_s'],
-                          disarm_timeout_s=p['disarm_timeout_s'],
-                          input_loss_action=p['input_loss_action'])
-    for k in ('stream_rate_hz', 'heartbeat_rate_hz', 'diagnostics_rate_hz'):
-        if not p[k] > 0.0:
-            raise ValueError(f'{k} must be > 0')
-    sync = TimeSyncConfig(
-        period_s=p['timesync_period_s'],
-        init_request_period_s=p['timesync_init_request_period_s'],
-        init_samples=p['timesync_init_samples'], max_rtt_s=p['timesync_max_rtt_s'],
-        alpha=p['timesync_alpha'], beta=p['timesync_beta'],
-        max_deviation_s=p['timesync_max_deviation_s'],
-        max_consecutive_outliers=p['timesync_max_consecutive_outliers'])
-    estimator = EstimatorConfig(
-        enabled=bool(p['hover_estimator_enabled']),
-        process_noise=p['hover_estimator_process_noise'],
-        accel_noise=p['hover_estimator_accel_noise'],
-        max_deviation=p['hover_estimator_max_deviation'])
-    return BridgeConfig(
-        link=link, mass=vehicle.mass, max_thrust_factor=vehicle.max_thrust_factor,
-        configured_hover_thrust=hover, autopilot=p['autopilot'],
-        hover_thrust_source=p['hover_thrust_source'], param_timeout_s=p['param_timeout_s'],
-        attitude_rate_hz=p['attitude_rate_hz'], imu_rate_hz=p['imu_rate_hz'],
-        thrust_rate_hz=p['thrust_rate_hz'], status_rate_hz=p['status_rate_hz'],
-        heartbeat_request_hz=p['heartbeat_request_hz'],
-        streams_off=message_ids(n for n in p['streams_off'] if n.strip()),
-        stream_rate_hz=p['stream_rate_hz'], idle_tick_rate_hz=p['idle_tick_rate_hz'],
-        quiet_telemetry_rate_hz=p['quiet_telemetry_rate_hz'],
-        quiet_telemetry_delay_s=p['quiet_telemetry_delay_s'],
-        time_sync=sync, hold_last_s=p['hold_last_s'], max_force_age_s=p['max_force_age_s'],
-        max_force_factor=p['max_force_factor'], max_tilt_rad=p['max_tilt_rad'],
-        shutdown_ramp_s=p['shutdown_ramp_s'], arm_on_start=bool(p['arm_on_start']),
-        px4_events=events, sequencer=seq, estimator=estimator)
 
 
 class MavlinkBridgeNode(Node):
@@ -302,19 +46,17 @@ class MavlinkBridgeNode(Node):
                  imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
-        p = declare_all(self, PARAMETERS, PARAMETER_SPECS)   # ValueError: bad type or range
-        self._config = config_from_parameters(p)
-        self._frame_id = p['frame_id']
+        cfg = declare_config(self, MavlinkBridgeNodeConfig)   # ValueError: bad type or range
+        self._config = cfg.bridge_config()
+        self._frame_id = cfg.frame_id
         # float64 arrays: a message takes them as they are (a list is checked and copied)
-        self._cov = {k: np.array(p[k], dtype=np.float64) for k in (
+        self._cov = {k: np.array(getattr(cfg, k), dtype=np.float64) for k in (
             'orientation_covariance', 'angular_velocity_covariance',
             'linear_acceleration_covariance')}
         self._bridge = MavlinkBridge(self._config)
         self._lock = threading.Lock()           # the core: reader thread vs. executor
-        self._min_imu_subscribers = int(p['min_imu_subscribers'])
-        if self._min_imu_subscribers < 0:
-            raise ValueError(f'min_imu_subscribers must be >= 0, got {self._min_imu_subscribers}')
-        self._bridge.stream_enabled = self._min_imu_subscribers == 0
+        self._min_imu_subscribers = cfg.min_imu_subscribers
+        self._bridge.setpoints.enabled = self._min_imu_subscribers == 0
 
         self._imu_pub = self.create_publisher(Imu, 'imu/data', COMMAND_QOS)
         self._imu_local = imu_local             # the composed container's co-located nodes
@@ -331,18 +73,18 @@ class MavlinkBridgeNode(Node):
                                  FRAME_QOS)
         self.create_service(Trigger, 'ibvs/arm', self._on_arm)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.create_timer(1.0 / p['stream_rate_hz'], self._on_stream_tick, clock=steady)
-        self.create_timer(1.0 / p['heartbeat_rate_hz'], self._on_heartbeat_tick, clock=steady)
-        self.create_timer(1.0 / p['diagnostics_rate_hz'], self._on_diagnostics, clock=steady)
+        self.create_timer(1.0 / self._config.stream_rate_hz, self._on_stream_tick, clock=steady)
+        self.create_timer(1.0 / cfg.heartbeat_rate_hz, self._on_heartbeat_tick, clock=steady)
+        self.create_timer(1.0 / cfg.diagnostics_rate_hz, self._on_diagnostics, clock=steady)
         self._reader = MavlinkReader(self._bridge.link, self._lock, self._on_readable,
                                      READER_WAIT_S, self._on_reader_error)
         self._reader.start()
         self.get_logger().info(
-            f'MAVLink bridge on {self._config.link.url} (autopilot {p["autopilot"]}, '
+            f'MAVLink bridge on {self._config.link.url} (autopilot {self._config.autopilot}, '
             f'signing {"on" if self._config.link.signing_key else "off"}, hover thrust '
-            f'seed {p["hover_thrust_source"]}'
-            f'{", estimated online" if p["hover_estimator_enabled"] else ""}, arming '
-            f'{"requested at start" if p["arm_on_start"] else "only on ibvs/arm"})')
+            f'seed {self._config.hover_thrust_source}'
+            f'{", estimated online" if self._config.estimator.enabled else ""}, arming '
+            f'{"requested at start" if self._config.arm_on_start else "only on ibvs/arm"})')
 
     def _ros_ns(self) -> int:
         return self.get_clock().now().nanoseconds
@@ -405,7 +147,7 @@ class MavlinkBridgeNode(Node):
                 return
             ros_ns = self._ros_ns()
             self._receive(ros_ns)
-            if not self._bridge.stream_enabled:
+            if not self._bridge.setpoints.enabled:
                 self._check_imu_consumers()
             self._bridge.stream(ros_ns)    # a repeat if no setpoint left for 1 / stream_rate_hz
             self._log_events()
@@ -446,7 +188,7 @@ class MavlinkBridgeNode(Node):
         matched = self._imu_pub.get_subscription_count() + (
             0 if self._imu_local is None else self._imu_local.subscriber_count)
         if matched >= self._min_imu_subscribers:
-            self._bridge.stream_enabled = True
+            self._bridge.setpoints.enabled = True
             self.get_logger().info(f'imu/data matched {matched} subscribers: setpoint stream on')
         else:
             self.log.info(

@@ -66,7 +66,7 @@ def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
     # no answer at t = 0 and no request at ROS time 0: synced during frame 1, so the samples
     # of t = 0 and 0.02 s are dropped and the first published one is t = 0.04 s
     # (a sample may come twice: SET_MESSAGE_INTERVAL re-phases a stream at the current time)
-    assert bridge.imu_dropped_unsynced == 2
+    assert bridge.telemetry.imu_dropped_unsynced == 2
     assert stamps == sorted(stamps)
     assert sorted(set(stamps)) == [k * 20_000_000 for k in range(2, 11)]
     # the other way, as with PX4: the autopilot's own requests (10 Hz of sim time from
@@ -81,18 +81,18 @@ def test_lockstep_clock_sync_with_the_bridge_is_exact_and_repeats():
     assert sorted(set(again)) == sorted(set(stamps))
     # the hover-thrust estimate learns from the sim's ATTITUDE_TARGET and HIGHRES_IMU, and the
     # value a setpoint uses is the same in two runs (samples >= 0.1 s older than its stamp)
-    assert bridge.estimator.accepted > 0
+    assert bridge.hover.estimator.accepted > 0
     for b in (bridge, bridge2):
-        assert b.hover_for_stamp(200_000_000) == pytest.approx(0.5, abs=0.01)
-    assert [bridge.hover_for_stamp(k * 20_000_000) for k in range(11)] == \
-        [bridge2.hover_for_stamp(k * 20_000_000) for k in range(11)]
+        assert b.setpoints.hover_for_stamp(200_000_000) == pytest.approx(0.5, abs=0.01)
+    assert [bridge.setpoints.hover_for_stamp(k * 20_000_000) for k in range(11)] == \
+        [bridge2.setpoints.hover_for_stamp(k * 20_000_000) for k in range(11)]
 
 
 def test_hover_thrust_learnt_in_lockstep_from_a_wrong_seed():
     # The bridge seeded at 0.45 learns the sim's true 0.5 (vehicle.yaml) from the sim
     # autopilot's ATTITUDE_TARGET thrust and HIGHRES_IMU specific force, as on PX4.
     _, bridge, _ = lockstep_with_the_bridge(frames=150, seed=0.45)
-    est = bridge.estimator
+    est = bridge.hover.estimator
     print(f'\nsim autopilot, 3 s in lockstep: hover thrust estimate {est.theta:.4f} (std '
           f'{est.std:.4f}, {est.accepted} samples) from the seed 0.45; true 0.5')
     assert est.theta == pytest.approx(0.5, abs=0.005) and est.accepted >= 140

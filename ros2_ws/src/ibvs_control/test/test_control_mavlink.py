@@ -6,11 +6,14 @@ HEARTBEAT, ATTITUDE_QUATERNION, the IMU's specific force (HIGHRES_IMU as PX4, SC
 milli-g as ArduPilot), ATTITUDE_TARGET (the thrust it applies), EXTENDED_SYS_STATE and
 SYS_STATUS, answers parameter reads, commands (plain disarm refused unless landed; arming
 refused unless armable; ArduPilot refuses HIGHRES_IMU) and TIMESYNC as PX4 does, and records
-every SET_ATTITUDE_TARGET and COMMAND_LONG with its arrival time. Its boot clock is a
-:class:`FrameClock` (whole 20 ms frames, as the lockstep sim's), and the bridge's ROS clock is
-the same clock plus a chosen offset: a TIMESYNC round trip inside one frame measures the offset
-exactly, so mapped times are exact. Expected values come from geometry (a pure yaw rotation,
-the nose-down pitch needed to accelerate forward), from the clocks' offset, and from the
+every SET_ATTITUDE_TARGET and COMMAND_LONG with its arrival time. Nothing waits in real time:
+the bridge and the peer share one test clock (:class:`FrozenClock`) that :func:`spin` moves on
+by 2 ms per step, stepping the peer, then the bridge (loopback datagrams are queued by the time
+sendto returns). The peer's boot clock is a :class:`FrameClock` of it (whole 20 ms frames, as
+the lockstep sim's), and the bridge's ROS clock is that clock plus a chosen offset: a TIMESYNC
+round trip inside one frame measures the offset exactly, so mapped times are exact.
+Expected values come from geometry (a pure yaw rotation, the nose-down pitch needed to
+accelerate forward), from the clocks' offset, and from the
 MAVLink/PX4/ArduPilot documentation (param2 = 6, custom_mode 20, GUID_OPTIONS bit 3, 21196,
 AUTO.LAND = main 4 / sub 6, ArduCopter LAND = 9).
 """
@@ -45,19 +48,35 @@ KEY = bytes(range(32))
 MS = 1_000_000                                  # ns
 OFFSET = 1_700_000_000_123_456_789              # ns, ROS (system time) - autopilot boot time
 FRAME_NS = 20 * MS
+TICK_S = 0.002                                  # s of the test clock per spin() step
 FORCE_MAGIC = 21196
 HOVER_F = np.array([0.0, 0.0, MASS * GRAVITY])     # level: the setpoint is a pure yaw
 
 
-class FrameClock:
-    """An autopilot boot clock in whole 20 ms frames (ns), 1 s at creation, never 0."""
+class FrozenClock:
+    """The test's steady clock (s): it moves only when the test advances it."""
 
-    def __init__(self, start_ns=1_000 * MS):
-        self.start_ns = start_ns
-        self.t0 = time.monotonic_ns()
+    def __init__(self, t=100.0):
+        self.t = t
 
     def __call__(self):
-        return self.start_ns + (time.monotonic_ns() - self.t0) // FRAME_NS * FRAME_NS
+        return self.t
+
+    def advance(self, dt):
+        self.t += dt
+
+
+class FrameClock:
+    """An autopilot boot clock in whole 20 ms frames (ns) of ``clock``, 1 s at creation."""
+
+    def __init__(self, clock, start_ns=1_000 * MS):
+        self.clock = clock
+        self.start_ns = start_ns
+        self.t0 = clock()
+
+    def __call__(self):
+        elapsed_ns = round((self.clock() - self.t0) * 1e9)
+        return self.start_ns + elapsed_ns // FRAME_NS * FRAME_NS
 
 
 def rotmat(q):
@@ -72,13 +91,15 @@ class FakeAutopilot:
 
     It listens on a port the kernel picks (``udpin:127.0.0.1:0``): ``udp_port``. No other
     process can take that port between a check and the bind, as with a port chosen first.
+    No thread: :meth:`step` runs one pass of its loop at the time of ``clock``.
     """
 
-    def __init__(self, kind='px4', armed=True, params=None, key=None, yaw_ned=0.0,
+    def __init__(self, clock, kind='px4', armed=True, params=None, key=None, yaw_ned=0.0,
                  boot_clock=None, timesync_on=True, timesync_requests=False, landed=False,
                  armable=True, specific_force=(0.0, 0.0, -GRAVITY), thrust=0.5):
         self.kind = kind
-        self.boot_clock = boot_clock if boot_clock is not None else FrameClock()
+        self.clock = clock
+        self.boot_clock = boot_clock if boot_clock is not None else FrameClock(clock)
         self.timesync_on = timesync_on              # answer TIMESYNC requests
         self.timesync_requests = timesync_requests  # send our own, as PX4 does
         self.timesync_seen = []    # requests (tc1 == 0) received: msg
@@ -104,14 +125,9 @@ class FakeAutopilot:
         self.intervals = []        # (t_rx, msg id, interval us) of SET_MESSAGE_INTERVAL
         self.sources = set()       # (host, port) the bridge sent from
         self.signed = []           # _signed flag of every message received
-        self.t0 = time.monotonic()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        self._next = {'hb': 0.0, 'att': 0.0, 'ts': 0.0, 'status': 0.0}
 
     def close(self):
-        self._stop.set()
-        self._thread.join(timeout=2.0)
         self.conn.close()
 
     def boot_ms(self):
@@ -120,46 +136,51 @@ class FakeAutopilot:
     def statustext(self, text, severity=2):
         self.conn.mav.statustext_send(severity, text.encode())
 
-    def _run(self):
-        next_hb = next_att = next_ts = next_status = 0.0
+    def step(self):
+        """One pass at the clock's time: what is due is sent, what came in is handled."""
+        now = self.clock()
+        nxt = self._next
         kind = {'px4': mavutil.mavlink.MAV_AUTOPILOT_PX4,
                 'ardupilot': mavutil.mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA}[self.kind]
-        while not self._stop.is_set():
-            now = time.monotonic()
-            alive = self.heartbeats_on and self.conn.clients
-            if now >= next_hb:
-                next_hb = now + 0.1
-                if alive:
-                    base = 1 | (128 if self.armed else 0)
-                    self.conn.mav.heartbeat_send(2, kind, base, self.custom_mode, 4)
-            if now >= next_att and alive:
-                next_att = now + 0.02
-                h = self.yaw_ned / 2.0
-                ms = self.boot_ms()
-                self.attitude_ms.append(ms)
-                self.conn.mav.attitude_quaternion_send(ms, np.cos(h), 0.0, 0.0, np.sin(h),
-                                                       0.1, 0.2, 0.3)
-                self.conn.mav.attitude_target_send(ms, 7, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
-                                                   float(self.thrust))
-                f = self.specific_force
-                if self.kind == 'px4':
-                    self.conn.mav.highres_imu_send(ms * 1000, *map(float, f), 0.0, 0.0, 0.0, 0.0,
-                                                   0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0x3F)
-                else:
-                    mg = np.round(f / GRAVITY * 1000.0).astype(int)
-                    self.conn.mav.scaled_imu_send(ms, *map(int, mg), 0, 0, 0, 0, 0, 0)
-            if now >= next_status and alive:
-                next_status = now + 0.1
-                self.conn.mav.extended_sys_state_send(0, 1 if self.landed else 2)
-                self.conn.mav.sys_status_send(0, 0, (1 << 28) if self.armable else 0, 0, 0,
-                                              -1, -1, 0, 0, 0, 0, 0, 0)
-            if self.timesync_requests and now >= next_ts and self.conn.clients:
-                next_ts = now + 0.2
-                self.conn.mav.timesync_send(0, self.boot_clock())
+        alive = self.heartbeats_on and self.conn.clients
+        if now >= nxt['hb']:
+            nxt['hb'] = now + 0.1
+            if alive:
+                base = 1 | (128 if self.armed else 0)
+                self.conn.mav.heartbeat_send(2, kind, base, self.custom_mode, 4)
+        if now >= nxt['att'] and alive:
+            nxt['att'] = now + 0.02
+            h = self.yaw_ned / 2.0
+            ms = self.boot_ms()
+            self.attitude_ms.append(ms)
+            self.conn.mav.attitude_quaternion_send(ms, np.cos(h), 0.0, 0.0, np.sin(h),
+                                                   0.1, 0.2, 0.3)
+            self.conn.mav.attitude_target_send(ms, 7, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+                                               float(self.thrust))
+            f = self.specific_force
+            if self.kind == 'px4':
+                self.conn.mav.highres_imu_send(ms * 1000, *map(float, f), 0.0, 0.0, 0.0, 0.0,
+                                               0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0x3F)
+            else:
+                mg = np.round(f / GRAVITY * 1000.0).astype(int)
+                self.conn.mav.scaled_imu_send(ms, *map(int, mg), 0, 0, 0, 0, 0, 0)
+        if now >= nxt['status'] and alive:
+            nxt['status'] = now + 0.1
+            self.conn.mav.extended_sys_state_send(0, 1 if self.landed else 2)
+            self.conn.mav.sys_status_send(0, 0, (1 << 28) if self.armable else 0, 0, 0,
+                                          -1, -1, 0, 0, 0, 0, 0, 0)
+        if self.timesync_requests and now >= nxt['ts'] and self.conn.clients:
+            nxt['ts'] = now + 0.2
+            self.conn.mav.timesync_send(0, self.boot_clock())
+        self.receive()
+
+    def receive(self):
+        """Handle every datagram that came in (stamped with the clock's time)."""
+        now = self.clock()
+        while True:
             msg = self.conn.recv_msg()
             if msg is None:
-                select.select([self.conn.port], [], [], 0.001)   # wake on a datagram
-                continue
+                return
             self._handle(msg, now)
 
     def _handle(self, msg, now):
@@ -240,6 +261,26 @@ class FakeAutopilot:
                 and m.param1 == 0.0]
 
 
+class PeerThread:
+    """Runs a FakeAutopilot on the real clock in a thread, for a ROS node's real timers."""
+
+    def __init__(self, peer):
+        self.peer = peer
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop.is_set():
+            self.peer.step()
+            select.select([self.peer.conn.port], [], [], 0.001)   # wake on a datagram
+
+    def close(self):
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.peer.close()
+
+
 def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
                 hold_last_s=5.0, clock=None, ros_clock=None, estimator=False, arm=False, **kw):
     """A bridge on udpout to ``port``; ``ros_clock()`` (ns) is what spin() passes to poll()."""
@@ -258,14 +299,9 @@ def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
     return bridge
 
 
-class FrozenClock:
-    """A monotonic clock that only moves when the test advances it."""
-
-    def __init__(self, t=100.0):
-        self.t = t
-
-    def __call__(self):
-        return self.t
+def seq(bridge):
+    """The bridge's engage sequencer (None before the autopilot is known)."""
+    return bridge.engagement.sequencer
 
 
 def ros_now(bridge):
@@ -274,22 +310,22 @@ def ros_now(bridge):
     return None if clock is None else clock()
 
 
-def spin(bridge, seconds, until=None, force_hz=50.0, force_fn=None, on_tick=None):
-    """Tick the bridge like the node's timers; stop early when until() is true.
+def spin(bridge, seconds, until=None, force_hz=50.0, force_fn=None):
+    """Step the peer, then tick the bridge like the node's timers, every 2 ms of the clock.
 
-    ``force_fn(now)``: called at ``force_hz``, e.g. to feed forces like the controller.
-    ``on_tick()``: called every loop (e.g. to move a FrozenClock on).
+    Stops early when until() is true. ``force_fn(now)``: called at ``force_hz``, e.g. to feed
+    forces like the controller.
     """
-    t_end = time.monotonic() + seconds
+    clock = bridge.clock
+    t_end = clock() + seconds
     next_force = next_hb = 0.0
     samples = []
-    while time.monotonic() < t_end:
-        now = time.monotonic()
+    while clock() < t_end:
+        now = clock()
+        bridge.test_peer.step()
         if force_fn is not None and now >= next_force:
             next_force = now + 1.0 / force_hz
             force_fn(now)
-        if on_tick is not None:
-            on_tick()
         if now >= next_hb:
             next_hb = now + 0.2
             bridge.heartbeat()
@@ -298,7 +334,7 @@ def spin(bridge, seconds, until=None, force_hz=50.0, force_fn=None, on_tick=None
         bridge.stream(ros)
         if until is not None and until():
             return True, samples
-        time.sleep(0.002)
+        clock.advance(TICK_S)
     return False, samples
 
 
@@ -316,14 +352,20 @@ def peer_bridge(request):
     made = []
 
     def factory(peer_kw=None, bridge_kw=None, ros_offset_ns=0, ros_clock=None):
-        """Peer + bridge; the bridge's ROS clock = the peer's boot clock + ros_offset_ns."""
+        """Peer + bridge on one test clock (``bridge_kw['clock']`` or a new one).
+
+        The bridge's ROS clock = the peer's boot clock + ros_offset_ns.
+        """
+        bridge_kw = dict(bridge_kw or {})
+        clock = bridge_kw.setdefault('clock', FrozenClock())
         peer_kw = dict(peer_kw or {})
-        boot = peer_kw.setdefault('boot_clock', FrameClock())
-        peer = FakeAutopilot(**peer_kw)
+        boot = peer_kw.setdefault('boot_clock', FrameClock(clock))
+        peer = FakeAutopilot(clock, **peer_kw)
         if ros_clock is None:
             def ros_clock():
                 return boot() + ros_offset_ns
-        bridge = make_bridge(peer.udp_port, ros_clock=ros_clock, **(bridge_kw or {}))
+        bridge = make_bridge(peer.udp_port, ros_clock=ros_clock, **bridge_kw)
+        bridge.test_peer = peer
         made.append((peer, bridge))
         return peer, bridge
     yield factory
@@ -333,15 +375,9 @@ def peer_bridge(request):
 
 
 def wait_link(bridge):
-    """Spin until the link is up and the clocks are synced (a FrozenClock is moved on)."""
-    clock = bridge._clock
-
-    def on_tick():
-        if isinstance(clock, FrozenClock):
-            clock.t += 0.002
+    """Spin until the link is up and the clocks are synced."""
     ok, _ = spin(bridge, 3.0, until=lambda: bridge.link.link_up
-                 and bridge.sequencer is not None and bridge.time_sync.synced,
-                 on_tick=on_tick)
+                 and seq(bridge) is not None and bridge.time_sync.synced)
     assert ok, f'link never came up or never synced: {bridge.time_sync.status()}'
 
 
@@ -363,11 +399,17 @@ def sent_for(peer, ms):
     return [m for _, m in list(peer.setpoints) if m.time_boot_ms == ms]
 
 
-def wait_peer(until, timeout_s=1.0):
-    """Wait for the peer's receiving thread, without ticking the bridge."""
+def wait_peer(peer, until, timeout_s=1.0):
+    """Let the peer take what the bridge sent, without ticking the bridge or the test clock.
+
+    Loopback datagrams are queued when sendto returns; one still on its way is waited for on
+    the socket, at most ``timeout_s`` (real time) in all.
+    """
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline and not until():
-        time.sleep(0.005)
+    peer.receive()
+    while not until() and time.monotonic() < deadline:
+        select.select([peer.conn.port], [], [], max(0.0, deadline - time.monotonic()))
+        peer.receive()
     return until()
 
 
@@ -387,9 +429,9 @@ def engage(bridge, peer, mode=Mode.WINDOW, arm=False):
     if arm:
         bridge.request_arm()
     bridge.on_supervisor_mode(mode)
-    ok, _ = spin(bridge, 5.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 5.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, f'{bridge.sequencer.state}: {bridge.sequencer.last_reason}'
+    assert ok, f'{seq(bridge).state}: {seq(bridge).last_reason}'
 
 
 # --- setpoint content ----------------------------------------------------------------------------
@@ -439,8 +481,8 @@ def test_thrust_scales_with_configured_and_autopilot_hover(peer_bridge):
 
     peer2, bridge2 = peer_bridge(peer_kw={'params': {'MPC_THR_HOVER': 0.35}},
                                  bridge_kw={'source': 'autopilot'})
-    ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.seed.value is not None)
-    assert ok and bridge2.seed.value == pytest.approx(0.35, abs=1e-6)
+    ok, _ = spin(bridge2, 3.0, until=lambda: bridge2.hover.seed.value is not None)
+    assert ok and bridge2.hover.seed.value == pytest.approx(0.35, abs=1e-6)
     assert 'MPC_THR_HOVER' in bridge2.status().hover_thrust_source
     bridge2.on_heading(3_000_000_000, heading_msg_quat(0.0))
     bridge2.on_force(3_000_000_000, HOVER_F)
@@ -456,17 +498,17 @@ def test_ardupilot_angle_boost_means_the_vertical_component_is_sent(peer_bridge,
         'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.4, 'ATC_ANGLE_BOOST': boost}},
         bridge_kw={'source': 'autopilot'})
     ok, _ = spin(bridge, 3.0, until=lambda: bridge.params.angle_boost is not None
-                 and bridge.sequencer.state == EngageState.STANDBY)
+                 and seq(bridge).state == EngageState.STANDBY)
     assert ok
     tilt = np.radians(20.0)
     F = MASS * GRAVITY * np.array([np.tan(tilt), 0.0, 1.0])    # F_z = m g: level flight
     thrust, _ = None, None
     bridge.on_heading(3_000_000_000, heading_msg_quat(0.0))
     bridge.on_force(3_000_000_000, F)
-    thrust = bridge._current.thrust
+    thrust = bridge.setpoints.current.thrust
     expected = 0.4 if boost else 0.4 / np.cos(tilt)
     assert thrust == pytest.approx(expected, rel=1e-6)
-    assert bridge.shaper.tilt_boost_by_autopilot == bool(boost)
+    assert bridge.setpoints.shaper.tilt_boost_by_autopilot == bool(boost)
 
 
 def test_setpoints_leave_at_the_force_rate_and_repeats_only_fill_gaps(peer_bridge):
@@ -481,15 +523,15 @@ def test_setpoints_leave_at_the_force_rate_and_repeats_only_fill_gaps(peer_bridg
     def counted(now):
         forces.append(now)
         feed(now)
-    n0, t0 = len(peer.setpoints), time.monotonic()
+    n0, t0 = len(peer.setpoints), bridge.clock()
     spin(bridge, 2.0, force_fn=counted, force_hz=50.0)
-    time.sleep(0.05)
-    dt = time.monotonic() - t0
+    peer.receive()
+    dt = bridge.clock() - t0
     with_forces, force_rate = (len(peer.setpoints) - n0) / dt, len(forces) / dt
-    n0, t0 = len(peer.setpoints), time.monotonic()
+    n0, t0 = len(peer.setpoints), bridge.clock()
     spin(bridge, 2.0)
-    time.sleep(0.05)
-    repeats = (len(peer.setpoints) - n0) / (time.monotonic() - t0)
+    peer.receive()
+    repeats = (len(peer.setpoints) - n0) / (bridge.clock() - t0)
     print(f'\nsetpoint rate: {with_forces:.1f} Hz with forces at {force_rate:.1f} Hz, '
           f'{repeats:.1f} Hz without')
     assert force_rate * 0.97 <= with_forces <= force_rate * 1.1
@@ -503,15 +545,17 @@ def test_the_step_slows_to_the_idle_rate_only_while_quiet(peer_bridge):
     peer, bridge = peer_bridge()
     wait_link(bridge)
     spin(bridge, 0.3)
-    assert bridge.sequencer.state == EngageState.STANDBY and bridge.quiet
-    n0, due, t0 = len(peer.setpoints), 0, time.monotonic()
-    while time.monotonic() - t0 < 1.0:
+    assert seq(bridge).state == EngageState.STANDBY and bridge.quiet
+    clock = bridge.clock
+    n0, due, t0 = len(peer.setpoints), 0, clock()
+    while clock() - t0 < 1.0:                      # the node's 30 Hz timer
+        peer.step()
         if bridge.tick_due():
             due += 1
             bridge.poll(ros_now(bridge))
             bridge.stream(ros_now(bridge))
-        time.sleep(1.0 / 30.0)
-    time.sleep(0.05)
+        clock.advance(1.0 / 30.0)
+    peer.receive()
     assert 8 <= due <= 11
     assert 8 <= len(peer.setpoints) - n0 <= 11
     bridge.on_supervisor_mode(Mode.WINDOW)          # engaging: every step again
@@ -543,26 +587,26 @@ def test_px4_offboard_after_streaming_and_arms_only_when_asked(peer_bridge):
     bridge.on_supervisor_mode(Mode.IDLE)
     spin(bridge, 1.3, force_fn=feeder(bridge))
     assert peer.set_mode_commands() == []          # IDLE: stream, do not switch
-    assert bridge.sequencer.state == EngageState.STANDBY
+    assert seq(bridge).state == EngageState.STANDBY
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.WAIT_ARM,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.WAIT_ARM,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 6.0)      # custom mode enabled, OFFBOARD main mode
     assert t_mode - peer.setpoints[0][0] > 0.98    # > 1 s of stream first
     spin(bridge, 1.5, force_fn=feeder(bridge))
     assert peer.arm_commands() == [] and not peer.armed        # never arms by itself
-    assert bridge.sequencer.state == EngageState.WAIT_ARM
+    assert seq(bridge).state == EngageState.WAIT_ARM
     ok, text = bridge.request_arm()
     assert ok and 'arm' in text
-    t_req = time.monotonic()
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    t_req = bridge.clock()
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     [(t_arm, arm)] = peer.arm_commands()           # exactly one ARM
     assert arm.param1 == 1.0 and t_arm >= t_req and peer.armed
-    assert not bridge.sequencer.arm_requested      # used up
+    assert not seq(bridge).arm_requested      # used up
 
 
 def test_arming_waits_until_armable_retries_with_backoff_and_logs_the_reasons(peer_bridge):
@@ -571,17 +615,17 @@ def test_arming_waits_until_armable_retries_with_backoff_and_logs_the_reasons(pe
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.request_arm()
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ARMING,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.ARMING,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason        # PX4: OFFBOARD though not armable yet
+    assert ok, seq(bridge).last_reason        # PX4: OFFBOARD though not armable yet
     spin(bridge, 1.0, force_fn=feeder(bridge))
     assert peer.arm_commands() == []               # not armable: nothing sent
     assert bridge.status().armable is False
     peer.refuse_arm = 3                            # armable, but refused three times
     peer.armable = True
-    ok, _ = spin(bridge, 8.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 8.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     times = [t for t, _ in peer.arm_commands()]
     assert len(times) == 4
     gaps = np.diff(times)                          # 0.3, 0.6, 1.2 s (retry 0.3 s, doubling)
@@ -595,8 +639,8 @@ def test_px4_switch_requested_immediately_still_waits_for_stream(peer_bridge):
     peer, bridge = peer_bridge()
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer is not None
-                 and bridge.sequencer.state == EngageState.ENGAGED, force_fn=feeder(bridge))
+    ok, _ = spin(bridge, 4.0, until=lambda: seq(bridge) is not None
+                 and seq(bridge).state == EngageState.ENGAGED, force_fn=feeder(bridge))
     assert ok
     t_mode, _ = peer.set_mode_commands()[0]
     assert t_mode - peer.setpoints[0][0] > 0.98
@@ -610,7 +654,7 @@ def test_no_engagement_without_an_idle_report_first(peer_bridge):
     bridge.on_supervisor_mode(Mode.WINDOW)
     spin(bridge, 1.5, force_fn=feeder(bridge))
     assert peer.set_mode_commands() == []
-    assert bridge.sequencer.state == EngageState.STANDBY
+    assert seq(bridge).state == EngageState.STANDBY
 
 
 def test_ardupilot_guided_nogps_with_guid_options_bit3(peer_bridge):
@@ -622,14 +666,14 @@ def test_ardupilot_guided_nogps_with_guid_options_bit3(peer_bridge):
     spin(bridge, 1.5, force_fn=feeder(bridge))
     assert peer.setpoints == []                    # ArduPilot: nothing before the switch
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 4.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 20.0)
     assert peer.setpoints[0][0] >= t_mode - 0.01
     assert peer.custom_mode == 20 and peer.armed
-    assert bridge.seed.value == pytest.approx(0.3)
+    assert bridge.hover.seed.value == pytest.approx(0.3)
 
 
 @pytest.mark.parametrize('guid_options', [0, 7, None])
@@ -641,9 +685,9 @@ def test_ardupilot_refuses_without_guid_options_bit3(peer_bridge, guid_options):
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 2.5, until=lambda: bridge.sequencer.state == EngageState.REFUSED)
+    ok, _ = spin(bridge, 2.5, until=lambda: seq(bridge).state == EngageState.REFUSED)
     assert ok
-    assert 'GUID_OPTIONS' in bridge.sequencer.last_reason
+    assert 'GUID_OPTIONS' in seq(bridge).last_reason
     spin(bridge, 0.3)
     assert peer.set_mode_commands() == [] and peer.arm_commands() == []
     assert peer.setpoints == []
@@ -655,14 +699,14 @@ def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     spin(bridge, 1.3, force_fn=feeder(bridge))     # > prestream_s (1.0 s) of stream
-    assert bridge.sequencer.state == EngageState.STANDBY and peer.set_mode_commands() == []
+    assert seq(bridge).state == EngageState.STANDBY and peer.set_mode_commands() == []
     bridge.on_supervisor_mode(Mode.WINDOW)         # no poll between this and the next force
-    assert bridge.sequencer.state == EngageState.SET_MODE
+    assert seq(bridge).state == EngageState.SET_MODE
     stamp = ros_now(bridge) + 7 * MS
     bridge.on_heading(stamp, heading_msg_quat(0.0))
     bridge.on_force(stamp, HOVER_F)
-    ms = bridge.stamp_to_boot_ms(stamp)
-    assert wait_peer(lambda: peer.set_mode_commands() and sent_for(peer, ms))
+    ms = bridge.setpoints.stamp_to_boot_ms(stamp)
+    assert wait_peer(peer, lambda: peer.set_mode_commands() and sent_for(peer, ms))
     t_mode, m = peer.set_mode_commands()[0]
     assert (m.param1, m.param2) == (1.0, 6.0)
     t_sp = min(t for t, sp in list(peer.setpoints) if sp.time_boot_ms == ms)
@@ -674,11 +718,11 @@ def test_mode_change_to_window_sends_do_set_mode_at_once(peer_bridge):
 def test_silent_controller_px4_stops_streaming_after_hold_last(peer_bridge):
     peer, bridge = peer_bridge(bridge_kw={'hold_last_s': 0.25})
     engage(bridge, peer)
-    t_last = time.monotonic()
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD)
-    t_held = time.monotonic()
-    assert ok, bridge.sequencer.last_reason
-    assert 'offboard-loss failsafe' in bridge.sequencer.last_reason
+    t_last = bridge.clock()
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD)
+    t_held = bridge.clock()
+    assert ok, seq(bridge).last_reason
+    assert 'offboard-loss failsafe' in seq(bridge).last_reason
     assert 0.2 <= t_held - t_last <= 0.45          # hold_last_s of vehicle (ROS) time
     n = len(peer.setpoints)
     spin(bridge, 1.0)
@@ -710,13 +754,13 @@ def test_forces_of_old_images_are_not_flown_and_hand_the_vehicle_back(peer_bridg
     assert bridge.status().stale_setpoints == 0
     flown = last_setpoint(peer)
     assert flown.thrust > 0.5                      # the tilted force, 0.1 s old: flown
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD,
                  force_fn=behind(0.3))
-    assert ok, bridge.sequencer.last_reason
-    assert 'offboard-loss failsafe' in bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
+    assert 'offboard-loss failsafe' in seq(bridge).last_reason
     st = bridge.status()
     assert st.stale_setpoints > 5 and st.rejected_setpoints == st.stale_setpoints
-    assert 'ms old' in bridge.shaper.last_error
+    assert 'ms old' in bridge.setpoints.shaper.last_error
 
 
 def test_silent_controller_ardupilot_commands_land(peer_bridge):
@@ -725,16 +769,16 @@ def test_silent_controller_ardupilot_commands_land(peer_bridge):
         bridge_kw={'source': 'autopilot', 'hold_last_s': 0.25})
     engage(bridge, peer)
     ok, _ = spin(bridge, 2.0, until=lambda: peer.custom_mode == AP_LAND)
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     _, m = peer.set_mode_commands()[-1]
     assert (m.param1, m.param2) == (1.0, 9.0)      # ArduCopter LAND
     ok, _ = spin(bridge, 1.0, until=lambda: not bridge.status().streaming)
-    assert ok and bridge.sequencer.state == EngageState.LANDING
+    assert ok and seq(bridge).state == EngageState.LANDING
     n = len(peer.setpoints)
     spin(bridge, 0.5)
     assert len(peer.setpoints) <= n + 1
     peer.landed = True                             # it lands: disarm (ArduPilot would itself)
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.DONE)
     assert ok and not peer.armed
     assert all(int(m.param2) != FORCE_MAGIC for _, m in peer.disarm_commands())
 
@@ -773,10 +817,10 @@ def test_a_mode_taken_by_the_pilot_stops_the_stream_at_once_for_good(peer_bridge
     engage(bridge, peer)
     taken = PX4_POSCTL if kind == 'px4' else AP_GUIDED    # GUIDED obeys attitude targets too
     peer.custom_mode = taken
-    ok, _ = spin(bridge, 1.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+    ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.HELD,
                  force_fn=feeder(bridge))
     assert ok
-    t_held = time.monotonic()
+    t_held = bridge.clock()
     n_modes = len(peer.set_mode_commands())
     spin(bridge, 1.5, force_fn=feeder(bridge))      # the controller goes on: nothing flies
     assert max(t for t, _ in peer.setpoints) <= t_held + 0.05
@@ -784,7 +828,7 @@ def test_a_mode_taken_by_the_pilot_stops_the_stream_at_once_for_good(peer_bridge
     # only a new start (supervisor IDLE, then flying again) engages again
     bridge.on_supervisor_mode(Mode.IDLE)
     bridge.on_supervisor_mode(Mode.WINDOW)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.ENGAGED,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.ENGAGED,
                  force_fn=feeder(bridge))
     assert ok
 
@@ -799,8 +843,8 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     assert own_port in {port for _, port in peer.sources}
     peer.heartbeats_on = False
     ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up, force_fn=feeder(bridge))
-    t_lost = time.monotonic()
-    assert ok and bridge.sequencer.state == EngageState.NO_LINK
+    t_lost = bridge.clock()
+    assert ok and seq(bridge).state == EngageState.NO_LINK
     spin(bridge, 0.7, force_fn=feeder(bridge))
     assert max(t for t, _ in peer.setpoints) <= t_lost + 0.05     # nothing while lost
     assert bridge.link.counters.link_losses == 1
@@ -808,9 +852,9 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     assert bridge.link._conn.port.getsockname()[1] == own_port   # ... one source address
     peer.custom_mode = PX4_POSCTL                  # the autopilot's failsafe took over
     peer.heartbeats_on = True
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.sequencer.state == EngageState.HELD,
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     spin(bridge, 1.0, force_fn=feeder(bridge))
     assert len(peer.set_mode_commands()) == n_modes
     assert bridge.link.counters.reconnects == 1
@@ -829,7 +873,7 @@ def test_link_back_still_offboard_applies_the_input_loss_action(peer_bridge):
     assert ok
     peer.heartbeats_on = True
     ok, _ = spin(bridge, 3.0, until=lambda: peer.custom_mode == AP_LAND)
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
 
 
 def test_link_lost_in_the_shutdown_ends_disarmed(peer_bridge):
@@ -841,8 +885,8 @@ def test_link_lost_in_the_shutdown_ends_disarmed(peer_bridge):
     assert ok
     peer.landed = True                             # meanwhile on the ground, still armed
     peer.heartbeats_on = True
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.DONE)
-    assert ok, bridge.sequencer.last_reason
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.DONE)
+    assert ok, seq(bridge).last_reason
     assert not peer.armed and int(peer.disarm_commands()[-1][1].param2) == 0
 
 
@@ -852,10 +896,10 @@ def test_shutdown_ramps_thrust_then_forces_disarm_only_under_the_touchdown_rule(
     peer, bridge = peer_bridge(bridge_kw={'shutdown_ramp_s': 0.6})
     engage(bridge, peer, mode=Mode.LANDING)
     bridge.on_supervisor_mode(Mode.SHUTDOWN)
-    t_sd = time.monotonic()
-    ok, _ = spin(bridge, 5.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
+    t_sd = bridge.clock()
+    ok, _ = spin(bridge, 5.0, until=lambda: seq(bridge).state == EngageState.DONE,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     assert not peer.armed
     ramp = [(t, m.thrust) for t, m in peer.setpoints if t >= t_sd]
     thrusts = np.array([th for _, th in ramp])
@@ -870,7 +914,7 @@ def test_shutdown_ramps_thrust_then_forces_disarm_only_under_the_touchdown_rule(
     # forced >= disarm_force_after_s (0.3 s) after the first refusal, never with a plain one
     assert disarms[-1][0] - disarms[0][0] >= 0.3 - 0.02
     assert np.min(np.diff([t for t, _ in disarms])) >= 0.25
-    assert bridge.sequencer.disarm_forced
+    assert seq(bridge).disarm_forced
 
 
 def test_shutdown_in_the_air_is_never_forced_and_lands(peer_bridge):
@@ -881,9 +925,9 @@ def test_shutdown_in_the_air_is_never_forced_and_lands(peer_bridge):
     peer.specific_force = np.array([0.0, 0.0, -0.1 * GRAVITY])
     ok, _ = spin(bridge, 3.0, until=lambda: peer.custom_mode == PX4_AUTO_LAND,
                  force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.last_reason
+    assert ok, seq(bridge).last_reason
     assert all(int(m.param2) != FORCE_MAGIC for _, m in peer.disarm_commands())
-    assert peer.armed and bridge.sequencer.state == EngageState.LANDING
+    assert peer.armed and seq(bridge).state == EngageState.LANDING
 
 
 def test_landed_state_gives_a_plain_disarm(peer_bridge):
@@ -891,7 +935,7 @@ def test_landed_state_gives_a_plain_disarm(peer_bridge):
     engage(bridge, peer, mode=Mode.LANDING)
     peer.landed = True
     bridge.on_supervisor_mode(Mode.SHUTDOWN)
-    ok, _ = spin(bridge, 3.0, until=lambda: bridge.sequencer.state == EngageState.DONE,
+    ok, _ = spin(bridge, 3.0, until=lambda: seq(bridge).state == EngageState.DONE,
                  force_fn=feeder(bridge))
     assert ok
     assert [int(m.param2) for _, m in peer.disarm_commands()] == [0]
@@ -905,8 +949,8 @@ def test_streams_requested_at_their_rates_and_again_after_a_link_loss(peer_bridg
         if kind == 'ardupilot' else {}
     peer, bridge = peer_bridge(peer_kw={'kind': kind, 'params': params},
                                bridge_kw={'source': 'autopilot' if params else 'config'})
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams is not None
-                 and bridge.streams.complete)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams is not None
+                 and bridge.rates.streams.complete)
     assert ok
     asked = {i: us for _, i, us in peer.intervals}
     imu = 105 if kind == 'px4' else 26
@@ -955,21 +999,22 @@ def test_hover_thrust_estimated_from_the_vehicles_response(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'params': {'MPC_THR_HOVER': 0.5}, 'thrust': 0.4},
                                bridge_kw={'source': 'autopilot', 'estimator': True})
     wait_link(bridge)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.estimator.accepted >= 50
-                 and abs(bridge.hover_now() - 0.4) < 0.005)
-    assert ok, (bridge.hover_now(), bridge.estimator.accepted, bridge.estimator.rejected)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.hover.estimator.accepted >= 50
+                 and abs(bridge.hover.now() - 0.4) < 0.005)
+    est = bridge.hover.estimator
+    assert ok, (bridge.hover.now(), est.accepted, est.rejected)
     stamp = ros_now(bridge)
     bridge.on_heading(stamp, heading_msg_quat(0.0))
     bridge.on_force(stamp, HOVER_F)
-    assert bridge._current.thrust == pytest.approx(0.4, abs=0.006)
+    assert bridge.setpoints.current.thrust == pytest.approx(0.4, abs=0.006)
     st = bridge.status()
     assert st.hover_thrust_seed == pytest.approx(0.5) and 'estimate' in st.hover_thrust_source
     # on the ground (landed) nothing is learnt
     peer.landed = True
     spin(bridge, 0.3)
-    n = bridge.estimator.accepted
+    n = bridge.hover.estimator.accepted
     spin(bridge, 0.3)
-    assert bridge.estimator.accepted == n
+    assert bridge.hover.estimator.accepted == n
 
 
 # --- signing ------------------------------------------------------------------------------------
@@ -990,7 +1035,7 @@ def test_signing_unsigned_or_wrong_key_rejected(peer_bridge):
     for b in (bridge, bridge2):
         assert not b.link.link_up
         assert b.link.counters.received == 0 and b.link.counters.bad_data > 0
-        assert b.sequencer is None
+        assert b.engagement.sequencer is None
 
 
 # --- clock sync and IMU stamps ----------------------------------------------------------------
@@ -1000,7 +1045,7 @@ def test_imu_held_until_synced_then_stamped_boot_time_plus_offset(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'yaw_ned': np.pi / 2, 'timesync_on': False},
                                ros_offset_ns=OFFSET)
     ok, samples = spin(bridge, 2.0, until=lambda: bridge.link.link_up
-                       and bridge.imu_dropped_unsynced >= 10)
+                       and bridge.telemetry.imu_dropped_unsynced >= 10)
     assert ok and samples == []
     assert peer.timesync_seen, 'the bridge asks'
     assert all(m.ts1 > OFFSET for m in peer.timesync_seen)       # ts1 = its ROS time
@@ -1042,7 +1087,7 @@ def test_telemetry_slows_at_rest_and_is_full_again_before_anything_engages(peer_
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     ok, _ = spin(bridge, 4.0, until=lambda: _asked(peer, 83)[-1:] == [1e5]
-                 and bridge.streams.complete)
+                 and bridge.rates.streams.complete)
     assert ok, peer.intervals
     assert _asked(peer, 31) == [1e4, 1e5] and _asked(peer, 105) == [1e4, 1e5]
     assert _asked(peer, 83) == [2e4, 1e5] and _asked(peer, 245) == [2e5]
@@ -1050,9 +1095,9 @@ def test_telemetry_slows_at_rest_and_is_full_again_before_anything_engages(peer_
     n, commands = len(peer.intervals), len(peer.commands)
     bridge.on_supervisor_mode(Mode.WINDOW)
     assert not bridge.status().telemetry_slowed
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams.complete
                  and peer.set_mode_commands(), force_fn=feeder(bridge))
-    assert ok, bridge.sequencer.state
+    assert ok, seq(bridge).state
     assert _asked(peer, 31, n) == [1e4] and _asked(peer, 105, n) == [1e4] \
         and _asked(peer, 83, n) == [2e4]
     first_full = min(t for t, i, _ in peer.intervals[n:] if i == 31)
@@ -1068,7 +1113,7 @@ def test_telemetry_full_again_on_an_arm_request_or_an_armed_vehicle(peer_bridge,
     wait_link(bridge)
     bridge.on_supervisor_mode(Mode.IDLE)
     ok, _ = spin(bridge, 4.0, until=lambda: bridge.status().telemetry_slowed
-                 and bridge.streams.complete)
+                 and bridge.rates.streams.complete)
     assert ok
     n = len(peer.intervals)
     if how == 'arm request':
@@ -1081,7 +1126,7 @@ def test_telemetry_full_again_on_an_arm_request_or_an_armed_vehicle(peer_bridge,
     feed = (lambda now: bridge.on_supervisor_status(int(now * 1e9), int(Mode.IDLE))) \
         if how == 'frames' else None
     ok, _ = spin(bridge, 2.0, until=lambda: _asked(peer, 31, n) == [1e4]
-                 and bridge.streams.complete, force_fn=feed)
+                 and bridge.rates.streams.complete, force_fn=feed)
     assert ok, peer.intervals[n:]
     assert not bridge.status().telemetry_slowed
     spin(bridge, 0.8, force_fn=feed)            # longer than the delay: stays full
@@ -1103,16 +1148,17 @@ def test_telemetry_never_slows_when_off_or_armed(peer_bridge):
 
 
 def test_autopilot_reboot_holds_the_imu_until_synced_again(peer_bridge):
-    frames = FrameClock(start_ns=100_000 * MS)     # booted 100 s ago
+    clock = FrozenClock()
+    frames = FrameClock(clock, start_ns=100_000 * MS)     # booted 100 s ago
     boot_epoch = [0]                                # ns of `frames` at the last boot
 
     def boot():
         return frames() - boot_epoch[0]
-    peer, bridge = peer_bridge(peer_kw={'boot_clock': boot},
+    peer, bridge = peer_bridge(peer_kw={'boot_clock': boot}, bridge_kw={'clock': clock},
                                ros_clock=lambda: frames() + OFFSET)
     wait_link(bridge)
     assert bridge.time_sync.offset_ns == OFFSET
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams.complete)
     assert ok
     requested = len(peer.intervals)
     assert requested > 0
@@ -1134,12 +1180,13 @@ def test_a_time_jump_resyncs_but_is_no_reboot(peer_bridge):
     # The companion's system clock is stepped by 3 s (chrony's makestep) while the autopilot
     # runs on: the clock sync re-initialises from the streak of outliers, and nothing
     # per-boot is redone (streams asked again, landed state and ground contact forgotten).
-    frames = FrameClock(start_ns=100_000 * MS)
+    clock = FrozenClock()
+    frames = FrameClock(clock, start_ns=100_000 * MS)
     step = [0]
-    peer, bridge = peer_bridge(peer_kw={'boot_clock': frames},
+    peer, bridge = peer_bridge(peer_kw={'boot_clock': frames}, bridge_kw={'clock': clock},
                                ros_clock=lambda: frames() + OFFSET + step[0])
     wait_link(bridge)
-    ok, _ = spin(bridge, 4.0, until=lambda: bridge.streams.complete)
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.streams.complete)
     assert ok
     requested = len(peer.intervals)
     assert requested > 0
@@ -1170,17 +1217,17 @@ def test_no_timesync_while_the_ros_time_is_zero(peer_bridge):
     # answer tc1 = 0 (a request!) would be meaningless.
     peer, bridge = peer_bridge(peer_kw={'timesync_requests': True}, ros_clock=lambda: 0)
     ok, samples = spin(bridge, 1.5, until=lambda: bridge.link.link_up
-                       and bridge.imu_dropped_unsynced > 20)
+                       and bridge.telemetry.imu_dropped_unsynced > 20)
     spin(bridge, 0.3)
     assert bridge.link.link_up
     assert peer.timesync_seen == [] and peer.timesync_answers == []
-    assert samples == [] and bridge.imu_dropped_unsynced > 0
+    assert samples == [] and bridge.telemetry.imu_dropped_unsynced > 0
     assert bridge.status().counters['timesync_answered'] == 0
 
 
 def test_setpoint_time_boot_ms_is_the_force_stamp_mapped_at_each_send(peer_bridge):
     peer, bridge = peer_bridge(peer_kw={'timesync_on': False}, ros_offset_ns=OFFSET)
-    ok, _ = spin(bridge, 2.0, until=lambda: bridge.link.link_up and bridge.sequencer)
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.link.link_up and seq(bridge))
     assert ok
     bridge.on_heading(OFFSET + 1_234 * MS, heading_msg_quat(0.0))
     bridge.on_force(OFFSET + 1_234 * MS, HOVER_F)
@@ -1192,7 +1239,7 @@ def test_setpoint_time_boot_ms_is_the_force_stamp_mapped_at_each_send(peer_bridg
     # The next frame's stamp 1254.5 ms after boot on the ROS clock: rounded to 1255 (halves up).
     bridge.on_heading(OFFSET + 1_254_500_000, heading_msg_quat(0.0))
     bridge.on_force(OFFSET + 1_254_500_000, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1255))
+    assert wait_peer(peer, lambda: sent_for(peer, 1255))
     assert sent_for(peer, 1254) == []
 
 
@@ -1217,10 +1264,10 @@ def test_heading_before_force_sent_at_once_with_the_heading_of_the_same_stamp(pe
     bridge.on_heading(S0, heading_msg_quat(0.1))
     bridge.on_heading(S1, heading_msg_quat(0.2))   # a newer heading is already there ...
     bridge.on_force(S0, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1000))  # ... at once, no timer ...
+    assert wait_peer(peer, lambda: sent_for(peer, 1000))  # ... at once, no timer ...
     assert same_rotation(sent_for(peer, 1000)[0].q, level_q(0.1))   # ... with its own stamp's
     bridge.on_force(S1, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1020))
+    assert wait_peer(peer, lambda: sent_for(peer, 1020))
     assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.2))
     assert bridge.status().counters['headings_missing'] == 0
 
@@ -1232,7 +1279,7 @@ def test_force_without_its_heading_flies_at_once_with_the_latest_and_is_counted(
     bridge.on_heading(S0, heading_msg_quat(0.3))
     bridge.on_force(S0, HOVER_F)
     bridge.on_force(S1, HOVER_F)                   # its heading is not there: no waiting
-    assert wait_peer(lambda: sent_for(peer, 1020))
+    assert wait_peer(peer, lambda: sent_for(peer, 1020))
     assert same_rotation(sent_for(peer, 1020)[0].q, level_q(0.3))   # the latest heading
     assert bridge.status().counters['headings_missing'] == 1
     assert 'without the heading' in bridge.pop_heading_warning()
@@ -1240,15 +1287,15 @@ def test_force_without_its_heading_flies_at_once_with_the_latest_and_is_counted(
     # the late heading of S1 never changes what was sent for S1; it is the latest for S2
     assert bridge.on_heading(S1, heading_msg_quat(0.5)) == ''
     for _ in range(5):
-        clock.t += 0.04
+        clock.advance(0.04)
         bridge.stream()
-    assert wait_peer(lambda: len(sent_for(peer, 1020)) >= 6)
+    assert wait_peer(peer, lambda: len(sent_for(peer, 1020)) >= 6)
     first = sent_for(peer, 1020)[0]
     for m in sent_for(peer, 1020):                 # every repeat is what was sent
         assert np.allclose(m.q, first.q, atol=0.0) and m.thrust == first.thrust
     assert bridge.status().counters['late_headings'] == 1
     bridge.on_force(S2, HOVER_F)
-    assert wait_peer(lambda: sent_for(peer, 1040))
+    assert wait_peer(peer, lambda: sent_for(peer, 1040))
     assert same_rotation(sent_for(peer, 1040)[0].q, level_q(0.5))
 
 
@@ -1257,11 +1304,11 @@ def test_stream_held_sends_nothing_then_fallback_carries_no_newer_time(peer_brid
     # hover before any force) carries time_boot_ms 0, never the autopilot's current time,
     # which a lockstep sim would take for the answer to its newest frame.
     peer, bridge = peer_bridge()
-    bridge.stream_enabled = False
+    bridge.setpoints.enabled = False
     wait_link(bridge)
     spin(bridge, 0.3)
     assert peer.setpoints == []
-    bridge.stream_enabled = True
+    bridge.setpoints.enabled = True
     ok, _ = spin(bridge, 1.0, until=lambda: len(peer.setpoints) >= 3)
     assert ok
     assert {m.time_boot_ms for _, m in peer.setpoints} == {0}
@@ -1277,14 +1324,14 @@ def test_content_follows_the_status_of_the_force_stamp_not_the_latest_mode(peer_
     assert bridge.on_supervisor_status(1_040_000_000, 99) != ''      # refused
     bridge.on_supervisor_mode(int(Mode.SHUTDOWN))
     bridge.on_force(1_000_000_000, 1.2 * HOVER_F)
-    assert bridge.content_mode() == Mode.LANDING
-    assert bridge.setpoint_source == SetpointSource.IBVS
+    assert bridge.setpoints.content_mode() == Mode.LANDING
+    assert bridge.setpoints.source == SetpointSource.IBVS
     bridge.on_force(1_020_000_000, 1.2 * HOVER_F)
-    assert bridge.content_mode() == Mode.SHUTDOWN
-    assert bridge.setpoint_source == SetpointSource.SHUTDOWN_RAMP
+    assert bridge.setpoints.content_mode() == Mode.SHUTDOWN
+    assert bridge.setpoints.source == SetpointSource.SHUTDOWN_RAMP
     # a force without a status of its own: the latest ibvs/mode
     bridge.on_force(1_060_000_000, HOVER_F)
-    assert bridge.content_mode() == Mode.SHUTDOWN
+    assert bridge.setpoints.content_mode() == Mode.SHUTDOWN
 
 
 def test_bad_force_is_never_sent_held_then_level_hover_outside_an_engagement(peer_bridge):
@@ -1300,11 +1347,11 @@ def test_bad_force_is_never_sent_held_then_level_hover_outside_an_engagement(pee
                 np.array([0.0, 0.0, -5.0])):
         assert bridge.on_force(stamp + FRAME_NS, bad) != ''
     spin(bridge, 0.1)
-    assert bridge.setpoint_source == SetpointSource.HOLD_LAST
+    assert bridge.setpoints.source == SetpointSource.HOLD_LAST
     assert same_rotation(last_setpoint(peer).q, good_q)
-    assert last_setpoint(peer).time_boot_ms == bridge.stamp_to_boot_ms(stamp + FRAME_NS)
+    assert last_setpoint(peer).time_boot_ms == bridge.setpoints.stamp_to_boot_ms(stamp + FRAME_NS)
     spin(bridge, 0.4)
-    assert bridge.setpoint_source == SetpointSource.LEVEL_HOVER     # standby: not engaged
+    assert bridge.setpoints.source == SetpointSource.LEVEL_HOVER     # standby: not engaged
     m = last_setpoint(peer)
     assert same_rotation(m.q, [np.cos(0.25), 0.0, 0.0, np.sin(0.25)])   # level, yaw 0.5
     assert m.thrust == pytest.approx(0.5)
@@ -1331,11 +1378,11 @@ def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params
     events = [text for _, text in bridge.pop_events()]
     if says:
         assert sum(says in t for t in events) == 1, events
-    assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight
+    assert seq(bridge).state == EngageState.STANDBY       # it never blocks preflight
 
 
 def test_param_value_decodes_px4_bytewise_integers_and_keeps_casts():
-    from ibvs_control.mavlink.bridge import param_value
+    from ibvs_control.mavlink.params import param_value
     as_float = struct.unpack('<f', struct.pack('<i', 4))[0]        # PX4's INT32 4 on the wire
     assert as_float != 4.0 and as_float > 0.0                     # a denormal, not 4.0
     assert param_value(as_float, 6, bytewise=True) == 4.0
@@ -1367,7 +1414,7 @@ def test_px4_offboard_loss_failsafe_is_read_and_reported(peer_bridge, params, ex
         assert sum(says in t for t in events) == 1, events
     else:
         assert not [t for t in events if 'offboard loss' in t or 'dead-bridge' in t], events
-    assert bridge.sequencer.state == EngageState.STANDBY       # it never blocks preflight
+    assert seq(bridge).state == EngageState.STANDBY       # it never blocks preflight
 
 
 # --- MavlinkReader: input handled as it arrives, no poll timer -------------------------------
@@ -1412,7 +1459,6 @@ def test_reader_wakes_on_input_within_milliseconds_and_holds_the_lock():
             sent.append(time.monotonic())
             _send_heartbeat(peer)
             assert _wait_until(lambda: len(handled) == len(sent))
-            time.sleep(0.05)
         delays = [d for d, _ in handled]
         # woken by the socket, not by the 0.5 s wait: well under one camera period
         assert max(delays) < 0.02, delays
@@ -1537,8 +1583,11 @@ def test_a_second_udp_sender_is_warned_about_once_and_counted():
         assert f'second address 127.0.0.1:{tool_port}' in events[0][1]
         assert link.counters.peers == 2 and link.target_system == 1
         # all silent, then the autopilot again from a new port (ArduPilot restarted: it sends
-        # from an ephemeral port): only noted
-        time.sleep(1.1)
+        # from an ephemeral port): only noted. Silent for 1.1 s of pymavlink's clock (wall
+        # time): every sender's last-heard time set back by that much
+        alive = link._conn.clients_last_alive
+        for address in alive:
+            alive[address] -= 1.1
         restarted = mavutil.mavlink_connection(f'udpout:127.0.0.1:{port}', source_system=1,
                                                source_component=1)
         _send_heartbeat(restarted)
@@ -1593,14 +1642,14 @@ def test_reader_poll_reads_the_ros_clock_only_for_messages_that_need_it():
         request = enc.timesync_encode(0, 123_000)
         feed(attitude, request)
         bridge.poll(supervise=False, ros_clock=ros_clock)
-        assert reads == [0] and bridge._ros_ns == 5_000_000_001
+        assert reads == [0] and bridge.ros.ns == 5_000_000_001
         # the periodic poll supervises: it reads the clock once even with telemetry alone
         feed(attitude)
         bridge.poll(supervise=True, ros_clock=ros_clock)
-        assert reads == [0, 1] and bridge._ros_ns == 5_000_000_002
+        assert reads == [0, 1] and bridge.ros.ns == 5_000_000_002
         # ros_ns given (no ros_clock): taken as before
         feed(attitude)
         bridge.poll(7_000_000_000, supervise=False)
-        assert bridge._ros_ns == 7_000_000_000 and len(reads) == 2
+        assert bridge.ros.ns == 7_000_000_000 and len(reads) == 2
     finally:
         bridge.close()

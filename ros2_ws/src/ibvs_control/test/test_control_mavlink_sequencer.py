@@ -9,7 +9,7 @@ from dataclasses import replace
 import pytest
 
 from ibvs_control.mavlink.sequencer import (
-    Autopilot, EngageSequencer, EngageState, MavCmd, MavResult, SequencerConfig,
+    Autopilot, engage_sequencer, EngageState, MavCmd, MavResult, SequencerConfig,
     SequencerInputs)
 from ibvs_common.core.modes import Mode
 
@@ -21,8 +21,8 @@ class Rig:
     """A sequencer and the inputs of one step, stepped at 10 ms."""
 
     def __init__(self, autopilot=Autopilot.PX4, **cfg):
-        self.seq = EngageSequencer(SequencerConfig(autopilot=autopilot, prestream_s=1.0,
-                                                   command_retry_s=1.0, **cfg))
+        self.seq = engage_sequencer(autopilot, SequencerConfig(prestream_s=1.0,
+                                                               command_retry_s=1.0, **cfg))
         self.inp = SequencerInputs(t=0.0, link_up=True, supervisor_mode=Mode.IDLE,
                                    idle_reports=1, armed=True,
                                    custom_mode=POSCTL if autopilot == Autopilot.PX4 else 0,
@@ -56,7 +56,7 @@ class Rig:
     def engage(self):
         self.step(supervisor_mode=Mode.WINDOW)
         assert self.seq.state == EngageState.SET_MODE
-        self.step(custom_mode=OFFBOARD if self.seq.config.autopilot == Autopilot.PX4
+        self.step(custom_mode=OFFBOARD if self.seq.strategy.autopilot == Autopilot.PX4
                   else GUIDED_NOGPS)
         assert self.seq.state == EngageState.ENGAGED
 

@@ -33,7 +33,7 @@ from ibvs_control.mode_supervisor_node import ModeSupervisorNode
 from ibvs_common.node_common import (
     COMMAND_QOS, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS, supervisor_status_msg)
 
-from test_control_mavlink import FakeAutopilot, same_rotation  # noqa: E402
+from test_control_mavlink import FakeAutopilot, PeerThread, same_rotation  # noqa: E402
 
 VEHICLE = load_vehicle()
 WORLD = load_world()
@@ -622,8 +622,9 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
     context, executor, nodes = ctx
     # Clocks stand still: the autopilot's boot time 1.5 s, our ROS time (/clock) 4.0 s, so the
     # TIMESYNC offset is exactly 2.5 s (rtt 0) and the mapped times are exact.
-    peer = FakeAutopilot(yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000,
+    peer = FakeAutopilot(time.monotonic, yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000,
                          armed=False, landed=True)
+    runner = PeerThread(peer)
     try:
         bridge = MavlinkBridgeNode(
             node_name=f'bridge_{TAG}', context=context, parameter_overrides=[
@@ -696,4 +697,4 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         assert int(keys['timesync_accepted']) >= 5
         assert not peer.armed
     finally:
-        peer.close()
+        runner.close()

@@ -1,40 +1,10 @@
 """Hover thrust: the autopilot's parameter as a seed, then estimated online (ROS-free, no I/O).
 
-The bridge normalises the collective thrust as ``thrust = |F| / (m g) * hover_thrust``, so
-``hover_thrust`` (the normalised thrust that holds the vehicle) scales every setpoint. Its seed
-is the autopilot's own parameter, MPC_THR_HOVER (PX4) or MOT_THST_HOVER (ArduPilot), else the
-configured value (:class:`HoverThrustSeed`). Neither is right on a real vehicle: PX4 keeps
-MPC_THR_HOVER as its estimator's starting value only (MPC_USE_HTE = 1), ArduPilot does not learn
-MOT_THST_HOVER in GUIDED_NOGPS. So :class:`HoverThrustEstimator` estimates it from the vehicle's
-own response, as PX4's mc_hover_thrust_estimator does (docs/mavlink.md "Hover thrust").
-
-Model (assumptions)
-    The rotors' collective thrust is along body -z and proportional to the normalised thrust
-    the autopilot applies (linear thrust model, as the autopilots' thrust linearisation and the
-    bridge's own normalisation assume): T = m g u / theta, with theta the hover thrust. The
-    accelerometer measures the specific force f = (thrust + aerodynamic + contact forces) / m,
-    so along body z, with no contact and drag along body z neglected (rotor drag is mainly
-    horizontal):  a = -f_z = g u b / theta.  u is the thrust the autopilot reports it applies
-    (ATTITUDE_TARGET, any mode); b = 1 / cos(tilt) when the autopilot boosts its thrust in a
-    tilt itself (ArduPilot ATC_ANGLE_BOOST = 1: ATTITUDE_TARGET reports the thrust before the
-    boost), else 1 (PX4 applies the thrust as sent). Motor lag and vibration are noise to
-    average: the estimate moves slowly.
-Filter
-    One-state extended Kalman filter on theta (PX4's ZeroOrderHoverThrustEkf in the body axis):
-    prediction P += q dt (process noise ``process_noise`` per sqrt(s), PX4's HTE_HT_NOISE);
-    measurement h = g u b / theta, H = -g u b / theta^2, innovation y = a - h, S = H^2 P + R
-    with R = ``accel_noise``^2; a sample with y^2 > gate^2 S is rejected (counted); otherwise
-    K = P H / S, theta += K y, P -= K H P. Used only airborne (armed, landed state "in air" or
-    "take-off" or not reported), with u in [0.1, 0.9] and within 0.6 - 1.6 x the estimate
-    (ground contact breaks the model: the ground carries what the thrust does not, and a land
-    detector still says "in the air" for a while after a touchdown at low thrust), |f| below
-    3 g, and a thrust sample at most ``max_pairing_s`` older than the IMU sample. The estimate
-    is bounded to seed * (1 -/+ ``max_deviation``) within [0.05, 0.95].
-Determinism
-    :meth:`HoverThrustEstimator.value_at` gives the estimate of the samples at least ``margin_s``
-    older than a setpoint's stamp (autopilot boot time): in a lockstep sim those samples have
-    all arrived when the setpoint is computed, so the setpoint's thrust does not depend on when
-    the bridge happened to read them.
+Every setpoint's thrust is ``|F| / (m g) * hover_thrust``. :class:`HoverThrustSeed` takes the
+autopilot's MPC_THR_HOVER / MOT_THST_HOVER (else the configured value);
+:class:`HoverThrustEstimator` estimates it from the IMU against the applied thrust (a
+one-state EKF, as PX4's mc_hover_thrust_estimator); :class:`HoverThrust` is the value in use.
+Model, filter, gates and determinism: docs/mavlink.md, "Hover thrust".
 """
 from __future__ import annotations
 
@@ -43,6 +13,7 @@ from dataclasses import dataclass
 import math
 
 from ibvs_common.core.frames import GRAVITY
+from ibvs_common.core.params import param
 from ibvs_common.core.stamps import NS_PER_S
 
 HOVER_THRUST_RANGE = (0.05, 0.95)       # a hover thrust outside this is refused
@@ -83,12 +54,14 @@ class HoverThrustSeed:
 class EstimatorConfig:
     """Settings of :class:`HoverThrustEstimator` (node parameters ``hover_estimator_*``)."""
 
-    enabled: bool = True            # False: the seed is used as it is
-    process_noise: float = 0.0036   # hover thrust random walk, 1/sqrt(s) (PX4 HTE_HT_NOISE)
-    accel_noise: float = 2.0        # m/s^2, std of one accelerometer sample (vibration)
+    enabled: bool = param(True, 'estimate the hover thrust online (IMU vs applied thrust)')
+    process_noise: float = param(0.0036, '1/sqrt(s), hover thrust random walk', 0.0, None)
+    #                                (PX4 HTE_HT_NOISE)
+    accel_noise: float = param(2.0, 'm/s^2, accelerometer noise of one sample', 0.0, None)
     initial_std: float = 0.1        # std of the seed (PX4 HTE_HT_ERR_INIT)
     gate: float = 3.0               # innovation gate, std (PX4 HTE_ACC_GATE)
-    max_deviation: float = 0.3      # estimate bounded to seed * (1 -/+ this)
+    max_deviation: float = param(0.3, 'the estimate stays within seed * (1 -/+ this)',
+                                 0.0, 1.0)
     max_pairing_s: float = 0.1      # thrust sample at most this older than the IMU sample
     margin_s: float = 0.1           # value_at(t) uses samples at least this older than t
 
@@ -190,3 +163,32 @@ class HoverThrustEstimator:
                 break
             value = theta
         return value
+
+
+class HoverThrust:
+    """The hover thrust the setpoints use: the online estimate, else the seed, else configured."""
+
+    def __init__(self, configured: float, from_autopilot: bool,
+                 config: EstimatorConfig) -> None:
+        self.configured = configured
+        self.seed = HoverThrustSeed(configured, from_autopilot)
+        self.estimator = HoverThrustEstimator(config)
+
+    def now(self) -> float | None:
+        """Return the estimate now, else the seed (None: neither known yet)."""
+        v = self.estimator.value_at(None)
+        return self.seed.value if v is None else v
+
+    def current(self) -> float:
+        """Return the value now, the configured one while none is known."""
+        return self.now() or self.configured
+
+    def at_boot_ns(self, boot_ns: int | None) -> float:
+        """Return the estimate of the samples at least ``margin_s`` older than ``boot_ns``.
+
+        None (unsynced, unknown): the latest; no seed yet: the configured value.
+        """
+        v = self.estimator.value_at(boot_ns)
+        if v is None:
+            v = self.seed.value
+        return self.configured if v is None else v

@@ -31,10 +31,12 @@ os.environ['MAVLINK20'] = '1'  # before pymavlink.mavutil is imported: MAVLink 2
 from pymavlink import mavutil  # noqa: E402  (must follow the MAVLINK20 switch)
 
 from ibvs_common.core.mavlink_connection import local_port, open_mavlink  # noqa: E402
+from ibvs_common.core.params import param  # noqa: E402
 
 mavlink = mavutil.mavlink
 
 SIGNING_KEY_LEN = 32            # bytes, MAVLink 2 signing secret key
+MIN_HEARTBEAT_TIMEOUT_S = 3.0   # s, >= 3 periods of the autopilots' 1 Hz heartbeat
 PEER_CONCURRENT_S = 1.0         # s (wall), a udpin peer heard this recently still sends
 UINT32_MAX = 2**32 - 1
 
@@ -119,18 +121,26 @@ def load_signing_key(path: str | os.PathLike) -> bytes:
 
 @dataclass(frozen=True)
 class LinkConfig:
-    """Connection and link-supervision settings (see params.yaml, section mavlink_bridge)."""
+    """Connection and link supervision (node parameters; the key is read from its file)."""
 
-    url: str = 'udpin:0.0.0.0:14540'
-    source_system: int = 1                   # our system id (same vehicle as the autopilot)
+    url: str = param(
+        'udpin:0.0.0.0:14540',
+        "MAVLink endpoint (pymavlink URL): PX4 'udpin:0.0.0.0:14540', serial "
+        "'/dev/ttyUSB0,921600'; a udpin port is ours alone (one another socket holds is "
+        'refused and retried every reconnect_period_s)')
+    source_system: int = param(1, "our MAVLink system id (the vehicle's)", 1, 255)
     source_component: int = MavComponent.ONBOARD_COMPUTER
-    target_system: int = 0                   # 0: learn from the first autopilot HEARTBEAT
-    target_component: int = 0                # 0: learn from the first autopilot HEARTBEAT
-    heartbeat_timeout_s: float = 3.5         # no autopilot HEARTBEAT for this long: link lost
-    #                                          (> 3 periods of PX4's and ArduPilot's 1 Hz)
-    reconnect_period_s: float = 1.0          # serial / broken sockets: reopen this often
+    target_system: int = param(0, 'autopilot system id; 0 = learn from its first HEARTBEAT',
+                               0, 255)
+    target_component: int = param(
+        0, 'autopilot component id; 0 = learn from its first HEARTBEAT', 0, 255)
+    heartbeat_timeout_s: float = param(
+        3.5, 's (steady clock), no autopilot HEARTBEAT this long: link lost; '
+        f'>= {MIN_HEARTBEAT_TIMEOUT_S} (3 heartbeat periods)', MIN_HEARTBEAT_TIMEOUT_S, None)
+    reconnect_period_s: float = param(
+        1.0, 's (steady clock), reopen a broken socket / serial port this often', 0.0, None)
     signing_key: bytes | None = None         # 32 bytes: sign outgoing, reject unsigned input
-    signing_link_id: int = 0
+    signing_link_id: int = param(0, 'MAVLink 2 signing link id', 0, 255)
 
     def __post_init__(self):
         if not self.url:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import enum
 import math
+import struct
 
 import numpy as np
 
@@ -44,12 +45,26 @@ PX4_OFFBOARD_LOSS_LAND = 4
 PX4_OFFBOARD_LOSS_T_MAX_S = 2.0   # s, a longer time-out is warned about (PX4's default: 1 s)
 DEAD_BRIDGE_PARAMS = {Autopilot.ARDUPILOT: (GCS_FAILSAFE_PARAM, MY_GCS_PARAM),
                       Autopilot.PX4: (OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM)}
+MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32 = 6, 9
 ADVISORY_PARAM_READS = 30     # read requests (every retry_s) before giving them up
 _NEEDS_POSITION = 'needs a position estimate, which this vehicle does not have'
 _NEEDS_PILOT = 'needs a pilot on the sticks'
 _STOPS_MOTORS = 'stops the motors in the air'
 PX4_OFFBOARD_LOSS_WHY = {0: _NEEDS_POSITION, 3: _NEEDS_POSITION, 5: _NEEDS_POSITION,
                          1: _NEEDS_PILOT, 2: _NEEDS_PILOT, 6: _STOPS_MOTORS, 7: _STOPS_MOTORS}
+
+
+def param_value(value: float, param_type: int, bytewise: bool) -> float:
+    """Return the value of a PARAM_VALUE's ``param_value`` field of type ``param_type``.
+
+    PX4 copies an integer parameter's bytes into the float field (MAVLink's bytewise parameter
+    encoding, its MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE); ArduPilot casts the integer
+    to a float (C-cast encoding). ``bytewise``: the autopilot's encoding is bytewise.
+    """
+    if not bytewise or param_type == MAV_PARAM_TYPE_REAL32:
+        return value
+    fmt = '<i' if param_type == MAV_PARAM_TYPE_INT32 else '<I'    # PX4: INT32 only
+    return float(struct.unpack(fmt, struct.pack('<f', value))[0])
 
 
 class Changed(enum.Flag):

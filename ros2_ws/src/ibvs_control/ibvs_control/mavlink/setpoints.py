@@ -1,32 +1,9 @@
 """Setpoints of the MAVLink bridge: force / heading pairing and SET_ATTITUDE_TARGET shaping.
 
-ROS-free, no I/O (docs/mavlink.md "Setpoint").
-
-Pairing (:class:`HeadingPairing`)
-    For each camera frame of stamp S the controller publishes ``ibvs/heading_setpoint`` S, then
-    ``ibvs/force_setpoint`` S; the node creates the heading subscription first, so when both
-    wait in the executor the heading is taken first. A force is flown with the heading of its
-    own stamp (exact, in integer ns; the last 8 headings are kept). A force without it is flown
-    at once with the latest heading (before any heading: the current yaw), counted
-    (``missing``) and logged: there is no waiting. A heading that comes after its force is
-    counted (``late``) and only becomes the latest heading.
-Shaping (:class:`SetpointShaper`)
-    q = attitude of body FRD in the autopilot's local NED with R_d e3 = F / |F| and the yaw
-    (attitude.attitude_from_force, tilt limited); thrust = |F| / (m g) * hover thrust, or, when
-    the autopilot boosts its thrust by 1 / cos(tilt) itself (ArduPilot ATC_ANGLE_BOOST = 1),
-    the vertical component F_z / (m g) * hover thrust, so that it is not compensated twice.
-    The content of a force is computed once, when it arrives, and repeated exactly.
-Content by supervisor mode
-    IDLE..LANDING: the force (a refused force keeps the last valid one for ``hold_last_s`` of
-    vehicle time, then the level hover at the current yaw outside an engagement; while engaged
-    the safety policy hands the vehicle back instead). SHUTDOWN: level at the current yaw, thrust
-    ramped from its value at the switch to 0 over ``shutdown_ramp_s`` of vehicle time
-    (:class:`ShutdownRamp`), starting from the lower of that value and the hover thrust (the
-    last force can ask for more than hover, e.g. braking the descent near the floor; held
-    level, more than hover climbs: measured on PX4 SIH, a SHUTDOWN that started from 2.4 times
-    the hover force flew the vehicle from 0.1 m into the window frame at 2 m, 4.5 m/s). While
-    the autopilot's land mode is being asked for (FAILSAFE etc.): level at the current yaw at
-    the hover thrust (LEVEL_HOLD), never a descent of our own.
+ROS-free, no I/O: :class:`HeadingPairing` flies each force with the heading of its own stamp;
+:class:`SetpointShaper` turns a force into an attitude and a thrust, with the content of the
+supervisor's mode (hold, level hover, the SHUTDOWN ramp of :class:`ShutdownRamp`, the level
+hold while the land mode is asked for). Details: docs/mavlink.md, "Setpoint".
 """
 from __future__ import annotations
 

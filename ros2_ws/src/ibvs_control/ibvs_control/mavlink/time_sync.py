@@ -1,73 +1,9 @@
 """Clock sync with the autopilot by MAVLink TIMESYNC: offset = ROS time - autopilot boot time.
 
-ROS-free, no I/O: the bridge sends the requests and hands the answers in. Two clocks:
-
-- ROS time (ns): system time on a vehicle (a camera driver stamps images in it), sim time from
-  ``/clock`` in the sim. Every stamp the graph sees is on this clock.
-- the autopilot's boot time (ns): ``time_boot_ms`` of its messages, ``tc1`` of its TIMESYNC.
-
-Round trip (as PX4's timesync and MAVROS's sys_time plugin do)
-    request: TIMESYNC tc1 = 0, ts1 = our ROS time t0 (ns). The autopilot answers tc1 = its
-    boot time t1 (ns) when it handles the request, ts1 echoed. At receipt, ROS time t2:
-
-        rtt    = t2 - t0                               (ns)
-        offset = (t0 + t2 - 2 t1) / 2  = ROS - boot    (ns, integer division)
-
-    i.e. the autopilot's t1 is taken to be the middle of the round trip: the error of one
-    sample is half the asymmetry of the two legs, at most rtt / 2.
-RTT gate (``max_rtt_s``, 10 ms)
-    A sample with rtt > max_rtt_s (or rtt < 0: our clock went back) may be off by up to rtt / 2:
-    rejected, counted. Only answers to requests we sent (ts1 one of our recent requests) count.
-    Each sample refers to the middle of its round trip, t = (t0 + t2) / 2 on the ROS clock.
-Initialisation
-    The offset is unknown (:attr:`synced` False, the mappings return None) until
-    ``init_samples`` (5) samples passed the RTT gate; the estimate is then their median (an
-    actual sample, exact integer: one wrong sample of five cannot move it), skew 0, taken as a
-    least-squares line through that many samples at the latest one's time. While unsynced,
-    :meth:`next_request` asks at every call but at most every ``init_request_period_s`` of the
-    steady clock (the ROS clock may stand still: a lockstep sim waits for the graph); once
-    synced, every ``period_s`` (0.1 s, 10 Hz as MAVROS) of ROS time.
-Tracking
-    The two clocks do not run at the same rate: PX4 SITL (SIH)'s boot clock was measured 0.77 %
-    slow against the system clock (7.7 ms/s), a crystal is off by tens of ppm. So the offset is
-    tracked with its rate (skew, ns per ns) by an alpha-beta filter, PX4's and MAVROS's double
-    exponential smoothing in time units: at a sample s of time t, with the prediction
-    p = offset + skew (t - t_last) and r = s - p,
-
-        offset = p + a r,    skew = skew + b r / (t - t_last)
-
-    with a = max(``alpha``, 2(2k-1)/(k(k+1))), b = max(``beta``, 6/(k(k+1))) for the k-th sample
-    since the reset: the gains of a least-squares line through all the samples so far (the skew
-    is learnt in a few samples), down to the smoothing gains (alpha 0.05, beta 0.002) after
-    some 80 samples (8 s). A plain exponential smoothing lags a skew s by s T / alpha at a
-    sample period T (15 ms for SIH): beyond the deviation gate, it resets again and again.
-    The skew step divides by max(t - t_last, ``period_s``): the gains are those of samples a
-    period apart, and a sample closer to the last one says less about the rate, not more
-    (two answers 5 ms apart with SIH's 4 ms clock grid made a 2 ms residual a step of 8 % in
-    the skew, the next samples outliers, and a reset every 0.5 s: CI 21 failed on it).
-    The estimate is an exact integer base (the initial median) plus float terms: samples equal
-    to the prediction leave it unchanged to the bit (in a lockstep sim the true offset is
-    exactly 0 and a round trip takes 0 s of sim time, so every good sample is exactly 0, the
-    skew stays 0.0 and the mapped stamps repeat bit for bit).
-Outliers
-    A sample farther than ``max_deviation_s`` (10 ms) from the prediction is not used (e.g.
-    -20 ms with rtt 0 when our ``/clock`` lags a lockstep sim by one frame: the sim moves its
-    clock before its autopilot answers, so only a ``/clock`` delayed in delivery does it);
-    ``max_consecutive_outliers``
-    (5) in a row mean a time jump (a clock was set): reset, and re-initialise from those
-    outliers (the newest ``init_samples`` of them: synced again at once, no imu/data gap; a
-    gap of 0.2 s or more is an IMU dropout to the supervisor, FAILSAFE in flight). A jump
-    moves the offset, not the rate: the skew learnt so far is kept if those outliers lie on
-    it, else (the rate was wrong: a SITL running 13 % slow after a freeze) the outliers' own
-    slope (Theil-Sen) is taken; the new base is their median brought to the latest one's time
-    along that skew, and the requests go on at their period.
-Reboot
-    A ``time_boot_ms`` or ``tc1`` more than 1 s before the previous one of its kind: the
-    autopilot rebooted, reset, re-initialise.
-Mapping
-    boot ms -> ROS ns = ms * 1e6 + offset(t); ROS ns t -> boot ms = (t - offset(t)) / 1e6
-    rounded to the nearest ms (halves up), offset(t) = offset + skew (t - t_last) rounded to the
-    ns; None while unsynced.
+ROS-free, no I/O: :class:`TimeSync` estimates the offset and its skew from round trips
+(RTT gate, median start, alpha-beta tracking, outliers and time jumps, reboots) and maps
+stamps both ways; :class:`TimesyncExchange` sends and answers the messages; :class:`RosTime`
+is the ROS time the node gives. How and why: docs/mavlink.md, "Clock sync (TIMESYNC)".
 """
 from __future__ import annotations
 
@@ -76,6 +12,7 @@ from dataclasses import dataclass
 import math
 import statistics
 
+from ibvs_common.core.params import param
 from ibvs_common.core.stamps import NS_PER_S
 
 NS_PER_MS = 1_000_000
@@ -87,16 +24,24 @@ RTT_WARN_EVERY = 20                    # warn after this many RTT rejections in 
 
 @dataclass(frozen=True)
 class TimeSyncConfig:
-    """Settings of :class:`TimeSync` (node parameters ``timesync_*``, params.yaml)."""
+    """Settings of :class:`TimeSync` (node parameters ``timesync_*``)."""
 
-    period_s: float = 0.1                  # s of ROS time between requests once synced
-    init_request_period_s: float = 0.05    # s of steady clock between requests while unsynced
-    init_samples: int = 5                  # accepted samples whose median starts the estimate
-    max_rtt_s: float = 0.010               # s, round trips above this are rejected
-    alpha: float = 0.05                    # smoothing gain of the tracked offset, (0, 1]
-    beta: float = 0.002                    # smoothing gain of the tracked skew, (0, 1]
-    max_deviation_s: float = 0.010         # s, a sample this far from the estimate: outlier
-    max_consecutive_outliers: int = 5      # that many outliers in a row: time jump, reset
+    period_s: float = param(0.1, 's (ROS clock) between TIMESYNC requests once synced',
+                            0.0, None)
+    init_request_period_s: float = param(
+        0.05, 's (steady clock) between TIMESYNC requests while unsynced', 0.0, None)
+    init_samples: int = param(5, 'accepted TIMESYNC samples whose median starts the offset',
+                              1, None)
+    max_rtt_s: float = param(0.010, 's (ROS clock), TIMESYNC round trips above this are '
+                             'rejected', 0.0, None)
+    alpha: float = param(0.05, 'smoothing gain of the clock offset per accepted sample',
+                         0.0, 1.0)
+    beta: float = param(0.002, 'smoothing gain of the clock skew per accepted sample',
+                        0.0, 1.0)
+    max_deviation_s: float = param(0.010, 's (ROS clock), a sample this far from the offset '
+                                   'is an outlier', 0.0, None)
+    max_consecutive_outliers: int = param(
+        5, 'outliers in a row taken as a time jump: reset, re-sync', 0, None)
 
     def __post_init__(self):
         for name in ('period_s', 'init_request_period_s', 'max_rtt_s', 'max_deviation_s'):
@@ -419,3 +364,25 @@ class TimesyncExchange:
         if tc1 > 0:
             return self.sync.on_reply(tc1, ts1, int(ros_ns))
         return []
+
+
+class RosTime:
+    """The latest ROS time the node gave the bridge (ns): the clock of stamps and vehicle time.
+
+    System time on a vehicle, sim time in the sim; None or 0 while unknown (no ``/clock`` yet).
+    """
+
+    def __init__(self) -> None:
+        self.ns: int | None = None
+
+    def set(self, ros_ns: int | None, force: bool = False) -> None:
+        """Take ``ros_ns``; None keeps the latest unless ``force``."""
+        if ros_ns is not None or force:
+            self.ns = None if ros_ns is None else int(ros_ns)
+
+    @property
+    def vehicle_s(self) -> float | None:
+        """Vehicle time: the ROS clock (s), None while unknown."""
+        if self.ns is None or self.ns <= 0:
+            return None
+        return self.ns / NS_PER_S

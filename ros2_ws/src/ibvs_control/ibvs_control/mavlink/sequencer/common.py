@@ -1,41 +1,19 @@
-"""Engage / arm / hand-back state machine of the MAVLink bridge (ROS-free, no I/O).
+"""The engage / arm / hand-back state machine of the MAVLink bridge (ROS-free, no I/O).
 
-The sequencer decides *which commands* to send to the autopilot, *when*, and whether setpoints
-stream at all; the bridge sends them. It carries out the safety policy of
-:mod:`~ibvs_control.mavlink.safety` (the table in docs/mavlink.md). Sequences:
-
-Engage (the supervisor leaves IDLE for WINDOW / CROSSING / LANDING; at least one IDLE report
-since the last engagement, so a bridge restarted mid-flight never takes the vehicle by itself)
-    PX4: stream for more than ``prestream_s`` (PX4 refuses OFFBOARD without a setpoint stream),
-    then ``MAV_CMD_DO_SET_MODE`` param1 = 1 (custom mode), param2 = 6 (OFFBOARD; NOT the packed
-    ``6 << 16``, which PX4 acknowledges and ignores); effective when a HEARTBEAT shows main mode
-    6. ArduPilot: read ``GUID_OPTIONS`` first and refuse (REFUSED) unless bit 3 is set (thrust
-    is then thrust, not a climb rate); DO_SET_MODE (1, 20 = GUIDED_NOGPS); setpoints stream from
-    the switch on only (ArduPilot needs no pre-stream, and a GUIDED mode obeys them).
-    ArduPilot, disarmed and reported not armable (SYS_STATUS pre-arm bit clear), or not
-    reported yet (for up to ``armable_unknown_wait_s``; then tried): no switch yet; it keeps
-    its own mode until it is ready (ArduCopter sets the mode of its RC mode switch when its
-    RC input first turns valid, after boot). Not PX4: its pre-arm bit is ``canArm`` of the
-    *current* mode (commander), so an indoor vehicle left in Position mode without a position
-    estimate would never be armable there, though it is in OFFBOARD.
-Arm (only if asked: ``ibvs/arm`` or ``arm_on_start``)
-    In the offboard mode and disarmed: ``MAV_CMD_COMPONENT_ARM_DISARM`` param1 = 1, once the
-    autopilot reports itself armable (SYS_STATUS pre-arm bit), retried with a backoff (doubling
-    from ``command_retry_s`` up to ``arm_backoff_max_s``) until armed or ``arm_timeout_s``.
-    Not asked: WAIT_ARM, nothing sent.
-Hand back
-    The supervisor's SHUTDOWN: thrust ramp (the bridge), then disarm; FAILSAFE, forces lost
-    (ArduPilot; PX4 by default stops streaming), a shutdown in the air, a disarm that does not
-    come: the autopilot's land mode (PX4 AUTO.LAND = DO_SET_MODE 1, 4, 6; ArduPilot LAND =
-    DO_SET_MODE 1, 9), setpoints stop once it shows. A mode the bridge did not ask for, or a
-    lost link: setpoints stop at once (HELD), never taken back by the bridge itself.
+The sequencer decides which commands go to the autopilot, when, and whether setpoints stream;
+the bridge sends them. It carries out the safety policy (docs/mavlink.md, "Engage, arm, hand
+back" and "Safety policy"). What differs between autopilots (modes, their commands, preflight
+checks, when setpoints may stream) is an :class:`AutopilotStrategy`:
+:mod:`~ibvs_control.mavlink.sequencer.px4` and :mod:`~ibvs_control.mavlink.sequencer.ardupilot`.
 """
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
 
 from ibvs_common.core.modes import FLYING_MODES, Mode
+from ibvs_common.core.params import param
 
 
 class MavCmd(IntEnum):
@@ -63,28 +41,17 @@ class Autopilot(Enum):
     ARDUPILOT = 'ardupilot'
 
 
-MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
-PX4_MAIN_MODE_OFFBOARD = 6             # PX4 custom main mode (custom_mode bits 16-23)
-PX4_MAIN_MODE_AUTO = 4
-PX4_AUTO_SUB_MODE_LAND = 6             # custom_mode bits 24-31
-PX4_MAIN_MODE_SHIFT = 16
-PX4_SUB_MODE_SHIFT = 24
-ARDUCOPTER_MODE_GUIDED_NOGPS = 20      # ArduCopter custom_mode
-ARDUCOPTER_MODE_LAND = 9
-GUID_OPTIONS_THRUST_BIT = 1 << 3       # ArduPilot GUID_OPTIONS bit 3: "SetAttitudeTarget
-#                                        interprets thrust as thrust" (not climb rate)
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1   # DO_SET_MODE param1: param2 is a custom mode
 ARM_DISARM_FORCE_MAGIC = 21196         # param2 of COMPONENT_ARM_DISARM: force (dis)arm
 INPUT_LOSS_ACTIONS = ('auto', 'stop', 'land')
 
 
-def px4_main_mode(custom_mode: int) -> int:
-    """PX4 main mode of a HEARTBEAT custom_mode (bits 16-23; sub mode is bits 24-31)."""
-    return (int(custom_mode) >> PX4_MAIN_MODE_SHIFT) & 0xFF
+class SwitchWait(Enum):
+    """Why the switch to the offboard mode waits (:meth:`AutopilotStrategy.switch_wait`)."""
 
-
-def px4_sub_mode(custom_mode: int) -> int:
-    """PX4 sub mode of a HEARTBEAT custom_mode (bits 24-31)."""
-    return (int(custom_mode) >> PX4_SUB_MODE_SHIFT) & 0xFF
+    NONE = 'none'                    # switch now
+    STREAM = 'stream'                # the setpoint stream is not long enough yet
+    ARMABLE = 'armable'              # the autopilot is not armable yet
 
 
 class EngageState(Enum):
@@ -116,18 +83,26 @@ _SHUTDOWN_STATES = (EngageState.SHUTDOWN_RAMP, EngageState.DISARMING, EngageStat
 class SequencerConfig:
     """Timing of the sequences (s), command attempts and the input-loss action."""
 
-    autopilot: Autopilot = Autopilot.PX4
-    prestream_s: float = 1.2         # PX4: setpoint stream length before OFFBOARD (> 1 s)
-    command_retry_s: float = 1.0     # resend an unanswered / ineffective command after this
-    max_attempts: int = 5            # mode switches: then FAILED (land: then stop streaming)
-    arm_backoff_max_s: float = 8.0   # arming retries back off up to this period
-    arm_timeout_s: float = 60.0      # arming still refused after this long: FAILED
-    armable_unknown_wait_s: float = 1.0  # disarmed, no pre-arm report yet: the mode switch
-    #                                      waits this long for one (then tries)
-    disarm_force_after_s: float = 1.0  # touchdown rule: evidence and refusal this long
-    disarm_timeout_s: float = 10.0   # still armed after the ramp this long: land mode
-    input_loss_action: str = 'auto'  # forces lost: 'stop' streaming | 'land' | 'auto'
-    #                                  (PX4: stop, its offboard-loss failsafe; ArduPilot: land)
+    prestream_s: float = param(
+        1.2, 's (steady clock), PX4: setpoint stream before OFFBOARD (> 1 s)', 0.0, None)
+    command_retry_s: float = param(
+        1.0, 's (steady clock), resend an ineffective command after this', 0.0, None)
+    max_attempts: int = param(5, 'mode-switch attempts before FAILED', 1, None)
+    arm_backoff_max_s: float = param(
+        8.0, 's (steady clock), arming retries back off (doubling) up to this', 0.0, None)
+    arm_timeout_s: float = param(60.0, 's (steady clock), arming refused this long: FAILED',
+                                 0.0, None)
+    armable_unknown_wait_s: float = param(
+        1.0, 's (steady clock), disarmed and no SYS_STATUS pre-arm report yet: the mode switch '
+        'waits this long for one, then tries', 0.0, None)
+    disarm_force_after_s: float = param(
+        1.0, 's (ROS clock, IMU stamps), touchdown rule: evidence and first refusal this old '
+        'before a forced disarm', 0.0, None)
+    disarm_timeout_s: float = param(
+        10.0, "s (steady clock), still armed this long after the ramp: the autopilot's land "
+        'mode', 0.0, None)
+    input_loss_action: str = param(
+        'auto', 'forces lost: stop | land | auto (PX4: stop, ArduPilot: land)')
 
     def __post_init__(self):
         if self.input_loss_action not in INPUT_LOSS_ACTIONS:
@@ -139,13 +114,6 @@ class SequencerConfig:
                 raise ValueError(f'{name} must be > 0')
         if int(self.max_attempts) < 1:
             raise ValueError('max_attempts must be >= 1')
-
-    @property
-    def loss_action(self) -> str:
-        """'stop' or 'land' for this autopilot."""
-        if self.input_loss_action != 'auto':
-            return self.input_loss_action
-        return 'stop' if self.autopilot == Autopilot.PX4 else 'land'
 
 
 @dataclass(frozen=True)
@@ -179,6 +147,44 @@ class SequencerInputs:
     airborne_at_low_thrust: bool = False  # safety: no ground contact, thrust far below hover
 
 
+class AutopilotStrategy(ABC):
+    """What the sequences need to know of one autopilot: its modes, commands and checks."""
+
+    autopilot: Autopilot
+    default_loss_action: str           # input_loss_action 'auto': 'stop' or 'land'
+    streams_while_idle: bool           # PREFLIGHT / STANDBY: a keepalive setpoint stream
+    streams_before_switch: bool        # SET_MODE: setpoints before the switch is asked for
+
+    @abstractmethod
+    def in_offboard(self, custom_mode: int) -> bool:
+        """Whether the HEARTBEAT custom_mode is the bridge's offboard mode."""
+
+    @abstractmethod
+    def in_land_mode(self, custom_mode: int) -> bool:
+        """Whether the HEARTBEAT custom_mode is the autopilot's land mode."""
+
+    @abstractmethod
+    def offboard_params(self) -> tuple[float, ...]:
+        """DO_SET_MODE params of the offboard mode."""
+
+    @abstractmethod
+    def land_params(self) -> tuple[float, ...]:
+        """DO_SET_MODE params of the land mode."""
+
+    def refusal(self, inp: SequencerInputs) -> str:
+        """Why the configuration forbids flying ('' if it does not, or not known yet)."""
+        return ''
+
+    def parameters_ready(self, inp: SequencerInputs) -> bool:
+        """Whether the autopilot parameters the checks need have been read."""
+        return True
+
+    @abstractmethod
+    def switch_wait(self, inp: SequencerInputs, engaging_s: float,
+                    config: SequencerConfig) -> SwitchWait:
+        """Return what the offboard-mode switch waits for, ``engaging_s`` into SET_MODE."""
+
+
 @dataclass
 class _Pending:
     command: MavCmd
@@ -192,6 +198,7 @@ class _Pending:
 class EngageSequencer:
     """The engage / arm / hand-back state machine. Call :meth:`step` often, feed ACKs."""
 
+    strategy: AutopilotStrategy
     config: SequencerConfig = field(default_factory=SequencerConfig)
     state: EngageState = EngageState.NO_LINK
     disarm_forced: bool = False
@@ -234,15 +241,15 @@ class EngageSequencer:
     def streaming(self) -> bool:
         """Whether setpoints should stream now (the link being up is checked by the bridge)."""
         s = self.state
-        if s == EngageState.SET_MODE and self.config.autopilot == Autopilot.ARDUPILOT \
+        if s == EngageState.SET_MODE and not self.strategy.streams_before_switch \
                 and self._pending is None:
-            return False                    # ArduPilot: setpoints from the switch on only
+            return False
         if s in (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
                  EngageState.ENGAGED, EngageState.SHUTDOWN_RAMP, EngageState.DISARMING):
             return True
         if s == EngageState.LANDING:
             return not self._land_confirmed
-        return (self.config.autopilot == Autopilot.PX4
+        return (self.strategy.streams_while_idle
                 and s in (EngageState.PREFLIGHT, EngageState.STANDBY))
 
     @property
@@ -286,31 +293,12 @@ class EngageSequencer:
             if key == 'state':
                 self.last_reason = text
 
-    def in_offboard(self, custom_mode: int) -> bool:
-        """Whether the HEARTBEAT custom_mode is the bridge's offboard mode."""
-        if self.config.autopilot == Autopilot.PX4:
-            return px4_main_mode(custom_mode) == PX4_MAIN_MODE_OFFBOARD
-        return int(custom_mode) == ARDUCOPTER_MODE_GUIDED_NOGPS
-
-    def in_land_mode(self, custom_mode: int) -> bool:
-        """Whether the HEARTBEAT custom_mode is the autopilot's land mode."""
-        if self.config.autopilot == Autopilot.PX4:
-            return (px4_main_mode(custom_mode) == PX4_MAIN_MODE_AUTO
-                    and px4_sub_mode(custom_mode) == PX4_AUTO_SUB_MODE_LAND)
-        return int(custom_mode) == ARDUCOPTER_MODE_LAND
-
-    def offboard_params(self) -> tuple[float, ...]:
-        """DO_SET_MODE params of the offboard mode."""
-        if self.config.autopilot == Autopilot.PX4:
-            return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(PX4_MAIN_MODE_OFFBOARD))
-        return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(ARDUCOPTER_MODE_GUIDED_NOGPS))
-
-    def land_params(self) -> tuple[float, ...]:
-        """DO_SET_MODE params of the land mode (PX4 AUTO.LAND, ArduPilot LAND)."""
-        if self.config.autopilot == Autopilot.PX4:
-            return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(PX4_MAIN_MODE_AUTO),
-                    float(PX4_AUTO_SUB_MODE_LAND))
-        return (float(MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(ARDUCOPTER_MODE_LAND))
+    @property
+    def loss_action(self) -> str:
+        """'stop' or 'land' when the forces are lost (``input_loss_action``)."""
+        if self.config.input_loss_action != 'auto':
+            return self.config.input_loss_action
+        return self.strategy.default_loss_action
 
     def _command(self, t: float, command: MavCmd, params: tuple[float, ...], reason: str,
                  period: float | None = None) -> list[CommandRequest] | None:
@@ -356,24 +344,17 @@ class EngageSequencer:
         return handler(inp)
 
     def _preflight(self, inp: SequencerInputs) -> list[CommandRequest]:
-        if self.config.autopilot == Autopilot.ARDUPILOT:
-            if inp.guid_options is None:
-                if inp.params_timed_out:
-                    self._go(EngageState.REFUSED, 'GUID_OPTIONS could not be read: refusing '
-                             'to fly (thrust might be read as a climb rate)', inp.t)
-                return []
-            if not int(inp.guid_options) & GUID_OPTIONS_THRUST_BIT:
-                self._go(EngageState.REFUSED, f'GUID_OPTIONS = {int(inp.guid_options)} lacks '
-                         'bit 3 (SET_ATTITUDE_TARGET thrust as thrust): refusing to fly; '
-                         'set GUID_OPTIONS |= 8 on the autopilot', inp.t)
-                return []
-        if not inp.hover_thrust_ready:
+        refusal = self.strategy.refusal(inp)
+        if refusal:
+            self._go(EngageState.REFUSED, refusal, inp.t)
+            return []
+        if not self.strategy.parameters_ready(inp) or not inp.hover_thrust_ready:
             return []
         lost_in, self._lost_in = self._lost_in, None
         if lost_in in _SHUTDOWN_STATES:
             return self._resolve_shutdown(inp, 'link back during the shutdown')
         if lost_in in _FLIGHT_STATES:
-            if inp.armed and self.in_offboard(inp.custom_mode):
+            if inp.armed and self.strategy.in_offboard(inp.custom_mode):
                 return self._inputs_lost(inp, 'link back, vehicle still in the offboard mode '
                                               'without our setpoints')
             self._go(EngageState.HELD, "link back: the autopilot's failsafe had the vehicle; "
@@ -383,7 +364,7 @@ class EngageSequencer:
         return self._standby(inp)
 
     def _standby(self, inp: SequencerInputs) -> list[CommandRequest]:
-        if self.in_offboard(inp.custom_mode) and inp.armed:
+        if self.strategy.in_offboard(inp.custom_mode) and inp.armed:
             self._go(EngageState.HELD, f'the autopilot is in the offboard mode (custom_mode '
                      f'{inp.custom_mode}) without the bridge asking: not streaming', inp.t)
             return []
@@ -405,19 +386,16 @@ class EngageSequencer:
             self._go(EngageState.HELD, f'supervisor mode {inp.supervisor_mode.name} before '
                      'engagement: not switching', inp.t)
             return []
-        if self.in_offboard(inp.custom_mode):
+        if self.strategy.in_offboard(inp.custom_mode):
             self._go(EngageState.ARMING if not inp.armed else EngageState.ENGAGED,
                      f'autopilot reports custom_mode {inp.custom_mode}', inp.t)
             return self._arming(inp) if not inp.armed else []
-        if self.config.autopilot == Autopilot.ARDUPILOT and not inp.armed and (
-                inp.armable is False or (
-                    inp.armable is None
-                    and inp.t - self._entered_t < self.config.armable_unknown_wait_s)):
+        wait = self.strategy.switch_wait(inp, inp.t - self._entered_t, self.config)
+        if wait == SwitchWait.ARMABLE:
             return self._wait_armable(inp)
-        if (self.config.autopilot == Autopilot.PX4
-                and inp.streaming_s <= self.config.prestream_s):
-            return []  # PX4 needs a setpoint stream of > 1 s before OFFBOARD
-        out = self._command(inp.t, MavCmd.DO_SET_MODE, self.offboard_params(),
+        if wait == SwitchWait.STREAM:
+            return []
+        out = self._command(inp.t, MavCmd.DO_SET_MODE, self.strategy.offboard_params(),
                             'switch to the offboard mode')
         if out is None:
             self._go(EngageState.FAILED, f'offboard mode not effective after '
@@ -427,16 +405,9 @@ class EngageSequencer:
         return out
 
     def _wait_armable(self, inp: SequencerInputs) -> list[CommandRequest]:
-        """ArduPilot, disarmed and not armable yet: leave it in its own mode for now.
+        """Not armable yet, and the strategy switches only an armable autopilot: wait.
 
-        The switch waits, as the arming does, for the pre-arm bit: a not-yet-ready autopilot
-        still sets modes of its own (ArduCopter applies its RC mode switch when its RC input
-        first turns valid, ~1.5 s after boot: in a fresh-clone CI run it replaced a
-        GUIDED_NOGPS the bridge had set 0.2 s before, which the bridge rightly took for a
-        pilot's takeover). No pre-arm report yet (SYS_STATUS comes at ``status_rate_hz``
-        once requested): wait for one up to ``armable_unknown_wait_s`` from the engagement,
-        then try (an autopilot that never reports the bit). An arm request bounds the wait by
-        ``arm_timeout_s``, as in ARMING.
+        An arm request bounds the wait by ``arm_timeout_s``, as in ARMING.
         """
         self._say_once('state', 'waiting for the autopilot to be armable (pre-arm checks '
                                 'not passed yet; its reasons are logged) before switching to '
@@ -454,7 +425,7 @@ class EngageSequencer:
             self._go(EngageState.HELD, f'supervisor mode {inp.supervisor_mode.name} before '
                      'the vehicle was armed: not arming', inp.t)
             return []
-        if not self.in_offboard(inp.custom_mode):
+        if not self.strategy.in_offboard(inp.custom_mode):
             self._go(EngageState.HELD, f'autopilot left the offboard mode (custom_mode '
                      f'{inp.custom_mode}) before arming: pilot / GCS in charge', inp.t)
             return []
@@ -502,7 +473,7 @@ class EngageSequencer:
             return []
         if inp.supervisor_mode == Mode.FAILSAFE:
             return self._land(inp, "supervisor FAILSAFE: the autopilot's land mode")
-        if not self.in_offboard(inp.custom_mode):
+        if not self.strategy.in_offboard(inp.custom_mode):
             self._go(EngageState.HELD, f'autopilot left the offboard mode (custom_mode '
                      f'{inp.custom_mode}): pilot / GCS or autopilot failsafe in charge, '
                      'setpoints stopped', inp.t)
@@ -515,7 +486,7 @@ class EngageSequencer:
         return []
 
     def _inputs_lost(self, inp: SequencerInputs, why: str) -> list[CommandRequest]:
-        if self.config.loss_action == 'land':
+        if self.loss_action == 'land':
             return self._land(inp, f"{why}: the autopilot's land mode")
         self._go(EngageState.HELD, f"{why}: setpoints stopped, the autopilot's offboard-loss "
                  'failsafe takes the vehicle (PX4 COM_OF_LOSS_T, COM_OBL_RC_ACT)', inp.t)
@@ -524,7 +495,7 @@ class EngageSequencer:
     def _shutdown_ramp(self, inp: SequencerInputs) -> list[CommandRequest]:
         if not inp.armed:
             self._go(EngageState.DONE, 'disarmed during the ramp', inp.t)
-        elif not self.in_offboard(inp.custom_mode):
+        elif not self.strategy.in_offboard(inp.custom_mode):
             self._go(EngageState.HELD, f'autopilot left the offboard mode during the shutdown '
                      f'(custom_mode {inp.custom_mode})', inp.t)
         elif inp.airborne_at_low_thrust:
@@ -588,7 +559,7 @@ class EngageSequencer:
         if not inp.armed:
             self._go(EngageState.DONE, 'disarmed (landed by the autopilot)', inp.t)
             return []
-        if self.in_land_mode(inp.custom_mode):
+        if self.strategy.in_land_mode(inp.custom_mode):
             if not self._land_confirmed:
                 self._land_confirmed = True
                 self._pending = None
@@ -603,7 +574,7 @@ class EngageSequencer:
             self._go(EngageState.HELD, f'the land mode was left (custom_mode {inp.custom_mode})'
                      ': pilot / GCS in charge', inp.t)
             return []
-        out = self._command(inp.t, MavCmd.DO_SET_MODE, self.land_params(),
+        out = self._command(inp.t, MavCmd.DO_SET_MODE, self.strategy.land_params(),
                             "switch to the autopilot's land mode")
         if out is None:
             self._go(EngageState.HELD, f'land mode not effective after '
