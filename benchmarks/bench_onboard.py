@@ -69,7 +69,7 @@ BUSY = {'full': 0, 'one': 0, 'half': 1, 'third': 2}
 # --- the flight ------------------------------------------------------------------------------
 
 def reference_flight(rate_hz: float, max_s: float | None = None) -> dict:
-    """The feature-level reference flight at the camera rate: replay times, poses, rates.
+    """Return the feature-level reference flight at the camera rate: times, poses, rates.
 
     Returns ``r`` (replay time of each frame, s), ``xi`` (N, 3), ``R`` (N, 3, 3), ``omega``
     (N, 3), with HOVER_S of the start pose first.
@@ -162,7 +162,7 @@ def stand_in(url: str, flight: dict, start_mono, stop, results) -> None:
 
 
 def busy_loop(core: int, stop) -> None:
-    """A competing process: spin on ``core`` until told to stop (a camera driver, a recorder)."""
+    """Spin on ``core`` until told to stop: a competing process (a camera driver, a recorder)."""
     os.sched_setaffinity(0, {core})
     x = 0
     while not stop.is_set():
