@@ -44,7 +44,7 @@ from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample,
                                      SIH_DEFAULT_HOME, StateLink)
 from ibvs_sim.core.render import SceneRenderer
 from ibvs_sim.core.sensor_noise import ReadNoise
-from ibvs_sim.core.sim_core import AnswerLatency
+from ibvs_sim.core.timing import AnswerLatency
 from ibvs_sim.core.world import load_world
 from ibvs_sim.sim_node import CAMERAS, camera_info_msg, image_msg, odometry_msg, stamp_from_ns
 

@@ -14,9 +14,9 @@ frames are bit-identical, as with a real sensor) and the initial condition are p
 In lockstep the node is the test harness's clock, and only it waits: a frame's images leave
 once ``imu/data`` (the bridge's, from this autopilot's telemetry) has reached the frame's
 time, as a camera-IMU synchronised vehicle delivers them, so that the graph's attitude at the
-stamp is the same in every run (:class:`~ibvs_sim.core.sim_core.ImuBeforeImages`); then the
+stamp is the same in every run (:class:`~ibvs_sim.core.graph_sync.ImuBeforeImages`); then the
 next 20 ms are simulated only after the graph answered the frame and published all its
-products (:class:`~ibvs_sim.core.sim_core.GraphProducts`: the supervisor's status of the
+products (:class:`~ibvs_sim.core.graph_sync.GraphProducts`: the supervisor's status of the
 frame, then the detections and flows of the cameras that went out that the frame's mode
 uses, including those it does not wait for). Both waits end after
 ``lockstep_timeout_s`` of wall clock (a dead node). The flight path has no wait of its own.
@@ -49,9 +49,12 @@ from ibvs_common.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_b
                                      vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
 from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
-                                    GraphProducts, ImuBeforeImages, Pacing, SimConfig,
-                                    fault_windows, Simulation, STATUS_TOPIC, wall_budget)
+from ibvs_sim.core.faults import CameraFaults, fault_windows
+from ibvs_sim.core.graph_sync import (FirstFrameHold, GraphProducts, ImuBeforeImages,
+                                      STATUS_TOPIC)
+from ibvs_sim.core.pacing import Pacing
+from ibvs_sim.core.sim_core import FrameOutput, SimConfig, Simulation
+from ibvs_sim.core.timing import AnswerLatency, wall_budget
 from ibvs_common.core.modes import InputKind, modes_using
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_common.dds_profile import use_dds_profile_here
@@ -423,12 +426,12 @@ class SimNode(Node):
     def _on_status(self, msg: DiagnosticArray) -> None:
         stamp_ns, mode, err = mode_from_status(msg)
         if not err:
-            self.sim.products.note_status(stamp_ns, mode)
+            self.sim.lockstep.products.note_status(stamp_ns, mode)
 
     def _product_callback(self, topic: str):
         def note(msg: PolygonStamped | Vector3Stamped | JointState) -> None:
             stamp_ns = stamp_to_ns(msg.header.stamp)
-            if self.sim.products.note(topic, stamp_ns):
+            if self.sim.lockstep.products.note(topic, stamp_ns):
                 self.get_logger().info(
                     f'lockstep: {topic} published again (stamp t = {stamp_ns / NS_PER_S:.3f} '
                     f's, sim t = {self.sim.t:.3f} s): waited for again')
@@ -447,8 +450,9 @@ class SimNode(Node):
             self._publish(held)
         if self.imu_hold.holding:
             return
-        timeouts_before, dropped_before = self.sim.lockstep_timeouts, self.sim.frames_dropped
-        given_up_before = len(self.sim.products_given_up)
+        timeouts_before = self.sim.lockstep.timeouts
+        dropped_before = self.sim.realtime.frames_dropped
+        given_up_before = len(self.sim.lockstep.given_up)
         try:
             out = self.sim.tick()
         except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
@@ -456,23 +460,24 @@ class SimNode(Node):
             self.get_logger().error(f'simulation stopped: {exc}',
                                     throttle_duration_sec=LOG_THROTTLE_S)
             return
-        if self.sim.lockstep_timeouts > timeouts_before:
+        if self.sim.lockstep.timeouts > timeouts_before:
             self.get_logger().warning(
                 f'lockstep: no setpoint answered a frame within '
                 f'{self.sim.config.lockstep_timeout_s} s (wall): simulated up to '
-                f't = {self.sim.t:.3f} s with the last one; {self.sim.lockstep_timeouts} '
+                f't = {self.sim.t:.3f} s with the last one; {self.sim.lockstep.timeouts} '
                 'time-outs so far (the run no longer repeats exactly)',
                 throttle_duration_sec=LOG_THROTTLE_S)
-        if len(self.sim.products_given_up) > given_up_before:
+        if len(self.sim.lockstep.given_up) > given_up_before:
             self.get_logger().warning(
-                f'lockstep: {", ".join(self.sim.products_given_up[given_up_before:])} not '
-                f'published within {self.sim.answer_wait_s} s (wall) of the frame at t = '
-                f'{(self.sim.products.frame_ns or 0) / NS_PER_S:.3f} s: no longer waited for '
-                'until it comes again')
-        if self.sim.frames_dropped > dropped_before:
+                f'lockstep: {", ".join(self.sim.lockstep.given_up[given_up_before:])} not '
+                f'published within {self.sim.lockstep.answer_wait_s} s (wall) of the frame at t = '
+                f'{(self.sim.lockstep.products.frame_ns or 0) / NS_PER_S:.3f} s: no longer '
+                'waited for until it comes again')
+        if self.sim.realtime.frames_dropped > dropped_before:
             self.get_logger().warning(
                 f'free-running: could not render on time at t = {self.sim.t:.3f} s: '
-                f'{self.sim.frames_dropped} frame(s) dropped so far (lower real_time_factor)',
+                f'{self.sim.realtime.frames_dropped} frame(s) dropped so far (lower '
+                'real_time_factor)',
                 throttle_duration_sec=LOG_THROTTLE_S)
         answers = self.sim.autopilot.new_setpoints
         while answers:
@@ -512,9 +517,10 @@ class SimNode(Node):
         counters = self.autopilot.counters
         values = {'pacing': self.sim.config.pacing.value,
                   'real_time_factor': self.sim.config.real_time_factor,
-                  'sim_time_s': self.sim.t, 'frames_dropped': self.sim.frames_dropped,
-                  'stalls': self.sim.stalls, 'lockstep_timeouts': self.sim.lockstep_timeouts,
-                  'products_given_up': len(self.sim.products_given_up),
+                  'sim_time_s': self.sim.t, 'frames_dropped': self.sim.realtime.frames_dropped,
+                  'stalls': self.sim.realtime.stalls,
+                  'lockstep_timeouts': self.sim.lockstep.timeouts,
+                  'products_given_up': len(self.sim.lockstep.given_up),
                   'imu_hold_timeouts': self.imu_hold.timeouts,
                   'autopilot_timesync_requests': counters.timesync_requests_sent,
                   'autopilot_timesync_answers': counters.timesync_answers_received,
@@ -522,20 +528,21 @@ class SimNode(Node):
                   **self.latency.stats(),
                   **self._wall_budget()}
         status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if self.sim.frames_dropped else DiagnosticStatus.OK,
+            level=(DiagnosticStatus.WARN if self.sim.realtime.frames_dropped
+                   else DiagnosticStatus.OK),
             name='sim: timing', message=f"{values['frames_published']} frames published, "
-            f"{self.sim.frames_dropped} dropped",
+            f"{self.sim.realtime.frames_dropped} dropped",
             values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = stamp_from_ns(self.sim.t_ns)
         self.stats_pub.publish(msg)
 
     def _wall_budget(self) -> dict:
-        """Where the wall clock went since frame 0 (``sim_core.wall_budget``)."""
+        """Where the wall clock went since frame 0 (``timing.wall_budget``)."""
         if self._first_frame_wall is None:
             return {}
         return wall_budget(time.monotonic() - self._first_frame_wall, self.latency.frames, {
-            'physics': self.sim.physics_wall_s, 'render': self.sim.render_wall_s,
+            'physics': self.sim.physics.wall_s, 'render': self.sim.cameras.wall_s,
             'publish': self._publish_wall_s, 'imu_hold': self.imu_hold.held_s})
 
     def _publish(self, out: FrameOutput) -> None:
@@ -556,8 +563,8 @@ class SimNode(Node):
         # lockstep: the graph may have nothing to answer (its mode's camera is off), or drop
         # a frozen camera's images (its products are then given up after this short wait)
         imu_fault = self.autopilot.config.imu_fault_at(out.t)
-        self.sim.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld or frozen or imu_fault
-                                  else self.sim.config.lockstep_timeout_s)
+        self.sim.lockstep.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld or frozen
+                                           or imu_fault else self.sim.config.lockstep_timeout_s)
         if imu_fault:
             self.get_logger().warning(f'fault injection: IMU {imu_fault} at t = {out.t:.3f} s',
                                       throttle_duration_sec=LOG_THROTTLE_S)
@@ -579,9 +586,9 @@ class SimNode(Node):
             self._publish_event(event)
         if self.imu_hold.enabled:
             cameras = list(images)
-            self.sim.products.expect(out.t_ns, cameras,
-                                     {t: self.count_publishers(t)
-                                      for t in (*GRAPH_PRODUCTS, STATUS_TOPIC)})
+            self.sim.lockstep.products.expect(out.t_ns, cameras,
+                                              {t: self.count_publishers(t)
+                                               for t in (*GRAPH_PRODUCTS, STATUS_TOPIC)})
 
     def _publish_event(self, event) -> None:
         self._events_published += 1

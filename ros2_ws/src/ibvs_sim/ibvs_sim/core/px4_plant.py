@@ -55,7 +55,7 @@ from ibvs_common.core.config import VehicleConfig
 from ibvs_common.core.frames import euler_zyx_from_rot, exp_so3, GRAVITY, rot_from_quat
 from ibvs_sim.core.contacts import FLOOR, min_clearance
 from ibvs_sim.core.dynamics import N_ROTORS, PlantParams, State
-from ibvs_sim.core.sim_core import EventType, SimEvent
+from ibvs_sim.core.events import EventType, SimEvent
 from ibvs_sim.core.world import WorldConfig
 
 EARTH_RADIUS_M = 6371000.0          # PX4's CONSTANTS_RADIUS_OF_EARTH (map_projection)
