@@ -23,9 +23,7 @@ uses, including those it does not wait for). Both waits end after
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import json
-import math
 import time
 
 import numpy as np
@@ -46,27 +44,26 @@ from ibvs_common.core.camera import CameraModel
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_common.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_base_from_R_IB,
-                                     vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
-from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
-from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.faults import CameraFaults, fault_windows
+                                     vec_frd_to_flu, vec_I_to_map)
+from ibvs_sim.config import CAMERAS, SimNodeConfig
+from ibvs_sim.core.autopilot import Autopilot
+from ibvs_sim.core.dynamics import State
 from ibvs_sim.core.graph_sync import (FirstFrameHold, GraphProducts, ImuBeforeImages,
                                       STATUS_TOPIC)
 from ibvs_sim.core.pacing import Pacing
-from ibvs_sim.core.sim_core import FrameOutput, SimConfig, Simulation
+from ibvs_sim.core.sim_core import FrameOutput, Simulation
 from ibvs_sim.core.timing import AnswerLatency, wall_budget
 from ibvs_common.core.modes import InputKind, modes_using
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.node_common import mode_from_status, stamp_to_ns
-from ibvs_common.param_descriptors import declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 
 NODE_NAME = 'sim'
 MAP_FRAME = 'map'
 BASE_FRAME = 'base_link'
 MONO8 = 'mono8'
-CAMERAS = ('front', 'down')
 LOG_THROTTLE_S = 2.0
 EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
@@ -89,134 +86,6 @@ PRODUCT_KINDS = {'window/corners': InputKind.WINDOW,
                  'front_camera/translational_flow': InputKind.FLOW_FRONT,
                  'pad/landmarks': InputKind.PAD, 'pad/groups': InputKind.PAD,
                  'down_camera/translational_flow': InputKind.FLOW_DOWN}
-PARAMETERS = {
-    'pacing': Pacing.LOCKSTEP.value,
-    'lockstep_timeout_s': 5.0,
-    'real_time_factor': 1.0,
-    'tick_period_s': 0.002,
-    'initial_override': False,
-    'initial_position_I': [-2.0, 0.1, -1.82],
-    'initial_yaw': 0.0,
-    'wind_force_map': [0.0, 0.0, 0.0],
-    'wind_gust_amplitude_N': 0.0,
-    'wind_gust_frequency_hz': 0.5,
-    'mavlink_url': 'udpin:127.0.0.1:14560',
-    'signing_key_file': '',
-    'world_file': '',
-    'pad_layout_file': '',
-    'vehicle_file': '',
-    'seed': 0,
-    'camera_read_noise_std': 1.5,
-    'min_image_subscribers': 0,
-    'subscriber_wait_timeout_s': 30.0,
-    'start_on_setpoints': True,
-    'telemetry_default_hz': 100.0,
-    'attitude_estimate_offset_rad': [0.0, 0.0],
-    'attitude_noise_std_rad': 0.0122,
-    'attitude_noise_tau_s': 2.0,
-    'fault_front_camera_off_s': [0.0, 0.0],
-    'fault_down_camera_off_s': [0.0, 0.0],
-    'fault_front_camera_freeze_s': [0.0, 0.0],
-    'fault_down_camera_freeze_s': [0.0, 0.0],
-    'fault_imu_off_s': [0.0, 0.0],
-    'fault_imu_nan_s': [0.0, 0.0],
-}
-# description with unit (times: sim = the sim's own clock, published on /clock; wall = steady
-# clock), inclusive range (ibvs_common.param_descriptors)
-_FAULT = ' [start, end) s (sim time), fault injection (tests only); [0, 0] = never'
-_FAULTS = ' [start, end) s (sim time), or several: [start, end, start, end, ...]; fault ' \
-    'injection (tests only); [0, 0] = never'
-PARAMETER_SPECS = {
-    'pacing': ("'lockstep': the next 20 ms only once the graph answered the last frame (or "
-               "after lockstep_timeout_s); 'realtime': free-running, late frames dropped",),
-    'lockstep_timeout_s': ('s (wall, steady clock), lockstep wait before simulating anyway, '
-                           '> 0', 0.0, None),
-    'real_time_factor': ('realtime pacing: sim s per wall s, (0, 10]', 0.0, 10.0),
-    'tick_period_s': ('s (wall, steady clock), how often the node checks the pacing, > 0',
-                      0.0, None),
-    'initial_override': ('true: start at initial_position_I / initial_yaw; false: world.yaml '
-                         'initial_condition',),
-    'initial_position_I': ('m, start position in the paper frame {I} (NED-type, z down), '
-                           '3 numbers',),
-    'initial_yaw': ('rad, start yaw about z_I (0: the front camera faces the wall)',
-                    -2.0 * math.pi, 2.0 * math.pi),
-    'wind_force_map': ('N, steady disturbance force in map (ENU), 3 numbers',),
-    'wind_gust_amplitude_N': ('N, gust amplitude per horizontal axis (half vertically)',
-                              0.0, None),
-    'wind_gust_frequency_hz': ('Hz (sim time), base gust frequency', 0.0, None),
-    'mavlink_url': ("the autopilot's MAVLink endpoint (pymavlink URL)",),
-    'signing_key_file': ("MAVLink 2 signing key file; '' = signing off",),
-    'world_file': ("world YAML; '' = the installed world.yaml",),
-    'pad_layout_file': ("pad layout YAML; '' = the installed pad_layout.yaml",),
-    'vehicle_file': ("vehicle YAML; '' = the installed vehicle.yaml",),
-    'seed': ('seed of the gust phases, autopilot sensor noise, camera read noise', 0, None),
-    'camera_read_noise_std': ('grey levels (of 255), std of the cameras\' Gaussian read '
-                              'noise; 0 = noise-free', 0.0, 255.0),
-    'min_image_subscribers': ('frame 0 waits until each camera has this many image '
-                              'subscribers', 0, None),
-    'subscriber_wait_timeout_s': ('s (wall, steady clock), then frame 0 starts anyway, > 0',
-                                  0.0, None),
-    'start_on_setpoints': ('frame 0 also waits until the bridge streams setpoints',),
-    'telemetry_default_hz': ('Hz (sim time), IMU/attitude stream rate before any '
-                             'SET_MESSAGE_INTERVAL, > 0', 0.0, None),
-    'attitude_estimate_offset_rad': ("rad, [roll, pitch] static error of the autopilot's "
-                                     'attitude estimate, reported and flown (an accelerometer '
-                                     'bias b tilts it b / g; PX4 SIH: 1.5-1.8 deg), each within '
-                                     '+-0.2',),
-    'attitude_noise_std_rad': ("rad, stationary std per axis of the autopilot's attitude-"
-                               'estimate error (Gauss-Markov), reported and flown (PX4 SIH on '
-                               'motion capture: 0.0122, 0.7 deg)', 0.0, 0.1),
-    'attitude_noise_tau_s': ('s (sim time), correlation time of that error; 0 = white',
-                             0.0, 600.0),
-    'fault_front_camera_off_s': ('no front images in' + _FAULTS,),
-    'fault_down_camera_off_s': ('no down images in' + _FAULTS,),
-    'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULTS,),
-    'fault_down_camera_freeze_s': ('the down camera re-publishes one image in' + _FAULTS,),
-    'fault_imu_off_s': ('the autopilot sends no ATTITUDE_QUATERNION / HIGHRES_IMU in'
-                        + _FAULT,),
-    'fault_imu_nan_s': ('the autopilot sends ATTITUDE_QUATERNION / HIGHRES_IMU full of NaN in'
-                        + _FAULT,),
-}
-
-
-@dataclass(frozen=True)
-class SimNodeConfig:
-    """Everything the node reads from its parameters."""
-
-    pacing: Pacing
-    lockstep_timeout_s: float
-    real_time_factor: float
-    tick_period_s: float
-    initial_position_I: tuple | None
-    initial_yaw: float | None
-    wind_force_map: tuple
-    wind_gust_amplitude_N: float
-    wind_gust_frequency_hz: float
-    mavlink_url: str
-    signing_key_file: str
-    world_file: str
-    pad_layout_file: str
-    vehicle_file: str
-    seed: int
-    min_image_subscribers: int = 0
-    subscriber_wait_timeout_s: float = 30.0
-    start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
-    telemetry_default_hz: float = 100.0
-    attitude_estimate_offset_rad: tuple = (0.0, 0.0)   # rad (roll, pitch), the estimate's error
-    attitude_noise_std_rad: float = 0.0122   # rad, the estimate's wandering error (std per axis)
-    attitude_noise_tau_s: float = 2.0        # s (sim), its correlation time
-    camera_off_s: dict = None                # fault injection: camera -> [start, end, ...] s
-    camera_frozen_s: dict = None             # fault injection: camera -> [start, end, ...] s
-    imu_off_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
-    imu_nan_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
-    read_noise_std: float = 0.0              # grey levels, the cameras' read noise (0: off)
-
-
-def _window(values, name: str) -> tuple[float, float]:
-    """Return the one [start, end] sim-time window (s) of a fault parameter; [0, 0] = never."""
-    if len(values) != 2:
-        raise ValueError(f'parameter {name} needs one window [start, end], got {list(values)}')
-    return fault_windows(f'parameter {name}', values)[0]
 
 
 def stamp_from_ns(t_ns: int) -> Time:
@@ -280,32 +149,15 @@ class SimNode(Node):
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        cfg = self._read_parameters()
+        cfg = declare_config(self, SimNodeConfig)      # ValueError: a bad parameter
         world = load_world(cfg.world_file or None)
         pad = load_pad_layout(cfg.pad_layout_file or None)
         vehicle = load_vehicle(cfg.vehicle_file or None)
         self.cameras = {name: vehicle.cameras[name] for name in CAMERAS}
-        self.autopilot = Autopilot(AutopilotConfig(
-            url=cfg.mavlink_url, hover_thrust=vehicle.hover_thrust,
-            signing_key_file=cfg.signing_key_file or None, noise_seed=cfg.seed,
-            mass=vehicle.mass, floor_z=world.floor_z,
-            telemetry_default_hz=cfg.telemetry_default_hz, imu_off_s=cfg.imu_off_s,
-            imu_nan_s=cfg.imu_nan_s,
-            attitude_estimate_offset_rad=cfg.attitude_estimate_offset_rad,
-            attitude_noise_std=cfg.attitude_noise_std_rad,
-            attitude_noise_tau_s=cfg.attitude_noise_tau_s))
-        wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
-                          gust_amplitude_N=cfg.wind_gust_amplitude_N,
-                          gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
+        self.autopilot = Autopilot(cfg.autopilot_config(vehicle, world.floor_z))
         products = GraphProducts({t: cam for t, (_, cam) in GRAPH_PRODUCTS.items()},
                                  {t: modes_using(k) for t, k in PRODUCT_KINDS.items()})
-        sim_config = SimConfig(
-            pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
-            real_time_factor=cfg.real_time_factor,
-            camera_rate_hz=self.cameras['down'].rate_hz,
-            initial_position_I=cfg.initial_position_I, initial_yaw=cfg.initial_yaw,
-            wind=wind, cameras=CAMERAS, read_noise_std=cfg.read_noise_std,
-            noise_seed=cfg.seed)
+        sim_config = cfg.sim_config(self.cameras['down'].rate_hz)
         self.sim = Simulation(world, pad, vehicle, self.autopilot, sim_config,
                               products=products, clock_sink=self._publish_clock)
         reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
@@ -322,15 +174,15 @@ class SimNode(Node):
             depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
         self.latency = AnswerLatency()
-        self.faults = CameraFaults(cfg.camera_off_s, cfg.camera_frozen_s)
+        self.faults = cfg.camera_faults()
         self._clock_ns = -1
         self._clock_wall = 0.0
         self._ended_logged = False
         self._events_published = 0
         self._first_frame_wall: float | None = None   # steady s, frame 0 published
         self._publish_wall_s = 0.0                     # perf_counter s spent publishing
-        self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
-                                        enabled=cfg.pacing is Pacing.LOCKSTEP)
+        self.imu_hold = ImuBeforeImages(sim_config.lockstep_timeout_s,
+                                        enabled=sim_config.pacing is Pacing.LOCKSTEP)
         if self.imu_hold.enabled:
             self.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
             for topic, (msg_type, _) in GRAPH_PRODUCTS.items():
@@ -345,66 +197,9 @@ class SimNode(Node):
         self.timer = self.create_timer(cfg.tick_period_s, self._on_tick, clock=steady)
         self.create_timer(STATS_PERIOD_S, self._publish_stats, clock=steady)
         self.get_logger().info(
-            f'sim: {cfg.pacing.value} pacing (real-time factor {cfg.real_time_factor:g}), '
+            f'sim: {cfg.pacing} pacing (real-time factor {cfg.real_time_factor:g}), '
             f'MAVLink {cfg.mavlink_url}, start at '
-            f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {cfg.wind_force_map} N (map)')
-
-    def _read_parameters(self) -> SimNodeConfig:
-        v = declare_all(self, PARAMETERS, PARAMETER_SPECS)    # ValueError: bad type or range
-        try:
-            pacing = Pacing(v['pacing'])
-        except ValueError as exc:
-            raise ValueError(f"parameter pacing must be 'lockstep' or 'realtime', "
-                             f"got {v['pacing']!r}") from exc
-        pos = [float(x) for x in v['initial_position_I']]
-        yaw = float(v['initial_yaw'])
-        if len(pos) != 3 or not all(math.isfinite(x) for x in pos + [yaw]):
-            raise ValueError(f'initial_position_I needs 3 finite numbers and initial_yaw a '
-                             f'finite one, got {pos}, {yaw}')
-        override = bool(v['initial_override'])
-        wind = [float(x) for x in v['wind_force_map']]
-        if len(wind) != 3 or not all(math.isfinite(x) for x in wind):
-            raise ValueError(f'parameter wind_force_map needs 3 finite numbers, got {wind}')
-        if v['lockstep_timeout_s'] <= 0 or v['tick_period_s'] <= 0:
-            raise ValueError('lockstep_timeout_s and tick_period_s must be positive')
-        if int(v['min_image_subscribers']) < 0 or not v['subscriber_wait_timeout_s'] > 0:
-            raise ValueError(f"min_image_subscribers must be >= 0 and subscriber_wait_timeout_s "
-                             f"> 0, got {v['min_image_subscribers']}, "
-                             f"{v['subscriber_wait_timeout_s']}")
-        telemetry_hz = float(v['telemetry_default_hz'])
-        noise = float(v['camera_read_noise_std'])
-        if not (math.isfinite(noise) and noise >= 0.0):
-            raise ValueError(f'camera_read_noise_std must be >= 0 grey levels, got {noise}')
-        if not (math.isfinite(telemetry_hz) and telemetry_hz > 0):
-            raise ValueError(f'telemetry_default_hz must be > 0, got {telemetry_hz}')
-        return SimNodeConfig(
-            pacing=pacing, lockstep_timeout_s=float(v['lockstep_timeout_s']),
-            real_time_factor=float(v['real_time_factor']),
-            tick_period_s=float(v['tick_period_s']),
-            initial_position_I=tuple(pos) if override else None,
-            initial_yaw=yaw if override else None,
-            wind_force_map=tuple(wind),
-            wind_gust_amplitude_N=float(v['wind_gust_amplitude_N']),
-            wind_gust_frequency_hz=float(v['wind_gust_frequency_hz']),
-            mavlink_url=str(v['mavlink_url']), signing_key_file=str(v['signing_key_file']),
-            world_file=str(v['world_file']), pad_layout_file=str(v['pad_layout_file']),
-            vehicle_file=str(v['vehicle_file']), seed=int(v['seed']),
-            min_image_subscribers=int(v['min_image_subscribers']),
-            subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']),
-            start_on_setpoints=bool(v['start_on_setpoints']),
-            telemetry_default_hz=telemetry_hz,
-            attitude_estimate_offset_rad=tuple(
-                float(x) for x in v['attitude_estimate_offset_rad']),
-            attitude_noise_std_rad=float(v['attitude_noise_std_rad']),
-            attitude_noise_tau_s=float(v['attitude_noise_tau_s']),
-            read_noise_std=noise,
-            camera_off_s={cam: fault_windows(f'parameter fault_{cam}_camera_off_s',
-                                             v[f'fault_{cam}_camera_off_s']) for cam in CAMERAS},
-            camera_frozen_s={cam: fault_windows(f'parameter fault_{cam}_camera_freeze_s',
-                                                v[f'fault_{cam}_camera_freeze_s'])
-                             for cam in CAMERAS},
-            imu_off_s=_window(v['fault_imu_off_s'], 'fault_imu_off_s'),
-            imu_nan_s=_window(v['fault_imu_nan_s'], 'fault_imu_nan_s'))
+            f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {tuple(cfg.wind_force_map)} N (map)')
 
     def _first_frame_may_go(self) -> bool:
         """Ask the hold (core) with the subscriber counts; log the wait and a timeout."""
