@@ -44,7 +44,7 @@ from ibvs_sim.core.render import SceneRenderer
 from ibvs_sim.core.sensor_noise import ReadNoise
 from ibvs_sim.core.timing import AnswerLatency
 from ibvs_sim.core.world import load_world
-from ibvs_sim.sim_node import camera_info_msg, image_msg, odometry_msg, stamp_from_ns
+from ibvs_sim.messages import camera_info_msg, image_msg, odometry_msg, stamp_from_ns
 
 NODE_NAME = 'px4_sim'
 LOG_THROTTLE_S = 2.0
