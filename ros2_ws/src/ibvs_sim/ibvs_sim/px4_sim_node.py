@@ -1,19 +1,10 @@
 """ROS 2 node ``px4_sim``: both cameras rendered from PX4 SIH's ground truth (``px4-sih`` mode).
 
-PX4 v1.16 SITL with its SIH simulator is the plant and the autopilot (docs/px4_sih.md); this
-node integrates no physics and emulates no autopilot. It reads SIH's HIL_STATE_QUATERNION on
-``state_url`` (127.0.0.1:19410 + i; rate raised to ``state_rate_hz`` with
-SET_MESSAGE_INTERVAL on that link), maps it to the paper frame {I}
-(:class:`~ibvs_sim.core.px4_plant.NedToI`: the take-off point is the scenario's start
-projected on the floor) and publishes, on the system clock (use_sim_time false, no
-``/clock``): ``sim/ground_truth/odom`` at every sample (stamp = receipt), and on the cameras'
-50 Hz grid ``front_camera/image_raw``, ``down_camera/image_raw`` and their ``camera_info``,
-rendered from the latest sample moved ahead to the frame time (constant velocity and rates;
-a frame is not rendered from a sample older than ``state_timeout_s``); a frame the node
-reaches a whole period late is dropped and counted. Contact events go to ``sim/events``
-(once airborne), timing to ``sim/stats``: frames published / dropped / stale, the
-ground-truth rate and the latency image stamp -> ``ibvs/force_setpoint`` receipt (the force
-the bridge turns into SET_ATTITUDE_TARGET at once), all on the system clock.
+PX4 SITL with its SIH simulator is the plant and the autopilot; this node integrates no
+physics and emulates no autopilot. It reads SIH's HIL_STATE_QUATERNION on ``state_url``, maps
+it to {I} and publishes on the system clock (no ``/clock``) the ground truth, both cameras on
+their 50 Hz grid, contact events and ``sim/stats``. Parameters:
+:class:`~ibvs_sim.config.Px4SimNodeConfig`; docs/px4_sih.md.
 """
 from __future__ import annotations
 

@@ -31,18 +31,12 @@ PRODUCT_KINDS = {'window/corners': InputKind.WINDOW,
 
 
 class FirstFrameHold:
-    """Whether the first frame may go: the graph is there to answer it.
+    """Whether the first frame may go: the graph is there to answer it (docs/sim.md).
 
-    Each counted topic has its minimum number of subscribers (``min_counts``, e.g. both
-    cameras' images: detector + flow (+ recorder)), so that every node sees the same frames from
-    the first one on (an image published before discovery matched a subscriber is lost for it)
-    and a bag replay starts its trackers where the live ones started; and, with
-    ``need_setpoints``, the companion already streams setpoints, so its link is up and the IMU
-    at t = 0 reaches the graph with frame 0 (the bridge starts its stream only once its
-    ``imu/data`` consumers are matched, ``min_imu_subscribers``). The conditions must hold for
-    ``settle_s`` (discovery completes on all sides) before the release; after ``timeout_s`` the
-    frame goes anyway. Times are one monotonic clock (s); no minimum and no need_setpoints
-    never holds.
+    Each counted topic needs its minimum number of subscribers (``min_counts``) and, with
+    ``need_setpoints``, the companion must stream setpoints, both for ``settle_s`` before the
+    release; after ``timeout_s`` the frame goes anyway (``timed_out``). Times are one monotonic
+    clock (s); no minimum and no need_setpoints never holds.
     """
 
     def __init__(self, min_counts: dict, settle_s: float, timeout_s: float, now: float,
@@ -77,15 +71,10 @@ class FirstFrameHold:
 
 
 class ImuBeforeImages:
-    """Lockstep harness: hold a frame until ``imu/data`` has reached its time.
+    """Lockstep: hold a frame until ``imu/data`` has reached its time (docs/sim.md).
 
-    The sim's autopilot sends the telemetry due at a frame's time before the frame is rendered
-    (:meth:`Simulation.step_frame`), but it reaches the graph through MAVLink and the bridge,
-    while the images go out directly: without this hold, whether a node has the IMU sample at
-    the image stamp (interpolation) or only the one before (gyro propagation) would depend on
-    scheduling. Before any IMU sample was seen (link or clock sync not up yet) nothing is
-    held; a frame waits at most ``timeout_s`` (wall clock, s) and is then released anyway.
-    Disabled (pass-through) outside lockstep.
+    Before any IMU sample was seen nothing is held; a frame waits at most ``timeout_s`` (wall
+    clock, s) and is then released anyway. Disabled (pass-through) outside lockstep.
     """
 
     def __init__(self, timeout_s: float, enabled: bool = True) -> None:
@@ -137,20 +126,13 @@ class ImuBeforeImages:
 
 
 class GraphProducts:
-    """Lockstep harness: the products the graph makes of a frame, waited for before the next.
+    """Lockstep: the products the graph makes of a frame, waited for before the next.
 
-    The graph answers a frame (SET_ATTITUDE_TARGET) once the products its mode needs are in;
-    the others (the pad while CROSSING) may still be computing. In lockstep, sim time moves on
-    only when, besides the answer, every product of the last frame was published
-    (``products``: topic -> camera), so that no node is still computing when the next frame
-    comes and runs repeat under any load. Only the cameras whose images went out are
-    expected, and only topics with a publisher. A perception node computes its product only
-    in the modes that use it (mode gating, ``used_in``: topic -> modes; a topic not in it is
-    made in every mode): so the harness also waits for the supervisor's status of the frame
-    (``ibvs/supervisor_status``, published before the answer) and expects the products the
-    frame's mode uses (all of them before any status, as the nodes make them). A product or
-    the status still missing when the lockstep wait ends (a dead node) is given up: not
-    waited for until it is published again. Every product is stamped with its image.
+    ``products``: topic -> the camera it is made from; ``used_in``: topic -> the modes that
+    use it (mode gating; a topic not in it is made in every mode). Expected: the products of
+    the cameras whose images went out, with a publisher, that the frame's mode uses (from the
+    supervisor's status of the frame, waited for first); a missing one is given up until it
+    is published again (docs/sim.md "Loop, pacing and events").
     """
 
     def __init__(self, products: dict, used_in: dict | None = None) -> None:

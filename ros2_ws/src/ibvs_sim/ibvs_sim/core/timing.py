@@ -12,15 +12,10 @@ NS_PER_MS = 1_000_000
 class AnswerLatency:
     """Image -> setpoint latency of the graph, as the simulated vehicle sees it (wall clock).
 
-    :meth:`published` notes when each frame's images left (wall s); :meth:`answered` is called
-    for every SET_ATTITUDE_TARGET with a new time_boot_ms and the wall time the autopilot read
-    it (``Autopilot.new_setpoints``): the published frame nearest that time, within
-    ``tolerance_ms``, is answered (the bridge maps the image stamp to time_boot_ms through its
-    TIMESYNC estimate: exact in lockstep, within a few ms when the clocks run), and its
-    latency is the read minus the publication (the autopilot reads at each physics substep of
-    a tick: resolution about the sim node's tick period). ``stamp_errors_ms`` keeps
-    time_boot_ms minus the frame's time. Frames whose own answer never came count as
-    unanswered.
+    :meth:`published` notes when each frame's images left; :meth:`answered` takes each new
+    setpoint's time_boot_ms and the wall time it was read: the published frame nearest it,
+    within ``tolerance_ms``, is answered, its latency the read minus the publication.
+    ``stamp_errors_ms`` keeps time_boot_ms minus the frame's time (docs/sim.md "Timing").
     """
 
     def __init__(self, keep: int = 200, tolerance_ms: int = 9) -> None:
