@@ -176,12 +176,14 @@ class SimNodeConfig:
 
     def camera_faults(self) -> CameraFaults:
         """Return the cameras' fault injection: each camera's off and frozen windows."""
+        off = {'front': self.fault_front_camera_off_s, 'down': self.fault_down_camera_off_s}
+        frozen = {'front': self.fault_front_camera_freeze_s,
+                  'down': self.fault_down_camera_freeze_s}
         return CameraFaults(
-            {cam: fault_windows(f'parameter fault_{cam}_camera_off_s',
-                                getattr(self, f'fault_{cam}_camera_off_s')) for cam in CAMERAS},
-            {cam: fault_windows(f'parameter fault_{cam}_camera_freeze_s',
-                                getattr(self, f'fault_{cam}_camera_freeze_s'))
-             for cam in CAMERAS})
+            {cam: fault_windows(f'parameter fault_{cam}_camera_off_s', w)
+             for cam, w in off.items()},
+            {cam: fault_windows(f'parameter fault_{cam}_camera_freeze_s', w)
+             for cam, w in frozen.items()})
 
 
 @dataclass(frozen=True)
