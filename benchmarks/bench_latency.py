@@ -184,7 +184,7 @@ class Replayer:
 
     def __init__(self) -> None:
         import rclpy
-        from ibvs_sim.sim_node import camera_info_msg, image_msg
+        from ibvs_sim.messages import camera_info_msg, image_msg
         from rclpy.qos import qos_profile_sensor_data
         from sensor_msgs.msg import CameraInfo, Image, Imu
         from std_srvs.srv import Trigger

@@ -3,7 +3,7 @@
 Runs the Simulation core (no ROS, no MAVLink: a constant hover reference stands in for the
 autopilot) along a path from the start to the pad, and prints the ratio of simulated to wall
 time (target >= 2) and the per-frame times: physics (10 substeps), and the frame's images as
-the sim node makes them (``Simulation.render_cameras``: both cameras, their read noise at
+the sim node makes them (``CameraRig.render``: both cameras, their read noise at
 params.yaml's 1.5 grey levels, the cameras on parallel threads; ``--serial``: one after the
 other, as before 2026-11-26; ``--no-noise``: noise-free) with each camera's own render time.
 What the node adds per frame (ROS messages, publication, MAVLink telemetry) is not counted:
@@ -33,7 +33,7 @@ class HoverReference:
         self.hover_thrust = hover_thrust
 
     def poll(self, state, receive: bool = True, telemetry: bool = True) -> None:
-        """Nothing to receive or send (the sim_core.ReferenceSource protocol)."""
+        """Nothing to receive or send (the physics.ReferenceSource protocol)."""
 
     def attitude_reference(self, state) -> AttitudeReference:
         return AttitudeReference(LEVEL_Q, self.hover_thrust, 'hold')
@@ -57,9 +57,9 @@ def main() -> None:
     sim.step_frame()
     # Render along the reference path (start -> window -> pad) to cover every view.
     path = np.linspace(world.initial_position_I, [0.0, 0.0, -0.3], args.frames)
-    render_ms = {name: [] for name in sim.renderers}
+    render_ms = {name: [] for name in sim.cameras.renderers}
     physics_ms, images_ms = [], []
-    for name, r in sim.renderers.items():       # each camera alone (not in the wall time)
+    for name, r in sim.cameras.renderers.items():       # each camera alone (not in the wall time)
         for k in range(args.frames):
             R_IB = rot_from_euler_zyx(0.05 * np.sin(k / 7), 0.05 * np.cos(k / 9), 0.0)
             t0 = time.perf_counter()
@@ -70,12 +70,12 @@ def main() -> None:
         sim.state.xi_I = path[k].copy()
         sim.state.R_IB = rot_from_euler_zyx(0.05 * np.sin(k / 7), 0.05 * np.cos(k / 9), 0.0)
         t0 = time.perf_counter()
-        renderers, sim.renderers = sim.renderers, {}
+        renderers, sim.cameras.renderers = sim.cameras.renderers, {}
         sim.step_frame()                         # physics only
-        sim.renderers = renderers
+        sim.cameras.renderers = renderers
         physics_ms.append((time.perf_counter() - t0) * 1e3)
         t0 = time.perf_counter()
-        sim.render_cameras(sim.state.R_IB, sim.state.xi_I, k)
+        sim.cameras.render(sim.state.R_IB, sim.state.xi_I, k)
         images_ms.append((time.perf_counter() - t0) * 1e3)
     wall = time.perf_counter() - wall0
     sim.close()

@@ -239,7 +239,7 @@ def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path)
     was not back in a CI run beside the SITL flights and 2 products were given up), as on a
     vehicle. The
     reference records a bag (one more subscriber of every topic), this run does not. The sim
-    moves on only once every product the frame's mode uses is out (sim_core.GraphProducts;
+    moves on only once every product the frame's mode uses is out (graph_sync.GraphProducts;
     the pad is not made in WINDOW: mode gating) and a frame's
     evaluation uses only the products its mode needs (timing.FrameAssembler), so the runs are
     bit-identical here (measured: plain, bag-recording, this run, and this run beside three

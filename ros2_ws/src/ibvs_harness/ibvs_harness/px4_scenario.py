@@ -90,10 +90,12 @@ def at_start(xi_I: np.ndarray, start_I: np.ndarray, yaw_err_rad: float, box: dic
 def px4_sim_section(params_file: str | None) -> dict:
     """Return the ``px4_sim`` parameters of the params file (code defaults under them)."""
     import yaml
-    from ibvs_sim.px4_sim_node import PARAMETERS
+    from ibvs_common.core.params import defaults
+    from ibvs_sim.config import Px4SimNodeConfig
     with open(params_file or graph.default_params_file(), encoding='utf-8') as f:
         data = yaml.safe_load(f) or {}
-    return {**PARAMETERS, **((data.get('px4_sim') or {}).get('ros__parameters') or {})}
+    section = (data.get('px4_sim') or {}).get('ros__parameters') or {}
+    return {**defaults(Px4SimNodeConfig), **section}
 
 
 def _error_summary(opts, world, xi0, error: str) -> dict:

@@ -17,7 +17,7 @@ from ibvs_common.core.config import load_vehicle
 from ibvs_sim.core.px4_plant import (ContactWatch, find_px4_sitl, FrameClock, geodetic_to_ned,
                                      hil_state_sample, NedToI, PositionFilter, px4_home,
                                      Px4PlantError, sih_parameters)
-from ibvs_sim.core.sim_core import EventType
+from ibvs_sim.core.events import EventType
 from ibvs_sim.core.world import load_world
 
 HOME = (47.397742, 8.545594, 489.4)

@@ -12,8 +12,10 @@ from ibvs_harness.run_scenario import flight_timing, main, parse_args
 from ibvs_harness.scenario import MAX_SIM_TIME_S
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.frames import rot_from_euler_zyx
-from ibvs_sim.core.sim_core import (FrameOutput, ImuBeforeImages, Pacing, SimConfig,
-                                    Simulation, wall_budget)
+from ibvs_sim.core.graph_sync import ImuBeforeImages
+from ibvs_sim.core.pacing import Pacing
+from ibvs_sim.core.sim_core import FrameOutput, SimConfig, Simulation
+from ibvs_sim.core.timing import wall_budget
 from ibvs_sim.core.world import load_world
 
 from ibvs_sim.testing import HoverAutopilot
@@ -37,17 +39,17 @@ def test_parallel_renders_are_the_serial_ones_bit_for_bit(configs):
     try:
         for k, xi in enumerate(path):
             R_IB = rot_from_euler_zyx(0.1 * np.sin(k), 0.08 * np.cos(k), 0.2 * k)
-            a = parallel.render_cameras(R_IB, xi, k)
-            b = serial.render_cameras(R_IB, xi, k)
+            a = parallel.cameras.render(R_IB, xi, k)
+            b = serial.cameras.render(R_IB, xi, k)
             assert list(a) == list(b) == ['front', 'down']        # the cameras' order
             for cam in a:
                 assert a[cam].dtype == np.uint8 and np.array_equal(a[cam], b[cam])
-        assert parallel._render_pool is not None and serial._render_pool is None
+        assert parallel.cameras._render_pool is not None and serial.cameras._render_pool is None
     finally:
         parallel.close()
     parallel.close()                                             # idempotent
-    assert parallel._render_pool is None
-    assert set(parallel.render_cameras(np.eye(3), path[0], 0)) == {'front', 'down'}
+    assert parallel.cameras._render_pool is None
+    assert set(parallel.cameras.render(np.eye(3), path[0], 0)) == {'front', 'down'}
     parallel.close()
 
 
@@ -64,12 +66,12 @@ def test_frames_of_a_parallel_sim_repeat_those_of_a_serial_one(configs):
 
 def test_the_sim_counts_its_wall_time_in_physics_and_render(configs):
     sim = _sim(configs)
-    assert sim.physics_wall_s == sim.render_wall_s == 0.0
+    assert sim.physics.wall_s == sim.cameras.wall_s == 0.0
     sim.step_frame()                                   # frame 0: render only
-    assert sim.physics_wall_s == 0.0 and sim.render_wall_s > 0.0
-    render0 = sim.render_wall_s
+    assert sim.physics.wall_s == 0.0 and sim.cameras.wall_s > 0.0
+    render0 = sim.cameras.wall_s
     sim.step_frame()
-    assert sim.physics_wall_s > 0.0 and sim.render_wall_s > render0
+    assert sim.physics.wall_s > 0.0 and sim.cameras.wall_s > render0
     sim.close()
 
 

@@ -8,7 +8,9 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_sim.core.sensor_noise import BANK_MARGIN_PX, ReadNoise
-from ibvs_sim.core.sim_core import CameraFaults, fault_windows, Pacing, SimConfig, Simulation
+from ibvs_sim.core.faults import CameraFaults, fault_windows
+from ibvs_sim.core.pacing import Pacing
+from ibvs_sim.core.sim_core import SimConfig, Simulation
 
 from ibvs_sim.testing import HoverAutopilot
 

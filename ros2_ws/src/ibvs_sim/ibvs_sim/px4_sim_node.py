@@ -1,25 +1,14 @@
 """ROS 2 node ``px4_sim``: both cameras rendered from PX4 SIH's ground truth (``px4-sih`` mode).
 
-PX4 v1.16 SITL with its SIH simulator is the plant and the autopilot (docs/px4_sih.md); this
-node integrates no physics and emulates no autopilot. It reads SIH's HIL_STATE_QUATERNION on
-``state_url`` (127.0.0.1:19410 + i; rate raised to ``state_rate_hz`` with
-SET_MESSAGE_INTERVAL on that link), maps it to the paper frame {I}
-(:class:`~ibvs_sim.core.px4_plant.NedToI`: the take-off point is the scenario's start
-projected on the floor) and publishes, on the system clock (use_sim_time false, no
-``/clock``): ``sim/ground_truth/odom`` at every sample (stamp = receipt), and on the cameras'
-50 Hz grid ``front_camera/image_raw``, ``down_camera/image_raw`` and their ``camera_info``,
-rendered from the latest sample moved ahead to the frame time (constant velocity and rates;
-a frame is not rendered from a sample older than ``state_timeout_s``); a frame the node
-reaches a whole period late is dropped and counted. Contact events go to ``sim/events``
-(once airborne), timing to ``sim/stats``: frames published / dropped / stale, the
-ground-truth rate and the latency image stamp -> ``ibvs/force_setpoint`` receipt (the force
-the bridge turns into SET_ATTITUDE_TARGET at once), all on the system clock.
+PX4 SITL with its SIH simulator is the plant and the autopilot; this node integrates no
+physics and emulates no autopilot. It reads SIH's HIL_STATE_QUATERNION on ``state_url``, maps
+it to {I} and publishes on the system clock (no ``/clock``) the ground truth, both cameras on
+their 50 Hz grid, contact events and ``sim/stats``. Parameters:
+:class:`~ibvs_sim.config.Px4SimNodeConfig`; docs/px4_sih.md.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import json
-import math
 import time
 
 import numpy as np
@@ -37,120 +26,22 @@ from std_msgs.msg import String
 from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
-from ibvs_common.param_descriptors import declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
+from ibvs_sim.config import CAMERAS, Px4SimNodeConfig
 from ibvs_sim.core.px4_plant import (ContactWatch, FrameClock, hil_state_sample, MocapRelay,
-                                     NedToI, PositionFilter, px4_home, Px4PlantError,
-                                     SIH_DEFAULT_HOME, StateLink)
+                                     NedToI, PositionFilter, px4_home, Px4PlantError, StateLink)
 from ibvs_sim.core.render import SceneRenderer
 from ibvs_sim.core.sensor_noise import ReadNoise
-from ibvs_sim.core.sim_core import AnswerLatency
+from ibvs_sim.core.timing import AnswerLatency
 from ibvs_sim.core.world import load_world
-from ibvs_sim.sim_node import CAMERAS, camera_info_msg, image_msg, odometry_msg, stamp_from_ns
+from ibvs_sim.messages import camera_info_msg, image_msg, odometry_msg, stamp_from_ns
 
 NODE_NAME = 'px4_sim'
 LOG_THROTTLE_S = 2.0
 EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
 STATS_PERIOD_S = 1.0          # s (steady clock), sim/stats
-PARAMETERS = {
-    'state_url': 'udpin:127.0.0.1:19410',
-    'state_rate_hz': 100.0,
-    'state_timeout_s': 0.2,
-    'tick_period_s': 0.002,
-    'home_lat_deg': SIH_DEFAULT_HOME[0],
-    'home_lon_deg': SIH_DEFAULT_HOME[1],
-    'home_alt_m': SIH_DEFAULT_HOME[2],
-    'rest_height_m': 0.1,
-    'initial_override': False,
-    'initial_position_I': [-2.0, 0.1, -1.82],
-    'position_filter_tau_s': 0.2,
-    'airborne_clearance_m': 0.3,
-    'world_file': '',
-    'pad_layout_file': '',
-    'vehicle_file': '',
-    'seed': 0,
-    'camera_read_noise_std': 1.5,
-    'mocap_rate_hz': 50.0,
-}
-PARAMETER_SPECS = {
-    'state_url': ("where PX4 SIH sends HIL_STATE_QUATERNION (pymavlink URL, "
-                  "udpin:127.0.0.1:<19410 + instance>)",),
-    'state_rate_hz': ('Hz (PX4 boot clock), HIL_STATE_QUATERNION rate asked with '
-                      'SET_MESSAGE_INTERVAL, > 0', 0.0, 1000.0),
-    'state_timeout_s': ('s (system clock), a frame is not rendered from a ground-truth sample '
-                        'older than this, > 0', 0.0, None),
-    'tick_period_s': ('s (steady clock), how often the node reads the link and checks the '
-                      'frame grid, > 0', 0.0, None),
-    'home_lat_deg': ('deg, PX4 home latitude (SIH_LOC_LAT0 PX4 was started with; used as '
-                     'PX4 stores it, float32)',
-                     -90.0, 90.0),
-    'home_lon_deg': ('deg, PX4 home longitude (SIH_LOC_LON0)', -180.0, 180.0),
-    'home_alt_m': ('m AMSL, PX4 home altitude (SIH_LOC_H0): the ground', -1000.0, 10000.0),
-    'rest_height_m': ('m, body origin above the floor when PX4 rests on the ground at home '
-                      '(the envelope half height)', 0.0, 10.0),
-    'initial_override': ('true: the take-off point is below initial_position_I; false: below '
-                         'world.yaml initial_condition',),
-    'initial_position_I': ('m, scenario start in {I} (only x, y: the take-off point), '
-                           '3 numbers',),
-    'position_filter_tau_s': ('s (system clock), time constant pulling the integrated '
-                              'velocity to the 1e-7 deg quantised fix; 0 = raw fix',
-                              0.0, 10.0),
-    'airborne_clearance_m': ('m, contact events only after the envelope was this high above '
-                             'the floor', 0.0, None),
-    'world_file': ("world YAML; '' = the installed world.yaml",),
-    'pad_layout_file': ("pad layout YAML; '' = the installed pad_layout.yaml",),
-    'vehicle_file': ("vehicle YAML; '' = the installed vehicle.yaml",),
-    'seed': ('seed of the camera read noise', 0, None),
-    'camera_read_noise_std': ("grey levels (of 255), std of the cameras' Gaussian read "
-                              'noise; 0 = noise-free', 0.0, 255.0),
-    'mocap_rate_hz': ('Hz (steady clock), the ground truth sent back to PX4 as motion capture '
-                      '(VISION_POSITION_ESTIMATE, EKF origin = home) for its own estimator; '
-                      'PX4 must boot with MOCAP_EKF2_PARAMETERS; 0 = off', 0.0, 1000.0),
-}
-
-
-@dataclass(frozen=True)
-class Px4SimConfig:
-    """Everything the node reads from its parameters."""
-
-    state_url: str
-    state_rate_hz: float
-    state_timeout_s: float
-    tick_period_s: float
-    home: tuple
-    rest_height_m: float
-    start_I: tuple | None
-    filter_tau_s: float
-    airborne_m: float
-    world_file: str
-    pad_layout_file: str
-    vehicle_file: str
-    seed: int
-    read_noise_std: float
-    mocap_rate_hz: float
-
-
-def read_config(v: dict) -> Px4SimConfig:
-    """Check the declared parameter values; raise ValueError naming a bad one."""
-    pos = [float(x) for x in v['initial_position_I']]
-    if len(pos) != 3 or not all(math.isfinite(x) for x in pos):
-        raise ValueError(f'initial_position_I needs 3 finite numbers, got {pos}')
-    for key in ('state_rate_hz', 'state_timeout_s', 'tick_period_s'):
-        if not (math.isfinite(v[key]) and v[key] > 0.0):
-            raise ValueError(f'{key} must be > 0, got {v[key]}')
-    return Px4SimConfig(
-        state_url=str(v['state_url']), state_rate_hz=float(v['state_rate_hz']),
-        state_timeout_s=float(v['state_timeout_s']), tick_period_s=float(v['tick_period_s']),
-        home=px4_home(float(v['home_lat_deg']), float(v['home_lon_deg']),
-                      float(v['home_alt_m'])),
-        rest_height_m=float(v['rest_height_m']),
-        start_I=tuple(pos) if v['initial_override'] else None,
-        filter_tau_s=float(v['position_filter_tau_s']),
-        airborne_m=float(v['airborne_clearance_m']), world_file=str(v['world_file']),
-        pad_layout_file=str(v['pad_layout_file']), vehicle_file=str(v['vehicle_file']),
-        seed=int(v['seed']), read_noise_std=float(v['camera_read_noise_std']),
-        mocap_rate_hz=float(v['mocap_rate_hz']))
 
 
 class Px4SimNode(Node):
@@ -158,22 +49,25 @@ class Px4SimNode(Node):
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        cfg = read_config(declare_all(self, PARAMETERS, PARAMETER_SPECS))
+        cfg = declare_config(self, Px4SimNodeConfig)   # ValueError: a bad parameter
         self.cfg = cfg
+        self.home = px4_home(cfg.home_lat_deg, cfg.home_lon_deg, cfg.home_alt_m)
         world = load_world(cfg.world_file or None)
         pad = load_pad_layout(cfg.pad_layout_file or None)
         vehicle = load_vehicle(cfg.vehicle_file or None)
         self.cameras = {name: vehicle.cameras[name] for name in CAMERAS}
-        start = cfg.start_I if cfg.start_I is not None else tuple(world.initial_position_I)
+        start = (tuple(float(x) for x in cfg.initial_position_I) if cfg.initial_override
+                 else tuple(world.initial_position_I))
         self.frame = NedToI.from_start(start, world.floor_z, cfg.rest_height_m)
         self.renderers = {n: SceneRenderer(world, pad, vehicle.cameras[n]) for n in CAMERAS}
-        self.read_noise = {n: ReadNoise(cfg.read_noise_std, (vehicle.cameras[n].model.height,
-                                                             vehicle.cameras[n].model.width),
-                                        cfg.seed, n) for n in CAMERAS}
-        self.filter = PositionFilter(cfg.filter_tau_s)
+        self.read_noise = {n: ReadNoise(cfg.camera_read_noise_std,
+                                        (vehicle.cameras[n].model.height,
+                                         vehicle.cameras[n].model.width), cfg.seed, n)
+                           for n in CAMERAS}
+        self.filter = PositionFilter(cfg.position_filter_tau_s)
         self.contacts = ContactWatch(world, vehicle.envelope_radius, vehicle.envelope_height,
-                                     cfg.airborne_m)
-        self.mocap = MocapRelay(cfg.home, cfg.mocap_rate_hz) if cfg.mocap_rate_hz > 0 else None
+                                     cfg.airborne_clearance_m)
+        self.mocap = MocapRelay(self.home, cfg.mocap_rate_hz) if cfg.mocap_rate_hz > 0 else None
         self.link = StateLink(cfg.state_url, cfg.state_rate_hz, threaded=True, relay=self.mocap)
         self.frames = FrameClock(self.cameras['down'].rate_hz, time.time_ns())
         self.latency = AnswerLatency()
@@ -203,7 +97,7 @@ class Px4SimNode(Node):
         self._stats_due = time.monotonic() + STATS_PERIOD_S
         self.get_logger().info(
             f'px4_sim: ground truth from {cfg.state_url} at {cfg.state_rate_hz:g} Hz; PX4 '
-            f'home {cfg.home} = {{I}} {list(self.frame.origin_I)} (take-off point below the '
+            f'home {self.home} = {{I}} {list(self.frame.origin_I)} (take-off point below the '
             f'start {list(start)}); system clock, no /clock; motion capture to PX4 '
             + (f'at {cfg.mocap_rate_hz:g} Hz' if self.mocap else 'off'))
 
@@ -249,9 +143,9 @@ class Px4SimNode(Node):
 
     def _on_state(self, msg, receipt_ns: int) -> None:
         try:
-            raw = hil_state_sample(msg, self.cfg.home, self.frame)
+            raw = hil_state_sample(msg, self.home, self.frame)
             p = self.filter.update(receipt_ns / NS_PER_S, raw.p_ned_raw, raw.v_I)
-            sample = hil_state_sample(msg, self.cfg.home, self.frame, p_ned=p)
+            sample = hil_state_sample(msg, self.home, self.frame, p_ned=p)
         except (Px4PlantError, AttributeError, TypeError) as exc:
             self.bad_samples += 1
             self.get_logger().warning(f'HIL_STATE_QUATERNION ignored: {exc}',

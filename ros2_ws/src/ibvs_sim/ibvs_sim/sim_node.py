@@ -1,40 +1,22 @@
-"""ROS 2 node ``sim``: the simulated Pelican-class quadrotor, its two cameras and its autopilot.
+"""ROS 2 node ``sim``: the simulated quadrotor, its two cameras and its autopilot (docs/sim.md).
 
-It IS the clock of the graph (publishes ``/clock``; every other node runs with use_sim_time).
-Its own timer runs on the steady wall clock. Per camera period (20 ms of sim time) it publishes,
-all stamped with the capture time: ``/clock``, ``front_camera/image_raw``,
+A thin wrapper over :class:`~ibvs_sim.driver.SimDriver`: parameters
+(:class:`~ibvs_sim.config.SimNodeConfig`), publishers, the lockstep's subscriptions and a
+steady-clock timer. It is the clock of the graph (``/clock``; the other nodes use sim time)
+and publishes, stamped with each frame's capture time, ``front_camera/image_raw`` and
 ``down_camera/image_raw`` (mono8, sensor-data QoS), their ``camera_info``,
-``sim/ground_truth/odom`` (evaluation only) and, when they happen, contact events on
-``sim/events`` (JSON in std_msgs/String, transient local). The autopilot speaks MAVLink on
-``mavlink_url``. Pacing, wind, the cameras' read noise (``camera_read_noise_std``: no two
-frames are bit-identical, as with a real sensor) and the initial condition are parameters
-(docs/interfaces.md); so are the test-only faults (camera off or frozen, IMU off or NaN:
-``fault_*``).
-
-In lockstep the node is the test harness's clock, and only it waits: a frame's images leave
-once ``imu/data`` (the bridge's, from this autopilot's telemetry) has reached the frame's
-time, as a camera-IMU synchronised vehicle delivers them, so that the graph's attitude at the
-stamp is the same in every run (:class:`~ibvs_sim.core.sim_core.ImuBeforeImages`); then the
-next 20 ms are simulated only after the graph answered the frame and published all its
-products (:class:`~ibvs_sim.core.sim_core.GraphProducts`: the supervisor's status of the
-frame, then the detections and flows of the cameras that went out that the frame's mode
-uses, including those it does not wait for). Both waits end after
-``lockstep_timeout_s`` of wall clock (a dead node). The flight path has no wait of its own.
+``sim/ground_truth/odom`` (evaluation only), contact events on ``sim/events`` (JSON, transient
+local) and its timing on ``sim/stats``. The autopilot speaks MAVLink on ``mavlink_url``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 import json
-import math
-import time
 
-import numpy as np
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import (DurabilityPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
@@ -42,269 +24,40 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
 from std_msgs.msg import String
 
-from ibvs_common.core.camera import CameraModel
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
-from ibvs_sim.core.world import load_world
-from ibvs_common.core.frames import (quat_from_rot, quat_wxyz_to_xyzw, rot_map_base_from_R_IB,
-                                     vec_frd_to_flu, vec_I_to_map, vec_map_to_I)
-from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
-from ibvs_sim.core.dynamics import State, WindConfig
-from ibvs_sim.core.sim_core import (AnswerLatency, CameraFaults, FirstFrameHold, FrameOutput,
-                                    GraphProducts, ImuBeforeImages, Pacing, SimConfig,
-                                    fault_windows, Simulation, STATUS_TOPIC, wall_budget)
-from ibvs_common.core.modes import InputKind, modes_using
-from ibvs_common.core.stamps import NS_PER_S
 from ibvs_common.dds_profile import use_dds_profile_here
 from ibvs_common.node_common import mode_from_status, stamp_to_ns
-from ibvs_common.param_descriptors import declare_all
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
+from ibvs_sim.config import CAMERAS, SimNodeConfig
+from ibvs_sim.core.dynamics import State
+from ibvs_sim.core.events import SimEvent
+from ibvs_sim.core.graph_sync import STATUS_TOPIC
+from ibvs_sim.core.world import load_world
+from ibvs_sim.driver import SimDriver
+from ibvs_sim.messages import camera_info_msg, image_msg, odometry_msg, stamp_from_ns
 
 NODE_NAME = 'sim'
-MAP_FRAME = 'map'
-BASE_FRAME = 'base_link'
-MONO8 = 'mono8'
-CAMERAS = ('front', 'down')
-LOG_THROTTLE_S = 2.0
 EVENTS_DEPTH = 20
 RELIABLE_DEPTH = 10
-SUBSCRIBER_SETTLE_S = 2.0     # s (wall), image subscribers and setpoints this long before frame 0:
-#                               the other topics' discovery completes meanwhile (0.5 s lost the
-#                               window detections of frames 0 and 1 in one lockstep start of 6)
 STATS_PERIOD_S = 1.0          # s (wall), sim/stats
-CLOCK_REPEAT_S = 0.1          # s (wall), /clock repeated while sim time stands still: a node
-#                               whose /clock subscription matched late still learns the time
-FAULT_ANSWER_WAIT_S = 0.3     # s (wall), lockstep: wait for the answer to (and the products of)
-#                               a frame with images off or frozen (the graph may not answer it)
-# lockstep: what the graph publishes for each camera frame (docs/interfaces.md), by camera
-GRAPH_PRODUCTS = {'window/corners': (PolygonStamped, 'front'),
-                  'front_camera/translational_flow': (Vector3Stamped, 'front'),
-                  'pad/landmarks': (PolygonStamped, 'down'),
-                  'pad/groups': (JointState, 'down'),
-                  'down_camera/translational_flow': (Vector3Stamped, 'down')}
-# the product behind each topic: its node computes it only in the modes that use it
-PRODUCT_KINDS = {'window/corners': InputKind.WINDOW,
-                 'front_camera/translational_flow': InputKind.FLOW_FRONT,
-                 'pad/landmarks': InputKind.PAD, 'pad/groups': InputKind.PAD,
-                 'down_camera/translational_flow': InputKind.FLOW_DOWN}
-PARAMETERS = {
-    'pacing': Pacing.LOCKSTEP.value,
-    'lockstep_timeout_s': 5.0,
-    'real_time_factor': 1.0,
-    'tick_period_s': 0.002,
-    'initial_override': False,
-    'initial_position_I': [-2.0, 0.1, -1.82],
-    'initial_yaw': 0.0,
-    'wind_force_map': [0.0, 0.0, 0.0],
-    'wind_gust_amplitude_N': 0.0,
-    'wind_gust_frequency_hz': 0.5,
-    'mavlink_url': 'udpin:127.0.0.1:14560',
-    'signing_key_file': '',
-    'world_file': '',
-    'pad_layout_file': '',
-    'vehicle_file': '',
-    'seed': 0,
-    'camera_read_noise_std': 1.5,
-    'min_image_subscribers': 0,
-    'subscriber_wait_timeout_s': 30.0,
-    'start_on_setpoints': True,
-    'telemetry_default_hz': 100.0,
-    'attitude_estimate_offset_rad': [0.0, 0.0],
-    'attitude_noise_std_rad': 0.0122,
-    'attitude_noise_tau_s': 2.0,
-    'fault_front_camera_off_s': [0.0, 0.0],
-    'fault_down_camera_off_s': [0.0, 0.0],
-    'fault_front_camera_freeze_s': [0.0, 0.0],
-    'fault_down_camera_freeze_s': [0.0, 0.0],
-    'fault_imu_off_s': [0.0, 0.0],
-    'fault_imu_nan_s': [0.0, 0.0],
-}
-# description with unit (times: sim = the sim's own clock, published on /clock; wall = steady
-# clock), inclusive range (ibvs_common.param_descriptors)
-_FAULT = ' [start, end) s (sim time), fault injection (tests only); [0, 0] = never'
-_FAULTS = ' [start, end) s (sim time), or several: [start, end, start, end, ...]; fault ' \
-    'injection (tests only); [0, 0] = never'
-PARAMETER_SPECS = {
-    'pacing': ("'lockstep': the next 20 ms only once the graph answered the last frame (or "
-               "after lockstep_timeout_s); 'realtime': free-running, late frames dropped",),
-    'lockstep_timeout_s': ('s (wall, steady clock), lockstep wait before simulating anyway, '
-                           '> 0', 0.0, None),
-    'real_time_factor': ('realtime pacing: sim s per wall s, (0, 10]', 0.0, 10.0),
-    'tick_period_s': ('s (wall, steady clock), how often the node checks the pacing, > 0',
-                      0.0, None),
-    'initial_override': ('true: start at initial_position_I / initial_yaw; false: world.yaml '
-                         'initial_condition',),
-    'initial_position_I': ('m, start position in the paper frame {I} (NED-type, z down), '
-                           '3 numbers',),
-    'initial_yaw': ('rad, start yaw about z_I (0: the front camera faces the wall)',
-                    -2.0 * math.pi, 2.0 * math.pi),
-    'wind_force_map': ('N, steady disturbance force in map (ENU), 3 numbers',),
-    'wind_gust_amplitude_N': ('N, gust amplitude per horizontal axis (half vertically)',
-                              0.0, None),
-    'wind_gust_frequency_hz': ('Hz (sim time), base gust frequency', 0.0, None),
-    'mavlink_url': ("the autopilot's MAVLink endpoint (pymavlink URL)",),
-    'signing_key_file': ("MAVLink 2 signing key file; '' = signing off",),
-    'world_file': ("world YAML; '' = the installed world.yaml",),
-    'pad_layout_file': ("pad layout YAML; '' = the installed pad_layout.yaml",),
-    'vehicle_file': ("vehicle YAML; '' = the installed vehicle.yaml",),
-    'seed': ('seed of the gust phases, autopilot sensor noise, camera read noise', 0, None),
-    'camera_read_noise_std': ('grey levels (of 255), std of the cameras\' Gaussian read '
-                              'noise; 0 = noise-free', 0.0, 255.0),
-    'min_image_subscribers': ('frame 0 waits until each camera has this many image '
-                              'subscribers', 0, None),
-    'subscriber_wait_timeout_s': ('s (wall, steady clock), then frame 0 starts anyway, > 0',
-                                  0.0, None),
-    'start_on_setpoints': ('frame 0 also waits until the bridge streams setpoints',),
-    'telemetry_default_hz': ('Hz (sim time), IMU/attitude stream rate before any '
-                             'SET_MESSAGE_INTERVAL, > 0', 0.0, None),
-    'attitude_estimate_offset_rad': ("rad, [roll, pitch] static error of the autopilot's "
-                                     'attitude estimate, reported and flown (an accelerometer '
-                                     'bias b tilts it b / g; PX4 SIH: 1.5-1.8 deg), each within '
-                                     '+-0.2',),
-    'attitude_noise_std_rad': ("rad, stationary std per axis of the autopilot's attitude-"
-                               'estimate error (Gauss-Markov), reported and flown (PX4 SIH on '
-                               'motion capture: 0.0122, 0.7 deg)', 0.0, 0.1),
-    'attitude_noise_tau_s': ('s (sim time), correlation time of that error; 0 = white',
-                             0.0, 600.0),
-    'fault_front_camera_off_s': ('no front images in' + _FAULTS,),
-    'fault_down_camera_off_s': ('no down images in' + _FAULTS,),
-    'fault_front_camera_freeze_s': ('the front camera re-publishes one image in' + _FAULTS,),
-    'fault_down_camera_freeze_s': ('the down camera re-publishes one image in' + _FAULTS,),
-    'fault_imu_off_s': ('the autopilot sends no ATTITUDE_QUATERNION / HIGHRES_IMU in'
-                        + _FAULT,),
-    'fault_imu_nan_s': ('the autopilot sends ATTITUDE_QUATERNION / HIGHRES_IMU full of NaN in'
-                        + _FAULT,),
-}
-
-
-@dataclass(frozen=True)
-class SimNodeConfig:
-    """Everything the node reads from its parameters."""
-
-    pacing: Pacing
-    lockstep_timeout_s: float
-    real_time_factor: float
-    tick_period_s: float
-    initial_position_I: tuple | None
-    initial_yaw: float | None
-    wind_force_map: tuple
-    wind_gust_amplitude_N: float
-    wind_gust_frequency_hz: float
-    mavlink_url: str
-    signing_key_file: str
-    world_file: str
-    pad_layout_file: str
-    vehicle_file: str
-    seed: int
-    min_image_subscribers: int = 0
-    subscriber_wait_timeout_s: float = 30.0
-    start_on_setpoints: bool = True          # frame 0 also waits for the companion's setpoints
-    telemetry_default_hz: float = 100.0
-    attitude_estimate_offset_rad: tuple = (0.0, 0.0)   # rad (roll, pitch), the estimate's error
-    attitude_noise_std_rad: float = 0.0122   # rad, the estimate's wandering error (std per axis)
-    attitude_noise_tau_s: float = 2.0        # s (sim), its correlation time
-    camera_off_s: dict = None                # fault injection: camera -> [start, end, ...] s
-    camera_frozen_s: dict = None             # fault injection: camera -> [start, end, ...] s
-    imu_off_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
-    imu_nan_s: tuple = (0.0, 0.0)            # fault injection: (start, end) sim s
-    read_noise_std: float = 0.0              # grey levels, the cameras' read noise (0: off)
-
-
-def _window(values, name: str) -> tuple[float, float]:
-    """Return the one [start, end] sim-time window (s) of a fault parameter; [0, 0] = never."""
-    if len(values) != 2:
-        raise ValueError(f'parameter {name} needs one window [start, end], got {list(values)}')
-    return fault_windows(f'parameter {name}', values)[0]
-
-
-def stamp_from_ns(t_ns: int) -> Time:
-    """builtin_interfaces/Time of a sim time in integer nanoseconds."""
-    return Time(sec=int(t_ns // NS_PER_S), nanosec=int(t_ns % NS_PER_S))
-
-
-def image_msg(img: np.ndarray, stamp: Time, frame_id: str) -> Image:
-    """Mono8 sensor_msgs/Image from an (H, W) uint8 array."""
-    msg = Image()
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    msg.height, msg.width = int(img.shape[0]), int(img.shape[1])
-    msg.encoding = MONO8
-    msg.is_bigendian = 0
-    msg.step = int(img.shape[1])
-    msg.data = np.ascontiguousarray(img).tobytes()
-    return msg
-
-
-def camera_info_msg(model: CameraModel, stamp: Time, frame_id: str) -> CameraInfo:
-    """Build the CameraInfo of a calibrated camera: K, D, R = I, P = [K | 0]."""
-    msg = CameraInfo()
-    msg.header.stamp = stamp
-    msg.header.frame_id = frame_id
-    msg.width, msg.height = model.width, model.height
-    msg.distortion_model = model.distortion_model
-    msg.d = [float(x) for x in model.D]
-    msg.k = [float(x) for x in model.K.ravel()]
-    msg.r = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
-    P = np.hstack([model.K, np.zeros((3, 1))])
-    msg.p = [float(x) for x in P.ravel()]
-    return msg
-
-
-def odometry_msg(state: State, stamp: Time) -> Odometry:
-    """Build the ground truth as nav_msgs/Odometry (map ENU / base_link FLU).
-
-    Pose of base_link in map; twist in base_link (Odometry's convention: child frame).
-    """
-    R_map_base = rot_map_base_from_R_IB(state.R_IB)
-    msg = Odometry()
-    msg.header.stamp = stamp
-    msg.header.frame_id = MAP_FRAME
-    msg.child_frame_id = BASE_FRAME
-    p = vec_I_to_map(state.xi_I)
-    msg.pose.pose.position.x, msg.pose.pose.position.y, msg.pose.pose.position.z = map(float, p)
-    q = quat_wxyz_to_xyzw(quat_from_rot(R_map_base))
-    o = msg.pose.pose.orientation
-    o.x, o.y, o.z, o.w = map(float, q)
-    v_base = R_map_base.T @ vec_I_to_map(state.v_I)
-    w_base = vec_frd_to_flu(state.Omega_B)
-    lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
-    lin.x, lin.y, lin.z = map(float, v_base)
-    ang.x, ang.y, ang.z = map(float, w_base)
-    return msg
+# lockstep: the message type of each product of the graph (graph_sync.PRODUCT_CAMERAS)
+PRODUCT_TYPES = {'window/corners': PolygonStamped,
+                 'front_camera/translational_flow': Vector3Stamped,
+                 'pad/landmarks': PolygonStamped, 'pad/groups': JointState,
+                 'down_camera/translational_flow': Vector3Stamped}
 
 
 class SimNode(Node):
-    """Publish camera frames, camera info, ground truth and /clock from :class:`Simulation`."""
+    """Messages in and out of :class:`~ibvs_sim.driver.SimDriver`, its parameters and timers."""
 
     def __init__(self, node_name: str = NODE_NAME, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
-        cfg = self._read_parameters()
+        cfg = declare_config(self, SimNodeConfig)      # ValueError: a bad parameter
         world = load_world(cfg.world_file or None)
         pad = load_pad_layout(cfg.pad_layout_file or None)
         vehicle = load_vehicle(cfg.vehicle_file or None)
         self.cameras = {name: vehicle.cameras[name] for name in CAMERAS}
-        self.autopilot = Autopilot(AutopilotConfig(
-            url=cfg.mavlink_url, hover_thrust=vehicle.hover_thrust,
-            signing_key_file=cfg.signing_key_file or None, noise_seed=cfg.seed,
-            mass=vehicle.mass, floor_z=world.floor_z,
-            telemetry_default_hz=cfg.telemetry_default_hz, imu_off_s=cfg.imu_off_s,
-            imu_nan_s=cfg.imu_nan_s,
-            attitude_estimate_offset_rad=cfg.attitude_estimate_offset_rad,
-            attitude_noise_std=cfg.attitude_noise_std_rad,
-            attitude_noise_tau_s=cfg.attitude_noise_tau_s))
-        wind = WindConfig(steady_force_I=tuple(vec_map_to_I(np.array(cfg.wind_force_map))),
-                          gust_amplitude_N=cfg.wind_gust_amplitude_N,
-                          gust_frequency_hz=cfg.wind_gust_frequency_hz, seed=cfg.seed)
-        products = GraphProducts({t: cam for t, (_, cam) in GRAPH_PRODUCTS.items()},
-                                 {t: modes_using(k) for t, k in PRODUCT_KINDS.items()})
-        sim_config = SimConfig(
-            pacing=cfg.pacing, lockstep_timeout_s=cfg.lockstep_timeout_s,
-            real_time_factor=cfg.real_time_factor,
-            camera_rate_hz=self.cameras['down'].rate_hz,
-            initial_position_I=cfg.initial_position_I, initial_yaw=cfg.initial_yaw,
-            wind=wind, cameras=CAMERAS, read_noise_std=cfg.read_noise_std,
-            noise_seed=cfg.seed)
-        self.sim = Simulation(world, pad, vehicle, self.autopilot, sim_config,
-                              products=products, clock_sink=self._publish_clock)
         reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=EVENTS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -318,280 +71,77 @@ class SimNode(Node):
         self.stats_pub = self.create_publisher(DiagnosticArray, 'sim/stats', QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.latency = AnswerLatency()
-        self.faults = CameraFaults(cfg.camera_off_s, cfg.camera_frozen_s)
-        self._clock_ns = -1
-        self._clock_wall = 0.0
-        self._ended_logged = False
-        self._events_published = 0
-        self._first_frame_wall: float | None = None   # steady s, frame 0 published
-        self._publish_wall_s = 0.0                     # perf_counter s spent publishing
-        self.imu_hold = ImuBeforeImages(cfg.lockstep_timeout_s,
-                                        enabled=cfg.pacing is Pacing.LOCKSTEP)
-        if self.imu_hold.enabled:
+        self.driver = SimDriver(world, pad, vehicle, cfg, port=self, log=self.get_logger())
+        self.sim, self.autopilot = self.driver.sim, self.driver.autopilot
+        if self.driver.imu_hold.enabled:
             self.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
-            for topic, (msg_type, _) in GRAPH_PRODUCTS.items():
+            for topic, msg_type in PRODUCT_TYPES.items():
                 self.create_subscription(msg_type, topic, self._product_callback(topic),
                                          qos_profile_sensor_data)
             self.create_subscription(DiagnosticArray, STATUS_TOPIC, self._on_status, reliable)
-        min_counts = {n: cfg.min_image_subscribers for n in self.image_pubs}
-        self.first_frame_hold = FirstFrameHold(
-            min_counts, SUBSCRIBER_SETTLE_S, cfg.subscriber_wait_timeout_s, time.monotonic(),
-            need_setpoints=cfg.start_on_setpoints)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self.timer = self.create_timer(cfg.tick_period_s, self._on_tick, clock=steady)
+        self.timer = self.create_timer(cfg.tick_period_s, self.driver.tick, clock=steady)
         self.create_timer(STATS_PERIOD_S, self._publish_stats, clock=steady)
         self.get_logger().info(
-            f'sim: {cfg.pacing.value} pacing (real-time factor {cfg.real_time_factor:g}), '
+            f'sim: {cfg.pacing} pacing (real-time factor {cfg.real_time_factor:g}), '
             f'MAVLink {cfg.mavlink_url}, start at '
-            f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {cfg.wind_force_map} N (map)')
+            f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {tuple(cfg.wind_force_map)} N (map)')
 
-    def _read_parameters(self) -> SimNodeConfig:
-        v = declare_all(self, PARAMETERS, PARAMETER_SPECS)    # ValueError: bad type or range
-        try:
-            pacing = Pacing(v['pacing'])
-        except ValueError as exc:
-            raise ValueError(f"parameter pacing must be 'lockstep' or 'realtime', "
-                             f"got {v['pacing']!r}") from exc
-        pos = [float(x) for x in v['initial_position_I']]
-        yaw = float(v['initial_yaw'])
-        if len(pos) != 3 or not all(math.isfinite(x) for x in pos + [yaw]):
-            raise ValueError(f'initial_position_I needs 3 finite numbers and initial_yaw a '
-                             f'finite one, got {pos}, {yaw}')
-        override = bool(v['initial_override'])
-        wind = [float(x) for x in v['wind_force_map']]
-        if len(wind) != 3 or not all(math.isfinite(x) for x in wind):
-            raise ValueError(f'parameter wind_force_map needs 3 finite numbers, got {wind}')
-        if v['lockstep_timeout_s'] <= 0 or v['tick_period_s'] <= 0:
-            raise ValueError('lockstep_timeout_s and tick_period_s must be positive')
-        if int(v['min_image_subscribers']) < 0 or not v['subscriber_wait_timeout_s'] > 0:
-            raise ValueError(f"min_image_subscribers must be >= 0 and subscriber_wait_timeout_s "
-                             f"> 0, got {v['min_image_subscribers']}, "
-                             f"{v['subscriber_wait_timeout_s']}")
-        telemetry_hz = float(v['telemetry_default_hz'])
-        noise = float(v['camera_read_noise_std'])
-        if not (math.isfinite(noise) and noise >= 0.0):
-            raise ValueError(f'camera_read_noise_std must be >= 0 grey levels, got {noise}')
-        if not (math.isfinite(telemetry_hz) and telemetry_hz > 0):
-            raise ValueError(f'telemetry_default_hz must be > 0, got {telemetry_hz}')
-        return SimNodeConfig(
-            pacing=pacing, lockstep_timeout_s=float(v['lockstep_timeout_s']),
-            real_time_factor=float(v['real_time_factor']),
-            tick_period_s=float(v['tick_period_s']),
-            initial_position_I=tuple(pos) if override else None,
-            initial_yaw=yaw if override else None,
-            wind_force_map=tuple(wind),
-            wind_gust_amplitude_N=float(v['wind_gust_amplitude_N']),
-            wind_gust_frequency_hz=float(v['wind_gust_frequency_hz']),
-            mavlink_url=str(v['mavlink_url']), signing_key_file=str(v['signing_key_file']),
-            world_file=str(v['world_file']), pad_layout_file=str(v['pad_layout_file']),
-            vehicle_file=str(v['vehicle_file']), seed=int(v['seed']),
-            min_image_subscribers=int(v['min_image_subscribers']),
-            subscriber_wait_timeout_s=float(v['subscriber_wait_timeout_s']),
-            start_on_setpoints=bool(v['start_on_setpoints']),
-            telemetry_default_hz=telemetry_hz,
-            attitude_estimate_offset_rad=tuple(
-                float(x) for x in v['attitude_estimate_offset_rad']),
-            attitude_noise_std_rad=float(v['attitude_noise_std_rad']),
-            attitude_noise_tau_s=float(v['attitude_noise_tau_s']),
-            read_noise_std=noise,
-            camera_off_s={cam: fault_windows(f'parameter fault_{cam}_camera_off_s',
-                                             v[f'fault_{cam}_camera_off_s']) for cam in CAMERAS},
-            camera_frozen_s={cam: fault_windows(f'parameter fault_{cam}_camera_freeze_s',
-                                                v[f'fault_{cam}_camera_freeze_s'])
-                             for cam in CAMERAS},
-            imu_off_s=_window(v['fault_imu_off_s'], 'fault_imu_off_s'),
-            imu_nan_s=_window(v['fault_imu_nan_s'], 'fault_imu_nan_s'))
-
-    def _first_frame_may_go(self) -> bool:
-        """Ask the hold (core) with the subscriber counts; log the wait and a timeout."""
-        counts = {n: pub.get_subscription_count() for n, pub in self.image_pubs.items()}
-        streaming = self.sim.poll_before_start()
-        state = (f'subscribers {counts} (needed {self.first_frame_hold.min_counts}), '
-                 f'setpoints streaming: {streaming}')
-        if self.first_frame_hold.ready(counts, time.monotonic(), streaming):
-            if self.first_frame_hold.timed_out:
-                self.get_logger().warning(f'frame 0 goes without its whole graph: {state}')
-            return True
-        self.get_logger().info(f'frame 0 waits for the graph: {state}',
-                               throttle_duration_sec=LOG_THROTTLE_S)
-        return False
-
+    # --- in ---
     def _on_imu(self, msg: Imu) -> None:
-        self.imu_hold.note_imu(stamp_to_ns(msg.header.stamp))
+        self.driver.note_imu(stamp_to_ns(msg.header.stamp))
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         stamp_ns, mode, err = mode_from_status(msg)
         if not err:
-            self.sim.products.note_status(stamp_ns, mode)
+            self.driver.note_status(stamp_ns, mode)
 
     def _product_callback(self, topic: str):
         def note(msg: PolygonStamped | Vector3Stamped | JointState) -> None:
-            stamp_ns = stamp_to_ns(msg.header.stamp)
-            if self.sim.products.note(topic, stamp_ns):
-                self.get_logger().info(
-                    f'lockstep: {topic} published again (stamp t = {stamp_ns / NS_PER_S:.3f} '
-                    f's, sim t = {self.sim.t:.3f} s): waited for again')
+            self.driver.note_product(topic, stamp_to_ns(msg.header.stamp))
         return note
 
-    def _on_tick(self) -> None:
-        if not self.first_frame_hold.released and not self._first_frame_may_go():
-            return
-        held = self.imu_hold.release(time.monotonic())
-        if held is not None:
-            if self.imu_hold.timed_out:
-                self.get_logger().warning(
-                    f'lockstep: imu/data did not reach t = {held.t:.3f} s within '
-                    f'{self.imu_hold.timeout_s} s (wall): frame published without it',
-                    throttle_duration_sec=LOG_THROTTLE_S)
-            self._publish(held)
-        if self.imu_hold.holding:
-            return
-        timeouts_before, dropped_before = self.sim.lockstep_timeouts, self.sim.frames_dropped
-        given_up_before = len(self.sim.products_given_up)
-        try:
-            out = self.sim.tick()
-        except ValueError as exc:   # RenderError, non-finite state: stop, do not publish NaN
-            self.sim.ended = True
-            self.get_logger().error(f'simulation stopped: {exc}',
-                                    throttle_duration_sec=LOG_THROTTLE_S)
-            return
-        if self.sim.lockstep_timeouts > timeouts_before:
-            self.get_logger().warning(
-                f'lockstep: no setpoint answered a frame within '
-                f'{self.sim.config.lockstep_timeout_s} s (wall): simulated up to '
-                f't = {self.sim.t:.3f} s with the last one; {self.sim.lockstep_timeouts} '
-                'time-outs so far (the run no longer repeats exactly)',
-                throttle_duration_sec=LOG_THROTTLE_S)
-        if len(self.sim.products_given_up) > given_up_before:
-            self.get_logger().warning(
-                f'lockstep: {", ".join(self.sim.products_given_up[given_up_before:])} not '
-                f'published within {self.sim.answer_wait_s} s (wall) of the frame at t = '
-                f'{(self.sim.products.frame_ns or 0) / NS_PER_S:.3f} s: no longer waited for '
-                'until it comes again')
-        if self.sim.frames_dropped > dropped_before:
-            self.get_logger().warning(
-                f'free-running: could not render on time at t = {self.sim.t:.3f} s: '
-                f'{self.sim.frames_dropped} frame(s) dropped so far (lower real_time_factor)',
-                throttle_duration_sec=LOG_THROTTLE_S)
-        answers = self.sim.autopilot.new_setpoints
-        while answers:
-            self.latency.answered(*answers.popleft())
-        if self.sim.config.pacing is Pacing.REALTIME or self._clock_ns >= 0:
-            # free-running: /clock runs on between frames; lockstep: repeated while it waits
-            self._publish_clock(self.sim.t_ns if self.sim.config.pacing is Pacing.REALTIME
-                                else self._clock_ns)
-        if out is not None:
-            # an injected IMU fault: imu/data will not reach the frame, do not wait for it
-            if not self.autopilot.config.imu_fault_at(out.t):
-                out = self.imu_hold.hold(out, time.monotonic())
-            if out is not None:
-                self._publish(out)
-        elif self.sim.ended and not self._ended_logged:
-            self._ended_logged = True
-            for event in self.sim.events[self._events_published:]:
-                self._publish_event(event)
-            self.get_logger().error(
-                f'run ended at t = {self.sim.t:.3f} s: '
-                f'{self.sim.events[-1].to_dict() if self.sim.events else "(no event)"}')
+    # --- out (the driver's GraphPort) ---
+    def publish_clock(self, t_ns: int) -> None:
+        """Publish ``/clock`` at sim time ``t_ns``."""
+        self.clock_pub.publish(ClockMsg(clock=stamp_from_ns(t_ns)))
 
-    def _publish_clock(self, t_ns: int) -> None:
-        """Publish /clock when time moved, or again after CLOCK_REPEAT_S of wall clock."""
-        now = time.monotonic()
-        if t_ns > self._clock_ns or (t_ns == self._clock_ns
-                                     and now - self._clock_wall >= CLOCK_REPEAT_S):
-            self._clock_ns, self._clock_wall = t_ns, now
-            self.clock_pub.publish(ClockMsg(clock=stamp_from_ns(t_ns)))
+    def publish_images(self, t_ns: int, images: dict) -> None:
+        """Publish each camera's camera_info and image of sim time ``t_ns``."""
+        stamp = stamp_from_ns(t_ns)
+        for name, img in images.items():
+            cam = self.cameras[name]
+            self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
+            self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))
+
+    def publish_ground_truth(self, t_ns: int, state: State) -> None:
+        """Publish the ground truth of sim time ``t_ns`` as odometry."""
+        self.odom_pub.publish(odometry_msg(state, stamp_from_ns(t_ns)))
+
+    def publish_event(self, event: SimEvent) -> None:
+        """Publish a contact event as JSON."""
+        self.events_pub.publish(String(data=json.dumps(event.to_dict())))
+
+    def count_image_subscribers(self) -> dict:
+        """Return camera -> the number of subscribers of its images."""
+        return {n: pub.get_subscription_count() for n, pub in self.image_pubs.items()}
 
     def _publish_stats(self) -> None:
-        """sim/stats: frames published, dropped, answered, the image -> setpoint latency.
-
-        Also the autopilot's own TIMESYNC requests and the bridge's answers to them (checked:
-        ts1 one of the requests), as PX4 asks.
-        """
-        counters = self.autopilot.counters
-        values = {'pacing': self.sim.config.pacing.value,
-                  'real_time_factor': self.sim.config.real_time_factor,
-                  'sim_time_s': self.sim.t, 'frames_dropped': self.sim.frames_dropped,
-                  'stalls': self.sim.stalls, 'lockstep_timeouts': self.sim.lockstep_timeouts,
-                  'products_given_up': len(self.sim.products_given_up),
-                  'imu_hold_timeouts': self.imu_hold.timeouts,
-                  'autopilot_timesync_requests': counters.timesync_requests_sent,
-                  'autopilot_timesync_answers': counters.timesync_answers_received,
-                  'autopilot_timesync_foreign': counters.timesync_answers_foreign,
-                  **self.latency.stats(),
-                  **self._wall_budget()}
+        """sim/stats: frames published, dropped, answered, the latency, the wall budget."""
+        values = self.driver.stats()
+        dropped = values['frames_dropped']
         status = DiagnosticStatus(
-            level=DiagnosticStatus.WARN if self.sim.frames_dropped else DiagnosticStatus.OK,
+            level=DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK,
             name='sim: timing', message=f"{values['frames_published']} frames published, "
-            f"{self.sim.frames_dropped} dropped",
+            f'{dropped} dropped',
             values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = stamp_from_ns(self.sim.t_ns)
         self.stats_pub.publish(msg)
 
-    def _wall_budget(self) -> dict:
-        """Where the wall clock went since frame 0 (``sim_core.wall_budget``)."""
-        if self._first_frame_wall is None:
-            return {}
-        return wall_budget(time.monotonic() - self._first_frame_wall, self.latency.frames, {
-            'physics': self.sim.physics_wall_s, 'render': self.sim.render_wall_s,
-            'publish': self._publish_wall_s, 'imu_hold': self.imu_hold.held_s})
-
-    def _publish(self, out: FrameOutput) -> None:
-        t0 = time.perf_counter()
-        if self._first_frame_wall is None:
-            self._first_frame_wall = time.monotonic()
-        try:
-            self._publish_frame(out)
-        finally:
-            self._publish_wall_s += time.perf_counter() - t0
-
-    def _publish_frame(self, out: FrameOutput) -> None:
-        stamp = stamp_from_ns(out.t_ns)
-        # a guard, no-op as the sim runs: the clock already moved to the frame's time
-        # (lockstep: Simulation.clock_sink before the frame's telemetry; realtime: each tick)
-        self._publish_clock(out.t_ns)
-        images, withheld, frozen = self.faults.apply(out.t, out.images)
-        # lockstep: the graph may have nothing to answer (its mode's camera is off), or drop
-        # a frozen camera's images (its products are then given up after this short wait)
-        imu_fault = self.autopilot.config.imu_fault_at(out.t)
-        self.sim.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld or frozen or imu_fault
-                                  else self.sim.config.lockstep_timeout_s)
-        if imu_fault:
-            self.get_logger().warning(f'fault injection: IMU {imu_fault} at t = {out.t:.3f} s',
-                                      throttle_duration_sec=LOG_THROTTLE_S)
-        if withheld:
-            self.get_logger().warning(f'fault injection: {", ".join(withheld)} camera off at '
-                                      f't = {out.t:.3f} s', throttle_duration_sec=LOG_THROTTLE_S)
-        if frozen:
-            self.get_logger().warning(
-                f'fault injection: {", ".join(frozen)} camera frozen at t = {out.t:.3f} s: '
-                f'its image of t = {self.faults.held[frozen[0]][0]:.3f} s again, new stamp',
-                throttle_duration_sec=LOG_THROTTLE_S)
-        for name, img in images.items():
-            cam = self.cameras[name]
-            self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
-            self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))
-        self.latency.published(out.t_ns, time.monotonic())
-        self.odom_pub.publish(odometry_msg(out.state, stamp))
-        for event in out.events:
-            self._publish_event(event)
-        if self.imu_hold.enabled:
-            cameras = list(images)
-            self.sim.products.expect(out.t_ns, cameras,
-                                     {t: self.count_publishers(t)
-                                      for t in (*GRAPH_PRODUCTS, STATUS_TOPIC)})
-
-    def _publish_event(self, event) -> None:
-        self._events_published += 1
-        self.events_pub.publish(String(data=json.dumps(event.to_dict())))
-        self.get_logger().info(f'event: {event.to_dict()}')
-
     def destroy_node(self) -> None:
         """Close the MAVLink endpoint, then destroy the node."""
-        self.autopilot.close()
-        self.sim.close()
+        self.driver.close()
         super().destroy_node()
 
 

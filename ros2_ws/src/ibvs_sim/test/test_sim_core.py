@@ -8,8 +8,11 @@ from ibvs_common.core.frames import euler_zyx_from_rot, GRAVITY, rot_x
 from ibvs_common.core.modes import Mode
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.dynamics import PlantParams, WindConfig
-from ibvs_sim.core.sim_core import (AnswerLatency, EventType, FirstFrameHold, GraphProducts,
-                                    Pacing, SimConfig, Simulation, STATUS_TOPIC)
+from ibvs_sim.core.events import EventType
+from ibvs_sim.core.graph_sync import FirstFrameHold, GraphProducts, STATUS_TOPIC
+from ibvs_sim.core.pacing import Pacing
+from ibvs_sim.core.sim_core import SimConfig, Simulation
+from ibvs_sim.core.timing import AnswerLatency
 
 
 class FakeAutopilot:
@@ -82,7 +85,7 @@ def test_lockstep_waits_for_the_answer_or_the_timeout(configs):
     assert sim.tick() is None
     clock.now += 1.0                               # wall-clock timeout
     assert sim.tick().t_ns == 40_000_000
-    assert sim.lockstep_timeouts == 1
+    assert sim.lockstep.timeouts == 1
 
 
 def test_lockstep_stops_waiting_for_answers_once_the_autopilot_flies_its_own_mode(configs):
@@ -95,7 +98,7 @@ def test_lockstep_stops_waiting_for_answers_once_the_autopilot_flies_its_own_mod
     ap.awaits_setpoints = False                    # e.g. the offboard-loss failsafe lands
     for k in range(1, 4):
         assert sim.tick().t_ns == k * 20_000_000   # frame after frame, no wall-clock wait
-    assert sim.lockstep_timeouts == 0
+    assert sim.lockstep.timeouts == 0
 
 
 @pytest.mark.parametrize('pacing, receiving_substeps', [(Pacing.LOCKSTEP, 0),
@@ -178,7 +181,7 @@ def test_realtime_paces_by_the_wall_clock(configs):
     assert sim.tick().t_ns == 20_000_000
     assert sim.tick() is None
     clock.now += 5.0                               # the sim process stalled: re-phased
-    assert sim.tick() is None and sim.stalls == 1 and sim.frames_dropped == 0
+    assert sim.tick() is None and sim.realtime.stalls == 1 and sim.realtime.frames_dropped == 0
     clock.now += 0.02
     assert sim.tick().t_ns == 40_000_000
 
@@ -191,9 +194,9 @@ def test_free_running_sim_drops_the_frames_it_cannot_render_on_time(configs):
     assert sim.tick() is None and sim.t_ns == 10_000_000
     clock.now += 0.08                              # sim time 50 ms: frame 20 ms is 30 ms late
     out = sim.tick()                               # -> dropped; frame 40 ms (10 ms late) goes
-    assert out.t_ns == 40_000_000 and sim.frames_dropped == 1
+    assert out.t_ns == 40_000_000 and sim.realtime.frames_dropped == 1
     assert sim.tick() is None and sim.t_ns == 50_000_000     # physics caught up with the clock
-    assert sim.sim_ns_at(clock.now + 1.0) == 550_000_000      # /clock runs at 0.5 x wall
+    assert sim.realtime.sim_ns_at(clock.now + 1.0) == 550_000_000      # /clock runs at 0.5 x wall
     with pytest.raises(ValueError):
         _sim(configs, ap, clock, pacing=Pacing.REALTIME, real_time_factor=0.0)
 
@@ -329,7 +332,8 @@ def test_before_frame_0_the_link_is_served_without_telemetry_then_t0_telemetry_l
 
 
 def test_lockstep_harness_holds_a_frame_until_imu_data_reached_its_time():
-    from ibvs_sim.core.sim_core import FrameOutput, ImuBeforeImages
+    from ibvs_sim.core.graph_sync import ImuBeforeImages
+    from ibvs_sim.core.sim_core import FrameOutput
     frame = FrameOutput(40_000_000, {}, None, [])
     hold = ImuBeforeImages(timeout_s=1.0)
     assert hold.hold(frame, now=0.0) is frame           # no IMU seen yet: nothing to wait for
@@ -398,7 +402,7 @@ def test_lockstep_also_waits_for_every_product_of_the_frame_then_gives_up_a_dead
     assert products.missing() == ['pad/groups'] and sim.tick() is None
     products.note('pad/groups', 0)
     out = sim.tick()
-    assert out.t_ns == 20_000_000 and sim.lockstep_timeouts == 0
+    assert out.t_ns == 20_000_000 and sim.lockstep.timeouts == 0
     # the pad detector dies: the next frame waits one timeout, then never again for it
     products.expect(out.t_ns, ['front', 'down'], live)
     ap.last_setpoint_time_boot_ms = 20
@@ -406,8 +410,8 @@ def test_lockstep_also_waits_for_every_product_of_the_frame_then_gives_up_a_dead
     assert sim.tick() is None
     clock.now += 1.0
     out = sim.tick()
-    assert out.t_ns == 40_000_000 and sim.products_given_up == ['pad/groups', 'pad/landmarks']
-    assert sim.lockstep_timeouts == 0                    # the answer itself was there
+    assert out.t_ns == 40_000_000 and sim.lockstep.given_up == ['pad/groups', 'pad/landmarks']
+    assert sim.lockstep.timeouts == 0                    # the answer itself was there
     products.expect(out.t_ns, ['front', 'down'], live)
     ap.last_setpoint_time_boot_ms = 40
     products.note('window/corners', out.t_ns)

@@ -135,7 +135,7 @@ def test_sim_node_default_initial_condition_and_bad_parameter(ros_context):
 
 
 def test_event_json_schema():
-    from ibvs_sim.core.sim_core import EventType, SimEvent
+    from ibvs_sim.core.events import EventType, SimEvent
     e = SimEvent(EventType.COLLISION, 3.5, 'window_frame', np.array([-0.8, 0.1, -1.0]), 1.2)
     d = json.loads(json.dumps(e.to_dict()))
     assert d == {'type': 'collision', 't': 3.5, 'surface': 'window_frame',
@@ -184,7 +184,7 @@ def test_sim_node_lockstep_advances_on_answers_only(ros_context):
         gcs.close()
     frames = sorted(set(stamps))
     assert np.array_equal(np.diff(frames), np.full(len(frames) - 1, 20_000_000))
-    assert sim.sim.lockstep_timeouts == 0
+    assert sim.sim.lockstep.timeouts == 0
 
 
 def test_sim_node_read_noise_and_frozen_front_camera(ros_context):

@@ -1,37 +1,13 @@
 """Rigid-body quadrotor plant and the autopilot's inner attitude loop, paper frame {I}.
 
-Model (paper eq:system and eq:R; {I} NED-type, z down; body B = FRD; SI units)::
+Paper eq:system and eq:R ({I} NED-type, z down; body FRD; SI units)::
 
-    xi_dot = v
-    m v_dot = -F + m g e3 + Delta,   F = F_T R e3   (F_T >= 0: thrust, along -z_B = up)
-    R_dot = R S(Omega)
+    xi_dot = v,   m v_dot = -F_T R e3 + m g e3 + Delta,   R_dot = R S(Omega),
     J Omega_dot = -Omega x J Omega + Gamma
 
-with ``R = R_IB``. Additions of the simulator (documented in docs/sim.md):
-
-- four rotors in X configuration, arm ``arm_length``, at 45, 135, 225 and 315 degrees from x_B;
-  rotor i at r_i = L (cos a_i, sin a_i, 0) pushes ``T_i`` along -z_B, so it adds
-  ``r_i x (-T_i e3)`` to Gamma; spin directions alternate (front-right and rear-left CCW seen
-  from above, as PX4's quad X), with yaw reaction ``+-k_m T_i`` about z_B;
-- a first-order lag from the commanded to the actual rotor thrust (time constant ``tau_up``
-  when spinning up, ``tau_down`` when spinning down), discretised exactly per step;
-- per-rotor limits [T_min, T_max]: collective thrust first, then the attitude torque scaled
-  down until every rotor fits (thrust priority);
-- linear thrust model: normalised thrust ``u`` in [0, 1] commands ``F_T = u F_max`` with
-  ``F_max = max_thrust_factor m g`` (hover at u = 1 / max_thrust_factor = 0.5);
-- rotor drag ``-k_D v_B_horizontal`` (body frame, horizontal components of the body velocity),
-  the linear "rotor drag" of the RotorS model;
-- ``Delta`` (N, {I}: x north = window normal, y east, z down): steady wind force plus gusts,
-  ``Delta(t) = Delta_s + g(t)``, ``g_j(t) = A w_j / sqrt(K) sum_k sin(2 pi f r_j c_k t + p_jk)``
-  (a seeded sum of sines per axis; symbols, mean 0 and standard deviation ``A w_j / sqrt(2)``
-  in :class:`Wind`, campaign magnitudes in :meth:`WindConfig.from_level`, docs/sim.md "Wind");
-- the floor: a body whose envelope bottom reaches ``floor_z`` rests on it (vertical speed
-  and body rates zeroed, roll and pitch levelled) until the thrust exceeds its weight.
-
-Integrator (fixed step ``1 / physics_rate_hz``, default 500 Hz; the inner loop runs at the same
-rate): semi-implicit Euler: rotor lag, then ``v+ = v + a dt`` and ``xi+ = xi + (v + v+) dt / 2``
-(exact for piecewise-constant acceleration), ``Omega+ = Omega + Omega_dot dt`` and
-``R+ = R exp(S(Omega+) dt)`` (Rodrigues, stays on SO(3)).
+plus the simulator's rotors (X frame, first-order lag, limits with thrust priority), rotor
+drag, wind (:class:`Wind`), the floor and a semi-implicit Euler integrator at
+``physics_rate_hz``: docs/sim.md "Plant" and "Wind".
 """
 from __future__ import annotations
 

@@ -1,43 +1,11 @@
 """PX4 SIH as the plant (ROS-free): SIH parameters, ground truth -> {I}, frame pacing, contacts.
 
-In the ``px4-sih`` mode of the scenario (docs/px4_sih.md) PX4 v1.16 SITL with its built-in SIH
-simulator is the plant *and* the autopilot: the graph's mavlink_bridge talks to PX4 directly,
-and the ``px4_sim`` node only renders the two cameras from PX4's ground truth. This module holds
-the pure parts:
-
-- :func:`sih_parameters`: PX4 parameters that make SIH fly the Pelican of vehicle.yaml (mass,
-  inertia, rotor thrust / torque limits, arm lengths, rotor time constant, drag, hover thrust);
-- :func:`geodetic_to_ned`: PX4's own azimuthal-equidistant projection (``map_projection``,
-  sphere of radius 6371000 m) of HIL_STATE_QUATERNION's lat / lon / alt about the home point;
-- :class:`NedToI`: PX4's local NED frame (origin: the home / take-off point on the ground) to
-  the paper frame {I} (origin: the pad centre on the floor, x along the window normal, z down).
-  {I} is NED-like and the bridge sends attitudes in NED as {I} (``ibvs_common.core.frames``:
-  "It is also the autopilot's local NED frame"), so the map is a pure translation: the
-  take-off point is the scenario's start (world.yaml initial_condition) projected on the
-  floor, and PX4's body origin at rest on the ground is ``rest_height_m`` above the floor
-  (the envelope's half height: the envelope bottom touches the floor exactly when PX4's
-  ground truth is back at its home altitude);
-- :func:`hil_state_sample`: one HIL_STATE_QUATERNION (PX4 ``time_usec`` boot clock, attitude
-  body FRD -> NED, body rates rad/s, lat / lon degE7, alt mm AMSL, velocity cm/s NED) to a
-  :class:`TruthSample` in {I};
-- :class:`PositionFilter`: lat / lon come in steps of 1e-7 deg (1.1 cm north, 0.75 cm east at
-  47.4 deg): rendered as such the floor would jump by up to 2 px at 1.8 m, so the position is
-  the velocity's integral pulled towards the quantised fix with time constant ``tau_s``;
-- :class:`FrameClock`: the cameras' 50 Hz grid on the system clock; a frame the renderer
-  reaches a whole period late is dropped and counted, as in the free-running sim;
-- :class:`ContactWatch`: touchdown / collision events from the ground truth, once the vehicle
-  has been airborne (it starts on the floor);
-- :class:`StateLink`: the UDP endpoint where SIH sends HIL_STATE_QUATERNION
-  (127.0.0.1:19410 + i); it asks for the rate with SET_MESSAGE_INTERVAL on that same link
-  (PX4's mavlink instance 19450 + i -> 19410 + i, the one that streams the message; an interval
-  set on the GCS link changes only the GCS link's streams);
-- :class:`MocapRelay`: the lab's motion capture for PX4's own estimator (the paper's lab had
-  VICON): each ground-truth sample goes back to PX4 as VISION_POSITION_ESTIMATE on that link,
-  for EKF2 with GPS off (:data:`MOCAP_EKF2_PARAMETERS`). Only PX4 uses it: its hover before
-  the start holds, and its attitude estimate is aided as in the lab. The graph never sees it.
-
-Clocks: ``TruthSample.t_boot_s`` is PX4's boot clock; everything the node stamps is the system
-clock (``time.time_ns()``, ROS time with use_sim_time false), taken at the datagram's receipt.
+The pure parts of the ``px4-sih`` mode, where PX4 SITL with its SIH simulator is the plant and
+the autopilot and the ``px4_sim`` node only renders the cameras: :func:`sih_parameters` (the
+Pelican of vehicle.yaml for SIH), :func:`geodetic_to_ned` and :class:`NedToI` (PX4's frames to
+{I}), :func:`hil_state_sample`, :class:`PositionFilter`, :class:`FrameClock`,
+:class:`ContactWatch`, :class:`StateLink` (the ground-truth link) and :class:`MocapRelay`
+(motion capture for PX4's estimator). How and why: docs/px4_sih.md.
 """
 from __future__ import annotations
 
@@ -55,7 +23,7 @@ from ibvs_common.core.config import VehicleConfig
 from ibvs_common.core.frames import euler_zyx_from_rot, exp_so3, GRAVITY, rot_from_quat
 from ibvs_sim.core.contacts import FLOOR, min_clearance
 from ibvs_sim.core.dynamics import N_ROTORS, PlantParams, State
-from ibvs_sim.core.sim_core import EventType, SimEvent
+from ibvs_sim.core.events import EventType, SimEvent
 from ibvs_sim.core.world import WorldConfig
 
 EARTH_RADIUS_M = 6371000.0          # PX4's CONSTANTS_RADIUS_OF_EARTH (map_projection)

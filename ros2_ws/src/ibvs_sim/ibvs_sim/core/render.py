@@ -1,58 +1,10 @@
 """Renderer of the planar reference world (SPEC.md section 2) for one calibrated camera.
 
-World (paper frame {I}, z down, metres)
----------------------------------------
-- floor ``z = floor_z`` over ``floor_extent_x`` x ``floor_extent_y``: a non-repeating texture
-  drawn from ``texture_seeds['floor']`` (multi-octave value noise plus random patches, so that
-  optical flow finds corners at every height);
-- the wall ``x = wall_x`` (brick-like, seed ``'wall'``) with the rectangular aperture of
-  ``world.window`` and a dark frame band ``window.frame_band`` wide around it on the wall face;
-- the back wall ``x = back_wall_x`` of the second room (textured, seed ``'back_wall'``); the
-  floor continues behind the window plane;
-- the landing pad: the ArUco markers of ``pad_layout.yaml`` (``cv_compat.aruco_marker_image``,
-  black border of one cell, white quiet zone of ``quiet_zone`` x side around each marker), lying
-  on the floor with centres ``MarkerGroup.marker_centres_I()``.
-
-Marker orientation: a marker's image columns run along +y_I and its rows along -x_I, i.e. the
-marker's top edge faces +x_I (the direction of travel through the window). A level down camera
-with yaw 0 (default mount) therefore sees each marker upright, as ``aruco_marker_image`` drew it.
-The wall and back-wall textures are upright when seen from the approach side (columns along
-+y_I, rows along +z_I).
-
-Method
-------
-Every surface is a textured rectangle of a plane. For a camera at ``xi_I`` with attitude
-``R_IC = R_IB R_BC`` a texel (s, t) at ``O + s du + t dv`` ({I}) maps to the pixel of an
-*undistorted* virtual pinhole camera ``K_v`` (same centre and attitude, wider field of view so
-that it covers the whole distorted image) by the homography
-
-    H = K_v [R_CI du, R_CI dv, R_CI (O - xi_I)],
-
-rendered with ``cv2.warpPerspective`` into the bounding box of the plane's visible polygon. The
-polygon is first clipped (Sutherland-Hodgman, in the camera frame) to the virtual view frustum,
-near plane included, so planes partly behind the camera are handled. Surfaces are composited
-back to front (painter's algorithm on this fixed planar world: the order only depends on which
-side of the window plane the camera is). Surfaces across the wall from the camera are seen only
-through the aperture when the camera is within the wall's extent; they are then also clipped to
-the aperture's view cone (widened by a few pixels), which saves most of their warping.
-
-Polygon edges are anti-aliased with their exact coverage: a pixel's weight is the product over
-the polygon's edges of ``clip(0.5 + d, 0, 1)``, ``d`` the signed distance (virtual pixels,
-positive inside) of its centre to the projected edge line, and ``1 - `` the same for a hole. The
-weight is evaluated only in a band of pixels along each visible edge; inside the band the
-surface is blended over what is below, elsewhere the binary mask of ``cv2.fillConvexPoly``
-(which is exact away from the edges) selects it. The projected edge line is the plane through
-the optical centre and the 3-D edge, so it is exact even for polygons clipped by the frustum.
-Edges shared by two polygons of one surface (floor strips) are not anti-aliased (no seam), and
-marker bodies take their edges from their texture (the mask is widened by a pixel over the
-texture's white quiet zone). Textures have
-area-averaged pyramids; each surface uses the level whose texel is no larger than the pixel
-footprint at its nearest visible point (the floor is cut into strips along x_I for this choice).
-Finally one precomputed ``cv2.remap`` per camera applies the lens distortion: output pixel
-(u, v) samples the virtual image at ``K_v [x_n, y_n, 1]`` where ``(x_n, y_n) =
-CameraModel.pixels_to_normalized(u, v)``, the same model the detectors invert, so a 3-D point
-lands where ``CameraModel.bearings_to_pixels`` predicts. Output: mono8 (H, W), noise-free
-(the simulation adds the sensor's read noise: ``sensor_noise.py``).
+:class:`SceneRenderer` draws the floor, the wall with its aperture and frame band, the back
+wall and the pad's ArUco markers, each a textured plane warped by a homography into an
+undistorted virtual pinhole image, anti-aliased along its edges, then distorted with the
+camera's own model by one ``cv2.remap``. Output: mono8, noise-free (the read noise is
+``sensor_noise.py``'s). World, marker orientation and method: docs/sim.md "Cameras".
 """
 from __future__ import annotations
 

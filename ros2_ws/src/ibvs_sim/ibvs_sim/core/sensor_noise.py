@@ -1,19 +1,9 @@
 """Read noise of the simulated image sensors: deterministic, cheap, never the same twice in a row.
 
-A real image sensor adds read noise to every frame, so two consecutive frames of a live camera
-are never bit-identical, even of a still scene. The renderer is noise-free: while the vehicle
-is held still before the start its frames would repeat bit for bit, and the perception's
-frozen-camera check (``ibvs_perception.core.freeze``) would take the sim for a hung driver.
-
-:class:`ReadNoise` adds zero-mean Gaussian noise of ``sigma`` grey levels, rounded to whole
-levels and added with saturation (as the sensor's ADC clips), to one camera's frames. Cost: a
-bank of ``BANK_SIZE`` noise images, each ``BANK_MARGIN_PX`` larger than the frame in both
-axes, is drawn once (from the seed and the camera); frame ``k`` adds the frame-sized window of
-one of them at an offset, both picked from (seed, camera, k). Consecutive frames use banks of
-opposite parity, so two consecutive noise images are always different draws. The addition is
-two saturating OpenCV passes over uint8 planes (the positive and the negative part of the
-noise; each pixel has one of them zero, so the result is exactly ``clip(image + noise)``).
-The same seed, camera and frame index give the same noise: lockstep runs repeat bit for bit.
+:class:`ReadNoise` adds zero-mean Gaussian noise of ``sigma`` grey levels (rounded, saturated)
+to one camera's frames, from a bank of noise images drawn once per (seed, camera); frame ``k``
+adds a window of one of them picked from (seed, camera, k). The same seed, camera and frame
+give the same noise: lockstep runs repeat bit for bit. Why and how: docs/sim.md "Cameras".
 """
 from __future__ import annotations
 

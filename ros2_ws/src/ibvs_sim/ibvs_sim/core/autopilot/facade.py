@@ -156,7 +156,7 @@ class Autopilot:
         """Return R_err (3x3) at sim time t: this autopilot's attitude estimate is R_IB R_err.
 
         It reports that estimate (ATTITUDE_QUATERNION) and its attitude loop flies it: the
-        loop drives the estimate, not the truth, to the reference (``Simulation`` tracks
+        loop drives the estimate, not the truth, to the reference (``PhysicsLoop`` tracks
         ``R_d R_err^T`` in truth). See ``noise.SensorNoise``.
         """
         return self._noise.attitude_error(t)

@@ -10,7 +10,7 @@ tilt b/g that an accelerometer bias b leaves in an estimator levelling on it; PX
 advanced on a fixed sim-time grid of ``NOISE_GRID_S``: an attitude estimator's error wanders,
 white noise per message would read as spurious rotation between two camera frames. The
 autopilot both reports that estimate (ATTITUDE_QUATERNION) and flies it (its attitude loop
-drives the estimate, not the truth, to the setpoint: ``Simulation`` gives the inner loop
+drives the estimate, not the truth, to the setpoint: ``PhysicsLoop`` gives the inner loop
 ``R_d R_err^T``). Every draw is keyed by (``noise_seed``, stream, sim-time index), so the noise
 does not depend on how many messages were sent before: two lockstep runs see the same noise.
 """
