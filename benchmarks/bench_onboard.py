@@ -203,7 +203,7 @@ class Replayer:
         from std_srvs.srv import Trigger
         from ibvs_common.core.config import load_vehicle
         from ibvs_common.node_common import COMMAND_QOS, MODE_QOS
-        from ibvs_sim.sim_node import camera_info_msg, image_msg
+        from ibvs_sim.messages import camera_info_msg, image_msg
         self.rclpy = rclpy
         self.image_msg, self.info_msg = image_msg, camera_info_msg
         self.node = rclpy.create_node('bench_onboard_replayer')
