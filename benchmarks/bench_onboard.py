@@ -346,6 +346,11 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
             if cable is not None:
                 out['serial_bytes'] = list(cable.moved)
                 cable.close()
+    case_dir = os.path.join(CACHE_DIR, name.replace(' ', '_'))
+    np.savez(os.path.join(case_dir, 'replay.npz'), stamps=np.array(stamps, dtype=np.int64),
+             delivered=np.array([delivered[s] for s in stamps], dtype=np.int64),
+             setpoints=np.array(got, dtype=np.int64).reshape(-1, 2),
+             boot_to_sys_ns=boot_to_sys_ns, t0_ns=t0_ns)
     return summarise(out, rep, got, boot_to_sys_ns, stamps, delivered, t0_ns)
 
 

@@ -331,10 +331,10 @@ def _mode_times(summary: dict) -> dict:
     return {m['mode']: m['t_start_s'] for m in summary['modes']}
 
 
-SHORT_DROPOUT_S = 0.2        # shorter than the bridge's hold_last_s (0.25 s, params.yaml)
+SHORT_DROPOUT_S = 0.2        # shorter than the bridge's hold_last_s (0.5 s)
 LONG_DROPOUT_S = 2.0
 DOWN_FLOW_TIMEOUT_S = 0.5    # params.yaml mode_supervisor down_flow_timeout_s
-HOLD_LAST_S = 0.25           # params.yaml mavlink_bridge hold_last_s
+HOLD_LAST_S = 0.5            # mavlink_bridge hold_last_s
 
 
 def _dropout_at(reference) -> float:
@@ -346,7 +346,7 @@ def test_a_short_down_camera_dropout_in_landing_is_ridden_through_to_the_pad(
         reference, tmp_path):
     """0.2 s without down images while landing: ridden through, landed within SPEC.md §5.
 
-    No frames, so no forces: the bridge holds the last setpoint (hold_last_s 0.25 s) and keeps
+    No frames, so no forces: the bridge holds the last setpoint (hold_last_s 0.5 s) and keeps
     the vehicle engaged on IBVS setpoints; the supervisor's down flow is 0.2 s old at most
     (down_flow_timeout_s 0.5 s), so LANDING goes on and the flight ends on the pad. From
     2026-11-27 a flight of its own again (it shared one with the long dropout below while
@@ -373,7 +373,7 @@ def test_a_short_down_camera_dropout_in_landing_is_ridden_through_to_the_pad(
 def test_a_long_down_camera_dropout_in_landing_ends_in_failsafe(reference, tmp_path):
     """2 s without down images while landing: the bridge hands back, FAILSAFE.
 
-    After hold_last_s (0.25 s) without a force the bridge stops its setpoints ('held': the
+    After hold_last_s (0.5 s) without a force the bridge stops its setpoints ('held': the
     autopilot's offboard-loss failsafe takes the vehicle); the supervisor goes to FAILSAFE
     once the down flow is 0.5 s stale, at the first frame past it (measured: +0.52 s).
     """

@@ -196,11 +196,6 @@ def pad_group_names(msg: JointState) -> tuple[str, ...]:
 # mode for that frame).
 STATUS_NAME = 'mode_supervisor'
 STATUS_MODE_KEY = 'mode'
-# ... and, for a status of an evaluated frame, the frame's camera and the frame stride the
-# graph computes from this frame on (ibvs_common.core.frame_grid): the perception nodes of
-# that camera compute every stride-th frame counted from this one
-STATUS_CAMERA_KEY = 'camera'
-STATUS_STRIDE_KEY = 'frame_stride'
 
 
 def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes,
@@ -214,15 +209,34 @@ def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes
     return msg
 
 
-def grid_from_status(msg: DiagnosticArray) -> tuple[str, int] | None:
-    """Return (camera, frame stride) of a status of an evaluated frame, else None."""
+# ibvs/frame_grid (diagnostic_msgs/DiagnosticArray, latched): which frames of each camera the
+# graph computes (ibvs_common.core.frame_grid): per camera, every ``stride``-th frame counted
+# from the frame stamped ``ref_ns``. Published by the supervisor on every change and once a
+# second; every perception node computes only the frames on its camera's grid.
+FRAME_GRID_NAME = 'frame_grid'
+
+
+def frame_grid_msg(grids: dict, stamp_ns: int) -> DiagnosticArray:
+    """Build ibvs/frame_grid from camera name -> (stride, ref_ns)."""
+    values = []
+    for camera, (stride, ref_ns) in sorted(grids.items()):
+        values += [KeyValue(key=f'{camera}_stride', value=str(int(stride))),
+                   KeyValue(key=f'{camera}_ref_ns', value=str(int(ref_ns)))]
+    msg = DiagnosticArray(status=[DiagnosticStatus(level=DiagnosticStatus.OK,
+                                                   name=FRAME_GRID_NAME, values=values)])
+    ns_to_stamp(stamp_ns, msg.header.stamp)
+    return msg
+
+
+def grid_from_msg(msg: DiagnosticArray, camera: str) -> tuple[int, int] | None:
+    """Return (stride, ref_ns) of ``camera`` in an ibvs/frame_grid message, else None."""
     for status in msg.status:
-        if status.name != STATUS_NAME:
+        if status.name != FRAME_GRID_NAME:
             continue
         values = {kv.key: kv.value for kv in status.values}
-        camera, stride = values.get(STATUS_CAMERA_KEY, ''), values.get(STATUS_STRIDE_KEY, '')
-        if camera and stride.isdigit() and int(stride) >= 1:
-            return camera, int(stride)
+        stride, ref = values.get(f'{camera}_stride', ''), values.get(f'{camera}_ref_ns', '')
+        if stride.isdigit() and int(stride) >= 1 and ref.lstrip('-').isdigit():
+            return int(stride), int(ref)
     return None
 
 

@@ -31,8 +31,8 @@ from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S, SENSOR_QOS,
-    STATUS_CAMERA_KEY, STATUS_STRIDE_KEY, supervisor_status_msg)
+    COMMAND_QOS, DeadlineTimer, frame_grid_msg, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S,
+    SENSOR_QOS, supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
@@ -76,6 +76,7 @@ class ModeSupervisorNode(Node):
                                                  COMMAND_QOS)
         self._diagnostics_pub = self.create_publisher(DiagnosticArray, '/diagnostics',
                                                       COMMAND_QOS)
+        self._grid_pub = self.create_publisher(DiagnosticArray, 'ibvs/frame_grid', MODE_QOS)
         # in process (composed), the IMU samples are taken at the start of every callback
         self._imu = subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
@@ -83,6 +84,7 @@ class ModeSupervisorNode(Node):
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
         self.create_timer(1.0 / cfg.update_rate_hz, self._on_timer)   # node clock
         self.create_timer(DIAGNOSTICS_PERIOD_S, self._publish_diagnostics)   # node clock
+        self._publish_grid()
         self._deadline = DeadlineTimer(self, self._on_deadline)
         self._publish_mode()
         self.get_logger().info(f'mode supervisor ready in {self._core.mode.name}: {config}')
@@ -106,6 +108,7 @@ class ModeSupervisorNode(Node):
                        'until it comes again', LOG_THROTTLE_S)
         self._frames.reset()
         self._grids.reset()
+        self._publish_grid()
         self._attitudes.clear()
         self._deadline.arm(None)
         if self._core.clock_stepped_back(now_ns / NS_PER_S, back_ns / NS_PER_S):
@@ -175,6 +178,7 @@ class ModeSupervisorNode(Node):
             self._feed(kind, stamp_ns, value)        # the other camera: on arrival
         elif self._frames.was_skipped(stamp_ns):     # never applied to a frame it missed
             self._stats.late_dropped += 1
+            self._core.product_late(kind.value)
             self.log.warning(f'{kind.value} of t = {stamp_ns / NS_PER_S:.3f} s came after its '
                              'frame was skipped: dropped', LOG_THROTTLE_S)
         elif not self._frames.is_pending(stamp_ns):
@@ -186,6 +190,7 @@ class ModeSupervisorNode(Node):
         """Open the frame of a product of the mode's camera (if on the grid and not done)."""
         if self._grids.stride(camera) != self._governor.stride:   # the mode's camera changed
             self._grids.set_stride(camera, self._governor.stride, stamp_ns, self._lead_ns)
+            self._publish_grid()
         if not self._grids.on_grid(camera, stamp_ns):
             self._stats.off_grid_dropped += 1        # a frame the graph does not compute now
         elif self._frames.open(stamp_ns, camera, now_ns):
@@ -276,6 +281,7 @@ class ModeSupervisorNode(Node):
         camera = frame.tag
         old = self._grids.stride(camera)
         self._grids.set_stride(camera, stride, frame.stamp_ns, self._lead_ns)
+        self._publish_grid()
         rate = self._rate_hz[camera]
         self.get_logger().info(f'frame stride {old} -> {stride} at t = '
                                f'{frame.stamp_ns / NS_PER_S:.3f} s: the {camera.value} camera\'s '
@@ -283,16 +289,19 @@ class ModeSupervisorNode(Node):
                                f'{"(frames were skipped)" if stride > old else "(none skipped)"}')
 
     def _publish_status(self, stamp_ns: int, camera: Camera | None = None) -> None:
-        """Publish the mode of frame ``stamp_ns`` (with its camera and stride) or of a time."""
+        """Publish the mode of frame ``stamp_ns`` (``camera``: its camera) or of a time."""
         mode = self._core.mode
         level = DiagnosticStatus.WARN if mode == Mode.FAILSAFE else DiagnosticStatus.OK
         height = self._core.height_estimate
         values = {'pad_height_estimate_m': 'none' if height is None else f'{height:.4f}'}
-        if camera is not None:
-            values[STATUS_CAMERA_KEY] = camera.value
-            values[STATUS_STRIDE_KEY] = str(self._grids.stride(camera))
         self._status_pub.publish(supervisor_status_msg(stamp_ns, int(mode), mode.name, level,
                                                        values))
+
+    def _publish_grid(self) -> None:
+        """Publish each camera's frame grid (stride, reference frame) on ibvs/frame_grid."""
+        self._grid_pub.publish(frame_grid_msg(
+            {cam.value: (self._grids.stride(cam), self._grids.ref_ns(cam)) for cam in Camera},
+            self.get_clock().now().nanoseconds))
 
     def _publish_diagnostics(self) -> None:
         """Publish the frame counts, the control rate held and the stride on /diagnostics."""
@@ -309,6 +318,7 @@ class ModeSupervisorNode(Node):
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()
         self._diagnostics_pub.publish(msg)
+        self._publish_grid()                   # again once a second: nothing lost for long
 
     # --- services and timer ----------------------------------------------------------------
     def _on_start(self, request: Trigger.Request, response: Trigger.Response

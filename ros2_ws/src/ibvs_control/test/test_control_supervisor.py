@@ -380,7 +380,7 @@ def test_skipped_frames_end_a_flying_mode_after_their_timeout_a_complete_one_res
             assert done == [] and sup.mode == Mode.WINDOW
     assert sup.mode == Mode.FAILSAFE
     reason = sup.transitions[-1].reason
-    assert 'skipped in a row without window' in reason and '0.2 s' in reason
+    assert 'skipped in a row without window (lost' in reason and '0.2 s' in reason
     assert sup.transitions[-1].t == pytest.approx(0.46)
 
 
@@ -400,3 +400,24 @@ def test_at_a_coarse_stride_it_takes_three_skipped_frames_as_well_as_the_timeout
         sup.on_imu(t, R)
         sup.frame_skipped(t, ('flow_front',))
         assert sup.mode == (Mode.WINDOW if k < 2 else Mode.FAILSAFE), (t, sup.mode)
+
+
+def test_products_that_come_late_are_not_lost_the_staleness_timeouts_judge_them():
+    """A computer that falls behind: the frames are skipped, their products come late.
+
+    Not the skipped-frames rule (for products that never come) but the 0.5 s staleness of
+    the window and front flow ends the mode, if the lateness lasts.
+    """
+    sup = started()
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    feed(sup, 0.02, xi, v)
+    for k in range(2, 40):
+        t = 0.02 * k
+        sup.on_imu(t, R)
+        sup.frame_skipped(t, ('window', 'flow_front'))
+        sup.product_late('window')
+        sup.product_late('flow_front')
+        if t <= 0.02 + 0.5:
+            assert sup.mode == Mode.WINDOW, t
+    assert sup.mode == Mode.FAILSAFE
+    assert 'stale' in sup.transitions[-1].reason

@@ -1,12 +1,12 @@
 """Which images a perception node computes: the frame grid and the modes that use them.
 
 Every perception node hands its images to :meth:`GatedImages.on_image` instead of processing
-them itself. From ``ibvs/supervisor_status``: the frame stride (only every stride-th frame of
-this camera is computed, the same in every node: ibvs_common.core.frame_grid) and the modes
-(:class:`~ibvs_perception.core.mode_gate.ModeGate`: a product is computed only for the
-images of a mode that uses it, docs/interfaces.md "Mode gating"). Counts the frames it
-leaves out by the grid and the frames that never came (dropped on the way: a node behind
-takes the newest image).
+them itself. From ``ibvs/frame_grid``: only every stride-th frame of this camera is computed,
+the same in every node (ibvs_common.core.frame_grid); from ``ibvs/supervisor_status``: the
+modes (:class:`~ibvs_perception.core.mode_gate.ModeGate`: a product is computed only for the
+images of a mode that uses it, docs/interfaces.md "Mode gating"). Counts the frames it leaves
+out by the grid and the frames that never came (dropped on the way: a node behind takes the
+newest image).
 """
 from __future__ import annotations
 
@@ -18,7 +18,8 @@ from sensor_msgs.msg import Image
 
 from ibvs_common.core.frame_grid import FrameGrid
 from ibvs_common.core.modes import InputKind, modes_using
-from ibvs_common.node_common import COMMAND_QOS, grid_from_status, mode_from_status, stamp_to_ns
+from ibvs_common.node_common import (COMMAND_QOS, grid_from_msg, MODE_QOS, mode_from_status,
+                                     stamp_to_ns)
 from ibvs_common.throttled_log import ThrottledLog
 from ibvs_perception.core.mode_gate import ModeGate
 
@@ -43,6 +44,7 @@ class GatedImages:
         if enabled:
             node.create_subscription(DiagnosticArray, 'ibvs/supervisor_status',
                                      self.on_status, COMMAND_QOS)
+        node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self.on_grid, MODE_QOS)
 
     def on_image(self, msg: Image) -> None:
         stamp_ns = stamp_to_ns(msg.header.stamp)
@@ -61,13 +63,19 @@ class GatedImages:
             self.missed += max((index - self._last_index) // self.grid.stride - 1, 0)
         self._last_index = index
 
+    def on_grid(self, msg: DiagnosticArray) -> None:
+        """Take this camera's frame grid (ibvs/frame_grid: stride, reference frame)."""
+        grid = grid_from_msg(msg, self.camera)
+        if grid is None:
+            self.log.error(f'{self.prefix}: ibvs/frame_grid without this camera: ignored',
+                           THROTTLE_S)
+            return
+        self.grid = self.grid.with_stride(*grid)
+
     def on_status(self, msg: DiagnosticArray) -> None:
         stamp_ns, mode, err = mode_from_status(msg)
         if err:
             self.log.error(f'{self.prefix}: ibvs/supervisor_status refused: {err}', THROTTLE_S)
             return
-        grid = grid_from_status(msg)
-        if grid is not None and grid[0] == self.camera:     # counted from this frame on
-            self.grid = self.grid.with_stride(grid[1], stamp_ns)
         for gated in self.gate.on_status(stamp_ns, mode):
             self.process(gated.item, gated.publish)

@@ -101,6 +101,10 @@ class SupervisorGrids:
         """Return the camera's current stride."""
         return self._grid[camera].stride
 
+    def ref_ns(self, camera) -> int:
+        """Return the stamp of the camera's reference frame (a frame on its grid)."""
+        return self._grid[camera].ref_ns
+
     def on_grid(self, camera, stamp_ns: int) -> bool:
         """Whether the supervisor expects the frame of ``stamp_ns`` of ``camera``."""
         before = self._before.get(camera)

@@ -193,6 +193,7 @@ class ModeSupervisor:
         self._start_requested_at: float | None = None   # t of an accepted ibvs/start request
         self._t_complete: float | None = None           # stamp of the last complete frame
         self._skipped_run: list[tuple[float, tuple]] = []   # frames skipped since, (t, missing)
+        self._late_in_run: set[str] = set()             # products that came late in that run
         self.skipped_frames = 0                         # frames skipped in all
 
     # --- commands ---------------------------------------------------------------------------
@@ -385,6 +386,7 @@ class ModeSupervisor:
         done = []
         self._t_complete = t
         self._skipped_run.clear()
+        self._late_in_run.clear()
         if self.mode == Mode.LANDING:
             self._landing_frame(t)
         self._frame_pad = self._frame_phi_down = None
@@ -419,6 +421,16 @@ class ModeSupervisor:
         self.skipped_frames += 1
         self._skipped_run.append((t, tuple(missing)))
         return self.update(t, apply_requests=False)
+
+    def product_late(self, name: str) -> None:
+        """Note that a product (``name``) came after its frame was skipped: it is not lost.
+
+        A computer that falls behind delivers its products late; only products that do not
+        come at all (a dead camera or node) end a mode by the skipped-frames rule (the
+        staleness timeouts still bound how long frames may be skipped for lateness).
+        """
+        if self._skipped_run:
+            self._late_in_run.add(name)
 
     def update(self, t: float, apply_requests: bool = True) -> list[Transition]:
         """Apply requested transitions, then the staleness rules; return what changed.
@@ -505,9 +517,11 @@ class ModeSupervisor:
         if t - since <= self.config.skipped_frames_timeout_s \
                 or len(self._skipped_run) < self.config.skipped_frames_in_a_row:
             return None
-        missing = sorted({k for _, m in self._skipped_run for k in m})
+        missing = sorted({k for _, m in self._skipped_run for k in m} - self._late_in_run)
+        if not missing:                 # late, not lost: the staleness timeouts judge it
+            return None
         return (f'{len(self._skipped_run)} frames skipped in a row without '
-                f'{", ".join(missing)} (late or lost) for more than '
+                f'{", ".join(missing)} (lost: not even late) for more than '
                 f'{self.config.skipped_frames_timeout_s} s in {self.mode.name}')
 
     def _stale_input(self, t: float) -> str | None:

@@ -69,8 +69,11 @@ class BridgeConfig:
         'down', 0.0, None)
     time_sync: TimeSyncConfig = group(TimeSyncConfig, 'timesync_')
     hold_last_s: float = param(
-        0.25, 's (ROS clock, vehicle time), the last valid setpoint is kept this long, then the '
-        'vehicle is handed back (input_loss_action)', 0.0, None)
+        0.5, 's (ROS clock, vehicle time), the last valid setpoint is kept this long, then the '
+        'vehicle is handed back (input_loss_action); as long as the supervisor\'s staleness '
+        'timeouts, so that a computer that falls behind for a moment skips frames instead of '
+        'ending the mission (PX4 holds an offboard setpoint COM_OF_LOSS_T, 1 s by default)',
+        0.0, None)
     max_force_age_s: float = param(
         0.25, 's (ROS clock), a force computed from an image older than this when it arrives '
         'is refused (not flown: the held setpoint goes on, and after hold_last_s of refusals '
