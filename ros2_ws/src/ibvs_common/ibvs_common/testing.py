@@ -106,6 +106,7 @@ class SerialCable:
         for _ in range(2):
             master, slave = os.openpty()
             tty.setraw(slave)               # no echo, no line discipline: bytes as they are
+            os.set_blocking(master, False)
             self._fds += [master, slave]
             masters.append(master)
             self.ends.append(os.ttyname(slave))
@@ -127,17 +128,24 @@ class SerialCable:
                 if fd in ready:
                     try:
                         queues[i] += os.read(fd, 4096)
-                    except OSError:               # the other side closed its end
+                    except (BlockingIOError, InterruptedError):
                         pass
+                    except OSError:               # the other side closed its end
+                        time.sleep(0.001)
             for i in (0, 1):
                 if not queues[i] or free_at[i] > now:
                     continue
                 # what the wire carried since it was last free, at most what is queued
                 n = max(1, min(len(queues[i]), int(self.bytes_per_s * 0.002)))
-                try:
-                    os.write(self._masters[1 - i], bytes(queues[i][:n]))
+                try:        # a full input queue at the far end takes part, or nothing, now
+                    n = os.write(self._masters[1 - i], bytes(queues[i][:n]))
+                except (BlockingIOError, InterruptedError):
+                    n = 0
                 except OSError:
                     pass
+                if n == 0:                        # the far end is full: try again in 1 ms
+                    free_at[i] = now + 0.001
+                    continue
                 del queues[i][:n]
                 self.moved[i] += n
                 free_at[i] = max(free_at[i], now) + n / self.bytes_per_s

@@ -1,4 +1,4 @@
-"""The real bridge core against the sim autopilot in lockstep: clock sync, hover thrust."""
+"""The real bridge core against the sim autopilot in lockstep: clock sync, hover thrust, serial."""
 import time
 
 import numpy as np
@@ -9,7 +9,8 @@ from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
 from ibvs_sim.testing import hover_state
 
 
-def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list, object, object]:
+def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5, cable=None
+                             ) -> tuple[list, object, object]:
     """The sim's lockstep exchange with the real bridge core, without ROS or physics.
 
     As sim_core / sim_node do: the autopilot is served before frame 0 without telemetry; each
@@ -18,13 +19,20 @@ def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5) -> tuple[list,
     its stamp; the next 20 ms are simulated once a setpoint with time_boot_ms >= the frame's ms
     arrived. Returns the stamps of the IMU samples the bridge published, the bridge and the
     autopilot's counters.
-    ``seed``: the bridge's configured hover thrust (the sim's true one is 0.5).
+    ``seed``: the bridge's configured hover thrust (the sim's true one is 0.5). ``cable``: a
+    SerialCable whose two ends link them (as ``/dev/pts/N,<baud>``) instead of UDP.
     """
     from ibvs_control.mavlink.bridge import BridgeConfig, MavlinkBridge
     from ibvs_control.mavlink.link import LinkConfig
-    ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0'))
+    if cable is None:
+        ap = Autopilot(AutopilotConfig(url='udpin:127.0.0.1:0'))
+        url = f'udpout:127.0.0.1:{ap.local_port}'
+    else:
+        baud = int(round(cable.bytes_per_s * 10))
+        ap = Autopilot(AutopilotConfig(url=f'{cable.ends[1]},{baud}'))
+        url = f'{cable.ends[0]},{baud}'
     bridge = MavlinkBridge(BridgeConfig(
-        link=LinkConfig(url=f'udpout:127.0.0.1:{ap.local_port}'), mass=1.676,
+        link=LinkConfig(url=url), mass=1.676,
         max_thrust_factor=2.0, configured_hover_thrust=seed, hover_thrust_source='config'))
     stamps, hover = [], np.array([0.0, 0.0, 1.676 * GRAVITY])
     t_ns, ros_ns, answered_frame = 0, 0, None
@@ -96,3 +104,27 @@ def test_hover_thrust_learnt_in_lockstep_from_a_wrong_seed():
     print(f'\nsim autopilot, 3 s in lockstep: hover thrust estimate {est.theta:.4f} (std '
           f'{est.std:.4f}, {est.accepted} samples) from the seed 0.45; true 0.5')
     assert est.theta == pytest.approx(0.5, abs=0.005) and est.accepted >= 140
+
+
+def test_the_bridge_flies_the_sim_autopilot_over_a_serial_cable():
+    """The documented serial link (/dev/ttyUSB0,921600): two ptys joined at 921600 baud.
+
+    The same lockstep exchange as over UDP: the link comes up, the clocks sync on TIMESYNC,
+    the telemetry arrives and every frame's setpoint reaches the autopilot; the bytes each
+    way stay well inside what 921600 baud carries (92 kB/s).
+    """
+    from ibvs_common.testing import SerialCable
+    cable = SerialCable(921600)
+    try:
+        t0 = time.monotonic()
+        stamps, bridge, _ = lockstep_with_the_bridge(frames=50, cable=cable)
+        seconds = time.monotonic() - t0
+    finally:
+        cable.close()
+    ts = bridge.time_sync
+    assert bridge.link.is_serial and ts.synced and ts.resets == 0
+    assert sorted(set(stamps))[-1] == 50 * 20_000_000           # telemetry to the last frame
+    to_autopilot, to_bridge = (n / seconds for n in cable.moved)
+    print(f'\nserial 921600 baud, 1 s of lockstep in {seconds:.2f} s: '
+          f'{to_autopilot:.0f} B/s to the autopilot, {to_bridge:.0f} B/s back')
+    assert 0 < to_autopilot < 0.5 * cable.bytes_per_s and 0 < to_bridge < 0.5 * cable.bytes_per_s

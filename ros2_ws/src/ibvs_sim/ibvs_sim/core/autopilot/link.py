@@ -43,9 +43,10 @@ def load_signing_key(path: str) -> bytes:
 
 
 class AutopilotLink:
-    """The UDP endpoint of the autopilot (system ``config.system_id``, component ``component_id``).
+    """The autopilot's MAVLink endpoint (system ``config.system_id``, ``component_id``).
 
-    Opens the socket on construction (and sets up signing when ``config.signing_key_file``).
+    UDP, or a serial port (``/dev/...,baud``: a byte stream, read as one). Opens it on
+    construction (and sets up signing when ``config.signing_key_file``).
     """
 
     def __init__(self, config: AutopilotConfig, counters: AutopilotCounters,
@@ -58,6 +59,7 @@ class AutopilotLink:
         self._conn = open_mavlink(config.url, source_system=config.system_id,
                                   source_component=config.component_id,
                                   dialect=MAVLINK_DIALECT)
+        self._datagrams = hasattr(self._conn.port, 'recvfrom')   # UDP: whole messages
         if config.signing_key_file:
             key = load_signing_key(config.signing_key_file)
             self._conn.setup_signing(key, sign_outgoing=True,
@@ -134,9 +136,10 @@ class AutopilotLink:
                 self.counters.malformed += 1
                 self._warn.warning('parse', 'MAVLink parser error: %s', exc)
                 msgs = []
-            if mav.buf_len() > 0:
+            if self._datagrams and mav.buf_len() > 0:
                 # A datagram carries whole messages: a leftover is a truncated one. Drop it so
-                # it cannot swallow the next datagram.
+                # it cannot swallow the next datagram. (A serial read may end inside a message:
+                # the rest comes with the next read.)
                 self.counters.malformed += 1
                 mav.buf = bytearray()
                 mav.buf_index = 0
