@@ -91,6 +91,7 @@ class ForceControllerNodeConfig:
             R_BC_down=vehicle.cameras['down'].R_BC, landing=self.landing, window=self.window,
             crossing=self.crossing, crossing_law=law, disturbance_law=disturbance,
             integral=self.integral, observer=self.observer,
-            group_half_sides={} if pad is None else {g.name: g.c for g in pad.groups})
+            group_half_sides={} if pad is None else {g.name: g.c for g in pad.groups},
+            t_BC_front=vehicle.cameras['front'].t_BC, t_BC_down=vehicle.cameras['down'].t_BC)
         cfg.validate()
         return cfg

@@ -21,6 +21,8 @@ from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.frame_grid import period_ns
+from ibvs_common.core.lever_arm import (has_lever_arm, pad_landmarks_from_body,
+                                        window_corners_from_body)
 from ibvs_common.core.modes import CAMERA_OF, Camera, InputKind, Mode, MODE_INPUTS
 from ibvs_control.config import ModeSupervisorNodeConfig
 from ibvs_control.core.frame_stats import FrameStats
@@ -56,6 +58,7 @@ class ModeSupervisorNode(Node):
         config = cfg.supervisor_config(window.width, pad)
         self._core = ModeSupervisor(config)
         self._R_BC = {name: vehicle.cameras[name].R_BC for name in ('front', 'down')}
+        self._t_BC = {name: vehicle.cameras[name].t_BC for name in ('front', 'down')}
         self._attitudes = AttitudeBuffer(cfg.imu)
         self._late_imu = LateImuReport(self.log, LOG_THROTTLE_S)
         # frames of the current mode's camera wait for the products that mode needs
@@ -128,9 +131,13 @@ class ModeSupervisorNode(Node):
             self._published = self._core.mode
             self._mode_pub.publish(UInt8(data=int(self._core.mode)))
 
-    def _to_I(self, bearings_C: np.ndarray | None, stamp_ns: int, camera: str
-              ) -> tuple[bool, np.ndarray | None]:
-        """Derotate bearings to {I} with the attitude at the stamp: (usable?, bearings or None)."""
+    def _to_I(self, bearings_C: np.ndarray | None, stamp_ns: int, camera: str,
+              groups: tuple = ()) -> tuple[bool, np.ndarray | None]:
+        """Derotate bearings to {I} with the attitude at the stamp: (usable?, bearings or None).
+
+        With the camera's lever arm (vehicle.yaml t_BC) they are re-taken from the body origin
+        (lever_arm.py: the window's plane from its known width, the pad's from its groups).
+        """
         if bearings_C is None:
             return True, None
         R_IB = self._attitudes.attitude_at(stamp_ns / NS_PER_S)
@@ -138,7 +145,17 @@ class ModeSupervisorNode(Node):
             self._error(f'no IMU attitude at {stamp_ns / NS_PER_S:.3f} s: cannot derotate '
                         f'the {camera} bearings (taken as not detected)')
             return False, None
-        return True, bearings_C_to_I(bearings_C, R_IB, self._R_BC[camera])
+        p_I = bearings_C_to_I(bearings_C, R_IB, self._R_BC[camera])
+        if not has_lever_arm(self._t_BC[camera]):
+            return True, p_I
+        t_I, cfg = R_IB @ self._t_BC[camera], self._core.config
+        try:
+            if camera == 'front':
+                return True, window_corners_from_body(p_I, t_I, cfg.r_w)
+            body = pad_landmarks_from_body(p_I, list(groups), cfg.group_half_sides, t_I)
+            return True, p_I if body is None else body
+        except ValueError:              # a view too degenerate for the plane: the camera's
+            return True, p_I
 
     def _needed(self, camera) -> frozenset:
         """Products a frame of ``camera`` waits for in the current mode (none: other camera)."""
@@ -220,7 +237,7 @@ class ModeSupervisorNode(Node):
                 self._core.on_window(t, corners_I)
         elif kind == InputKind.PAD:
             landmarks_C, groups = value or (None, ())
-            ok, landmarks_I = self._to_I(landmarks_C, stamp_ns, 'down')
+            ok, landmarks_I = self._to_I(landmarks_C, stamp_ns, 'down', tuple(groups))
             if ok:
                 self._core.on_pad(t, landmarks_I, list(groups))
         elif value is not None:

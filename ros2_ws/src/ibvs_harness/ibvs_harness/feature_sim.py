@@ -29,6 +29,7 @@ import numpy as np
 
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
 from ibvs_common.core.config import CameraConfig, PadLayout, VehicleConfig
+from ibvs_common.core.lever_arm import has_lever_arm
 from ibvs_sim.core.world import WorldConfig
 from ibvs_control.core.control_laws import CrossingLaw
 from ibvs_control.core.controller import (
@@ -100,7 +101,11 @@ class FeatureSimLog:
 
 
 class FeatureSensors:
-    """Geometric stand-in for the perception nodes."""
+    """Geometric stand-in for the perception nodes.
+
+    Each camera sees from its optical centre, ``xi + R_IB t_BC`` (the vehicle's lever arms),
+    and its flow is its own velocity over its own distance to the plane.
+    """
 
     def __init__(self, world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                  rng: np.random.Generator, bearing_noise: float, flow_noise: float) -> None:
@@ -112,10 +117,15 @@ class FeatureSensors:
         self.band_outline_I = np.vstack([(1.0 - s) * outer[i] + s * outer[(i + 1) % 4]
                                          for i in range(4)])
 
+    @staticmethod
+    def camera_position(cam: CameraConfig, R_IB: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
+        """Return the camera's optical centre in {I} (the body origin without a lever arm)."""
+        return xi_I + R_IB @ cam.t_BC if has_lever_arm(cam.t_BC) else xi_I
+
     def _visible_C(self, cam: CameraConfig, R_IB: np.ndarray, points_I: np.ndarray,
                    xi_I: np.ndarray, margin_px: float = IMAGE_MARGIN_PX
                    ) -> tuple[np.ndarray, bool]:
-        P = points_I - xi_I
+        P = points_I - self.camera_position(cam, R_IB, xi_I)
         P_C = bearings_I_to_C(P, R_IB, cam.R_BC)
         uv, ok = cam.model.bearings_to_pixels(P_C)
         m = margin_px
@@ -159,16 +169,17 @@ class FeatureSensors:
         """Marker-centre bearings of complete groups (down optical frame) and group names."""
         cam = self.vehicle.cameras['down']
         f = cam.model.K[0, 0]
+        xi_C = self.camera_position(cam, R_IB, xi_I)
         out, names = [], []
         for g in self.pad.groups:
             centres = g.marker_centres_I()
             h = g.side / 2.0
             corners = np.concatenate([centres + [dx, dy, 0.0] for dx in (-h, h)
                                       for dy in (-h, h)])
-            dist = np.linalg.norm(centres - xi_I, axis=1)
+            dist = np.linalg.norm(centres - xi_C, axis=1)
             if np.any(g.side * f / dist < MIN_MARKER_PIXELS):
                 continue
-            if any(self._occluded_by_wall(xi_I, c) for c in corners):
+            if any(self._occluded_by_wall(xi_C, c) for c in corners):
                 continue
             _, ok = self._visible_C(cam, R_IB, corners, xi_I)
             if not ok:
@@ -184,15 +195,29 @@ class FeatureSensors:
             phi = phi + self.rng.normal(0.0, self.flow_noise, 3)
         return phi
 
-    def flow_down(self, xi_I: np.ndarray, v_I: np.ndarray) -> np.ndarray | None:
-        """v/d_t over the floor (the down camera always sees the textured floor)."""
-        d_t = self.world.floor_z - xi_I[2]
-        return self._flow(v_I, d_t) if d_t > 0.05 else None
+    def _camera_motion(self, name: str, xi_I: np.ndarray, v_I: np.ndarray,
+                       R_IB: np.ndarray | None, omega_B: np.ndarray | None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+        """(position, velocity) of a camera: its lever arm moves it with the body's rotation."""
+        t_BC = self.vehicle.cameras[name].t_BC
+        if R_IB is None or not has_lever_arm(t_BC):
+            return xi_I, v_I
+        omega = np.zeros(3) if omega_B is None else np.asarray(omega_B, dtype=float)
+        return xi_I + R_IB @ t_BC, v_I + R_IB @ np.cross(omega, t_BC)
 
-    def flow_front(self, xi_I: np.ndarray, v_I: np.ndarray) -> np.ndarray | None:
+    def flow_down(self, xi_I: np.ndarray, v_I: np.ndarray, R_IB: np.ndarray | None = None,
+                  omega_B: np.ndarray | None = None) -> np.ndarray | None:
+        """v/d_t over the floor (the down camera always sees the textured floor)."""
+        xi_C, v_C = self._camera_motion('down', xi_I, v_I, R_IB, omega_B)
+        d_t = self.world.floor_z - xi_C[2]
+        return self._flow(v_C, d_t) if d_t > 0.05 else None
+
+    def flow_front(self, xi_I: np.ndarray, v_I: np.ndarray, R_IB: np.ndarray | None = None,
+                   omega_B: np.ndarray | None = None) -> np.ndarray | None:
         """v/d_o over the wall while it is ahead."""
-        d_o = self.world.wall_x - xi_I[0]
-        return self._flow(v_I, d_o) if d_o > 0.05 else None
+        xi_C, v_C = self._camera_motion('front', xi_I, v_I, R_IB, omega_B)
+        d_o = self.world.wall_x - xi_C[0]
+        return self._flow(v_C, d_o) if d_o > 0.05 else None
 
 
 class InnerLoop:
@@ -271,7 +296,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         # --- one camera frame: sense, supervise, control ---------------------------------
         win_C = sensors.window(R, xi)
         pad_C, groups = sensors.pad_landmarks(R, xi)
-        phi_down, phi_front = sensors.flow_down(xi, v), sensors.flow_front(xi, v)
+        phi_down = sensors.flow_down(xi, v, R, Omega_B)
+        phi_front = sensors.flow_front(xi, v, R, Omega_B)
         R_est = R if R_err is None else R @ R_err       # the attitude the graph reads
         if R_err is not None:   # flows measured in the cameras, put into {I} with R_est
             rot_I = R_est @ R.T

@@ -22,6 +22,9 @@ from ibvs_common.core.features import (
     compute_window_features, distance_to_window_plane, pad_feature, pad_height_estimate,
     window_flow, WindowFeatures)
 from ibvs_common.core.frames import bearings_C_to_I, e3, euler_zyx_from_rot, GRAVITY, proj_orth
+from ibvs_common.core.lever_arm import (E3, flow_from_body, has_lever_arm, pad_height_from_groups,
+                                        pad_landmarks_from_body, window_corners_from_body,
+                                        window_plane)
 from ibvs_common.core.modes import Mode
 from ibvs_control.core.observer import DisturbanceObserver
 from ibvs_control.core.pad_prediction import PadPrediction
@@ -54,6 +57,8 @@ class ControllerConfig:
     observer: ObserverGains = field(default_factory=ObserverGains)
     eta_t: np.ndarray = field(default_factory=lambda: e3.copy())   # landing plane normal
     group_half_sides: dict = field(default_factory=dict)   # pad group name -> c (m)
+    t_BC_front: np.ndarray = field(default_factory=lambda: np.zeros(3))  # m, lever arms in
+    t_BC_down: np.ndarray = field(default_factory=lambda: np.zeros(3))   # body FRD
 
     def validate(self) -> None:
         """Raise GainError for gains that break the paper's conditions."""
@@ -111,7 +116,9 @@ class ControllerConfig:
                   crossing=group('crossing', CrossingGains), crossing_law=law,
                   disturbance_law=disturbance, integral=group('integral', IntegralGains),
                   observer=group('observer', ObserverGains),
-                  group_half_sides={} if pad is None else {g.name: g.c for g in pad.groups})
+                  group_half_sides={} if pad is None else {g.name: g.c for g in pad.groups},
+                  t_BC_front=vehicle.cameras['front'].t_BC,
+                  t_BC_down=vehicle.cameras['down'].t_BC)
         cfg.validate()
         return cfg
 
@@ -192,10 +199,65 @@ class IbvsController:
         return self.config.mass * GRAVITY * e3
 
     def _window_bearings_I(self, meas: Measurements, R_IB: np.ndarray) -> np.ndarray | None:
-        """Return the window corner bearings (4, 3) in {I}, or None without a window."""
+        """Return the window corner bearings (4, 3) in {I} from the body origin, or None.
+
+        With a lever arm (t_BC_front) the bearings are re-taken from the body origin
+        (lever_arm.py); a view too degenerate for the window plane keeps the camera's.
+        """
         if meas.window_bearings_C is None:
             return None
-        return bearings_C_to_I(meas.window_bearings_C, R_IB, self.config.R_BC_front)
+        p_I = bearings_C_to_I(meas.window_bearings_C, R_IB, self.config.R_BC_front)
+        if has_lever_arm(self.config.t_BC_front):
+            try:
+                p_I = window_corners_from_body(p_I, R_IB @ self.config.t_BC_front,
+                                               self.config.r_w, self._eta_w)
+            except ValueError:
+                pass
+        return p_I
+
+    def _pad_bearings_I(self, meas: Measurements, R_IB: np.ndarray) -> np.ndarray | None:
+        """Return the pad landmarks' bearings in {I} from the body origin, or None."""
+        if meas.pad_bearings_C is None or len(meas.pad_bearings_C) == 0:
+            return None
+        p_I = bearings_C_to_I(meas.pad_bearings_C, R_IB, self.config.R_BC_down)
+        if has_lever_arm(self.config.t_BC_down) and meas.pad_groups:
+            try:
+                body = pad_landmarks_from_body(p_I, list(meas.pad_groups),
+                                               self.config.group_half_sides,
+                                               R_IB @ self.config.t_BC_down)
+            except ValueError:
+                body = None
+            p_I = p_I if body is None else body
+        return p_I
+
+    def _flows_from_body(self, meas: Measurements, R_IB: np.ndarray, p_w_I, pad_I
+                         ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """Return (wall flow, floor flow) at the body origin (the camera's without lever arm).
+
+        The wall's distance from the window's corners (camera bearings), the floor's from the
+        pad's smallest group; a flow whose plane distance is not known is the camera's.
+        """
+        cfg = self.config
+        phi_w, phi_t = meas.phi_front_I, meas.phi_down_I
+        if phi_w is not None and meas.window_bearings_C is not None \
+                and has_lever_arm(cfg.t_BC_front):
+            try:
+                eta, d_o = window_plane(bearings_C_to_I(meas.window_bearings_C, R_IB,
+                                                        cfg.R_BC_front), cfg.r_w, self._eta_w)
+                phi_w = flow_from_body(phi_w, eta, d_o, R_IB @ cfg.t_BC_front)
+            except ValueError:
+                pass
+        if phi_t is not None and meas.pad_bearings_C is not None and meas.pad_groups \
+                and has_lever_arm(cfg.t_BC_down):
+            h_C = pad_height_from_groups(bearings_C_to_I(meas.pad_bearings_C, R_IB,
+                                                         cfg.R_BC_down),
+                                         list(meas.pad_groups), cfg.group_half_sides)
+            if h_C is not None:
+                try:
+                    phi_t = flow_from_body(phi_t, E3, h_C, R_IB @ cfg.t_BC_down)
+                except ValueError:
+                    pass
+        return phi_w, phi_t
 
     def _window_features(self, p_I: np.ndarray | None) -> WindowFeatures | None:
         if p_I is None:
@@ -218,30 +280,32 @@ class IbvsController:
 
         p_w_I = self._window_bearings_I(meas, R_IB)
         win = self._window_features(p_w_I)
+        pad_I = self._pad_bearings_I(meas, R_IB)
+        phi_front, phi_t = self._flows_from_body(meas, R_IB, p_w_I, pad_I)
         q_t = None
-        if meas.pad_bearings_C is not None and len(meas.pad_bearings_C) > 0:
+        if pad_I is not None:
             try:        # eq:q_t on the pad centre, seen through every complete group
-                q_t = pad_feature(bearings_C_to_I(meas.pad_bearings_C, R_IB, cfg.R_BC_down))
+                q_t = pad_feature(pad_I)
             except ValueError:          # not 4 bearings per group, or no usable group
                 q_t = None
-        phi_t = meas.phi_down_I
         phi_w = None
-        if win is not None and meas.phi_front_I is not None:
-            phi_w = window_flow(meas.phi_front_I, win.eta_w, win.l_e, win.alpha_w)
+        if win is not None and phi_front is not None:
+            phi_w = window_flow(phi_front, win.eta_w, win.l_e, win.alpha_w)
         if self._yaw_des is None:
             self._yaw_des = euler_zyx_from_rot(R_IB)[2]
         height, pad_predicted = None, False
         if mode == Mode.LANDING:
             if entering:
                 self._pad_prediction.reset()
-            pad = self._pad_prediction.step(meas.t, q_t, self._pad_height(meas, R_IB), phi_t)
+            pad = self._pad_prediction.step(meas.t, q_t, self._pad_height(meas, R_IB, pad_I),
+                                            phi_t)
             if pad is not None:
                 q_t, height, pad_predicted = pad.q_t, pad.height_m, pad.predicted
         observer = cfg.disturbance_law.uses_observer
         if observer:
             v_I, bias_tau_s = None, None
             if mode == Mode.WINDOW:
-                v_I = self._window_velocity(meas.phi_front_I, p_w_I, win)
+                v_I = self._window_velocity(phi_front, p_w_I, win)
             elif mode == Mode.LANDING:
                 v_I = self._landing_velocity(phi_t, height)
                 bias_tau_s = cfg.observer.landing_bias_tau_s
@@ -312,17 +376,23 @@ class IbvsController:
         """The observer's Delta / m (m/s^2, {I}); zero unless disturbance_law is observer."""
         return self._d_hat
 
-    def _pad_height(self, meas: Measurements, R_IB: np.ndarray) -> float | None:
-        """Height (m) from the smallest complete pad group of known size, or None."""
+    def _pad_height(self, meas: Measurements, R_IB: np.ndarray, pad_I: np.ndarray | None
+                    ) -> float | None:
+        """Height (m) of the body origin from the smallest complete pad group, or None.
+
+        ``pad_I``: the landmarks from the body origin (used with a lever arm; without one the
+        group's bearings are rotated on their own, as they always were).
+        """
         groups, p_C = meas.pad_groups, meas.pad_bearings_C
-        if not groups or p_C is None or len(p_C) != 4 * len(groups):
+        if not groups or p_C is None or len(p_C) != 4 * len(groups) or pad_I is None:
             return None
         sizes = [(self.config.group_half_sides[g], i) for i, g in enumerate(groups)
                  if g in self.config.group_half_sides]
         if not sizes:
             return None
         c, i = min(sizes)
-        p_I = bearings_C_to_I(p_C[4 * i:4 * i + 4], R_IB, self.config.R_BC_down)
+        p_I = pad_I[4 * i:4 * i + 4] if has_lever_arm(self.config.t_BC_down) else \
+            bearings_C_to_I(p_C[4 * i:4 * i + 4], R_IB, self.config.R_BC_down)
         try:
             return pad_height_estimate(p_I, c, self.config.eta_t)
         except ValueError:                      # a marker not towards the floor
