@@ -315,7 +315,13 @@ class ModeSupervisorNode(Node):
                                                        values))
 
     def _publish_grid(self) -> None:
-        """Publish each camera's frame grid (stride, reference frame) on ibvs/frame_grid."""
+        """Publish each camera's frame grid (stride, reference frame) on ibvs/frame_grid.
+
+        The core's constants counted in computed frames follow the front camera's grid.
+        """
+        front = Camera.FRONT
+        self._core.frame_period_s = (self._grids.stride(front)
+                                     * self._grids.period_ns(front) / NS_PER_S)
         self._grid_pub.publish(frame_grid_msg(
             {cam.value: (self._grids.stride(cam), self._grids.ref_ns(cam)) for cam in Camera},
             self.get_clock().now().nanoseconds))

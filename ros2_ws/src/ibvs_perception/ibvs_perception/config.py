@@ -72,9 +72,10 @@ class OpticalFlowNodeConfig:
     camera: str = param('down', "'front' (the wall plane, needs window/corners) | 'down' (the "
                         'floor): the camera, its topics and its mount R_BC')
     vehicle_file: str = param('', VEHICLE_FILE)
-    max_window_age_s: float = param(
-        0.2, 's (stamps, ROS clock), front: the wall plane comes from the newest window corners '
-        'older than the image, at most this older, > 0', 1e-6)
+    max_window_age_frames: float = param(
+        10.0, 'computed frames (the camera period times the frame stride), front: the wall '
+        'plane comes from the newest window corners older than the image, at most this older, '
+        '>= 1', 1.0)
     floor_second_plane: bool = param(
         True, 'front: the floor (eta = e3) as a second plane that may be in view below the '
         'wall, at an unknown distance (two-plane flow model, docs/perception.md); down: unused')

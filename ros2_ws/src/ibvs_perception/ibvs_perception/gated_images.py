@@ -46,6 +46,11 @@ class GatedImages:
                                      self.on_status, COMMAND_QOS)
         node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self.on_grid, MODE_QOS)
 
+    @property
+    def frame_period_s(self) -> float:
+        """Return the time between two frames this node computes: period times stride (s)."""
+        return self.grid.period_ns * self.grid.stride / 1e9
+
     def on_image(self, msg: Image) -> None:
         stamp_ns = stamp_to_ns(msg.header.stamp)
         if not self.grid.on_grid(stamp_ns):

@@ -18,8 +18,8 @@ Each image is processed on arrival (timing layer, docs/design.md "Time"): its at
 the IMU's interpolated at the image stamp, or propagated to it with the gyro for at most
 ``imu_max_extrapolation_s`` (a frame never waits for a later IMU sample); the front camera's
 wall plane comes from the newest window detection strictly older than the image, at most
-``max_window_age_s`` older on the ROS clock (it never waits for the same image's detection,
-which is computed in parallel). With stamps on one clock the result is a function of the
+``max_window_age_frames`` computed frames older (it never waits for the same image's
+detection, which is computed in parallel). With stamps on one clock the result is a function of the
 recorded data, so lockstep runs repeat and bag replays reproduce.
 """
 from __future__ import annotations
@@ -68,7 +68,7 @@ class OpticalFlowNode(Node):
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         cfg = declare_config(self, OpticalFlowNodeConfig)   # ValueError: a bad parameter
         self.camera_name = cfg.camera
-        self.max_window_age_s = cfg.max_window_age_s
+        self.max_window_age_frames = cfg.max_window_age_frames
         self.floor_second_plane = cfg.floor_second_plane
         try:
             camera = load_vehicle(cfg.vehicle_file or None).cameras[self.camera_name]
@@ -153,6 +153,7 @@ class OpticalFlowNode(Node):
             self.log.warning('optical_flow: no IMU attitude at the image stamp', THROTTLE_S)
         eta_I, exclude_I = self.plane(stamp)
         eta2_I = e3 if self.camera_name == FRONT and self.floor_second_plane else None
+        self.estimator.frame_period_s = self.gated.frame_period_s
         result = self.estimator.process(gray, stamp, R_IB, eta_I, exclude_I, eta2_I)
         if not publish:
             return
@@ -170,8 +171,8 @@ class OpticalFlowNode(Node):
         """(eta in {I}, excluded corner bearings in {I}) of the observed plane at ``stamp``.
 
         Down: the floor, eta_t = e3. Front: the window wall from the newest window corners
-        strictly older than the image (at most max_window_age_s older), rotated with the IMU
-        attitude at their stamp.
+        strictly older than the image (at most max_window_age_frames computed frames older),
+        rotated with the IMU attitude at their stamp.
         """
         if self.camera_name == DOWN:
             return e3, None
@@ -179,7 +180,8 @@ class OpticalFlowNode(Node):
         reason = None
         if msg is None or len(msg.polygon.points) != N_WINDOW_CORNERS:
             reason = 'no window detection'
-        elif abs(stamp - stamp_to_s(msg.header.stamp)) > self.max_window_age_s:
+        elif abs(stamp - stamp_to_s(msg.header.stamp)) > \
+                self.max_window_age_frames * self.gated.frame_period_s:
             reason = 'window detection too old'
         else:
             R_IB = self.attitudes.attitude_at(stamp_to_s(msg.header.stamp))

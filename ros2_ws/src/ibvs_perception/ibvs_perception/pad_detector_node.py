@@ -75,6 +75,7 @@ class PadDetectorNode(Node):
             if self.frozen.drop(gray, msg.header.stamp):
                 return
             camera = camera_from_info(self.camera_info, msg)
+            self.detector.frame_period_s = self.gated.frame_period_s
             detection = self.detector.process(gray, camera, stamp_to_s(msg.header.stamp))
             if len(detection.bearings_C):
                 bearings, names = detection.bearings_C, detection.group_names

@@ -419,7 +419,7 @@ def test_front_optical_flow_node_needs_a_window(ctx, renderers):
     assert stamp_s(node.window_before(19.99)) == pytest.approx(19.87)   # not 19.98
 
 
-@pytest.mark.parametrize('name, value', [('max_window_age_s', 0.0),
+@pytest.mark.parametrize('name, value', [('max_window_age_frames', 0.5),
                                          ('imu_max_extrapolation_s', -0.1)])
 def test_optical_flow_refuses_a_bad_timing_parameter(ctx, name, value):
     context, _, _ = ctx

@@ -101,6 +101,10 @@ class SupervisorGrids:
         """Return the camera's current stride."""
         return self._grid[camera].stride
 
+    def period_ns(self, camera) -> int:
+        """Return the camera's frame period (ns)."""
+        return self._grid[camera].period_ns
+
     def ref_ns(self, camera) -> int:
         """Return the stamp of the camera's reference frame (a frame on its grid)."""
         return self._grid[camera].ref_ns

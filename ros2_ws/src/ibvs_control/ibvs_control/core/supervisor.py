@@ -76,8 +76,9 @@ class SupervisorConfig:
         0.0)
     window_jump_rad: float = param(
         0.1, 'rad, a corner jump this big between frames = window lost, > 0', 0.0)
-    window_jump_max_gap_s: float = param(
-        0.1, 's (stamps, ROS clock), jumps are judged only across shorter gaps, > 0', 0.0)
+    window_jump_max_gap_frames: float = param(
+        5.0, 'computed frames (the camera period times the frame stride): corner jumps are '
+        'judged only across shorter gaps, > 0', 0.0)
     crossing_margin_m: float = param(0.5, 'm, travel past the wall plane before mode 3, > 0', 0.0)
     crossing_fallback_travel: float = param(
         1.0, 'travel / height (dimensionless) when the height is unknown, > 0', 0.0)
@@ -188,6 +189,7 @@ class ModeSupervisor:
         self._frame_pad: tuple[np.ndarray, float | None] | None = None   # this frame's q_t, h
         self._frame_phi_down: np.ndarray | None = None  # this frame's floor flow
         self._t_carried_below: float | None = None      # first carried frame below, off-centre
+        self.frame_period_s = 0.02    # s between two computed front frames (the node sets it)
         self.auto_start_refusal = ''                    # why the last auto-start was refused
         self.start_refusal = ''                         # why the last start request was dropped
         self._start_requested_at: float | None = None   # t of an accepted ibvs/start request
@@ -263,7 +265,8 @@ class ModeSupervisor:
         if corner_bearings_I is not None:
             p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
             jumped = self._corners is not None and \
-                self._fresh('window', t, cfg.window_jump_max_gap_s) and \
+                self._fresh('window', t, cfg.window_jump_max_gap_frames * self.frame_period_s) \
+                and \
                 float(np.max(np.arccos(np.clip(np.sum(p * self._corners, axis=1), -1, 1)))) \
                 > cfg.window_jump_rad
             if not jumped:

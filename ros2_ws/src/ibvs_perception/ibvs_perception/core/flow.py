@@ -67,6 +67,9 @@ _MAX_CONDITION = 1e8
 LK_MOTION_MARGIN = 2.0
 
 
+DEFAULT_FRAME_PERIOD_S = 0.02     # s, a 50 Hz camera computing every frame
+
+
 @dataclass(frozen=True)
 class FlowConfig:
     """Tuning of :class:`FlowEstimator` (pixels are distorted image pixels)."""
@@ -114,8 +117,9 @@ class FlowConfig:
     exclusion_margin_rad: float = param(0.02, 'rad, widening of the excluded window aperture', 0.0)
     min_frame_gap_s: float = param(
         1e-4, 's (image stamps, ROS clock), smallest accepted gap between consecutive images', 0.0)
-    max_frame_gap_s: float = param(
-        0.1, 's (image stamps, ROS clock), largest accepted gap between consecutive images', 0.0)
+    max_frame_gap_frames: float = param(
+        5.0, 'computed frames (the camera period times the frame stride): largest accepted gap '
+        'between consecutive images (frames lost on the way)', 0.0)
     slow_motion_px: float = param(
         2.0,
         'px per frame: when the derotated image motion is slower, phi is estimated over several '
@@ -131,9 +135,9 @@ class FlowConfig:
         if not (math.isfinite(self.lk_capture_px) and self.lk_capture_px > 0.0):
             raise ValueError(f'parameter lk_capture_px must be finite and > 0, '
                              f'got {self.lk_capture_px}')
-        if not self.min_frame_gap_s <= self.max_frame_gap_s:
-            raise ValueError(f'parameter min_frame_gap_s ({self.min_frame_gap_s}) must be <= '
-                             f'max_frame_gap_s ({self.max_frame_gap_s})')
+        if not self.max_frame_gap_frames >= 1.0:
+            raise ValueError('parameter max_frame_gap_frames must be >= 1, got '
+                             f'{self.max_frame_gap_frames}')
 
 
 @dataclass(frozen=True)
@@ -337,6 +341,9 @@ class FlowEstimator:
         self.last_baseline_frames = 0              # baseline of the last estimate (frames)
         self.last_pyramid_levels: int | None = None  # LK levels of the last track (None: none)
         self.retracks = 0                          # searches redone with every pyramid level
+        # s between two computed frames: the camera period times the frame stride (the node
+        # sets it from vehicle.yaml's rate and ibvs/frame_grid)
+        self.frame_period_s = DEFAULT_FRAME_PERIOD_S
 
     @property
     def n_points(self) -> int:
@@ -358,7 +365,8 @@ class FlowEstimator:
         cfg = self.config
         result = None
         dt = None if self._stamp is None else stamp_s - self._stamp
-        if dt is None or not cfg.min_frame_gap_s <= dt <= cfg.max_frame_gap_s \
+        max_gap_s = cfg.max_frame_gap_frames * self.frame_period_s
+        if dt is None or not cfg.min_frame_gap_s <= dt <= max_gap_s \
                 or self._previous is None or gray.shape != self._previous.shape:
             self._points, self._ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
             self._history.clear()

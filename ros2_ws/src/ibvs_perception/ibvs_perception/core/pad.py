@@ -64,6 +64,9 @@ class PadConfigError(ValueError):
 MODULES_PER_SIDE = 6     # DICT_4X4: 4 data bits + 2 border modules per side
 
 
+DEFAULT_FRAME_PERIOD_S = 0.02     # s, a 50 Hz camera computing every frame
+
+
 @dataclass(frozen=True)
 class PadDetectorConfig:
     """Tuning of the ArUco detector (OpenCV DetectorParameters names, pixels)."""
@@ -96,10 +99,9 @@ class PadDetectorConfig:
     roi_margin_px: int = param(12, 'px added to the tracking region margin', 0)
     full_search_every_n_frames: int = param(
         50, 'frames: whole-image search at least this often (0: only on a loss)', 0)
-    roi_max_age_s: float = param(
-        0.03,
-        's (image stamps, ROS clock): a tracking region older than this (frames skipped) is not '
-        'used', 0.0)
+    roi_max_age_frames: float = param(
+        1.5, 'computed frames (the camera period times the frame stride): a tracking region '
+        'older than this (a frame lost on the way) is not used', 0.0)
     max_layout_error: float = param(
         0.1,
         "a complete group whose marker corners miss the group's layout (the homography of its 4 "
@@ -239,6 +241,9 @@ class PadDetector:
         self._roi_stamp: float | None = None
         self._frames_since_full = 0
         self.last_search = ''
+        # s between two computed frames: the camera period times the frame stride (the node
+        # sets it from vehicle.yaml's rate and ibvs/frame_grid)
+        self.frame_period_s = DEFAULT_FRAME_PERIOD_S
         params = aruco_parameters()
         params.adaptiveThreshWinSizeMin = config.adaptive_thresh_win_size_min
         params.adaptiveThreshWinSizeMax = config.adaptive_thresh_win_size_max
@@ -398,10 +403,11 @@ class PadDetector:
         """
         cfg = self.config
         period = cfg.full_search_every_n_frames
+        max_age_s = cfg.roi_max_age_frames * self.frame_period_s
         markers: dict[int, np.ndarray] = {}
         self.last_search = ''
         if stamp_s is not None and self._roi_stamp is not None \
-                and not 0.0 < stamp_s - self._roi_stamp <= cfg.roi_max_age_s:
+                and not 0.0 < stamp_s - self._roi_stamp <= max_age_s:
             self._roi = None            # frames were skipped (or time went back): search all
         self._roi_stamp = stamp_s
         if self._roi is not None and (period <= 0 or self._frames_since_full + 1 < period):
@@ -437,7 +443,7 @@ class PadDetector:
         """Landmarks of every complete group (empty arrays when none is complete).
 
         ``stamp_s``: the image time; a region of interest from a frame more than
-        ``roi_max_age_s`` older is dropped for a whole-image search.
+        ``roi_max_age_frames`` computed frames older is dropped for a whole-image search.
         """
         with opencv_settings(self.config.use_ipp, self.config.opencv_threads):
             markers = self._track(gray, camera, stamp_s)
