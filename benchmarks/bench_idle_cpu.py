@@ -15,7 +15,7 @@ stime of that process over ``--window-s`` after ``--settle-s``), repeated ``--re
   flies);
 - ``composed, DDS imu``: full telemetry with ``--no-intra-process`` (every node subscribes
   through DDS);
-- ``bridge alone``: the MAVLink bridge node only, with params.yaml's ``streams_off``, at rest;
+- ``bridge alone``: the MAVLink bridge node only, with its default ``streams_off``, at rest;
 - ``bridge alone, streams on`` (``--autopilot px4-sih`` only): ``streams_off: ['']``, i.e.
   PX4's default onboard streams left on, full telemetry. PX4 keeps a stream setting until it
   reboots, so every case there gets a fresh PX4.

@@ -7,9 +7,9 @@ Setup (issue 12, item 5):
 - both cameras replayed at 50 Hz and stamped with the system time at publication, as a camera
   driver does; the frames are rendered by the sim's renderer along the window approach of the
   feature-level reference run (t = 1.0 ... 2.5 s, slowed down 4 x so that 10 s of frames stay
-  in WINDOW mode, with a small roll/pitch sway), with the sim's sensor read noise
-  (params.yaml ``sim.camera_read_noise_std``): without it consecutive frames of the slow
-  approach can be bit-identical, which the perception rightly takes for a frozen camera;
+  in WINDOW mode, with a small roll/pitch sway), with the sim's sensor read noise (the sim
+  node's ``camera_read_noise_std`` with params.yaml): without it consecutive frames of the
+  slow approach can be bit-identical, which the perception rightly takes for a frozen camera;
 - a PX4-like MAVLink stand-in on UDP loopback: the sim's autopilot (ibvs_sim.core.autopilot),
   in its own process on the wall clock, serving the same trajectory's attitude at 100 Hz and
   answering TIMESYNC; it wakes on each datagram (select) or when a stream is due, and notes
@@ -24,7 +24,7 @@ replayer, which share the machine's two cores with the graph), and (first run) t
 the idle graph (linked, no images; the replayer has stopped watching imu/data by then, as
 nothing outside the graph reads it onboard). Runs again with the pad detector killed and
 with the down camera stopped (inputs WINDOW mode does not use), and once more composed.
-The frames are all of WINDOW mode: with mode gating (params.yaml ``mode_gating``) the pad
+The frames are all of WINDOW mode: with mode gating (parameter ``mode_gating``) the pad
 detector and the floor flow only keep their images; ``--gating-ab`` compares with gating off.
 Needs a quiet machine for meaningful figures (the load average is printed). Every run's node
 logs are under results/bench_latency/<case>/; they end with WINDOW -> FAILSAFE ("window stale")
@@ -102,11 +102,17 @@ def approach_track(n_frames: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_noise_std() -> float:
-    """Return the sim's camera read noise (grey levels) from the installed params.yaml."""
+    """Return the sim node's camera read noise (grey levels) with the installed params.yaml.
+
+    Its code default unless the file's ``/**`` block or ``sim`` section sets it.
+    """
     import yaml
     from ibvs_bringup.graph import default_params_file
+    from ibvs_common.core.params import node_values
+    from ibvs_sim.config import SimNodeConfig
     with open(default_params_file()) as f:
-        return float(yaml.safe_load(f)['sim']['ros__parameters']['camera_read_noise_std'])
+        data = yaml.safe_load(f)
+    return float(node_values(SimNodeConfig, data, 'sim')['camera_read_noise_std'])
 
 
 def render(r: np.ndarray, xi: np.ndarray) -> dict:
@@ -360,15 +366,22 @@ def run_once(name: str, images: dict, track, n_frames: int, idle_s: float,
 
 
 def params_without_gating() -> str:
-    """Write the installed params.yaml with every ``mode_gating: true`` off; return its path."""
+    """Write the installed params.yaml with ``mode_gating: false`` for every node; return its path.
+
+    In its ``/**`` block (every perception node declares ``mode_gating``, the others ignore
+    it), with the name taken out of the node sections: nothing else sets it then.
+    """
+    import yaml
     from ibvs_bringup.graph import default_params_file
+    from ibvs_common.core.params import SECTION_KEY, WILDCARD
     with open(default_params_file()) as f:
-        text = f.read()
-    if 'mode_gating: true' not in text:
-        raise RuntimeError('params.yaml has no mode_gating: true to turn off')
+        data = yaml.safe_load(f) or {}
+    for entry in data.values():
+        (entry.get(SECTION_KEY) or {}).pop('mode_gating', None)
+    data.setdefault(WILDCARD, {}).setdefault(SECTION_KEY, {})['mode_gating'] = False
     path = os.path.join(tempfile.mkdtemp(prefix='bench_latency_'), 'params.yaml')
     with open(path, 'w') as f:
-        f.write(text.replace('mode_gating: true', 'mode_gating: false'))
+        yaml.safe_dump(data, f, sort_keys=False)
     return path
 
 

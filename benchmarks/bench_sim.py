@@ -3,10 +3,11 @@
 Runs the Simulation core (no ROS, no MAVLink: a constant hover reference stands in for the
 autopilot) along a path from the start to the pad, and prints the ratio of simulated to wall
 time (target >= 2) and the per-frame times: physics (10 substeps), and the frame's images as
-the sim node makes them (``CameraRig.render``: both cameras, their read noise at
-params.yaml's 1.5 grey levels, the cameras on parallel threads; ``--serial``: one after the
-other, as before 2026-11-26; ``--no-noise``: noise-free) with each camera's own render time.
-What the node adds per frame (ROS messages, publication, MAVLink telemetry) is not counted:
+the sim node makes them (``CameraRig.render``: both cameras, their read noise at the sim
+node's default ``camera_read_noise_std``, 1.5 grey levels, the cameras on parallel threads;
+``--serial``: one after the other, as before 2026-11-26; ``--no-noise``: noise-free) with
+each camera's own render time. What the node adds per frame (ROS messages, publication,
+MAVLink telemetry) is not counted:
 ``run_scenario``'s summary.json ``timing`` gives the node's whole budget (docs/sim.md).
 """
 import argparse
@@ -17,11 +18,13 @@ import numpy as np
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_common.core.frames import rot_from_euler_zyx
+from ibvs_common.core.params import defaults
+from ibvs_sim.config import SimNodeConfig
 from ibvs_sim.core.autopilot import AttitudeReference
 from ibvs_sim.core.sim_core import SimConfig, Simulation
 
 LEVEL_Q = np.array([1.0, 0.0, 0.0, 0.0])
-READ_NOISE_STD = 1.5     # grey levels: params.yaml's camera_read_noise_std
+READ_NOISE_STD = defaults(SimNodeConfig)['camera_read_noise_std']   # grey levels, the sim's
 
 
 class HoverReference:

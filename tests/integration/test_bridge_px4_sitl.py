@@ -378,11 +378,14 @@ MAX_TILT = np.radians(25.0)
 
 
 def shipped_parameters(**overrides) -> dict:
-    """The bridge's parameters as params.yaml ships them (onboard), with test overrides."""
-    from ibvs_common.core.params import defaults
+    """The bridge's parameters as it reads the shipped params.yaml (onboard), with test overrides.
+
+    Its code defaults, then the file's ``/**`` block and ``mavlink_bridge`` section.
+    """
+    from ibvs_common.core.params import node_values
     from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
-    p = defaults(MavlinkBridgeNodeConfig)
-    p.update(yaml.safe_load(PARAMS_YAML.read_text())['mavlink_bridge']['ros__parameters'])
+    p = node_values(MavlinkBridgeNodeConfig, yaml.safe_load(PARAMS_YAML.read_text()),
+                    'mavlink_bridge')
     p.update(overrides)
     return p
 

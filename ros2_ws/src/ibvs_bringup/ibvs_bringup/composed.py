@@ -69,7 +69,10 @@ def build_nodes(specs: list, context: Context, intra_process: bool = True,
     ``user_ros_args`` (``--ros-args ...`` of the command line) follow each node's own tail, so
     that a user's ``-p name:=value`` wins over the parameter file as it does for a node's own
     process (rcl gives a node's own arguments precedence over the global ones: as global
-    arguments only, the file's value would silently win).
+    arguments only, the file's value would silently win). rcl reads the parameter file of the
+    tail as for a process: the node's section and the ``/**`` block (params.yaml keeps it
+    last: rcl files a ``-p`` under ``/**``, so the tail's and the user's ``-p`` win over the
+    sections).
 
     When the MAVLink bridge is among them, its imu/data goes to the others in process
     (``ibvs_common.intra_process``: every node class with an ``imu_local`` argument takes it

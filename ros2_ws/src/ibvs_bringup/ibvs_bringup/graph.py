@@ -4,7 +4,9 @@
 is what runs on the vehicle's companion computer, against the autopilot's MAVLink URL. Both
 return ``NodeSpec`` records; ``launch/*.launch.py`` turn them into ``launch_ros`` Node actions
 and ``ibvs_bringup.runner`` into processes (``--ros-args`` built by ``NodeSpec.ros_args``).
-Parameters come from ``params.yaml`` (keyed by node name) plus the few per-run overrides here.
+Parameters: each node's code defaults (its config dataclass, :func:`node_configs`), what
+``params.yaml`` sets for a deployment (keyed by node name, plus a ``/**`` block for all), and
+the per-run overrides here (wiring: URLs, subscriber counts, arming, start, faults).
 """
 from __future__ import annotations
 
@@ -23,8 +25,8 @@ DEFAULT_MAVLINK_PORT = 14560
 CROSSING_LAWS = ('closed', 'intended', 'seed')
 ROLES = ('sim', 'onboard', 'tool')
 
-# Names of the per-run parameters (the rest lives in params.yaml). Owned by the node packages;
-# collected here so that a rename is one edit.
+# Names of the per-run parameters (the rest: code defaults and params.yaml). Owned by the node
+# packages; collected here so that a rename is one edit.
 SIM_INITIAL_OVERRIDE = 'initial_override'    # true: use the two below, not world.yaml's
 SIM_INITIAL_POSITION = 'initial_position_I'   # [x, y, z] in the paper frame {I}, m
 SIM_INITIAL_YAW = 'initial_yaw'               # rad, {I}
@@ -94,7 +96,7 @@ class NodeSpec:
 
 @dataclass(frozen=True)
 class GraphOptions:
-    """Per-run options of the graph (everything else is in params.yaml)."""
+    """Per-run options of the graph (everything else: code defaults and the parameter file)."""
 
     params_file: str | None = None                  # None: the installed params.yaml
     use_sim_time: bool = True
@@ -102,11 +104,11 @@ class GraphOptions:
     mavlink_url: str | None = None                  # onboard graph: the vehicle's MAVLink URL
     initial_position: tuple | None = None           # {I}, m; None: world.yaml's
     initial_yaw: float | None = None                # rad; None: world.yaml's
-    wind: tuple | None = None                       # {I}, N (sent in map); None: params'
-    crossing_law: str | None = None                 # None: params.yaml's
-    auto_start_at_s: float | None = None            # s; None: params.yaml's (ibvs/start)
+    wind: tuple | None = None                       # {I}, N (sent in map); None: the file's
+    crossing_law: str | None = None                 # None: the file's (or the default)
+    auto_start_at_s: float | None = None            # s; None: the file's (off: ibvs/start)
     real_time_factor: float | None = None           # sim graph: free-running at this factor
-    #                                                 (None: params.yaml's pacing, lockstep)
+    #                                                 (None: the file's pacing, lockstep)
     extra_remappings: tuple = field(default_factory=tuple)
     extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
     extra_imu_subscribers: int = 0                  # e.g. 1 for a recorder of imu/data
@@ -154,7 +156,8 @@ def checked_params_file(path: str | None, node_names: Sequence[str]) -> str:
     ``None`` or '' is the installed params.yaml. launch_ros only warns about a file that does
     not exist and then runs every node on its code defaults; a flight stack must not start on
     a typo. Refused: a missing or unreadable file, invalid YAML, and a file that configures
-    none of the graph's nodes (``<node name>: ros__parameters: ...``, as in params.yaml).
+    none of the graph's nodes (neither a ``<node name>: ros__parameters: ...`` section nor a
+    ``/**:`` block for every node, as in params.yaml).
     """
     import yaml
     resolved = path or default_params_file()
@@ -169,11 +172,12 @@ def checked_params_file(path: str | None, node_names: Sequence[str]) -> str:
         raise ValueError(f'parameter file {resolved!r} is not valid YAML: {exc}') from exc
     sections = set(data) if isinstance(data, dict) else set()
     configured = {n for n in node_names
-                  if n in sections or f'/{n}' in sections or '/**' in sections}
+                  if n in sections or f'/{n}' in sections or sections & {'/**', '/*'}}
     if not configured:
         raise ValueError(f'parameter file {resolved!r} configures none of the nodes '
                          f'{sorted(node_names)} (expected "<node name>: ros__parameters:" '
-                         f'sections, as in the installed {PARAMS_FILE_NAME})')
+                         f'sections or a "/**:" block, as in the installed '
+                         f'{PARAMS_FILE_NAME})')
     return resolved
 
 
@@ -305,6 +309,32 @@ def onboard_graph(opts: GraphOptions = GraphOptions(use_sim_time=False)) -> list
     url = opts.mavlink_url or sim_mavlink_urls(opts.mavlink_port)[1]
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     return _onboard_nodes(params, common, opts, url)
+
+
+def node_configs() -> dict[str, type]:
+    """Return the config dataclass of every node of the graphs by node name, in graph order.
+
+    ``sim``, ``px4_sim`` (the sim of the PX4 SIH graph), then ``ONBOARD_NODE_NAMES``. Each
+    dataclass holds the node's parameters: default, description, range, unit
+    (``ibvs_common.core.params``). Imported on call: the node list itself loads no node code.
+    """
+    from ibvs_control.config import ForceControllerNodeConfig, ModeSupervisorNodeConfig
+    from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
+    from ibvs_perception.config import (OpticalFlowNodeConfig, PadDetectorNodeConfig,
+                                        WindowDetectorNodeConfig)
+    from ibvs_sim.config import Px4SimNodeConfig, SimNodeConfig
+    configs = {'sim': SimNodeConfig, PX4_SIM_NAME: Px4SimNodeConfig,
+               'window_detector': WindowDetectorNodeConfig,
+               'pad_detector': PadDetectorNodeConfig,
+               'front_optical_flow': OpticalFlowNodeConfig,
+               'down_optical_flow': OpticalFlowNodeConfig,
+               'mode_supervisor': ModeSupervisorNodeConfig,
+               'force_controller': ForceControllerNodeConfig,
+               'mavlink_bridge': MavlinkBridgeNodeConfig}
+    order = SIM_NODE_NAMES[:1] + (PX4_SIM_NAME,) + ONBOARD_NODE_NAMES
+    if set(order) != set(configs):
+        raise RuntimeError(f'node_configs out of date: {sorted(set(order) ^ set(configs))}')
+    return {name: configs[name] for name in order}
 
 
 def tool_node(executable: str, name: str, parameters: tuple = (),

@@ -58,7 +58,8 @@ def generate_launch_description():
                               description='parameter file (empty: installed params.yaml)'),
         DeclareLaunchArgument('use_sim_time', default_value='false'),
         DeclareLaunchArgument('crossing_law', default_value='',
-                              description='closed | intended | seed (empty: params.yaml)'),
+                              description='closed | intended | seed (empty: the parameter '
+                                          "file's, else the code default)"),
         DeclareLaunchArgument('layout', default_value=DEFAULT_LAYOUT['onboard'],
                               description='composed (one process) | processes (one per node)'),
         OpaqueFunction(function=_nodes),

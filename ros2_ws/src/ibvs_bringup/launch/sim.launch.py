@@ -33,6 +33,7 @@ def generate_launch_description():
         DeclareLaunchArgument('mavlink_port', default_value=str(graph.DEFAULT_MAVLINK_PORT),
                               description='UDP port of the sim <-> bridge MAVLink link'),
         DeclareLaunchArgument('crossing_law', default_value='',
-                              description='closed | intended | seed (empty: params.yaml)'),
+                              description='closed | intended | seed (empty: the parameter '
+                                          "file's, else the code default)"),
         OpaqueFunction(function=_nodes),
     ])

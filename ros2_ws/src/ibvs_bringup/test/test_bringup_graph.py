@@ -45,10 +45,12 @@ def test_every_executable_is_a_console_script_of_its_package():
     assert {'runner', 'preflight'} <= console_scripts('ibvs_bringup')
 
 
-def test_params_yaml_has_a_section_per_node():
+def test_params_yaml_configures_every_node_and_each_has_a_config():
+    """Its ``/**`` block reaches every node (test_bringup_params_file checks the rest)."""
     import yaml
-    sections = set(yaml.safe_load(Path(PARAMS).read_text()))
-    assert EXPECTED_NODES <= sections
+    assert '/**' in yaml.safe_load(Path(PARAMS).read_text())
+    assert list(graph.node_configs()) == ['sim', graph.PX4_SIM_NAME,
+                                          *graph.ONBOARD_NODE_NAMES]
 
 
 def test_flight_path_of_the_sim_graph_is_the_onboard_graph_on_another_clock():
@@ -273,16 +275,18 @@ def test_onboard_window_size_agrees_with_the_sim_world():
     """
     import yaml
     from ibvs_common.core.config import load_window_layout
+    from ibvs_common.core.params import file_values, parameters
     from ibvs_sim.core.world import load_world
-    params = yaml.safe_load(Path(PARAMS).read_text())
+    data = yaml.safe_load(Path(PARAMS).read_text())
     truth, belief = load_world().window, load_window_layout()
     assert (belief.width, belief.height, belief.frame_band) == \
         (truth.width, truth.height, truth.frame_band)
+    configs = graph.node_configs()
     for node in ('mode_supervisor', 'force_controller', 'window_detector'):
-        section = params[node]['ros__parameters']
-        assert 'world_file' not in section
-        assert section['window_layout_file'] == '', node
-        assert not {'window_width_m', 'window_height_m', 'frame_band_m'} & set(section), node
+        declared = parameters(configs[node])
+        assert 'world_file' not in declared
+        assert file_values(data, node).get('window_layout_file', '') == '', node
+        assert not {'window_width_m', 'window_height_m', 'frame_band_m'} & set(declared), node
 
 
 def test_the_node_name_table_is_the_graphs_node_list():

@@ -4,13 +4,14 @@ Publishes the serialized messages unchanged (original header stamps) on their re
 names, paced by bag time times ``rate``, and publishes ``/clock`` from bag time if ``clock`` is
 true, so that perception nodes under ``use_sim_time`` see the original time line.
 
-Parameters: ``bag_path`` (required), ``topics`` (default: both cameras' image_raw and
-camera_info, and imu/data), ``rate`` (default 1.0), ``clock`` (default true),
-``start_delay`` (s of wall time before the first message, to let subscribers match; default 1.0).
+Parameters (:class:`BagPlayerNodeConfig`, docs/parameters.md): ``bag_path`` (required),
+``topics`` (default: both cameras' image_raw and camera_info, and imu/data), ``rate``
+(default 1.0), ``clock`` (default true), ``start_delay`` (s of wall time before the first
+message, to let subscribers match; default 1.0).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import time
 
 from builtin_interfaces.msg import Time
@@ -19,32 +20,26 @@ from ibvs_harness.recorder_node import msg_class
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data, QoSProfile, ReliabilityPolicy
 from ibvs_common.dds_profile import use_dds_profile_here
-from ibvs_common.param_descriptors import declare
+from ibvs_common.core.params import param
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from rosgraph_msgs.msg import Clock
 
 INFO_SUFFIX = 'camera_info'
-PARAMETER_SPECS = {   # description with unit, range (ibvs_common.param_descriptors)
-    'bag_path': ('rosbag2 folder to play; required',),
-    'topics': ('relative topic names to play',),
-    'rate': ('bag time / wall time (0: 1.0)', 0.0, None),
-    'clock': ('publish /clock from the bag time',),
-    'start_delay': ('s (wall, steady clock) before the first message', 0.0, None),
-}
 PRIME_LEAD_S = 0.5            # s (wall) before playback: first CameraInfo of each camera
 REPLAY_TOPICS = ('front_camera/image_raw', 'down_camera/image_raw', 'front_camera/camera_info',
                  'down_camera/camera_info', 'imu/data')
 
 
 @dataclass(frozen=True)
-class PlayerConfig:
-    """Typed parameters of the player."""
+class BagPlayerNodeConfig:
+    """Parameters of the ``bag_player`` tool node."""
 
-    bag_path: str
-    topics: tuple
-    rate: float
-    clock: bool
-    start_delay: float
+    bag_path: str = param('', 'rosbag2 folder to play; required')
+    topics: list = param(list(REPLAY_TOPICS), 'relative topic names to play')
+    rate: float = param(1.0, 'bag time / wall time (0: 1.0)', 0.0)
+    clock: bool = param(True, 'publish /clock from the bag time')
+    start_delay: float = param(1.0, 's (wall, steady clock) before the first message', 0.0)
 
 
 class BagPlayerNode(Node):
@@ -71,15 +66,11 @@ class BagPlayerNode(Node):
         self.timer = self.create_timer(0.002, self._tick)
         self.get_logger().info(f'playing {sorted(self.pubs)} of {self.config.bag_path}')
 
-    def _declare_config(self) -> PlayerConfig:
-        path = declare(self, 'bag_path', '', PARAMETER_SPECS['bag_path'])
-        if not path:
+    def _declare_config(self) -> BagPlayerNodeConfig:
+        cfg = declare_config(self, BagPlayerNodeConfig)
+        if not cfg.bag_path:
             raise ValueError('parameter bag_path is required')
-        topics = declare(self, 'topics', list(REPLAY_TOPICS), PARAMETER_SPECS['topics'])
-        rate = float(declare(self, 'rate', 1.0, PARAMETER_SPECS['rate']))
-        clock = bool(declare(self, 'clock', True, PARAMETER_SPECS['clock']))
-        delay = float(declare(self, 'start_delay', 1.0, PARAMETER_SPECS['start_delay']))
-        return PlayerConfig(str(path), tuple(topics), rate if rate > 0 else 1.0, clock, delay)
+        return replace(cfg, rate=cfg.rate if cfg.rate > 0 else 1.0)
 
     def _tick(self) -> None:
         if self.primes and time.monotonic() >= self.t0_wall - PRIME_LEAD_S:

@@ -4,7 +4,8 @@
 
 For every law and wind level, ``runs`` flights of ibvs_sim's feature-level closed loop
 (``feature_sim.run_feature_scenario``: the ROS-free controller and supervisor as the nodes run
-them, params.yaml's gains and thresholds, geometric features, a point-mass plant):
+them, with the parameter file's gains and thresholds over the code defaults, geometric
+features, a point-mass plant):
 
 - start: uniform in world.yaml's random box (SPEC.md section 2: x in [-2.6, -1.8],
   y in [-0.3, 0.3], z in [-1.9, -1.35] m, {I}), at rest, level, the reference yaw;
@@ -69,8 +70,9 @@ MAX_SIM_TIME_S = 60.0             # SPEC.md section 5
 class LawSpec:
     """A control law of the campaign: a label and its force_controller parameter overrides.
 
-    ``overrides``: (name, value) pairs applied over params.yaml's ``force_controller``
-    section (e.g. ``(('crossing_law', 'intended'),)``); every name must exist there.
+    ``overrides``: (name, value) pairs applied over the ``force_controller`` parameters of
+    the parameter file (e.g. ``(('crossing_law', 'intended'),)``); every name must be one of
+    the node's parameters (``ForceControllerNodeConfig``), every value of its type and range.
     """
 
     label: str
@@ -114,7 +116,7 @@ class CampaignConfig:
     name: str
     runs: int = 500
     levels_mps2: tuple = DEFAULT_LEVELS_MPS2
-    laws: tuple = (LawSpec('params'),)   # default: params.yaml's laws as they are
+    laws: tuple = (LawSpec('params'),)   # default: the parameter file's laws as they are
     gust_level: float = 0.3           # gust amplitude / steady horizontal magnitude
     vertical_factor: float = 0.3      # steady vertical / horizontal magnitude (+: down)
     gust_frequency_hz: float = 0.5    # Hz, base gust frequency
@@ -349,15 +351,15 @@ class _Setup:
 
 
 def params_estimate_noise(params: dict) -> tuple[float, float]:
-    """(std rad, tau s) of the sim's attitude-estimate error in a params.yaml dict.
+    """(std rad, tau s) of the sim's attitude-estimate error, as the sim node reads ``params``.
 
-    A file without them flies the sim autopilot's defaults, as the sim node would.
+    ``params``: a loaded parameter file; the sim's code defaults under its ``/**`` block and
+    ``sim`` section.
     """
-    from ibvs_sim.core.autopilot.config import AutopilotConfig
-    sim = (params.get('sim') or {}).get('ros__parameters') or {}
-    default = AutopilotConfig()
-    return (float(sim.get('attitude_noise_std_rad', default.attitude_noise_std)),
-            float(sim.get('attitude_noise_tau_s', default.attitude_noise_tau_s)))
+    from ibvs_harness.core_configs import node_config
+    from ibvs_sim.config import SimNodeConfig
+    sim = node_config(SimNodeConfig, params, 'sim')
+    return float(sim.attitude_noise_std_rad), float(sim.attitude_noise_tau_s)
 
 
 def read_params(params_file: str | None) -> tuple[str, str]:
@@ -373,9 +375,9 @@ def read_params(params_file: str | None) -> tuple[str, str]:
 def load_setup(params_file: str | None, overrides: tuple) -> _Setup:
     """World, pad, vehicle and the controller/supervisor configs as the nodes build them.
 
-    ``ibvs_harness.core_configs`` (gains, laws, window and pad layout files of each node's
-    section) with ``overrides`` applied to force_controller. Cached per (file, overrides) in a
-    process.
+    ``ibvs_harness.core_configs`` (each node's code defaults, the file's ``/**`` block and
+    its section: gains, laws, window and pad layout files) with ``overrides`` applied to
+    force_controller. Cached per (file, overrides) in a process.
     """
     import yaml
     from ibvs_harness.core_configs import controller_config, supervisor_config
@@ -462,16 +464,20 @@ def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind: WindConfig) -> di
     The sim node sums one sine per axis (K = 1), so K > 1 is refused here.
     """
     import yaml
+    from ibvs_control.config import ForceControllerNodeConfig
+    from ibvs_common.core.params import defaults
+    from ibvs_harness.core_configs import checked_overrides
     if wind.gust_components != 1:
         raise ValueError('image level: the sim node takes one gust sine per axis '
                          '(--gust-components 1)')
     _, text = read_params(cfg.params_file)
     params = yaml.safe_load(text) or {}
+    overrides = checked_overrides(ForceControllerNodeConfig, spec.law.overrides,
+                                  'force_controller')
+    kinds = defaults(ForceControllerNodeConfig)
     ctrl = params.setdefault('force_controller', {}).setdefault('ros__parameters', {})
-    for name, value in spec.law.overrides:
-        if name not in ctrl:
-            raise ValueError(f'law override {name!r}: no such force_controller parameter')
-        ctrl[name] = value
+    for name, value in overrides.items():   # a double as the node declares it (not 3 for 3.0)
+        ctrl[name] = float(value) if isinstance(kinds[name], float) else value
     sim = params.setdefault('sim', {}).setdefault('ros__parameters', {})
     sim['wind_gust_amplitude_N'] = float(wind.gust_amplitude_N)
     sim['wind_gust_frequency_hz'] = float(wind.gust_frequency_hz)
@@ -808,12 +814,15 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
             [LawSpec.parse(x) for x in a.law]
     except ValueError as exc:
         p.error(str(exc))
-    if not laws:                  # params.yaml's laws, labelled by its disturbance law
+    if not laws:                  # the file's laws, labelled by its disturbance law
         import yaml
+        from ibvs_harness.core_configs import controller_node_config
         _, text = read_params(a.params_file)
-        ctrl = ((yaml.safe_load(text) or {}).get('force_controller') or {}).get(
-            'ros__parameters') or {}
-        laws = [LawSpec(str(ctrl.get('disturbance_law', ctrl.get('crossing_law', 'params'))))]
+        try:
+            ctrl = controller_node_config(yaml.safe_load(text))
+        except ValueError as exc:
+            p.error(f'force_controller parameters of {a.params_file or "params.yaml"}: {exc}')
+        laws = [LawSpec(str(ctrl.disturbance_law))]
     if len({law.label for law in laws}) != len(laws):
         p.error('law labels must be unique')
     cfg = CampaignConfig(name=a.name, runs=a.runs, levels_mps2=tuple(sorted(set(a.levels))),

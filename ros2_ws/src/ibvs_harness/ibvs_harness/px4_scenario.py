@@ -88,14 +88,17 @@ def at_start(xi_I: np.ndarray, start_I: np.ndarray, yaw_err_rad: float, box: dic
 
 
 def px4_sim_section(params_file: str | None) -> dict:
-    """Return the ``px4_sim`` parameters of the params file (code defaults under them)."""
+    """Return the ``px4_sim`` parameters as the node reads the params file.
+
+    Its code defaults, then the file's ``/**`` block and ``px4_sim`` section (ValueError for a
+    value the node would refuse).
+    """
     import yaml
-    from ibvs_common.core.params import defaults
+    from ibvs_common.core.params import node_values
     from ibvs_sim.config import Px4SimNodeConfig
     with open(params_file or graph.default_params_file(), encoding='utf-8') as f:
         data = yaml.safe_load(f) or {}
-    section = (data.get('px4_sim') or {}).get('ros__parameters') or {}
-    return {**defaults(Px4SimNodeConfig), **section}
+    return node_values(Px4SimNodeConfig, data, graph.PX4_SIM_NAME)
 
 
 def _error_summary(opts, world, xi0, error: str) -> dict:

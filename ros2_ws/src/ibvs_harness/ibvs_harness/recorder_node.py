@@ -5,37 +5,35 @@ compatible with what the publishers offer (reliable / transient-local only when 
 and messages are stamped with the receive time on the node's clock (sim time under
 ``use_sim_time``). Images can be decimated (``image_every``) to keep bags small.
 
-Parameters: ``bag_path`` (required, must not exist), ``image_every`` (int, default 1),
-``topics`` (list of relative names; default: every topic of ``bag.RUN_TOPICS``).
+Parameters (:class:`RecorderNodeConfig`, docs/parameters.md): ``bag_path`` (required, must
+not exist), ``image_every`` (int, default 1), ``topics`` (list of relative names; default:
+every topic of ``bag.RUN_TOPICS``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import importlib
 
 from ibvs_harness import bag
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from ibvs_common.param_descriptors import declare
+from ibvs_common.core.params import param
+from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 
-PARAMETER_SPECS = {   # description with unit, range (ibvs_common.param_descriptors)
-    'bag_path': ('new directory of the bag (must not exist); required',),
-    'image_every': ('record every N-th message of the image_raw topics (0 or 1: every one)',
-                    0, None),
-    'topics': ('relative topic names to record (default: all of bag.RUN_TOPICS)',),
-}
 DISCOVERY_PERIOD_S = 0.2      # s (steady clock), how often new publishers are looked for
 
 
 @dataclass(frozen=True)
-class RecorderConfig:
-    """Typed parameters of the recorder."""
+class RecorderNodeConfig:
+    """Parameters of the ``recorder`` tool node."""
 
-    bag_path: str
-    image_every: int
-    topics: tuple
+    bag_path: str = param('', 'new directory of the bag (must not exist); required')
+    image_every: int = param(
+        1, 'record every N-th message of the image_raw topics (0 or 1: every one)', 0)
+    topics: list = param([t.topic for t in bag.RUN_TOPICS],
+                         'relative topic names to record (default: all of bag.RUN_TOPICS)')
 
 
 def msg_class(msgtype: str) -> type:
@@ -77,14 +75,11 @@ class RecorderNode(Node):
             DISCOVERY_PERIOD_S, self._discover, clock=Clock(clock_type=ClockType.STEADY_TIME))
         self.get_logger().info(f'recording {len(self.specs)} topics to {self.config.bag_path}')
 
-    def _declare_config(self) -> RecorderConfig:
-        bag_path = declare(self, 'bag_path', '', PARAMETER_SPECS['bag_path'])
-        if not bag_path:
+    def _declare_config(self) -> RecorderNodeConfig:
+        cfg = declare_config(self, RecorderNodeConfig)
+        if not cfg.bag_path:
             raise ValueError('parameter bag_path is required')
-        every = max(1, int(declare(self, 'image_every', 1, PARAMETER_SPECS['image_every'])))
-        default = [t.topic for t in bag.RUN_TOPICS]
-        topics = declare(self, 'topics', default, PARAMETER_SPECS['topics'])
-        return RecorderConfig(str(bag_path), every, tuple(topics))
+        return replace(cfg, image_every=max(1, cfg.image_every))
 
     def _discover(self) -> None:
         for topic, spec in self.specs.items():

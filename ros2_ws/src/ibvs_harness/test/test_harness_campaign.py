@@ -109,6 +109,42 @@ def test_law_spec_parse():
             LawSpec.parse(bad)
 
 
+def test_the_cores_start_from_the_node_defaults_and_take_the_files_blocks():
+    """core_configs reads a parameter file as the nodes do: code defaults, /**, the section."""
+    from ibvs_control.core.control_laws import DisturbanceLaw
+    from ibvs_harness.core_configs import controller_config, supervisor_config
+    assert controller_config({}).disturbance_law == DisturbanceLaw.OBSERVER_INTEGRAL
+    data = {'force_controller': {'ros__parameters': {'disturbance_law': 'paper'}},
+            'mode_supervisor': {'ros__parameters': {'imu_timeout_s': 0.3}},
+            '/**': {'ros__parameters': {'window_layout_file': '', 'no_node_reads': 1}}}
+    assert controller_config(data).disturbance_law == DisturbanceLaw.PAPER
+    assert supervisor_config(data).imu_timeout_s == 0.3
+    assert supervisor_config({}).imu_timeout_s == 0.2
+    with pytest.raises(ValueError, match='imu_timeout_s'):          # as the node: a type error
+        supervisor_config({'mode_supervisor': {'ros__parameters': {'imu_timeout_s': 'x'}}})
+
+
+def test_law_overrides_are_checked_against_the_controllers_parameters(tmp_path):
+    """Any force_controller parameter, set in the file or not; of its type and range."""
+    from ibvs_harness.core_configs import controller_config
+    ctrl = controller_config({}, (('observer.tau_s', 0.3), ('crossing.kf', 3)))
+    assert (ctrl.observer.tau_s, ctrl.crossing.kf) == (0.3, 3.0)
+    for bad, match in ((('no_such', 1.0), 'no such force_controller parameter'),
+                       (('window.kp', 'x'), 'window.kp'),
+                       (('landing.lateral_scale_min', 1.5), 'outside')):
+        with pytest.raises(ValueError, match=match):
+            controller_config({}, (bad,))
+    cfg = CampaignConfig(name='c', runs=1, levels_mps2=(0.0,), results_root=str(tmp_path),
+                         laws=(LawSpec.parse('stiff:crossing.kf=3'),))
+    spec = run_specs(cfg, BOX)[0]
+    params = campaign.image_run_params(cfg, spec, campaign.run_wind(cfg, spec, 1.676))
+    kf = params['force_controller']['ros__parameters']['crossing.kf']
+    assert kf == 3.0 and isinstance(kf, float)          # a double, as the node declares it
+    bad = CampaignConfig(name='b', runs=1, laws=(LawSpec.parse('x:no_such=1'),))
+    with pytest.raises(ValueError, match='no such force_controller parameter'):
+        campaign.image_run_params(bad, run_specs(bad, BOX)[0], campaign.run_wind(cfg, spec, 1.0))
+
+
 def test_draws_are_deterministic_in_the_box_and_shared_by_levels_and_laws():
     a, b = draw_run(14, 7, BOX), draw_run(14, 7, BOX)
     assert a == b and a != draw_run(14, 8, BOX) and a != draw_run(15, 7, BOX)
@@ -192,13 +228,15 @@ def test_estimate_error_reaches_the_feature_sim_and_the_image_level_params(tmp_p
 
 def test_estimate_noise_defaults_to_the_params_file_and_reaches_both_levels(tmp_path,
                                                                             monkeypatch):
-    """The estimate's wandering error: params.yaml's sim values unless --estimate-noise."""
+    """The estimate's wandering error: the sim's, with params.yaml, unless --estimate-noise."""
     import yaml
     from ibvs_harness import feature_sim
     from ibvs_bringup.graph import default_params_file
+    from ibvs_common.core.params import node_values
+    from ibvs_sim.config import SimNodeConfig
     installed = default_params_file()
     with open(installed, encoding='utf-8') as f:
-        sim = yaml.safe_load(f)['sim']['ros__parameters']
+        sim = node_values(SimNodeConfig, yaml.safe_load(f), 'sim')   # defaults, /**, section
     expected = (sim['attitude_noise_std_rad'], sim['attitude_noise_tau_s'])
     assert expected[0] > 0.0                       # the default flies an estimate error
     flown = []
@@ -217,7 +255,7 @@ def test_estimate_noise_defaults_to_the_params_file_and_reaches_both_levels(tmp_
     assert summary['run']['estimate_noise'] == pytest.approx(list(expected))
     spec = run_specs(cfg, BOX)[0]
     params = campaign.image_run_params(cfg, spec, campaign.run_wind(cfg, spec, 1.676))
-    assert params['sim']['ros__parameters']['attitude_noise_std_rad'] == expected[0]
+    assert node_values(SimNodeConfig, params, 'sim')['attitude_noise_std_rad'] == expected[0]
 
     cfg, *_ = campaign.parse_args(['--name', 'set', '--estimate-noise', '0.5', '3', *args])
     assert cfg.estimate_noise == pytest.approx((math.radians(0.5), 3.0))

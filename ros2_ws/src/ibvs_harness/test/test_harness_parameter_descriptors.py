@@ -16,8 +16,13 @@ import rclpy
 from rcl_interfaces.msg import ParameterType
 from rclpy.parameter import Parameter
 
-from ibvs_harness.bag_player_node import PARAMETER_SPECS as PLAYER_SPECS
-from ibvs_harness.recorder_node import RecorderNode
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import Imu
+
+from ibvs_harness import bag
+from ibvs_harness.bag_player_node import BagPlayerNode, BagPlayerNodeConfig
+from ibvs_harness.recorder_node import RecorderNode, RecorderNodeConfig
+from ibvs_common.core import params
 from ibvs_common.core.mavlink_connection import free_udp_port
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
@@ -96,17 +101,31 @@ def test_every_parameter_is_described_ranged_and_read_only(name, context):
 
 
 def test_tool_node_parameters_are_described(context, tmp_path):
+    """The recorder and the bag player: every parameter of their config, described, ranged."""
     node = RecorderNode(context=context,
                         parameter_overrides=[Parameter('bag_path', value=str(tmp_path / 'b'))])
     try:
         assert not check_descriptors(node)
+        assert own_parameters(node) == sorted(params.parameters(RecorderNodeConfig))
     finally:
         node.destroy_node()
-    # the player needs a bag to start: its specs alone (descriptor raises for a misfit)
-    defaults = {'bag_path': '', 'topics': [], 'rate': 1.0, 'clock': True, 'start_delay': 1.0}
-    assert set(defaults) == set(PLAYER_SPECS)
-    for name, spec in PLAYER_SPECS.items():
-        assert descriptor(name, defaults[name], spec).read_only
+    with bag.BagWriter(tmp_path / 'played') as w:          # the player needs a bag to start
+        w.add_topic('imu/data', 'sensor_msgs/msg/Imu')
+        w.write('imu/data', 1_000, serialize_message(Imu()))
+    node = BagPlayerNode(context=context, parameter_overrides=[
+        Parameter('bag_path', value=str(tmp_path / 'played')), Parameter('rate', value=0.0)])
+    try:
+        assert not check_descriptors(node)
+        assert own_parameters(node) == sorted(params.parameters(BagPlayerNodeConfig))
+        assert node.config.rate == 1.0                     # 0: real time
+    finally:
+        node.destroy_node()
+
+
+@pytest.mark.parametrize('node_class', [RecorderNode, BagPlayerNode])
+def test_tool_node_bag_path_is_required(node_class, context):
+    with pytest.raises(ValueError, match='bag_path is required'):
+        node_class(context=context)
 
 
 @pytest.mark.parametrize('name, parameter, value', [

@@ -376,16 +376,18 @@ class IbvsController:
         """The observer's Delta / m (m/s^2, {I}); zero unless disturbance_law is observer."""
         return self._d_hat
 
-    def _pad_height(self, meas: Measurements, R_IB: np.ndarray, pad_I: np.ndarray | None
-                    ) -> float | None:
+    def _pad_height(self, meas: Measurements, R_IB: np.ndarray,
+                    pad_I: np.ndarray | None = None) -> float | None:
         """Height (m) of the body origin from the smallest complete pad group, or None.
 
-        ``pad_I``: the landmarks from the body origin (used with a lever arm; without one the
-        group's bearings are rotated on their own, as they always were).
+        ``pad_I``: the landmarks from the body origin (needed with a lever arm; without one
+        the group's bearings are rotated on their own, as they always were).
         """
         groups, p_C = meas.pad_groups, meas.pad_bearings_C
-        if not groups or p_C is None or len(p_C) != 4 * len(groups) or pad_I is None:
+        if not groups or p_C is None or len(p_C) != 4 * len(groups):
             return None
+        if pad_I is None:
+            pad_I = self._pad_bearings_I(meas, R_IB)
         sizes = [(self.config.group_half_sides[g], i) for i, g in enumerate(groups)
                  if g in self.config.group_half_sides]
         if not sizes:
