@@ -21,8 +21,7 @@ from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_layout
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.frame_grid import period_ns
-from ibvs_common.core.lever_arm import (has_lever_arm, pad_landmarks_from_body,
-                                        window_corners_from_body)
+from ibvs_common.core.lever_arm import camera_bearings_from_body, has_lever_arm
 from ibvs_common.core.modes import CAMERA_OF, Camera, InputKind, Mode, MODE_INPUTS
 from ibvs_control.config import ModeSupervisorNodeConfig
 from ibvs_control.core.frame_stats import FrameStats
@@ -148,14 +147,9 @@ class ModeSupervisorNode(Node):
         p_I = bearings_C_to_I(bearings_C, R_IB, self._R_BC[camera])
         if not has_lever_arm(self._t_BC[camera]):
             return True, p_I
-        t_I, cfg = R_IB @ self._t_BC[camera], self._core.config
-        try:
-            if camera == 'front':
-                return True, window_corners_from_body(p_I, t_I, cfg.r_w)
-            body = pad_landmarks_from_body(p_I, list(groups), cfg.group_half_sides, t_I)
-            return True, p_I if body is None else body
-        except ValueError:              # a view too degenerate for the plane: the camera's
-            return True, p_I
+        cfg = self._core.config
+        return True, camera_bearings_from_body(camera, p_I, R_IB @ self._t_BC[camera], cfg.r_w,
+                                               cfg.group_half_sides, groups)
 
     def _needed(self, camera) -> frozenset:
         """Products a frame of ``camera`` waits for in the current mode (none: other camera)."""

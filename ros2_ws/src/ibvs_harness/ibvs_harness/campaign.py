@@ -42,6 +42,7 @@ in a per-run params.yaml (``--params-file``); the sim node has one gust sine per
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from dataclasses import asdict, dataclass
 import functools
 import hashlib
@@ -136,6 +137,9 @@ class CampaignConfig:
     domain_base: int = 100            # image level: worker w uses ROS_DOMAIN_ID base + w
     scenario_module: str = 'ibvs_harness.run_scenario'   # image level: run as python -m
     run_timeout_s: float = 900.0      # image level: wall-clock limit of one run
+    camera_rate_hz: float = 50.0      # feature level: the control rate (1 / camera_dt)
+    command_delay_s: float = 0.0      # feature level: frame stamp -> setpoint applied, s
+    sensors: str = 'ideal'            # sensor_errors.PROFILES: each run draws its errors
 
     @property
     def out_dir(self) -> str:
@@ -154,7 +158,11 @@ class CampaignConfig:
                 **({'estimate_error_rad': list(self.estimate_error_rad)}
                    if any(self.estimate_error_rad) else {}),
                 **({'estimate_noise': list(self.estimate_noise)}
-                   if self.estimate_noise is not None else {})}
+                   if self.estimate_noise is not None else {}),
+                **({'camera_rate_hz': self.camera_rate_hz}
+                   if self.camera_rate_hz != 50.0 else {}),
+                **({'command_delay_s': self.command_delay_s} if self.command_delay_s else {}),
+                **({'sensors': self.sensors} if self.sensors != 'ideal' else {})}
 
 
 @dataclass(frozen=True)
@@ -434,6 +442,8 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     setup = load_setup(cfg.params_file, spec.law.overrides)
     wind = run_wind(cfg, spec, setup.vehicle.mass)
     noise_std, noise_tau = cfg.estimate_noise or setup.estimate_noise
+    errors = run_sensor_errors(cfg, spec)
+    true_vehicle, onboard_vehicle, controller = sensor_vehicles(setup, errors)
     sim_cfg = feature_sim.FeatureSimConfig(
         initial_position_I=np.asarray(spec.initial_position_I, dtype=float),
         initial_yaw=setup.world.initial_yaw, wind=wind,
@@ -441,18 +451,55 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
         flow_noise=cfg.flow_noise, bearing_noise_rad=cfg.bearing_noise_rad,
         attitude_estimate_offset_rad=tuple(cfg.estimate_error_rad),
         attitude_noise_std=noise_std, attitude_noise_tau_s=noise_tau,
-        seed=spec.gust_seed)
+        seed=spec.gust_seed, camera_dt=feature_camera_dt(errors.camera_rate_hz),
+        command_delay_s=cfg.command_delay_s + errors.latency_s)
     t0 = time.monotonic()
-    summary, flog = feature_sim.run_feature_scenario(setup.world, setup.pad, setup.vehicle,
-                                                     setup.controller, setup.supervisor,
-                                                     sim_cfg)
+    summary, flog = feature_sim.run_feature_scenario(setup.world, setup.pad, true_vehicle,
+                                                     controller, setup.supervisor, sim_cfg,
+                                                     onboard_vehicle=onboard_vehicle)
     summary = dict(summary)
     summary['run'] = run_record(cfg, spec, wind, summary, time.monotonic() - t0,
                                 (noise_std, noise_tau))
+    summary['run']['sensor_errors'] = errors.as_dict()
     summary['run']['transitions'] = [f'-> {Mode(m).name} at t = {t:.2f} s: {why}'
                                      for m, t, why in flog.transitions]
     _write_summary(cfg, spec, summary)
     return summary
+
+
+FEATURE_PHYSICS_DT_S = 0.004      # the feature-level loop's physics step (FeatureSimConfig)
+
+
+def feature_camera_dt(rate_hz: float) -> float:
+    """Return the feature-level frame period of a camera rate, a whole number of physics steps."""
+    steps = max(1, int(round(1.0 / rate_hz / FEATURE_PHYSICS_DT_S)))
+    return steps * FEATURE_PHYSICS_DT_S if rate_hz != 50.0 else 0.02
+
+
+def run_sensor_errors(cfg: CampaignConfig, spec: RunSpec):
+    """Return the run's drawn sensor errors (sensor_errors.draw; ideal: none, cfg's rate)."""
+    from ibvs_harness import sensor_errors
+    profile = sensor_errors.PROFILES[cfg.sensors]
+    if cfg.camera_rate_hz != profile.camera_rate_hz:
+        profile = dataclasses.replace(profile, camera_rate_hz=cfg.camera_rate_hz)
+    if cfg.sensors == 'ideal':
+        return sensor_errors.SensorDraw(camera_rate_hz=profile.camera_rate_hz)
+    rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, spec.index, 46]))
+    return sensor_errors.draw(profile, rng)
+
+
+def sensor_vehicles(setup: '_Setup', errors) -> tuple:
+    """Return (true vehicle, onboard vehicle, controller config) of a run's sensor errors."""
+    if all(e == type(e)() for e in errors.cameras.values()):
+        return setup.vehicle, setup.vehicle, setup.controller
+    from ibvs_common.core.config import vehicle_from_dict
+    from ibvs_harness import sensor_errors
+    true_d, onboard_d = sensor_errors.vehicle_files(setup.vehicle.raw, errors)
+    true_v, onboard_v = vehicle_from_dict(true_d), vehicle_from_dict(onboard_d)
+    front, down = onboard_v.cameras['front'], onboard_v.cameras['down']
+    ctrl = dataclasses.replace(setup.controller, R_BC_front=front.R_BC, R_BC_down=down.R_BC,
+                               t_BC_front=front.t_BC, t_BC_down=down.t_BC)
+    return true_v, onboard_v, ctrl
 
 
 def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind: WindConfig) -> dict:
@@ -783,6 +830,17 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                         'axis: std in deg, within [0, 5.7], correlation time in s), flown and '
                         "read at both levels; default: the params file's sim "
                         'attitude_noise_std_rad / attitude_noise_tau_s (PX4 SIH fit)')
+    p.add_argument('--camera-rate', type=float, default=50.0, metavar='HZ',
+                   help='feature level: the frame (control) rate, e.g. 25 for every second '
+                        'frame of a 50 Hz camera')
+    p.add_argument('--command-delay', type=float, default=0.0, metavar='MS',
+                   help='feature level: ms from a frame stamp to its setpoint at the vehicle '
+                        '(camera delivery + the graph), on top of the sensors\' latency')
+    p.add_argument('--sensors', default='ideal', choices=('ideal', 'realistic'),
+                   help="each run draws its camera errors: 'realistic' = latency 15-40 ms, "
+                        'mounts within 1 deg, focal 0.5 %%, principal point 2 px, lever arms '
+                        'of 5 cm known within 5 mm, camera-IMU offset within 3 ms '
+                        '(sensor_errors.py; at feature level: latency, mounts, lever arms)')
     p.add_argument('--params-file', default=None, help='default: the installed params.yaml')
     p.add_argument('--results-root', default=DEFAULT_RESULTS_ROOT)
     p.add_argument('--no-plots', action='store_true')
@@ -835,7 +893,8 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                              math.radians(a.estimate_noise[0]), a.estimate_noise[1]),
                          params_file=a.params_file, results_root=a.results_root,
                          image_level=a.image_level, domain_base=a.domain_base,
-                         run_timeout_s=a.run_timeout)
+                         run_timeout_s=a.run_timeout, camera_rate_hz=a.camera_rate,
+                         command_delay_s=a.command_delay / 1e3, sensors=a.sensors)
     return cfg, a.workers, not a.no_plots, a.aggregate_only, a.max_wall
 
 

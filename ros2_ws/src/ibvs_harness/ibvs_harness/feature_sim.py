@@ -29,7 +29,7 @@ import numpy as np
 
 from ibvs_control.core.attitude import attitude_from_force, shutdown_thrust_scale
 from ibvs_common.core.config import CameraConfig, PadLayout, VehicleConfig
-from ibvs_common.core.lever_arm import has_lever_arm
+from ibvs_common.core.lever_arm import camera_bearings_from_body, has_lever_arm
 from ibvs_sim.core.world import WorldConfig
 from ibvs_control.core.control_laws import CrossingLaw
 from ibvs_control.core.controller import (
@@ -266,8 +266,16 @@ def estimate_error_model(config: FeatureSimConfig) -> Callable[[float], np.ndarr
 def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                          controller_config: ControllerConfig,
                          supervisor_config: SupervisorConfig,
-                         config: FeatureSimConfig) -> tuple[dict, FeatureSimLog]:
-    """Fly one run; return (SPEC section 5 summary, time series)."""
+                         config: FeatureSimConfig,
+                         onboard_vehicle: VehicleConfig | None = None
+                         ) -> tuple[dict, FeatureSimLog]:
+    """Fly one run; return (SPEC section 5 summary, time series).
+
+    ``vehicle`` is the truth the cameras see with (mounts, lever arms); ``onboard_vehicle``
+    the calibration the supervisor reads them with (default: the truth; the controller's is
+    in ``controller_config``).
+    """
+    onboard = vehicle if onboard_vehicle is None else onboard_vehicle
     rng = np.random.default_rng(config.seed)
     sensors = FeatureSensors(world, pad, vehicle, rng, config.bearing_noise_rad,
                              config.flow_noise)
@@ -282,7 +290,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     t, t_shutdown = 0.0, None
     started = False
     n_sub = int(round(config.camera_dt / config.physics_dt))
-    R_BC_front, R_BC_down = vehicle.cameras['front'].R_BC, vehicle.cameras['down'].R_BC
+    R_BC_front, R_BC_down = onboard.cameras['front'].R_BC, onboard.cameras['down'].R_BC
+    t_BC = {cam: onboard.cameras[cam].t_BC for cam in ('front', 'down')}
     wind = Wind(config.wind or WindConfig())
     wind_accel_steady = np.asarray(config.wind_accel_I, dtype=float).reshape(3)
     f_I_mean = None             # no IMU specific force before the first frame's physics
@@ -304,10 +313,12 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             phi_down = None if phi_down is None else rot_I @ phi_down
             phi_front = None if phi_front is None else rot_I @ phi_front
         supervisor.on_imu(t, R_est)
-        supervisor.on_window(t, None if win_C is None
-                             else bearings_C_to_I(win_C, R_est, R_BC_front))
-        supervisor.on_pad(t, None if pad_C is None
-                          else bearings_C_to_I(pad_C, R_est, R_BC_down), groups)
+        supervisor.on_window(t, None if win_C is None else camera_bearings_from_body(
+            'front', bearings_C_to_I(win_C, R_est, R_BC_front), R_est @ t_BC['front'],
+            supervisor_config.r_w, supervisor_config.group_half_sides))
+        supervisor.on_pad(t, None if pad_C is None else camera_bearings_from_body(
+            'down', bearings_C_to_I(pad_C, R_est, R_BC_down), R_est @ t_BC['down'],
+            supervisor_config.r_w, supervisor_config.group_half_sides, tuple(groups)), groups)
         supervisor.on_flow(t, 'front', phi_front)
         supervisor.on_flow(t, 'down', phi_down)
         if not started:

@@ -3,6 +3,7 @@ import json
 import math
 import os
 
+import numpy as np
 import pytest
 
 from ibvs_harness import campaign
@@ -242,9 +243,9 @@ def test_estimate_noise_defaults_to_the_params_file_and_reaches_both_levels(tmp_
     flown = []
     real = feature_sim.run_feature_scenario
 
-    def spy(*args):
-        flown.append(args[-1])
-        return real(*args)
+    def spy(*args, **kwargs):
+        flown.append(args[5])                      # the FeatureSimConfig
+        return real(*args, **kwargs)
     monkeypatch.setattr(feature_sim, 'run_feature_scenario', spy)
     args = ['--runs', '1', '--levels', '0', '--results-root', str(tmp_path)]
     cfg, *_ = campaign.parse_args(['--name', 'default', *args])
@@ -348,3 +349,23 @@ def test_image_level_runs_call_run_scenario_in_their_own_domain(tmp_path, monkey
         campaign.image_run_params(
             CampaignConfig(name='k', image_level=True, gust_components=3), spec,
             campaign.run_wind(CampaignConfig(name='k', gust_components=3), spec, 1.676))
+
+
+def test_a_realistic_sensors_run_draws_its_errors_and_flies_the_truth_it_drew(tmp_path):
+    """--sensors realistic: each run its own mounts, lever arms, latency, recorded and flown."""
+    cfg, *_ = campaign.parse_args(['--name', 'sensors', '--runs', '2', '--levels', '0',
+                                   '--sensors', 'realistic', '--camera-rate', '25',
+                                   '--results-root', str(tmp_path)])
+    assert cfg.sensors == 'realistic' and cfg.camera_rate_hz == 25.0
+    specs = campaign.run_specs(cfg, campaign.load_setup(None, ()).world.random_box)
+    errors = [campaign.run_sensor_errors(cfg, s) for s in specs]
+    assert errors[0] != errors[1] and errors[0] == campaign.run_sensor_errors(cfg, specs[0])
+    for e in errors:
+        assert 0.015 <= e.latency_s <= 0.040 and e.camera_rate_hz == 25.0
+        for cam in e.cameras.values():
+            assert max(abs(a) for a in cam.mount_rpy_rad) <= np.radians(1.0)
+            assert max(abs(a - b) for a, b in zip(cam.t_BC_true, cam.t_BC_calibrated)) <= 0.005
+    summary = campaign.fly_run(cfg, specs[0])
+    drawn = summary['run']['sensor_errors']
+    assert drawn['latency_s'] == errors[0].latency_s and drawn['camera_rate_hz'] == 25.0
+    assert campaign.feature_camera_dt(25.0) == 0.04 and campaign.feature_camera_dt(30.0) == 0.032

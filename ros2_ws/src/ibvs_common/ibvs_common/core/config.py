@@ -173,7 +173,11 @@ class VehicleConfig:
 def load_vehicle(path: str | os.PathLike | None = None) -> VehicleConfig:
     """Load the vehicle YAML (default: the installed ``vehicle.yaml``)."""
     path = path or default_config_path('vehicle.yaml')
-    d = load_yaml(path)
+    return vehicle_from_dict(load_yaml(path), path)
+
+
+def vehicle_from_dict(d: dict, path: str | os.PathLike = '<vehicle>') -> VehicleConfig:
+    """Check and build a VehicleConfig from a vehicle YAML's contents (``path``: for errors)."""
     cameras = {}
     for name, c in get_key(d, 'cameras', path).items():
         try:

@@ -106,3 +106,22 @@ def flow_from_body(phi_C_I: np.ndarray, eta_I: np.ndarray, distance_C: float,
     if not (distance_C > 0.0 and d_body > 0.0):
         raise ValueError(f'plane distances must be > 0 (camera {distance_C}, body {d_body})')
     return np.asarray(phi_C_I, dtype=float) * (distance_C / d_body)
+
+
+def camera_bearings_from_body(camera: str, bearings_I: np.ndarray, t_BC_I: np.ndarray,
+                              r_w: float, half_sides: dict, groups: tuple = ()) -> np.ndarray:
+    """Return a camera's product bearings from the body origin (the camera's if unknown).
+
+    ``camera`` 'front': the window's corners (its plane from its known width ``r_w``);
+    'down': the pad's landmarks of ``groups`` (the height from the group sizes
+    ``half_sides``). A view too degenerate for its plane keeps the camera's bearings.
+    """
+    if not has_lever_arm(t_BC_I):
+        return bearings_I
+    try:
+        if camera == 'front':
+            return window_corners_from_body(bearings_I, t_BC_I, r_w)
+        body = pad_landmarks_from_body(bearings_I, list(groups), half_sides, t_BC_I)
+        return bearings_I if body is None else body
+    except ValueError:
+        return bearings_I
