@@ -140,6 +140,7 @@ class CampaignConfig:
     camera_rate_hz: float = 50.0      # feature level: the control rate (1 / camera_dt)
     command_delay_s: float = 0.0      # feature level: frame stamp -> setpoint applied, s
     sensors: str = 'ideal'            # sensor_errors.PROFILES: each run draws its errors
+    sensor_overrides: tuple = ()      # (field, value) pairs replacing the profile's ranges
 
     @property
     def out_dir(self) -> str:
@@ -162,7 +163,9 @@ class CampaignConfig:
                 **({'camera_rate_hz': self.camera_rate_hz}
                    if self.camera_rate_hz != 50.0 else {}),
                 **({'command_delay_s': self.command_delay_s} if self.command_delay_s else {}),
-                **({'sensors': self.sensors} if self.sensors != 'ideal' else {})}
+                **({'sensors': self.sensors} if self.sensors != 'ideal' else {}),
+                **({'sensor_overrides': [list(o) for o in self.sensor_overrides]}
+                   if self.sensor_overrides else {})}
 
 
 @dataclass(frozen=True)
@@ -479,10 +482,9 @@ def feature_camera_dt(rate_hz: float) -> float:
 def run_sensor_errors(cfg: CampaignConfig, spec: RunSpec):
     """Return the run's drawn sensor errors (sensor_errors.draw; ideal: none, cfg's rate)."""
     from ibvs_harness import sensor_errors
-    profile = sensor_errors.PROFILES[cfg.sensors]
-    if cfg.camera_rate_hz != profile.camera_rate_hz:
-        profile = dataclasses.replace(profile, camera_rate_hz=cfg.camera_rate_hz)
-    if cfg.sensors == 'ideal':
+    profile = dataclasses.replace(sensor_errors.PROFILES[cfg.sensors],
+                                  camera_rate_hz=cfg.camera_rate_hz, **dict(cfg.sensor_overrides))
+    if cfg.sensors == 'ideal' and not cfg.sensor_overrides:
         return sensor_errors.SensorDraw(camera_rate_hz=profile.camera_rate_hz)
     rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, spec.index, 46]))
     return sensor_errors.draw(profile, rng)
@@ -788,6 +790,28 @@ def _save(fig, out_dir: str, name: str) -> str:
 
 # --- command line ---------------------------------------------------------------------------
 
+def sensor_overrides(items: list) -> tuple:
+    """Parse ``FIELD=VALUE`` (a float, or two for a range) of --sensor-set; ValueError if bad."""
+    from ibvs_harness.sensor_errors import SensorProfile
+    known = {f.name for f in dataclasses.fields(SensorProfile)}
+    out = []
+    for item in items:
+        name, _, value = item.partition('=')
+        if name not in known or not value:
+            raise ValueError(f'--sensor-set {item!r}: not FIELD=VALUE of {sorted(known)}')
+        numbers = tuple(float(v) for v in value.split(','))
+        out.append((name, numbers if len(numbers) > 1 else numbers[0]))
+    return tuple(out)
+
+
+def checked_sensor_overrides(parser: argparse.ArgumentParser, items: list) -> tuple:
+    """Return sensor_overrides(items), or end the command with its error (exit status 2)."""
+    try:
+        return sensor_overrides(items)
+    except ValueError as exc:
+        parser.error(str(exc))
+
+
 def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, bool,
                                                   float | None]:
     """Parse the command line into (config, workers, plots, aggregate_only, max_wall_s)."""
@@ -841,6 +865,9 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                         'mounts within 1 deg, focal 0.5 %%, principal point 2 px, lever arms '
                         'of 5 cm known within 5 mm, camera-IMU offset within 3 ms '
                         '(sensor_errors.py; at feature level: latency, mounts, lever arms)')
+    p.add_argument('--sensor-set', action='append', default=[], metavar='FIELD=VALUE',
+                   help='replace one range of the sensor profile (sensor_errors.SensorProfile), '
+                        'e.g. mount_error_rad=0.035 or latency_s=0.06,0.06 (repeatable)')
     p.add_argument('--params-file', default=None, help='default: the installed params.yaml')
     p.add_argument('--results-root', default=DEFAULT_RESULTS_ROOT)
     p.add_argument('--no-plots', action='store_true')
@@ -894,7 +921,8 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          params_file=a.params_file, results_root=a.results_root,
                          image_level=a.image_level, domain_base=a.domain_base,
                          run_timeout_s=a.run_timeout, camera_rate_hz=a.camera_rate,
-                         command_delay_s=a.command_delay / 1e3, sensors=a.sensors)
+                         command_delay_s=a.command_delay / 1e3, sensors=a.sensors,
+                         sensor_overrides=checked_sensor_overrides(p, a.sensor_set))
     return cfg, a.workers, not a.no_plots, a.aggregate_only, a.max_wall
 
 

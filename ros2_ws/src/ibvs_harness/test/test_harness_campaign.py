@@ -369,3 +369,16 @@ def test_a_realistic_sensors_run_draws_its_errors_and_flies_the_truth_it_drew(tm
     drawn = summary['run']['sensor_errors']
     assert drawn['latency_s'] == errors[0].latency_s and drawn['camera_rate_hz'] == 25.0
     assert campaign.feature_camera_dt(25.0) == 0.04 and campaign.feature_camera_dt(30.0) == 0.032
+
+
+def test_a_sensor_profile_field_is_replaced_by_sensor_set_and_a_bad_one_refused(capsys):
+    cfg, *_ = campaign.parse_args(['--name', 'sweep', '--sensors', 'realistic',
+                                   '--sensor-set', 'mount_error_rad=0.05',
+                                   '--sensor-set', 'latency_s=0.06,0.06'])
+    assert cfg.sensor_overrides == (('mount_error_rad', 0.05), ('latency_s', (0.06, 0.06)))
+    specs = campaign.run_specs(cfg, campaign.load_setup(None, ()).world.random_box)
+    e = campaign.run_sensor_errors(cfg, specs[0])
+    assert e.latency_s == 0.06 and max(abs(a) for a in e.cameras['down'].mount_rpy_rad) <= 0.05
+    with pytest.raises(SystemExit) as exit_:
+        campaign.parse_args(['--name', 'x', '--sensor-set', 'no_such_field=1'])
+    assert exit_.value.code == 2 and 'no_such_field' in capsys.readouterr().err
