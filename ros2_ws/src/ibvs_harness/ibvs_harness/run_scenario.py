@@ -292,6 +292,9 @@ def run_graph(opts: RunOptions) -> int:
     restarts: list = []
     try:
         monitor = ScenarioMonitor()
+        if onboard_vehicle is not None:     # the preflight's rate check: the rates configured
+            monitor.health.rates_hz = {cam: c.rate_hz for cam, c in
+                                       load_vehicle(onboard_vehicle).cameras.items()}
         # the graph's own executor (C++ events executor): the monitor takes ~550 messages/s,
         # and rclpy's Python wait set cost it 15-25 % of a core, taken from the graph
         executor = make_executor(monitor.context)
