@@ -164,9 +164,9 @@ class Simulation:
         if self.config.pacing is Pacing.REALTIME:
             return self._free_run(now)
         self.autopilot.poll(self.physics.state_view())
-        answered = self.autopilot.last_setpoint_time_boot_ms
+        answer = self.autopilot.last_setpoint_time_boot_ms      # ms, the stamp it answers
         answered = self.answer_ms is None \
-            or (answered is not None and answered >= self.answer_ms) \
+            or (answer is not None and answer >= self.answer_ms) \
             or not self.autopilot.awaits_setpoints
         if self.lockstep.may_step(now, answered):
             return self.step_frame()
