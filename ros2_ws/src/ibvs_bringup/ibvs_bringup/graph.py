@@ -42,6 +42,7 @@ BRIDGE_URL = 'url'                            # mavlink_bridge: the autopilot's 
 BRIDGE_ARM_ON_START = 'arm_on_start'          # mavlink_bridge: arm without ibvs/arm (sim only)
 CROSSING_LAW = 'crossing_law'                 # force_controller: mode-2 law
 SUPERVISOR_AUTO_START = 'auto_start_at_s'     # mode_supervisor: start by itself at this time
+VEHICLE_FILE = 'vehicle_file'                 # every node: the vehicle YAML ('' = installed)
 # Perception nodes are restarted when they die (launch_ros ``respawn``; the runner with
 # backoff): a detector or flow that comes back is an input that comes back. The supervisor,
 # controller and bridge are not: their death is handled by the safety policy (no statuses ->
@@ -112,7 +113,11 @@ class GraphOptions:
     extra_remappings: tuple = field(default_factory=tuple)
     extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
     extra_imu_subscribers: int = 0                  # e.g. 1 for a recorder of imu/data
-    sim_overrides: tuple = ()                       # more (name, value) for the sim (faults)
+    sim_overrides: tuple = ()                       # more (name, value) for the sim (faults,
+    #                                                 the camera model)
+    vehicle_file: str | None = None                 # the onboard nodes' vehicle YAML, also the
+    #                                                 calibration the sim publishes (None:
+    #                                                 params.yaml's)
 
 
 def format_param_value(value: Any) -> str:
@@ -205,6 +210,8 @@ def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url:
     start = {} if opts.auto_start_at_s is None else {
         SUPERVISOR_AUTO_START: float(opts.auto_start_at_s)}
     remap = tuple(opts.extra_remappings)
+    if opts.vehicle_file is not None:
+        common = {**common, VEHICLE_FILE: str(opts.vehicle_file)}
 
     def node(package: str, executable: str, name: str, *overrides: dict) -> NodeSpec:
         merged = dict(common)
@@ -254,6 +261,8 @@ def sim_graph(opts: GraphOptions = GraphOptions()) -> list[NodeSpec]:
         if not 0.0 < rtf <= 10.0:
             raise ValueError(f'real-time factor must be in (0, 10], got {rtf}')
         sim_over[SIM_PACING], sim_over[SIM_REAL_TIME_FACTOR] = 'realtime', rtf
+    if opts.vehicle_file is not None:
+        sim_over[VEHICLE_FILE] = str(opts.vehicle_file)
     sim_over.update(dict(opts.sim_overrides))
     common = {'use_sim_time': True} if opts.use_sim_time else {}
     sim = NodeSpec('ibvs_sim', 'sim', 'sim', params + (sim_over,), tuple(opts.extra_remappings),

@@ -33,6 +33,9 @@ from ibvs_harness.scenario import (AUTOPILOTS, DEFAULT_IMAGE_EVERY, FAILSAFE_MOD
 from ibvs_sim.core.world import load_world, WorldConfig
 import numpy as np
 
+CAMERA_NAMES = ('front', 'down')        # the order of the sim's camera_rate_hz
+CAMERA_RATE = 'camera_rate_hz'
+
 if TYPE_CHECKING:
     from ibvs_harness.monitor_node import ScenarioMonitor
     from ibvs_harness.feature_sim import FeatureSimLog
@@ -88,8 +91,55 @@ def feature_run_data(flog: FeatureSimLog, world: WorldConfig, pad: PadLayout
 
 # --- whole-graph run ------------------------------------------------------------------------
 
-def graph_specs(opts: RunOptions, port: int, initial_position: tuple) -> list:
-    """Return the node specs of a run: the sim graph plus the recorder."""
+def onboard_vehicle_file(opts: RunOptions) -> str | None:
+    """Write the onboard nodes' vehicle.yaml of a ``--camera-rate`` run; return its path.
+
+    The installed vehicle.yaml with each camera's ``rate_hz`` set to the rate its camera runs
+    at (``results/<run>/vehicle_onboard.yaml``): the onboard configuration knows the rate
+    the camera driver was configured with. None (the installed file) without the option.
+    """
+    rates = opts.camera_model.get(CAMERA_RATE)
+    if rates is None:
+        return None
+    import yaml
+    from ibvs_common.core.config import default_config_path
+    with open(default_config_path('vehicle.yaml'), encoding='utf-8') as f:
+        data = yaml.safe_load(f)
+    for name, rate in zip(CAMERA_NAMES, rates):
+        data['cameras'][name]['rate_hz'] = float(rate)
+    path = os.path.abspath(os.path.join(opts.out_dir, 'vehicle_onboard.yaml'))
+    with open(path, 'w', encoding='utf-8') as f:
+        f.write(f'# vehicle.yaml with the cameras at {list(rates)} Hz (run_scenario '
+                '--camera-rate)\n')
+        yaml.safe_dump(data, f, sort_keys=False)
+    return path
+
+
+def camera_block(opts: RunOptions, onboard_vehicle: str | None) -> dict:
+    """Return the camera model of a run as summary.json's ``run.camera`` reports it."""
+    from dataclasses import asdict
+    from ibvs_sim.config import SimNodeConfig
+    c = asdict(SimNodeConfig()) | opts.camera_model          # the sim's defaults, the options
+    return {'latency_ms': 1e3 * c['camera_latency_s'], 'jitter_ms': 1e3 * c['camera_jitter_s'],
+            'jitter_distribution': c['camera_jitter_distribution'],
+            'drop_probability': c['camera_drop_probability'],
+            'rate_hz': (list(opts.camera_model[CAMERA_RATE]) if CAMERA_RATE in opts.camera_model
+                        else 'vehicle.yaml'),
+            'exposure_ms': 1e3 * c['camera_exposure_s'],
+            'exposure_samples': c['camera_exposure_samples'], 'stamp_at': c['camera_stamp_at'],
+            'true_vehicle': opts.true_vehicle or 'as onboard',
+            'onboard_vehicle': onboard_vehicle or 'vehicle.yaml'}
+
+
+def graph_specs(opts: RunOptions, port: int, initial_position: tuple,
+                onboard_vehicle: str | None = None) -> list:
+    """Return the node specs of a run: the sim graph plus the recorder.
+
+    ``onboard_vehicle``: the onboard nodes' vehicle YAML (None: params.yaml's).
+    """
+    camera = [(k, list(v) if isinstance(v, tuple) else v) for k, v in opts.camera_model.items()]
+    if opts.true_vehicle:
+        camera.append(('true_vehicle_file', os.path.abspath(opts.true_vehicle)))
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
                                mavlink_port=port, initial_position=initial_position,
                                wind=opts.wind, crossing_law=opts.crossing_law,
@@ -101,7 +151,9 @@ def graph_specs(opts: RunOptions, port: int, initial_position: tuple) -> list:
                                    + [(f'fault_{cam}_camera_freeze_s', list(w))
                                       for cam, w in opts.camera_freeze.items()]
                                    + [(f'fault_imu_{kind}_s', list(w)) for kind, w in (
-                                       ('off', opts.imu_off), ('nan', opts.imu_nan)) if w]),
+                                       ('off', opts.imu_off), ('nan', opts.imu_nan)) if w]
+                                   + camera),
+                               vehicle_file=onboard_vehicle,
                                extra_image_subscribers=1 if opts.bag else 0,
                                extra_imu_subscribers=1 if opts.bag else 0)
     specs = graph.sim_graph(gopts)
@@ -221,11 +273,13 @@ def run_graph(opts: RunOptions) -> int:
     world, pad, vehicle = load_world(), load_pad_layout(), load_vehicle()
     xi0 = opts.initial_position or tuple(float(x) for x in world.initial_position_I)
     port = opts.mavlink_port or free_udp_port()
-    specs = graph_specs(opts, port, xi0)
+    onboard_vehicle = onboard_vehicle_file(opts)
+    specs = graph_specs(opts, port, xi0, onboard_vehicle)
     missing = missing_executables(specs)
     if missing:
         summary = report.summarize(report.RunLog(), world, 0.0, 0.0)
-        summary['run'] = run_block(opts, xi0, error='nodes missing: ' + '; '.join(missing))
+        summary['run'] = run_block(opts, xi0, error='nodes missing: ' + '; '.join(missing),
+                                   camera=camera_block(opts, onboard_vehicle))
         print('cannot fly: ' + '; '.join(missing), file=sys.stderr)
         return finish(opts, summary, None)
     t_wall0 = time.monotonic()
@@ -238,6 +292,9 @@ def run_graph(opts: RunOptions) -> int:
     restarts: list = []
     try:
         monitor = ScenarioMonitor()
+        if onboard_vehicle is not None:     # the preflight's rate check: the rates configured
+            monitor.health.rates_hz = {cam: c.rate_hz for cam, c in
+                                       load_vehicle(onboard_vehicle).cameras.items()}
         # the graph's own executor (C++ events executor): the monitor takes ~550 messages/s,
         # and rclpy's Python wait set cost it 15-25 % of a core, taken from the graph
         executor = make_executor(monitor.context)
@@ -262,6 +319,7 @@ def run_graph(opts: RunOptions) -> int:
     summary['run'] = run_block(opts, xi0, stop_reason=stop_reason, error=error,
                                wall_time_s=time.monotonic() - t_wall0, mavlink_port=port,
                                node_restarts=restarts,
+                               camera=camera_block(opts, onboard_vehicle),
                                events=log.events,
                                transitions=supervisor_transitions(supervisor_log(opts.out_dir)))
     return finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
@@ -270,6 +328,38 @@ def run_graph(opts: RunOptions) -> int:
 def _flat(windows: list) -> tuple:
     """(start, end) pairs of a repeated option -> the flat start, end, start, end, ..."""
     return tuple(x for pair in windows for x in pair)
+
+
+def camera_model(a: argparse.Namespace) -> dict:
+    """Return the sim parameters of the camera options given (ms -> s); ValueError if bad."""
+    out: dict = {}
+    for option, key, scale in (('camera_latency', 'camera_latency_s', 1e-3),
+                               ('camera_jitter', 'camera_jitter_s', 1e-3),
+                               ('camera_exposure', 'camera_exposure_s', 1e-3)):
+        value = getattr(a, option)
+        if value is not None:
+            if not (np.isfinite(value) and 0.0 <= value <= 1000.0):
+                raise ValueError(f'--{option.replace("_", "-")} must be in [0, 1000] ms, got '
+                                 f'{value}')
+            out[key] = float(value) * scale
+    if a.camera_drop is not None:
+        if not 0.0 <= a.camera_drop < 1.0:
+            raise ValueError(f'--camera-drop must be in [0, 1), got {a.camera_drop}')
+        out['camera_drop_probability'] = float(a.camera_drop)
+    if a.camera_rate is not None:
+        rates = a.camera_rate * 2 if len(a.camera_rate) == 1 else a.camera_rate
+        if len(rates) != 2 or not all(0.0 < r <= 1000.0 for r in rates):
+            raise ValueError(f'--camera-rate takes one rate or FRONT DOWN, each in (0, 1000] '
+                             f'Hz, got {a.camera_rate}')
+        out[CAMERA_RATE] = tuple(float(r) for r in rates)
+    if a.camera_exposure_samples is not None:
+        if not 1 <= a.camera_exposure_samples <= 64:
+            raise ValueError('--camera-exposure-samples must be in 1 ... 64')
+        out['camera_exposure_samples'] = int(a.camera_exposure_samples)
+    for option in ('camera_jitter_distribution', 'camera_stamp_at'):
+        if getattr(a, option) is not None:
+            out[option] = getattr(a, option)
+    return out
 
 
 def parse_args(argv: list | None = None) -> RunOptions:
@@ -321,6 +411,31 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--real-time-factor', type=float, default=None, metavar='RTF',
                    help='free-running sim (not lockstep): sim time runs at RTF x the wall '
                         'clock, frames it cannot render on time are dropped (e.g. 0.25)')
+    cam = p.add_argument_group(
+        'camera model', 'the sim\'s cameras like real ones (lockstep too: a late image is '
+        'computed late in sim time; docs/sim.md "Camera model"); times in ms of sim time')
+    cam.add_argument('--camera-latency', type=float, metavar='MS',
+                     help='an image is published MS after the instant its stamp refers to')
+    cam.add_argument('--camera-jitter', type=float, metavar='MS',
+                     help='delivery jitter: uniform in +-MS (or the standard deviation, '
+                          '--camera-jitter-distribution normal), seeded')
+    cam.add_argument('--camera-jitter-distribution', choices=('uniform', 'normal'))
+    cam.add_argument('--camera-drop', type=float, metavar='P',
+                     help='each camera loses each frame with probability P (seeded)')
+    cam.add_argument('--camera-rate', type=float, nargs='+', metavar='HZ',
+                     help='frame rate of both cameras, or FRONT DOWN (e.g. 30); the onboard '
+                          'nodes get a vehicle.yaml with these rates (results/<run>/'
+                          'vehicle_onboard.yaml)')
+    cam.add_argument('--camera-exposure', type=float, metavar='MS',
+                     help='exposure time: motion blur, averaging renders over it')
+    cam.add_argument('--camera-exposure-samples', type=int, metavar='N',
+                     help='renders averaged over an exposure (the render cost, times N)')
+    cam.add_argument('--camera-stamp-at', choices=('start', 'mid', 'end'),
+                     help='the instant of the exposure a stamp refers to (default mid)')
+    cam.add_argument('--true-vehicle', metavar='FILE',
+                     help='the vehicle YAML the sim flies and renders (mounts, lever arms, '
+                          'intrinsics, time offsets), the onboard nodes keep theirs: a '
+                          'calibration error')
     p.add_argument('--autopilot', choices=AUTOPILOTS, default=AUTOPILOTS[0],
                    help="'sim': the simulator's plant and autopilot emulation (lockstep); "
                         "'px4-sih': PX4 SITL with SIH is plant and autopilot, real time on "
@@ -340,6 +455,10 @@ def parse_args(argv: list | None = None) -> RunOptions:
                    help="px4-sih: PX4's estimator on SIH's GPS, baro and magnetometer instead "
                         'of the motion capture of params.yaml px4_sim mocap_rate_hz')
     a = p.parse_args(argv)
+    try:
+        model = camera_model(a)
+    except ValueError as exc:
+        p.error(str(exc))
     xi0 = tuple(a.initial_position) if a.initial_position else None
     extra = {}
     if a.random_ic is not None:
@@ -349,6 +468,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
         f'random-{a.random_ic}' if a.random_ic is not None else
         'ic_' + '_'.join(f'{x:+.2f}' for x in xi0) if xi0 else 'reference')
     return RunOptions(run_name=name, results_root=a.results_root, initial_position=xi0,
+                      camera_model=model, true_vehicle=a.true_vehicle,
                       wind=tuple(a.wind) if a.wind else None, crossing_law=a.crossing_law,
                       bag=not a.no_bag, image_every=max(1, a.bag_image_every),
                       feature_level=a.feature_level, timeout_s=a.timeout,
@@ -380,6 +500,12 @@ def main(argv: list | None = None) -> int:
             raise ValueError(f'--max-sim-time must be > 0, got {opts.max_sim_time_s}')
         if opts.kill_node and opts.layout == 'composed':
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
+        if (opts.camera_model or opts.true_vehicle) and (opts.feature_level
+                                                         or opts.autopilot == 'px4-sih'):
+            raise ValueError('the camera model options are the sim node\'s: not with '
+                             '--feature-level or --autopilot px4-sih')
+        if opts.true_vehicle and not os.path.isfile(opts.true_vehicle):
+            raise ValueError(f'--true-vehicle {opts.true_vehicle}: no such file')
         prepare_out_dir(opts)
     except (ValueError, OSError) as exc:
         print(f'run_scenario: {exc}', file=sys.stderr)

@@ -60,6 +60,9 @@ class RunOptions:
     px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
     layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
     max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
+    # the sim's camera model: sim parameter -> value (camera_latency_s, camera_rate_hz, ...)
+    camera_model: dict = field(default_factory=dict)
+    true_vehicle: str | None = None     # the vehicle the sim flies and renders (None: onboard's)
 
     @property
     def out_dir(self) -> str:

@@ -16,6 +16,7 @@ from ibvs_common.core.config import VehicleConfig
 from ibvs_common.core.frames import vec_map_to_I
 from ibvs_common.core.params import param
 from ibvs_sim.core.autopilot import AutopilotConfig
+from ibvs_sim.core.camera_model import CameraTiming, Jitter, StampAt
 from ibvs_sim.core.dynamics import WindConfig
 from ibvs_sim.core.faults import CameraFaults, fault_windows
 from ibvs_sim.core.pacing import Pacing
@@ -46,9 +47,9 @@ class SimNodeConfig:
     """Parameters of the ``sim`` node (the checks of their combinations at construction)."""
 
     pacing: str = param(
-        Pacing.LOCKSTEP.value, "'lockstep': the next 20 ms only once the graph answered the "
-        "last frame (or after lockstep_timeout_s); 'realtime': free-running, late frames "
-        'dropped')
+        Pacing.LOCKSTEP.value, "'lockstep': sim time moves on from a delivery of images only "
+        "once the graph answered it (or after lockstep_timeout_s); 'realtime': free-running, "
+        'late frames dropped')
     lockstep_timeout_s: float = param(
         5.0, 's (wall, steady clock), lockstep wait before simulating anyway, > 0', 0.0)
     real_time_factor: float = param(1.0, 'realtime pacing: sim s per wall s, (0, 10]',
@@ -73,10 +74,37 @@ class SimNodeConfig:
     signing_key_file: str = param('', "MAVLink 2 signing key file; '' = signing off")
     world_file: str = param('', WORLD_FILE)
     pad_layout_file: str = param('', PAD_LAYOUT_FILE)
-    vehicle_file: str = param('', VEHICLE_FILE)
-    seed: int = param(0, 'seed of the gust phases, autopilot sensor noise, camera read noise',
-                      0)
+    vehicle_file: str = param(
+        '', "the onboard calibration (vehicle YAML) whose camera_info the sim publishes, as a "
+        "camera driver publishes the file it was given; '' = the installed vehicle.yaml")
+    true_vehicle_file: str = param(
+        '', 'the true vehicle (YAML) the sim flies and renders: plant, camera mounts R_BC, '
+        'lever arms t_BC, intrinsics, distortion, camera-IMU time offsets, frame rates; a '
+        "calibration error is this file against vehicle_file; '' = vehicle_file")
+    seed: int = param(0, 'seed of the gust phases, autopilot sensor noise, camera read noise, '
+                      'camera delivery jitter and dropped frames', 0)
     camera_read_noise_std: float = param(1.5, READ_NOISE, 0.0, 255.0)
+    camera_rate_hz: list = param(
+        [0.0, 0.0], 'Hz (sim time), [front, down] frame rates; 0 = the true vehicle '
+        "file's rate_hz; a frame's stamp instant is rounded to the 2 ms physics grid")
+    camera_latency_s: float = param(
+        0.0, 's (sim time), both cameras: an image is published this long after the instant '
+        'its stamp refers to (lockstep: the graph computes it then)', 0.0, 1.0)
+    camera_jitter_s: float = param(
+        0.0, 's (sim time), delivery jitter added to the latency: half-width (uniform) or '
+        'standard deviation (normal); seeded', 0.0, 1.0)
+    camera_jitter_distribution: str = param("uniform", "'uniform' or 'normal'")
+    camera_drop_probability: float = param(
+        0.0, 'probability that a camera loses a frame (each camera and frame, seeded; never '
+        'frame 0), [0, 1)', 0.0, 1.0)
+    camera_exposure_s: float = param(
+        0.0, 's (sim time), exposure time: motion blur by averaging renders over it; 0 = an '
+        'instant, at most one frame period', 0.0, 1.0)
+    camera_exposure_samples: int = param(
+        5, 'renders averaged over an exposure > 0 (the render cost per frame, times this)',
+        1, 64)
+    camera_stamp_at: str = param(
+        "mid", "the instant of the exposure an image's stamp refers to: 'start', 'mid', 'end'")
     min_image_subscribers: int = param(
         0, 'frame 0 waits until each camera has this many image subscribers (a wiring switch: '
         'the launcher sets it to the image consumers it starts; 0 = none awaited)', 0)
@@ -137,20 +165,60 @@ class SimNodeConfig:
         if not (math.isfinite(telemetry_hz) and telemetry_hz > 0):
             raise ValueError(f'telemetry_default_hz must be > 0, got {telemetry_hz}')
         self.camera_faults()
+        rates = [float(x) for x in self.camera_rate_hz]
+        if len(rates) != len(CAMERAS) or not all(math.isfinite(r) and r >= 0.0 for r in rates):
+            raise ValueError(f'parameter camera_rate_hz needs [front, down] rates >= 0 Hz, got '
+                             f'{list(self.camera_rate_hz)}')
+        try:
+            Jitter(self.camera_jitter_distribution)
+        except ValueError as exc:
+            raise ValueError("parameter camera_jitter_distribution must be 'uniform' or "
+                             f"'normal', got {self.camera_jitter_distribution!r}") from exc
+        try:
+            StampAt(self.camera_stamp_at)
+        except ValueError as exc:
+            raise ValueError("parameter camera_stamp_at must be 'start', 'mid' or 'end', got "
+                             f'{self.camera_stamp_at!r}') from exc
+        if not 0.0 <= float(self.camera_drop_probability) < 1.0:
+            raise ValueError(f'parameter camera_drop_probability must be in [0, 1), got '
+                             f'{self.camera_drop_probability}')
         _fault_window(self.fault_imu_off_s, 'fault_imu_off_s')
         _fault_window(self.fault_imu_nan_s, 'fault_imu_nan_s')
 
-    def sim_config(self, camera_rate_hz: float) -> SimConfig:
-        """Return the simulation's settings (cameras at ``camera_rate_hz``)."""
+    def sim_config(self, vehicle: VehicleConfig) -> SimConfig:
+        """Return the simulation's settings for the true ``vehicle`` (its cameras' timing)."""
         override = bool(self.initial_override)
+        timing = self.camera_timing(vehicle)
         return SimConfig(
             pacing=Pacing(self.pacing), lockstep_timeout_s=float(self.lockstep_timeout_s),
-            real_time_factor=float(self.real_time_factor), camera_rate_hz=camera_rate_hz,
+            real_time_factor=float(self.real_time_factor),
+            camera_rate_hz=timing[CAMERAS[0]].rate_hz, camera_timing=timing,
             initial_position_I=(tuple(float(x) for x in self.initial_position_I)
                                 if override else None),
             initial_yaw=float(self.initial_yaw) if override else None,
             wind=self.wind_config(), cameras=CAMERAS,
             read_noise_std=float(self.camera_read_noise_std), noise_seed=int(self.seed))
+
+    def camera_timing(self, vehicle: VehicleConfig) -> dict[str, CameraTiming]:
+        """Return each camera's timing: these parameters, the true ``vehicle``'s time offsets.
+
+        A rate of 0 is the vehicle's ``rate_hz``. Raises ValueError naming the parameters.
+        """
+        out = {}
+        for name, rate in zip(CAMERAS, self.camera_rate_hz):
+            cam = vehicle.cameras[name]
+            try:
+                out[name] = CameraTiming(
+                    rate_hz=float(rate) or cam.rate_hz, latency_s=float(self.camera_latency_s),
+                    jitter_s=float(self.camera_jitter_s),
+                    jitter=Jitter(self.camera_jitter_distribution),
+                    drop_probability=float(self.camera_drop_probability),
+                    exposure_s=float(self.camera_exposure_s),
+                    exposure_samples=int(self.camera_exposure_samples),
+                    stamp_at=StampAt(self.camera_stamp_at), time_offset_s=cam.time_offset_s)
+            except ValueError as exc:
+                raise ValueError(f'camera_* parameters of the {name} camera: {exc}') from exc
+        return out
 
     def wind_config(self) -> WindConfig:
         """Return the wind: the steady force turned from map (ENU) to {I}, the seeded gusts."""

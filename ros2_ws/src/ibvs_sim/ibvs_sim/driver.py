@@ -23,7 +23,7 @@ from ibvs_sim.core.graph_sync import (FirstFrameHold, graph_products, ImuBeforeI
                                       STATUS_TOPIC)
 from ibvs_sim.core.pacing import Pacing
 from ibvs_sim.core.sim_core import FrameOutput, Simulation
-from ibvs_sim.core.timing import AnswerLatency, wall_budget
+from ibvs_sim.core.timing import AnswerLatency, NS_PER_MS, wall_budget
 from ibvs_sim.core.world import WorldConfig
 
 LOG_THROTTLE_S = 2.0
@@ -40,8 +40,8 @@ class GraphPort(Protocol):
     def publish_clock(self, t_ns: int) -> None:
         """Publish ``/clock`` at sim time ``t_ns``."""
 
-    def publish_images(self, t_ns: int, images: dict) -> None:
-        """Publish each camera's camera_info and image (camera -> mono8 array) of ``t_ns``."""
+    def publish_images(self, images: dict, stamps_ns: dict) -> None:
+        """Publish each camera's camera_info and image (camera -> mono8 array), stamped."""
 
     def publish_ground_truth(self, t_ns: int, state: State) -> None:
         """Publish the ground truth of ``t_ns``."""
@@ -71,12 +71,15 @@ class SimDriver:
 
     def __init__(self, world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                  cfg: SimNodeConfig, port: GraphPort, log: Log) -> None:
-        """Build the autopilot (its MAVLink endpoint opens) and the simulation of ``cfg``."""
+        """Build the autopilot (its MAVLink endpoint opens) and the simulation of ``cfg``.
+
+        ``vehicle`` is the true vehicle (``true_vehicle_file``): the plant, the cameras the
+        sim renders and their timing.
+        """
         self.port, self.log = port, log
         self.autopilot = Autopilot(cfg.autopilot_config(vehicle, world.floor_z))
         self.products = graph_products()
-        self.sim = Simulation(world, pad, vehicle, self.autopilot,
-                              cfg.sim_config(vehicle.cameras['down'].rate_hz),
+        self.sim = Simulation(world, pad, vehicle, self.autopilot, cfg.sim_config(vehicle),
                               products=self.products, clock_sink=self._clock)
         self.latency = AnswerLatency()
         self.faults = cfg.camera_faults()
@@ -161,6 +164,9 @@ class SimDriver:
         if out is not None:
             # an injected IMU fault: imu/data will not reach the frame, do not wait for it
             if not self.autopilot.config.imu_fault_at(out.t):
+                # every IMU sample sent by the delivery reaches the graph before the images
+                imu_ms = self.autopilot.last_attitude_ms
+                out.imu_ns = None if imu_ms is None else imu_ms * NS_PER_MS
                 out = self.imu_hold.hold(out, time.monotonic())
             if out is not None:
                 self._publish(out)
@@ -225,15 +231,20 @@ class SimDriver:
                 f'fault injection: {", ".join(frozen)} camera frozen at t = {out.t:.3f} s: '
                 f'its image of t = {self.faults.held[frozen[0]][0]:.3f} s again, new stamp',
                 throttle_duration_sec=LOG_THROTTLE_S)
-        self.port.publish_images(out.t_ns, images)
-        self.latency.published(out.t_ns, time.monotonic())
+        stamps = {name: out.stamp_ns(name) for name in images}
+        self.port.publish_images(images, stamps)
+        # the graph's answer echoes the stamp of the mode's camera (or none is owed)
+        self.latency.published(out.t_ns if out.answer_ns is None else out.answer_ns,
+                               time.monotonic())
         self.port.publish_ground_truth(out.t_ns, out.state)
         for event in out.events:
             self._event(event)
         if self.imu_hold.enabled:
-            self.products.expect(out.t_ns, list(images),
+            answer = out.answer_ns
+            self.products.expect(out.t_ns if answer is None else answer, list(images),
                                  {t: self.port.count_publishers(t)
-                                  for t in (*self.products.products, STATUS_TOPIC)})
+                                  for t in (*self.products.products, STATUS_TOPIC)},
+                                 stamps, status=answer is not None)
 
     def _event(self, event: SimEvent) -> None:
         self._events_published += 1

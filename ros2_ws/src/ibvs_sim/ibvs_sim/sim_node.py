@@ -56,8 +56,17 @@ class SimNode(Node):
         cfg = declare_config(self, SimNodeConfig)      # ValueError: a bad parameter
         world = load_world(cfg.world_file or None)
         pad = load_pad_layout(cfg.pad_layout_file or None)
+        # the calibration the onboard nodes were given (camera_info), and the truth the sim
+        # flies and renders (docs/sim.md "Camera model")
         vehicle = load_vehicle(cfg.vehicle_file or None)
+        truth = load_vehicle(cfg.true_vehicle_file or cfg.vehicle_file or None)
         self.cameras = {name: vehicle.cameras[name] for name in CAMERAS}
+        for name in CAMERAS:
+            onboard, true = vehicle.cameras[name].model, truth.cameras[name].model
+            if (onboard.width, onboard.height) != (true.width, true.height):
+                raise ConfigError(f'{name} camera: the true vehicle file renders '
+                                  f'{true.width}x{true.height} images, the calibration '
+                                  f'describes {onboard.width}x{onboard.height}')
         reliable = QoSProfile(depth=RELIABLE_DEPTH, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=EVENTS_DEPTH, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -71,7 +80,7 @@ class SimNode(Node):
         self.stats_pub = self.create_publisher(DiagnosticArray, 'sim/stats', QoSProfile(
             depth=1, reliability=ReliabilityPolicy.RELIABLE,
             durability=DurabilityPolicy.TRANSIENT_LOCAL))
-        self.driver = SimDriver(world, pad, vehicle, cfg, port=self, log=self.get_logger())
+        self.driver = SimDriver(world, pad, truth, cfg, port=self, log=self.get_logger())
         self.sim, self.autopilot = self.driver.sim, self.driver.autopilot
         if self.driver.imu_hold.enabled:
             self.create_subscription(Imu, 'imu/data', self._on_imu, qos_profile_sensor_data)
@@ -86,6 +95,15 @@ class SimNode(Node):
             f'sim: {cfg.pacing} pacing (real-time factor {cfg.real_time_factor:g}), '
             f'MAVLink {cfg.mavlink_url}, start at '
             f'{self.sim.state.xi_I.tolist()} ({{I}}, m), wind {tuple(cfg.wind_force_map)} N (map)')
+        for name, timing in self.sim.config.timings().items():
+            self.get_logger().info(
+                f'{name} camera: {timing.rate_hz:g} Hz, latency {timing.latency_s * 1e3:g} ms, '
+                f'jitter {timing.jitter_s * 1e3:g} ms ({timing.jitter.value}), drop '
+                f'{timing.drop_probability:g}, exposure {timing.exposure_s * 1e3:g} ms '
+                f'({timing.exposure_samples} renders), stamp at {timing.stamp_at.value}, time '
+                f'offset {timing.time_offset_s * 1e3:g} ms, lever arm '
+                f'{truth.cameras[name].t_BC.tolist()} m (true vehicle '
+                f"{cfg.true_vehicle_file or cfg.vehicle_file or 'vehicle.yaml'})")
 
     # --- in ---
     def _on_imu(self, msg: Imu) -> None:
@@ -106,11 +124,11 @@ class SimNode(Node):
         """Publish ``/clock`` at sim time ``t_ns``."""
         self.clock_pub.publish(ClockMsg(clock=stamp_from_ns(t_ns)))
 
-    def publish_images(self, t_ns: int, images: dict) -> None:
-        """Publish each camera's camera_info and image of sim time ``t_ns``."""
-        stamp = stamp_from_ns(t_ns)
+    def publish_images(self, images: dict, stamps_ns: dict) -> None:
+        """Publish each camera's camera_info (the onboard calibration) and image, stamped."""
         for name, img in images.items():
             cam = self.cameras[name]
+            stamp = stamp_from_ns(stamps_ns[name])
             self.info_pubs[name].publish(camera_info_msg(cam.model, stamp, cam.frame_id))
             self.image_pubs[name].publish(image_msg(img, stamp, cam.frame_id))
 

@@ -20,8 +20,8 @@ class FakePort:
     def publish_clock(self, t_ns):
         self.calls.append(('clock', t_ns))
 
-    def publish_images(self, t_ns, images):
-        self.calls.append(('images', t_ns, sorted(images)))
+    def publish_images(self, images, stamps_ns):
+        self.calls.append(('images', dict(stamps_ns), sorted(images)))
 
     def publish_ground_truth(self, t_ns, state):
         self.calls.append(('truth', t_ns))
@@ -73,7 +73,7 @@ def test_frame_0_waits_for_its_subscribers_then_goes_clock_first(configs):
         # lockstep: /clock of the frame before anything of it; then images and ground truth
         assert port.calls[0] == ('clock', 0)
         frames = [c for c in port.calls if c[0] != 'clock']
-        assert frames == [('images', 0, ['down', 'front']), ('truth', 0)]
+        assert frames == [('images', {'front': 0, 'down': 0}, ['down', 'front']), ('truth', 0)]
         assert driver.products.frame_ns == 0
         assert driver.products.status_expected and STATUS_TOPIC not in driver.products.expected
         assert len(driver.products.expected) == 5                  # both cameras' products
@@ -91,7 +91,7 @@ def test_a_camera_off_is_withheld_and_its_frame_waited_for_briefly(configs):
     driver = _driver(configs, port, fault_front_camera_off_s=[0.0, 1.0])
     try:
         driver.tick()
-        assert ('images', 0, ['down']) in port.calls
+        assert ('images', {'down': 0}, ['down']) in port.calls
         assert driver.sim.lockstep.answer_wait_s == FAULT_ANSWER_WAIT_S
         assert not {'window/corners', 'front_camera/translational_flow'} \
             & driver.products.expected                             # no front images: none

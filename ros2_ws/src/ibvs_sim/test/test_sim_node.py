@@ -49,9 +49,31 @@ def _spin_until(executor, done, timeout_s):
     return done()
 
 
-def test_sim_node_publishes_consistent_frames(ros_context):
+def _true_vehicle(tmp_path) -> str:
+    """A true vehicle unlike the calibration: other focal lengths, lever arms, time offsets."""
+    import yaml
+    from ibvs_common.core.config import default_config_path
+    data = yaml.safe_load(open(default_config_path('vehicle.yaml')).read())
+    for cam in data['cameras'].values():
+        cam['K'][0] *= 1.02
+        cam['K'][4] *= 1.02
+        cam['t_BC'] = [0.05, 0.0, 0.02]
+        cam['time_offset_s'] = 0.002
+    path = tmp_path / 'true_vehicle.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def test_sim_node_publishes_consistent_frames(ros_context, tmp_path):
+    """Images, camera_info, odometry, /clock; camera_info is the onboard calibration's.
+
+    The sim renders a true vehicle whose intrinsics differ (true_vehicle_file) and stamps its
+    images 2 ms before their exposure (its time offset), but publishes the calibration the
+    onboard nodes read (vehicle_file), as a camera driver publishes the file it was given.
+    """
     tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
     params = [Parameter('pacing', value='realtime'),
+              Parameter('true_vehicle_file', value=_true_vehicle(tmp_path)),
               Parameter('start_on_setpoints', value=False),   # no companion in this test
               Parameter('real_time_factor', value=0.25),      # time between frames to spare
               Parameter('mavlink_url', value=KERNEL_PORT),
@@ -107,9 +129,10 @@ def test_sim_node_publishes_consistent_frames(ros_context):
         assert np.allclose(info.r, np.eye(3).ravel())
         info_ns = {_stamp_ns(m.header) for m in got[f'{cam}_info']}
         assert {_stamp_ns(m.header) for m in got[f'{cam}_image']} <= info_ns
-    # frames are 20 ms apart in sim time, starting at 0
+    # frames are 20 ms apart in sim time, exposed from 0 on, stamped 2 ms before (the true
+    # time offset), and published at the exposure (no latency; not before the stamp's time)
     stamps = sorted(_stamp_ns(m.header) for m in got['down_image'])
-    assert stamps[0] == 0
+    assert stamps[0] == -2_000_000
     assert all(d % 20_000_000 == 0 and d > 0 for d in np.diff(stamps))
     # ground truth: map / base_link, ENU of the overridden initial position at t = 0
     odom0 = min(got['odom'], key=lambda m: _stamp_ns(m.header))

@@ -213,3 +213,35 @@ def test_aperture_edge_on_projected_true_edge(front_probe, scene, xi, euler):
     errors = np.array(errors)
     assert abs(np.mean(errors)) < 0.05, f'aperture edge bias {np.mean(errors):+.3f} px'
     assert np.max(np.abs(errors)) < 0.15, f'aperture edge error {np.max(np.abs(errors)):.3f} px'
+
+
+def test_a_lever_arm_moves_the_image_as_the_geometry_says(scene):
+    """The optical centre is xi + R_IB t_BC: a dot lands where a pinhole at that centre puts it.
+
+    A distortion-free down camera (K only, so the projection is computed by hand) 0.12 m
+    forward and 0.05 m right of the body origin (body FRD), the body yawed by 0.4 rad at 1.2 m:
+    P_C = R_BC^T (R_IB^T (P - xi) - t_BC), u = fx X/Z + cx, v = fy Y/Z + cy.
+    """
+    from dataclasses import replace
+    from ibvs_common.core.camera import CameraModel
+    world, pad, vehicle = scene[1:]
+    K = [366.667, 0.0, 375.5, 0.0, 366.667, 239.5, 0.0, 0.0, 1.0]
+    pinhole = CameraModel.from_camera_info(752, 480, K, [0.0] * 5, 'plumb_bob')
+    t_BC = np.array([0.12, 0.05, 0.0])
+    cam = replace(vehicle.cameras['down'], model=pinhole, t_BC=t_BC)
+    R_IB, xi = rot_from_euler_zyx(0.0, 0.0, 0.4), np.array([-1.0, 0.4, -1.2])
+    P_I = np.array([-0.8, 0.3, -0.001])            # on the floor, near the image centre
+    by_hand = []
+    for lever in (t_BC, np.zeros(3)):
+        P_C = cam.R_BC.T @ (R_IB.T @ (P_I - xi) - lever)
+        by_hand.append(np.array([K[0] * P_C[0] / P_C[2] + K[2], K[4] * P_C[1] / P_C[2] + K[5]]))
+    rendered = []
+    for camera in (cam, replace(cam, t_BC=np.zeros(3))):
+        r = SceneRenderer(world, pad, camera)
+        r.overlay_planes = [_dot_plane(P_I, np.array([0.0, 0.4, 0.0]),
+                                       np.array([-0.4, 0.0, 0.0]))]
+        rendered.append(_centroid(r.render(R_IB, xi), by_hand[len(rendered)]))
+    shift = np.linalg.norm(by_hand[0] - by_hand[1])
+    assert shift > 10.0                            # the lever arm matters here: ~40 px
+    for got, want in zip(rendered, by_hand):
+        assert np.linalg.norm(got - want) < 0.5, (got, want)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 import time
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -56,12 +56,32 @@ class CameraRig:
         def one(name: str) -> np.ndarray:
             return self.read_noise[name].apply(self.renderers[name].render(R_IB, xi_I),
                                                frame_index)
+        return self._each(one, list(self.renderers))
 
-        names = list(self.renderers)
+    def render_clean(self, names: Sequence[str], R_IB: np.ndarray, xi_I: np.ndarray) -> dict:
+        """Return the noise-free images of the cameras ``names`` (those that render) at a pose.
+
+        One exposure sample of a frame (:mod:`~ibvs_sim.core.capture`); counts the wall time.
+        """
+        t0 = time.perf_counter()
+        images = self._each(lambda name: self.renderers[name].render(R_IB, xi_I),
+                            [n for n in names if n in self.renderers])
+        self.wall_s += time.perf_counter() - t0
+        return images
+
+    def add_noise(self, name: str, image: np.ndarray, frame_index: int) -> np.ndarray:
+        """Return ``image`` of camera ``name`` with the read noise of its frame ``frame_index``."""
+        t0 = time.perf_counter()
+        out = self.read_noise[name].apply(image, frame_index)
+        self.wall_s += time.perf_counter() - t0
+        return out
+
+    def _each(self, one: Callable[[str], np.ndarray], names: list) -> dict:
+        """Return ``{name: one(name)}``: in parallel, all but the last on the worker threads."""
         if not self.parallel or len(names) < 2:
             return {name: one(name) for name in names}
         if self._render_pool is None:
-            self._render_pool = ThreadPoolExecutor(max_workers=len(names) - 1,
+            self._render_pool = ThreadPoolExecutor(max_workers=len(self.renderers) - 1,
                                                    thread_name_prefix='render')
         futures = {name: self._render_pool.submit(one, name) for name in names[:-1]}
         last = one(names[-1])

@@ -2,7 +2,8 @@
 
 - :class:`FirstFrameHold`: frame 0 waits until the graph is there to answer it (image
   subscribers, the companion's setpoints), in both pacings;
-- :class:`ImuBeforeImages`: lockstep, a frame's images wait until ``imu/data`` reached its time;
+- :class:`ImuBeforeImages`: lockstep, a frame's images wait until ``imu/data`` reached the
+  newest sample the autopilot sent by their delivery;
 - :class:`GraphProducts`: lockstep, the next frame waits until the graph published every
   product of the last one (:class:`~ibvs_sim.core.pacing.LockstepGate` asks it).
 
@@ -12,7 +13,7 @@ from __future__ import annotations
 
 from typing import Collection, TYPE_CHECKING
 
-from ibvs_common.core.modes import InputKind, modes_using
+from ibvs_common.core.modes import InputKind, Mode, MODE_INPUTS, modes_using
 
 if TYPE_CHECKING:
     from ibvs_sim.core.sim_core import FrameOutput
@@ -71,7 +72,10 @@ class FirstFrameHold:
 
 
 class ImuBeforeImages:
-    """Lockstep: hold a frame until ``imu/data`` has reached its time (docs/sim.md).
+    """Lockstep: hold a delivery until ``imu/data`` has reached its IMU time (docs/sim.md).
+
+    That is ``FrameOutput.imu_ns``: the newest sample the autopilot had sent by the delivery
+    (the delivery time itself when not given), so every node has the same IMU with the images.
 
     Before any IMU sample was seen nothing is held; a frame waits at most ``timeout_s`` (wall
     clock, s) and is then released anyway. Disabled (pass-through) outside lockstep.
@@ -122,7 +126,9 @@ class ImuBeforeImages:
         return frame
 
     def _covered(self, frame: FrameOutput) -> bool:
-        return self.imu_through_ns is None or self.imu_through_ns >= frame.t_ns
+        """Whether imu/data reached the frame's ``imu_ns`` (its delivery time when None)."""
+        target = frame.t_ns if frame.imu_ns is None else frame.imu_ns
+        return self.imu_through_ns is None or self.imu_through_ns >= target
 
 
 class GraphProducts:
@@ -130,9 +136,10 @@ class GraphProducts:
 
     ``products``: topic -> the camera it is made from; ``used_in``: topic -> the modes that
     use it (mode gating; a topic not in it is made in every mode). Expected: the products of
-    the cameras whose images went out, with a publisher, that the frame's mode uses (from the
-    supervisor's status of the frame, waited for first); a missing one is given up until it
-    is published again (docs/sim.md "Loop, pacing and events").
+    the cameras whose images went out, with a publisher, that the mode at their image's stamp
+    uses (from the supervisor's status of the frame, waited for first when the image of the
+    mode's camera went out); a missing one is given up until it is published again
+    (docs/sim.md "Loop, pacing and events").
     """
 
     def __init__(self, products: dict, used_in: dict | None = None) -> None:
@@ -143,17 +150,30 @@ class GraphProducts:
         self.given_up: set[str] = set()
         self.expected: set[str] = set()
         self.frame_ns: int | None = None
+        self.stamps_ns: dict[str, int] = {}           # camera -> its image's stamp
         self.status_expected = False
         self.statuses: list[tuple[int, int]] = []     # (stamp ns, mode), newest last
 
-    def expect(self, frame_ns: int, cameras: Collection[str], publishers: dict) -> None:
-        """Expect the products of the frame at ``frame_ns`` (images of ``cameras`` went out)."""
+    def expect(self, frame_ns: int, cameras: Collection[str], publishers: dict,
+               stamps_ns: dict | None = None, status: bool = True) -> None:
+        """Expect the products of the frame at ``frame_ns`` (images of ``cameras`` went out).
+
+        ``stamps_ns``: camera -> its image's stamp where not ``frame_ns`` (a camera's time
+        offset, cameras at other rates); ``status``: whether the frame's status (stamp
+        ``frame_ns``) is awaited: the image of the camera the mode is evaluated on went out.
+        """
         self.frame_ns = int(frame_ns)
+        self.stamps_ns = {c: int((stamps_ns or {}).get(c, frame_ns)) for c in cameras}
         self.expected = {t for t, cam in self.products.items()
-                         if cam in cameras and publishers.get(t, 0) > 0
+                         if cam in self.stamps_ns and publishers.get(t, 0) > 0
                          and t not in self.given_up}
-        self.status_expected = bool(self.used_in) and publishers.get(STATUS_TOPIC, 0) > 0 \
-            and STATUS_TOPIC not in self.given_up
+        self.status_expected = status and bool(self.used_in) \
+            and publishers.get(STATUS_TOPIC, 0) > 0 and STATUS_TOPIC not in self.given_up
+
+    def mode_camera(self) -> str:
+        """Return the camera the newest status's mode is evaluated on (IDLE's before any)."""
+        mode = self.statuses[-1][1] if self.statuses else Mode.IDLE
+        return MODE_INPUTS[Mode(mode)].camera.value
 
     def note_status(self, stamp_ns: int, mode: int) -> None:
         """Note the supervisor's mode of the frame at ``stamp_ns``."""
@@ -176,15 +196,21 @@ class GraphProducts:
     def missing(self) -> list[str]:
         """Return the expected products of the last frame not yet published.
 
-        The frame's status first, when one is expected; then the products its mode uses.
+        The frame's status first, when one is expected; then the products that the mode at
+        their image's stamp uses.
         """
         if self.frame_ns is None:
             return []
         if self.status_expected and not any(t >= self.frame_ns for t, _ in self.statuses):
             return [STATUS_TOPIC]
-        mode = self.mode_at(self.frame_ns)
-        return sorted(t for t in self.expected if self.newest_ns.get(t, -1) < self.frame_ns
-                      and (mode is None or t not in self.used_in or mode in self.used_in[t]))
+        stamps = {t: self.stamps_ns[self.products[t]] for t in self.expected}
+        return sorted(t for t, stamp in stamps.items()
+                      if self.newest_ns.get(t, -1) < stamp and self._uses(t, stamp))
+
+    def _uses(self, topic: str, stamp_ns: int) -> bool:
+        """Whether the mode at ``stamp_ns`` uses ``topic`` (all of them before any status)."""
+        mode = self.mode_at(stamp_ns)
+        return mode is None or topic not in self.used_in or mode in self.used_in[topic]
 
     def give_up(self) -> list[str]:
         """Stop waiting for the missing status and products (until they come again)."""

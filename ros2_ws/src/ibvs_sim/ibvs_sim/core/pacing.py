@@ -4,8 +4,8 @@
   clock; a camera frame the sim cannot render on time is dropped and counted, never delayed
   or bunched; a stall of the sim process itself longer than ``MAX_CATCH_UP_S`` of sim time
   re-phases the clock;
-- ``lockstep`` (:class:`LockstepGate`): the next camera period is simulated only once the
-  graph answered the last frame and published its products, or after the wall-clock wait.
+- ``lockstep`` (:class:`LockstepGate`): sim time moves on from a delivery of camera images
+  only once the graph answered it and published its products, or after the wall-clock wait.
 
 ROS-free; :class:`~ibvs_sim.core.sim_core.Simulation` steps the physics accordingly.
 """
@@ -28,27 +28,25 @@ class Pacing(str, enum.Enum):
 
 
 class RealtimeClock:
-    """Free-running pacing: the sim time a wall time stands for, the camera frames due.
+    """Free-running pacing: the sim time a wall time stands for, the frames too late to render.
 
     :meth:`start` anchors sim time to the wall clock at frame 0; :meth:`target` is the sim time
-    the physics must catch up with now; :meth:`take_frame` gives each frame of the camera grid
-    once physics reached it, and :meth:`late` drops (and counts) one a whole period late.
+    the physics must catch up with now; :meth:`late` drops (and counts) a frame whose exposure
+    is a whole camera period behind it.
     """
 
-    def __init__(self, real_time_factor: float, period_ns: int) -> None:
+    def __init__(self, real_time_factor: float) -> None:
         if not (math.isfinite(real_time_factor) and 0.0 < real_time_factor <= 10.0):
             raise ValueError(f'real_time_factor must be in (0, 10], got {real_time_factor}')
         self.real_time_factor = real_time_factor
-        self.period_ns = period_ns
         self.frames_dropped = 0               # frames not rendered on time
         self.stalls = 0                       # re-phased after a stall of the sim
         self._wall0 = 0.0                     # wall time at sim time _t0_ns
         self._t0_ns = 0
-        self._next_frame_ns = 0               # time of the next camera frame
 
     def start(self, now: float, t_ns: int) -> None:
         """Anchor sim time ``t_ns`` (frame 0) to wall time ``now`` (s)."""
-        self._wall0, self._t0_ns, self._next_frame_ns = now, t_ns, self.period_ns
+        self._wall0, self._t0_ns = now, t_ns
 
     def sim_ns_at(self, wall: float) -> int:
         """Return the sim time (ns) that the wall time ``wall`` (s) stands for."""
@@ -63,27 +61,19 @@ class RealtimeClock:
             target = t_ns
         return target
 
-    def take_frame(self, t_ns: int) -> int | None:
-        """Return the time (ns) of the camera frame physics reached at ``t_ns``, or None."""
-        if t_ns < self._next_frame_ns:
-            return None
-        frame_ns = self._next_frame_ns
-        self._next_frame_ns += self.period_ns
-        return frame_ns
-
-    def late(self, target_ns: int, frame_ns: int) -> bool:
+    def late(self, target_ns: int, frame_ns: int, period_ns: int) -> bool:
         """Return True (and count it dropped) for a frame a whole period behind the target."""
-        if target_ns - frame_ns >= self.period_ns:
+        if target_ns - frame_ns >= period_ns:
             self.frames_dropped += 1
             return True
         return False
 
 
 class LockstepGate:
-    """Lockstep pacing: whether the next camera period may be simulated.
+    """Lockstep pacing: whether sim time may move on from the last delivery of images.
 
-    It may once the graph answered the last frame (the caller says so: a setpoint of the
-    frame's time, or no answer awaited) and published every product of it
+    It may once the graph answered the delivered frame (the caller says so: a setpoint of the
+    frame's stamp, or no answer awaited) and published every product of it
     (:class:`~ibvs_sim.core.graph_sync.GraphProducts`), or after ``answer_wait_s`` of wall
     clock since the frame went out: a missing answer then counts in ``timeouts`` (only for a
     full ``timeout_s`` wait: a fault-injection frame's shorter wait expects none), missing
@@ -105,7 +95,7 @@ class LockstepGate:
         self._since = now
 
     def may_step(self, now: float, answered: bool) -> bool:
-        """Return whether the next period may be simulated at wall time ``now`` (s)."""
+        """Return whether sim time may move on at wall time ``now`` (s)."""
         if answered and not self.products.missing():
             return True
         if now - self._since >= self.answer_wait_s:

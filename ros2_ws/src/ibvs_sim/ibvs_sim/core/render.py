@@ -319,6 +319,8 @@ class SceneRenderer:
         self.world = world
         self.camera = camera
         self.R_BC = np.asarray(camera.R_BC, float)
+        self.t_BC = np.asarray(camera.t_BC, float).reshape(3)    # optical centre, body FRD
+        self._lever_arm = bool(np.any(self.t_BC != 0.0))
         model = camera.model
         self.width, self.height = model.width, model.height
         self._build_virtual_camera()
@@ -437,14 +439,16 @@ class SceneRenderer:
     def render(self, R_IB: np.ndarray, xi_I: np.ndarray) -> np.ndarray:
         """Image (H, W) mono8 of the camera on a body at ``xi_I`` with attitude ``R_IB``.
 
-        The optical centre is the body origin; the camera attitude is ``R_IB @ R_BC``.
-        Raises RenderError on a non-finite pose.
+        The optical centre is at ``xi_I + R_IB t_BC`` (the camera's lever arm ``t_BC``, body
+        FRD); the camera attitude is ``R_IB @ R_BC``. Raises RenderError on a non-finite pose.
         """
         R_IB = np.asarray(R_IB, float)
         xi_I = np.asarray(xi_I, float).reshape(3)
         if R_IB.shape != (3, 3) or not (np.all(np.isfinite(R_IB))
                                         and np.all(np.isfinite(xi_I))):
             raise RenderError('pose must be a finite 3x3 rotation and a finite 3-vector')
+        if self._lever_arm:                    # from here on xi_I is the optical centre
+            xi_I = xi_I + R_IB @ self.t_BC
         R_CI = (R_IB @ self.R_BC).T
         W, H = self.virtual_size
         canvas = np.full((H, W), BACKGROUND_GRAY, np.uint8)

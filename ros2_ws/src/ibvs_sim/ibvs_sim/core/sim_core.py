@@ -1,12 +1,14 @@
-"""The simulation loop: one camera frame after another, paced against the wall clock.
+"""The simulation loop: physics step after step, camera frames delivered when they are due, paced.
 
-:class:`Simulation` composes the stages of a frame: :class:`~ibvs_sim.core.physics.
-PhysicsLoop` (plant, inner loop, wind, autopilot, contacts) advances one camera period in
-physics substeps, the autopilot sends the telemetry due at the frame time, and
-:class:`~ibvs_sim.core.cameras.CameraRig` renders both cameras at the new pose. How sim time
-moves against the wall clock is the pacing (:mod:`~ibvs_sim.core.pacing`): free-running, or
-in lockstep with the graph. The initial frame (t = 0) shows the initial condition; a collision
-ends the run (no more frames). ROS-free; docs/sim.md "Loop, pacing and events".
+:class:`Simulation` composes the stages: :class:`~ibvs_sim.core.physics.PhysicsLoop` (plant,
+inner loop, wind, autopilot, contacts) advances in physics steps; as it passes a camera
+exposure, :class:`~ibvs_sim.core.capture.FrameCapture` renders it (:class:`~ibvs_sim.core.
+cameras.CameraRig`); when sim time reaches a frame's delivery time (its stamp plus the
+camera's latency: :mod:`~ibvs_sim.core.camera_model`), the autopilot sends the telemetry due
+then and the frame goes out. How sim time moves against the wall clock is the pacing
+(:mod:`~ibvs_sim.core.pacing`): free-running, or in lockstep with the graph, which then waits
+at each delivery. The first frame (t = 0) shows the initial condition; a collision ends the
+run. ROS-free; docs/sim.md "Loop, pacing and events", "Camera model".
 """
 from __future__ import annotations
 
@@ -16,7 +18,9 @@ from typing import Callable
 
 from ibvs_common.core.config import PadLayout, VehicleConfig
 from ibvs_common.core.stamps import NS_PER_S
+from ibvs_sim.core.camera_model import CameraTiming, frame_clocks, PlannedFrame
 from ibvs_sim.core.cameras import CameraRig
+from ibvs_sim.core.capture import FrameCapture, Pose
 from ibvs_sim.core.dynamics import State, WindConfig
 from ibvs_sim.core.events import EventType, SimEvent
 from ibvs_sim.core.graph_sync import GraphProducts
@@ -35,7 +39,7 @@ class SimConfig:
     pacing: Pacing = Pacing.LOCKSTEP
     lockstep_timeout_s: float = 1.0                  # wall clock, s
     real_time_factor: float = 1.0                    # realtime: sim s per wall s, (0, 10]
-    camera_rate_hz: float = DEFAULT_CAMERA_RATE_HZ   # both cameras, Hz
+    camera_rate_hz: float = DEFAULT_CAMERA_RATE_HZ   # both cameras, Hz (no camera_timing)
     initial_position_I: tuple | None = None          # m, {I}; None = world.yaml
     initial_yaw: float | None = None                 # rad; None = world.yaml
     wind: WindConfig = field(default_factory=WindConfig)
@@ -45,31 +49,54 @@ class SimConfig:
     parallel_render: bool = True
     cameras: tuple[str, ...] = ('front', 'down')
     read_noise_std: float = 0.0                      # grey levels, camera read noise (0: off)
-    noise_seed: int = 0                              # read noise draws (with camera, frame)
+    noise_seed: int = 0                              # read noise, delivery jitter and drops
+    # camera -> its timing (camera_model.CameraTiming); None: ideal cameras at camera_rate_hz
+    camera_timing: dict | None = None
+
+    def timings(self) -> dict[str, CameraTiming]:
+        """Return each camera's timing (an ideal camera at ``camera_rate_hz`` by default)."""
+        if self.camera_timing is None:
+            return {name: CameraTiming(rate_hz=self.camera_rate_hz) for name in self.cameras}
+        return {name: self.camera_timing[name] for name in self.cameras}
 
 
 @dataclass
 class FrameOutput:
-    """What one camera period produces: images at capture time t, ground truth, events."""
+    """One delivery: the images published at sim time t, their stamps, ground truth, events.
+
+    ``stamps_ns``: camera -> its image's stamp (exposure instant minus the camera's time
+    offset; a camera not in it: ``t_ns``). ``answer_ns``: the stamp of the image of the camera
+    the graph's mode is evaluated on, i.e. the frame the graph owes an answer (None: that
+    image did not go out). ``imu_ns``: the newest IMU stamp that must reach the graph before
+    the images (lockstep; None: ``t_ns``).
+    """
 
     t_ns: int
     images: dict                  # camera name -> (H, W) uint8, empty when rendering is off
     state: State
     events: list
+    stamps_ns: dict = field(default_factory=dict)
+    answer_ns: int | None = None
+    imu_ns: int | None = None
 
     @property
     def t(self) -> float:
-        """Return the capture time, seconds since boot."""
+        """Return the delivery (publication) time, seconds since boot."""
         return self.t_ns / NS_PER_S
+
+    def stamp_ns(self, camera: str) -> int:
+        """Return the stamp (ns) of ``camera``'s image."""
+        return self.stamps_ns.get(camera, self.t_ns)
 
 
 class Simulation:
-    """Produce camera frames from the physics, the autopilot and the cameras, paced.
+    """Produce camera deliveries from the physics, the autopilot and the cameras, paced.
 
-    :meth:`tick` (called often by the node) produces the next frame when the pacing allows it;
-    :meth:`step_frame` produces it at once. Lockstep: MAVLink input is read only between
-    frames, never during a frame's physics substeps (a datagram's effect does not depend on
-    when it landed during the computation); realtime: at every substep, as on a vehicle.
+    :meth:`tick` (called often by the node) produces the next delivery when the pacing allows
+    it; :meth:`step_frame` produces it at once. Lockstep: MAVLink input is read only between
+    deliveries, never during the physics steps before one (a datagram's effect does not
+    depend on when it landed during the computation); realtime: at every step, as on a
+    vehicle.
     """
 
     def __init__(self, world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
@@ -79,11 +106,11 @@ class Simulation:
                  clock_sink: Callable[[int], None] | None = None) -> None:
         """Compose the parts; ``clock_sink(t_ns)``: lockstep, the clock moves first.
 
-        ``clock_sink`` (the node's ``/clock`` publisher) is called in lockstep with a frame's
-        sim time (ns) before anything of that time leaves the sim: the autopilot's telemetry
-        (IMU, attitude, its own TIMESYNC requests) and answers, and the frame itself. On a
-        vehicle no message of time t reaches the companion before its clock reads t
-        (docs/sim.md).
+        ``vehicle`` is the true vehicle (plant, camera mounts, intrinsics). ``clock_sink``
+        (the node's ``/clock`` publisher) is called in lockstep with a delivery's sim time
+        (ns) before anything of that time leaves the sim: the autopilot's telemetry (IMU,
+        attitude, its own TIMESYNC requests) and answers, and the images. On a vehicle no
+        message of time t reaches the companion before its clock reads t (docs/sim.md).
         """
         self.world, self.vehicle, self.config = world, vehicle, config
         self.autopilot = autopilot
@@ -91,21 +118,23 @@ class Simulation:
         self.clock_sink = clock_sink
         self.physics = PhysicsLoop(world, vehicle, autopilot, config.wind,
                                    config.initial_position_I, config.initial_yaw)
-        self.period_ns = int(round(NS_PER_S / config.camera_rate_hz))
-        if self.period_ns % self.physics.dt_ns:
-            raise ValueError(f'camera period {self.period_ns} ns is not a multiple of the '
-                             f'physics step {self.physics.dt_ns} ns')
-        self.substeps = self.period_ns // self.physics.dt_ns
+        self.clocks = frame_clocks(config.timings(), self.physics.dt_ns, config.noise_seed)
+        self.period_ns = min(clock.period_ns for clock in self.clocks)
+        self.substeps = max(1, self.period_ns // self.physics.dt_ns)   # per period, about
         self.cameras = CameraRig(world, pad, vehicle, config.cameras, config.read_noise_std,
                                  config.noise_seed, render=config.render,
                                  parallel=config.parallel_render)
-        self.frame_index = -1                # no frame produced yet
+        self.capture = FrameCapture(self.clocks, self.cameras)
+        self.frame_index = -1                # deliveries so far - 1
         self.events: list[SimEvent] = []
         self.ended = False
-        self.realtime = RealtimeClock(config.real_time_factor, self.period_ns)
+        self.realtime = RealtimeClock(config.real_time_factor)
         self.lockstep = LockstepGate(config.lockstep_timeout_s,
                                      products if products is not None else GraphProducts({}))
-        self._events: list[SimEvent] = []     # realtime: contacts since the last frame
+        self.answer_ms: int | None = None    # lockstep: the stamp (ms) the graph answers next
+        self._started = False
+        self._pose = Pose(self.t_ns, self.state.R_IB, self.state.xi_I)   # before a step
+        self._events: list[SimEvent] = []     # realtime: contacts since the last delivery
 
     # --- state views ---
     @property
@@ -123,48 +152,48 @@ class Simulation:
         """Return the ground truth."""
         return self.physics.state
 
-    def last_frame_ms(self) -> int:
-        """Time of the last published frame in whole milliseconds since boot."""
-        return self.t_ns // NS_PER_MS
-
     # --- pacing ---
     def tick(self) -> FrameOutput | None:
-        """Produce the next frame if the pacing allows it now, else None (never blocks)."""
+        """Produce the next delivery if the pacing allows it now, else None (never blocks)."""
         if self.ended:
             return None
         now = self.wall_clock()
-        if self.frame_index < 0:
+        if not self._started:
             self.realtime.start(now, self.t_ns)
             return self._first_frame()
         if self.config.pacing is Pacing.REALTIME:
             return self._free_run(now)
         self.autopilot.poll(self.physics.state_view())
-        answered = self.autopilot.last_setpoint_time_boot_ms
-        answered = (answered is not None and answered >= self.last_frame_ms()) \
+        answer = self.autopilot.last_setpoint_time_boot_ms      # ms, the stamp it answers
+        answered = self.answer_ms is None \
+            or (answer is not None and answer >= self.answer_ms) \
             or not self.autopilot.awaits_setpoints
         if self.lockstep.may_step(now, answered):
             return self.step_frame()
         return None
 
     def _free_run(self, now: float) -> FrameOutput | None:
-        """Realtime: step physics up to the sim time of ``now``; emit a frame if one is due."""
+        """Realtime: step physics up to the sim time of ``now``; emit a delivery if one is due."""
         target = self.realtime.target(now, self.t_ns)
+
+        def late(frame: PlannedFrame, period_ns: int) -> bool:     # a whole period late
+            return self.realtime.late(target, frame.instant_ns, period_ns)
+
         while not self.ended and self.t_ns < target:
-            event = self._substep(receive=True)
+            before, event = self._step(receive=True)
             if event is not None:
                 self._events.append(event)
                 if self.ended:          # a collision ends the run: no frame shows it
                     self.events.extend(self._events)
                     self._events = []
                     return None
-            frame_ns = self.realtime.take_frame(self.t_ns)
-            if frame_ns is None:
-                continue
-            self.autopilot.poll(self.physics.state_view())    # telemetry due at the frame time
-            if self.realtime.late(target, frame_ns):           # a whole period late: drop it
-                continue
-            events, self._events = self._events, []
-            return self._emit(events)
+            due = self._delivery_due()
+            if due:
+                self.autopilot.poll(self.physics.state_view())   # telemetry due then
+            self.capture.expose(before, self._pose, late)
+            if due and self.capture.has_due(self.t_ns):        # unless dropped as late
+                events, self._events = self._events, []
+                return self._emit(events)
         return None
 
     # --- simulation ---
@@ -175,31 +204,55 @@ class Simulation:
             self.ended = True
         return event
 
+    def _step(self, receive: bool) -> tuple[Pose, SimEvent | None]:
+        """One physics step; return the pose before it (for the exposures it passed), an event.
+
+        The caller renders the exposures (:meth:`FrameCapture.expose`) after the telemetry of
+        a delivery due at the new time, as before every delivery: the IMU sample of a frame's
+        time leaves before its render, so it reaches every node before the images.
+        """
+        before = self._pose
+        event = self._substep(receive)
+        self._pose = Pose(self.t_ns, self.state.R_IB, self.state.xi_I)
+        return before, event
+
+    def _delivery_due(self) -> bool:
+        """Whether a frame (captured, or exposed by now) is to be delivered at the time now."""
+        due = self.capture.next_delivery_ns()
+        return due is not None and due <= self.t_ns
+
     def step_frame(self) -> FrameOutput | None:
-        """Simulate one camera period and render (the initial frame first). None once ended."""
+        """Simulate up to the next delivery and return it (the first one first). None once ended.
+
+        Physics runs on between a frame's exposure and its delivery, and later frames may be
+        exposed before an earlier one is delivered (a latency longer than the period).
+        """
         if self.ended:
             return None
-        if self.frame_index < 0:
+        if not self._started:
             return self._first_frame()
         new_events = []
-        # realtime: datagrams arrive at any substep, as on a vehicle; lockstep: between frames
+        # realtime: datagrams arrive at any step, as on a vehicle; lockstep: between deliveries
         receive = self.config.pacing is Pacing.REALTIME
-        for _ in range(self.substeps):
-            event = self._substep(receive)
+        while True:
+            before, event = self._step(receive)
             if event is not None:
                 new_events.append(event)
-                if self.ended:
-                    break
-        # Telemetry due at the frame time (IMU, attitude) leaves before the frame is rendered
-        # and published, as a camera-IMU synchronised vehicle delivers it: otherwise the
-        # graph derotates the frame with an attitude extrapolated over a whole frame period.
-        # Lockstep: the clock moves first (clock_sink).
+            if self.ended or self._delivery_due():
+                break
+            self.capture.expose(before, self._pose)
+        # Telemetry due at the delivery time (IMU, attitude) leaves before the images are
+        # rendered and published, as a camera-IMU synchronised vehicle delivers it: otherwise
+        # the graph derotates the frame with an attitude extrapolated over a whole frame
+        # period. Lockstep: the clock moves first (clock_sink).
         self._clock_moves()
         self.autopilot.poll(self.physics.state_view(), receive=receive)
+        if not self.ended:
+            self.capture.expose(before, self._pose)
         return self._emit(new_events)
 
     def _clock_moves(self) -> None:
-        """Lockstep: hand the frame's sim time to ``clock_sink`` before its telemetry."""
+        """Lockstep: hand the delivery's sim time to ``clock_sink`` before its telemetry."""
         if self.clock_sink is not None and self.config.pacing is Pacing.LOCKSTEP:
             self.clock_sink(self.t_ns)
 
@@ -215,19 +268,32 @@ class Simulation:
         self.autopilot.poll(self.physics.state_view(), telemetry=False)
         return self.autopilot.last_setpoint_time_boot_ms is not None
 
-    def _first_frame(self) -> FrameOutput:
-        # the telemetry due at t = 0 leaves before frame 0, as before every later frame
+    def _first_frame(self) -> FrameOutput | None:
+        """Start at t = 0: its telemetry and exposures, its delivery or (lockstep) the first."""
+        self._started = True
+        # the telemetry due at t = 0 leaves before frame 0, as before every later delivery
         self._clock_moves()
         self.autopilot.poll(self.physics.state_view(),
                             receive=self.config.pacing is Pacing.REALTIME)
-        return self._emit([])
+        self.capture.expose(self._pose, self._pose)
+        if self.capture.has_due(self.t_ns):
+            return self._emit([])
+        if self.config.pacing is Pacing.REALTIME:
+            return None                 # frame 0 goes out when sim time reaches it
+        return self.step_frame()        # nothing out at t = 0: nothing to wait for
 
     def _emit(self, new_events: list) -> FrameOutput:
+        """Return the frames due now as one delivery; note the answer the graph owes."""
+        images, stamps = {}, {}
+        for frame in self.capture.take_due(self.t_ns):
+            images.update(frame.images)
+            stamps.update({c: frame.plan.stamps_ns[c] for c in frame.plan.cameras})
         self.frame_index += 1
         self.lockstep.frame_out(self.wall_clock())
-        images = self.cameras.frame(self.state.R_IB, self.state.xi_I, self.frame_index)
+        answer_ns = stamps.get(self.lockstep.products.mode_camera())
+        self.answer_ms = None if answer_ns is None else answer_ns // NS_PER_MS
         self.events.extend(new_events)
-        return FrameOutput(self.t_ns, images, self.state.copy(), new_events)
+        return FrameOutput(self.t_ns, images, self.state.copy(), new_events, stamps, answer_ns)
 
     def close(self) -> None:
         """Stop the render threads (idempotent; a later frame starts them again)."""

@@ -98,6 +98,11 @@ class Autopilot:
         return self._setpoints.last_time_boot_ms
 
     @property
+    def last_attitude_ms(self) -> int | None:
+        """time_boot_ms (sim time, ms) of the newest valid ATTITUDE_QUATERNION sent, or None."""
+        return self._telemetry.last_attitude_ms
+
+    @property
     def new_setpoints(self) -> deque:
         """(time_boot_ms, wall s) of each valid setpoint with a new time_boot_ms; pop them."""
         return self._setpoints.new_setpoints

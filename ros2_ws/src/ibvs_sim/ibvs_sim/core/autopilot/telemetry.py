@@ -68,6 +68,9 @@ class Telemetry:
                      MSG_ID_SYS_STATUS: 1.0 / config.status_telemetry_hz}
         self.streams = {i: TelemetryStream(v, v) for i, v in intervals.items()}
         self._last_heartbeat_wall: float | None = None
+        # time_boot_ms of the newest valid ATTITUDE_QUATERNION sent: the bridge's newest
+        # imu/data stamp (lockstep: the sim holds images until the graph has it)
+        self.last_attitude_ms: int | None = None
 
     # --- requests -------------------------------------------------------------------------------
 
@@ -222,9 +225,10 @@ class Telemetry:
             return
         q = self._noise.noisy_attitude(state.R_IB, state.t)
         w = self._noise.noisy_rates(state.Omega_B, state.t)
-        self._link.mav.attitude_quaternion_send(int(round(state.t * MS_PER_S)), *map(float, q),
-                                                *map(float, w))
+        time_boot_ms = int(round(state.t * MS_PER_S))
+        self._link.mav.attitude_quaternion_send(time_boot_ms, *map(float, q), *map(float, w))
         self.counters.attitude_quaternion_sent += 1
+        self.last_attitude_ms = time_boot_ms
 
     def _send_highres_imu(self, state: VehicleStateView) -> None:
         fault = self._imu_fault(state.t)
