@@ -137,7 +137,7 @@ class CampaignConfig:
     domain_base: int = 100            # image level: worker w uses ROS_DOMAIN_ID base + w
     scenario_module: str = 'ibvs_harness.run_scenario'   # image level: run as python -m
     run_timeout_s: float = 900.0      # image level: wall-clock limit of one run
-    camera_rate_hz: float = 50.0      # feature level: the control rate (1 / camera_dt)
+    camera_rate_hz: float = 50.0      # the camera rate (feature level: 1 / camera_dt)
     command_delay_s: float = 0.0      # feature level: frame stamp -> setpoint applied, s
     sensors: str = 'ideal'            # sensor_errors.PROFILES: each run draws its errors
     sensor_overrides: tuple = ()      # (field, value) pairs replacing the profile's ranges
@@ -538,6 +538,36 @@ def image_run_params(cfg: CampaignConfig, spec: RunSpec, wind: WindConfig) -> di
     return params
 
 
+def image_sensor_options(run_dir: str, errors) -> list[str]:
+    """Return run_scenario's camera-model options of a run's drawn sensor errors.
+
+    The delivery latency and jitter (``--camera-latency``, ``--camera-jitter``, ms); with
+    mount, intrinsic, lever-arm or time-offset errors the true and the calibrated vehicle
+    files (sensor_errors.vehicle_files) written to ``run_dir`` (``true_vehicle.yaml``,
+    ``onboard_vehicle.yaml``: ``--true-vehicle``, ``--onboard-vehicle``), which also carry
+    the camera rate; without them a rate other than 50 Hz goes on ``--camera-rate``.
+    """
+    import yaml
+    from ibvs_common.core.config import load_vehicle
+    from ibvs_harness import sensor_errors
+    opts = []
+    if errors.latency_s or errors.jitter_s:
+        opts += ['--camera-latency', f'{1e3 * errors.latency_s!r}',
+                 '--camera-jitter', f'{1e3 * errors.jitter_s!r}']
+    if all(e == type(e)() for e in errors.cameras.values()):
+        if errors.camera_rate_hz != 50.0:
+            opts += ['--camera-rate', f'{errors.camera_rate_hz!r}']
+        return opts
+    true_d, onboard_d = sensor_errors.vehicle_files(load_vehicle().raw, errors)
+    for option, name, data in (('--true-vehicle', 'true_vehicle.yaml', true_d),
+                               ('--onboard-vehicle', 'onboard_vehicle.yaml', onboard_d)):
+        path = os.path.abspath(os.path.join(run_dir, name))
+        with open(path, 'w', encoding='utf-8') as f:
+            yaml.safe_dump(data, f, sort_keys=False)
+        opts += [option, path]
+    return opts
+
+
 def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     """Fly one run through the whole graph (``python -m ibvs_harness.run_scenario``).
 
@@ -556,11 +586,13 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     params = image_run_params(cfg, spec, wind)
     with open(params_path, 'w', encoding='utf-8') as f:
         yaml.safe_dump(params, f, sort_keys=False)
+    errors = run_sensor_errors(cfg, spec)
     cmd = [sys.executable, '-m', cfg.scenario_module, '--run-name', 'flight',
            '--results-root', run_dir, '--params-file', params_path, '--no-bag', '--no-plots',
            '--timeout', f'{cfg.run_timeout_s:g}', '--initial-position',
            *(f'{x!r}' for x in spec.initial_position_I),
-           '--wind', *(f'{x!r}' for x in wind.steady_force_I)]
+           '--wind', *(f'{x!r}' for x in wind.steady_force_I),
+           *image_sensor_options(run_dir, errors)]
     env = dict(os.environ)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     t0 = time.monotonic()
@@ -578,6 +610,7 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     summary['run'] = run_record(cfg, spec, wind, summary, time.monotonic() - t0,
                                 params_estimate_noise(params))
     summary['run']['ros_domain_id'] = env.get('ROS_DOMAIN_ID')
+    summary['run']['sensor_errors'] = errors.as_dict()
     _write_summary(cfg, spec, summary)
     return summary
 
@@ -855,8 +888,8 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                         "read at both levels; default: the params file's sim "
                         'attitude_noise_std_rad / attitude_noise_tau_s (PX4 SIH fit)')
     p.add_argument('--camera-rate', type=float, default=50.0, metavar='HZ',
-                   help='feature level: the frame (control) rate, e.g. 25 for every second '
-                        'frame of a 50 Hz camera')
+                   help='the camera (feature level: control) rate, e.g. 30, or 25 at feature '
+                        'level for every second frame of a 50 Hz camera')
     p.add_argument('--command-delay', type=float, default=0.0, metavar='MS',
                    help='feature level: ms from a frame stamp to its setpoint at the vehicle '
                         '(camera delivery + the graph), on top of the sensors\' latency')
@@ -864,7 +897,9 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                    help="each run draws its camera errors: 'realistic' = latency 15-40 ms, "
                         'mounts within 1 deg, focal 0.5 %%, principal point 2 px, lever arms '
                         'of 5 cm known within 5 mm, camera-IMU offset within 3 ms '
-                        '(sensor_errors.py; at feature level: latency, mounts, lever arms)')
+                        '(sensor_errors.py; feature level: latency, mounts, lever arms; image '
+                        'level: all, the sim flying the true vehicle, the graph the '
+                        'calibrated one)')
     p.add_argument('--sensor-set', action='append', default=[], metavar='FIELD=VALUE',
                    help='replace one range of the sensor profile (sensor_errors.SensorProfile), '
                         'e.g. mount_error_rad=0.035 or latency_s=0.06,0.06 (repeatable)')
@@ -910,6 +945,9 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
         laws = [LawSpec(str(ctrl.disturbance_law))]
     if len({law.label for law in laws}) != len(laws):
         p.error('law labels must be unique')
+    if a.image_level and a.command_delay:
+        p.error('--command-delay is the feature level\'s model of the graph\'s delay: the '
+                'image level flies the graph itself (--sensors for the cameras\' latency)')
     cfg = CampaignConfig(name=a.name, runs=a.runs, levels_mps2=tuple(sorted(set(a.levels))),
                          laws=tuple(laws), gust_level=a.gust_level,
                          vertical_factor=a.vertical_factor, gust_frequency_hz=a.gust_frequency,

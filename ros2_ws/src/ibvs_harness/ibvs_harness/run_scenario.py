@@ -92,25 +92,27 @@ def feature_run_data(flog: FeatureSimLog, world: WorldConfig, pad: PadLayout
 # --- whole-graph run ------------------------------------------------------------------------
 
 def onboard_vehicle_file(opts: RunOptions) -> str | None:
-    """Write the onboard nodes' vehicle.yaml of a ``--camera-rate`` run; return its path.
+    """Return the onboard nodes' vehicle.yaml of a run (None: the installed file).
 
-    The installed vehicle.yaml with each camera's ``rate_hz`` set to the rate its camera runs
-    at (``results/<run>/vehicle_onboard.yaml``): the onboard configuration knows the rate
-    the camera driver was configured with. None (the installed file) without the option.
+    ``--onboard-vehicle FILE``: that file (the calibration the graph flies with). With
+    ``--camera-rate`` that file (or the installed one) with each camera's ``rate_hz`` set to
+    the rate its camera runs at, written to ``results/<run>/vehicle_onboard.yaml``: the
+    onboard configuration knows the rate the camera driver was configured with.
     """
     rates = opts.camera_model.get(CAMERA_RATE)
     if rates is None:
-        return None
+        return os.path.abspath(opts.onboard_vehicle) if opts.onboard_vehicle else None
     import yaml
     from ibvs_common.core.config import default_config_path
-    with open(default_config_path('vehicle.yaml'), encoding='utf-8') as f:
+    source = opts.onboard_vehicle or default_config_path('vehicle.yaml')
+    with open(source, encoding='utf-8') as f:
         data = yaml.safe_load(f)
     for name, rate in zip(CAMERA_NAMES, rates):
         data['cameras'][name]['rate_hz'] = float(rate)
     path = os.path.abspath(os.path.join(opts.out_dir, 'vehicle_onboard.yaml'))
     with open(path, 'w', encoding='utf-8') as f:
-        f.write(f'# vehicle.yaml with the cameras at {list(rates)} Hz (run_scenario '
-                '--camera-rate)\n')
+        f.write(f'# {os.path.basename(source)} with the cameras at {list(rates)} Hz '
+                '(run_scenario --camera-rate)\n')
         yaml.safe_dump(data, f, sort_keys=False)
     return path
 
@@ -436,6 +438,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                      help='the vehicle YAML the sim flies and renders (mounts, lever arms, '
                           'intrinsics, time offsets), the onboard nodes keep theirs: a '
                           'calibration error')
+    cam.add_argument('--onboard-vehicle', metavar='FILE',
+                     help='the vehicle YAML the onboard nodes are calibrated with (default: '
+                          'the installed vehicle.yaml); the sim publishes its camera_info')
     p.add_argument('--autopilot', choices=AUTOPILOTS, default=AUTOPILOTS[0],
                    help="'sim': the simulator's plant and autopilot emulation (lockstep); "
                         "'px4-sih': PX4 SITL with SIH is plant and autopilot, real time on "
@@ -469,6 +474,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
         'ic_' + '_'.join(f'{x:+.2f}' for x in xi0) if xi0 else 'reference')
     return RunOptions(run_name=name, results_root=a.results_root, initial_position=xi0,
                       camera_model=model, true_vehicle=a.true_vehicle,
+                      onboard_vehicle=a.onboard_vehicle,
                       wind=tuple(a.wind) if a.wind else None, crossing_law=a.crossing_law,
                       bag=not a.no_bag, image_every=max(1, a.bag_image_every),
                       feature_level=a.feature_level, timeout_s=a.timeout,
@@ -500,12 +506,14 @@ def main(argv: list | None = None) -> int:
             raise ValueError(f'--max-sim-time must be > 0, got {opts.max_sim_time_s}')
         if opts.kill_node and opts.layout == 'composed':
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
-        if (opts.camera_model or opts.true_vehicle) and (opts.feature_level
-                                                         or opts.autopilot == 'px4-sih'):
+        if (opts.camera_model or opts.true_vehicle or opts.onboard_vehicle) and (
+                opts.feature_level or opts.autopilot == 'px4-sih'):
             raise ValueError('the camera model options are the sim node\'s: not with '
                              '--feature-level or --autopilot px4-sih')
-        if opts.true_vehicle and not os.path.isfile(opts.true_vehicle):
-            raise ValueError(f'--true-vehicle {opts.true_vehicle}: no such file')
+        for option, path in (('--true-vehicle', opts.true_vehicle),
+                             ('--onboard-vehicle', opts.onboard_vehicle)):
+            if path and not os.path.isfile(path):
+                raise ValueError(f'{option} {path}: no such file')
         prepare_out_dir(opts)
     except (ValueError, OSError) as exc:
         print(f'run_scenario: {exc}', file=sys.stderr)

@@ -63,6 +63,7 @@ class RunOptions:
     # the sim's camera model: sim parameter -> value (camera_latency_s, camera_rate_hz, ...)
     camera_model: dict = field(default_factory=dict)
     true_vehicle: str | None = None     # the vehicle the sim flies and renders (None: onboard's)
+    onboard_vehicle: str | None = None  # the onboard nodes' calibration (None: installed)
 
     @property
     def out_dir(self) -> str:

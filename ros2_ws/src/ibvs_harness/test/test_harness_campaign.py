@@ -382,3 +382,41 @@ def test_a_sensor_profile_field_is_replaced_by_sensor_set_and_a_bad_one_refused(
     with pytest.raises(SystemExit) as exit_:
         campaign.parse_args(['--name', 'x', '--sensor-set', 'no_such_field=1'])
     assert exit_.value.code == 2 and 'no_such_field' in capsys.readouterr().err
+
+
+def test_an_image_level_realistic_run_gives_the_sim_the_truth_and_the_graph_the_calibration(
+        tmp_path, capsys):
+    """Image level: the drawn latency on the camera options, two vehicle files that differ
+    exactly by the drawn errors, the camera rate in both; ideal sensors add no option."""
+    import yaml
+    from ibvs_common.core.config import load_vehicle
+    from ibvs_common.core.frames import rot_from_euler_zyx
+    cfg, *_ = campaign.parse_args(['--name', 'img', '--image-level', '--sensors', 'realistic',
+                                   '--camera-rate', '30', '--results-root', str(tmp_path)])
+    spec = campaign.run_specs(cfg, BOX)[0]
+    errors = campaign.run_sensor_errors(cfg, spec)
+    opts = campaign.image_sensor_options(str(tmp_path), errors)
+    assert float(opts[opts.index('--camera-latency') + 1]) == pytest.approx(
+        1e3 * errors.latency_s)
+    assert float(opts[opts.index('--camera-jitter') + 1]) == pytest.approx(3.0)
+    assert '--camera-rate' not in opts          # the files carry it
+    true = yaml.safe_load(open(opts[opts.index('--true-vehicle') + 1]))
+    onboard = yaml.safe_load(open(opts[opts.index('--onboard-vehicle') + 1]))
+    nominal = load_vehicle().raw
+    for cam, e in errors.cameras.items():
+        t, c, n = true['cameras'][cam], onboard['cameras'][cam], nominal['cameras'][cam]
+        assert t['rate_hz'] == c['rate_hz'] == 30.0
+        # the truth's mount is the calibration's turned by the drawn error, in the optical frame
+        R_err = np.asarray(c['R_BC']).T @ np.asarray(t['R_BC'])
+        assert np.allclose(R_err, rot_from_euler_zyx(*e.mount_rpy_rad), atol=1e-12)
+        assert c['R_BC'] == n['R_BC'] and c['K'] == n['K']
+        assert t['K'][0] == pytest.approx(n['K'][0] * e.focal_scale)
+        assert t['K'][5] == pytest.approx(n['K'][5] + e.principal_point_px[1])
+        assert t['t_BC'] == list(e.t_BC_true) and c['t_BC'] == list(e.t_BC_calibrated)
+        assert t['time_offset_s'] == e.time_offset_s
+    ideal, *_ = campaign.parse_args(['--name', 'i', '--image-level', '--camera-rate', '30'])
+    assert campaign.image_sensor_options(str(tmp_path), campaign.run_sensor_errors(
+        ideal, spec)) == ['--camera-rate', '30.0']
+    with pytest.raises(SystemExit):
+        campaign.parse_args(['--name', 'i', '--image-level', '--command-delay', '20'])
+    assert 'feature level' in capsys.readouterr().err
