@@ -193,16 +193,24 @@ def pad_group_names(msg: JointState) -> tuple[str, ...]:
 # ibvs/supervisor_status (diagnostic_msgs/DiagnosticArray): one per frame the supervisor
 # evaluated, stamped with the frame's stamp; status[0] names the node, its message is the mode
 # name and its values carry the mode number under STATUS_MODE_KEY (the controller flies that
-# mode for that frame).
+# mode for that frame) and, for a frame of a camera, the camera under STATUS_CAMERA_KEY
+# ('front' or 'down'; absent when the status is of a time, not of a frame).
 STATUS_NAME = 'mode_supervisor'
 STATUS_MODE_KEY = 'mode'
+STATUS_CAMERA_KEY = 'camera'
 
 
 def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes,
-                          values: dict) -> DiagnosticArray:
-    """Build the ibvs/supervisor_status message of one evaluated frame (level: OK, WARN...)."""
+                          values: dict, camera: str | None = None) -> DiagnosticArray:
+    """Build the ibvs/supervisor_status message of one evaluated frame (level: OK, WARN...).
+
+    ``camera``: the camera whose frame was evaluated (None: a status of a time).
+    """
+    head = [KeyValue(key=STATUS_MODE_KEY, value=str(int(mode)))]
+    if camera is not None:
+        head.append(KeyValue(key=STATUS_CAMERA_KEY, value=str(camera)))
     status = DiagnosticStatus(level=level, name=STATUS_NAME, message=mode_name,
-                              values=[KeyValue(key=STATUS_MODE_KEY, value=str(int(mode)))]
+                              values=head
                               + [KeyValue(key=k, value=str(v)) for k, v in values.items()])
     msg = DiagnosticArray(status=[status])
     ns_to_stamp(stamp_ns, msg.header.stamp)
@@ -253,3 +261,13 @@ def mode_from_status(msg: DiagnosticArray) -> tuple[int, int | None, str]:
                 except ValueError:
                     return stamp_ns, None, f'mode value {kv.value!r} is not an integer'
     return stamp_ns, None, f'no {STATUS_NAME!r} status with a {STATUS_MODE_KEY!r} value'
+
+
+def camera_from_status(msg: DiagnosticArray) -> str | None:
+    """Return the camera of the frame an ibvs/supervisor_status evaluated, or None."""
+    for status in msg.status:
+        if status.name == STATUS_NAME:
+            for kv in status.values:
+                if kv.key == STATUS_CAMERA_KEY:
+                    return kv.value
+    return None

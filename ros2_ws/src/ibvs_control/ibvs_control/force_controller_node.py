@@ -4,10 +4,14 @@ Thin ROS wrapper of :class:`~ibvs_control.core.controller.IbvsController` on the
 (core/timing.py; docs/design.md "Time"). Each ``ibvs/supervisor_status`` of a frame is
 answered once, in its mode, from that frame's products (they come by its deadline, or the
 frame is skipped: never flown on a stale or missing product), with the IMU attitude at the
-stamp. Publishes, stamped with the frame: ``ibvs/heading_setpoint``, ``ibvs/force_setpoint``
-(map, N) and ``ibvs/features`` (docs/interfaces.md).
+stamp. A frame that hands the mode over to the other camera is answered only if that camera
+has an image of the same stamp (timing.py, "Camera handover"). Publishes, stamped with the
+frame: ``ibvs/heading_setpoint``, ``ibvs/force_setpoint`` (map, N) and ``ibvs/features``
+(docs/interfaces.md).
 """
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 from rclpy.node import Node
@@ -29,7 +33,8 @@ from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, LateImuReport, mode_from_status, NS_PER_S,
+    camera_from_status, COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, LateImuReport,
+    mode_from_status, NS_PER_S,
     ns_to_stamp, SENSOR_QOS, set_quat, set_vector3, vector3)
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
@@ -70,6 +75,8 @@ class ForceControllerNode(Node):
             if config.disturbance_law.uses_observer else None
         self._t_answered: float | None = None
         self.skipped = 0                        # frames not answered: a product never came
+        self.handovers = 0                      # frames handed over to the other camera
+        self._handover_ns: deque[int] = deque(maxlen=8)   # stamps of handover frames
         self._status_stamps = BackstepWatch()   # one publisher's stream: back = clock step
 
         self._force_pub = self.create_publisher(Vector3Stamped, 'ibvs/force_setpoint',
@@ -130,6 +137,7 @@ class ForceControllerNode(Node):
         self._imu.take()
         stamp_ns, number, err = mode_from_status(msg)
         mode, err = (None, err) if err else _mode(number)
+        camera = camera_from_status(msg)
         if err:
             self._refused('ibvs/supervisor_status', err)
             return
@@ -139,6 +147,8 @@ class ForceControllerNode(Node):
         if not self._frames.open(stamp_ns, mode, self.get_clock().now().nanoseconds):
             self.log.warning(f'status of {stamp_ns} ns is a duplicate or older than '
                              'a frame already answered: dropped', LOG_THROTTLE_S)
+        elif camera is not None and camera != MODE_INPUTS[mode].camera.value:
+            self._handover_ns.append(stamp_ns)     # a frame of the camera the mode left
         self._release()
 
     def _refused(self, what: str, err: str) -> None:
@@ -173,6 +183,12 @@ class ForceControllerNode(Node):
 
     # --- output ----------------------------------------------------------------------------
     def _answer(self, frame: Frame) -> None:
+        if not frame.complete and frame.stamp_ns in self._handover_ns:
+            self.handovers += 1     # the new camera has no image of this stamp: its next one
+            self.log.info(f'frame {frame.stamp_ns / NS_PER_S:.3f} s hands {frame.tag.name} over '
+                          f'to the {MODE_INPUTS[frame.tag].camera.value} camera: answered from '
+                          'its next frame', LOG_THROTTLE_S)
+            return
         if not frame.complete:      # never answered from a stale or missing product
             self.skipped += 1
             self.log.warning(

@@ -305,8 +305,9 @@ class ModeSupervisorNode(Node):
         level = DiagnosticStatus.WARN if mode == Mode.FAILSAFE else DiagnosticStatus.OK
         height = self._core.height_estimate
         values = {'pad_height_estimate_m': 'none' if height is None else f'{height:.4f}'}
-        self._status_pub.publish(supervisor_status_msg(stamp_ns, int(mode), mode.name, level,
-                                                       values))
+        self._status_pub.publish(supervisor_status_msg(
+            stamp_ns, int(mode), mode.name, level, values,
+            None if camera is None else camera.value))
 
     def _publish_grid(self) -> None:
         """Publish each camera's frame grid (stride, reference frame) on ibvs/frame_grid.

@@ -354,10 +354,10 @@ def stamps_of(msgs):
     return [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for m in msgs]
 
 
-def status(feed, t, mode):
-    """Publish the supervisor's status of the frame at t (s) in ``mode``."""
+def status(feed, t, mode, camera=None):
+    """Publish the supervisor's status of the frame at t (s) of ``camera`` in ``mode``."""
     feed.status.publish(supervisor_status_msg(int(round(t * 1e9)), mode, 'm',
-                                              DiagnosticStatus.OK, {}))
+                                              DiagnosticStatus.OK, {}, camera))
 
 
 def test_controller_observer_reads_imu_specific_force_in_flu(ctx):
@@ -512,6 +512,43 @@ def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clo
     status(feed, t3, 1)
     assert spin_until(executor, lambda: len(feed.forces) == 2, 2.0)
     assert stamps_of(feed.forces[1:]) == [int(round(t3 * 1e9))]
+
+
+def test_controller_hands_a_switch_to_an_unsynchronised_camera_over_to_its_next_frame(ctx):
+    """WINDOW -> CROSSING decided on a front frame: the floor flow has no image of its stamp.
+
+    Cameras that are not synchronised (a time offset, their own clocks): the front frame at t
+    switched to CROSSING, the down camera's images are stamped 3 ms before and 17 ms after.
+    The frame is released as a handover when the down flow passes it, sim time standing
+    still (no deadline), not counted as skipped and not answered; the down frame after it is
+    the first flown in CROSSING. With synchronised cameras the switch frame is flown.
+    """
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, 'ho', use_sim_time=True, frame_deadline_s=0.04)
+    t = 50.0
+    feed.clock.publish(Clock(clock=stamp(t)))
+    spin_for(executor, 0.3)
+    feed.imu.publish(imu_msg(t))
+    feed.down.publish(flow_msg(t - 0.003, np.array([0.3, 0.0, 0.0])))
+    status(feed, t, 2, 'front')
+    spin_for(executor, 0.3)
+    assert feed.forces == [] and fc.handovers == 0          # waiting: it may still come
+    t_down = t + 0.017
+    feed.imu.publish(imu_msg(t_down))
+    feed.down.publish(flow_msg(t_down, np.array([0.3, 0.0, 0.0])))
+    assert spin_until(executor, lambda: fc.handovers == 1, 2.0)
+    assert fc.skipped == 0 and feed.forces == []
+    status(feed, t_down, 2, 'down')
+    assert spin_until(executor, lambda: len(feed.forces) == 1, 2.0)
+    assert stamps_of(feed.forces) == [int(round(t_down * 1e9))]
+    # synchronised cameras: the switch frame has its floor flow and is flown in CROSSING
+    t2 = t + 0.1
+    feed.clock.publish(Clock(clock=stamp(t2)))
+    feed.imu.publish(imu_msg(t2))
+    status(feed, t2, 2, 'front')
+    feed.down.publish(flow_msg(t2, np.array([0.3, 0.0, 0.0])))
+    assert spin_until(executor, lambda: len(feed.forces) == 2, 2.0)
+    assert stamps_of(feed.forces[1:]) == [int(round(t2 * 1e9))] and fc.handovers == 1
 
 
 def test_controller_bad_inputs_still_answered_without_nan(ctx):

@@ -82,6 +82,27 @@ def test_the_deadline_counts_on_the_given_clock_from_the_frame_stamp():
     assert a.next_deadline_ns() is None
 
 
+def test_a_frame_whose_missing_product_was_passed_leaves_before_its_deadline():
+    """Each kind comes in stamp order: a newer one means this frame's will never come."""
+    a = assembler(deadline_s=0.04)
+    a.open(100 * MS, Mode.CROSSING, now_ns=100 * MS)    # a handover frame of the front camera
+    a.add_input(W, 120 * MS, 'corners')                 # another kind passing: no release
+    assert a.release(now_ns=101 * MS) == []
+    a.add_input(FD, 117 * MS, 'phi_t')                  # the down camera's next image
+    (frame,) = a.release(now_ns=118 * MS)
+    assert frame.passed and not frame.expired and frame.missing == (FD,)
+    assert a.passed == 1 and a.expired == 0 and a.was_skipped(100 * MS)
+    # the same stamp arriving is what completes it (synchronised cameras)
+    a.open(140 * MS, Mode.CROSSING, now_ns=140 * MS)
+    a.add_input(FD, 140 * MS, 'phi_t')
+    (frame,) = a.release(now_ns=140 * MS)
+    assert frame.complete and not frame.passed
+    # after a reset (a clock step), nothing counts as passed
+    a.reset()
+    a.open(100 * MS, Mode.CROSSING, now_ns=100 * MS)
+    assert a.release(now_ns=101 * MS) == []
+
+
 def test_frames_leave_in_stamp_order_and_a_late_or_repeated_one_is_refused():
     a = assembler()
     a.open(120 * MS, Mode.SHUTDOWN, now_ns=121 * MS)      # needs nothing: ready at once

@@ -467,6 +467,12 @@ def test_lockstep_waits_for_the_frame_status_and_only_the_products_its_mode_uses
     assert products.missing() == ['down_camera/translational_flow']
     products.note('down_camera/translational_flow', 20_000_000)
     assert products.missing() == []
+    # cameras that are not synchronised: the switch frame's answer comes with the down
+    # camera's next frame (no image of its stamp in the delivery); synchronised: owed
+    assert products.handed_over(20_000_000, {'front': 20_000_000, 'down': 17_000_000})
+    assert not products.handed_over(20_000_000, {'front': 20_000_000, 'down': 20_000_000})
+    assert not products.handed_over(0, {'front': 0, 'down': 3_000_000})   # WINDOW: front
+    assert not products.handed_over(40_000_000, {'front': 40_000_000})    # no status yet
     # no status at all (no supervisor publishing): every product, as the nodes make them all
     fresh = GraphProducts({'window/corners': 'front'}, used_in=used_in)
     fresh.expect(0, both, {'window/corners': 1, STATUS_TOPIC: 0})

@@ -18,7 +18,9 @@ Deadlines (:class:`FrameAssembler`)
     Nodes compute on arrival. A frame opens when its first product arrives and is released
     as soon as the products its mode needs are in, or when the ROS clock reaches its deadline,
     ``frame_deadline_s`` after it opened (never before ``stamp + frame_deadline_s``),
-    whichever comes first. A camera delivers its images 20-40 ms after their stamp, and a
+    whichever comes first; a frame whose missing product can no longer come (a newer product
+    of that kind arrived: products of a kind come in stamp order) is released at once. A
+    camera delivers its images 20-40 ms after their stamp, and a
     busy computer computes them later still: the wait counts from the first product, so it
     holds whatever the delivery latency. A frame released without every product it needs is
     *skipped*: no evaluation, no force (the products that do come later are dropped, never
@@ -26,6 +28,15 @@ Deadlines (:class:`FrameAssembler`)
     long. A product the mode does not need never delays a frame. Frames leave in stamp order.
     In lockstep the ROS clock does not move while the graph computes, so a deadline cannot
     expire before an input that is coming, and runs repeat.
+
+Camera handover
+    A switch to a mode of the other camera (WINDOW -> CROSSING: front to down) is decided on
+    a frame of the old camera; the supervisor's status of that frame names its camera. The
+    controller flies the new mode at that stamp only with the new camera's products of the
+    same stamp (synchronised cameras, as in the simulator by default). Cameras that are not
+    synchronised have none: the frame is *handed over* (released when the new camera's next
+    product passes it; not answered, not counted as skipped) and the new camera's next frame
+    is the first the new mode flies.
 
 Attitude at a stamp (:class:`ibvs_common.core.attitude_buffer.AttitudeBuffer`)
     Interpolated on SO(3) between the IMU samples around the stamp, or propagated from the
@@ -67,7 +78,8 @@ class Frame:
     ``extras`` the other products of this stamp that had arrived by the release (a node that
     uses them at all uses them only after the frame: see :class:`FrameAssembler`);
     ``missing`` the needed ones that had not arrived at release (``expired``: released by its
-    deadline); a frame with a missing product is skipped.
+    deadline; ``passed``: released before it because a newer product of a missing kind came,
+    so this frame's never will); a frame with a missing product is skipped.
     """
 
     stamp_ns: int
@@ -76,6 +88,7 @@ class Frame:
     missing: tuple = ()
     expired: bool = False
     extras: dict = field(default_factory=dict)
+    passed: bool = False
 
     def get(self, kind: InputKind) -> Any:
         """Return the value of a product of this frame, or None."""
@@ -118,6 +131,8 @@ class FrameAssembler:
         self.depth = int(depth)
         self.released_through_ns: int | None = None
         self.expired = 0                      # frames released by their deadline
+        self.passed = 0                       # released early: a missing product was passed
+        self._newest_ns: dict[InputKind, int] = {}     # kind -> its newest product's stamp
         self._skipped: deque[int] = deque(maxlen=self.depth)   # stamps of frames expired
         self._inputs: dict[InputKind, OrderedDict] = {k: OrderedDict() for k in InputKind}
         self._pending: list[_Pending] = []    # in stamp order
@@ -133,6 +148,7 @@ class FrameAssembler:
         self.released_through_ns = None
         self._pending.clear()
         self._skipped.clear()
+        self._newest_ns.clear()
         for store in self._inputs.values():
             store.clear()
         for watch in self._backsteps.values():
@@ -152,6 +168,7 @@ class FrameAssembler:
             self._backsteps[kind].observe(stamp_ns)
         if stamp_ns in store:
             return False
+        self._newest_ns[kind] = max(stamp_ns, self._newest_ns.get(kind, stamp_ns))
         store[stamp_ns] = value
         if len(store) > self.depth:
             store.popitem(last=False)
@@ -203,9 +220,12 @@ class FrameAssembler:
         return True
 
     def release(self, now_ns: int) -> list[Frame]:
-        """Return, oldest first, the frames whose needed products are in or deadline passed.
+        """Return, oldest first, the frames whose needed products are in or can no longer come.
 
-        A frame never overtakes an older pending one.
+        A missing product can no longer come when the frame's deadline passed, or when a newer
+        product of its kind arrived (each kind comes from one publisher in stamp order: a
+        camera that is not synchronised with the mode's, a product lost on the way). A frame
+        never overtakes an older pending one.
         """
         out = []
         while self._pending:
@@ -214,18 +234,22 @@ class FrameAssembler:
             missing = tuple(k for k in EVALUATION_ORDER
                             if k in needed and not self.has(k, p.stamp_ns))
             expired = bool(missing) and int(now_ns) >= p.deadline_ns
-            if missing and not expired:
+            passed = bool(missing) and not expired and any(
+                self._newest_ns.get(k, p.stamp_ns) > p.stamp_ns for k in missing)
+            if missing and not (expired or passed):
                 break
             self._pending.pop(0)
             self.released_through_ns = p.stamp_ns
             self.expired += int(expired)
+            self.passed += int(passed)
             if missing:
                 self._skipped.append(p.stamp_ns)
             present = {k: self._inputs[k][p.stamp_ns] for k in EVALUATION_ORDER
                        if p.stamp_ns in self._inputs[k]}
             out.append(Frame(p.stamp_ns, p.tag,
                              {k: v for k, v in present.items() if k in needed}, missing,
-                             expired, {k: v for k, v in present.items() if k not in needed}))
+                             expired, {k: v for k, v in present.items() if k not in needed},
+                             passed))
         return out
 
     def next_deadline_ns(self) -> int | None:

@@ -185,6 +185,18 @@ class GraphProducts:
         older = [mode for t, mode in self.statuses if t <= stamp_ns]
         return older[-1] if older else None
 
+    def handed_over(self, answer_ns: int, stamps_ns: dict) -> bool:
+        """Whether the frame at ``answer_ns`` is owed no answer: it handed the mode over.
+
+        Its status switched to a mode of another camera, which delivered no image of that
+        stamp (``stamps_ns``: camera -> the stamp of its image in the delivery): the new mode
+        is first flown at that camera's next frame (ibvs_control timing, "Camera handover").
+        """
+        mode = next((m for t, m in reversed(self.statuses) if t == int(answer_ns)), None)
+        if mode is None:
+            return False
+        return stamps_ns.get(MODE_INPUTS[Mode(mode)].camera.value) != int(answer_ns)
+
     def note(self, topic: str, stamp_ns: int) -> bool:
         """Note a published product stamped ``stamp_ns``; return True if it was given up."""
         if stamp_ns > self.newest_ns.get(topic, -1):

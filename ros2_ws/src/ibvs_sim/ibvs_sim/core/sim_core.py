@@ -132,6 +132,8 @@ class Simulation:
         self.lockstep = LockstepGate(config.lockstep_timeout_s,
                                      products if products is not None else GraphProducts({}))
         self.answer_ms: int | None = None    # lockstep: the stamp (ms) the graph answers next
+        self._answer_ns: int | None = None   # ... in ns, and the stamps of its delivery
+        self._delivered_ns: dict = {}
         self._started = False
         self._pose = Pose(self.t_ns, self.state.R_IB, self.state.xi_I)   # before a step
         self._events: list[SimEvent] = []     # realtime: contacts since the last delivery
@@ -167,7 +169,8 @@ class Simulation:
         answer = self.autopilot.last_setpoint_time_boot_ms      # ms, the stamp it answers
         answered = self.answer_ms is None \
             or (answer is not None and answer >= self.answer_ms) \
-            or not self.autopilot.awaits_setpoints
+            or not self.autopilot.awaits_setpoints \
+            or self.lockstep.products.handed_over(self._answer_ns, self._delivered_ns)
         if self.lockstep.may_step(now, answered):
             return self.step_frame()
         return None
@@ -292,6 +295,7 @@ class Simulation:
         self.lockstep.frame_out(self.wall_clock())
         answer_ns = stamps.get(self.lockstep.products.mode_camera())
         self.answer_ms = None if answer_ns is None else answer_ns // NS_PER_MS
+        self._answer_ns, self._delivered_ns = answer_ns, stamps
         self.events.extend(new_events)
         return FrameOutput(self.t_ns, images, self.state.copy(), new_events, stamps, answer_ns)
 
