@@ -23,8 +23,9 @@ and the modes its images lead it through.
 
 Cases (``--case``, repeatable; default: all): camera delivery ``--latency-ms`` after the
 stamp (with ``--jitter-ms``), ``--rate-hz`` 50 or 30, the graph ``--cpu`` full (both cores),
-one (pinned to one core), half (one core shared with one busy process) or third (two busy
-processes), and the autopilot link over UDP or a serial cable (two pseudo-terminals at
+one (pinned to one core), half (one core shared with one busy process), third (two busy
+processes) or shared (both cores, one busy process on each: ``--layout processes`` spreads
+the nodes over them), and the autopilot link over UDP or a serial cable (two pseudo-terminals at
 921600 baud, ibvs_common.testing.SerialCable).
 
 Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
@@ -62,8 +63,13 @@ CASES = (
     ('one core', {'latency_ms': 30.0, 'cpu': 'one'}),
     ('half a core', {'latency_ms': 30.0, 'cpu': 'half'}),
     ('a third of a core', {'latency_ms': 30.0, 'cpu': 'third'}),
+    ('two cores shared', {'latency_ms': 30.0, 'cpu': 'shared'}),
 )
-BUSY = {'full': 0, 'one': 0, 'half': 1, 'third': 2}
+# the cores of the competing busy processes, per CPU case ('shared': one on each core, the
+# graph and the harness on both: a 2-core companion computer that also runs other work)
+BUSY = {'full': (), 'one': (), 'half': (GRAPH_CORE,), 'third': (GRAPH_CORE, GRAPH_CORE),
+        'shared': (HARNESS_CORE, GRAPH_CORE)}
+PINNED = ('one', 'half', 'third')     # the graph on GRAPH_CORE, the harness on HARNESS_CORE
 
 
 # --- the flight ------------------------------------------------------------------------------
@@ -282,13 +288,12 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
     ap = ctx.Process(target=stand_in, args=(ap_url, flight, start_mono, stop, results))
     ap.start()
     load_stop = ctx.Event()
-    loads = [ctx.Process(target=busy_loop, args=(GRAPH_CORE, load_stop))
-             for _ in range(BUSY[cpu])]
+    loads = [ctx.Process(target=busy_loop, args=(core, load_stop)) for core in BUSY[cpu]]
     for p in loads:
         p.start()
-    pin = [] if cpu == 'full' else ['taskset', '-c', str(GRAPH_CORE)]
+    pin = ['taskset', '-c', str(GRAPH_CORE)] if cpu in PINNED else []
     runner = ProcessRunner(log_dir=os.path.join(CACHE_DIR, name.replace(' ', '_')))
-    os.sched_setaffinity(0, {HARNESS_CORE} if cpu != 'full' else ALL_CORES)
+    os.sched_setaffinity(0, {HARNESS_CORE} if cpu in PINNED else ALL_CORES)
     rep = Replayer()
     rng = np.random.default_rng(seed)
     period_ns = int(round(1e9 / rate_hz))
@@ -298,10 +303,13 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
         argv = pin + [sys.executable, '-m', 'ibvs_bringup.composed', '--mavlink-url', graph_url]
         if layout == 'composed':
             runner.start('composed', argv)
-        else:
+        else:                                # a process per node, each pinned as the graph
             from ibvs_bringup import graph
-            runner.start_graph(graph.onboard_graph(graph.GraphOptions(
-                use_sim_time=False, mavlink_url=graph_url)))
+            from ibvs_bringup.runner import command_for
+            for spec in graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
+                                                               mavlink_url=graph_url)):
+                runner.start(spec.name, pin + command_for(spec.package, spec.executable,
+                                                          spec.ros_args()))
         pids = {c.name: c.proc.pid for c in runner.children}
         deadline = time.monotonic() + LINK_TIMEOUT_S
         while not rep.start.service_is_ready() and time.monotonic() < deadline:

@@ -49,7 +49,7 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
 # controller: PRODUCT_QOS, best effort as sensor data): keep last 2, as for images. A node
 # that falls behind takes the newest frame and at most one queued behind it, never a backlog:
 # with depth 5 / 10 a saturated computer queued 150-190 ms at the supervisor and 0.84-0.96 s
-# at the bridge (docs/performance.md, 2026-11-26). Not 1, for the reason given at IMAGE_QOS:
+# at the bridge (docs/journal/performance.md). Not 1, for the reason given at IMAGE_QOS:
 # in lockstep a consumer may still hold frame k's message when frame k+1's arrives.
 FRAME_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)

@@ -21,7 +21,7 @@ callbacks, with the context still valid, so the caller destroys the nodes and sh
 in order. rclpy's own handlers, which :func:`spin_guarded_nodes` replaces while it spins (in
 the main thread), shut the context down at once, under a callback that may be publishing:
 "Exception in 'subscriptions' callback" (FATAL, from the events executor) and "publisher's
-context is invalid" in the log of every stopped px4-sih run (2026-11-27). A stop takes up to
+context is invalid" in the log of a stopped run. A stop takes up to
 ``SPIN_ONCE_TIMEOUT_S`` when no work arrives.
 
 Garbage collector: before spinning, ``gc.freeze()`` moves every object built at start-up

@@ -15,7 +15,7 @@ reads the commanded direction (tilt and accelerometer bias cannot be told apart 
 The same holds for an accelerometer bias the autopilot has levelled on.
 
 **Velocity channel** (``bias_tau_s`` > 0 in WINDOW, ``landing_bias_tau_s`` > 0 in LANDING;
-0.2 and 0.1 s by default since 2026-11-28): where the graph measures the metric velocity (in
+0.2 and 0.1 s by default): where the graph measures the metric velocity (in
 WINDOW, the wall's translational flow v / d_o times the window plane's distance d_o from the
 corner bearings and the known width r_w; in LANDING, the floor's flow v / d_t times the
 pad-image height, controller.py), a momentum observer sees every push the vehicle

@@ -33,11 +33,8 @@ fixed order, once the frame's inputs are in) and closes the frame with :meth:`en
 that a transition happens at the frame whose inputs caused it, whatever their arrival order.
 ``auto_start_at_s`` >= 0 makes the supervisor start by itself at the first frame at or after
 that time (repeatable simulation runs; on a vehicle ``ibvs/start`` starts it).
-``ibvs/start`` (:meth:`request_start`) also starts at a frame: the request is checked at once
-and applied when the next frame is closed, whose status then announces WINDOW. Switched
-between frames instead, the first WINDOW frame's front flow would be held back by the
-perception's mode gating until that frame's own status, which waits for it: the frame went
-without its flow at its deadline (onboard) and stalled a lockstep sim (docs/bringup.md).
+``ibvs/start`` (:meth:`request_start`) is checked at once and applied when the next frame is
+closed, so that the perception's mode gating and the statuses agree on the first WINDOW frame.
 """
 from __future__ import annotations
 

@@ -1,57 +1,14 @@
-"""The flight path's timing model (docs/design.md, "Time"): one layer, ROS-free.
+"""The flight path's timing model, ROS-free: frames, the products a mode needs, deadlines.
 
-Clocks
-    Every stamp is on the ROS clock: system time on a vehicle (camera drivers stamp images in
-    system time, the MAVLink bridge maps the autopilot's IMU samples onto it with TIMESYNC),
-    sim time in the simulator. Stamps are integer nanoseconds here. A lockstep simulator is
-    only a ROS clock that stands still while the graph computes: nothing below knows about it.
-
-Frames and the inputs a mode needs (:data:`ibvs_common.core.modes.MODE_INPUTS`)
-    A frame is one image of one camera, named by its stamp. Its products are the window
-    detection and the wall flow (front camera), the pad landmarks and the floor flow (down
-    camera). Each mode is evaluated on the frames of one camera and names the products it
-    needs: WINDOW needs the window and the front flow, CROSSING the down flow, LANDING the
-    pad and the down flow; IDLE waits for the window (its cue to start); SHUTDOWN and
-    FAILSAFE need nothing. The IMU is needed by every flying mode but never waited for.
-
-Deadlines (:class:`FrameAssembler`)
-    Nodes compute on arrival. A frame opens when its first product arrives and is released
-    as soon as the products its mode needs are in, or when the ROS clock reaches its deadline,
-    ``frame_deadline_s`` after it opened (never before ``stamp + frame_deadline_s``),
-    whichever comes first; a frame whose missing product can no longer come (a newer product
-    of that kind arrived: products of a kind come in stamp order) is released at once. A
-    camera delivers its images 20-40 ms after their stamp, and a
-    busy computer computes them later still: the wait counts from the first product, so it
-    holds whatever the delivery latency. A frame released without every product it needs is
-    *skipped*: no evaluation, no force (the products that do come later are dropped, never
-    applied to a frame they missed); the supervisor fails safe when frames are skipped for
-    long. A product the mode does not need never delays a frame. Frames leave in stamp order.
-    In lockstep the ROS clock does not move while the graph computes, so a deadline cannot
-    expire before an input that is coming, and runs repeat.
-
-Camera handover
-    A switch to a mode of the other camera (WINDOW -> CROSSING: front to down) is decided on
-    a frame of the old camera; the supervisor's status of that frame names its camera. The
-    controller flies the new mode at that stamp only with the new camera's products of the
-    same stamp (synchronised cameras, as in the simulator by default). Cameras that are not
-    synchronised have none: the frame is *handed over* (released when the new camera's next
-    product passes it; not answered, not counted as skipped) and the new camera's next frame
-    is the first the new mode flies.
-
-Attitude at a stamp (:class:`ibvs_common.core.attitude_buffer.AttitudeBuffer`)
-    Interpolated on SO(3) between the IMU samples around the stamp, or propagated from the
-    newest sample with its body rate for at most ``max_extrapolation_s``: a frame never waits
-    for a later IMU sample.
-
-Clock steps (:mod:`ibvs_common.core.clock_step`)
-    The products of one kind come from one publisher, in stamp order. When a kind's stamps go
-    back by more than ``MAX_BACKSTEP_S``, the ROS clock stepped back: the assembler drops
-    its frames and products (``clock_steps`` counts it) and starts again from that product,
-    instead of refusing every frame up to the newest one already released, i.e. for the
-    length of the step. A reset (also one by a node that saw its clock step) restarts every
-    kind's watch, so the other kinds' first products after the step are no second step. One
-    still on its way from before the step may open a frame or two more; the go-back of its
-    kind after it then clears them (and the frame at hand) in turn.
+Stamps are integer nanoseconds on the ROS clock (system time onboard, sim time in the sim).
+A frame is one image of one camera, named by its stamp; :class:`FrameAssembler` keeps each
+kind of product by stamp and releases a frame when the products its mode needs
+(:data:`ibvs_common.core.modes.MODE_INPUTS`) are in, when a newer product of a missing kind
+shows this frame's will never come, or at its deadline (``frame_deadline_s`` after its first
+product). A frame released without a needed product is skipped, never flown. A product
+stamped well before the newest of its kind means the clock stepped back: everything is
+dropped and the assembler starts again. The rules, and why (late cameras, a busy computer,
+camera handover, clock steps): docs/design.md "Time".
 """
 from __future__ import annotations
 

@@ -20,30 +20,12 @@ The point is on the second plane exactly when s eta_2^T p > eta^T p: the assignm
 geometric, not a residual test. phi and s are fitted alternately (phi by least squares with
 c fixed, s by least squares over the points that the first plane does not explain).
 
-Pipeline per image: pyramidal Lucas-Kanade (cv2.calcOpticalFlowPyrLK) of the tracked features
-from the previous image, each started where the IMU's rotation between the two images moves
-it (``lk_predict``; the rotation is the image motion that can be fast, 1 rad/s is 8 px a frame
-here): what is left is the translational motion, so the search needs no more pyramid levels
-than that motion asks for (``lk_capture_px``, below); each track gives p(t0), p(t1) in {I}
-(undistorted, derotated);
-p_dot ~ (p1 - p0) / dt at the mid bearing. Slow motion (derotated image motion under
-``slow_motion_px`` per frame, e.g. hover or a far wall) gives few pixels of signal against
-the trackers' noise: t0 is then taken up to ``max_baseline_frames`` frames back, on the
-tracks that persisted (each keeps its bearings in {I} per frame), so that the baseline holds
-about ``slow_motion_px``; the estimate is then the mean flow over that interval. phi by
-least squares over all tracks with an iterated Huber re-weighting and a final inlier gate
-(in pixels). Features are replenished
-cheaply: goodFeaturesToTrack only inside grid cells that have too few tracks, and only every
-``replenish_every_n_frames`` frames (or at once when the tracks run short).
-
-Pyramid levels of a predicted track (:func:`pyramid_levels_for`): a level-0 Lucas-Kanade
-search converges from ``lk_capture_px`` away, each level above doubles that; the levels used
-are the fewest whose reach is :data:`LK_MOTION_MARGIN` times the previous image's motion left
-after the prediction (95th percentile over its tracks), at most ``lk_pyramid_levels``. Most of
-the cost of calcOpticalFlowPyrLK is per level (the pyramid and its derivatives, an iteration
-loop per level and point): in a slow approach with the prediction it runs on the base level
-only, about 3 x faster, and tracks to the same 0.001 px. A search with fewer levels that
-loses more than ``lk_retrack_lost_fraction`` of the tracks is done again with all of them.
+Pipeline per image (docs/perception.md "Translational optical flow" has it in full):
+pyramidal Lucas-Kanade of the tracked features from the previous image, each started where the
+IMU's rotation moves it (``lk_predict``), on as few pyramid levels as the motion left asks for
+(:func:`pyramid_levels_for`); tracks derotated to {I}; a longer baseline over persisting
+tracks when the motion is slow (``max_baseline_frames``); phi by Huber-weighted least squares
+and an inlier gate; features replenished only in grid cells short of tracks.
 """
 from __future__ import annotations
 

@@ -25,13 +25,8 @@ keeps markers away from its border, so the region finds what the whole image wou
 corners of the markers of complete groups (the ones the centres need) are refined.
 
 OpenCV settings: ``process`` runs OpenCV with its Intel IPP paths off and one thread by default
-(``use_ipp``, ``opencv_threads``; both restored afterwards). Measured on the development VM
-(AMD EPYC under Firecracker): IPP's per-call CPU dispatch executes ``cpuid``, which traps to the
-hypervisor (~3.8 us each), about a thousand times per frame (cornerSubPix, the bit extraction
-of every candidate, ...): 4.4-6 ms per frame with IPP, 1.6 ms without. One thread keeps the
-results a deterministic function of the frames: the IPP switch is per thread in OpenCV, and
-IPP and plain paths do not round alike, so OpenCV's worker threads (IPP still on) would make
-a result depend on which thread handled which candidate.
+(``use_ipp``, ``opencv_threads``; both restored afterwards): faster on a VM and deterministic
+(docs/perception.md, "OpenCV settings").
 """
 from __future__ import annotations
 
