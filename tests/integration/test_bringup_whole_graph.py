@@ -1,7 +1,7 @@
 """The whole graph in lockstep: reference and random initial conditions, repeatability, replay.
 
 Each run is ``python -m ibvs_harness.run_scenario`` in its own session (so that every process
-it starts can be found and killed), with a wall-clock limit; SPEC.md section 5's success is
+it starts can be found and killed), with a wall-clock limit; docs/spec.md section 5's success is
 read from its summary.json. Skipped, with the reason, while a node of the graph is missing.
 """
 import json
@@ -155,7 +155,7 @@ def _late_imu(logs) -> list:
 
 
 def assert_success(summary: dict) -> None:
-    """SPEC.md section 5's success, checked field by field for a readable failure."""
+    """docs/spec.md section 5's success, checked field by field for a readable failure."""
     w, ld = summary['window'], summary['landing']
     info = json.dumps({k: summary[k] for k in ('window', 'landing', 'modes', 'run', 'timing')
                        if k in summary}, indent=1)[:3000] + '\n' + summary['_log_warnings'] \
@@ -344,7 +344,7 @@ def _dropout_at(reference) -> float:
 
 def test_a_short_down_camera_dropout_in_landing_is_ridden_through_to_the_pad(
         reference, tmp_path):
-    """0.2 s without down images while landing: ridden through, landed within SPEC.md §5.
+    """0.2 s without down images while landing: ridden through, landed within docs/spec.md §5.
 
     No frames, so no forces: the bridge holds the last setpoint (hold_last_s 0.5 s) and keeps
     the vehicle engaged on IBVS setpoints; the supervisor's down flow is 0.2 s old at most

@@ -11,7 +11,7 @@ arguments), so the ``ros2`` CLI itself is not needed:
   other nodes keep their pids; the launch killed with SIGKILL takes every node with it (the
   parent death signal of ``parent_death.launch_prefix()``, docs/bringup.md);
 - ``sim.launch.py``: the whole graph against the sim starts on ``ibvs/start`` and lands on the
-  pad within SPEC.md section 5 (touchdown from the sim's ``sim/events``); Ctrl-C (SIGINT) to
+  pad within docs/spec.md section 5 (touchdown from the sim's ``sim/events``); Ctrl-C (SIGINT) to
   the launch stops every node cleanly, without a traceback. The start is called as soon as
   it is accepted, and the lockstep sim must never have waited out its 5 s wall-clock
   time-out: before ``ibvs/start`` was applied at a frame (``ModeSupervisor.request_start``),

@@ -17,7 +17,7 @@ def random_rotation() -> np.ndarray:
 def test_map_I_round_trip_and_axes():
     v = RNG.normal(size=(10, 3))
     assert np.allclose(fr.vec_map_to_I(fr.vec_I_to_map(v)), v)
-    # SPEC.md 1: x_ENU = y_I, y_ENU = x_I, z_ENU = -z_I (I is NED-type)
+    # docs/spec.md 1: x_ENU = y_I, y_ENU = x_I, z_ENU = -z_I (I is NED-type)
     assert np.allclose(fr.vec_I_to_map([1.0, 2.0, 3.0]), [2.0, 1.0, -3.0])
     # gravity (+e3 in I, down) points to -z in ENU
     assert fr.vec_I_to_map(fr.e3)[2] == -1.0

@@ -31,7 +31,7 @@ class TopicSpec:
 
 
 # What a run records: both cameras, IMU, detections, flows, features, setpoints, mode and
-# ground truth (SPEC.md section 4 plus the extra topics of docs/interfaces.md).
+# ground truth (docs/spec.md section 4 plus the extra topics of docs/interfaces.md).
 RUN_TOPICS: tuple = tuple(
     [TopicSpec(f'{c}_camera/image_raw', 'sensor_msgs/msg/Image', True) for c in ('front', 'down')]
     + [TopicSpec(f'{c}_camera/camera_info', 'sensor_msgs/msg/CameraInfo')

@@ -7,7 +7,7 @@ For every law and wind level, ``runs`` flights of ibvs_sim's feature-level close
 them, with the parameter file's gains and thresholds over the code defaults, geometric
 features, a point-mass plant):
 
-- start: uniform in world.yaml's random box (SPEC.md section 2: x in [-2.6, -1.8],
+- start: uniform in world.yaml's random box (docs/spec.md section 2: x in [-2.6, -1.8],
   y in [-0.3, 0.3], z in [-1.9, -1.35] m, {I}), at rest, level, the reference yaw;
 - wind (``dynamics.WindConfig.from_level``, docs/sim.md "Wind"): horizontal magnitude
   ``level`` (m/s^2 = |Delta_h| / m) blowing towards a direction uniform in [0, 2 pi) (rad
@@ -21,7 +21,7 @@ features, a point-mass plant):
 
 Output, ``<results-root>/<name>/`` (default results/campaign/<name>/):
 
-- ``runs/<law>/<level>/<index>/summary.json``: SPEC.md section 5's summary (ibvs_sim's
+- ``runs/<law>/<level>/<index>/summary.json``: docs/spec.md section 5's summary (ibvs_sim's
   ``evaluate_run``, the criteria of every run) plus a ``run`` block (law, wind, start, seed,
   failure cause, wall time). Resumable: a run whose summary.json exists is not flown again,
   and a larger ``--runs`` adds runs to a campaign;
@@ -52,17 +52,19 @@ import multiprocessing
 import os
 import sys
 import time
-from typing import Callable, Iterable, TYPE_CHECKING
+from typing import Callable, TYPE_CHECKING
 
 import numpy as np
+
+from ibvs_harness.campaign_plots import write_plots
+from ibvs_harness.campaign_stats import aggregate, failure_cause, format_table
 
 if TYPE_CHECKING:
     from ibvs_sim.core.dynamics import WindConfig
 
 DEFAULT_LEVELS_MPS2 = (0.0, 0.2, 0.5, 0.8)
 DEFAULT_RESULTS_ROOT = os.path.join('results', 'campaign')
-Z_95 = 1.959963984540054          # standard normal quantile of 0.975
-MAX_SIM_TIME_S = 60.0             # SPEC.md section 5
+MAX_SIM_TIME_S = 60.0             # docs/spec.md section 5
 
 
 # --- settings -------------------------------------------------------------------------------
@@ -207,146 +209,6 @@ def run_specs(cfg: CampaignConfig, box: dict) -> list[RunSpec]:
     draws = [draw_run(cfg.seed, i, box) for i in range(cfg.runs)]
     return [RunSpec(law, float(level), i, *draws[i])
             for law in cfg.laws for level in cfg.levels_mps2 for i in range(cfg.runs)]
-
-
-# --- statistics -----------------------------------------------------------------------------
-
-def wilson_interval(successes: int, n: int, z: float = Z_95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion (default 95 %); (0, 1) when n = 0.
-
-    ``(p + z^2/2n -+ z sqrt(p (1 - p) / n + z^2 / 4n^2)) / (1 + z^2 / n)``, p = successes / n.
-    """
-    if n <= 0:
-        return 0.0, 1.0
-    if not 0 <= successes <= n:
-        raise ValueError(f'successes {successes} not in [0, {n}]')
-    p = successes / n
-    denom = 1.0 + z * z / n
-    centre = p + z * z / (2 * n)
-    half = z * math.sqrt(p * (1.0 - p) / n + z * z / (4.0 * n * n))
-    return max(0.0, (centre - half) / denom), min(1.0, (centre + half) / denom)
-
-
-def failure_cause(summary: dict) -> str | None:
-    """Why a run failed SPEC.md section 5 (None: success), from its summary alone.
-
-    In this order: 'collision before crossing' / 'collision after crossing' (envelope touched
-    wall, frame or back wall), 'failsafe in <mode>' (the supervisor's, with the mode it left:
-    'window' approach, 'crossing' (e.g. its timeout: no pad seen), 'landing'), 'floor before
-    window' /
-    'stalled before window' (never crossed; landed or not), 'no touchdown' (crossed, still
-    flying at 60 s), 'landing error' (> 0.10 m), 'touchdown speed' (> 0.5 m/s),
-    'duration' (> 60 s).
-    """
-    from ibvs_common.core.modes import Mode
-    from ibvs_sim.core.evaluation import (
-        MAX_DURATION_S, MAX_LANDING_ERROR_M, MAX_TOUCHDOWN_SPEED_MPS)
-    if summary.get('success'):
-        return None
-    w, ld = summary.get('window', {}), summary.get('landing', {})
-    modes = [m.get('mode') for m in summary.get('modes', [])]
-    clearance = w.get('min_clearance_m')
-    if clearance is not None and clearance <= 0.0:
-        return 'collision after crossing' if w.get('crossed') else 'collision before crossing'
-    if modes and modes[-1] == int(Mode.FAILSAFE):
-        before = Mode(modes[-2]).name.lower() if len(modes) > 1 else 'idle'
-        return f'failsafe in {before}'
-    if not w.get('crossed'):
-        return 'floor before window' if ld.get('landed') else 'stalled before window'
-    if not ld.get('landed'):
-        return 'no touchdown'
-    if ld.get('error_m') is None or ld['error_m'] > MAX_LANDING_ERROR_M:
-        return 'landing error'
-    if ld.get('touchdown_speed_mps') is None or \
-            ld['touchdown_speed_mps'] > MAX_TOUCHDOWN_SPEED_MPS:
-        return 'touchdown speed'
-    if summary.get('duration_s', 0.0) > MAX_DURATION_S:
-        return 'duration'
-    return 'other'
-
-
-def _stat(values: list, fn: Callable) -> float | None:
-    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
-    return float(fn(np.asarray(v))) if v else None
-
-
-def aggregate(summaries: Iterable[dict]) -> list[dict]:
-    """Per (law, level) rows of the campaign table from the runs' summary.json dicts.
-
-    Success rate and its 95 % Wilson interval over all runs; clearance (m) min and median over
-    the successes (the target is about every success); crossing speed (m/s) median and min
-    over the runs that crossed; landing error (m) median and p95, touchdown speed (m/s) p95
-    over the runs that crossed and touched down (failures included); failure causes counted.
-    ``success_not_shutdown``: the successes whose last mode is not SHUTDOWN (SPEC.md section
-    5's numbers met, but the supervisor did not end the flight: e.g. a touchdown in LANDING
-    that then failed safe; CI's whole-graph tests require the last modes 2, 3, 4).
-    Percentiles: numpy's linear interpolation.
-    """
-    from ibvs_common.core.modes import Mode
-    groups: dict = {}
-    for s in summaries:
-        r = s['run']
-        groups.setdefault((r['law'], float(r['wind_level_mps2'])), []).append(s)
-    rows = []
-    for (law, level), runs in sorted(groups.items(), key=lambda kv: (kv[0][0], kv[0][1])):
-        n = len(runs)
-        ok = [s for s in runs if s.get('success')]
-        crossed = [s for s in runs if s['window'].get('crossed')]
-        landed = [s for s in runs          # touchdowns on the far side, not blown-back ones
-                  if s['landing'].get('landed') and s['window'].get('crossed')]
-        lo, hi = wilson_interval(len(ok), n)
-        causes: dict = {}
-        for s in runs:
-            c = failure_cause(s)
-            if c is not None:
-                causes[c] = causes.get(c, 0) + 1
-        rows.append({
-            'law': law, 'wind_level_mps2': level, 'runs': n, 'successes': len(ok),
-            'success_rate': len(ok) / n if n else None, 'success_ci95': [lo, hi],
-            'clearance_min_m': _stat([s['window']['min_clearance_m'] for s in ok], np.min),
-            'clearance_median_m': _stat([s['window']['min_clearance_m'] for s in ok],
-                                        np.median),
-            'crossing_speed_median_mps': _stat(
-                [s['window']['crossing_speed_mps'] for s in crossed], np.median),
-            'crossing_speed_min_mps': _stat(
-                [s['window']['crossing_speed_mps'] for s in crossed], np.min),
-            'landing_error_median_m': _stat([s['landing']['error_m'] for s in landed],
-                                            np.median),
-            'landing_error_p95_m': _stat([s['landing']['error_m'] for s in landed],
-                                         lambda a: np.percentile(a, 95)),
-            'touchdown_speed_p95_mps': _stat(
-                [s['landing']['touchdown_speed_mps'] for s in landed],
-                lambda a: np.percentile(a, 95)),
-            'failure_causes': dict(sorted(causes.items(), key=lambda kv: -kv[1])),
-            'success_not_shutdown': sum(1 for s in ok if not s.get('modes') or
-                                        s['modes'][-1].get('mode') != int(Mode.SHUTDOWN)),
-            'wall_time_mean_s': _stat([s['run'].get('wall_time_s') for s in runs], np.mean),
-        })
-    return rows
-
-
-def format_table(rows: list[dict]) -> str:
-    """Format the aggregate rows as a Markdown table (lengths in cm, speeds in m/s)."""
-    def f(x: float | None, scale: float = 1.0, digits: int = 2) -> str:
-        return '-' if x is None else f'{x * scale:.{digits}f}'
-    lines = ['| law | wind (m/s²) | success | rate [95 % CI] | clearance min / median (cm) '
-             '| crossing speed median [min] (m/s) | landing error median / p95 (cm) '
-             '| touchdown p95 (m/s) | failures | successes not ending in SHUTDOWN |',
-             '|---|---|---|---|---|---|---|---|---|---|']
-    for r in rows:
-        lo, hi = r['success_ci95']
-        causes = ', '.join(f'{k} {v}' for k, v in r['failure_causes'].items()) or '-'
-        rate = '-' if r['success_rate'] is None else f"{100 * r['success_rate']:.1f} %"
-        lines.append(
-            f"| {r['law']} | {r['wind_level_mps2']:g} | {r['successes']} / {r['runs']} "
-            f"| {rate} [{100 * lo:.1f}, {100 * hi:.1f}] "
-            f"| {f(r['clearance_min_m'], 100, 1)} / {f(r['clearance_median_m'], 100, 1)} "
-            f"| {f(r['crossing_speed_median_mps'])} [{f(r['crossing_speed_min_mps'])}] "
-            f"| {f(r['landing_error_median_m'], 100, 1)} / "
-            f"{f(r['landing_error_p95_m'], 100, 1)} "
-            f"| {f(r['touchdown_speed_p95_mps'])} | {causes} "
-            f"| {r.get('success_not_shutdown', '-')} |")
-    return '\n'.join(lines) + '\n'
 
 
 # --- flying ---------------------------------------------------------------------------------
@@ -733,92 +595,6 @@ def write_outputs(cfg: CampaignConfig, summaries: list[dict], plots: bool = True
     if plots:
         write_plots(rows, summaries, cfg.out_dir)
     return rows
-
-
-def write_plots(rows: list[dict], summaries: list[dict], out_dir: str) -> list[str]:
-    """success_vs_wind.png, initial_positions.png, landing_error_cdf.png (empty: no matplotlib).
-
-    Initial positions in a top view of {I} (m): y east to the right, x (the window normal,
-    north) up, an arrow towards where the wind blows.
-    """
-    try:
-        import matplotlib
-        matplotlib.use('Agg')
-        import matplotlib.pyplot as plt
-    except ImportError:
-        return []
-    written = []
-    laws = sorted({r['law'] for r in rows})
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for law in laws:
-        rr = [r for r in rows if r['law'] == law]
-        x = np.array([r['wind_level_mps2'] for r in rr])
-        y = np.array([r['success_rate'] for r in rr]) * 100
-        lo = np.array([r['success_ci95'][0] for r in rr]) * 100
-        hi = np.array([r['success_ci95'][1] for r in rr]) * 100
-        err = np.clip([y - lo, hi - y], 0.0, None)     # rounding: |p - bound| ~ 1e-14
-        ax.errorbar(x, y, yerr=err, marker='o', capsize=3, label=law)
-    ax.set_xlabel('wind level |Δ_h|/m (m/s²)')
-    ax.set_ylabel('success (%), 95 % Wilson interval')
-    ax.set_ylim(-2, 102)
-    ax.grid(True, alpha=0.3)
-    ax.legend()
-    written.append(_save(fig, out_dir, 'success_vs_wind.png'))
-
-    keys = sorted({(s['run']['law'], s['run']['wind_level_mps2']) for s in summaries})
-    causes = sorted({failure_cause(s) or 'success' for s in summaries},
-                    key=lambda c: (c != 'success', c))
-    colours = {c: plt.get_cmap('tab10')(i) for i, c in enumerate(causes)}
-    ncol = min(4, len(keys))
-    nrow = int(math.ceil(len(keys) / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 3.6 * nrow), squeeze=False)
-    for ax, key in zip(axes.flat, keys):
-        sel = [s for s in summaries if (s['run']['law'], s['run']['wind_level_mps2']) == key]
-        for c in causes:
-            mine = [s for s in sel if (failure_cause(s) or 'success') == c]
-            p = np.array([s['run']['initial_position_I'] for s in mine]).reshape(-1, 3)
-            if not len(p):
-                continue
-            ax.scatter(p[:, 1], p[:, 0], s=10, color=colours[c], label=c)
-            if key[1] > 0.0:        # where the wind blows towards (east right, north up)
-                psi = np.array([s['run']['wind_direction_rad'] for s in mine])
-                ax.quiver(p[:, 1], p[:, 0], np.sin(psi), np.cos(psi), color=colours[c],
-                          angles='xy', scale_units='xy', scale=25.0, width=0.004, alpha=0.6)
-        ax.set_title(f'{key[0]}, {key[1]:g} m/s²', fontsize=9)
-        ax.set_xlabel('y (m, east)')
-        ax.set_ylabel('x (m, window normal)')
-    for ax in list(axes.flat)[len(keys):]:
-        ax.axis('off')
-    handles = [plt.Line2D([], [], marker='o', ls='', color=colours[c]) for c in causes]
-    fig.legend(handles, causes, loc='lower center', ncol=min(4, len(causes)), fontsize=8)
-    fig.suptitle('initial positions (top view) by outcome, arrows: wind direction')
-    fig.tight_layout(rect=(0, 0.08, 1, 0.96))
-    written.append(_save(fig, out_dir, 'initial_positions.png'))
-
-    fig, ax = plt.subplots(figsize=(6, 4))
-    for key in keys:
-        e = np.sort([s['landing']['error_m'] for s in summaries
-                     if (s['run']['law'], s['run']['wind_level_mps2']) == key
-                     and s['landing'].get('landed') and s['landing'].get('error_m') is not None])
-        n = sum(1 for s in summaries if (s['run']['law'], s['run']['wind_level_mps2']) == key)
-        if len(e):
-            ax.step(e * 100, np.arange(1, len(e) + 1) / n, where='post',
-                    label=f'{key[0]}, {key[1]:g} m/s²')
-    ax.axvline(10.0, color='k', ls='--', lw=0.8)
-    ax.set_xlabel('landing error (cm)')
-    ax.set_ylabel('fraction of all runs')
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8)
-    written.append(_save(fig, out_dir, 'landing_error_cdf.png'))
-    return written
-
-
-def _save(fig, out_dir: str, name: str) -> str:
-    import matplotlib.pyplot as plt
-    path = os.path.join(out_dir, name)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
 
 
 # --- command line ---------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """What a run reports, ROS-free: run log, ground-truth features and flows, plots, summary.
 
-summary.json is computed by ``ibvs_sim.core.evaluation`` (SPEC.md section 5).
+summary.json is computed by ``ibvs_sim.core.evaluation`` (docs/spec.md section 5).
 
 Everything here is in the paper frame {I} (x along the window normal, z down); the monitor in
 ``run_scenario`` converts the ROS messages (map ENU, base_link FLU) with ``frames`` before
@@ -156,7 +156,7 @@ def run_data(log: RunLog, world: WorldConfig, pad: PadLayout) -> RunData:
 
 def summarize(log: RunLog, world: WorldConfig, envelope_radius: float,
               envelope_height: float) -> dict:
-    """Return SPEC.md section 5's summary from the ground truth (ibvs_sim's evaluation)."""
+    """Return docs/spec.md section 5's summary from the ground truth (ibvs_sim's evaluation)."""
     from ibvs_sim.core.evaluation import evaluate_run
     t, xi, v = log.truth_arrays()
     if len(t) == 0:

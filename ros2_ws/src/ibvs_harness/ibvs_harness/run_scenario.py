@@ -4,12 +4,12 @@ sim (lockstep) <-> MAVLink <-> bridge <-> controller <-> supervisor <-> percepti
 with the runner (graph.sim_graph), gated by the preflight checks, started by the supervisor
 itself at sim t = 1 s (``auto_start_at_s``: the same frame in every run) and stopped on
 touchdown + mode 4 (disarm), collision, failsafe, 60 s of sim time or the wall timeout.
-Writes ``results/<run>/``: summary.json (SPEC.md section 5, ibvs_sim's evaluation of the
+Writes ``results/<run>/``: summary.json (docs/spec.md section 5, ibvs_sim's evaluation of the
 ground truth, plus a ``run`` block), the paper's figures (PNG), ``bag/`` (MCAP rosbag2) and
 ``logs/<node>.log``. ``--feature-level`` flies ibvs_sim's feature-level closed loop
 instead (no images, no ROS) and reports the same way.
 
-Exit code: 0 success, 1 the flight failed SPEC.md's criteria, 2 the run could not be flown.
+Exit code: 0 success, 1 the flight failed docs/spec.md's criteria, 2 the run could not be flown.
 """
 from __future__ import annotations
 
@@ -382,7 +382,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                    help='record every N-th camera frame (1: all)')
     p.add_argument('--no-plots', action='store_true')
     p.add_argument('--max-sim-time', type=float, default=MAX_SIM_TIME_S, metavar='S',
-                   help='stop S s of sim time after the start (default: SPEC.md\'s 60; a '
+                   help='stop S s of sim time after the start (default: docs/spec.md\'s 60; a '
                         'shorter flight fails the criteria: benchmarks, smoke runs)')
     p.add_argument('--feature-level', action='store_true',
                    help="fly ibvs_sim's feature-level closed loop (no images, no ROS)")

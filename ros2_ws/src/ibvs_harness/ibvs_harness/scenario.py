@@ -71,7 +71,7 @@ class RunOptions:
 
 
 def random_initial_position(seed: int, world: WorldConfig | None = None) -> tuple:
-    """Draw an initial position uniformly from world.yaml's random box (SPEC.md section 2)."""
+    """Draw an initial position uniformly from world.yaml's random box (docs/spec.md section 2)."""
     box = (world or load_world()).random_box
     rng = np.random.default_rng(seed)
     return tuple(float(rng.uniform(*box[k])) for k in ('x', 'y', 'z'))

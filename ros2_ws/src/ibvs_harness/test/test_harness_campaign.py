@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from ibvs_harness import campaign
-from ibvs_harness.campaign import (
-    aggregate, CampaignConfig, draw_run, failure_cause, LawSpec, run_campaign, run_specs,
-    wilson_interval)
+from ibvs_harness.campaign import CampaignConfig, draw_run, LawSpec, run_campaign, run_specs
+from ibvs_harness.campaign_stats import aggregate, failure_cause, format_table, wilson_interval
 
-BOX = {'x': (-2.6, -1.8), 'y': (-0.3, 0.3), 'z': (-1.9, -1.35)}   # SPEC.md section 2
+BOX = {'x': (-2.6, -1.8), 'y': (-0.3, 0.3), 'z': (-1.9, -1.35)}   # docs/spec.md section 2
 
 
 @pytest.mark.parametrize('k, n, lo, hi', [
@@ -95,7 +94,7 @@ def test_aggregate_statistics_by_hand():
     # touchdown speeds 0.20 0.25 0.30 0.40: p95 = 0.30 + 0.85 x 0.10
     assert r['touchdown_speed_p95_mps'] == pytest.approx(0.385)
     assert r['failure_causes'] == {'landing error': 1, 'stalled before window': 1}
-    table = campaign.format_table(rows)
+    table = format_table(rows)
     assert '| closed | 0.2 | 3 / 5 | 60.0 % [23.1, 88.2] |' in table
     assert table.splitlines()[-1].endswith('| - | 1 |')       # no failures, 1 not SHUTDOWN
 

@@ -65,7 +65,7 @@ def test_the_estimate_error_model_is_the_sim_autopilots_and_is_flown():
 
     Compared with the sim autopilot's own ``estimate_error`` (an independent instance of the
     image-level model) at the same seed; then flown: the reference start with PX4 SIH's
-    error size (params.yaml) still meets SPEC.md section 5 and differs from the exact run.
+    error size (params.yaml) still meets docs/spec.md section 5 and differs from the exact run.
     """
     from ibvs_sim.core.autopilot import Autopilot, AutopilotConfig
     from ibvs_harness.feature_sim import estimate_error_model
@@ -107,7 +107,7 @@ def test_seed_literal_mode2_law_fails_as_spec_describes():
 
 @pytest.mark.parametrize('side', [0.2, -0.2])
 def test_side_wind_open_loop_hits_the_frame_closed_loop_does_not(side):
-    wind = np.array([0.0, side, 0.0])       # 0.2 m/s^2 side wind (SPEC.md section 3)
+    wind = np.array([0.0, side, 0.0])       # 0.2 m/s^2 side wind (docs/spec.md section 3)
     s_open, _ = fly(crossing_law=CrossingLaw.INTENDED, wind_accel_I=wind)
     assert s_open['window']['min_clearance_m'] <= 0.0 and not s_open['success']
     s_closed, _ = fly(crossing_law=CrossingLaw.CLOSED, wind_accel_I=wind)

@@ -16,7 +16,7 @@ from ibvs_sim.core.dynamics import Wind, WindConfig
 from ibvs_harness.feature_sim import FeatureSimConfig, run_feature_scenario
 from ibvs_sim.core.world import load_world
 
-MASS = 1.676          # kg, SPEC.md's vehicle
+MASS = 1.676          # kg, docs/spec.md's vehicle
 
 
 def _samples(wind: Wind, t_end: float = 400.0, dt: float = 0.01) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Translational optical flow, IMU attitude buffer and image decoding of ibvs_perception.
 
-Flow ground truth: phi = v / d from the rendered poses (d at mid-interval), SPEC.md planes.
+Flow ground truth: phi = v / d from the rendered poses (d at mid-interval), docs/spec.md planes.
 """
 import cv2
 import numpy as np

@@ -15,7 +15,7 @@ def released(items):
 
 
 def test_the_modes_using_each_product_follow_the_mode_table():
-    # the mode table of SPEC.md section 3: window and wall flow before the crossing, pad
+    # the mode table of docs/spec.md section 3: window and wall flow before the crossing, pad
     # (as the LANDING cue in CROSSING) from the crossing on, the floor flow from the
     # crossing on and as the frame clock of SHUTDOWN and FAILSAFE
     assert modes_using(InputKind.WINDOW) == {Mode.IDLE, Mode.WINDOW}

@@ -1,7 +1,7 @@
 """Window detector (ibvs_perception.core.window) on rendered and exact synthetic frames.
 
 Ground truth comes from geometry: WindowGeometry.corners_I() projected with the camera model
-(frames.bearings_I_to_C + CameraModel.bearings_to_pixels), and eta_w = e1 (SPEC.md).
+(frames.bearings_I_to_C + CameraModel.bearings_to_pixels), and eta_w = e1 (docs/spec.md).
 """
 import cv2
 import numpy as np

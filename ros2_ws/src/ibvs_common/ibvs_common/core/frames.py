@@ -1,4 +1,4 @@
-"""The one module that converts between frames (SPEC.md section 1). No other file does.
+"""The one module that converts between frames (docs/spec.md section 1). No other file does.
 
 Frames
 ------
@@ -38,7 +38,8 @@ R_I_MAP = R_MAP_I.T
 R_FLU_FRD = np.diag([1.0, -1.0, -1.0])
 R_FRD_FLU = R_FLU_FRD.T
 
-# Default camera mounts of SPEC.md section 1 (optical -> body FRD). Parameters, not assumptions.
+# Default camera mounts of docs/spec.md section 1 (optical -> body FRD). Parameters, not
+# assumptions.
 R_BC_DOWN_DEFAULT = np.array([[0.0, -1.0, 0.0],
                               [1.0, 0.0, 0.0],
                               [0.0, 0.0, 1.0]])

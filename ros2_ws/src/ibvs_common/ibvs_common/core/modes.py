@@ -1,4 +1,4 @@
-"""Flight modes (paper section 4.3, SPEC.md section 3) and the camera products each one uses.
+"""Flight modes (paper section 4.3, docs/spec.md section 3) and the camera products each one uses.
 
 This is the interface between perception and control: the supervisor publishes the mode of
 every frame it evaluates (``ibvs/supervisor_status``), the supervisor and the controller wait

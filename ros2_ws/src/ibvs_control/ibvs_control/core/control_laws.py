@@ -1,8 +1,8 @@
-"""The paper's outer-loop force laws (section 4) and the blind-crossing laws of SPEC.md section 3.
+"""The paper's outer-loop force laws (section 4) and the blind crossing of docs/spec.md section 3.
 
 Sign convention (eq:system): ``m v_dot = -F + m g e3 + Delta`` in {I} (NED-type, z down), so a
 force law ``F = m g e3 + m k(.)`` commands the acceleration ``v_dot = -k(.)``. Gains are
-mass-normalised as in SPEC.md section 2: ``F = m (...) + m g e3``. Forces are newtons.
+mass-normalised as in docs/spec.md section 2: ``F = m (...) + m g e3``. Forces are newtons.
 """
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ class GainError(ValueError):
 
 
 class CrossingLaw(str, Enum):
-    """Mode 2 (blind crossing) law, selectable for comparison (SPEC.md section 3)."""
+    """Mode 2 (blind crossing) law, selectable for comparison (docs/spec.md section 3)."""
 
     CLOSED = 'closed'        # intended push + loop closed on the down camera's flow (default)
     INTENDED = 'intended'    # F = m g e3 - eta_w |eta_w^T (F_w(T2-) - m g e3)|, open loop
@@ -279,7 +279,7 @@ def force_window(q_w: np.ndarray, q_w_bar: np.ndarray, phi_w: np.ndarray, eta_w:
 def force_crossing_seed(F_w_T2: np.ndarray, eta_w: np.ndarray) -> np.ndarray:
     """Return the seed's literal mode-2 force F = eta_w |eta_w^T F_w(T2-)| (defective).
 
-    SPEC.md section 3: it drops gravity compensation and, since the dynamics use -F, brakes
+    docs/spec.md section 3: it drops gravity compensation and, since the dynamics use -F, brakes
     along eta_w.
     Kept only for comparison.
     """

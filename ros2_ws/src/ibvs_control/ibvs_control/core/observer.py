@@ -1,6 +1,6 @@
 """Disturbance observer of the force laws: Delta / m from the IMU, aided by the flow's velocity.
 
-Dynamics (SPEC.md, {I} NED-type, z down): ``m v' = -F_app + m g e3 + Delta``, with ``F_app``
+Dynamics (docs/spec.md, {I} NED-type, z down): ``m v' = -F_app + m g e3 + Delta``, with ``F_app``
 the force the vehicle applied (the commanded magnitude along the measured thrust axis
 ``R_IB e3``; controller.py).
 

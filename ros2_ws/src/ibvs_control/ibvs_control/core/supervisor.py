@@ -1,4 +1,4 @@
-"""The mode supervisor as a pure state machine (paper section 4.3, SPEC.md section 3).
+"""The mode supervisor as a pure state machine (paper section 4.3, docs/spec.md section 3).
 
 Transitions and their image cues (no position or velocity estimate is used):
 
@@ -160,7 +160,7 @@ def _angular_height(corners_I: np.ndarray) -> float:
 
 
 class ModeSupervisor:
-    """Modes and triggers of SPEC.md section 3; feed it with on_* and call update(t)."""
+    """Modes and triggers of docs/spec.md section 3; feed it with on_* and call update(t)."""
 
     def __init__(self, config: SupervisorConfig) -> None:
         self.config = config

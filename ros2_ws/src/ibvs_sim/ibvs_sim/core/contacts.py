@@ -1,4 +1,4 @@
-"""Clearance of the vehicle's collision envelope to the world of SPEC.md section 2 ({I}, metres).
+"""Clearance of the vehicle's collision envelope to docs/spec.md section 2's world ({I}, m).
 
 The envelope is a vertical cylinder (radius r = rotor tips, height h) centred on the body origin;
 its tilt is ignored (the attitudes of this task stay within ~20 deg, where the tilted rotor disc

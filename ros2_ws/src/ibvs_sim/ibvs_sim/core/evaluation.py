@@ -1,4 +1,4 @@
-"""Ground-truth evaluation of one run: SPEC.md section 5's summary.json.
+"""Ground-truth evaluation of one run: docs/spec.md section 5's summary.json.
 
 Evaluation only (like the paper's VICON): nothing here is ever fed to the controller. Input is
 the ground-truth trajectory in {I} (NED-type: x along the window normal, z down).
@@ -42,7 +42,7 @@ def evaluate_run(t: np.ndarray, xi_I: np.ndarray, v_I: np.ndarray, world: WorldC
                  modes: list[tuple[int, float]],
                  touchdown_speed_mps: float | None = None, t_start_s: float | None = 0.0
                  ) -> dict:
-    """Return the summary dict of SPEC.md section 5 from a ground-truth trajectory.
+    """Return the summary dict of docs/spec.md section 5 from a ground-truth trajectory.
 
     - touchdown: the first sample whose envelope bottom reaches the floor; its speed is the
       vertical speed there, its error the horizontal distance of the body to the pad centre;
@@ -50,7 +50,7 @@ def evaluate_run(t: np.ndarray, xi_I: np.ndarray, v_I: np.ndarray, world: WorldC
       touchdown (the floor is the goal, not an obstacle);
     - crossing: where the body origin passes the wall plane (linear interpolation), the offset
       to the window centre (y, z) and the speed along the window normal e1;
-    - success: all of SPEC.md section 5's conditions.
+    - success: all of docs/spec.md section 5's conditions.
 
     ``touchdown_speed_mps``: the impact speed measured by the sim at its physics rate (its
     touchdown event); sampled ground truth can miss it (a floor contact stops the body within

@@ -1,4 +1,4 @@
-"""Renderer of the planar reference world (SPEC.md section 2) for one calibrated camera.
+"""Renderer of the planar reference world (docs/spec.md section 2) for one calibrated camera.
 
 :class:`SceneRenderer` draws the floor, the wall with its aperture and frame band, the back
 wall and the pad's ArUco markers, each a textured plane warped by a homography into an

@@ -1,6 +1,6 @@
 """The sim's world: wall, window, floor, back wall and the reference start (world.yaml).
 
-Sim-only data (SPEC.md section 2): the onboard graph never reads it. The controller and the
+Sim-only data (docs/spec.md section 2): the onboard graph never reads it. The controller and the
 supervisor get the window size and the pad layout as their own configuration; the sim, the
 scenario runner and the evaluation read the world from here.
 """
@@ -42,7 +42,7 @@ class WindowGeometry:
 
 @dataclass(frozen=True)
 class WorldConfig:
-    """Reference scenario of SPEC.md section 2."""
+    """Reference scenario of docs/spec.md section 2."""
 
     floor_z: float
     floor_extent_x: tuple[float, float]

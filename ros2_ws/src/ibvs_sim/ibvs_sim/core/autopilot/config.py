@@ -1,9 +1,10 @@
 """Settings, data in and out, and counters of the sim autopilot; helpers all its parts share.
 
-Frames and units (SPEC.md section 1): {I} is the autopilot's local NED frame, the body frame is
-FRD, quaternions are Hamilton ``(w, x, y, z)`` of ``R_IB``. SI units. ``VehicleStateView.t``
-is sim time since boot (s); the wall clock (``time.monotonic`` or an injected one, s) only
-paces the heartbeat, the offboard-loss bound ``offboard_timeout_wall_s`` and the log rate limit.
+Frames and units (docs/spec.md section 1): {I} is the autopilot's local NED frame, the body
+frame is FRD, quaternions are Hamilton ``(w, x, y, z)`` of ``R_IB``. SI units.
+``VehicleStateView.t`` is sim time since boot (s); the wall clock (``time.monotonic`` or an
+injected one, s) only paces the heartbeat, the offboard-loss bound ``offboard_timeout_wall_s``
+and the log rate limit.
 """
 from __future__ import annotations
 
