@@ -6,7 +6,7 @@ the same in every node (ibvs_common.core.frame_grid); from ``ibvs/supervisor_sta
 modes (:class:`~ibvs_perception.core.mode_gate.ModeGate`: a product is computed only for the
 images of a mode that uses it, docs/interfaces.md "Mode gating"). Counts the frames it leaves
 out by the grid and the frames that never came (dropped on the way: a node behind takes the
-newest image).
+newest image), and says so on ``/diagnostics`` (:mod:`ibvs_perception.image_diagnostics`).
 """
 from __future__ import annotations
 
@@ -22,6 +22,7 @@ from ibvs_common.node_common import (COMMAND_QOS, grid_from_msg, MODE_QOS, mode_
                                      stamp_to_ns)
 from ibvs_common.throttled_log import ThrottledLog
 from ibvs_perception.core.mode_gate import ModeGate
+from ibvs_perception.image_diagnostics import ImageCounts, ImageDiagnostics, ProcessingTimer
 
 THROTTLE_S = 2.0
 
@@ -37,10 +38,11 @@ class GatedImages:
         self.prefix = log_prefix
         self.camera = camera
         self.grid = FrameGrid(int(period_ns))
-        self.off_grid = 0             # images left out: not on the frame grid
-        self.missed = 0               # grid frames that never came (dropped on the way)
+        self.counts = ImageCounts()
+        self.timer = ProcessingTimer()
         self._last_index: int | None = None
         self.log = ThrottledLog(node.get_logger())
+        self.diagnostics = ImageDiagnostics(node, log_prefix, self.counts, self.timer)
         if enabled:
             node.create_subscription(DiagnosticArray, 'ibvs/supervisor_status',
                                      self.on_status, COMMAND_QOS)
@@ -54,18 +56,22 @@ class GatedImages:
     def on_image(self, msg: Image) -> None:
         stamp_ns = stamp_to_ns(msg.header.stamp)
         if not self.grid.on_grid(stamp_ns):
-            self.off_grid += 1
+            self.counts.off_grid += 1
             return
         self._count_missed(stamp_ns)
-        for gated in self.gate.on_image(stamp_ns, msg):
-            self.process(gated.item, gated.publish)
+        self._process_all(self.gate.on_image(stamp_ns, msg))
+
+    def _process_all(self, gated_items) -> None:
+        for gated in gated_items:
+            self.counts.computed += 1
+            self.timer.run(self.process, gated.item, gated.publish)
 
     def _count_missed(self, stamp_ns: int) -> None:
         """Count the grid frames between this image and the last one (none came for them)."""
         period = self.grid.period_ns
         index = (stamp_ns + period // 2) // period            # frames since the clock's epoch
         if self._last_index is not None and index > self._last_index:
-            self.missed += max((index - self._last_index) // self.grid.stride - 1, 0)
+            self.counts.missed += max((index - self._last_index) // self.grid.stride - 1, 0)
         self._last_index = index
 
     def on_grid(self, msg: DiagnosticArray) -> None:
@@ -82,5 +88,4 @@ class GatedImages:
         if err:
             self.log.error(f'{self.prefix}: ibvs/supervisor_status refused: {err}', THROTTLE_S)
             return
-        for gated in self.gate.on_status(stamp_ns, mode):
-            self.process(gated.item, gated.publish)
+        self._process_all(self.gate.on_status(stamp_ns, mode))

@@ -150,6 +150,7 @@ class OpticalFlowNode(Node):
         stamp = stamp_to_s(msg.header.stamp)
         R_IB = self.derotation.at_frame(stamp)
         if R_IB is None:
+            self.gated.counts.no_attitude += 1
             self.log.warning('optical_flow: no IMU attitude at the image stamp', THROTTLE_S)
         eta_I, exclude_I = self.plane(stamp)
         eta2_I = e3 if self.camera_name == FRONT and self.floor_second_plane else None

@@ -108,6 +108,8 @@ class WindowDetectorNode(Node):
     def camera_rotation(self, stamp_s: float) -> np.ndarray | None:
         """Camera rotation since the previous image (WindowDetector.process), or None."""
         R_IB = self.attitudes.attitude_at(stamp_s)
+        if R_IB is None:
+            self.gated.counts.no_attitude += 1
         R_IC = None if R_IB is None else R_IB @ self.R_BC
         rotation = None if R_IC is None or self.R_IC_prev is None else R_IC.T @ self.R_IC_prev
         self.R_IC_prev = R_IC

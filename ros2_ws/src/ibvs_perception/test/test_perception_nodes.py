@@ -484,3 +484,37 @@ def test_frozen_after_frames_is_validated(ctx, name):
     with pytest.raises(ValueError, match='frozen_after_frames'):
         cls(f'{name}_bad_frozen_{TAG}', context=context,
             parameter_overrides=overrides + [Parameter('frozen_after_frames', value=0)])
+
+
+def test_window_detector_node_counts_lost_grid_frames_and_missing_attitudes_on_diagnostics(
+        ctx, renderers):
+    context, executor, nodes = ctx
+    node = WindowDetectorNode(f'window_detector_{TAG}', context=context)
+    nodes.append(node)
+    helper, pubs, got = harness(context, nodes,
+                                {'front_camera/image_raw': Image,
+                                 'front_camera/camera_info': CameraInfo},
+                                {'window/corners': PolygonStamped,
+                                 '/diagnostics': DiagnosticArray})
+    for n in (node, helper):
+        executor.add_node(n)
+    pubs['front_camera/camera_info'].publish(info_msg('front'))
+    assert spin_until(executor, lambda: node.camera_info is not None)
+    img = renderers['front'].render(np.eye(3), START)
+    # 50 Hz grid frames 0, 1 and 4 of t = 1 s: frames 2 and 3 never come; no IMU at all
+    for i, t in enumerate((1.00, 1.02, 1.08)):
+        pubs['front_camera/image_raw'].publish(image_msg(img, t))
+        assert spin_until(executor, lambda: len(got['window/corners']) >= i + 1)
+
+    def status():
+        mine = [s for m in got['/diagnostics'] for s in m.status
+                if s.name == 'window_detector: images']
+        return {kv.key: kv.value for kv in mine[-1].values} if mine else None, \
+            mine[-1].level if mine else None
+    assert spin_until(executor, lambda: status()[0] is not None
+                      and status()[0]['images_computed'] == '3', timeout_s=5.0)
+    values, level = status()
+    assert values['grid_frames_missed'] == '2' and values['images_off_grid'] == '0'
+    assert values['images_without_attitude'] == '3'
+    assert float(values['processing_median_ms']) > 0.0
+    assert level == DiagnosticStatus.WARN
