@@ -4,8 +4,9 @@ Prints median and p99 (ms) of: window detection (front camera, approach) and pad
 camera, descent from 1.8 m to 0.15 m), each tracked and with the whole-image search that the
 tracker falls back to on a loss forced on every frame (issue 15 item 7), and translational
 flow (down camera, tracking + solve, frames 20 ms apart with |v| = 0.5 m/s and |Omega| = 1
-rad/s; front camera along the approach at 1 m/s with the floor as a second plane). Rendering
-is not timed.
+rad/s; front camera along the approach at 1 m/s with the floor as a second plane), and the
+frozen-camera check on live frames (every node runs it on every image). Rendering is not
+timed (benchmarks/bench_sim.py times it, with the read noise and without).
 Run: AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python benchmarks/bench_perception.py
 """
 import argparse
@@ -18,6 +19,7 @@ from ibvs_common.core import frames
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_perception.core.flow import FlowConfig, FlowEstimator, wall_normal_from_corners
+from ibvs_perception.core.freeze import FrozenImageCheck
 from ibvs_perception.core.pad import PadDetector, PadDetectorConfig
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
 from ibvs_sim.core.render import SceneRenderer
@@ -102,6 +104,9 @@ def main() -> None:
             eta, exclude = wall_normal_from_corners(detection.bearings_C, R, front.R_BC)
             args.append((img, k * DT, R, eta, exclude, frames.e3))
     report('front flow', timed(flow.process, args))
+
+    check = FrozenImageCheck(3)
+    report('frozen chk', timed(check.check, [(a[0],) for a in args]))
 
 
 if __name__ == '__main__':

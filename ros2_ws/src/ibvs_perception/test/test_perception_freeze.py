@@ -72,15 +72,3 @@ def test_n_is_validated(bad):
 
 def test_numpy_integer_is_accepted():
     assert FrozenImageCheck(np.int64(2)).frozen_after_frames == 2
-
-
-def test_a_live_frame_costs_microseconds():
-    import time
-    check = FrozenImageCheck(3)
-    frames = [frame(k) for k in range(20)]
-    t0 = time.perf_counter()
-    for f in frames * 10:
-        check.check(f)
-    per_frame_ms = (time.perf_counter() - t0) / 200 * 1e3
-    print(f'frozen check, live 752x480 frames: {per_frame_ms * 1e3:.1f} us per frame')
-    assert per_frame_ms < 1.0
