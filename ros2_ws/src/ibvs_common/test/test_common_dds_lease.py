@@ -2,7 +2,7 @@
 
 Fast DDS keeps a SIGKILLed reader matched until its participant's lease expires (20 s by
 default), and from a few seconds after the death every write to it costs the publisher more
-(docs/performance.md, "2026-12-03 morning"). The lease is announced by the reader's own
+(docs/performance.md, "A killed node"). The lease is announced by the reader's own
 participant: the reader here runs in a child process that takes the project's profile, as every
 node started by the runner, run_scenario or the launch files does; this process only watches.
 """
