@@ -262,12 +262,14 @@ class Replayer:
         self.modes.append((time.time_ns(), int(msg.data)))
 
     def _on_diag(self, msg) -> None:
+        from ibvs_control.mode_supervisor_node import DIAGNOSTICS_NAME as SUPERVISOR_STATUS
+        from ibvs_perception.image_diagnostics import STATUS_SUFFIX
         for s in msg.status:
             v = {kv.key: kv.value for kv in s.values}
-            if s.name == 'mode_supervisor: frames':
+            if s.name == SUPERVISOR_STATUS:
                 self.rates.append((time.time_ns(), float(v['control_rate_hz']),
                                    int(v['frame_stride'])))
-            if s.name == 'mode_supervisor: frames' or s.name.endswith(': images'):
+            if s.name == SUPERVISOR_STATUS or s.name.endswith(STATUS_SUFFIX):
                 self.diagnostics[s.name] = v          # the newest counts of each
 
     def spin(self, seconds: float) -> None:
@@ -439,7 +441,9 @@ def report(r: dict) -> None:
 
 def print_diagnostics(diagnostics: dict) -> None:
     """Print where frames went: the supervisor's counts and each perception node's."""
-    sup = diagnostics.get('mode_supervisor: frames')
+    from ibvs_control.mode_supervisor_node import DIAGNOSTICS_NAME as SUPERVISOR_STATUS
+    from ibvs_perception.image_diagnostics import STATUS_SUFFIX
+    sup = diagnostics.get(SUPERVISOR_STATUS)
     if sup is not None:
         without = ', '.join(f"{k[len('frames_skipped_without_'):]} {v}" for k, v in sup.items()
                             if k.startswith('frames_skipped_without_'))
@@ -447,8 +451,8 @@ def print_diagnostics(diagnostics: dict) -> None:
               f"{sup.get('frames_skipped')} ({without or 'none'}); late products dropped "
               f"{sup.get('late_products_dropped')}, off-grid "
               f"{sup.get('off_grid_products_dropped')}")
-    nodes = [(name[:-len(': images')], v) for name, v in sorted(diagnostics.items())
-             if name.endswith(': images')]
+    nodes = [(name[:-len(STATUS_SUFFIX)], v) for name, v in sorted(diagnostics.items())
+             if name.endswith(STATUS_SUFFIX)]
     if nodes:
         print('    nodes (computed / grid frames missed / without attitude / median ms): '
               + '; '.join(f"{n} {v.get('images_computed')}/{v.get('grid_frames_missed')}/"

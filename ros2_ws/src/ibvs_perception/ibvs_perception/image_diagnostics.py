@@ -10,7 +10,7 @@ attitudes are missing. Not on the flight path: the counts only report.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import time
 from typing import Callable
 
@@ -22,6 +22,12 @@ from ibvs_common.node_common import COMMAND_QOS
 
 DIAGNOSTICS_PERIOD_S = 1.0          # s (ROS clock) between two /diagnostics
 TIMES_KEPT = 200                    # processing times kept for the median
+STATUS_SUFFIX = ': images'          # a node's status is named '<node>: images'
+
+
+def image_status_name(node_name: str) -> str:
+    """Return the name of ``node_name``'s image status on /diagnostics."""
+    return node_name + STATUS_SUFFIX
 
 
 @dataclass
@@ -65,7 +71,7 @@ def image_status(name: str, counts: ImageCounts, previous: ImageCounts,
     degraded = lost > 0 or blind > 0
     return DiagnosticStatus(
         level=DiagnosticStatus.WARN if degraded else DiagnosticStatus.OK,
-        name=f'{name}: images', hardware_id='companion computer',
+        name=image_status_name(name), hardware_id='companion computer',
         message=(f'{lost} grid frame(s) lost, {blind} image(s) without attitude in the last '
                  'period' if degraded else 'every grid frame computed'),
         values=[KeyValue(key=k, value=str(v)) for k, v in values.items()])
@@ -87,4 +93,4 @@ class ImageDiagnostics:
                                                    self.timer.median_ms())])
         msg.header.stamp = self.node.get_clock().now().to_msg()
         self._pub.publish(msg)
-        self._previous = ImageCounts(**vars(self.counts))
+        self._previous = replace(self.counts)

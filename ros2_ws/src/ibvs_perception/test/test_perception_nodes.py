@@ -29,6 +29,7 @@ from ibvs_sim.core.world import load_world
 from ibvs_control.core.frame_inputs import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
+from ibvs_perception.image_diagnostics import image_status_name
 from ibvs_perception.window_detector_node import WindowDetectorNode
 from ibvs_sim.core.render import SceneRenderer
 
@@ -114,17 +115,23 @@ def harness(context, nodes, inputs, outputs):
     return node, pubs, got
 
 
-def test_window_detector_node(ctx, renderers):
+def window_node(ctx, outputs):
+    """A window detector fed by a helper with the front camera's image and CameraInfo."""
     context, executor, nodes = ctx
     node = WindowDetectorNode(f'window_detector_{TAG}', context=context)
     nodes.append(node)
     helper, pubs, got = harness(context, nodes,
                                 {'front_camera/image_raw': Image,
-                                 'front_camera/camera_info': CameraInfo},
-                                {'window/corners': PolygonStamped,
-                                 'window/edge_normals': PolygonStamped})
+                                 'front_camera/camera_info': CameraInfo}, outputs)
     for n in (node, helper):
         executor.add_node(n)
+    return node, pubs, got
+
+
+def test_window_detector_node(ctx, renderers):
+    executor = ctx[1]
+    node, pubs, got = window_node(ctx, {'window/corners': PolygonStamped,
+                                        'window/edge_normals': PolygonStamped})
     img = renderers['front'].render(np.eye(3), START)
     # no CameraInfo yet: an empty polygon, no exception
     pubs['front_camera/image_raw'].publish(image_msg(img, 1.0))
@@ -488,16 +495,9 @@ def test_frozen_after_frames_is_validated(ctx, name):
 
 def test_window_detector_node_counts_lost_grid_frames_and_missing_attitudes_on_diagnostics(
         ctx, renderers):
-    context, executor, nodes = ctx
-    node = WindowDetectorNode(f'window_detector_{TAG}', context=context)
-    nodes.append(node)
-    helper, pubs, got = harness(context, nodes,
-                                {'front_camera/image_raw': Image,
-                                 'front_camera/camera_info': CameraInfo},
-                                {'window/corners': PolygonStamped,
-                                 '/diagnostics': DiagnosticArray})
-    for n in (node, helper):
-        executor.add_node(n)
+    executor = ctx[1]
+    node, pubs, got = window_node(ctx, {'window/corners': PolygonStamped,
+                                        '/diagnostics': DiagnosticArray})
     pubs['front_camera/camera_info'].publish(info_msg('front'))
     assert spin_until(executor, lambda: node.camera_info is not None)
     img = renderers['front'].render(np.eye(3), START)
@@ -508,7 +508,7 @@ def test_window_detector_node_counts_lost_grid_frames_and_missing_attitudes_on_d
 
     def status():
         mine = [s for m in got['/diagnostics'] for s in m.status
-                if s.name == 'window_detector: images']
+                if s.name == image_status_name('window_detector')]
         return {kv.key: kv.value for kv in mine[-1].values} if mine else None, \
             mine[-1].level if mine else None
     assert spin_until(executor, lambda: status()[0] is not None
