@@ -23,29 +23,45 @@ def test_complete_frames_keep_every_frame():
     assert run(gov, 0.0, 500, True) == [] and gov.stride == 1
 
 
-def test_two_skipped_in_ten_double_the_stride_up_to_the_largest():
+def test_a_lone_skipped_frame_now_and_then_keeps_every_frame():
+    # 1 in 5 skipped (2 among any 10, never 2 in a row): the rate held is 80 %, more than
+    # half of it at a doubled stride
+    gov = RateGovernor(GovernorConfig())
+    assert run(gov, 0.0, 500, lambda k: k % 5 != 0) == [] and gov.stride == 1
+
+
+def test_four_skipped_in_ten_double_the_stride_up_to_the_largest():
     gov = RateGovernor(GovernorConfig(max_frame_stride=4))
-    changes = run(gov, 0.0, 40, lambda k: k % 3 != 0)
+    changes = run(gov, 0.0, 40, lambda k: k % 3 != 0)    # 1 in 3: 4 among 10, none in a row
     assert [s for _, s in changes] == [2, 4] and gov.stride == 4
+    assert [k for k in range(10) if k % 3 == 0] == [0, 3, 6, 9]
+    assert changes[0][0] == pytest.approx(9 * 0.02)      # at the 4th skipped frame
     assert run(gov, 1.0, 40, False) == []            # never above max_frame_stride
+
+
+def test_three_skipped_in_a_row_double_the_stride_at_once():
+    gov = RateGovernor(GovernorConfig())
+    run(gov, 0.0, 20, True)
+    assert run(gov, 0.4, 2, False) == [] and gov.stride == 1
+    assert run(gov, 0.44, 1, False) == [(0.44, 2)]
 
 
 def test_a_smaller_stride_is_tried_after_the_hold_and_kept_if_it_holds():
     cfg = GovernorConfig(stride_down_hold_s=2.0)
     gov = RateGovernor(cfg)
-    run(gov, 0.0, 2, False)                          # 2 skipped: stride 2 at t = 0.02
+    run(gov, 0.0, 3, False)                          # 3 skipped: stride 2 at t = 0.04
     assert gov.stride == 2
-    changes = run(gov, 0.06, 100, True)              # 40 ms frames: 4 s of complete ones
+    changes = run(gov, 0.08, 100, True)              # 40 ms frames: 4 s of complete ones
     assert changes and changes[0][1] == 1
-    assert changes[0][0] == pytest.approx(0.02 + 2.0, abs=0.05)
+    assert changes[0][0] == pytest.approx(0.04 + 2.0, abs=0.05)
     assert len(changes) == 1 and gov.stride == 1     # and kept
 
 
 def test_a_failed_try_doubles_the_wait_before_the_next():
     cfg = GovernorConfig(stride_down_hold_s=1.0, stride_down_hold_max_s=8.0)
     gov = RateGovernor(cfg)
-    run(gov, 0.0, 2, False)                          # stride 2
-    t = 0.02
+    run(gov, 0.0, 3, False)                          # stride 2
+    t = 0.04
     waits = []
     for _ in range(4):
         # complete frames at stride 2 until the governor tries stride 1 ...
@@ -56,7 +72,7 @@ def test_a_failed_try_doubles_the_wait_before_the_next():
             k += 1
         waits.append(round(k * 0.04, 2))
         # ... where frames are skipped at once: back to 2
-        for _ in range(2):
+        for _ in range(3):
             t += 0.02
             gov.observe(t, False)
         assert gov.stride == 2
@@ -68,6 +84,8 @@ def test_a_failed_try_doubles_the_wait_before_the_next():
 def test_bad_governor_thresholds_are_refused():
     with pytest.raises(ValueError):
         GovernorConfig(stride_window_frames=3, stride_up_skipped=4)
+    with pytest.raises(ValueError):
+        GovernorConfig(stride_window_frames=3, stride_up_skipped=2, stride_up_in_a_row=4)
     with pytest.raises(ValueError):
         GovernorConfig(stride_down_hold_s=5.0, stride_down_hold_max_s=1.0)
 

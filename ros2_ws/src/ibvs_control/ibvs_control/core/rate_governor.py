@@ -3,11 +3,14 @@
 A computer that cannot compute every camera frame in time skips frames (a product late or
 lost: the frame is skipped, never flown on stale data). Skipped at random, the products of
 one image rarely all come, and the control rate collapses. :class:`RateGovernor` watches the
-frames of the mode's camera and, when frames are skipped, doubles the frame stride, so that
-every node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when
-none is skipped for a while it tries half the stride again, backing off after each failed
-try. :class:`SupervisorGrids` is the supervisor's view of which frames to expect.
-Times are frame stamps (s, ROS clock).
+frames of the mode's camera and, when the graph cannot hold their rate (several skipped in a
+row: it fell behind; or many among the recent ones), doubles the frame stride, so that every
+node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when none is
+skipped for a while it tries half the stride again, backing off after each failed try. A lone
+skipped frame (a late delivery, a busy moment of the computer) costs that frame; a doubled
+stride costs half of them for seconds, so it does not double the stride.
+:class:`SupervisorGrids` is the supervisor's view of which frames to expect. Times are frame
+stamps (s, ROS clock).
 """
 from __future__ import annotations
 
@@ -28,7 +31,11 @@ class GovernorConfig:
     stride_window_frames: int = param(
         10, 'frames: the recent frames of the mode\'s camera the governor looks at', 2, 100)
     stride_up_skipped: int = param(
-        2, 'frames: this many skipped among the recent ones double the stride', 1, 100)
+        4, 'frames: this many skipped among the recent ones double the stride (an overload '
+        'that lasts)', 1, 100)
+    stride_up_in_a_row: int = param(
+        3, 'frames: this many skipped in a row double the stride at once (a graph that fell '
+        'behind)', 1, 100)
     stride_down_hold_s: float = param(
         2.0, 's (frame stamps): no frame skipped for this long at a stride: try half of it '
         '(after a try that failed, twice as long each time, up to stride_down_hold_max_s)',
@@ -41,9 +48,10 @@ class GovernorConfig:
 
     def __post_init__(self) -> None:
         """Raise ValueError for thresholds that cannot work together."""
-        if self.stride_up_skipped > self.stride_window_frames:
-            raise ValueError('stride_up_skipped must be <= stride_window_frames, got '
-                             f'{self.stride_up_skipped} > {self.stride_window_frames}')
+        for name in ('stride_up_skipped', 'stride_up_in_a_row'):
+            if getattr(self, name) > self.stride_window_frames:
+                raise ValueError(f'{name} must be <= stride_window_frames, got '
+                                 f'{getattr(self, name)} > {self.stride_window_frames}')
         if self.stride_down_hold_max_s < self.stride_down_hold_s:
             raise ValueError('stride_down_hold_max_s must be >= stride_down_hold_s')
 
@@ -67,7 +75,7 @@ class RateGovernor:
             self._t_change = t
         self._recent.append(bool(complete))
         skipped = sum(1 for ok in self._recent if not ok)
-        if skipped >= cfg.stride_up_skipped and self.stride < cfg.max_frame_stride:
+        if self._overloaded(skipped) and self.stride < cfg.max_frame_stride:
             if self._probing:       # the smaller stride did not hold: wait longer next time
                 self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
             return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
@@ -77,6 +85,16 @@ class RateGovernor:
         if self.stride > 1 and skipped == 0 and t - self._t_change >= self._hold_s:
             return self._change(t, self.stride // 2, probing=True)
         return None
+
+    def _overloaded(self, skipped: int) -> bool:
+        """Whether the recent frames say the graph cannot hold this stride."""
+        cfg = self.config
+        in_a_row = 0
+        for ok in reversed(self._recent):
+            if ok:
+                break
+            in_a_row += 1
+        return skipped >= cfg.stride_up_skipped or in_a_row >= cfg.stride_up_in_a_row
 
     def _change(self, t: float, stride: int, probing: bool) -> int:
         self.stride, self._t_change, self._probing = stride, t, probing
