@@ -12,8 +12,9 @@ autopilot stand-in serving that flight's attitude at 100 Hz, and prints per case
   (median, p99), as the targets of late cameras and a slower computer are stated;
 - the modes reached (time after the start) and the CPU of the graph (% of one core);
 - where the frames went: the supervisor's frames complete and skipped (by missing product)
-  and each perception node's images computed, grid frames missed, images without an
-  attitude and median processing time (their /diagnostics);
+  and each perception node's images computed, superseded (skipped by a node behind for the
+  newer one), grid frames missed, images without an attitude and median processing time
+  (their /diagnostics);
 - a machine-speed reference taken in the same run on the graph's core, before and after: a
   pure-Python loop of 3 M iterations (~0.1-0.2 s at this machine's fastest) and an image
   operation that moves with memory traffic as the perception does, so that a figure can be
@@ -454,10 +455,11 @@ def print_diagnostics(diagnostics: dict) -> None:
     nodes = [(name[:-len(STATUS_SUFFIX)], v) for name, v in sorted(diagnostics.items())
              if name.endswith(STATUS_SUFFIX)]
     if nodes:
-        print('    nodes (computed / grid frames missed / without attitude / median ms): '
-              + '; '.join(f"{n} {v.get('images_computed')}/{v.get('grid_frames_missed')}/"
-                          f"{v.get('images_without_attitude')}/{v.get('processing_median_ms')}"
-                          for n, v in nodes))
+        print('    nodes (computed / superseded / grid frames missed / without attitude / '
+              'median ms): '
+              + '; '.join(f"{n} {v.get('images_computed')}/{v.get('images_superseded')}/"
+                          f"{v.get('grid_frames_missed')}/{v.get('images_without_attitude')}/"
+                          f"{v.get('processing_median_ms')}" for n, v in nodes))
 
 
 def main(argv: list | None = None) -> int:

@@ -32,13 +32,16 @@ MODE_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                       history=HistoryPolicy.KEEP_LAST)
 # Detections, flows, IMU: best effort (accepts any publisher), a few kept.
 SENSOR_QOS = qos_profile_sensor_data
-# Camera images: best effort, at most one frame queued behind the one being processed. A node
-# that falls behind skips to the newest frames instead of answering ever later (a depth of 5
-# queued up to 100 ms of stale images at 50 Hz: benchmarks/bench_latency.py). Not 1: frame 0
-# of the lockstep sim is answered by the bridge's pre-force stream (time_boot_ms 0), so frame
-# 1 can follow at once, and a detector busy with frame 0 lost one of the two (measured: two
-# 5 s harness time-outs at start-up in one run of six, which then no longer repeated).
-IMAGE_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT,
+# Camera images: best effort, 4 kept. A node that falls behind skips the queued images a newer
+# one has superseded (ibvs_perception.core.latest_only, at a cost of microseconds each) and
+# computes the newest, so the queue bounds nothing but memory: deep enough that a grid frame
+# of a frame stride of 2 survives 60 ms of a busy executor behind the off-grid one after it
+# (with 2 kept, a grid frame was overwritten by two off-grid ones while the node computed
+# another camera's frame: grid frames missed about as often as computed at a slow hour).
+# Not 1: frame 0 of the lockstep sim is answered by the bridge's pre-force stream
+# (time_boot_ms 0), so frame 1 can follow at once, and a detector busy with frame 0 lost one
+# of the two (two 5 s harness time-outs at start-up in one run of six).
+IMAGE_QOS = QoSProfile(depth=4, reliability=ReliabilityPolicy.BEST_EFFORT,
                        durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 # Publishers of setpoints, statuses and features, imu/data, commands: reliable, 10 kept for
 # every reader (recorders, tools); the flight-path nodes subscribe with FRAME_QOS below.
@@ -46,14 +49,16 @@ COMMAND_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
                          history=HistoryPolicy.KEEP_LAST)
 # One message per camera frame between the flight-path nodes (supervisor status, force and
 # heading setpoints: FRAME_QOS; the perception products as subscribed by the supervisor and
-# controller: PRODUCT_QOS, best effort as sensor data): keep last 2, as for images. A node
+# controller: PRODUCT_QOS, best effort as sensor data): keep last 2. A node
 # that falls behind takes the newest frame and at most one queued behind it, never a backlog:
 # with depth 5 / 10 a saturated computer queued 150-190 ms at the supervisor and 0.84-0.96 s
 # at the bridge (docs/journal/performance.md). Not 1, for the reason given at IMAGE_QOS:
-# in lockstep a consumer may still hold frame k's message when frame k+1's arrives.
+# in lockstep a consumer may still hold frame k's message when frame k+1's arrives. (Images
+# keep 4: a node skips the superseded ones itself.)
 FRAME_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.RELIABLE,
                        durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
-PRODUCT_QOS = IMAGE_QOS          # the same profile: best effort, keep last 2
+PRODUCT_QOS = QoSProfile(depth=2, reliability=ReliabilityPolicy.BEST_EFFORT,
+                         durability=DurabilityPolicy.VOLATILE, history=HistoryPolicy.KEEP_LAST)
 
 
 def ns_to_stamp(ns: int, stamp: Time) -> None:

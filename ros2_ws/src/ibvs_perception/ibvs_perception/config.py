@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from ibvs_common.core.attitude_buffer import AttitudeBufferConfig
 from ibvs_common.core.params import group, param
 from ibvs_perception.core.flow import FlowConfig
+from ibvs_perception.core.latest_only import LatestOnlyConfig
 from ibvs_perception.core.pad import PadDetectorConfig
 from ibvs_perception.core.window import WindowDetectorConfig
 
@@ -19,7 +20,7 @@ VEHICLE_FILE = ("vehicle YAML (the camera's calibration: mount, frame, rate, tim
 
 @dataclass(frozen=True)
 class ImageInputConfig:
-    """How every perception node takes its camera's images (mode gating, frozen camera)."""
+    """How every perception node takes its camera's images (gating, latest only, frozen)."""
 
     mode_gating: bool = param(
         True, 'compute this product only for the images of a mode that uses it '
@@ -37,6 +38,7 @@ class ImageInputConfig:
         "this many times in a row is frozen (a hung driver re-stamping its last buffer: a live "
         "sensor's read noise never repeats); its images are then dropped, nothing is published "
         'for them; integer >= 1', 1)
+    latest: LatestOnlyConfig = group(LatestOnlyConfig)
 
 
 @dataclass(frozen=True)

@@ -4,9 +4,11 @@ Every perception node hands its images to :meth:`GatedImages.on_image` instead o
 them itself. From ``ibvs/frame_grid``: only every stride-th frame of this camera is computed,
 the same in every node (ibvs_common.core.frame_grid); from ``ibvs/supervisor_status``: the
 modes (:class:`~ibvs_perception.core.mode_gate.ModeGate`: a product is computed only for the
-images of a mode that uses it, docs/interfaces.md "Mode gating"). Counts the frames it leaves
-out by the grid and the frames that never came (dropped on the way: a node behind takes the
-newest image), and says so on ``/diagnostics`` (:mod:`ibvs_perception.image_diagnostics`).
+images of a mode that uses it, docs/interfaces.md "Mode gating"); and latest only
+(:class:`~ibvs_perception.core.latest_only.LatestOnly`): a node that is behind skips a grid
+image once the next one has surely arrived behind it. Counts the frames it leaves out by the
+grid, those superseded and the grid frames that never came (dropped on the way), and says so
+on ``/diagnostics`` (:mod:`ibvs_perception.image_diagnostics`).
 """
 from __future__ import annotations
 
@@ -21,6 +23,8 @@ from ibvs_common.core.modes import InputKind, modes_using
 from ibvs_common.node_common import (COMMAND_QOS, grid_from_msg, MODE_QOS, mode_from_status,
                                      stamp_to_ns)
 from ibvs_common.throttled_log import ThrottledLog
+from ibvs_perception.config import ImageInputConfig
+from ibvs_perception.core.latest_only import LatestOnly
 from ibvs_perception.core.mode_gate import ModeGate
 from ibvs_perception.image_diagnostics import ImageCounts, ImageDiagnostics, ProcessingTimer
 
@@ -32,8 +36,10 @@ class GatedImages:
 
     def __init__(self, node: Node, kind: InputKind,
                  process: Callable[[Image, bool], None], log_prefix: str,
-                 enabled: bool, depth: int, camera: str, period_ns: int) -> None:
-        self.gate = ModeGate(modes_using(kind), depth, enabled)
+                 config: ImageInputConfig, camera: str, period_ns: int) -> None:
+        self.gate = ModeGate(modes_using(kind), config.mode_gate_depth, config.mode_gating)
+        self.latest = LatestOnly(config.latest)
+        self.clock = node.get_clock()
         self.process = process
         self.prefix = log_prefix
         self.camera = camera
@@ -43,7 +49,7 @@ class GatedImages:
         self._last_index: int | None = None
         self.log = ThrottledLog(node.get_logger())
         self.diagnostics = ImageDiagnostics(node, log_prefix, self.counts, self.timer)
-        if enabled:
+        if config.mode_gating:
             node.create_subscription(DiagnosticArray, 'ibvs/supervisor_status',
                                      self.on_status, COMMAND_QOS)
         node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self.on_grid, MODE_QOS)
@@ -55,10 +61,16 @@ class GatedImages:
 
     def on_image(self, msg: Image) -> None:
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        age_ns = self.clock.now().nanoseconds - stamp_ns
+        self.latest.observe(age_ns)
         if not self.grid.on_grid(stamp_ns):
             self.counts.off_grid += 1
             return
         self._count_missed(stamp_ns)
+        if self.gate.active_at(stamp_ns) and \
+                self.latest.superseded(age_ns, self.grid.period_ns * self.grid.stride):
+            self.counts.superseded += 1
+            return
         self._process_all(self.gate.on_image(stamp_ns, msg))
 
     def _process_all(self, gated_items) -> None:

@@ -3,7 +3,9 @@
 Once a second (ROS clock) a node publishes one DiagnosticStatus named ``<node>: images`` with
 its counters since start (:class:`ImageCounts`): images computed, left out by the frame grid,
 grid frames that never came (dropped on the way, or overwritten in the subscription's queue
-while the node was behind), images computed without an IMU attitude, and the median
+while the node was behind), grid images superseded (skipped by a node behind for the newer one
+behind them, :mod:`ibvs_perception.core.latest_only`), images computed without an IMU
+attitude, and the median
 processing time over the last second (steady clock). WARN while grid frames are lost or
 attitudes are missing. Not on the flight path: the counts only report.
 """
@@ -37,6 +39,7 @@ class ImageCounts:
     computed: int = 0          # images handed to the node's processing
     off_grid: int = 0          # left out: not on the frame grid
     missed: int = 0            # grid frames that never came
+    superseded: int = 0        # grid images skipped: the next one had come (a node behind)
     no_attitude: int = 0       # computed without an IMU attitude at the image stamp
 
 
@@ -65,7 +68,7 @@ def image_status(name: str, counts: ImageCounts, previous: ImageCounts,
     lost = counts.missed - previous.missed
     blind = counts.no_attitude - previous.no_attitude
     values = {'images_computed': counts.computed, 'images_off_grid': counts.off_grid,
-              'grid_frames_missed': counts.missed,
+              'grid_frames_missed': counts.missed, 'images_superseded': counts.superseded,
               'images_without_attitude': counts.no_attitude,
               'processing_median_ms': 'unknown' if median_ms is None else f'{median_ms:.1f}'}
     degraded = lost > 0 or blind > 0

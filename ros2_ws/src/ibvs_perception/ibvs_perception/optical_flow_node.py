@@ -81,8 +81,8 @@ class OpticalFlowNode(Node):
                                         cfg.images.frozen_after_frames)
         self.gated = GatedImages(
             self, InputKind.FLOW_FRONT if self.camera_name == FRONT else InputKind.FLOW_DOWN,
-            self.process, f'{self.camera_name}_optical_flow', cfg.images.mode_gating,
-            cfg.images.mode_gate_depth, camera.name, period_ns(camera.rate_hz))
+            self.process, f'{self.camera_name}_optical_flow', cfg.images, camera.name,
+            period_ns(camera.rate_hz))
         self.attitudes = AttitudeBuffer(cfg.imu)
         self.late_imu = LateImuReport(self.log, THROTTLE_S, 'optical_flow: ')
         self.derotation = GyroDerotation(self.attitudes)

@@ -52,8 +52,7 @@ class PadDetectorNode(Node):
         self.frozen = FrozenCameraGuard(self, 'down', 'pad_detector',
                                         cfg.images.frozen_after_frames)
         self.gated = GatedImages(self, InputKind.PAD, self.process, 'pad_detector',
-                                 cfg.images.mode_gating, cfg.images.mode_gate_depth,
-                                 camera.name, period_ns(camera.rate_hz))
+                                 cfg.images, camera.name, period_ns(camera.rate_hz))
         self.camera_info: CameraInfo | None = None
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
         self.pub_groups = self.create_publisher(JointState, 'pad/groups', 10)

@@ -77,8 +77,7 @@ class WindowDetectorNode(Node):
         self.frozen = FrozenCameraGuard(self, 'front', 'window_detector',
                                         cfg.images.frozen_after_frames)
         self.gated = GatedImages(self, InputKind.WINDOW, self.process, 'window_detector',
-                                 cfg.images.mode_gating, cfg.images.mode_gate_depth,
-                                 camera.name, period_ns(camera.rate_hz))
+                                 cfg.images, camera.name, period_ns(camera.rate_hz))
         self.camera_info: CameraInfo | None = None
         self.pub_corners = self.create_publisher(PolygonStamped, 'window/corners', 10)
         self.pub_normals = self.create_publisher(PolygonStamped, 'window/edge_normals', 10)

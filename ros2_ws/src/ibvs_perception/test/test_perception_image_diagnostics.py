@@ -9,11 +9,13 @@ def values(status):
 
 
 def test_status_is_ok_while_every_grid_frame_is_computed():
-    s = image_status('pad_detector', ImageCounts(computed=50, off_grid=50, missed=2),
+    s = image_status('pad_detector', ImageCounts(computed=50, off_grid=50, missed=2,
+                                                 superseded=1),
                      ImageCounts(computed=25, off_grid=25, missed=2), 3.25)
     assert s.name == 'pad_detector: images' and s.level == DiagnosticStatus.OK
     assert values(s) == {'images_computed': '50', 'images_off_grid': '50',
-                         'grid_frames_missed': '2', 'images_without_attitude': '0',
+                         'grid_frames_missed': '2', 'images_superseded': '1',
+                         'images_without_attitude': '0',
                          'processing_median_ms': '3.2'}
 
 

@@ -29,6 +29,7 @@ from ibvs_sim.core.world import load_world
 from ibvs_control.core.frame_inputs import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
 from ibvs_perception.pad_detector_node import PadDetectorNode
+from ibvs_perception.core.latest_only import MIN_IMAGES
 from ibvs_perception.image_diagnostics import image_status_name
 from ibvs_perception.window_detector_node import WindowDetectorNode
 from ibvs_sim.core.render import SceneRenderer
@@ -518,3 +519,29 @@ def test_window_detector_node_counts_lost_grid_frames_and_missing_attitudes_on_d
     assert values['images_without_attitude'] == '3'
     assert float(values['processing_median_ms']) > 0.0
     assert level == DiagnosticStatus.WARN
+
+
+def test_window_detector_node_skips_an_image_superseded_by_the_next_one_queued(ctx, renderers):
+    executor = ctx[1]
+    node, pubs, got = window_node(ctx, {'window/corners': PolygonStamped})
+    pubs['front_camera/camera_info'].publish(info_msg('front'))
+    assert spin_until(executor, lambda: node.camera_info is not None)
+    img = renderers['front'].render(np.eye(3), START)
+    rng = np.random.default_rng(0)
+
+    def send(age_s):                   # a live image (read noise), stamped age_s ago
+        live = np.clip(img + rng.integers(0, 3, img.shape), 0, 255).astype(np.uint8)
+        now = node.get_clock().now().nanoseconds / 1e9
+        pubs['front_camera/image_raw'].publish(image_msg(live, now - age_s))
+        return now - age_s
+    for k in range(MIN_IMAGES):        # the camera's delivery: the node takes them at once
+        send(0.0)
+        assert spin_until(executor, lambda: len(got['window/corners']) == k + 1)
+    # the node was busy: an image 200 ms old, and the next, fresh, behind it
+    send(0.2)
+    newest = send(0.0)
+    assert spin_until(executor, lambda: len(got['window/corners']) > MIN_IMAGES)
+    spin_until(executor, lambda: False, timeout_s=0.2)
+    assert [stamp_s(m) for m in got['window/corners'][MIN_IMAGES:]] == \
+        [pytest.approx(newest, abs=1e-6)]
+    assert node.gated.counts.superseded == 1
