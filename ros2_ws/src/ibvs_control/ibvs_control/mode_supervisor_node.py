@@ -187,9 +187,11 @@ class ModeSupervisorNode(Node):
         camera = CAMERA_OF[kind]
         if camera != MODE_INPUTS[self._core.mode].camera:
             self._feed(kind, stamp_ns, value)        # the other camera: on arrival
-        elif self._frames.was_skipped(stamp_ns):     # never applied to a frame it missed
+            self._release()
+            return
+        self._core.product_seen(kind.value, stamp_ns / NS_PER_S)   # its node is alive
+        if self._frames.was_skipped(stamp_ns):       # never applied to a frame it missed
             self._stats.late_dropped += 1
-            self._core.product_late(kind.value)
             self.log.warning(f'{kind.value} of t = {stamp_ns / NS_PER_S:.3f} s came after its '
                              'frame was skipped: dropped', LOG_THROTTLE_S)
         elif not self._frames.is_pending(stamp_ns):

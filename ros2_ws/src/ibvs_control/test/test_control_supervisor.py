@@ -415,9 +415,37 @@ def test_products_that_come_late_are_not_lost_the_staleness_timeouts_judge_them(
         t = 0.02 * k
         sup.on_imu(t, R)
         sup.frame_skipped(t, ('window', 'flow_front'))
-        sup.product_late('window')
-        sup.product_late('flow_front')
+        sup.product_seen('window', t)
+        sup.product_seen('flow_front', t)
         if t <= 0.02 + 0.5:
             assert sup.mode == Mode.WINDOW, t
     assert sup.mode == Mode.FAILSAFE
     assert 'stale' in sup.transitions[-1].reason
+
+
+def test_products_of_newer_frames_show_a_node_behind_not_a_dead_one():
+    """Nodes behind skip images for the newest: the products of the skipped frames never
+    come, those of later frames do (not complete: the other product is for yet another)."""
+    sup = started()
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    feed(sup, 0.02, xi, v)
+    for k in range(2, 40):
+        t = 0.02 * k
+        sup.on_imu(t, R)
+        sup.frame_skipped(t, ('window', 'flow_front'))
+        sup.product_seen('window' if k % 2 else 'flow_front', t + 0.02)
+        if t <= 0.02 + 0.5:
+            assert sup.mode == Mode.WINDOW, t
+    assert 'stale' in sup.transitions[-1].reason
+
+
+def test_a_product_older_than_the_skipped_frames_does_not_show_its_node_alive():
+    sup = started()
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    feed(sup, 0.02, xi, v)
+    for k in range(2, 30):
+        t = 0.02 * k
+        sup.on_imu(t, R)
+        sup.frame_skipped(t, ('window',))
+        sup.product_seen('window', 0.02)             # a replay of the last complete frame's
+    assert sup.mode == Mode.FAILSAFE and '(lost' in sup.transitions[-1].reason

@@ -422,14 +422,17 @@ class ModeSupervisor:
         self._skipped_run.append((t, tuple(missing)))
         return self.update(t, apply_requests=False)
 
-    def product_late(self, name: str) -> None:
-        """Note that a product (``name``) came after its frame was skipped: it is not lost.
+    def product_seen(self, name: str, t: float) -> None:
+        """Note that a product (``name``) of the frame of stamp t came: its node is alive.
 
-        A computer that falls behind delivers its products late; only products that do not
-        come at all (a dead camera or node) end a mode by the skipped-frames rule (the
-        staleness timeouts still bound how long frames may be skipped for lateness).
+        During a run of skipped frames, a product of one of them (it came late) or of a newer
+        frame (its node, behind, skipped the older images for the newest) shows that the
+        product is not lost: a computer that falls behind delivers its products late or for
+        other frames, and lowers its frame rate (the rate governor). Only products that do
+        not come at all (a dead camera or node) end a mode by the skipped-frames rule; the
+        staleness timeouts still bound how long frames may be skipped for want of CPU.
         """
-        if self._skipped_run:
+        if self._skipped_run and t >= self._skipped_run[0][0]:
             self._late_in_run.add(name)
 
     def update(self, t: float, apply_requests: bool = True) -> list[Transition]:
@@ -518,10 +521,10 @@ class ModeSupervisor:
                 or len(self._skipped_run) < self.config.skipped_frames_in_a_row:
             return None
         missing = sorted({k for _, m in self._skipped_run for k in m} - self._late_in_run)
-        if not missing:                 # late, not lost: the staleness timeouts judge it
+        if not missing:                 # behind, not lost: the staleness timeouts judge it
             return None
         return (f'{len(self._skipped_run)} frames skipped in a row without '
-                f'{", ".join(missing)} (lost: not even late) for more than '
+                f'{", ".join(missing)} (lost: none came since) for more than '
                 f'{self.config.skipped_frames_timeout_s} s in {self.mode.name}')
 
     def _stale_input(self, t: float) -> str | None:
