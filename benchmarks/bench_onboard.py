@@ -415,6 +415,7 @@ def summarise(out: dict, rep: Replayer, got: list, boot_to_sys_ns: int, stamps: 
                 lat.append((rx_ns - delivered[int(counted[j])]) / 1e6)
                 break
     span_s = max((int(counted[-1]) - int(counted[0])) / 1e9, 1e-9) if len(counted) else 1e-9
+    out.update(stamp_error_ms=stamp_errors_ms(got, boot_to_sys_ns, counted))
     out.update(frames=len(counted), answered=len(answered), latency_ms=np.array(lat),
                rate_held_hz=len(answered) / span_s,
                max_stride=max((s for _, _, s in rep.rates), default=1),
@@ -422,6 +423,21 @@ def summarise(out: dict, rep: Replayer, got: list, boot_to_sys_ns: int, stamps: 
                modes=[(MODE_NAMES.get(m, str(m)), (ns - t0_ns) / 1e9 - START_AT_S)
                       for ns, m in modes])
     return out
+
+
+def stamp_errors_ms(got: list, boot_to_sys_ns: int, counted: np.ndarray) -> np.ndarray:
+    """Return each setpoint's time minus the nearest counted frame stamp (ms).
+
+    The bridge writes a frame's stamp in time_boot_ms through its TIMESYNC estimate of the
+    autopilot's clock: an error beyond MATCH_NS leaves an answered frame unmatched.
+    """
+    if len(counted) < 2 or not got:
+        return np.zeros(0)
+    s = np.array([ms * 1_000_000 + boot_to_sys_ns for ms, _ in got], dtype=np.int64)
+    s = s[(s >= counted[0]) & (s <= counted[-1])]
+    i = np.clip(np.searchsorted(counted, s), 1, len(counted) - 1)
+    before, after = s - counted[i - 1], s - counted[i]
+    return np.where(np.abs(after) < np.abs(before), after, before) / 1e6
 
 
 def report(r: dict) -> None:
@@ -433,6 +449,11 @@ def report(r: dict) -> None:
         line += (f"; after arrival median {np.median(lat):.1f} ms, "
                  f"p99 {np.percentile(lat, 99):.1f} ms")
     print(line + ('' if r.get('started') else '  (the supervisor did not start)'))
+    err = r.get('stamp_error_ms', np.zeros(0))
+    if len(err):
+        off = 100.0 * np.mean(np.abs(err) > MATCH_NS / 1e6)
+        print(f'    setpoint time - frame stamp: median {np.median(err):+.2f} ms, {off:.0f} % '
+              f'beyond {MATCH_NS / 1e6:g} ms (the bridge\'s TIMESYNC estimate)')
     print('    modes: ' + ' -> '.join(f'{m} {t:+.2f} s' for m, t in r['modes']))
     print_diagnostics(r.get('diagnostics', {}))
     cpu = r.get('cpu_pct', {})
