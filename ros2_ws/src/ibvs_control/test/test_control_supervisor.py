@@ -449,3 +449,20 @@ def test_a_product_older_than_the_skipped_frames_does_not_show_its_node_alive():
         sup.frame_skipped(t, ('window',))
         sup.product_seen('window', 0.02)             # a replay of the last complete frame's
     assert sup.mode == Mode.FAILSAFE and '(lost' in sup.transitions[-1].reason
+
+
+def test_a_product_the_new_mode_switched_on_gets_its_staleness_timeout_to_appear():
+    """At WINDOW's start the front flow computes its first frames (a slow computer: longer
+    than the 0.2 s of the skipped-frames rule): not lost, but stale after 0.5 s if it never
+    comes."""
+    sup = started()                                  # WINDOW at t = 0, no front flow yet
+    for k in range(1, 40):
+        t = 0.02 * k
+        sup.on_imu(t, R)
+        sup.frame_skipped(t, ('flow_front',))
+        if t <= 0.5:
+            assert sup.mode == Mode.WINDOW, t
+    assert sup.mode == Mode.FAILSAFE
+    reason = sup.transitions[-1].reason
+    assert reason.endswith('stale for more than 0.5 s in WINDOW') and '(lost' not in reason
+    assert sup.transitions[-1].t == pytest.approx(0.52)

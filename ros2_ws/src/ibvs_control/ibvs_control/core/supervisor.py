@@ -47,10 +47,14 @@ from ibvs_common.core.features import (
     centroid_feature, distance_to_window_plane, edge_normals, pad_feature,
     pad_height_estimate, window_axes, window_normal)
 from ibvs_common.core.frames import e3
-from ibvs_common.core.modes import FLYING_MODES, Mode
+from ibvs_common.core.modes import FLYING_MODES, InputKind, Mode
 from ibvs_control.core.pad_prediction import PadPrediction
 
 __all__ = ['Mode', 'ModeSupervisor', 'SupervisorConfig', 'Transition']
+
+#: the input (whose age the staleness rules watch) of each frame product, by InputKind value
+PRODUCT_INPUTS = {InputKind.WINDOW.value: 'window', InputKind.FLOW_FRONT.value: 'front_flow',
+                  InputKind.FLOW_DOWN.value: 'down_flow', InputKind.PAD.value: 'pad'}
 
 
 @dataclass(frozen=True)
@@ -193,6 +197,7 @@ class ModeSupervisor:
         self._t_complete: float | None = None           # stamp of the last complete frame
         self._skipped_run: list[tuple[float, tuple]] = []   # frames skipped since, (t, missing)
         self._late_in_run: set[str] = set()             # products that came late in that run
+        self._seen_in_mode: set[str] = set()            # products that came since the mode began
         self.skipped_frames = 0                         # frames skipped in all
 
     # --- commands ---------------------------------------------------------------------------
@@ -434,6 +439,8 @@ class ModeSupervisor:
         """
         if self._skipped_run and t >= self._skipped_run[0][0]:
             self._late_in_run.add(name)
+        if t > self._t_mode:               # a frame of this mode (not the one that began it)
+            self._seen_in_mode.add(name)
 
     def update(self, t: float, apply_requests: bool = True) -> list[Transition]:
         """Apply requested transitions, then the staleness rules; return what changed.
@@ -481,6 +488,7 @@ class ModeSupervisor:
             self._pad_prediction.reset()
         self.mode = to_mode
         self._t_mode = t
+        self._seen_in_mode.clear()
         self.transitions.append(tr)
         return tr
 
@@ -520,12 +528,23 @@ class ModeSupervisor:
         if t - since <= self.config.skipped_frames_timeout_s \
                 or len(self._skipped_run) < self.config.skipped_frames_in_a_row:
             return None
-        missing = sorted({k for _, m in self._skipped_run for k in m} - self._late_in_run)
-        if not missing:                 # behind, not lost: the staleness timeouts judge it
+        missing = sorted(k for k in {k for _, m in self._skipped_run for k in m}
+                         if k not in self._late_in_run and self._came_in_mode(k))
+        if not missing:   # behind, or not started yet: the staleness timeouts judge it
             return None
         return (f'{len(self._skipped_run)} frames skipped in a row without '
                 f'{", ".join(missing)} (lost: none came since) for more than '
                 f'{self.config.skipped_frames_timeout_s} s in {self.mode.name}')
+
+    def _came_in_mode(self, product: str) -> bool:
+        """Whether ``product`` came since the mode began: only then can it be lost.
+
+        A product the mode has just switched on (the front flow at WINDOW's start) has its
+        first frames to compute, primer included; on a slow computer that takes longer than
+        ``skipped_frames_timeout_s``. The staleness timeout gives it one timeout to appear.
+        """
+        last = self._last.get(PRODUCT_INPUTS.get(product, product))
+        return product in self._seen_in_mode or (last is not None and last > self._t_mode)
 
     def _stale_input(self, t: float) -> str | None:
         cfg = self.config
