@@ -178,3 +178,42 @@ def test_recorder_then_player_reproduce_topics_and_stamps(tmp_path, ros):
     finally:
         for n in (player, sink, src):
             n.destroy_node()
+
+
+def test_recorder_stops_images_at_the_cap_and_records_the_rest(tmp_path, ros):
+    from ibvs_harness.recorder_node import RecorderNode
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    path = tmp_path / 'capped'
+    src = rclpy.create_node('capped_source')
+    img_pub = src.create_publisher(Image, 'front_camera/image_raw',
+                                   rclpy.qos.qos_profile_sensor_data)
+    ev_pub = src.create_publisher(String, 'sim/events', 10)
+    size = len(serialize_message(_image(100, 0)))
+    ex = SingleThreadedExecutor()
+    ex.add_node(src)
+    rec = None
+    try:
+        rec = RecorderNode(parameter_overrides=[
+            Parameter('bag_path', value=str(path)),
+            Parameter('max_image_mb', value=2.5 * size / 1e6),      # room for 2 images
+            Parameter('topics', value=['front_camera/image_raw', 'sim/events'])])
+        ex.add_node(rec)
+        assert _spin_until(ex, lambda: len(rec.subs) == 2, 10.0), rec.subs
+        time.sleep(0.3)
+        deadline = time.monotonic() + 10.0
+        while rec.counts['front_camera/image_raw'] < 5 and time.monotonic() < deadline:
+            img_pub.publish(_image(100 + rec.counts['front_camera/image_raw'], 0))
+            ex.spin_once(timeout_sec=0.02)
+        ev_pub.publish(String(data='{"type": "touchdown"}'))
+        assert _spin_until(ex, lambda: rec.counts['sim/events'] == 1, 5.0)
+    finally:
+        if rec is not None:
+            ex.remove_node(rec)
+            rec.destroy_node()
+        src.destroy_node()
+    counts = bag.topic_counts(path)
+    assert counts['/front_camera/image_raw'] == 2 and rec.image_bytes == 2 * size
+    assert rec.images_over_cap == rec.counts['front_camera/image_raw'] - 2 >= 3
+    assert counts['/sim/events'] == 1
