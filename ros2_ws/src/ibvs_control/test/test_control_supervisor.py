@@ -402,12 +402,10 @@ def test_at_a_coarse_stride_it_takes_three_skipped_frames_as_well_as_the_timeout
         assert sup.mode == (Mode.WINDOW if k < 2 else Mode.FAILSAFE), (t, sup.mode)
 
 
-def test_products_that_come_late_are_not_lost_the_staleness_timeouts_judge_them():
-    """A computer that falls behind: the frames are skipped, their products come late.
-
-    Not the skipped-frames rule (for products that never come) but the 0.5 s staleness of
-    the window and front flow ends the mode, if the lateness lasts.
-    """
+def skipped_window_frames(products):
+    """WINDOW with a complete frame at 0.02 s, then frames 0.04-0.78 s skipped for want of the
+    window and front flow; ``products(k, t)``: the (name, stamp) of the products that came
+    meanwhile. Checks that the mode holds for 0.5 s; returns the supervisor."""
     sup = started()
     xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
     feed(sup, 0.02, xi, v)
@@ -415,10 +413,20 @@ def test_products_that_come_late_are_not_lost_the_staleness_timeouts_judge_them(
         t = 0.02 * k
         sup.on_imu(t, R)
         sup.frame_skipped(t, ('window', 'flow_front'))
-        sup.product_seen('window', t)
-        sup.product_seen('flow_front', t)
+        for name, stamp in products(k, t):
+            sup.product_seen(name, stamp)
         if t <= 0.02 + 0.5:
             assert sup.mode == Mode.WINDOW, t
+    return sup
+
+
+def test_products_that_come_late_are_not_lost_the_staleness_timeouts_judge_them():
+    """A computer that falls behind: the frames are skipped, their products come late.
+
+    Not the skipped-frames rule (for products that never come) but the 0.5 s staleness of
+    the window and front flow ends the mode, if the lateness lasts.
+    """
+    sup = skipped_window_frames(lambda k, t: (('window', t), ('flow_front', t)))
     assert sup.mode == Mode.FAILSAFE
     assert 'stale' in sup.transitions[-1].reason
 
@@ -426,16 +434,8 @@ def test_products_that_come_late_are_not_lost_the_staleness_timeouts_judge_them(
 def test_products_of_newer_frames_show_a_node_behind_not_a_dead_one():
     """Nodes behind skip images for the newest: the products of the skipped frames never
     come, those of later frames do (not complete: the other product is for yet another)."""
-    sup = started()
-    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
-    feed(sup, 0.02, xi, v)
-    for k in range(2, 40):
-        t = 0.02 * k
-        sup.on_imu(t, R)
-        sup.frame_skipped(t, ('window', 'flow_front'))
-        sup.product_seen('window' if k % 2 else 'flow_front', t + 0.02)
-        if t <= 0.02 + 0.5:
-            assert sup.mode == Mode.WINDOW, t
+    sup = skipped_window_frames(
+        lambda k, t: (('window' if k % 2 else 'flow_front', t + 0.02),))
     assert 'stale' in sup.transitions[-1].reason
 
 

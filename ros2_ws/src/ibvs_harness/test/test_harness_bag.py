@@ -100,6 +100,16 @@ def _spin_until(executor, pred, timeout):
     return pred()
 
 
+def _publish_images_until(executor, rec, img_pub, n, timeout_s=10.0):
+    """Publish images (stamps 100, 101, ..., values 0, 1, ...) until the recorder got n."""
+    sent = 0
+    deadline = time.monotonic() + timeout_s
+    while rec.counts['front_camera/image_raw'] < n and time.monotonic() < deadline:
+        img_pub.publish(_image(100 + sent, sent))
+        sent += 1
+        executor.spin_once(timeout_sec=0.02)
+
+
 @pytest.fixture
 def ros():
     rclpy.init()
@@ -136,12 +146,7 @@ def test_recorder_then_player_reproduce_topics_and_stamps(tmp_path, ros):
         assert _spin_until(ex, lambda: len(rec.subs) == 3, 10.0), rec.subs
         assert _spin_until(ex, lambda: rec.counts.get('ibvs/mode') == 1, 5.0)
         time.sleep(0.3)
-        sent = 0
-        deadline = time.monotonic() + 10.0
-        while rec.counts['front_camera/image_raw'] < 6 and time.monotonic() < deadline:
-            img_pub.publish(_image(100 + sent, sent))
-            sent += 1
-            ex.spin_once(timeout_sec=0.02)
+        _publish_images_until(ex, rec, img_pub, 6)
         ev_pub.publish(String(data='{"type": "touchdown"}'))
         assert _spin_until(ex, lambda: rec.counts['sim/events'] == 1, 5.0)
     finally:
@@ -202,10 +207,7 @@ def test_recorder_stops_images_at_the_cap_and_records_the_rest(tmp_path, ros):
         ex.add_node(rec)
         assert _spin_until(ex, lambda: len(rec.subs) == 2, 10.0), rec.subs
         time.sleep(0.3)
-        deadline = time.monotonic() + 10.0
-        while rec.counts['front_camera/image_raw'] < 5 and time.monotonic() < deadline:
-            img_pub.publish(_image(100 + rec.counts['front_camera/image_raw'], 0))
-            ex.spin_once(timeout_sec=0.02)
+        _publish_images_until(ex, rec, img_pub, 5)
         ev_pub.publish(String(data='{"type": "touchdown"}'))
         assert _spin_until(ex, lambda: rec.counts['sim/events'] == 1, 5.0)
     finally:
