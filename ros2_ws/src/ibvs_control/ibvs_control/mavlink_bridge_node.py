@@ -274,6 +274,9 @@ class MavlinkBridgeNode(Node):
                   'reader_wakeups': str(self._reader.wakeups),
                   'reader_errors': str(self._reader.errors)}
         values.update({k: str(v) for k, v in st.counters.items()})
+        # what the autopilot does when we stop (the preflight gates on them): as read
+        values['source_system'] = str(st.source_system)
+        values.update({name: f'{v:g}' for name, v in sorted(st.dead_bridge_params.items())})
         status.values = [KeyValue(key=k, value=v) for k, v in values.items()]
         msg = DiagnosticArray()
         msg.header.stamp = self.get_clock().now().to_msg()

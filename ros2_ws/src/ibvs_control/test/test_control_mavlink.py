@@ -1375,6 +1375,9 @@ def test_ardupilot_dead_bridge_failsafe_is_read_and_reported(peer_bridge, params
     spin(bridge, 1.5, until=lambda: bridge.params.dead_bridge_failsafe is not None)
     assert bridge.params.dead_bridge_failsafe is expected
     assert bridge.status().dead_bridge_failsafe is expected
+    status = bridge.status()         # the values as read, and our system id, for /diagnostics
+    assert status.dead_bridge_params == {k: float(v) for k, v in params.items()}
+    assert status.source_system == 1
     events = [text for _, text in bridge.pop_events()]
     if says:
         assert sum(says in t for t in events) == 1, events
@@ -1409,6 +1412,8 @@ def test_px4_offboard_loss_failsafe_is_read_and_reported(peer_bridge, params, ex
     spin(bridge, 1.5, until=lambda: bridge.params.dead_bridge_failsafe is not None)
     assert bridge.params.dead_bridge_failsafe is expected
     assert bridge.status().dead_bridge_failsafe is expected
+    # the values as read, for /diagnostics (the preflight gates on them)
+    assert bridge.status().dead_bridge_params == {k: float(v) for k, v in params.items()}
     events = [text for _, text in bridge.pop_events()]
     if says:
         assert sum(says in t for t in events) == 1, events

@@ -1,7 +1,7 @@
 """The bridge's diagnostics: its log events and its /diagnostics snapshot (ROS-free)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from ibvs_control.mavlink.time_sync import TimeSyncStatus
@@ -58,6 +58,10 @@ class BridgeStatus:
     link_error: str = ''                    # the connection's last error ('' if none)
     stale_setpoints: int = 0                # of rejected_setpoints: images too old
     telemetry_slowed: bool = False          # the high-rate streams at their rate at rest
+    # the dead-bridge failsafe parameters as read (PX4 COM_OF_LOSS_T, COM_OBL_RC_ACT;
+    # ArduPilot FS_GCS_ENABLE, SYSID_MYGCS), and this bridge's MAVLink system id
+    dead_bridge_params: dict = field(default_factory=dict)
+    source_system: int = 0
 
 
 def bridge_status(bridge: MavlinkBridge, now: float) -> BridgeStatus:
@@ -97,4 +101,6 @@ def bridge_status(bridge: MavlinkBridge, now: float) -> BridgeStatus:
                   'streams_refused': len(streams.refused) if streams else 0},
         time_sync=bridge.time_sync.status(), imu_dropped_unsynced=tel.imu_dropped_unsynced,
         link_error=link.last_error, stale_setpoints=sp.shaper.stale,
-        telemetry_slowed=bridge.rates.slowed)
+        telemetry_slowed=bridge.rates.slowed,
+        dead_bridge_params=dict(bridge.params.dead_bridge_params),
+        source_system=bridge.params.source_system)
