@@ -27,6 +27,7 @@ setup(
             'runner = ibvs_bringup.runner:main',
             'composed = ibvs_bringup.composed:main',
             'preflight = ibvs_bringup.preflight:main',
+            'print_pad = ibvs_bringup.print_pad:main',
         ],
     },
 )
