@@ -660,7 +660,8 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
     # Clocks stand still: the autopilot's boot time 1.5 s, our ROS time (/clock) 4.0 s, so the
     # TIMESYNC offset is exactly 2.5 s (rtt 0) and the mapped times are exact.
     peer = FakeAutopilot(time.monotonic, yaw_ned=np.pi / 2, boot_clock=lambda: 1_500_000_000,
-                         armed=False, landed=True)
+                         armed=False, landed=True,
+                         params={'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 4})
     runner = PeerThread(peer)
     try:
         bridge = MavlinkBridgeNode(
@@ -732,6 +733,10 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         assert keys['landed_state'] == '1' and keys['armable'] == 'True'
         assert keys['clock_synced'] == 'yes' and keys['clock_offset_ms'] == '2500.000'
         assert int(keys['timesync_accepted']) >= 5
+        # the dead-bridge failsafe as read (PX4 sends the INT32 bytewise) and our system id:
+        # what the preflight gates on
+        assert keys['COM_OBL_RC_ACT'] == '4' and keys['COM_OF_LOSS_T'] == '1'
+        assert keys['source_system'] == '1' and keys['dead_bridge_failsafe'] == 'True'
         assert not peer.armed
     finally:
         runner.close()
