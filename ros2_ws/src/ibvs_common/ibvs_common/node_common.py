@@ -276,3 +276,36 @@ def camera_from_status(msg: DiagnosticArray) -> str | None:
                 if kv.key == STATUS_CAMERA_KEY:
                     return kv.value
     return None
+
+
+# ibvs/preflight (diagnostic_msgs/DiagnosticArray, latched): the preflight's verdict. One
+# status named PREFLIGHT_NAME: level OK = go, ERROR = no-go; message = the summary line; one
+# value per check (its name -> 'OK: ...', 'FAIL: ...' or 'SKIP: ...'). Published by the
+# preflight (ibvs_bringup.preflight) when it ends; the supervisor refuses ibvs/start while
+# the latest one is no-go (its require_preflight_go).
+PREFLIGHT_TOPIC = 'ibvs/preflight'
+PREFLIGHT_NAME = 'preflight'
+
+
+def preflight_verdict_msg(go: bool, summary: str, checks: Iterable[tuple[str, str]],
+                          stamp_ns: int) -> DiagnosticArray:
+    """Build the ibvs/preflight message: go or no-go, the summary line, (check, state) pairs."""
+    status = DiagnosticStatus(
+        level=DiagnosticStatus.OK if go else DiagnosticStatus.ERROR, name=PREFLIGHT_NAME,
+        message=summary, values=[KeyValue(key=k, value=v) for k, v in checks])
+    msg = DiagnosticArray(status=[status])
+    ns_to_stamp(stamp_ns, msg.header.stamp)
+    return msg
+
+
+def preflight_verdict(msg: DiagnosticArray) -> tuple[bool | None, str]:
+    """ibvs/preflight -> (True: go | False: no-go, its summary) or (None, why it is unreadable)."""
+    for status in msg.status:
+        if status.name != PREFLIGHT_NAME:
+            continue
+        if status.level == DiagnosticStatus.OK:
+            return True, status.message
+        if status.level == DiagnosticStatus.ERROR:
+            return False, status.message
+        return None, f'level {status.level!r} is neither OK (go) nor ERROR (no-go)'
+    return None, f'no {PREFLIGHT_NAME!r} status'

@@ -39,6 +39,10 @@ class ModeSupervisorNodeConfig:
     vehicle_file: str = param('', VEHICLE_FILE)
     window_layout_file: str = param('', WINDOW_LAYOUT_FILE)
     pad_layout_file: str = param('', PAD_LAYOUT_FILE)
+    require_preflight_go: bool = param(
+        True, 'true: ibvs/start is refused while the latest preflight verdict (ibvs/preflight) '
+        'is no-go; false: the operator overrides it, the start goes on and the no-go is '
+        'logged. No verdict at all (the preflight not run) refuses nothing')
     supervisor: SupervisorConfig = group(SupervisorConfig)
     governor: GovernorConfig = group(GovernorConfig)
     imu: AttitudeBufferConfig = group(AttitudeBufferConfig, 'imu_')

@@ -5,7 +5,9 @@ Thin ROS wrapper of :class:`~ibvs_control.core.supervisor.ModeSupervisor` on the
 frames, each once the products its mode needs are in, or skipped at its deadline. It chooses
 the frame stride the graph can hold (core/rate_governor.py), publishes ``ibvs/mode``, one
 ``ibvs/supervisor_status`` per evaluated frame (its mode and stride) and its frame counts on
-``/diagnostics``, and serves ``ibvs/start`` and ``ibvs/abort``.
+``/diagnostics``, and serves ``ibvs/start`` and ``ibvs/abort``. ``ibvs/start`` is refused
+while the latest preflight verdict (``ibvs/preflight``) is no-go, unless
+``require_preflight_go`` is false (:class:`~ibvs_control.core.preflight_gate.PreflightGate`).
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from ibvs_common.core.lever_arm import camera_bearings_from_body, has_lever_arm
 from ibvs_common.core.modes import CAMERA_OF, Camera, InputKind, Mode, MODE_INPUTS
 from ibvs_control.config import ModeSupervisorNodeConfig
 from ibvs_control.core.frame_stats import FrameStats
+from ibvs_control.core.preflight_gate import PreflightGate
 from ibvs_control.core.rate_governor import RateGovernor, SupervisorGrids
 from ibvs_control.core.supervisor import ModeSupervisor
 from ibvs_common.core.attitude_buffer import AttitudeBuffer
@@ -33,7 +36,7 @@ from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, frame_grid_msg, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S,
-    SENSOR_QOS, supervisor_status_msg)
+    PREFLIGHT_TOPIC, preflight_verdict, SENSOR_QOS, supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
@@ -72,6 +75,7 @@ class ModeSupervisorNode(Node):
         self._clock_watch = BackstepWatch()    # the node clock, read in every callback
         self._n_reported = 0
         self._published: Mode | None = None
+        self._preflight = PreflightGate(cfg.require_preflight_go)
 
         self._mode_pub = self.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
@@ -82,6 +86,8 @@ class ModeSupervisorNode(Node):
         # in process (composed), the IMU samples are taken at the start of every callback
         self._imu = subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
+        # the preflight's verdict (latched; only ibvs/start reads it)
+        self.create_subscription(DiagnosticArray, PREFLIGHT_TOPIC, self._on_preflight, MODE_QOS)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
         self.create_timer(1.0 / cfg.update_rate_hz, self._on_timer)   # node clock
@@ -341,11 +347,28 @@ class ModeSupervisorNode(Node):
         self._publish_grid()                   # again once a second: nothing lost for long
 
     # --- services and timer ----------------------------------------------------------------
+    def _on_preflight(self, msg: DiagnosticArray) -> None:
+        """Keep the preflight's latest verdict (an unreadable one counts as no-go)."""
+        go, summary = preflight_verdict(msg)
+        if go is None:
+            self._error(f'{PREFLIGHT_TOPIC} unreadable, taken as no-go: {summary}')
+        else:
+            self.get_logger().info(f'preflight verdict: {summary}')
+        self._preflight.on_verdict(go, summary, self.get_clock().now().nanoseconds / NS_PER_S)
+
     def _on_start(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
+        refusal = self._preflight.refusal()
+        if refusal is not None:
+            response.success, response.message = False, refusal
+            self.get_logger().error(f'ibvs/start refused: {refusal}')
+            return response
         self._imu.take()                   # the start checks the IMU's age
         response.success, response.message = self._core.request_start(self._now())
         self.get_logger().info(f'ibvs/start: {response.message}')
+        note = self._preflight.note()
+        if response.success and note:
+            self.get_logger().warning(f'ibvs/start: {note}')
         return response
 
     def _on_abort(self, request: Trigger.Request, response: Trigger.Response
