@@ -1,4 +1,7 @@
-"""Preflight: wait until the graph is healthy, print a checklist, exit 0 (ready) or 1.
+"""Preflight: wait until the graph is ready to fly, print a checklist and a go/no-go line.
+
+Exit status 0 on go, 1 on no-go; the verdict is also published, latched, on ``ibvs/preflight``
+(the supervisor refuses ``ibvs/start`` while it is no-go: its ``require_preflight_go``).
 
 Checks: camera_info valid on both cameras, imu/data flowing, MAVLink link up in /diagnostics
 (a status of the bridge with 'mavlink' in its name at level OK), the bridge's clock synced with
@@ -15,14 +18,25 @@ detector that is not running, fails here), and each camera's timing (``CameraTim
 frame rate from the stamps within ``RATE_TOLERANCE`` of vehicle.yaml's ``rate_hz``, and its
 delivery latency, stamp to arrival, median at most ``MAX_DELIVERY_S``: a driver that stamps
 at the end of the transfer, or a latency the frame deadlines cannot cover, fails here).
-``GraphHealth`` can also be attached to another node
-(``run_scenario`` does) so that the same checks gate a scripted run.
+The preflight command adds the autopilot's set-up (``autopilot_setup``): its failsafe when
+the bridge stops (``failsafe_setup``: PX4 ``COM_OBL_RC_ACT`` = 4, Land mode, and
+``COM_OF_LOSS_T`` at most ``PX4_OFFBOARD_LOSS_T_MAX_S``; ArduPilot ``FS_GCS_ENABLE`` on and
+``SYSID_MYGCS`` = the bridge's system id, as the bridge reads them, docs/mavlink.md
+"Autopilot set-up") and whether the vehicle is armed or armable (``armability``: the
+autopilot's pre-arm checks, reported by the bridge). With ``--check-pad`` (a bench with the
+down camera over the pad) it also checks that the pad is in view (``PadInView``: the pad
+detector's own code, on the down camera's images, a few a second); at the start of the
+mission the pad is past the wall, out of the down camera's view, so by default that check is
+listed as skipped. ``GraphHealth`` can also be attached to another node (``run_scenario``
+does) so that the graph's checks gate a scripted run; the autopilot's set-up and the pad are
+then listed as skipped.
 """
 from __future__ import annotations
 
 import argparse
 import collections
 from dataclasses import dataclass
+import math
 import sys
 import time
 from typing import Callable
@@ -30,15 +44,22 @@ from typing import Callable
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PolygonStamped
 import rclpy
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from sensor_msgs.msg import CameraInfo, Imu
+from sensor_msgs.msg import CameraInfo, Image, Imu
 from std_msgs.msg import UInt8
 
 from ibvs_common.core.clock_step import BackstepWatch
-from ibvs_common.core.config import load_vehicle
+from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.stamps import NS_PER_S, s_to_ns, stamp_to_ns
+from ibvs_common.node_common import IMAGE_QOS, PREFLIGHT_TOPIC, preflight_verdict_msg
+from ibvs_common.throttled_log import ThrottledLog
+from ibvs_control.mavlink.params import (
+    GCS_FAILSAFE_PARAM, MY_GCS_PARAM, OFFBOARD_LOSS_ACT_PARAM, OFFBOARD_LOSS_T_PARAM,
+    PX4_OFFBOARD_LOSS_ACTIONS, PX4_OFFBOARD_LOSS_LAND, PX4_OFFBOARD_LOSS_T_MAX_S,
+    PX4_OFFBOARD_LOSS_WHY)
 
 IMU_MIN_MESSAGES = 10
 IMU_MAX_AGE_S = 1.0
@@ -53,6 +74,11 @@ KEEP_UP_GRACE_S = 0.25        # s (ROS clock), frames that arrived less than thi
 CAMERA_TIMING_FRAMES = 50     # frames each camera's timing is judged on
 RATE_TOLERANCE = 0.1          # measured frame rate within 10 % of vehicle.yaml's rate_hz
 MAX_DELIVERY_S = 0.1          # s, median stamp -> arrival (a USB / MIPI camera: 20-40 ms)
+PAD_TRY_PERIOD_S = 0.2        # s (steady), one down image in this long is searched for the pad
+PAD_TRIES = 10                # the last down images tried that the pad check looks at
+PAD_MIN_SEEN = 0.8            # fraction of them with a complete marker group
+VERDICT_ACK_S = 2.0           # s (wall), the verdict's wait for its subscribers' ack at the end
+THROTTLE_S = 5.0
 BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
 LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -65,6 +91,7 @@ class Check:
     name: str
     ok: bool
     detail: str
+    skipped: bool = False       # not checked here (``detail`` says why): neither go nor no-go
 
 
 def camera_info_problem(msg: CameraInfo) -> str | None:
@@ -207,6 +234,124 @@ class CameraTiming:
         return ok, detail
 
 
+def bridge_values(msg: DiagnosticArray) -> dict | None:
+    """Return the key -> value pairs of the bridge's MAVLink status (None if it has none)."""
+    for s in msg.status:
+        if 'mavlink' in s.name.lower():
+            return {kv.key: kv.value for kv in s.values}
+    return None
+
+
+def _number(text: str | None) -> float | None:
+    """Return a finite number from a diagnostics value, None if absent or not one."""
+    try:
+        value = float(text) if text is not None else math.nan
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
+
+
+def failsafe_setup(values: dict | None) -> tuple[bool, str]:
+    """Whether the autopilot lands the vehicle when the bridge stops: (ok, detail).
+
+    ``values``: the bridge's MAVLink status (``bridge_values``), which carries the failsafe
+    parameters as the bridge read them. PX4: ``COM_OBL_RC_ACT`` = 4 (Land mode; the other
+    actions need a position estimate or a pilot, or stop the motors) and ``COM_OF_LOSS_T`` at
+    most ``PX4_OFFBOARD_LOSS_T_MAX_S`` (the vehicle flies the last setpoint that long).
+    ArduPilot: ``FS_GCS_ENABLE`` not 0 and ``SYSID_MYGCS`` = the bridge's ``source_system``
+    (its GCS failsafe then acts on the loss of our HEARTBEAT). docs/mavlink.md "Autopilot
+    set-up". Not read yet, or another autopilot: not ok.
+    """
+    if values is None:
+        return False, 'not reported (no MAVLink status of the bridge on /diagnostics)'
+    autopilot = values.get('autopilot', 'unknown')
+    if autopilot == 'px4':
+        action = _number(values.get(OFFBOARD_LOSS_ACT_PARAM))
+        timeout = _number(values.get(OFFBOARD_LOSS_T_PARAM))
+        if action is None or timeout is None:
+            return False, f'PX4 {OFFBOARD_LOSS_ACT_PARAM} / {OFFBOARD_LOSS_T_PARAM} not read yet'
+        act = int(action)
+        what = PX4_OFFBOARD_LOSS_ACTIONS.get(act, 'unknown action')
+        said = (f'PX4 {OFFBOARD_LOSS_ACT_PARAM} = {act} ({what}), {OFFBOARD_LOSS_T_PARAM} = '
+                f'{timeout:g} s')
+        if act != PX4_OFFBOARD_LOSS_LAND:
+            why = PX4_OFFBOARD_LOSS_WHY.get(act, 'is not an action of PX4 v1.16')
+            return False, (f'{said}: {what} {why}; set {OFFBOARD_LOSS_ACT_PARAM} = '
+                           f'{PX4_OFFBOARD_LOSS_LAND} (Land mode)')
+        if timeout > PX4_OFFBOARD_LOSS_T_MAX_S:
+            return False, (f'{said}: the vehicle would fly the last setpoint {timeout:g} s '
+                           f'after ours stop; set {OFFBOARD_LOSS_T_PARAM} <= '
+                           f'{PX4_OFFBOARD_LOSS_T_MAX_S:g} s')
+        return True, f'{said}: PX4 lands when our setpoints stop'
+    if autopilot == 'ardupilot':
+        enabled = _number(values.get(GCS_FAILSAFE_PARAM))
+        gcs = _number(values.get(MY_GCS_PARAM))
+        ours = _number(values.get('source_system'))
+        if enabled is None or gcs is None:
+            return False, f'ArduPilot {GCS_FAILSAFE_PARAM} / {MY_GCS_PARAM} not read yet'
+        if ours is None:
+            return False, "the bridge's source_system is not reported"
+        said = f'ArduPilot {GCS_FAILSAFE_PARAM} = {int(enabled)}, {MY_GCS_PARAM} = {int(gcs)}'
+        if int(enabled) == 0:
+            return False, (f'{said}: no GCS failsafe, a dead bridge leaves the vehicle '
+                           f'hovering armed; set {GCS_FAILSAFE_PARAM} = 5 (land)')
+        if int(gcs) != int(ours):
+            return False, (f"{said}: not this bridge's system id {int(ours)}; set "
+                           f'{MY_GCS_PARAM} = {int(ours)}')
+        return True, f'{said} (this bridge): ArduPilot acts when our HEARTBEAT stops'
+    return False, f'autopilot {autopilot}: its failsafe parameters are not known'
+
+
+def armability(values: dict | None) -> tuple[bool, str]:
+    """Whether the vehicle is armed, or armable (its pre-arm checks pass): (ok, detail)."""
+    if values is None:
+        return False, 'not reported (no MAVLink status of the bridge on /diagnostics)'
+    if values.get('armed') == 'True':
+        return True, 'armed'
+    armable = values.get('armable')
+    if armable == 'True':
+        return True, "disarmed, armable (the autopilot's pre-arm checks pass)"
+    if armable == 'False':
+        reason = values.get('last_autopilot_reason', '')
+        return False, ("disarmed and NOT armable: the autopilot's pre-arm checks fail"
+                       + (f' (its last message: {reason})' if reason else '')
+                       + "; PX4's follow its current mode: Altitude or Stabilized indoors")
+    return False, 'armability not reported yet (SYS_STATUS)'
+
+
+class PadInView:
+    """Is the pad in view of the down camera: complete groups in the last images tried. ROS-free.
+
+    ``note`` takes the groups found in one image (the pad detector's ``group_names``: empty
+    when none is complete), ``note_error`` an image that could not be searched.
+    """
+
+    def __init__(self, tries: int = PAD_TRIES) -> None:
+        self._tries: collections.deque = collections.deque(maxlen=tries)
+        self.last_error = ''
+
+    def note(self, groups: tuple) -> None:
+        """Take the complete groups found in one image."""
+        self._tries.append(tuple(groups))
+
+    def note_error(self, why: str) -> None:
+        """Take an image that could not be searched (``why``: the reason)."""
+        self.last_error = why
+        self._tries.append(())
+
+    def check(self, min_tries: int = PAD_TRIES,
+              min_seen: float = PAD_MIN_SEEN) -> tuple[bool, str]:
+        """Return (ok, detail): a complete group in at least ``min_seen`` of the tries."""
+        error = f'; last error: {self.last_error}' if self.last_error else ''
+        if len(self._tries) < min_tries:
+            return False, f'{len(self._tries)} down images tried yet (needs {min_tries}){error}'
+        seen = [t for t in self._tries if t]
+        groups = sorted({g for t in seen for g in t})
+        detail = (f'complete groups in {len(seen)} of the last {len(self._tries)} down images'
+                  + (f' ({", ".join(groups)})' if groups else '') + error)
+        return len(seen) >= min_seen * len(self._tries), detail
+
+
 def link_up(msg: DiagnosticArray) -> bool | None:
     """Return the MAVLink link state reported in a DiagnosticArray (None if not reported)."""
     states = [s.level == DiagnosticStatus.OK for s in msg.status if 'mavlink' in s.name.lower()]
@@ -214,12 +359,26 @@ def link_up(msg: DiagnosticArray) -> bool | None:
 
 
 class GraphHealth:
-    """Subscriptions that watch the graph's vital signs on a given node."""
+    """Subscriptions that watch the graph's vital signs on a given node.
+
+    ``autopilot_setup``: also check the autopilot's failsafe parameters and armability (the
+    preflight command; a scripted run, whose harness plays the pilot, leaves them out).
+    ``check_pad``: also search the down camera's images for the pad (a bench; the pad is not
+    in view at a mission's start); ``pad_layout_file``: its layout ('' = installed).
+    """
 
     def __init__(self, node: Node, clock: Callable[[], float] = time.monotonic,
-                 rates_hz: dict | None = None) -> None:
+                 rates_hz: dict | None = None, autopilot_setup: bool = False,
+                 check_pad: bool = False, pad_layout_file: str = '') -> None:
         self.clock = clock
         self.node = node
+        self.autopilot_setup = autopilot_setup
+        self.check_pad = check_pad
+        self.bridge: dict | None = None     # the bridge's latest MAVLink status values
+        self.pad = PadInView()
+        self._down_info: CameraInfo | None = None
+        self._pad_detector = None
+        self._pad_tried = -math.inf
         self.rates_hz = rates_hz or {cam: c.rate_hz for cam, c in load_vehicle().cameras.items()}
         self.camera_timing = {cam: CameraTiming() for cam in ('front', 'down')}
         self.stamps: dict = {'front camera': None, 'down camera': None, 'imu': None}
@@ -242,6 +401,13 @@ class GraphHealth:
             node.create_subscription(Imu, 'imu/data', self._on_imu, BEST_EFFORT),
             node.create_subscription(PolygonStamped, 'window/corners', self._on_window,
                                      BEST_EFFORT)]
+        if check_pad:
+            from ibvs_perception.core.pad import PadDetector, PadDetectorConfig
+            self._pad_detector = PadDetector(load_pad_layout(pad_layout_file or None),
+                                             PadDetectorConfig())
+            self._log = ThrottledLog(node.get_logger())
+            self._preflight_only.append(node.create_subscription(
+                Image, 'down_camera/image_raw', self._on_down_image, IMAGE_QOS))
         self.subs = self._preflight_only + [
             node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag,
                                      BEST_EFFORT),
@@ -262,11 +428,31 @@ class GraphHealth:
 
     def _on_info(self, cam: str, msg: CameraInfo) -> None:
         self.camera_info[cam] = camera_info_problem(msg) or 'ok'
+        if cam == 'down':
+            self._down_info = msg
         stamp, now = stamp_to_ns(msg.header.stamp), self._ros_ns()
         self.stamps[f'{cam} camera'] = (stamp, now)
         self.camera_timing[cam].note(stamp, now)
         if cam == 'front':
             self.front_keep_up.note_frame(stamp, now)
+
+    def _on_down_image(self, msg: Image) -> None:
+        """Search one down image for the pad, at most every ``PAD_TRY_PERIOD_S``."""
+        from ibvs_perception.messages import camera_from_info, mono8_from_image
+        now = self.clock()
+        if now - self._pad_tried < PAD_TRY_PERIOD_S:
+            return
+        self._pad_tried = now
+        try:
+            camera = camera_from_info(self._down_info, msg)
+            detection = self._pad_detector.process(mono8_from_image(msg), camera,
+                                                   stamp_to_ns(msg.header.stamp) / NS_PER_S)
+        except ValueError as exc:
+            self._log.error(f'preflight: down image not searched for the pad: {exc}',
+                            THROTTLE_S)
+            self.pad.note_error(str(exc))
+            return
+        self.pad.note(detection.group_names)
 
     def _on_imu(self, msg: Imu) -> None:
         self.imu_count += 1
@@ -282,6 +468,9 @@ class GraphHealth:
         if synced is not None:
             self.clock_synced = synced
             self.clock_offset_ms = diag_value(msg, 'clock_offset_ms')
+        values = bridge_values(msg)
+        if values is not None:
+            self.bridge = values
         state, armed = link_up(msg), armed_state(msg)
         if state is not None:
             self.link = state
@@ -322,16 +511,58 @@ class GraphHealth:
         keeps_up, detail = self.front_keep_up.check(self._ros_ns())
         checks.append(Check('perception keeps up (window/corners per front frame)', keeps_up,
                             detail))
+        pad = 'pad in view of the down camera'
+        if self.check_pad:
+            checks.append(Check(pad, *self.pad.check()))
+        else:
+            checks.append(Check(pad, False, 'not checked: out of view at the start (the pad is '
+                                'past the wall); --check-pad on a bench', skipped=True))
+        setup = (('autopilot failsafe when the bridge stops', failsafe_setup),
+                 ('armed or armable', armability))
+        for name, judge in setup:
+            if self.autopilot_setup:
+                checks.append(Check(name, *judge(self.bridge)))
+            else:
+                checks.append(Check(name, False, "not checked here (the preflight command "
+                                    'checks it)', skipped=True))
         return checks
 
     def healthy(self) -> bool:
-        """Return True if every check passes."""
-        return all(c.ok for c in self.checklist())
+        """Return True if every check passes (or is skipped)."""
+        return go(self.checklist())
+
+
+def go(checks: list[Check]) -> bool:
+    """Return True if every check passes or is skipped: the go."""
+    return all(c.ok or c.skipped for c in checks)
+
+
+def _state(c: Check) -> str:
+    return 'SKIP' if c.skipped else 'OK' if c.ok else 'FAIL'
+
+
+def summary_line(checks: list[Check]) -> str:
+    """Return the one go / no-go line: 'PREFLIGHT GO: ...' or 'PREFLIGHT NO-GO: ...'."""
+    judged = [c for c in checks if not c.skipped]
+    skipped = [c.name for c in checks if c.skipped]
+    failed = [c.name for c in judged if not c.ok]
+    if failed:
+        return (f'PREFLIGHT NO-GO: {len(failed)} of {len(judged)} checks failed: '
+                + '; '.join(failed))
+    return (f'PREFLIGHT GO: {len(judged)} checks passed'
+            + (f', {len(skipped)} skipped ({"; ".join(skipped)})' if skipped else ''))
+
+
+def verdict_msg(checks: list[Check], stamp_ns: int) -> DiagnosticArray:
+    """Return the ibvs/preflight message of a checklist (go, the summary line, each check)."""
+    return preflight_verdict_msg(go(checks), summary_line(checks),
+                                 [(c.name, f'{_state(c)}: {c.detail}') for c in checks],
+                                 stamp_ns)
 
 
 def format_checklist(checks: list[Check]) -> str:
     """Return the checklist as text, one '[ OK ]' / '[FAIL]' line per check."""
-    return '\n'.join(f'  [{" OK " if c.ok else "FAIL"}] {c.name}: {c.detail}' for c in checks)
+    return '\n'.join(f'  [{_state(c).center(4)}] {c.name}: {c.detail}' for c in checks)
 
 
 def wait_healthy(node: Node, health: GraphHealth, timeout_s: float,
@@ -347,19 +578,34 @@ def wait_healthy(node: Node, health: GraphHealth, timeout_s: float,
 
 
 def main(argv: list | None = None) -> int:
-    """Wait for a healthy graph (``--timeout`` s), print the checklist, return 0 or 1."""
+    """Wait for a go (``--timeout`` s); print the checklist and the go/no-go line; 0 or 1.
+
+    The verdict is published, latched, on ``ibvs/preflight`` (the supervisor reads it).
+    """
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--timeout', type=float, default=60.0, help='seconds (wall)')
+    parser.add_argument('--timeout', type=float, default=60.0,
+                        help='seconds (wall) to wait for a go, then no-go')
+    parser.add_argument('--check-pad', action='store_true',
+                        help='also check that the down camera sees the pad (a bench: at the '
+                             "mission's start the pad is past the wall, out of view)")
+    parser.add_argument('--pad-layout', default='',
+                        help="pad layout YAML for --check-pad ('' = the installed one)")
     args, ros_args = parser.parse_known_args(argv)
     rclpy.init(args=ros_args)
     node = None
     ok = False
     try:
         node = rclpy.create_node('preflight')
-        health = GraphHealth(node)
-        ok = wait_healthy(node, health, args.timeout)
-        print(('PREFLIGHT OK' if ok else f'PREFLIGHT FAILED after {args.timeout:.0f} s') +
-              '\n' + format_checklist(health.checklist()), flush=True)
+        verdict = node.create_publisher(DiagnosticArray, PREFLIGHT_TOPIC, LATCHED)
+        health = GraphHealth(node, autopilot_setup=True, check_pad=args.check_pad,
+                             pad_layout_file=args.pad_layout)
+        wait_healthy(node, health, args.timeout)
+        checks = health.checklist()
+        ok = go(checks)
+        print(format_checklist(checks) + '\n' + summary_line(checks)
+              + ('' if ok else f' (after {args.timeout:.0f} s)'), flush=True)
+        verdict.publish(verdict_msg(checks, node.get_clock().now().nanoseconds))
+        verdict.wait_for_all_acked(Duration(seconds=VERDICT_ACK_S))   # the supervisor has it
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:

@@ -120,3 +120,111 @@ def test_camera_timing_judges_the_rate_from_the_stamps_and_the_delivery_latency(
     for k in range(50):                                    # stamps far ahead of the clock
         future.note(k * 20 * ms, k * 20 * ms - 150 * ms)
     assert not future.check(50.0)[0]
+
+
+# --- the autopilot's set-up: failsafe parameters and armability (from /diagnostics) ---------
+
+def _bridge(**values) -> DiagnosticArray:
+    """The bridge's /diagnostics with these values in its MAVLink status."""
+    return DiagnosticArray(status=[
+        DiagnosticStatus(name='mode_supervisor: frames',
+                         values=[KeyValue(key='armed', value='True')]),   # not the bridge's
+        DiagnosticStatus(name='mavlink_bridge: MAVLink link',
+                         values=[KeyValue(key=k, value=v) for k, v in values.items()])])
+
+
+def _failsafe(**values):
+    from ibvs_bringup.preflight import bridge_values, failsafe_setup
+    return failsafe_setup(bridge_values(_bridge(**values)))
+
+
+def test_px4_failsafe_is_go_only_for_land_mode_within_two_seconds():
+    ok, detail = _failsafe(autopilot='px4', COM_OBL_RC_ACT='4', COM_OF_LOSS_T='1')
+    assert ok and detail.startswith('PX4 COM_OBL_RC_ACT = 4 (Land mode), COM_OF_LOSS_T = 1 s')
+    ok, detail = _failsafe(autopilot='px4', COM_OBL_RC_ACT='0', COM_OF_LOSS_T='1')
+    assert not ok and 'Position mode needs a position estimate' in detail
+    assert detail.endswith('set COM_OBL_RC_ACT = 4 (Land mode)'), detail
+    ok, detail = _failsafe(autopilot='px4', COM_OBL_RC_ACT='7', COM_OF_LOSS_T='1')
+    assert not ok and 'Disarm stops the motors in the air' in detail
+    ok, detail = _failsafe(autopilot='px4', COM_OBL_RC_ACT='4', COM_OF_LOSS_T='5')
+    assert not ok and 'set COM_OF_LOSS_T <= 2 s' in detail, detail
+    assert _failsafe(autopilot='px4', COM_OBL_RC_ACT='4', COM_OF_LOSS_T='2')[0]   # the limit
+    ok, detail = _failsafe(autopilot='px4', COM_OBL_RC_ACT='4')        # one of the pair read
+    assert not ok and detail == 'PX4 COM_OBL_RC_ACT / COM_OF_LOSS_T not read yet'
+    assert not _failsafe(autopilot='px4', COM_OBL_RC_ACT='four', COM_OF_LOSS_T='nan')[0]
+
+
+def test_ardupilot_failsafe_is_go_only_with_its_gcs_failsafe_on_this_bridge():
+    ok, detail = _failsafe(autopilot='ardupilot', FS_GCS_ENABLE='5', SYSID_MYGCS='1',
+                           source_system='1')
+    assert ok and detail.startswith('ArduPilot FS_GCS_ENABLE = 5, SYSID_MYGCS = 1 (this bridge)')
+    ok, detail = _failsafe(autopilot='ardupilot', FS_GCS_ENABLE='0', SYSID_MYGCS='1',
+                           source_system='1')
+    assert not ok and 'set FS_GCS_ENABLE = 5 (land)' in detail
+    ok, detail = _failsafe(autopilot='ardupilot', FS_GCS_ENABLE='5', SYSID_MYGCS='255',
+                           source_system='1')
+    assert not ok and "not this bridge's system id 1; set SYSID_MYGCS = 1" in detail
+    assert not _failsafe(autopilot='ardupilot', FS_GCS_ENABLE='5', SYSID_MYGCS='1')[0]
+    assert not _failsafe(autopilot='ardupilot', source_system='1')[0]     # not read yet
+
+
+def test_failsafe_is_no_go_before_the_autopilot_or_the_bridge_is_known():
+    from ibvs_bringup.preflight import bridge_values, failsafe_setup
+    ok, detail = _failsafe(autopilot='unknown', COM_OBL_RC_ACT='4', COM_OF_LOSS_T='1')
+    assert not ok and detail == 'autopilot unknown: its failsafe parameters are not known'
+    assert bridge_values(DiagnosticArray()) is None
+    ok, detail = failsafe_setup(None)
+    assert not ok and 'not reported' in detail
+
+
+def test_armability_is_armed_or_armable_and_says_why_not():
+    from ibvs_bringup.preflight import armability, bridge_values
+    assert armability(bridge_values(_bridge(armed='True', armable='False'))) == (True, 'armed')
+    ok, detail = armability(bridge_values(_bridge(armed='False', armable='True')))
+    assert ok and detail.startswith('disarmed, armable')
+    ok, detail = armability(bridge_values(_bridge(
+        armed='False', armable='False', last_autopilot_reason='Preflight Fail: Accels')))
+    assert not ok and '(its last message: Preflight Fail: Accels)' in detail
+    ok, detail = armability(bridge_values(_bridge(armed='False', armable='unknown')))
+    assert not ok and detail == 'armability not reported yet (SYS_STATUS)'
+    assert not armability(None)[0]
+
+
+# --- the pad in view (PadInView), the summary line and the verdict --------------------------
+
+def test_pad_in_view_needs_complete_groups_in_most_of_the_last_images():
+    from ibvs_bringup.preflight import PAD_TRIES, PadInView
+    pad = PadInView()
+    for _ in range(PAD_TRIES - 1):
+        pad.note(('A', 'B'))
+    ok, detail = pad.check()
+    assert not ok and detail == f'{PAD_TRIES - 1} down images tried yet (needs {PAD_TRIES})'
+    pad.note(())                                       # one image without a complete group
+    ok, detail = pad.check()
+    assert ok and detail == 'complete groups in 9 of the last 10 down images (A, B)', detail
+    for _ in range(5):
+        pad.note_error('CameraInfo size 640x480 != image size 752x480')
+    ok, detail = pad.check()
+    assert not ok and detail.startswith('complete groups in 4 of the last 10'), detail
+    assert detail.endswith('last error: CameraInfo size 640x480 != image size 752x480')
+
+
+def test_the_summary_line_is_go_with_skips_and_no_go_names_what_failed():
+    from ibvs_bringup.preflight import Check, format_checklist, go, summary_line, verdict_msg
+    from ibvs_common.node_common import preflight_verdict
+    checks = [Check('imu/data flowing', True, '50 messages'),
+              Check('pad in view of the down camera', False, 'not checked', skipped=True),
+              Check('armed or armable', True, 'armed')]
+    assert go(checks)
+    assert summary_line(checks) == ('PREFLIGHT GO: 2 checks passed, 1 skipped (pad in view of '
+                                    'the down camera)')
+    assert format_checklist(checks).splitlines()[1] == \
+        '  [SKIP] pad in view of the down camera: not checked'
+    checks.append(Check('autopilot failsafe when the bridge stops', False, 'PX4 ...'))
+    assert not go(checks)
+    line = summary_line(checks)
+    assert line == ('PREFLIGHT NO-GO: 1 of 3 checks failed: autopilot failsafe when the '
+                    'bridge stops')
+    msg = verdict_msg(checks, 5 * S)
+    assert preflight_verdict(msg) == (False, line)
+    assert {kv.key: kv.value for kv in msg.status[0].values}['armed or armable'] == 'OK: armed'
