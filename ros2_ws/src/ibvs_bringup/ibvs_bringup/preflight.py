@@ -202,7 +202,9 @@ class CameraTiming:
 
     ``note`` takes each frame's stamp and its arrival (ns, ROS clock); ``check`` compares the
     median stamp interval with the rate the graph was configured for (vehicle.yaml), and the
-    median delivery with ``MAX_DELIVERY_S``.
+    median delivery with ``MAX_DELIVERY_S``; frames missing between the stamps are said, not
+    judged (a free-running sim drops late frames by design; the supervisor's frame counts and
+    stride on /diagnostics judge them in flight).
     """
 
     def __init__(self, frames: int = CAMERA_TIMING_FRAMES) -> None:
@@ -225,8 +227,11 @@ class CameraTiming:
         measured = NS_PER_S / period
         delivery = sorted(rx - s for s, rx in self._frames)
         median, p95 = delivery[len(delivery) // 2], delivery[int(0.95 * (len(delivery) - 1))]
+        expected = int(round((stamps[-1] - stamps[0]) / period)) + 1
+        missing = expected - len(stamps)    # frames the camera did not deliver (said, not judged)
         detail = (f'{measured:.1f} Hz (vehicle.yaml {rate_hz:g} Hz), delivered '
-                  f'{median / 1e6:.1f} ms after the stamp (p95 {p95 / 1e6:.1f} ms)')
+                  f'{median / 1e6:.1f} ms after the stamp (p95 {p95 / 1e6:.1f} ms)'
+                  + (f', {missing} of the last {expected} frames missing' if missing > 0 else ''))
         # a stamp a little ahead of the receiver's clock (a simulator's /clock, which arrives
         # after its images) is within the clocks' agreement, checked by stamps_agree
         ok = abs(measured - rate_hz) <= tolerance * rate_hz \

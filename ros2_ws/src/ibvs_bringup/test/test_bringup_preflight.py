@@ -111,6 +111,13 @@ def test_camera_timing_judges_the_rate_from_the_stamps_and_the_delivery_latency(
         timing.note(k * 20 * ms, k * 20 * ms + (30 + k % 3) * ms)
     ok, detail = timing.check(50.0)
     assert ok and '50.0 Hz' in detail and '31.0 ms after the stamp' in detail, detail
+    assert 'missing' not in detail
+    lossy = CameraTiming()
+    for k in range(74):                                    # every 3rd frame lost on the way
+        if k % 3 != 2:
+            lossy.note(k * 20 * ms, k * 20 * ms + 30 * ms)
+    ok, detail = lossy.check(50.0)                         # the rate is the camera's: 50 Hz
+    assert ok and detail.endswith('24 of the last 74 frames missing'), detail
     assert not timing.check(30.0)[0]                       # vehicle.yaml says 30 Hz: wrong
     late = CameraTiming()
     for k in range(50):                                    # stamped at the end of a transfer
