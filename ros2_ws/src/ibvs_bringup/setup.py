@@ -14,6 +14,8 @@ setup(
         ('share/' + package_name, ['package.xml']),
         ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.xml')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+        # systemd units, their wrapper, environment file and udev rules (docs/onboard.md)
+        ('share/' + package_name + '/systemd', glob('systemd/*')),
     ],
     install_requires=['setuptools'],
     zip_safe=True,
