@@ -1,4 +1,9 @@
-"""docker/: everything the Dockerfile and compose.yaml reference exists in the repository."""
+"""docker/: everything the Dockerfile and compose.yaml reference exists, parsed (no engine here).
+
+There is no Docker engine on the machines that run this: the image is not built and no
+container starts here. What is checked is what the files say: the commands, users, groups,
+folders, devices and restart policies they name exist or agree with each other.
+"""
 from pathlib import Path
 import re
 import shlex
@@ -83,9 +88,20 @@ def _console_scripts(package: str) -> set:
     return set(re.findall(r"'(\w+)\s*=", (SRC / package / 'setup.py').read_text()))
 
 
+# the example camera driver: the one executable that is not the project's, and its apt package
+EXTERNAL = {('v4l2_camera', 'v4l2_camera_node'): 'ros-jazzy-v4l2-camera'}
+
+
 def _check_command(cmd: list) -> None:
-    if cmd[:2] == ['ros2', 'launch']:
+    if cmd[:2] == ['sh', '-c']:             # a shell that execs one of the commands below
+        script = shlex.split(cmd[2])
+        assert script[0] == 'exec', cmd
+        _check_command(script[1:])
+    elif cmd[:2] == ['ros2', 'launch']:
         assert cmd[2] in PACKAGES and cmd[3] in _launch_files(cmd[2]), cmd
+    elif cmd[:2] == ['ros2', 'run'] and tuple(cmd[2:4]) in EXTERNAL:
+        assert EXTERNAL[tuple(cmd[2:4])] in ' '.join(a for op, a in _instructions()
+                                                     if op in ('RUN', 'ARG')), cmd
     elif cmd[:2] == ['ros2', 'run']:
         assert cmd[3] in _console_scripts(cmd[2]), cmd
     elif cmd[:2] == ['python3', '-m']:
@@ -134,3 +150,97 @@ def test_compose_maps_the_serial_autopilot_device_for_the_serial_service():
     command = ' '.join(service['command'])
     assert 'mavlink_url:=' in command and 'MAVLINK_DEVICE' in command, command
     assert service['restart'] == 'unless-stopped'
+
+
+VEHICLE_SERVICES = {'onboard', 'onboard-serial', 'camera-front', 'camera-down', 'recorder'}
+
+
+def _compose() -> dict:
+    return yaml.safe_load((DOCKER / 'compose.yaml').read_text())
+
+
+def _default(text: str) -> str:
+    """A compose value with every ${NAME:-default} replaced by its default."""
+    return re.sub(r'\$\{\w+:-([^}]*)\}', r'\1', text)
+
+
+def _made_dirs() -> set:
+    """The folders the Dockerfile makes for its user (install -d -o USER ...)."""
+    run = ' '.join(a for op, a in _instructions() if op == 'RUN')
+    made = re.search(r'install -d -o (\w+) -g \1 ((?:/\S+ ?)+)', run)
+    assert made, 'the Dockerfile makes no folders for its user'
+    return set(made.group(2).split())
+
+
+def test_every_service_runs_as_the_non_root_user_the_dockerfile_makes():
+    ins = _instructions()
+    run = ' '.join(a for op, a in ins if op == 'RUN')
+    useradd = re.search(r'useradd (.*?)(?:\s&&|$)', run).group(1).split()
+    user = useradd[-1]
+    assert user == 'pilot'
+    groups = set(useradd[useradd.index('--groups') + 1].split(','))
+    assert {'dialout', 'video'} <= groups
+    assert '--uid' in useradd and useradd[useradd.index('--uid') + 1] == '"${PILOT_UID}"'
+    assert ['ARG', 'PILOT_UID=1000'] in ins
+    # the image's last user is pilot: nothing of the image runs as root
+    assert [a for op, a in ins if op == 'USER'][-1] == user
+    assert ins.index(['USER', user]) > max(i for i, (op, _) in enumerate(ins) if op == 'RUN')
+    for name, service in _compose()['services'].items():
+        assert service['user'] == user, name
+        assert set(service.get('group_add', [])) <= groups, name
+        assert 'PILOT_UID' in service['build']['args'], name
+
+
+def test_vehicle_services_restart_and_the_others_do_not():
+    for name, service in _compose()['services'].items():
+        if name in VEHICLE_SERVICES:
+            assert service['restart'] == 'unless-stopped', name
+        else:
+            assert 'restart' not in service, name
+
+
+def test_volumes_mount_folders_that_exist_on_both_sides():
+    made = _made_dirs()
+    for name, service in _compose()['services'].items():
+        mounts = {}
+        for volume in service['volumes']:
+            host, container = _default(volume).split(':')[:2]
+            mounts[container] = host
+            if host.startswith('.'):               # relative to docker/: in the repository
+                assert (DOCKER / host).resolve().is_dir(), (name, volume)
+            else:
+                assert host.startswith('/'), (name, volume)
+            # what the container writes to is made by the Dockerfile for its user; a
+            # read-only mount needs no owner
+            assert volume.endswith(':ro') or container in made, (name, container, made)
+        # ROS logs go to a mounted folder
+        log_dir = service['environment']['ROS_LOG_DIR']
+        assert log_dir in mounts and log_dir in made, name
+    run_scenario = _compose()['services']['scenario']
+    assert _default(run_scenario['volumes'][-1]) == '../results:/results-root/results'
+    # the recorder's bags land in the bag volume
+    recorder = _compose()['services']['recorder']
+    bag_dirs = [v.split(':')[-1] for v in recorder['volumes'] if 'BAG' in v]
+    assert bag_dirs == ['/var/log/ibvs/bags']
+    assert 'bag_path:=/var/log/ibvs/bags/$$(date' in recorder['command'][2]
+
+
+def test_camera_services_get_their_device_and_the_video_group():
+    services = _compose()['services']
+    for name, topic in (('camera-front', '/front_camera'), ('camera-down', '/down_camera')):
+        service = services[name]
+        (device,) = service['devices']
+        host, container = _default(device).split(':')
+        assert host.startswith('/dev/video') and container == '/dev/video0', device
+        cmd = service['command']
+        assert f'video_device:={container}' in cmd and f'__ns:={topic}' in cmd, cmd
+        assert service['group_add'] == ['video']
+        # the project's Fast DDS profile, where colcon installs it in the image (WORKDIR /ws)
+        profile = service['environment']['FASTRTPS_DEFAULT_PROFILES_FILE']
+        assert ['WORKDIR', '/ws'] in _instructions()
+        assert profile == '/ws/install/ibvs_bringup/share/ibvs_bringup/config/fastdds.xml'
+        assert (SRC / 'ibvs_bringup' / 'config' / 'fastdds.xml').is_file()
+        assert "glob('config/*.xml')" in (SRC / 'ibvs_bringup' / 'setup.py').read_text()
+    # the host's two cameras are distinct devices by default
+    assert _default(services['camera-front']['devices'][0]).split(':')[0] != \
+        _default(services['camera-down']['devices'][0]).split(':')[0]
