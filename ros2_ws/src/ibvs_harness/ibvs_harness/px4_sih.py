@@ -72,13 +72,13 @@ def free_instance(first: int = 5, last: int = 9) -> int:
                        f'{PX4_INSTANCE_PORT_BASES} + i taken)')
 
 
-def _launcher(sitl_dir: Path, work: Path) -> Path:
-    """Return px4-sih; through a private bin/ of symlinks when the px4-* links are plain files.
+def _launcher(sitl_dir: Path, work: Path, script_name: str = 'px4-sih') -> Path:
+    """Return ``script_name`` (px4-sih, px4-hil); through a private bin/ of symlinks when needed.
 
     PX4's start script runs px4-param etc., which must be links to the px4 binary; a copy of
     the folder that turned them into 3-byte text files ("px4") makes PX4 exit at start.
     """
-    script = sitl_dir / 'px4-sih'
+    script = sitl_dir / script_name
     if os.access(sitl_dir / 'bin' / 'px4-param', os.X_OK):
         return script
     shadow = work / 'px4-sitl'
@@ -92,35 +92,47 @@ def _launcher(sitl_dir: Path, work: Path) -> Path:
             link.symlink_to('px4')
         else:
             link.symlink_to(f)
-    for name in ('etc', 'px4-sih'):
+    for name in ('etc', 'px4-sih', script_name):
         if not (shadow / name).exists():
             (shadow / name).symlink_to(sitl_dir / name)
-    return shadow / 'px4-sih'
+    return shadow / script_name
 
 
 @dataclass
 class Px4Sitl:
-    """One PX4 SIH instance (``start`` / ``stop``); ``env`` = px4-sih's printed variables."""
+    """One PX4 SITL instance (``start`` / ``stop``); ``env`` = the script's printed variables.
+
+    ``script``: ``px4-sih`` (SIH is the plant) or ``px4-hil`` (the sim's plant in lockstep:
+    PX4 waits for its simulator, ``airframe`` its PX4_SIM_MODEL).
+    """
 
     instance: int
     params: dict
     sitl_dir: str | None = None
     env: dict | None = None
     work: str | None = None
+    script: str = 'px4-sih'
+    airframe: str | None = None
 
     def start(self) -> dict:
-        """Start PX4 (returns once it is ready for take-off); raise RuntimeError if it fails."""
+        """Start PX4; raise RuntimeError if it fails.
+
+        px4-sih returns once PX4 is ready for take-off, px4-hil once it waits for (or has
+        reached) its simulator.
+        """
         sitl = Path(self.sitl_dir or find_px4_sitl())
-        self.work = tempfile.mkdtemp(prefix=f'px4-sih-{self.instance}-')
-        script = _launcher(sitl, Path(self.work))
+        self.work = tempfile.mkdtemp(prefix=f'{self.script}-{self.instance}-')
+        script = _launcher(sitl, Path(self.work), self.script)
         args = [str(script), 'start', '-i', str(self.instance), '-w',
                 os.path.join(self.work, 'w')]
+        if self.airframe:
+            args += ['-a', self.airframe]
         for name, value in self.params.items():
             args += ['-p', f'{name}={value}']
         out = subprocess.run(args, capture_output=True, text=True, timeout=START_TIMEOUT_S)
         env = dict(line.split('=', 1) for line in out.stdout.split() if '=' in line)
         if out.returncode != 0 or 'PX4_WORKDIR' not in env:
-            raise RuntimeError(f'px4-sih start failed ({out.returncode}): '
+            raise RuntimeError(f'{self.script} start failed ({out.returncode}): '
                                f'{out.stderr[-1500:]}')
         self.env = env
         self._script = script

@@ -1,0 +1,133 @@
+"""Core tests of the firmware lockstep parts: motor map, thrust curve, PX4's parameters, sensors.
+
+Independent values: the rotors' torques from PX4's documented CA_* convention (a rotor at
+(PX, PY) with moment coefficient KM gives roll -PY T, pitch PX T, yaw KM T per newton, KM > 0
+counter-clockwise) against the plant's own mixer; the ISA pressure table; a level vehicle at
+rest measures -g on z (FRD).
+"""
+import math
+
+import numpy as np
+import pytest
+
+from ibvs_common.core.config import load_vehicle
+from ibvs_common.core.frames import GRAVITY, rot_from_quat, rot_z
+from ibvs_sim.core.dynamics import Mixer, PlantParams, State
+from ibvs_sim.core.firmware.motors import (MotorMapError, MotorModel, plant_rotor_for,
+                                           PX4_QUAD_X)
+from ibvs_sim.core.firmware.px4_hil import (HIL_ACCEL, HIL_BARO, HIL_GYRO, HIL_MAG,
+                                            isa_pressure_hpa, mavlink, px4_hil_parameters,
+                                            px4_motor_model, Px4Sensors, SensorNoise)
+
+
+@pytest.fixture(scope='module')
+def plant():
+    return PlantParams.from_vehicle(load_vehicle())
+
+
+def test_px4_geometry_gives_the_plants_torques(plant):
+    """Each PX4 rotor, as its CA_* parameters place it, drives the plant rotor that makes the
+    same roll / pitch / yaw torque per newton (PX4's convention, not the plant's formula)."""
+    p = px4_hil_parameters(load_vehicle(), plant)
+    motors = px4_motor_model(plant)
+    M = Mixer(plant).M
+    for i in range(4):
+        px, py, km = p[f'CA_ROTOR{i}_PX'], p[f'CA_ROTOR{i}_PY'], p[f'CA_ROTOR{i}_KM']
+        expected = np.array([-py, px, km])
+        np.testing.assert_allclose(M[1:, motors.output_to_rotor[i]], expected, atol=1e-4)
+
+
+def test_px4_quad_x_order():
+    """PX4's quad X: output 0 front-right, 1 rear-left, 2 front-left, 3 rear-right; the
+    plant's rotors: 0 front-right, 1 rear-right, 2 rear-left, 3 front-left."""
+    assert MotorModel.for_layout(PX4_QUAD_X, 8.0).output_to_rotor == (0, 2, 3, 1)
+    with pytest.raises(MotorMapError):
+        plant_rotor_for((1.0, 1.0), -1)          # front-right spins counter-clockwise
+    with pytest.raises(MotorMapError):
+        MotorModel((0, 0, 1, 2), 8.0)
+
+
+def test_thrust_curve_and_inverse():
+    """T(u) = T_max ((1 - k) u + k u^2): closed-form points; output_for inverts it."""
+    m = MotorModel((0, 1, 2, 3), 10.0, curve=0.5)
+    np.testing.assert_allclose(m.thrust([0.0, 0.5, 1.0]), [0.0, 10 * (0.25 + 0.125), 10.0])
+    for t in (0.0, 1.0, 3.75, 9.99):
+        assert m.thrust(m.output_for(t)) == pytest.approx(t, abs=1e-9)
+    assert MotorModel((0, 1, 2, 3), 10.0).output_for(4.0) == pytest.approx(0.4)
+    # out-of-range and NaN outputs: clipped, NaN is a stopped motor (never a NaN thrust)
+    np.testing.assert_allclose(m.thrust([-0.3, 1.7, math.nan]), [0.0, 10.0, 0.0])
+
+
+def test_rotor_commands_follow_the_map():
+    m = MotorModel((0, 2, 3, 1), 8.0)
+    np.testing.assert_allclose(m.rotor_commands([0.1, 0.2, 0.3, 0.4, 0.9, 0.9]),
+                               [0.8, 3.2, 1.6, 2.4])
+    with pytest.raises(MotorMapError):
+        m.rotor_commands([0.5, 0.5])
+
+
+def test_hover_output_balances_weight(plant):
+    """MPC_THR_HOVER: four rotors at that output lift m g, for a linear and a curved motor."""
+    for k in (0.0, 0.6):
+        p = px4_hil_parameters(load_vehicle(), plant, curve=k)
+        thrust = px4_motor_model(plant, k).thrust(p['MPC_THR_HOVER'])
+        assert 4 * thrust == pytest.approx(plant.mass * GRAVITY, rel=1e-3)
+        assert p['THR_MDL_FAC'] == k
+
+
+def test_isa_pressure_table():
+    """ICAO standard atmosphere table: 101325 Pa at 0 m, 89875 at 1000 m, 79495 at 2000 m."""
+    assert isa_pressure_hpa(0.0) == pytest.approx(1013.25)
+    assert isa_pressure_hpa(1000.0) == pytest.approx(898.75, abs=0.02)
+    assert isa_pressure_hpa(2000.0) == pytest.approx(794.95, abs=0.02)
+
+
+def _encoded(msg):
+    """Round-trip a message through the wire format (what PX4 decodes)."""
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=51)
+    return mavlink.MAVLink(None).parse_buffer(msg.pack(mav))[0]
+
+
+def test_hil_sensor_at_rest_without_noise():
+    """A level vehicle at rest: accel (0, 0, -g) FRD, zero rates, pressure of its altitude."""
+    quiet = SensorNoise(0.0, 0.0, 0.0, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    sensors = Px4Sensors(home_alt_m=500.0, floor_z=0.0, noise=quiet)
+    s = State(np.array([1.0, 2.0, -0.1]), np.zeros(3), rot_z(0.3), np.zeros(3))
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=51)
+    m = _encoded(sensors.hil_sensor(mav, 1_234_000, s, np.array([0.0, 0.0, -GRAVITY])))
+    assert m.time_usec == 1_234_000 and m.id == 0
+    assert (m.xacc, m.yacc) == (0.0, 0.0) and m.zacc == pytest.approx(-GRAVITY, abs=1e-5)
+    assert (m.xgyro, m.ygyro, m.zgyro) == (0.0, 0.0, 0.0)
+    assert m.pressure_alt == pytest.approx(500.1, abs=1e-3)
+    assert m.abs_pressure == pytest.approx(isa_pressure_hpa(500.1), abs=1e-3)
+    assert m.fields_updated == HIL_ACCEL | HIL_GYRO | HIL_BARO
+    assert not m.fields_updated & HIL_MAG                # SYS_HAS_MAG 0: no magnetometer
+
+
+def test_sensor_noise_is_seeded_and_sized():
+    """Same seed, same samples; the spread is the configured one (5000 samples)."""
+    s = State(np.zeros(3), np.zeros(3), np.eye(3), np.zeros(3))
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=51)
+
+    def gyro_x(seed, n):
+        sensors = Px4Sensors(0.0, 0.0, seed=seed)
+        return np.array([_encoded(sensors.hil_sensor(mav, 1, s, np.zeros(3))).xgyro
+                         for _ in range(n)])
+    np.testing.assert_array_equal(gyro_x(3, 20), gyro_x(3, 20))
+    g = gyro_x(4, 5000)
+    noise = SensorNoise()
+    assert np.std(g) == pytest.approx(noise.gyro_std, rel=0.05)
+    assert np.mean(g) == pytest.approx(noise.gyro_bias[0], abs=4 * noise.gyro_std / 70)
+
+
+def test_odometry_is_the_pose_in_ned():
+    """ODOMETRY: position of {I} (PX4's local NED), quaternion of R_IB, VISION estimator."""
+    R = rot_z(0.7) @ np.array([[1.0, 0.0, 0.0], [0.0, math.cos(0.1), -math.sin(0.1)],
+                               [0.0, math.sin(0.1), math.cos(0.1)]])
+    s = State(np.array([-2.0, 0.1, -1.5]), np.zeros(3), R, np.zeros(3))
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=51)
+    m = _encoded(Px4Sensors.odometry(mav, 5_000_000, s))
+    np.testing.assert_allclose([m.x, m.y, m.z], [-2.0, 0.1, -1.5], atol=1e-6)
+    np.testing.assert_allclose(rot_from_quat(np.array(m.q)), R, atol=1e-6)
+    assert (m.frame_id, m.child_frame_id, m.estimator_type) == (1, 12, 2)
+    assert math.isnan(m.vx) and math.isnan(m.pose_covariance[0])
