@@ -207,6 +207,19 @@ def test_the_graph_unit_runs_the_onboard_runner_with_the_mavlink_url():
     assert float(value(unit, 'Service', 'TimeoutStopSec')) > sum(stop), stop
 
 
+@pytest.mark.parametrize('url, rc', [('', 1), ('/dev/ibvs/autopilot,921600', 0)])
+def test_the_graph_unit_refuses_to_start_without_a_mavlink_url(url, rc):
+    # the runner would otherwise fly on the simulator's URL (graph.onboard_graph)
+    unit = parse_unit(SYSTEMD / 'ibvs-graph.service')
+    (pre,) = values(unit, 'Service', 'ExecStartPre')
+    argv = shlex.split(pre.replace('$$', '$'))        # systemd's escape of the shell's $
+    assert argv[:2] == ['/bin/sh', '-c']
+    result = subprocess.run(argv, env={'IBVS_MAVLINK_URL': url}, capture_output=True,
+                            text=True, timeout=10)
+    assert result.returncode == rc, result.stderr
+    assert ('IBVS_MAVLINK_URL is not set' in result.stderr) == (rc == 1)
+
+
 def test_the_recorder_unit_writes_a_new_bag_under_the_log_dir_with_known_parameters():
     from ibvs_harness.recorder_node import RecorderNodeConfig
     unit = parse_unit(SYSTEMD / 'ibvs-recorder.service')

@@ -94,6 +94,8 @@ def test_detector_reads_every_id_in_the_sims_orientation(layout):
     page = print_pad.render_pad(layout, dpi)
     found = PadDetector(layout, PadDetectorConfig()).detect_markers(page.image)
     assert sorted(found) == ALL_IDS
+    # the reference layout leaves room for every id's label outside all quiet zones
+    assert sorted(page.labelled) == ALL_IDS
     ppm = px_per_m(dpi)
     centres = {i: c.mean(axis=0) for i, c in found.items()}
     pad_centre = np.mean(list(centres.values()), axis=0)
