@@ -1,6 +1,7 @@
-"""Real PX4 flies the sim's Pelican in lockstep: boot, arm, take off, hold; print the figures.
+"""Real firmware flies the sim's Pelican in lockstep: boot, arm, take off, hold; the figures.
 
-``python -m ibvs_harness.firmware_hover [--height M] [--hold-s S] [--seed N] [--json]``
+``python -m ibvs_harness.firmware_hover [--autopilot px4|ardupilot] [--height M] [--hold-s S]
+[--seed N] [--json]``
 
 PX4 v1.16 SITL (``../shared/px4-sitl/px4-hil``) runs its own mixer, controllers and EKF2 on
 the sim's plant (:class:`~ibvs_sim.core.firmware.lockstep.FirmwarePlant`): sensors from the
@@ -11,7 +12,9 @@ commands PX4's own take-off, and PX4 holds in AUTO.LOITER. The figures: sim time
 take-off, the hover output against the plant's (m g / 4 through the thrust curve), and the
 hold's height and horizontal errors against PX4's take-off target. It checks that the
 firmware, the plant, the sensors and the parameters agree before a flight of the graph uses
-them (docs/firmware_lockstep.md).
+them (docs/firmware_lockstep.md). ``--autopilot ardupilot``: ArduCopter 4.5.6 SITL on its JSON
+backend (``../shared/ardupilot-sitl start --json``), GUIDED take-off on its own GPS, barometer
+and compass made from the plant's state (:func:`fly_hover_ardupilot`).
 """
 from __future__ import annotations
 
@@ -19,19 +22,25 @@ import argparse
 from dataclasses import asdict, dataclass, field
 import json
 import math
+import os
+import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
+from pymavlink import mavutil
 
 from ibvs_common.core.config import load_vehicle
 from ibvs_common.core.frames import GRAVITY
 from ibvs_sim.core.dynamics import PlantParams
 from ibvs_sim.core.events import EventType
-from ibvs_sim.core.firmware.lockstep import FirmwarePlant, LockstepConfig
+from ibvs_sim.core.firmware.ardupilot_json import (ardupilot_motor_model, ardupilot_parameters,
+                                                   ArduPilotJsonLink)
+from ibvs_sim.core.firmware.lockstep import ArduPilotExchange, FirmwarePlant, Px4Exchange
 from ibvs_sim.core.firmware.px4_hil import (FirmwareLinkError, px4_hil_parameters,
                                             px4_motor_model, Px4Sensors, Px4SimLink)
-from ibvs_sim.core.px4_plant import SIH_DEFAULT_HOME
+from ibvs_sim.core.px4_plant import find_px4_sitl, SIH_DEFAULT_HOME
 from ibvs_sim.core.world import load_world
 from ibvs_harness.px4_sih import free_instance, Pilot, Px4Sitl
 
@@ -52,7 +61,7 @@ class HoverReport:
     ok: bool = False
     error: str = ''
     armed_at_s: float | None = None
-    loiter_at_s: float | None = None
+    loiter_at_s: float | None = None      # PX4 in AUTO.LOITER; ArduPilot within 15 cm
     hold_s: float = 0.0
     hover_output_mean: float | None = None
     hover_output_plant: float | None = None
@@ -85,8 +94,8 @@ def fly_hover(height_m: float = 1.5, hold_s: float = 10.0, seed: int = 0,
         link.accept(ACCEPT_TIMEOUT_S)
         sensors = Px4Sensors(SIH_DEFAULT_HOME[2], world.floor_z, seed=seed)
         start = np.array(world.initial_position_I, float)
-        fw = FirmwarePlant(world, vehicle, link, px4_motor_model(plant), sensors, start,
-                           world.initial_yaw, config=LockstepConfig())
+        fw = FirmwarePlant(world, vehicle, Px4Exchange(link, sensors), px4_motor_model(plant),
+                           start, world.initial_yaw)
         pilot = Pilot(inst)
         _fly(fw, pilot, report, hold_s, start)
         report.hover_output_plant = px4_motor_model(plant).output_for(
@@ -113,7 +122,6 @@ def _fly(fw: FirmwarePlant, pilot: Pilot, report: HoverReport, hold_s: float,
     home = SIH_DEFAULT_HOME
     next_command = ARM_AFTER_S
     outputs, heights, horiz, tilts = [], [], [], []
-    z_home = float(fw.state.xi_I[2])      # PX4's home: where it armed, at rest on the floor
     while True:
         event = fw.substep()
         if event is not None and event.type is EventType.COLLISION:
@@ -148,11 +156,116 @@ def _fly(fw: FirmwarePlant, pilot: Pilot, report: HoverReport, hold_s: float,
         if report.loiter_at_s is not None and t >= report.loiter_at_s + 3.0:
             s = fw.state
             outputs.append(float(np.mean(fw.outputs)))
-            heights.append(z_home - float(s.xi_I[2]))
+            heights.append(fw.z_home - float(s.xi_I[2]))
             horiz.append(float(np.linalg.norm(s.xi_I[:2] - start[:2])))
             tilts.append(math.degrees(math.acos(min(1.0, float(s.R_IB[2, 2])))))
             if t >= report.loiter_at_s + 3.0 + hold_s:
                 break
+    _judge(report, outputs, heights, horiz, tilts, hold_s)
+
+
+ARDUPILOT_VERSION = 'ArduCopter V4.5.6 SITL (JSON backend, lockstep)'
+ARDUPILOT_SPEEDUP = 50          # ArduPilot's pacing limit against the wall: lockstep sets it
+ARDUCOPTER_GUIDED = 4
+ARDUPILOT_START_TIMEOUT_S = 60.0    # s (wall), ardupilot-sitl start
+ARDUPILOT_ARM_BY_S = 120.0          # s (sim), GPS lock and EKF3 ready take 40-60 s of it
+SETTLED_M = 0.15                    # m, a take-off is over within this of its height
+
+
+def fly_hover_ardupilot(height_m: float = 1.5, hold_s: float = 10.0,
+                        instance: int | None = None) -> HoverReport:
+    """Fly ArduCopter on the plant: GUIDED, arm, take off to ``height_m``, hold ``hold_s``."""
+    world, vehicle = load_world(), load_vehicle()
+    plant = PlantParams.from_vehicle(vehicle, floor_z=world.floor_z)
+    params = ardupilot_parameters(vehicle, plant)
+    report = HoverReport(firmware=ARDUPILOT_VERSION, height_target_m=height_m,
+                         parameters=params)
+    inst = free_instance(1, 4) if instance is None else instance
+    script = os.path.join(os.path.dirname(find_px4_sitl()), 'ardupilot-sitl', 'ardupilot-sitl')
+    link = ArduPilotJsonLink(inst)
+    link.open()
+    work = tempfile.mkdtemp(prefix=f'ap-json-{inst}-')
+    args = [script, 'start', '--json', '--speedup', str(ARDUPILOT_SPEEDUP), '-i', str(inst),
+            '-w', work] + [a for k, v in params.items() for a in ('-p', f'{k}={v}')]
+    env, gcs = {}, None
+    t_wall0 = time.monotonic()
+    try:
+        out = subprocess.run(args, capture_output=True, text=True,
+                             timeout=ARDUPILOT_START_TIMEOUT_S)
+        env = dict(line.split('=', 1) for line in out.stdout.split() if '=' in line)
+        if out.returncode != 0:
+            raise RuntimeError(f'ardupilot-sitl start failed: {out.stderr[-800:]}')
+        gcs = mavutil.mavlink_connection(f'udpin:127.0.0.1:{14550 + inst}',
+                                         source_system=255, source_component=190)
+        fw = FirmwarePlant(world, vehicle, ArduPilotExchange(link),
+                           ardupilot_motor_model(plant), np.array(world.initial_position_I),
+                           world.initial_yaw)
+        _fly_ardupilot(fw, gcs, report, hold_s)
+        report.hover_output_plant = ardupilot_motor_model(plant).output_for(
+            plant.mass * GRAVITY / 4.0)
+        report.exchanges = fw.exchanges
+        report.sim_s = fw.t
+    except (FirmwareLinkError, RuntimeError, OSError, subprocess.TimeoutExpired) as exc:
+        report.error = f'{type(exc).__name__}: {exc}'
+    finally:
+        report.wall_s = time.monotonic() - t_wall0
+        if gcs is not None:
+            gcs.close()
+        if env.get('AP_WORKDIR'):
+            subprocess.run([script, 'stop', env['AP_WORKDIR']], capture_output=True)
+        link.close()
+    return report
+
+
+def _fly_ardupilot(fw: FirmwarePlant, gcs, report: HoverReport, hold_s: float) -> None:
+    """GUIDED, arm and take off by sim time; judge the hold once the take-off settled."""
+    next_command, hb, texts = 1.0, None, []
+    outputs, heights, horiz, tilts = [], [], [], []
+    start = fw.state.xi_I.copy()
+    while True:
+        event = fw.substep()
+        if event is not None and event.type is EventType.COLLISION:
+            raise RuntimeError(f'collision with the {event.surface} at t = {fw.t:.2f} s')
+        if fw.step_index % 10:
+            continue
+        while (m := gcs.recv_match(blocking=False)) is not None:
+            if m.get_type() == 'HEARTBEAT' and m.get_srcComponent() == 1:
+                hb = m
+            elif m.get_type() == 'STATUSTEXT':
+                texts = (texts + [m.text])[-5:]
+        t, h = fw.t, fw.z_home - float(fw.state.xi_I[2])
+        armed = hb is not None and bool(hb.base_mode & 128)
+        if hb is not None and t >= next_command and report.loiter_at_s is None:
+            next_command = t + 1.0
+            if hb.custom_mode != ARDUCOPTER_GUIDED:
+                gcs.mav.set_mode_send(1, 1, ARDUCOPTER_GUIDED)
+            elif not armed:
+                gcs.mav.command_long_send(1, 1, MAV_CMD_COMPONENT_ARM_DISARM, 0, 1,
+                                          0, 0, 0, 0, 0, 0)
+            elif h < 0.5 * report.height_target_m:
+                gcs.mav.command_long_send(1, 1, MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 0,
+                                          report.height_target_m)
+        if armed and report.armed_at_s is None:
+            report.armed_at_s = t
+        if report.armed_at_s is None and t > ARDUPILOT_ARM_BY_S:
+            raise RuntimeError(f'ArduPilot did not arm in GUIDED by {t:.0f} s: {texts}')
+        if report.armed_at_s is not None and report.loiter_at_s is None \
+                and abs(h - report.height_target_m) < SETTLED_M:
+            report.loiter_at_s = t
+        if report.loiter_at_s is not None and t >= report.loiter_at_s + 3.0:
+            s = fw.state
+            outputs.append(float(np.mean(fw.outputs[:4])))
+            heights.append(h)
+            horiz.append(float(np.linalg.norm(s.xi_I[:2] - start[:2])))
+            tilts.append(math.degrees(math.acos(min(1.0, float(s.R_IB[2, 2])))))
+            if t >= report.loiter_at_s + 3.0 + hold_s:
+                break
+    _judge(report, outputs, heights, horiz, tilts, hold_s)
+
+
+def _judge(report: HoverReport, outputs: list, heights: list, horiz: list, tilts: list,
+           hold_s: float) -> None:
+    """Fill the hold's figures (outputs, heights above home, horizontal drift, tilt)."""
     h_err = np.array(heights) - report.height_target_m
     report.hold_s = hold_s
     report.hover_output_mean = float(np.mean(outputs))
@@ -168,18 +281,20 @@ def main(argv: list | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
     p.add_argument('--height', type=float, default=1.5, help='take-off height, m (> 0)')
     p.add_argument('--hold-s', type=float, default=10.0, help='hold judged, s sim (> 0)')
-    p.add_argument('--seed', type=int, default=0, help='sensor noise seed')
+    p.add_argument('--seed', type=int, default=0, help='sensor noise seed (PX4)')
+    p.add_argument('--autopilot', choices=('px4', 'ardupilot'), default='px4',
+                   help='the firmware: PX4 v1.16 (px4-hil) or ArduCopter 4.5.6 (JSON)')
     p.add_argument('--json', action='store_true', help='print the report as JSON')
     a = p.parse_args(argv)
     if not (a.height > 0.0 and a.hold_s > 0.0):
         p.error('--height and --hold-s must be > 0')
     try:
-        from ibvs_sim.core.px4_plant import find_px4_sitl
         find_px4_sitl()
     except FileNotFoundError as exc:
         print(f'firmware_hover: {exc}', file=sys.stderr)
         return 2
-    r = fly_hover(a.height, a.hold_s, a.seed)
+    r = (fly_hover(a.height, a.hold_s, a.seed) if a.autopilot == 'px4'
+         else fly_hover_ardupilot(a.height, a.hold_s))
     if a.json:
         print(json.dumps(asdict(r), indent=1))
     else:
@@ -193,7 +308,7 @@ def _format(r: HoverReport) -> str:
         return f'{r.firmware}: FAILED after {r.sim_s:.1f} s sim, {r.wall_s:.1f} s wall\n{r.error}'
     return '\n'.join([
         f'{r.firmware}',
-        f'  armed at {r.armed_at_s:.2f} s, holding (AUTO.LOITER) at {r.loiter_at_s:.2f} s sim',
+        f'  armed at {r.armed_at_s:.2f} s, holding at {r.loiter_at_s:.2f} s sim',
         f'  hover output {r.hover_output_mean:.4f} (plant: {r.hover_output_plant:.4f} = '
         f'm g / 4 through the thrust curve)',
         f'  hold of {r.hold_s:.0f} s at {r.height_target_m:.2f} m: height error mean '

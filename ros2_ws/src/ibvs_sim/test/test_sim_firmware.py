@@ -131,3 +131,47 @@ def test_odometry_is_the_pose_in_ned():
     np.testing.assert_allclose(rot_from_quat(np.array(m.q)), R, atol=1e-6)
     assert (m.frame_id, m.child_frame_id, m.estimator_type) == (1, 12, 2)
     assert math.isnan(m.vx) and math.isnan(m.pose_covariance[0])
+
+
+def test_servo_packet_decoding():
+    """ArduPilot's servo packet: magic 18458, rate, count, 16 PWM values (little-endian)."""
+    import struct
+    from ibvs_sim.core.firmware.ardupilot_json import parse_servo_packet, pwm_to_output
+    pwm = [1000, 1500, 2000, 1250] + [0] * 12
+    packet = parse_servo_packet(struct.pack('<HHI16H', 18458, 500, 77, *pwm))
+    assert (packet.frame_rate_hz, packet.frame_count) == (500, 77)
+    np.testing.assert_allclose(pwm_to_output(packet.pwm_us[:4]), [0.0, 0.5, 1.0, 0.25])
+    for bad in (b'\x00' * 4, struct.pack('<HHI16H', 1234, 500, 1, *pwm),
+                struct.pack('<HHI15H', 18458, 500, 1, *pwm[:15])):
+        with pytest.raises(ValueError):
+            parse_servo_packet(bad)
+
+
+def test_state_json_framing_and_frames():
+    """The answer is newline, JSON, newline; NED position from home; quaternion of R_IB."""
+    import json
+    from ibvs_sim.core.firmware.ardupilot_json import state_json
+    s = State(np.array([1.0, -2.0, -1.6]), np.array([0.1, 0.2, -0.3]), rot_z(0.5),
+              np.array([0.01, 0.02, 0.03]))
+    raw = state_json(12.5, s, np.array([0.0, 0.0, -GRAVITY]), z_home=-0.1)
+    assert raw.startswith(b'\n') and raw.endswith(b'\n') and raw.count(b'\n') == 2
+    obj = json.loads(raw)
+    assert obj['timestamp'] == 12.5
+    np.testing.assert_allclose(obj['position'], [1.0, -2.0, -1.5])
+    np.testing.assert_allclose(obj['velocity'], [0.1, 0.2, -0.3])
+    np.testing.assert_allclose(obj['imu']['gyro'], [0.01, 0.02, 0.03])
+    np.testing.assert_allclose(obj['quaternion'], [math.cos(0.25), 0.0, 0.0, math.sin(0.25)],
+                               atol=1e-12)
+
+
+def test_ardupilot_hover_throttle(plant):
+    """MOT_THST_HOVER: the throttle whose output (SPIN_MIN + (SPIN_MAX - SPIN_MIN) x) lifts
+    m g with four rotors; ArduCopter's quad X is PX4's layout (motor 1 front-right CCW)."""
+    from ibvs_sim.core.firmware.ardupilot_json import (ardupilot_motor_model,
+                                                       ardupilot_parameters, SPIN_MAX, SPIN_MIN)
+    p = ardupilot_parameters(load_vehicle(), plant)
+    u = SPIN_MIN + (SPIN_MAX - SPIN_MIN) * p['MOT_THST_HOVER']
+    assert 4 * ardupilot_motor_model(plant).thrust(u) == pytest.approx(plant.mass * GRAVITY,
+                                                                       rel=1e-3)
+    assert (p['FRAME_CLASS'], p['FRAME_TYPE']) == (1, 1)
+    assert ardupilot_motor_model(plant).output_to_rotor == (0, 2, 3, 1)

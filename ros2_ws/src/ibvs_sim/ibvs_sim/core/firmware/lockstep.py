@@ -1,17 +1,24 @@
 """The plant under a firmware's motor outputs, in lockstep: :class:`FirmwarePlant`.
 
-Every ``sensor_period`` of sim time the plant sends the firmware its sensors of the current
-state (HIL_SENSOR; motion capture every ``mocap_period``) and waits for the motor outputs
-that the firmware computes from them; the plant then integrates the next physics steps
-(:class:`~ibvs_sim.core.dynamics.QuadrotorPlant`, 500 Hz) under those outputs, with the
-wind, and checks contacts. The firmware's clock is the sim's (``time_usec`` = sim time +
-``BOOT_OFFSET_US``), so a slow machine costs wall time, never realism. Waits are on the wall
-clock (``time.monotonic``) with named limits. ROS-free.
+The plant (:class:`~ibvs_sim.core.dynamics.QuadrotorPlant`, 500 Hz) integrates under the
+firmware's last motor outputs, with the wind, and checks contacts; an exchange gets the
+outputs, each firmware its own way:
+
+- :class:`Px4Exchange`: every sensor period (250 Hz) the plant sends PX4 the sensors of the
+  current state (HIL_SENSOR; motion capture every ``mocap_period``) and waits for the outputs
+  PX4 computes from them;
+- :class:`ArduPilotExchange`: ArduPilot sends its outputs (a servo packet) at every step and
+  waits for the state after the step (the JSON answer).
+
+The firmware's clock is the sim's, so a slow machine costs wall time, never realism. Waits
+are on the wall clock (``time.monotonic`` through socket timeouts) with named limits.
+ROS-free.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 import time
+from typing import Protocol
 
 import numpy as np
 
@@ -20,8 +27,10 @@ from ibvs_common.core.frames import rot_z
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_sim.core.dynamics import PlantParams, QuadrotorPlant, State, Wind, WindConfig
 from ibvs_sim.core.events import ContactMonitor, SimEvent
+from ibvs_sim.core.firmware.ardupilot_json import ArduPilotJsonLink, servo_outputs, state_json
 from ibvs_sim.core.firmware.motors import MotorModel
-from ibvs_sim.core.firmware.px4_hil import FirmwareLinkError, Px4Sensors, Px4SimLink
+from ibvs_sim.core.firmware.px4_hil import (ActuatorOutputs, FirmwareLinkError, Px4Sensors,
+                                            Px4SimLink)
 from ibvs_sim.core.world import WorldConfig
 
 #: PX4 takes time_usec = 0 as "no time": the firmware's clock is sim time + this (us).
@@ -37,9 +46,21 @@ class LockstepConfig:
     #: wall clock, s: the firmware's answer to one HIL_SENSOR once it has answered any; a
     #: firmware this late is taken for dead (FirmwareLinkError)
     outputs_timeout_s: float = 10.0
-    #: wall clock, s: the wait for an answer while the firmware boots (it answers no
-    #: HIL_SENSOR before its modules run); the plant goes on with zero outputs meanwhile
+    #: wall clock, s: PX4, the wait for an answer while it boots (it answers no HIL_SENSOR
+    #: before its modules run; the plant goes on with zero outputs meanwhile); ArduPilot,
+    #: the wait for its first servo packet
     boot_wait_s: float = 0.02
+    first_packet_timeout_s: float = 60.0
+
+
+class Exchange(Protocol):
+    """How a firmware and the plant trade outputs and sensors around one physics step."""
+
+    def before_step(self, plant: 'FirmwarePlant') -> ActuatorOutputs | None:
+        """Return the outputs for the coming step (None: keep the last ones)."""
+
+    def after_step(self, plant: 'FirmwarePlant') -> None:
+        """Hand the firmware the state after the step, where its protocol wants it."""
 
 
 class FirmwarePlant:
@@ -48,22 +69,18 @@ class FirmwarePlant:
     ``start_I``: the start on the floor (x, y of {I}; the body rests on the floor), yaw
     ``start_yaw`` (rad). ``t_ns``: sim time since boot; ``state``: the ground truth;
     ``outputs``: the last motor outputs; ``armed``: the firmware's arming state as its
-    outputs say; ``exchanges`` / ``late_answers``: counters.
+    outputs say; ``exchanges``: the outputs received.
     """
 
-    def __init__(self, world: WorldConfig, vehicle: VehicleConfig, link: Px4SimLink,
-                 motors: MotorModel, sensors: Px4Sensors, start_I: np.ndarray,
-                 start_yaw: float = 0.0, wind: WindConfig | None = None,
-                 config: LockstepConfig | None = None) -> None:
-        self.config = config or LockstepConfig()
+    def __init__(self, world: WorldConfig, vehicle: VehicleConfig, exchange: Exchange,
+                 motors: MotorModel, start_I: np.ndarray, start_yaw: float = 0.0,
+                 wind: WindConfig | None = None) -> None:
         self.params = PlantParams.from_vehicle(vehicle, floor_z=world.floor_z)
         self.plant = QuadrotorPlant(self.params)
-        self.link, self.motors, self.sensors = link, motors, sensors
+        self.exchange, self.motors = exchange, motors
         self.wind = Wind(wind or WindConfig())
         self.contacts = ContactMonitor(world, vehicle)
         self.dt_ns = int(round(NS_PER_S / self.params.physics_rate_hz))
-        self.steps_per_sensor = self._steps(self.config.sensor_rate_hz)
-        self.steps_per_mocap = self._steps(self.config.mocap_rate_hz)
         xi0 = np.array([float(start_I[0]), float(start_I[1]), self.plant.z_rest])
         self.state = State(xi0, np.zeros(3), rot_z(float(start_yaw)), np.zeros(3),
                            np.zeros(len(motors.output_to_rotor)))
@@ -71,16 +88,9 @@ class FirmwarePlant:
         self.step_index = 0
         self.outputs = np.zeros(len(motors.output_to_rotor))
         self.armed = False
-        self.answered = False          # the firmware has answered a HIL_SENSOR
-        self.exchanges = 0
+        self.exchanges = 0             # outputs received
         self.wall_s = 0.0
-
-    def _steps(self, rate_hz: float) -> int:
-        steps = self.params.physics_rate_hz / float(rate_hz)
-        if not (rate_hz > 0.0 and abs(steps - round(steps)) < 1e-9 and steps >= 1):
-            raise ValueError(f'rate {rate_hz} Hz must divide the physics rate '
-                             f'{self.params.physics_rate_hz} Hz')
-        return int(round(steps))
+        self.z_home = float(self.state.xi_I[2])    # the firmware's home: the rest at start
 
     @property
     def t(self) -> float:
@@ -96,31 +106,81 @@ class FirmwarePlant:
         """One physics step (and the exchange with the firmware when due); a contact event."""
         t0 = time.perf_counter()
         try:
-            if self.step_index % self.steps_per_sensor == 0:
-                self._exchange()
+            out = self.exchange.before_step(self)
+            if out is not None:
+                self.exchanges += 1
+                self.outputs = out.controls[:len(self.outputs)]
+                self.armed = out.armed
             cmd = self.motors.rotor_commands(self.outputs)
             self.state = self.plant.step(self.state, cmd, self.wind.force_I(self.t))
             self.t_ns += self.dt_ns
             self.step_index += 1
+            self.exchange.after_step(self)
             return self.contacts.check(self.t, self.state, self.plant.last_impact_speed)
         finally:
             self.wall_s += time.perf_counter() - t0
 
-    def _exchange(self) -> None:
-        """Send the sensors of now, wait for the firmware's outputs computed from them."""
-        mav = self.link.mav
-        self.link.send(self.sensors.hil_sensor(mav, self.time_us, self.state,
-                                               self.plant.last_specific_force_B))
-        if self.step_index % self.steps_per_mocap == 0:
-            self.link.send(self.sensors.odometry(mav, self.time_us, self.state))
+
+def steps_per(physics_rate_hz: float, rate_hz: float) -> int:
+    """Return the physics steps per period of ``rate_hz``; ValueError unless it divides."""
+    steps = physics_rate_hz / float(rate_hz)
+    if not (rate_hz > 0.0 and abs(steps - round(steps)) < 1e-9 and steps >= 1):
+        raise ValueError(f'rate {rate_hz} Hz must divide the physics rate {physics_rate_hz} Hz')
+    return int(round(steps))
+
+
+class Px4Exchange:
+    """PX4 (simulator_mavlink): sensors of the state now, then wait for PX4's outputs."""
+
+    def __init__(self, link: Px4SimLink, sensors: Px4Sensors,
+                 config: LockstepConfig | None = None) -> None:
+        self.link, self.sensors = link, sensors
+        self.config = config or LockstepConfig()
+        self.answered = False          # PX4 has answered a HIL_SENSOR (it has booted)
+
+    def before_step(self, plant: FirmwarePlant) -> ActuatorOutputs | None:
+        """Every sensor period: send HIL_SENSOR (and motion capture), wait for the outputs."""
+        rate = plant.params.physics_rate_hz
+        k = plant.step_index
+        if k % steps_per(rate, self.config.sensor_rate_hz):
+            return None
+        mav, t_us = self.link.mav, plant.time_us
+        self.link.send(self.sensors.hil_sensor(mav, t_us, plant.state,
+                                               plant.plant.last_specific_force_B))
+        if k % steps_per(rate, self.config.mocap_rate_hz) == 0:
+            self.link.send(self.sensors.odometry(mav, t_us, plant.state))
         timeout = self.config.outputs_timeout_s if self.answered else self.config.boot_wait_s
         out = self.link.receive_outputs(timeout)
-        if out is None:
-            if self.answered:
-                raise FirmwareLinkError(f'no motor outputs within {timeout:.1f} s (wall) '
-                                        f'of the HIL_SENSOR at {self.time_us} us')
-            return
-        self.answered = True
-        self.exchanges += 1
-        self.outputs = out.controls[:len(self.outputs)]
-        self.armed = out.armed
+        if out is None and self.answered:
+            raise FirmwareLinkError(f'PX4 sent no motor outputs within {timeout:.1f} s '
+                                    f'(wall) of the HIL_SENSOR at {t_us} us')
+        self.answered = self.answered or out is not None
+        return out
+
+    def after_step(self, plant: FirmwarePlant) -> None:
+        """Nothing: PX4 reads the next state at the next sensor period."""
+
+
+class ArduPilotExchange:
+    """ArduPilot (JSON backend): its servo packet before each step, the state after it."""
+
+    def __init__(self, link: ArduPilotJsonLink, config: LockstepConfig | None = None) -> None:
+        self.link = link
+        self.config = config or LockstepConfig()
+        self.packets = 0
+
+    def before_step(self, plant: FirmwarePlant) -> ActuatorOutputs:
+        """Wait for ArduPilot's servo packet (its outputs at its clock, the sim's)."""
+        timeout = (self.config.outputs_timeout_s if self.packets
+                   else self.config.first_packet_timeout_s)
+        packet = self.link.receive(timeout)
+        if packet is None:
+            raise FirmwareLinkError(f'ArduPilot sent no servo packet within {timeout:.1f} s '
+                                    f'(wall) at sim time {plant.t:.3f} s')
+        self.packets += 1
+        return servo_outputs(packet, plant.time_us)
+
+    def after_step(self, plant: FirmwarePlant) -> None:
+        """Answer with the state after the step: ArduPilot's clock moves to its timestamp."""
+        self.link.answer(state_json(plant.time_us * 1e-6, plant.state,
+                                    plant.plant.last_specific_force_B, plant.z_home))
