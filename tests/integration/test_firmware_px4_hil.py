@@ -49,3 +49,21 @@ def test_px4_hover_output_is_the_plants(hover):
                                                               abs=1e-3)
     # lockstep: PX4 answered every HIL_SENSOR (250 Hz) after its boot
     assert hover.exchanges > 0.9 * 250 * (hover.sim_s - 2.0)
+
+
+def test_firmware_hover_command(capsys):
+    """The documented command (docs/firmware_lockstep.md) flies and prints its JSON report;
+    a bad height is refused before any firmware starts."""
+    import json
+    from ibvs_harness.firmware_hover import main
+    try:
+        find_px4_sitl()
+    except FileNotFoundError as exc:
+        pytest.skip(f'PX4 SITL absent: {exc}')
+    with pytest.raises(SystemExit) as bad:
+        main(['--height', '-1'])
+    assert bad.value.code == 2
+    capsys.readouterr()
+    assert main(['--autopilot', 'px4', '--hold-s', '1', '--json']) == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report['ok'] and report['firmware'].startswith('PX4 v1.16.0')
