@@ -134,12 +134,15 @@ def camera_block(opts: RunOptions, onboard_vehicle: str | None) -> dict:
 
 
 def graph_specs(opts: RunOptions, port: int, initial_position: tuple,
-                onboard_vehicle: str | None = None) -> list:
+                onboard_vehicle: str | None = None, px4_instance: int | None = None) -> list:
     """Return the node specs of a run: the sim graph plus the recorder.
 
-    ``onboard_vehicle``: the onboard nodes' vehicle YAML (None: params.yaml's).
+    ``onboard_vehicle``: the onboard nodes' vehicle YAML (None: params.yaml's);
+    ``px4_instance``: a real PX4 (px4-hil) flies the sim's plant (``--autopilot px4``).
     """
     camera = [(k, list(v) if isinstance(v, tuple) else v) for k, v in opts.camera_model.items()]
+    if px4_instance is not None:
+        camera += [('firmware', 'px4'), ('firmware_instance', int(px4_instance))]
     if opts.true_vehicle:
         camera.append(('true_vehicle_file', os.path.abspath(opts.true_vehicle)))
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
@@ -276,7 +279,9 @@ def run_graph(opts: RunOptions) -> int:
     xi0 = opts.initial_position or tuple(float(x) for x in world.initial_position_I)
     port = opts.mavlink_port or free_udp_port()
     onboard_vehicle = onboard_vehicle_file(opts)
-    specs = graph_specs(opts, port, xi0, onboard_vehicle)
+    px4 = firmware_px4(opts, world, vehicle, xi0) if opts.autopilot == 'px4' else None
+    specs = graph_specs(opts, port, xi0, onboard_vehicle,
+                        None if px4 is None else px4.instance)
     missing = missing_executables(specs)
     if missing:
         summary = report.summarize(report.RunLog(), world, 0.0, 0.0)
@@ -304,8 +309,14 @@ def run_graph(opts: RunOptions) -> int:
         runner.start_layout(specs, opts.layout)
         print(f'run {opts.run_name}: started {len(specs)} nodes (MAVLink port {port}), '
               f'initial position {xi0}', flush=True)
+        if px4 is not None:     # after the sim, whose TCP server PX4 connects to
+            px4.start()
+            print(f'run {opts.run_name}: PX4 v1.16 SITL (px4-hil) instance {px4.instance} '
+                  f'flies the plant in lockstep ({px4.env.get("PX4_WORKDIR")})', flush=True)
         stop_reason = fly(opts, monitor, runner, t_wall0, specs, restarts, executor)
     except _Stop as exc:
+        error = str(exc)
+    except RuntimeError as exc:           # PX4 did not start
         error = str(exc)
     except (KeyboardInterrupt, Terminated, ExternalShutdownException):
         error = 'interrupted'
@@ -314,6 +325,10 @@ def run_graph(opts: RunOptions) -> int:
         codes = runner.stop()
         log, sim_stats, bridge = close_monitor(monitor, executor)
         rclpy.try_shutdown()
+        if px4 is not None:
+            if error:
+                print('PX4 log tail:\n' + px4.log_tail(), flush=True)
+            px4.stop()
     print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
     summary['timing'] = {**sim_stats, **flight}
@@ -323,8 +338,37 @@ def run_graph(opts: RunOptions) -> int:
                                node_restarts=restarts,
                                camera=camera_block(opts, onboard_vehicle),
                                events=log.events,
-                               transitions=supervisor_transitions(supervisor_log(opts.out_dir)))
+                               transitions=supervisor_transitions(supervisor_log(opts.out_dir)),
+                               **firmware_block(px4))
     return finish(opts, summary, report.run_data(log, world, pad) if log.t else None)
+
+
+def firmware_block(px4) -> dict:
+    """Return summary.json's firmware keys of a run on a real PX4 (none for the sim's own)."""
+    if px4 is None:
+        return {}
+    return {'autopilot': 'px4', 'firmware': PX4_FIRMWARE, 'px4_instance': px4.instance,
+            'px4_parameters': px4.params}
+
+
+PX4_FIRMWARE = 'PX4 v1.16.0 SITL (px4-hil: simulator_mavlink, lockstep)'
+
+
+def firmware_px4(opts: RunOptions, world, vehicle, xi0: tuple):
+    """Return PX4 SITL (px4-hil, not started) with the Pelican's parameters for this start.
+
+    The sim's plant starts on the floor below the start; PX4 takes off to it by itself
+    (MIS_TAKEOFF_ALT) before frame 0. Its offboard-loss failsafe: land (COM_OBL_RC_ACT 4)
+    after COM_OF_LOSS_T 1 s, as the bridge expects (docs/mavlink.md).
+    """
+    from ibvs_harness.px4_sih import free_instance, Px4Sitl
+    from ibvs_sim.core.firmware.lockstep import takeoff_altitude
+    from ibvs_sim.core.firmware.px4_hil import px4_hil_parameters
+    params = {**px4_hil_parameters(vehicle),
+              'MIS_TAKEOFF_ALT': round(takeoff_altitude(world, vehicle, xi0), 3),
+              'COM_OF_LOSS_T': 1.0, 'COM_OBL_RC_ACT': 4}
+    instance = opts.px4_instance if opts.px4_instance is not None else free_instance()
+    return Px4Sitl(instance, params, script='px4-hil')
 
 
 def _flat(windows: list) -> tuple:
@@ -444,7 +488,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--autopilot', choices=AUTOPILOTS, default=AUTOPILOTS[0],
                    help="'sim': the simulator's plant and autopilot emulation (lockstep); "
                         "'px4-sih': PX4 SITL with SIH is plant and autopilot, real time on "
-                        'the system clock, needs ../shared/px4-sitl (docs/px4_sih.md)')
+                        "the system clock, needs ../shared/px4-sitl (docs/px4_sih.md); 'px4': "
+                        "PX4 v1.16 SITL (px4-hil) flies the sim's plant in lockstep, it takes "
+                        'off to the start before frame 0 (docs/firmware_lockstep.md)')
     p.add_argument('--layout', choices=LAYOUTS, default=None,
                    help="onboard nodes as one process per node ('processes', the default with "
                         "the sim) or all in one process on one executor ('composed', "
@@ -452,7 +498,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                         'px4-sih, which runs in real time); the sim, monitor and recorder run '
                         'beside them either way')
     p.add_argument('--px4-instance', type=int, default=None, choices=range(10),
-                   metavar='I', help='px4-sih: PX4 instance 0-9 (default: a free one >= 5)')
+                   metavar='I', help='px4-sih, px4: PX4 instance 0-9 (default: a free one >= 5)')
     p.add_argument('--px4-flight-s', type=float, default=None, metavar='S',
                    help='px4-sih: stop S s (system clock) after ibvs/start (default 60, as a '
                         'sim run)')
@@ -506,6 +552,8 @@ def main(argv: list | None = None) -> int:
             raise ValueError(f'--max-sim-time must be > 0, got {opts.max_sim_time_s}')
         if opts.kill_node and opts.layout == 'composed':
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
+        if opts.autopilot == 'px4' and opts.feature_level:
+            raise ValueError('--autopilot px4 flies the graph: not with --feature-level')
         if (opts.camera_model or opts.true_vehicle or opts.onboard_vehicle) and (
                 opts.feature_level or opts.autopilot == 'px4-sih'):
             raise ValueError('the camera model options are the sim node\'s: not with '

@@ -25,7 +25,7 @@ IDLE_MODE = 0
 FAILSAFE_MODE = 5
 SHUTDOWN_MODE = 4
 DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
-AUTOPILOTS = ('sim', 'px4-sih')   # --autopilot: the first is the default
+AUTOPILOTS = ('sim', 'px4-sih', 'px4')   # --autopilot: the first is the default
 
 
 @dataclass

@@ -42,6 +42,9 @@ def _fault_window(values: list, name: str) -> tuple[float, float]:
     return fault_windows(f'parameter {name}', values)[0]
 
 
+FIRMWARES = ('', 'px4')      # SimNodeConfig.firmware
+
+
 @dataclass(frozen=True)
 class SimNodeConfig:
     """Parameters of the ``sim`` node (the checks of their combinations at construction)."""
@@ -136,6 +139,13 @@ class SimNodeConfig:
     fault_imu_nan_s: list = param(
         [0.0, 0.0], 'the autopilot sends ATTITUDE_QUATERNION / HIGHRES_IMU full of NaN in'
         + _FAULT)
+    firmware: str = param(
+        '', "'' = the sim's own autopilot emulation on mavlink_url; 'px4' = a real PX4 SITL "
+        '(px4-hil, started by the caller) flies the plant in lockstep on TCP 4560 + '
+        'firmware_instance, the sim relays mavlink_url to its companion port, and frame 0 '
+        'waits until PX4 took off and holds at the start (docs/firmware_lockstep.md); '
+        'lockstep pacing only')
+    firmware_instance: int = param(0, 'the PX4 instance of firmware px4 (its ports)', 0, 9)
 
     def __post_init__(self) -> None:
         """Check what the ranges cannot say; raise ValueError naming the parameter."""
@@ -184,6 +194,12 @@ class SimNodeConfig:
                              f'{self.camera_drop_probability}')
         _fault_window(self.fault_imu_off_s, 'fault_imu_off_s')
         _fault_window(self.fault_imu_nan_s, 'fault_imu_nan_s')
+        if self.firmware not in FIRMWARES:
+            raise ValueError(f'parameter firmware must be one of {FIRMWARES}, got '
+                             f'{self.firmware!r}')
+        if self.firmware and Pacing(self.pacing) is not Pacing.LOCKSTEP:
+            raise ValueError(f'firmware {self.firmware!r} runs in lockstep only (pacing '
+                             f'{self.pacing!r})')
 
     def sim_config(self, vehicle: VehicleConfig) -> SimConfig:
         """Return the simulation's settings for the true ``vehicle`` (its cameras' timing)."""

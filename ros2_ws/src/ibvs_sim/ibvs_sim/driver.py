@@ -13,12 +13,18 @@ from __future__ import annotations
 import time
 from typing import Any, Protocol
 
+import numpy as np
+
 from ibvs_common.core.config import PadLayout, VehicleConfig
+from ibvs_common.core.modes import Mode
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_sim.config import SimNodeConfig
 from ibvs_sim.core.autopilot import Autopilot
 from ibvs_sim.core.dynamics import State
 from ibvs_sim.core.events import SimEvent
+from ibvs_sim.core.firmware.lockstep import px4_lockstep
+from ibvs_sim.core.firmware.px4_hil import FirmwareLinkError
+from ibvs_sim.core.firmware.relay import CompanionRelay
 from ibvs_sim.core.graph_sync import (FirstFrameHold, graph_products, ImuBeforeImages,
                                       STATUS_TOPIC)
 from ibvs_sim.core.pacing import Pacing
@@ -27,6 +33,8 @@ from ibvs_sim.core.timing import AnswerLatency, NS_PER_MS, wall_budget
 from ibvs_sim.core.world import WorldConfig
 
 LOG_THROTTLE_S = 2.0
+FLYING_MODES = (Mode.WINDOW, Mode.CROSSING, Mode.LANDING)   # the graph's setpoints fly
+PREROLL_STEPS_PER_TICK = 100  # physics steps (0.2 s sim) of a firmware's pre-roll per tick
 SUBSCRIBER_SETTLE_S = 2.0     # s (wall), image subscribers and setpoints this long before frame 0
 CLOCK_REPEAT_S = 0.1          # s (wall), /clock repeated while sim time stands still: a node
 #                               whose /clock subscription matched late still learns the time
@@ -77,10 +85,26 @@ class SimDriver:
         sim renders and their timing.
         """
         self.port, self.log = port, log
-        self.autopilot = Autopilot(cfg.autopilot_config(vehicle, world.floor_z))
+        sim_config = cfg.sim_config(vehicle)
+        self.firmware = None
+        if cfg.firmware:       # a real PX4 flies the plant; the sim relays the companion link
+            start = (sim_config.initial_position_I if sim_config.initial_position_I is not None
+                     else tuple(world.initial_position_I))
+            yaw = (sim_config.initial_yaw if sim_config.initial_yaw is not None
+                   else world.initial_yaw)
+            self.firmware = px4_lockstep(world, vehicle, int(cfg.firmware_instance),
+                                         np.asarray(start, float), float(yaw),
+                                         sim_config.wind, int(cfg.seed))
+            self.autopilot = CompanionRelay(str(cfg.mavlink_url), int(cfg.firmware_instance),
+                                            boot_offset_ms=0)
+        else:
+            self.autopilot = Autopilot(cfg.autopilot_config(vehicle, world.floor_z))
         self.products = graph_products()
-        self.sim = Simulation(world, pad, vehicle, self.autopilot, cfg.sim_config(vehicle),
-                              products=self.products, clock_sink=self._clock)
+        if self.firmware is not None:
+            self.autopilot.graph_flies = self._graph_flies
+        self.sim = Simulation(world, pad, vehicle, self.autopilot, sim_config,
+                              products=self.products, clock_sink=self._clock,
+                              physics=self.firmware)
         self.latency = AnswerLatency()
         self.faults = cfg.camera_faults()
         self.imu_hold = ImuBeforeImages(self.sim.config.lockstep_timeout_s,
@@ -88,13 +112,19 @@ class SimDriver:
         self.first_frame_hold = FirstFrameHold(
             {n: cfg.min_image_subscribers for n in self.sim.config.cameras},
             SUBSCRIBER_SETTLE_S, cfg.subscriber_wait_timeout_s, time.monotonic(),
-            need_setpoints=cfg.start_on_setpoints)
+            # a firmware is frozen before frame 0 (lockstep): no stream to wait for
+            need_setpoints=cfg.start_on_setpoints and not cfg.firmware)
         self._clock_ns = -1
         self._clock_wall = 0.0
         self._ended_logged = False
         self._events_published = 0
         self._first_frame_wall: float | None = None   # steady s, frame 0 published
         self._publish_wall_s = 0.0                     # perf_counter s spent publishing
+
+    def _graph_flies(self) -> bool:
+        """Whether the supervisor's latest mode flies the vehicle on the graph's setpoints."""
+        statuses = self.products.statuses
+        return bool(statuses) and statuses[-1][1] in FLYING_MODES
 
     # --- the graph's messages ---
     def note_imu(self, stamp_ns: int) -> None:
@@ -163,7 +193,7 @@ class SimDriver:
                         else self._clock_ns)
         if out is not None:
             # an injected IMU fault: imu/data will not reach the frame, do not wait for it
-            if not self.autopilot.config.imu_fault_at(out.t):
+            if not self.autopilot.imu_fault_at(out.t):
                 # every IMU sample sent by the delivery reaches the graph before the images
                 imu_ms = self.autopilot.last_attitude_ms
                 out.imu_ns = None if imu_ms is None else imu_ms * NS_PER_MS
@@ -179,7 +209,27 @@ class SimDriver:
                 f'{self.sim.events[-1].to_dict() if self.sim.events else "(no event)"}')
 
     def _first_frame_may_go(self) -> bool:
-        """Ask the hold with the subscriber counts; log the wait and a timeout."""
+        """Ask the hold with the subscriber counts; log the wait and a timeout.
+
+        With a firmware, first its pre-roll: it boots, takes off and holds at the start
+        (a slice of it per tick); the companion link is relayed only from then on.
+        """
+        if self.firmware is not None and not self.firmware.ready:
+            try:
+                ready = self.firmware.preroll(PREROLL_STEPS_PER_TICK)
+            except FirmwareLinkError as exc:
+                self.sim.ended = True
+                self.log.error(f'firmware: {exc}', throttle_duration_sec=LOG_THROTTLE_S)
+                return False
+            self.autopilot.discard_firmware()
+            if not ready:
+                self.log.info(f'frame 0 waits for the firmware: {self.firmware.status()}',
+                              throttle_duration_sec=LOG_THROTTLE_S)
+                return False
+            self.autopilot.boot_offset_ms = self.firmware.boot_offset_ms
+            self.log.info(f'firmware holds at the start: {self.firmware.status()}; sim time '
+                          f'starts (the firmware clock is {self.firmware.boot_offset_ms} ms '
+                          'ahead)')
         counts = self.port.count_image_subscribers()
         streaming = self.sim.poll_before_start()
         state = (f'subscribers {counts} (needed {self.first_frame_hold.min_counts}), '
@@ -217,7 +267,7 @@ class SimDriver:
         images, withheld, frozen = self.faults.apply(out.t, out.images)
         # lockstep: the graph may have nothing to answer (its mode's camera is off), or drop
         # a frozen camera's images (its products are then given up after this short wait)
-        imu_fault = self.autopilot.config.imu_fault_at(out.t)
+        imu_fault = self.autopilot.imu_fault_at(out.t)
         self.sim.lockstep.answer_wait_s = (FAULT_ANSWER_WAIT_S if withheld or frozen
                                            or imu_fault else self.sim.config.lockstep_timeout_s)
         if imu_fault:
@@ -258,18 +308,23 @@ class SimDriver:
         Also the autopilot's own TIMESYNC requests and the bridge's answers to them (checked:
         ts1 one of the requests), as PX4 asks.
         """
-        counters = self.autopilot.counters
         sim = self.sim
+        if self.firmware is not None:
+            autopilot = {f'relay_{k}': v for k, v in self.autopilot.forwarded.items()}
+            autopilot['relay_timesync_unanswered'] = self.autopilot.timesync_unanswered
+            autopilot['firmware_exchanges'] = self.firmware.plant.exchanges
+        else:
+            counters = self.autopilot.counters
+            autopilot = {'autopilot_timesync_requests': counters.timesync_requests_sent,
+                         'autopilot_timesync_answers': counters.timesync_answers_received,
+                         'autopilot_timesync_foreign': counters.timesync_answers_foreign}
         return {'pacing': sim.config.pacing.value,
                 'real_time_factor': sim.config.real_time_factor,
                 'sim_time_s': sim.t, 'frames_dropped': sim.realtime.frames_dropped,
                 'stalls': sim.realtime.stalls, 'lockstep_timeouts': sim.lockstep.timeouts,
                 'products_given_up': len(sim.lockstep.given_up),
                 'imu_hold_timeouts': self.imu_hold.timeouts,
-                'autopilot_timesync_requests': counters.timesync_requests_sent,
-                'autopilot_timesync_answers': counters.timesync_answers_received,
-                'autopilot_timesync_foreign': counters.timesync_answers_foreign,
-                **self.latency.stats(),
+                **autopilot, **self.latency.stats(),
                 **self._wall_budget()}
 
     def _wall_budget(self) -> dict:
@@ -281,6 +336,8 @@ class SimDriver:
             'publish': self._publish_wall_s, 'imu_hold': self.imu_hold.held_s})
 
     def close(self) -> None:
-        """Close the MAVLink endpoint and stop the render threads."""
+        """Close the MAVLink endpoint (and a firmware's links), stop the render threads."""
         self.autopilot.close()
+        if self.firmware is not None:
+            self.firmware.close()
         self.sim.close()

@@ -103,7 +103,8 @@ class Simulation:
                  autopilot: ReferenceSource, config: SimConfig,
                  wall_clock: Callable[[], float] = time.monotonic,
                  products: GraphProducts | None = None,
-                 clock_sink: Callable[[int], None] | None = None) -> None:
+                 clock_sink: Callable[[int], None] | None = None,
+                 physics: PhysicsLoop | None = None) -> None:
         """Compose the parts; ``clock_sink(t_ns)``: lockstep, the clock moves first.
 
         ``vehicle`` is the true vehicle (plant, camera mounts, intrinsics). ``clock_sink``
@@ -111,13 +112,15 @@ class Simulation:
         (ns) before anything of that time leaves the sim: the autopilot's telemetry (IMU,
         attitude, its own TIMESYNC requests) and answers, and the images. On a vehicle no
         message of time t reaches the companion before its clock reads t (docs/sim.md).
+        ``physics``: the plant and its autopilot when not the sim's own (a real firmware in
+        lockstep: :class:`~ibvs_sim.core.firmware.lockstep.FirmwarePhysics`).
         """
         self.world, self.vehicle, self.config = world, vehicle, config
         self.autopilot = autopilot
         self.wall_clock = wall_clock
         self.clock_sink = clock_sink
-        self.physics = PhysicsLoop(world, vehicle, autopilot, config.wind,
-                                   config.initial_position_I, config.initial_yaw)
+        self.physics = physics or PhysicsLoop(world, vehicle, autopilot, config.wind,
+                                              config.initial_position_I, config.initial_yaw)
         self.clocks = frame_clocks(config.timings(), self.physics.dt_ns, config.noise_seed)
         self.period_ns = min(clock.period_ns for clock in self.clocks)
         self.substeps = max(1, self.period_ns // self.physics.dt_ns)   # per period, about
@@ -274,6 +277,8 @@ class Simulation:
     def _first_frame(self) -> FrameOutput | None:
         """Start at t = 0: its telemetry and exposures, its delivery or (lockstep) the first."""
         self._started = True
+        # the pose of t = 0 (a firmware's pre-roll moved the vehicle since the construction)
+        self._pose = Pose(self.t_ns, self.state.R_IB, self.state.xi_I)
         # the telemetry due at t = 0 leaves before frame 0, as before every later delivery
         self._clock_moves()
         self.autopilot.poll(self.physics.state_view(),

@@ -166,6 +166,10 @@ class Autopilot:
         """
         return self._noise.attitude_error(t)
 
+    def imu_fault_at(self, t: float) -> str:
+        """Return the injected IMU fault at sim time ``t``: 'off', 'nan' or ''."""
+        return self.config.imu_fault_at(t)
+
     def close(self) -> None:
         """Close the UDP endpoint."""
         self._link.close()

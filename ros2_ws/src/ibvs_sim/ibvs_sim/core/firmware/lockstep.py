@@ -25,6 +25,7 @@ import numpy as np
 from ibvs_common.core.config import VehicleConfig
 from ibvs_common.core.frames import rot_z
 from ibvs_common.core.stamps import NS_PER_S
+from ibvs_sim.core.autopilot import VehicleStateView
 from ibvs_sim.core.dynamics import PlantParams, QuadrotorPlant, State, Wind, WindConfig
 from ibvs_sim.core.events import ContactMonitor, SimEvent
 from ibvs_sim.core.firmware.ardupilot_json import ArduPilotJsonLink, servo_outputs, state_json
@@ -79,6 +80,7 @@ class FirmwarePlant:
         self.plant = QuadrotorPlant(self.params)
         self.exchange, self.motors = exchange, motors
         self.wind = Wind(wind or WindConfig())
+        self._world, self._vehicle = world, vehicle
         self.contacts = ContactMonitor(world, vehicle)
         self.dt_ns = int(round(NS_PER_S / self.params.physics_rate_hz))
         xi0 = np.array([float(start_I[0]), float(start_I[1]), self.plant.z_rest])
@@ -96,6 +98,10 @@ class FirmwarePlant:
     def t(self) -> float:
         """Return the sim time since boot, seconds."""
         return self.t_ns / NS_PER_S
+
+    def reset_contacts(self) -> None:
+        """Watch contacts afresh (the monitor reports one touchdown: the start's is not it)."""
+        self.contacts = ContactMonitor(self._world, self._vehicle)
 
     @property
     def time_us(self) -> int:
@@ -184,3 +190,137 @@ class ArduPilotExchange:
         """Answer with the state after the step: ArduPilot's clock moves to its timestamp."""
         self.link.answer(state_json(plant.time_us * 1e-6, plant.state,
                                     plant.plant.last_specific_force_B, plant.z_home))
+
+
+class FirmwarePhysics:
+    """A :class:`FirmwarePlant` behind :class:`~ibvs_sim.core.physics.PhysicsLoop`'s interface.
+
+    The sim's clock (``t_ns``) starts at 0 once the pre-roll is over: the firmware booted,
+    took off and holds at the start (:meth:`preroll`, called by the sim before its first
+    frame). ``origin_ns``: the plant's time then; the firmware's clock is the sim's plus
+    ``origin_ns`` plus :data:`BOOT_OFFSET_US` (:attr:`boot_offset_ms`).
+    """
+
+    def __init__(self, plant: FirmwarePlant, pilot, link: Px4SimLink,
+                 connect_timeout_s: float = 60.0) -> None:
+        self.plant = plant
+        self.pilot = pilot
+        self.link = link
+        self.connect_timeout_s = float(connect_timeout_s)   # wall, s, PX4's connection
+        self._waiting_since: float | None = None
+        self.origin_ns: int | None = None
+        self.params = plant.params
+
+    @property
+    def ready(self) -> bool:
+        """Whether the pre-roll is over (the sim's clock runs)."""
+        return self.origin_ns is not None
+
+    def preroll(self, steps: int) -> bool:
+        """Step the plant with the pilot for up to ``steps`` steps; True once at the start.
+
+        First waits (a little per call, wall clock) for PX4 to connect; FirmwareLinkError
+        when it has not within ``connect_timeout_s`` or the pre-roll fails.
+        """
+        if self.ready:
+            return True
+        if not self.link.try_accept(0.05):
+            now = time.monotonic()
+            self._waiting_since = self._waiting_since or now
+            if now - self._waiting_since > self.connect_timeout_s:
+                raise FirmwareLinkError(f'PX4 did not connect to TCP {self.link.port} within '
+                                        f'{self.connect_timeout_s:.0f} s (wall)')
+            return False
+        for _ in range(int(steps)):
+            self.plant.substep()
+            if self.plant.step_index % 10 == 0 and self.pilot.step(self.plant.t,
+                                                                   self.plant.state):
+                self.origin_ns = self.plant.t_ns
+                self.plant.reset_contacts()     # the mission's touchdown is the one to report
+                return True
+            if self.plant.t > self.pilot.hold.timeout_s:
+                raise FirmwareLinkError(
+                    f'pre-roll: not holding at the start {self.plant.t:.0f} s after boot '
+                    f'(armed {self.pilot.armed}, truth {self.plant.state.xi_I.round(2)}, '
+                    f'PX4 said {self.pilot.texts})')
+        return False
+
+    def status(self) -> str:
+        """One line on the pre-roll: plant time, armed, height, PX4's last words."""
+        s = self.plant.state
+        return (f'plant t = {self.plant.t:.1f} s, connected {self.link.connected}, armed '
+                f'{self.pilot.armed}, xi_I {np.round(s.xi_I, 2).tolist()}, PX4 said '
+                f'{self.pilot.texts[-2:]}')
+
+    @property
+    def boot_offset_ms(self) -> int:
+        """Return the firmware's clock minus the sim's (ms), once the pre-roll is over."""
+        return (int(self.origin_ns or 0) // 1000 + BOOT_OFFSET_US) // 1000
+
+    @property
+    def dt_ns(self) -> int:
+        """Return the physics step (ns)."""
+        return self.plant.dt_ns
+
+    @property
+    def t_ns(self) -> int:
+        """Return the sim time (ns) since the pre-roll ended (0 before)."""
+        return 0 if self.origin_ns is None else self.plant.t_ns - self.origin_ns
+
+    @property
+    def t(self) -> float:
+        """Return the sim time (s)."""
+        return self.t_ns / NS_PER_S
+
+    @property
+    def state(self) -> State:
+        """Return the ground truth."""
+        return self.plant.state
+
+    @property
+    def wall_s(self) -> float:
+        """Return the wall clock (s) spent stepping the plant and waiting for the firmware."""
+        return self.plant.wall_s
+
+    def state_view(self) -> VehicleStateView:
+        """Return the ground truth as the autopilot interface sees it (sim time)."""
+        s = self.plant.state
+        return VehicleStateView(self.t, s.xi_I.copy(), s.v_I.copy(), s.R_IB.copy(),
+                                s.Omega_B.copy(), self.plant.plant.last_specific_force_B.copy())
+
+    def substep(self, receive: bool = True) -> SimEvent | None:
+        """One physics step in lockstep with the firmware; a contact event."""
+        return self.plant.substep()
+
+    def close(self) -> None:
+        """Close the pilot's and the firmware's links."""
+        self.pilot.close()
+        self.link.close()
+
+
+def px4_lockstep(world: WorldConfig, vehicle: VehicleConfig, instance: int,
+                 start_I: np.ndarray, start_yaw: float, wind: WindConfig | None = None,
+                 seed: int = 0, home_alt_m: float | None = None) -> FirmwarePhysics:
+    """Return the plant under PX4 (instance ``instance``) with its start pilot; opens the link.
+
+    The plant starts on the floor below ``start_I`` with yaw ``start_yaw``; PX4 must boot
+    with MIS_TAKEOFF_ALT = the start's height above that rest (:func:`takeoff_altitude`).
+    """
+    from ibvs_sim.core.firmware.pilot import Px4StartPilot
+    from ibvs_sim.core.firmware.px4_hil import px4_motor_model
+    from ibvs_sim.core.px4_plant import SIH_DEFAULT_HOME
+    plant_params = PlantParams.from_vehicle(vehicle, floor_z=world.floor_z)
+    link = Px4SimLink(instance)
+    link.open()
+    sensors = Px4Sensors(SIH_DEFAULT_HOME[2] if home_alt_m is None else home_alt_m,
+                         world.floor_z, seed=seed)
+    plant = FirmwarePlant(world, vehicle, Px4Exchange(link, sensors),
+                          px4_motor_model(plant_params), start_I, start_yaw, wind)
+    pilot = Px4StartPilot(instance, np.asarray(start_I, float))
+    return FirmwarePhysics(plant, pilot, link)
+
+
+def takeoff_altitude(world: WorldConfig, vehicle: VehicleConfig, start_I) -> float:
+    """Return the start's height (m) above the body origin at rest on the floor below it."""
+    rest_z = world.floor_z - vehicle.envelope_height / 2.0
+    return float(rest_z - float(start_I[2]))

@@ -203,6 +203,21 @@ class Px4SimLink:
         conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self._conn = conn
 
+    @property
+    def connected(self) -> bool:
+        """Whether PX4 has connected."""
+        return self._conn is not None
+
+    def try_accept(self, timeout_s: float) -> bool:
+        """Accept PX4's connection if it comes within ``timeout_s`` (wall); whether connected."""
+        if self._conn is not None:
+            return True
+        try:
+            self.accept(timeout_s)
+        except FirmwareLinkError:
+            return False
+        return True
+
     def send(self, msg: Any) -> None:
         """Write one message to PX4; raise FirmwareLinkError when the link is gone."""
         try:

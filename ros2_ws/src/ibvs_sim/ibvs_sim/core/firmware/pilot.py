@@ -1,0 +1,110 @@
+"""The pilot before the mission: the firmware takes off and holds at the scenario's start.
+
+With the emulated autopilot the sim starts in a hover at the start. A real firmware starts
+on the floor, disarmed. :class:`Px4StartPilot` is the pilot's ground station on PX4's GCS
+link (udpout 127.0.0.1:(18570 + instance)) while the sim steps the plant before its first
+camera frame: once EKF2 has had ``arm_after_s`` of motion capture it sends the EKF origin,
+PX4's own take-off (MIS_TAKEOFF_ALT, set at boot to the start's height above the floor
+rest) and the arming, every ``command_period_s``, until PX4 is armed; then it waits until
+the vehicle holds still at the start (:meth:`settled`). The plant starts on the floor right
+below the start with the start's yaw, so a vertical take-off reaches it. All times are sim
+time (s); ROS-free.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+import os
+
+import numpy as np
+
+from ibvs_sim.core.dynamics import State
+from ibvs_sim.core.px4_plant import SIH_DEFAULT_HOME
+
+os.environ.setdefault('MAVLINK20', '1')
+from pymavlink import mavutil  # noqa: E402  (after MAVLINK20)
+
+PX4_GCS_LISTEN_BASE = 18570
+MAV_CMD_NAV_TAKEOFF = 22
+MAV_CMD_COMPONENT_ARM_DISARM = 400
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+MAV_AUTOPILOT_PX4 = 12
+
+
+@dataclass(frozen=True)
+class StartHold:
+    """When the take-off counts as over: still at the start (sim time)."""
+
+    arm_after_s: float = 12.0        # s, EKF2 on motion capture by then
+    command_period_s: float = 1.0    # s, origin / take-off / arm repeated until armed
+    position_tol_m: float = 0.10     # m, truth within this of the start
+    speed_tol_mps: float = 0.05      # m/s, and slower than this
+    still_for_s: float = 1.0         # s, for this long
+    timeout_s: float = 120.0         # s, from boot: the pre-roll failed after this
+
+
+class Px4StartPilot:
+    """PX4's take-off and hold at the start, by sim time (see module doc)."""
+
+    def __init__(self, instance: int, start_I: np.ndarray, hold: StartHold | None = None,
+                 home: tuple = SIH_DEFAULT_HOME) -> None:
+        self.conn = mavutil.mavlink_connection(
+            f'udpout:127.0.0.1:{PX4_GCS_LISTEN_BASE + int(instance)}',
+            source_system=255, source_component=190)
+        self.start_I = np.asarray(start_I, float)
+        self.hold = hold or StartHold()
+        self.home = home
+        self.target: tuple | None = None
+        self.armed = False
+        self.texts: list = []
+        self._next_command = self.hold.arm_after_s
+        self._still_since: float | None = None
+        self._beat = -math.inf
+        self.armed_at_s: float | None = None
+
+    def step(self, t: float, state: State) -> bool:
+        """Read PX4, command what is due at sim time ``t``; return True once settled at start."""
+        self._read()
+        if t - self._beat >= 1.0:
+            self._beat = t
+            self.conn.mav.heartbeat_send(6, 8, 0, 0, 0)     # a GCS
+        if not self.armed and self.target is not None and t >= self._next_command:
+            self._next_command = t + self.hold.command_period_s
+            lat, lon, alt = self.home
+            self.conn.mav.set_gps_global_origin_send(self.target[0], int(lat * 1e7),
+                                                     int(lon * 1e7), int(alt * 1e3), 0)
+            self._command(MAV_CMD_NAV_TAKEOFF, -1, 0, 0, math.nan, math.nan, math.nan,
+                          math.nan)
+            self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        if self.armed and self.armed_at_s is None:
+            self.armed_at_s = t
+        near = float(np.linalg.norm(state.xi_I - self.start_I)) < self.hold.position_tol_m
+        slow = float(np.linalg.norm(state.v_I)) < self.hold.speed_tol_mps
+        if not (self.armed and near and slow):
+            self._still_since = None
+            return False
+        self._still_since = t if self._still_since is None else self._still_since
+        return t - self._still_since >= self.hold.still_for_s
+
+    def _command(self, cmd: int, *params: float) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        self.conn.mav.command_long_send(*self.target, int(cmd), 0, *p)
+
+    def _read(self) -> None:
+        while True:
+            try:
+                m = self.conn.recv_match(blocking=False)
+            except (OSError, ValueError):
+                continue
+            if m is None:
+                return
+            kind = m.get_type()
+            if kind == 'HEARTBEAT' and m.autopilot == MAV_AUTOPILOT_PX4:
+                self.target = (m.get_srcSystem(), m.get_srcComponent())
+                self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+            elif kind == 'STATUSTEXT':
+                self.texts = (self.texts + [str(m.text)])[-5:]
+
+    def close(self) -> None:
+        """Close the GCS socket."""
+        self.conn.close()
