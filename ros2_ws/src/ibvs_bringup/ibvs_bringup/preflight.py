@@ -609,6 +609,11 @@ def main(argv: list | None = None) -> int:
         ok = go(checks)
         print(format_checklist(checks) + '\n' + summary_line(checks)
               + ('' if ok else f' (after {args.timeout:.0f} s)'), flush=True)
+        # a subscriber (the supervisor) not yet matched would miss a verdict published now,
+        # and the latched copy ends with this process: wait for one first (bounded)
+        deadline = time.monotonic() + VERDICT_ACK_S
+        while verdict.get_subscription_count() == 0 and time.monotonic() < deadline:
+            rclpy.spin_once(node, timeout_sec=0.05)
         verdict.publish(verdict_msg(checks, node.get_clock().now().nanoseconds))
         verdict.wait_for_all_acked(Duration(seconds=VERDICT_ACK_S))   # the supervisor has it
     except (KeyboardInterrupt, ExternalShutdownException):
