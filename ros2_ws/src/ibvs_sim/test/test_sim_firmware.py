@@ -175,3 +175,95 @@ def test_ardupilot_hover_throttle(plant):
                                                                        rel=1e-3)
     assert (p['FRAME_CLASS'], p['FRAME_TYPE']) == (1, 1)
     assert ardupilot_motor_model(plant).output_to_rotor == (0, 2, 3, 1)
+
+
+class _FakeExchange:
+    """A firmware that answers every step with fixed outputs (no sockets)."""
+
+    def __init__(self, u: float) -> None:
+        from ibvs_sim.core.firmware.px4_hil import ActuatorOutputs
+        self.out = ActuatorOutputs(0, np.full(4, u), True)
+        self.after = 0
+
+    def before_step(self, plant):
+        return self.out
+
+    def after_step(self, plant):
+        self.after += 1
+
+
+class _FakePilot:
+    """Settled after ``at_step`` calls."""
+
+    class hold:
+        timeout_s = 5.0
+
+    def __init__(self, at_step: int) -> None:
+        self.calls, self.at_step = 0, at_step
+        self.armed, self.texts = True, []
+
+    def step(self, t, state):
+        self.calls += 1
+        return self.calls >= self.at_step
+
+    def close(self):
+        pass
+
+
+class _FakeLink:
+    port, connected = 0, True
+
+    def try_accept(self, timeout_s):
+        return True
+
+    def close(self):
+        pass
+
+
+def _firmware_physics(u: float, settle_at: int):
+    from ibvs_sim.core.firmware.lockstep import FirmwarePhysics, FirmwarePlant
+    from ibvs_sim.core.world import load_world
+    world, vehicle = load_world(), load_vehicle()
+    plant_params = PlantParams.from_vehicle(vehicle, floor_z=world.floor_z)
+    motors = MotorModel.for_layout(PX4_QUAD_X, plant_params.rotor_thrust_max)
+    plant = FirmwarePlant(world, vehicle, _FakeExchange(u), motors,
+                          np.array([-2.0, 0.1, -1.8]), 0.3)
+    return FirmwarePhysics(plant, _FakePilot(settle_at), _FakeLink()), plant
+
+
+def test_preroll_rebases_the_sim_clock(plant):
+    """The sim's clock is 0 until the pre-roll ends, then counts from there; the firmware's
+    clock is ahead by the pre-roll plus the boot offset (1 s)."""
+    from ibvs_sim.core.firmware.lockstep import BOOT_OFFSET_US
+    physics, fw = _firmware_physics(0.0, settle_at=3)     # motors off: rests on the floor
+    assert not physics.ready and physics.t_ns == 0
+    assert not physics.preroll(15)                        # 15 steps: the pilot asked once
+    assert physics.preroll(100)                           # asked at steps 20 and 30
+    assert fw.step_index == 30 and physics.origin_ns == 30 * fw.dt_ns
+    assert physics.t_ns == 0 and physics.ready
+    assert physics.boot_offset_ms == (30 * fw.dt_ns // 1000 + BOOT_OFFSET_US) // 1000
+    physics.substep()
+    assert physics.t_ns == fw.dt_ns and fw.exchange.after == 31
+    view = physics.state_view()
+    assert view.t == pytest.approx(fw.dt_ns / 1e9)
+    np.testing.assert_allclose(view.accel_B_specific, [0.0, 0.0, -GRAVITY], atol=1e-9)
+
+
+def test_firmware_plant_starts_on_the_floor_below_the_start_and_obeys_the_motors(plant):
+    """At rest on the floor below the start with its yaw; outputs above hover lift it (the
+    thrust the motor model gives through the plant's own integration)."""
+    physics, fw = _firmware_physics(0.6, settle_at=10 ** 9)
+    z_rest = fw.plant.z_rest
+    np.testing.assert_allclose(fw.state.xi_I, [-2.0, 0.1, z_rest])
+    np.testing.assert_allclose(fw.state.R_IB, rot_z(0.3))
+    for _ in range(250):                                  # 0.5 s at 0.6 > hover 0.5
+        fw.substep()
+    assert fw.state.xi_I[2] < z_rest - 0.05 and fw.armed and fw.exchanges == 250
+
+
+def test_preroll_that_never_settles_fails_with_the_reason(plant):
+    from ibvs_sim.core.firmware.px4_hil import FirmwareLinkError
+    physics, fw = _firmware_physics(0.0, settle_at=10 ** 9)
+    with pytest.raises(FirmwareLinkError, match='pre-roll'):
+        physics.preroll(10 ** 6)
+    assert fw.t <= 5.0 + 2 * fw.dt_ns / 1e9
