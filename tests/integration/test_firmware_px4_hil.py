@@ -9,6 +9,8 @@ time does.
 """
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from ibvs_harness.firmware_hover import fly_hover
@@ -17,6 +19,12 @@ from ibvs_sim.core.px4_plant import find_px4_sitl
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 
 HEIGHT_M = 1.5
+#: =1: run the whole-graph mission on PX4 (alone, on a quiet machine). Opt-in because under
+#: CPU load the lockstep runs slower than PX4's heartbeat needs: PX4 sends it at 1 Hz of its
+#: clock, the sim's, and the bridge judges the link on its steady clock (3.5 s), so below
+#: about 0.3 x real time the bridge takes the link for lost and stops its setpoints. Measured:
+#: a run beside two busy loops lost the link in WINDOW; quiet runs 4 of 4 succeeded.
+MISSION_OPT_IN = 'IBVS_PX4_LOCKSTEP_TEST'
 
 
 @pytest.fixture(scope='module')
@@ -75,6 +83,9 @@ def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
     estimator, in lockstep (docs/firmware_lockstep.md). The criteria are docs/spec.md's."""
     import json
     from ibvs_harness.run_scenario import main
+    if os.environ.get(MISSION_OPT_IN) != '1':
+        pytest.skip(f'the mission on PX4 in lockstep is opt-in: set {MISSION_OPT_IN}=1 and run '
+                    'it alone (see MISSION_OPT_IN)')
     try:
         find_px4_sitl()
     except FileNotFoundError as exc:
