@@ -12,7 +12,6 @@ import time
 import numpy as np
 import pytest
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -40,19 +39,6 @@ WORLD = load_world()
 PAD = load_pad_layout()
 WINDOW_I = WORLD.window.corners_I()
 TAG = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
-
-
-@pytest.fixture()
-def ctx():
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    nodes = []
-    executor = SingleThreadedExecutor(context=context)
-    yield context, executor, nodes
-    executor.shutdown()
-    for n in nodes:
-        n.destroy_node()
-    rclpy.try_shutdown(context=context)
 
 
 def spin_until(executor, done, timeout_s):

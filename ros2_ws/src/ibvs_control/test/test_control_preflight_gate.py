@@ -4,9 +4,6 @@ The gate alone (``core.preflight_gate``), the ibvs/preflight message (``node_com
 the supervisor node with real rclpy: a verdict published latched as the preflight does.
 """
 import numpy as np
-import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
@@ -20,19 +17,6 @@ from test_control_nodes import call, Feeder, spin_until, TAG  # noqa: E402
 
 NO_GO = 'PREFLIGHT NO-GO: 1 of 15 checks failed: autopilot failsafe when the bridge stops'
 GO = 'PREFLIGHT GO: 15 checks passed'
-
-
-@pytest.fixture()
-def ctx():
-    context = rclpy.context.Context()
-    rclpy.init(context=context)
-    nodes = []
-    executor = SingleThreadedExecutor(context=context)
-    yield context, executor, nodes
-    executor.shutdown()
-    for n in nodes:
-        n.destroy_node()
-    rclpy.try_shutdown(context=context)
 
 
 def test_the_gate_refuses_only_on_a_no_go_unless_overridden():

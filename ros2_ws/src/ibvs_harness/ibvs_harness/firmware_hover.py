@@ -76,6 +76,35 @@ class HoverReport:
     parameters: dict = field(default_factory=dict)
 
 
+@dataclass
+class HoldSamples:
+    """The hold's samples, one per pilot poll: mean motor output, height above home, drift."""
+
+    outputs: list = field(default_factory=list)
+    heights: list = field(default_factory=list)
+    horiz: list = field(default_factory=list)
+    tilts: list = field(default_factory=list)
+
+    def add(self, fw: FirmwarePlant, start: np.ndarray) -> None:
+        """Take the plant's state now (truth) and the firmware's last outputs."""
+        s = fw.state
+        self.outputs.append(float(np.mean(fw.outputs)))
+        self.heights.append(fw.z_home - float(s.xi_I[2]))
+        self.horiz.append(float(np.linalg.norm(s.xi_I[:2] - start[:2])))
+        self.tilts.append(math.degrees(math.acos(min(1.0, float(s.R_IB[2, 2])))))
+
+    def judge(self, report: HoverReport, hold_s: float) -> None:
+        """Fill the hold's figures of ``report``."""
+        h_err = np.array(self.heights) - report.height_target_m
+        report.hold_s = hold_s
+        report.hover_output_mean = float(np.mean(self.outputs))
+        report.height_error_mean_m = float(np.mean(h_err))
+        report.height_error_max_m = float(np.max(np.abs(h_err)))
+        report.horizontal_error_max_m = float(np.max(self.horiz))
+        report.tilt_max_deg = float(np.max(self.tilts))
+        report.ok = True
+
+
 def fly_hover(height_m: float = 1.5, hold_s: float = 10.0, seed: int = 0,
               instance: int | None = None) -> HoverReport:
     """Boot PX4 on the plant, take off to ``height_m``, hold ``hold_s``; return the figures."""
@@ -121,7 +150,7 @@ def _fly(fw: FirmwarePlant, pilot: Pilot, report: HoverReport, hold_s: float,
     """Step the plant; the pilot arms, takes off and watches the hold (sim-time schedule)."""
     home = SIH_DEFAULT_HOME
     next_command = ARM_AFTER_S
-    outputs, heights, horiz, tilts = [], [], [], []
+    hold = HoldSamples()
     while True:
         event = fw.substep()
         if event is not None and event.type is EventType.COLLISION:
@@ -154,14 +183,10 @@ def _fly(fw: FirmwarePlant, pilot: Pilot, report: HoverReport, hold_s: float,
             raise RuntimeError(f'PX4 did not arm: texts {pilot.statustext[-3:]}')
         # the hold is judged after 3 s of loiter (the take-off's overshoot settles)
         if report.loiter_at_s is not None and t >= report.loiter_at_s + 3.0:
-            s = fw.state
-            outputs.append(float(np.mean(fw.outputs)))
-            heights.append(fw.z_home - float(s.xi_I[2]))
-            horiz.append(float(np.linalg.norm(s.xi_I[:2] - start[:2])))
-            tilts.append(math.degrees(math.acos(min(1.0, float(s.R_IB[2, 2])))))
+            hold.add(fw, start)
             if t >= report.loiter_at_s + 3.0 + hold_s:
                 break
-    _judge(report, outputs, heights, horiz, tilts, hold_s)
+    hold.judge(report, hold_s)
 
 
 ARDUPILOT_VERSION = 'ArduCopter V4.5.6 SITL (JSON backend, lockstep)'
@@ -220,7 +245,7 @@ def fly_hover_ardupilot(height_m: float = 1.5, hold_s: float = 10.0,
 def _fly_ardupilot(fw: FirmwarePlant, gcs, report: HoverReport, hold_s: float) -> None:
     """GUIDED, arm and take off by sim time; judge the hold once the take-off settled."""
     next_command, hb, texts = 1.0, None, []
-    outputs, heights, horiz, tilts = [], [], [], []
+    hold = HoldSamples()
     start = fw.state.xi_I.copy()
     while True:
         event = fw.substep()
@@ -253,27 +278,10 @@ def _fly_ardupilot(fw: FirmwarePlant, gcs, report: HoverReport, hold_s: float) -
                 and abs(h - report.height_target_m) < SETTLED_M:
             report.loiter_at_s = t
         if report.loiter_at_s is not None and t >= report.loiter_at_s + 3.0:
-            s = fw.state
-            outputs.append(float(np.mean(fw.outputs[:4])))
-            heights.append(h)
-            horiz.append(float(np.linalg.norm(s.xi_I[:2] - start[:2])))
-            tilts.append(math.degrees(math.acos(min(1.0, float(s.R_IB[2, 2])))))
+            hold.add(fw, start)
             if t >= report.loiter_at_s + 3.0 + hold_s:
                 break
-    _judge(report, outputs, heights, horiz, tilts, hold_s)
-
-
-def _judge(report: HoverReport, outputs: list, heights: list, horiz: list, tilts: list,
-           hold_s: float) -> None:
-    """Fill the hold's figures (outputs, heights above home, horizontal drift, tilt)."""
-    h_err = np.array(heights) - report.height_target_m
-    report.hold_s = hold_s
-    report.hover_output_mean = float(np.mean(outputs))
-    report.height_error_mean_m = float(np.mean(h_err))
-    report.height_error_max_m = float(np.max(np.abs(h_err)))
-    report.horizontal_error_max_m = float(np.max(horiz))
-    report.tilt_max_deg = float(np.max(tilts))
-    report.ok = True
+    hold.judge(report, hold_s)
 
 
 def main(argv: list | None = None) -> int:
