@@ -43,6 +43,10 @@ class ModeSupervisorNodeConfig:
         True, 'true: ibvs/start is refused while the latest preflight verdict (ibvs/preflight) '
         'is no-go; false: the operator overrides it, the start goes on and the no-go is '
         'logged. No verdict at all (the preflight not run) refuses nothing')
+    publish_camera_tf: bool = param(
+        True, 'true: publish the cameras\' mounts of vehicle.yaml (base_link -> each '
+        'optical frame) once at start on /tf_static (latched), for RViz and Foxglove; needs '
+        'tf2_msgs (without it one warning, nothing published)')
     supervisor: SupervisorConfig = group(SupervisorConfig)
     governor: GovernorConfig = group(GovernorConfig)
     imu: AttitudeBufferConfig = group(AttitudeBufferConfig, 'imu_')

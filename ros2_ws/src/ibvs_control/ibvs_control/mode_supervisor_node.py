@@ -8,6 +8,8 @@ the frame stride the graph can hold (core/rate_governor.py), publishes ``ibvs/mo
 ``/diagnostics``, and serves ``ibvs/start`` and ``ibvs/abort``. ``ibvs/start`` is refused
 while the latest preflight verdict (``ibvs/preflight``) is no-go, unless
 ``require_preflight_go`` is false (:class:`~ibvs_control.core.preflight_gate.PreflightGate`).
+At start it publishes the cameras' mounts on ``/tf_static`` (``publish_camera_tf``;
+:mod:`ibvs_control.camera_tf`).
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.lever_arm import camera_bearings_from_body, has_lever_arm
 from ibvs_common.core.modes import CAMERA_OF, Camera, InputKind, Mode, MODE_INPUTS
+from ibvs_control.camera_tf import publish_camera_tf
 from ibvs_control.config import ModeSupervisorNodeConfig
 from ibvs_control.core.frame_stats import FrameStats
 from ibvs_control.core.preflight_gate import PreflightGate
@@ -95,6 +98,9 @@ class ModeSupervisorNode(Node):
         self._publish_grid()
         self._deadline = DeadlineTimer(self, self._on_deadline)
         self._publish_mode()
+        # the cameras' mounts for RViz and Foxglove (latched, once)
+        self._tf_static = (publish_camera_tf(self, vehicle.cameras.values())
+                           if cfg.publish_camera_tf else None)
         self.get_logger().info(f'mode supervisor ready in {self._core.mode.name}: {config}')
 
     # --- helpers ---------------------------------------------------------------------------

@@ -25,6 +25,7 @@ import numpy as np
 
 GRAVITY = 9.80665  # m/s^2, standard gravity
 MAP_FRAME = 'map'  # frame_id of the ROS world frame (ENU), = {I} rotated by R_MAP_I
+BASE_FRAME = 'base_link'  # frame_id of the ROS body frame (FLU), = {B} rotated by R_FLU_FRD
 e1 = np.array([1.0, 0.0, 0.0])
 e2 = np.array([0.0, 1.0, 0.0])
 e3 = np.array([0.0, 0.0, 1.0])
@@ -300,6 +301,22 @@ def bearings_C_to_I(bearings_C: np.ndarray, R_IB: np.ndarray, R_BC: np.ndarray) 
 def bearings_I_to_C(bearings_I: np.ndarray, R_IB: np.ndarray, R_BC: np.ndarray) -> np.ndarray:
     """Inverse of :func:`bearings_C_to_I`: b_C = R_BC^T R_IB^T p."""
     return np.asarray(bearings_I, dtype=float) @ (np.asarray(R_IB) @ np.asarray(R_BC))
+
+
+def camera_mount_in_base_link(R_BC: np.ndarray, t_BC: np.ndarray
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """Return a camera's mount as the ROS transform ``base_link`` -> its optical frame.
+
+    From the mount of vehicle.yaml: ``R_BC`` maps optical-frame coordinates to body FRD and
+    ``t_BC`` is the optical centre in body FRD (m). Returned as tf2 (REP-103) states a
+    transform parent -> child: ``(translation, q_xyzw)`` with ``translation`` (3,) the optical
+    centre expressed in ``base_link`` (FLU, m) and ``q_xyzw`` (4,) the unit quaternion, ROS
+    message order (x, y, z, w), w >= 0, of ``R_FLU_C = R_FLU_FRD R_BC``, which maps
+    optical-frame coordinates into ``base_link``: ``x_FLU = R_FLU_C x_C + translation``.
+    """
+    translation = R_FLU_FRD @ np.asarray(t_BC, dtype=float).reshape(3)
+    q_wxyz = quat_from_rot(R_FLU_FRD @ np.asarray(R_BC, dtype=float))
+    return translation, quat_wxyz_to_xyzw(q_wxyz)
 
 
 def is_rotation(R: np.ndarray, tol: float = 1e-6) -> bool:
