@@ -76,16 +76,21 @@ def build_nodes(specs: list, context: Context, intra_process: bool = True,
 
     When the MAVLink bridge is among them, its imu/data goes to the others in process
     (``ibvs_common.intra_process``: every node class with an ``imu_local`` argument takes it
-    from there instead of through DDS, as rclcpp's intra-process communication would).
+    from there instead of through DDS, as rclcpp's intra-process communication would). Every
+    node class with a ``camera_inputs`` argument shares one subscription per camera with the
+    others (``SharedCameraInputs``). ``intra_process=False`` gives each node its own.
     """
     from ibvs_common.intra_process import IntraProcessTopic
+    from ibvs_perception.camera_input import SharedCameraInputs
     classes = [node_class(spec.package, spec.executable) for spec in specs]
     with_bridge = any(spec.executable == 'mavlink_bridge' for spec in specs)
     imu_local = IntraProcessTopic('imu/data') if with_bridge and intra_process else None
+    shared = {'imu_local': imu_local,
+              'camera_inputs': SharedCameraInputs() if intra_process else None}
     nodes = []
     for spec, cls in zip(specs, classes):
-        extra = ({'imu_local': imu_local} if imu_local is not None
-                 and 'imu_local' in inspect.signature(cls).parameters else {})
+        accepted = inspect.signature(cls).parameters
+        extra = {k: v for k, v in shared.items() if v is not None and k in accepted}
         # the node's own command-line tail, as its process would get it: parameter files,
         # overrides and remappings apply to this node only
         nodes.append(cls(node_name=spec.name, context=context,
@@ -125,7 +130,8 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--nodes', default='', help='comma-separated onboard node names (default: '
                    'all of them)')
     p.add_argument('--no-intra-process', action='store_true',
-                   help='imu/data through DDS to every node, as between processes')
+                   help='imu/data and the images through DDS to every node, as between '
+                   'processes')
     p.add_argument('--specs', default=None, help='JSON node specs (write_specs) instead of the '
                    'onboard graph of the options above: how the runner composes a run')
     a = p.parse_args(remove_ros_args(['composed'] + argv)[1:])

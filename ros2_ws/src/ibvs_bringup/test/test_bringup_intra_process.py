@@ -287,3 +287,94 @@ def test_a_lazy_message_is_built_once_for_every_subscriber():
     sub_a.take()
     sub_b.take()
     assert made == [1] and a[0] is b[0] and a[0].header.stamp.sec == 5
+
+
+def _image_subscriptions(nodes, topic: str) -> int:
+    return sum(s.topic_name == topic for node in nodes for s in node.subscriptions)
+
+
+@pytest.mark.parametrize('intra_process', [True, False])
+def test_composed_perception_nodes_take_each_camera_once(context, intra_process):
+    """One image and one CameraInfo subscription per camera for its two nodes (composed); each
+    node's own with ``intra_process=False``. An image published once reaches both nodes."""
+    from ibvs_bringup import composed, graph
+    from sensor_msgs.msg import CameraInfo, Image
+    specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
+                                                   mavlink_url='udpin:127.0.0.1:0'))
+    nodes = composed.build_nodes(specs, context, intra_process=intra_process)
+    sender = rclpy.create_node(f'camera_{TAG}', context=context)
+    try:
+        per_camera = 1 if intra_process else 2
+        for cam in ('front', 'down'):
+            for topic in (f'/{cam}_camera/image_raw', f'/{cam}_camera/camera_info'):
+                assert _image_subscriptions(nodes, topic) == per_camera, topic
+        by_name = {n.get_name(): n for n in nodes}
+        front = (by_name['window_detector'], by_name['front_optical_flow'])
+        executor = make_executor(context)
+        for node in nodes + [sender]:
+            executor.add_node(node)
+        pub_info = sender.create_publisher(CameraInfo, 'front_camera/camera_info', SENSOR_QOS)
+        pub_image = sender.create_publisher(Image, 'front_camera/image_raw', SENSOR_QOS)
+        assert spin_until(executor, lambda: pub_image.get_subscription_count() == per_camera
+                          and pub_info.get_subscription_count() == per_camera, 5.0)
+        info = CameraInfo(width=8, height=6)
+        image = Image(width=8, height=6, encoding='mono8', step=8, data=bytes(48))
+        image.header.frame_id = 'front_camera_optical_frame'
+        pub_info.publish(info)
+        assert spin_until(executor, lambda: all(n.camera_info is not None for n in front), 5.0)
+        pub_image.publish(image)
+        assert spin_until(executor, lambda: all(n.gated.counts.computed == 1 for n in front),
+                          5.0)
+        spin_until(executor, lambda: False, 0.2)         # spin on: nothing comes twice
+        assert [n.gated.counts.computed for n in front] == [1, 1]
+        assert (front[0].camera_info is front[1].camera_info) == intra_process
+        executor.shutdown()
+    finally:
+        sender.destroy_node()
+        for node in nodes:
+            node.destroy_node()
+
+
+def test_nodes_remapped_apart_do_not_share_a_camera(context):
+    from ibvs_bringup import composed, graph
+    specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
+                                                   mavlink_url='udpin:127.0.0.1:0'))
+    i = next(k for k, s in enumerate(specs) if s.name == 'window_detector')
+    s = specs[i]
+    specs[i] = graph.NodeSpec(s.package, s.executable, s.name, s.parameters,
+                              (('front_camera/image_raw', 'other_camera/image_raw'),))
+    nodes = composed.build_nodes(specs, context)
+    try:
+        assert _image_subscriptions(nodes, '/front_camera/image_raw') == 1    # the flow's
+        assert _image_subscriptions(nodes, '/other_camera/image_raw') == 1    # the detector's
+        assert _image_subscriptions(nodes, '/front_camera/camera_info') == 2
+    finally:
+        for node in nodes:
+            node.destroy_node()
+
+
+def test_a_shared_camera_applies_its_time_offset_once_and_refuses_another(context):
+    import dataclasses
+    from ibvs_common.core.config import load_vehicle
+    from ibvs_perception.camera_input import SharedCameraInputs
+    from sensor_msgs.msg import Image
+    camera = dataclasses.replace(load_vehicle().cameras['front'], time_offset_s=0.004)
+    node = rclpy.create_node(f'shared_cam_{TAG}', context=context)
+    try:
+        shared, got = SharedCameraInputs(), []
+        first = shared.attach(node, camera, 'raw', lambda m: got.append(m.header.stamp.nanosec),
+                              'a')
+        second = shared.attach(node, camera, 'raw',
+                               lambda m: got.append(m.header.stamp.nanosec), 'b')
+        assert first is second and len(shared.inputs) == 1
+        msg = Image()
+        msg.header.frame_id = camera.frame_id
+        msg.header.stamp.nanosec = 1_000_000
+        first._deliver(msg)
+        assert got == [5_000_000, 5_000_000]             # 1 ms + 4 ms, not + 8 ms
+        other = dataclasses.replace(camera, time_offset_s=0.0)
+        with pytest.raises(ValueError, match='time_offset_s 0.0, but a in the same process'):
+            shared.attach(node, other, 'raw', got.append, 'c')
+        assert shared.attach(node, other, 'compressed', got.append, 'd') is not first
+    finally:
+        node.destroy_node()

@@ -5,7 +5,17 @@
 (sensor_msgs/CompressedImage, decoded to mono8); moves each stamp by the camera-IMU time
 offset of vehicle.yaml (so that every product and attitude lookup uses the exposure time on
 the IMU's clock); warns (throttled) when an image's ``frame_id`` is not the camera's; and
-says so when no image comes while the other transport's topic has a publisher.
+says so when no image comes while the other transport's topic has a publisher. It also takes
+the camera's ``<camera>_camera/camera_info``.
+
+One CameraInput can feed several nodes of one process (the composed layout,
+``ibvs_bringup.composed``): :class:`SharedCameraInputs` gives the front camera's window
+detector and wall flow, and the down camera's pad detector and floor flow, one subscription
+each for the image and the CameraInfo. rclpy has no intra-process path: every subscription
+pays the middleware's take and the conversion of the message to Python, ~0.7 ms of a 752x480
+mono8 image on the development machine (docs/performance.md "Where a frame's time goes"),
+so two readers of one camera in one process paid it twice a frame. The consumers get the same
+message object, one after the other in the order they attached: they must not modify it.
 """
 from __future__ import annotations
 
@@ -14,7 +24,8 @@ from typing import Callable
 import cv2
 import numpy as np
 from rclpy.node import Node
-from sensor_msgs.msg import CompressedImage, Image
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
 from ibvs_common.core.config import CameraConfig
 from ibvs_common.node_common import IMAGE_QOS, ns_to_stamp
@@ -45,29 +56,57 @@ def mono8_image(header, gray: np.ndarray) -> Image:
     return out
 
 
+def image_topic(camera_name: str, transport: str) -> str:
+    """Return the image topic of a camera for ``transport`` ('raw' or 'compressed')."""
+    raw = f'{camera_name}_camera/image_raw'
+    return raw if transport == 'raw' else raw + '/compressed'
+
+
 class CameraInput:
-    """One camera's images, converted and time-corrected, handed to ``handler``."""
+    """One camera's images, converted and time-corrected, and its CameraInfo, for consumers.
+
+    ``handler(image)`` and ``on_info(camera_info)`` are the first consumer's;
+    :meth:`add_consumer` adds another one (a second node of the same process).
+    """
 
     def __init__(self, node: Node, camera: CameraConfig, transport: str,
-                 handler: Callable[[Image], None], log_prefix: str) -> None:
+                 handler: Callable[[Image], None], log_prefix: str,
+                 on_info: Callable[[CameraInfo], None] | None = None) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"parameter image_transport must be one of {TRANSPORTS}, got "
                              f'{transport!r}')
-        self.node, self.handler, self.prefix = node, handler, log_prefix
+        self.node, self.prefix = node, log_prefix
+        self.camera_name, self.transport = camera.name, transport
+        self.handlers: list[Callable[[Image], None]] = [handler]
+        self.info_handlers: list[Callable[[CameraInfo], None]] = \
+            [] if on_info is None else [on_info]
         self.frame_id = camera.frame_id
         self.offset_ns = int(round(camera.time_offset_s * NS_PER_S))
         self.log = ThrottledLog(node.get_logger())
         self.received = 0
         self.undecodable = 0
-        raw = f'{camera.name}_camera/image_raw'
-        self.topic = raw if transport == 'raw' else raw + '/compressed'
-        self.other_topic = raw + '/compressed' if transport == 'raw' else raw
+        self.topic = image_topic(camera.name, transport)
+        self.other_topic = image_topic(camera.name, 'compressed' if transport == 'raw' else 'raw')
+        # CameraInfo first: at one wake-up rclpy takes it before an image
+        node.create_subscription(CameraInfo, f'{camera.name}_camera/camera_info', self._on_info,
+                                 qos_profile_sensor_data)
         if transport == 'raw':
             node.create_subscription(Image, self.topic, self._deliver, IMAGE_QOS)
         else:
             node.create_subscription(CompressedImage, self.topic, self._on_compressed,
                                      IMAGE_QOS)
         self._silence_timer = node.create_timer(SILENCE_CHECK_S, self._check_silence)
+
+    def add_consumer(self, handler: Callable[[Image], None],
+                     on_info: Callable[[CameraInfo], None] | None = None) -> None:
+        """Hand every image (and CameraInfo) to ``handler`` (``on_info``) too, after the others."""
+        self.handlers.append(handler)
+        if on_info is not None:
+            self.info_handlers.append(on_info)
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        for on_info in self.info_handlers:
+            on_info(msg)
 
     def _on_compressed(self, msg: CompressedImage) -> None:
         try:
@@ -87,7 +126,8 @@ class CameraInput:
                              "camera's", THROTTLE_S, key='frame_id')
         if self.offset_ns:
             ns_to_stamp(stamp_to_ns(msg.header.stamp) + self.offset_ns, msg.header.stamp)
-        self.handler(msg)
+        for handler in self.handlers:
+            handler(msg)
 
     def _check_silence(self) -> None:
         """Say why nothing comes, once every SILENCE_CHECK_S, until an image has come."""
@@ -99,3 +139,51 @@ class CameraInput:
             self.node.get_logger().error(
                 f'{self.prefix}: no image on {self.topic}, but {self.other_topic} has '
                 f'{others} publisher(s): set image_transport to match the camera driver')
+
+
+class SharedCameraInputs:
+    """The camera inputs of one process: one :class:`CameraInput` per resolved image topic.
+
+    Built by the composed container and handed to each perception node (module doc). The
+    first node to ask for a camera owns its subscriptions; the others are added as consumers.
+    """
+
+    def __init__(self) -> None:
+        self.inputs: dict[tuple[str, str], CameraInput] = {}   # (image, info) topics
+
+    def attach(self, node: Node, camera: CameraConfig, transport: str,
+               handler: Callable[[Image], None], log_prefix: str,
+               on_info: Callable[[CameraInfo], None] | None = None) -> CameraInput:
+        """Return the process's input of this camera, with ``handler`` and ``on_info`` added.
+
+        Raises ValueError (a node refuses to start) when a node asks for the camera with
+        another frame_id or time offset than the node that subscribed it: one message cannot
+        carry two corrections.
+        """
+        # the names after the node's remappings: nodes remapped apart do not share
+        key = tuple(node.resolve_topic_name(t) for t in (
+            image_topic(camera.name, transport), f'{camera.name}_camera/camera_info'))
+        shared = self.inputs.get(key)
+        if shared is None:
+            shared = CameraInput(node, camera, transport, handler, log_prefix, on_info)
+            self.inputs[key] = shared
+            return shared
+        offset_ns = int(round(camera.time_offset_s * NS_PER_S))
+        if (camera.frame_id, offset_ns) != (shared.frame_id, shared.offset_ns):
+            raise ValueError(
+                f'{log_prefix}: {camera.name} camera configured with frame_id '
+                f'{camera.frame_id!r} and time_offset_s {camera.time_offset_s}, but '
+                f'{shared.prefix} in the same process with {shared.frame_id!r} and '
+                f'{shared.offset_ns / NS_PER_S} (vehicle_file parameters differ)')
+        shared.add_consumer(handler, on_info)
+        return shared
+
+
+def camera_input(node: Node, camera: CameraConfig, transport: str,
+                 handler: Callable[[Image], None], log_prefix: str,
+                 on_info: Callable[[CameraInfo], None] | None = None,
+                 shared: SharedCameraInputs | None = None) -> CameraInput:
+    """Subscribe a node to a camera: through ``shared`` when given (composed), else its own."""
+    if shared is not None:
+        return shared.attach(node, camera, transport, handler, log_prefix, on_info)
+    return CameraInput(node, camera, transport, handler, log_prefix, on_info)

@@ -43,7 +43,7 @@ from ibvs_perception.core.flow import FlowEstimator, wall_normal_from_corners
 from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
-from ibvs_perception.camera_input import CameraInput
+from ibvs_perception.camera_input import camera_input, SharedCameraInputs
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
@@ -63,7 +63,8 @@ class OpticalFlowNode(Node):
     """Thin ROS wrapper of :class:`FlowEstimator` for one camera."""
 
     def __init__(self, node_name: str = 'optical_flow',
-                 imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
+                 imu_local: IntraProcessTopic | None = None,
+                 camera_inputs: SharedCameraInputs | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         cfg = declare_config(self, OpticalFlowNodeConfig)   # ValueError: a bad parameter
@@ -102,10 +103,9 @@ class OpticalFlowNode(Node):
         if self.camera_name == FRONT:
             self.create_subscription(PolygonStamped, 'window/corners', self.on_window,
                                      qos_profile_sensor_data)
-        self.create_subscription(CameraInfo, f'{prefix}/camera_info', self.on_info,
-                                 qos_profile_sensor_data)
-        self.images = CameraInput(self, camera, cfg.images.image_transport,
-                                  self.gated.on_image, f'{self.camera_name}_optical_flow')
+        self.images = camera_input(self, camera, cfg.images.image_transport,
+                                   self.gated.on_image, f'{self.camera_name}_optical_flow',
+                                   self.on_info, camera_inputs)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

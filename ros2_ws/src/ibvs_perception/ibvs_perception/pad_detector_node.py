@@ -10,7 +10,6 @@ row, :mod:`~ibvs_perception.frozen_camera`), as if the camera had delivered noth
 from __future__ import annotations
 
 from rclpy.node import Node
-from rclpy.qos import qos_profile_sensor_data
 
 from geometry_msgs.msg import PolygonStamped
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
@@ -20,7 +19,7 @@ from ibvs_perception.core.pad import PadConfigError, PadDetector
 from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
-from ibvs_perception.camera_input import CameraInput
+from ibvs_perception.camera_input import camera_input, SharedCameraInputs
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (camera_from_info, mono8_from_image, polygon_from_vectors,
                                       stamp_to_s)
@@ -36,7 +35,8 @@ THROTTLE_S = 2.0
 class PadDetectorNode(Node):
     """Thin ROS wrapper of :class:`PadDetector`."""
 
-    def __init__(self, node_name: str = 'pad_detector', **kwargs) -> None:
+    def __init__(self, node_name: str = 'pad_detector',
+                 camera_inputs: SharedCameraInputs | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         cfg = declare_config(self, PadDetectorNodeConfig)   # ValueError: a bad parameter
@@ -56,10 +56,9 @@ class PadDetectorNode(Node):
         self.camera_info: CameraInfo | None = None
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
         self.pub_groups = self.create_publisher(JointState, 'pad/groups', 10)
-        self.create_subscription(CameraInfo, 'down_camera/camera_info', self.on_info,
-                                 qos_profile_sensor_data)
-        self.images = CameraInput(self, camera, cfg.images.image_transport,
-                                  self.gated.on_image, 'pad_detector')
+        self.images = camera_input(self, camera, cfg.images.image_transport,
+                                   self.gated.on_image, 'pad_detector', self.on_info,
+                                   camera_inputs)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg

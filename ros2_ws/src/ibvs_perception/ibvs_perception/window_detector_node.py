@@ -34,7 +34,7 @@ from ibvs_common.intra_process import IntraProcessTopic, subscribe
 from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.modes import InputKind
 from ibvs_perception.frozen_camera import FrozenCameraGuard
-from ibvs_perception.camera_input import CameraInput
+from ibvs_perception.camera_input import camera_input, SharedCameraInputs
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       polygon_from_vectors, stamp_to_s)
@@ -54,7 +54,8 @@ class WindowDetectorNode(Node):
     """Thin ROS wrapper of :class:`WindowDetector`."""
 
     def __init__(self, node_name: str = 'window_detector',
-                 imu_local: IntraProcessTopic | None = None, **kwargs) -> None:
+                 imu_local: IntraProcessTopic | None = None,
+                 camera_inputs: SharedCameraInputs | None = None, **kwargs) -> None:
         super().__init__(node_name, **kwargs)
         self.log = ThrottledLog(self.get_logger())     # throttled messages cost nothing
         cfg = declare_config(self, WindowDetectorNodeConfig)
@@ -87,10 +88,9 @@ class WindowDetectorNode(Node):
         # each image, ibvs_common.intra_process)
         self.imu = subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data,
                              imu_local)
-        self.create_subscription(CameraInfo, 'front_camera/camera_info', self.on_info,
-                                 qos_profile_sensor_data)
-        self.images = CameraInput(self, camera, cfg.images.image_transport,
-                                  self.gated.on_image, 'window_detector')
+        self.images = camera_input(self, camera, cfg.images.image_transport,
+                                   self.gated.on_image, 'window_detector', self.on_info,
+                                   camera_inputs)
 
     def on_info(self, msg: CameraInfo) -> None:
         self.camera_info = msg
