@@ -362,15 +362,17 @@ def test_a_shared_camera_applies_its_time_offset_once_and_refuses_another(contex
     node = rclpy.create_node(f'shared_cam_{TAG}', context=context)
     try:
         shared, got = SharedCameraInputs(), []
-        first = shared.attach(node, camera, 'raw', lambda m: got.append(m.header.stamp.nanosec),
-                              'a')
-        second = shared.attach(node, camera, 'raw',
-                               lambda m: got.append(m.header.stamp.nanosec), 'b')
+
+        def stamps(images):
+            got.extend(m.header.stamp.nanosec for m in images)
+
+        first = shared.attach(node, camera, 'raw', stamps, 'a')
+        second = shared.attach(node, camera, 'raw', stamps, 'b')
         assert first is second and len(shared.inputs) == 1
         msg = Image()
         msg.header.frame_id = camera.frame_id
         msg.header.stamp.nanosec = 1_000_000
-        first._deliver(msg)
+        first._deliver([msg])
         assert got == [5_000_000, 5_000_000]             # 1 ms + 4 ms, not + 8 ms
         other = dataclasses.replace(camera, time_offset_s=0.0)
         with pytest.raises(ValueError, match='time_offset_s 0.0, but a in the same process'):

@@ -81,6 +81,24 @@ def test_a_failed_try_doubles_the_wait_before_the_next():
     assert waits[3] == pytest.approx(8.0, abs=0.05)   # capped
 
 
+@pytest.mark.parametrize('try_skipped', [1, 3])
+def test_a_try_of_a_smaller_stride_ends_at_its_first_skipped_frame(try_skipped):
+    # at the larger stride a lone skipped frame changes nothing; in a try it ends the try,
+    # before the overload rules (3 in a row, 4 in 10) would
+    cfg = GovernorConfig(stride_down_hold_s=1.0, stride_try_skipped=try_skipped)
+    gov = RateGovernor(cfg)
+    run(gov, 0.0, 3, False)                          # stride 2 at 0.04
+    assert run(gov, 0.08, 10, lambda k: k != 4) == [] and gov.stride == 2
+    changes = run(gov, 0.48, 40, True)               # the try of stride 1 after 1 s
+    assert [s for _, s in changes] == [1]
+    t = changes[0][0]
+    out = run(gov, t + 0.02, try_skipped, False)
+    assert out == [(round(t + 0.02 * try_skipped, 6), 2)] and gov.stride == 2
+    # the try failed: the next one waits twice the hold
+    again = run(gov, t + 0.1, 60, True)
+    assert again[0][0] - (t + 0.02 * try_skipped) == pytest.approx(2.0, abs=0.05)
+
+
 def test_bad_governor_thresholds_are_refused():
     with pytest.raises(ValueError):
         GovernorConfig(stride_window_frames=3, stride_up_skipped=4)

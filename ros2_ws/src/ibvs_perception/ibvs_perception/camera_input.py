@@ -31,6 +31,7 @@ from ibvs_common.core.config import CameraConfig
 from ibvs_common.node_common import IMAGE_QOS, ns_to_stamp
 from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
 from ibvs_common.throttled_log import ThrottledLog
+from ibvs_common.waiting_messages import take_waiting
 
 THROTTLE_S = 5.0
 TRANSPORTS = ('raw', 'compressed')
@@ -65,19 +66,22 @@ def image_topic(camera_name: str, transport: str) -> str:
 class CameraInput:
     """One camera's images, converted and time-corrected, and its CameraInfo, for consumers.
 
-    ``handler(image)`` and ``on_info(camera_info)`` are the first consumer's;
-    :meth:`add_consumer` adds another one (a second node of the same process).
+    ``handler(images)`` and ``on_info(camera_info)`` are the first consumer's;
+    :meth:`add_consumer` adds another one (a second node of the same process). ``images`` is
+    the list of images taken at once, oldest first: the one the executor delivered and those
+    already waiting behind it (:func:`ibvs_common.waiting_messages.take_waiting`), so that a
+    consumer that is behind can compute the newest and skip the others.
     """
 
     def __init__(self, node: Node, camera: CameraConfig, transport: str,
-                 handler: Callable[[Image], None], log_prefix: str,
+                 handler: Callable[[list[Image]], None], log_prefix: str,
                  on_info: Callable[[CameraInfo], None] | None = None) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"parameter image_transport must be one of {TRANSPORTS}, got "
                              f'{transport!r}')
         self.node, self.prefix = node, log_prefix
         self.camera_name, self.transport = camera.name, transport
-        self.handlers: list[Callable[[Image], None]] = [handler]
+        self.handlers: list[Callable[[list[Image]], None]] = [handler]
         self.info_handlers: list[Callable[[CameraInfo], None]] = \
             [] if on_info is None else [on_info]
         self.frame_id = camera.frame_id
@@ -91,13 +95,14 @@ class CameraInput:
         node.create_subscription(CameraInfo, f'{camera.name}_camera/camera_info', self._on_info,
                                  qos_profile_sensor_data)
         if transport == 'raw':
-            node.create_subscription(Image, self.topic, self._deliver, IMAGE_QOS)
+            self.subscription = node.create_subscription(Image, self.topic, self._on_image,
+                                                         IMAGE_QOS)
         else:
-            node.create_subscription(CompressedImage, self.topic, self._on_compressed,
-                                     IMAGE_QOS)
+            self.subscription = node.create_subscription(CompressedImage, self.topic,
+                                                         self._on_compressed, IMAGE_QOS)
         self._silence_timer = node.create_timer(SILENCE_CHECK_S, self._check_silence)
 
-    def add_consumer(self, handler: Callable[[Image], None],
+    def add_consumer(self, handler: Callable[[list[Image]], None],
                      on_info: Callable[[CameraInfo], None] | None = None) -> None:
         """Hand every image (and CameraInfo) to ``handler`` (``on_info``) too, after the others."""
         self.handlers.append(handler)
@@ -108,26 +113,33 @@ class CameraInput:
         for on_info in self.info_handlers:
             on_info(msg)
 
-    def _on_compressed(self, msg: CompressedImage) -> None:
-        try:
-            image = mono8_image(msg.header, decode_mono8(msg))
-        except ValueError as exc:
-            self.undecodable += 1
-            self.log.error(f'{self.prefix}: image dropped: {exc}', THROTTLE_S)
-            return
-        self._deliver(image)
+    def _on_image(self, msg: Image) -> None:
+        self._deliver([msg] + take_waiting(self.subscription))
 
-    def _deliver(self, msg: Image) -> None:
-        self.received += 1
-        if msg.header.frame_id != self.frame_id:
-            self.log.warning(f'{self.prefix}: images on {self.topic} are in frame '
-                             f'{msg.header.frame_id!r}, not {self.frame_id!r} (vehicle.yaml): '
-                             'the camera mount and intrinsics assumed may not be this '
-                             "camera's", THROTTLE_S, key='frame_id')
-        if self.offset_ns:
-            ns_to_stamp(stamp_to_ns(msg.header.stamp) + self.offset_ns, msg.header.stamp)
+    def _on_compressed(self, msg: CompressedImage) -> None:
+        images = []
+        for compressed in [msg] + take_waiting(self.subscription):
+            try:
+                images.append(mono8_image(compressed.header, decode_mono8(compressed)))
+            except ValueError as exc:
+                self.undecodable += 1
+                self.log.error(f'{self.prefix}: image dropped: {exc}', THROTTLE_S)
+        if images:
+            self._deliver(images)
+
+    def _deliver(self, images: list[Image]) -> None:
+        """Correct and check each image taken at once, then hand the list to every consumer."""
+        for msg in images:
+            self.received += 1
+            if msg.header.frame_id != self.frame_id:
+                self.log.warning(f'{self.prefix}: images on {self.topic} are in frame '
+                                 f'{msg.header.frame_id!r}, not {self.frame_id!r} '
+                                 '(vehicle.yaml): the camera mount and intrinsics assumed may '
+                                 "not be this camera's", THROTTLE_S, key='frame_id')
+            if self.offset_ns:
+                ns_to_stamp(stamp_to_ns(msg.header.stamp) + self.offset_ns, msg.header.stamp)
         for handler in self.handlers:
-            handler(msg)
+            handler(images)
 
     def _check_silence(self) -> None:
         """Say why nothing comes, once every SILENCE_CHECK_S, until an image has come."""
@@ -152,7 +164,7 @@ class SharedCameraInputs:
         self.inputs: dict[tuple[str, str], CameraInput] = {}   # (image, info) topics
 
     def attach(self, node: Node, camera: CameraConfig, transport: str,
-               handler: Callable[[Image], None], log_prefix: str,
+               handler: Callable[[list[Image]], None], log_prefix: str,
                on_info: Callable[[CameraInfo], None] | None = None) -> CameraInput:
         """Return the process's input of this camera, with ``handler`` and ``on_info`` added.
 
@@ -180,7 +192,7 @@ class SharedCameraInputs:
 
 
 def camera_input(node: Node, camera: CameraConfig, transport: str,
-                 handler: Callable[[Image], None], log_prefix: str,
+                 handler: Callable[[list[Image]], None], log_prefix: str,
                  on_info: Callable[[CameraInfo], None] | None = None,
                  shared: SharedCameraInputs | None = None) -> CameraInput:
     """Subscribe a node to a camera: through ``shared`` when given (composed), else its own."""

@@ -1,14 +1,17 @@
 """Which images a perception node computes: the frame grid and the modes that use them.
 
-Every perception node hands its images to :meth:`GatedImages.on_image` instead of processing
-them itself. From ``ibvs/frame_grid``: only every stride-th frame of this camera is computed,
-the same in every node (ibvs_common.core.frame_grid); from ``ibvs/supervisor_status``: the
-modes (:class:`~ibvs_perception.core.mode_gate.ModeGate`: a product is computed only for the
-images of a mode that uses it, docs/interfaces.md "Mode gating"); and latest only
-(:class:`~ibvs_perception.core.latest_only.LatestOnly`): a node that is behind skips a grid
-image once the next one has surely arrived behind it. Counts the frames it leaves out by the
-grid, those superseded and the grid frames that never came (dropped on the way), and says so
-on ``/diagnostics`` (:mod:`ibvs_perception.image_diagnostics`).
+Every perception node hands its images to :meth:`GatedImages.on_images` instead of
+processing them itself. From ``ibvs/frame_grid``: only every stride-th frame of this camera is
+computed, the same in every node (ibvs_common.core.frame_grid); from
+``ibvs/supervisor_status``: the modes (:class:`~ibvs_perception.core.mode_gate.ModeGate`: a
+product is computed only for the images of a mode that uses it, docs/interfaces.md "Mode
+gating"); and latest only: a node that is behind computes the newest grid image it has taken
+and skips the older ones taken with it (:class:`~ibvs_perception.camera_input.CameraInput`
+takes those already waiting behind the one delivered), or one that
+:class:`~ibvs_perception.core.latest_only.LatestOnly` says the next one has surely arrived
+behind. Counts the frames it leaves out by the grid, those superseded and the grid frames that
+never came (dropped on the way), and says so on ``/diagnostics``
+(:mod:`ibvs_perception.image_diagnostics`).
 """
 from __future__ import annotations
 
@@ -20,7 +23,7 @@ from sensor_msgs.msg import Image
 
 from ibvs_common.core.frame_grid import FrameGrid
 from ibvs_common.core.modes import InputKind, modes_using
-from ibvs_common.node_common import (COMMAND_QOS, grid_from_msg, MODE_QOS, mode_from_status,
+from ibvs_common.node_common import (FRAME_QOS, grid_from_msg, MODE_QOS, mode_from_status,
                                      stamp_to_ns)
 from ibvs_common.throttled_log import ThrottledLog
 from ibvs_perception.config import ImageInputConfig
@@ -50,8 +53,11 @@ class GatedImages:
         self.log = ThrottledLog(node.get_logger())
         self.diagnostics = ImageDiagnostics(node, log_prefix, self.counts, self.timer)
         if config.mode_gating:
+            # the newest statuses only: behind a busy executor a deeper queue hands the gate
+            # statuses 10 frames old, and a product switched on waits for them (a third of a
+            # core: the wall flow started 0.5 s after WINDOW, which failed safe)
             node.create_subscription(DiagnosticArray, 'ibvs/supervisor_status',
-                                     self.on_status, COMMAND_QOS)
+                                     self.on_status, FRAME_QOS)
         node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self.on_grid, MODE_QOS)
 
     @property
@@ -59,7 +65,18 @@ class GatedImages:
         """Return the time between two frames this node computes: period times stride (s)."""
         return self.grid.period_ns * self.grid.stride / 1e9
 
-    def on_image(self, msg: Image) -> None:
+    def on_images(self, images: list[Image]) -> None:
+        """Take the images taken at once (oldest first), each through :meth:`on_image`.
+
+        A grid image with a newer grid image behind it in ``images`` is superseded.
+        """
+        on_grid = [self.grid.on_grid(stamp_to_ns(m.header.stamp)) for m in images]
+        newest = max((i for i, ok in enumerate(on_grid) if ok), default=-1)
+        for i, msg in enumerate(images):
+            self.on_image(msg, newer_waiting=i < newest)
+
+    def on_image(self, msg: Image, newer_waiting: bool = False) -> None:
+        """Take one image; ``newer_waiting``: a newer grid image has been taken behind it."""
         stamp_ns = stamp_to_ns(msg.header.stamp)
         age_ns = self.clock.now().nanoseconds - stamp_ns
         self.latest.observe(age_ns)
@@ -67,8 +84,8 @@ class GatedImages:
             self.counts.off_grid += 1
             return
         self._count_missed(stamp_ns)
-        if self.gate.active_at(stamp_ns) and \
-                self.latest.superseded(age_ns, self.grid.period_ns * self.grid.stride):
+        if self.gate.active_at(stamp_ns) and (newer_waiting or self.latest.superseded(
+                age_ns, self.grid.period_ns * self.grid.stride)):
             self.counts.superseded += 1
             return
         self._process_all(self.gate.on_image(stamp_ns, msg))
@@ -100,4 +117,7 @@ class GatedImages:
         if err:
             self.log.error(f'{self.prefix}: ibvs/supervisor_status refused: {err}', THROTTLE_S)
             return
-        self._process_all(self.gate.on_status(stamp_ns, mode))
+        dropped = self.gate.superseded
+        released = self.gate.on_status(stamp_ns, mode)
+        self.counts.superseded += self.gate.superseded - dropped
+        self._process_all(released)

@@ -47,7 +47,7 @@ from ibvs_perception.camera_input import camera_input, SharedCameraInputs
 from ibvs_perception.gated_images import GatedImages
 from ibvs_perception.messages import (attitude_from_imu, camera_from_info, mono8_from_image,
                                       stamp_to_s, vectors_from_polygon)
-from ibvs_common.node_common import LateImuReport, stamp_to_ns
+from ibvs_common.node_common import LateImuReport, PRODUCT_QOS, stamp_to_ns
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
@@ -102,9 +102,9 @@ class OpticalFlowNode(Node):
                              imu_local)
         if self.camera_name == FRONT:
             self.create_subscription(PolygonStamped, 'window/corners', self.on_window,
-                                     qos_profile_sensor_data)
+                                     PRODUCT_QOS)
         self.images = camera_input(self, camera, cfg.images.image_transport,
-                                   self.gated.on_image, f'{self.camera_name}_optical_flow',
+                                   self.gated.on_images, f'{self.camera_name}_optical_flow',
                                    self.on_info, camera_inputs)
 
     def on_info(self, msg: CameraInfo) -> None:

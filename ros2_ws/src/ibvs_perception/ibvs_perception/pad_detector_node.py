@@ -57,7 +57,7 @@ class PadDetectorNode(Node):
         self.pub_landmarks = self.create_publisher(PolygonStamped, 'pad/landmarks', 10)
         self.pub_groups = self.create_publisher(JointState, 'pad/groups', 10)
         self.images = camera_input(self, camera, cfg.images.image_transport,
-                                   self.gated.on_image, 'pad_detector', self.on_info,
+                                   self.gated.on_images, 'pad_detector', self.on_info,
                                    camera_inputs)
 
     def on_info(self, msg: CameraInfo) -> None:

@@ -89,7 +89,7 @@ class WindowDetectorNode(Node):
         self.imu = subscribe(self, Imu, 'imu/data', self.on_imu, qos_profile_sensor_data,
                              imu_local)
         self.images = camera_input(self, camera, cfg.images.image_transport,
-                                   self.gated.on_image, 'window_detector', self.on_info,
+                                   self.gated.on_images, 'window_detector', self.on_info,
                                    camera_inputs)
 
     def on_info(self, msg: CameraInfo) -> None:

@@ -153,11 +153,31 @@ def test_window_detector_node(ctx, renderers):
     assert len(got['window/edge_normals'][-1].polygon.points) == 4
     # wrong step and wrong encoding: empty polygons, never an exception
     pubs['front_camera/image_raw'].publish(image_msg(img, 3.0, step=100))
+    assert spin_until(executor, lambda: len(got['window/corners']) >= 3)
     bad = image_msg(img, 3.1)
     bad.encoding = '16UC1'
     pubs['front_camera/image_raw'].publish(bad)
     assert spin_until(executor, lambda: len(got['window/corners']) >= 4)
     assert all(len(m.polygon.points) == 0 for m in got['window/corners'][2:])
+
+
+def test_a_node_behind_computes_the_newest_image_waiting_and_skips_the_older(ctx, renderers):
+    """Three images already waiting when the node gets to its camera: it takes them at once
+    (latest only at the reader) and answers only the newest; the other two count as
+    superseded, and the executor's events of the two taken find nothing."""
+    executor = ctx[1]
+    node, pubs, got = window_node(ctx, {'window/corners': PolygonStamped})
+    pubs['front_camera/camera_info'].publish(info_msg('front'))
+    spin_until(executor, lambda: node.camera_info is not None)
+    img = renderers['front'].render(np.eye(3), START)
+    for k in range(3):
+        pubs['front_camera/image_raw'].publish(image_msg(img, 5.0 + 0.02 * k))
+    time.sleep(0.3)                         # all three in the reader before the next spin
+    assert spin_until(executor, lambda: len(got['window/corners']) >= 1)
+    spin_until(executor, lambda: False, 0.3)
+    assert [(m.header.stamp.sec, m.header.stamp.nanosec) for m in got['window/corners']] \
+        == [(5, 40_000_000)]
+    assert node.gated.counts.superseded == 2 and node.gated.counts.computed == 1
 
 
 def test_window_detector_node_tracks_through_a_fast_yaw_with_the_imu(ctx, renderers):
@@ -319,11 +339,11 @@ def test_down_optical_flow_node(ctx, renderers):
     nan.orientation.w = float('nan')
     pubs['imu/data'].publish(nan)
     n_before = len(got['down_camera/translational_flow'])
-    for k in range(2, 4):
+    for k in range(2, 4):                 # each answered before the next (latest only)
         img = renderers['down'].render(R, xi0 + v * DT * k)
         pubs['down_camera/image_raw'].publish(image_msg(img, 12.0 + DT * k))
-    assert spin_until(executor, lambda: len(got['down_camera/translational_flow'])
-                      == n_before + 2)
+        assert spin_until(executor, lambda: len(got['down_camera/translational_flow'])
+                          == n_before + k - 1)
     for msg in got['down_camera/translational_flow'][n_before:]:
         assert is_no_flow([msg.vector.x, msg.vector.y, msg.vector.z])
 

@@ -6,7 +6,8 @@ one image rarely all come, and the control rate collapses. :class:`RateGovernor`
 frames of the mode's camera and, when the graph cannot hold their rate (several skipped in a
 row: it fell behind; or many among the recent ones), doubles the frame stride, so that every
 node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when none is
-skipped for a while it tries half the stride again, backing off after each failed try. A lone
+skipped for a while it tries half the stride again: the first skipped frame of the try ends it
+(``stride_try_skipped``), and the next try waits twice as long. A lone
 skipped frame (a late delivery, a busy moment of the computer) costs that frame; a doubled
 stride costs half of them for seconds, so it does not double the stride.
 :class:`SupervisorGrids` is the supervisor's view of which frames to expect. Times are frame
@@ -36,6 +37,10 @@ class GovernorConfig:
     stride_up_in_a_row: int = param(
         3, 'frames: this many skipped in a row double the stride at once (a graph that fell '
         'behind)', 1, 100)
+    stride_try_skipped: int = param(
+        1, 'frames: this many skipped while a smaller stride is on trial end the trial at once '
+        '(back to the stride that held): a trial that does not fit must not last until the '
+        'overload rules see it, the graph falls behind meanwhile', 1, 100)
     stride_down_hold_s: float = param(
         2.0, 's (frame stamps): no frame skipped for this long at a stride: try half of it '
         '(after a try that failed, twice as long each time, up to stride_down_hold_max_s)',
@@ -48,7 +53,7 @@ class GovernorConfig:
 
     def __post_init__(self) -> None:
         """Raise ValueError for thresholds that cannot work together."""
-        for name in ('stride_up_skipped', 'stride_up_in_a_row'):
+        for name in ('stride_up_skipped', 'stride_up_in_a_row', 'stride_try_skipped'):
             if getattr(self, name) > self.stride_window_frames:
                 raise ValueError(f'{name} must be <= stride_window_frames, got '
                                  f'{getattr(self, name)} > {self.stride_window_frames}')
@@ -75,6 +80,9 @@ class RateGovernor:
             self._t_change = t
         self._recent.append(bool(complete))
         skipped = sum(1 for ok in self._recent if not ok)
+        if self._probing and skipped >= cfg.stride_try_skipped:
+            self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
+            return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
         if self._overloaded(skipped) and self.stride < cfg.max_frame_stride:
             if self._probing:       # the smaller stride did not hold: wait longer next time
                 self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)

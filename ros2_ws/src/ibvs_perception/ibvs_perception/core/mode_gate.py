@@ -11,15 +11,20 @@ Rule (:class:`ModeGate`), with stamps on the ROS clock in integer nanoseconds:
   among those received. Before any status every image is processed (a replay without a
   supervisor, a node started alone); so is every image when gating is disabled.
 - An image whose mode does not use the product is kept (the newest ``depth``), unprocessed.
-- A status at stamp t_s that turns the product on releases at once the kept images with a
-  stamp >= t_s, in stamp order, each to be processed and published, preceded by the newest
-  kept image older than t_s, to be processed but not published: a tracker (the flow) needs
-  its previous frame. The other kept images are dropped.
+- A status at stamp t_s that turns the product on releases at once the newest kept image
+  with a stamp >= t_s, to be processed and published, preceded by the kept image just before
+  it, to be processed but not published: a tracker (the flow) needs its previous frame. The
+  other kept images are dropped (counted in ``superseded``): latest only, as a node that is
+  behind (:mod:`~ibvs_perception.core.latest_only`). Without a kept image >= t_s, the newest
+  older one is processed as that predecessor.
 
 So the images processed from a switch on are the same whether an image or the status of the
 same stamp arrives first; in a lockstep simulation, where the status of frame k is published
-before the sim renders frame k + 1, runs repeat. Onboard, the first frames after a switch are
-answered when the status arrives (one supervisor latency, a few ms, later).
+before the sim renders frame k + 1, runs repeat. Onboard, the first frame after a switch is
+answered when the status arrives (one supervisor latency, a few ms, later). When the status
+comes later than the next image (an executor behind on a slow computer), the frames between
+are not computed: releasing every kept image was a queue of up to ``depth`` frames computed
+at once, at the moment the mode's work grows (the wall flow at WINDOW's start).
 
 Clock steps (:mod:`ibvs_common.core.clock_step`): when the images' or the statuses' stamps go
 back by more than ``MAX_BACKSTEP_S``, the gate forgets its switches and kept images, i.e. it
@@ -62,6 +67,7 @@ class ModeGate:
         self._changes: deque = deque(maxlen=CHANGE_HISTORY)   # (stamp_ns, active)
         self._image_stamps = BackstepWatch()
         self._status_stamps = BackstepWatch()
+        self.superseded = 0          # kept images >= a switch dropped for a newer one
 
     @property
     def clock_steps(self) -> int:
@@ -117,8 +123,12 @@ class ModeGate:
         self._changes.append((stamp_ns, active))
         if not active:
             return []
-        older = [(t, item) for t, item in self._kept if t < stamp_ns]
-        out = [GatedImage(t, item, False) for t, item in older[-1:]]
-        out += [GatedImage(t, item, True) for t, item in self._kept if t >= stamp_ns]
+        kept = list(self._kept)
         self._kept.clear()
-        return out
+        newer = [i for i, (t, _) in enumerate(kept) if t >= stamp_ns]
+        if not newer:                    # the predecessor of the next image
+            return [GatedImage(t, item, False) for t, item in kept[-1:]]
+        newest = newer[-1]
+        self.superseded += len(newer) - 1
+        return [GatedImage(*kept[i], publish=(i == newest)) for i in (newest - 1, newest)
+                if i >= 0]
