@@ -53,7 +53,7 @@ class MavlinkBridgeNode(Node):
         self._cov = {k: np.array(getattr(cfg, k), dtype=np.float64) for k in (
             'orientation_covariance', 'angular_velocity_covariance',
             'linear_acceleration_covariance')}
-        self._bridge = MavlinkBridge(self._config)
+        self._bridge = MavlinkBridge(self._config, heartbeat_clock=self._heartbeat_clock())
         self._lock = threading.Lock()           # the core: reader thread vs. executor
         self._min_imu_subscribers = cfg.min_imu_subscribers
         self._bridge.setpoints.enabled = self._min_imu_subscribers == 0
@@ -90,6 +90,17 @@ class MavlinkBridgeNode(Node):
         return self.get_clock().now().nanoseconds
 
     # --- callbacks -------------------------------------------------------------------------
+    def _heartbeat_clock(self) -> Callable[[], float] | None:
+        """Return the clock of heartbeat_timeout_s: the ROS clock (s) under use_sim_time, or None.
+
+        None: the bridge's steady clock (onboard). Simulated time: the autopilot's HEARTBEATs
+        are 1 Hz of it (a firmware in lockstep), as MAVROS's connection timeout.
+        """
+        if not self.get_parameter('use_sim_time').value:
+            return None
+        clock = self.get_clock()
+        return lambda: clock.now().nanoseconds * 1e-9
+
     def _on_force(self, msg: Vector3Stamped) -> None:
         frame_ok = msg.header.frame_id in ('map', '')
         F_I = vec_map_to_I(vector3(msg.vector)) if frame_ok else np.full(3, np.nan)

@@ -282,7 +282,8 @@ class PeerThread:
 
 
 def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
-                hold_last_s=5.0, clock=None, ros_clock=None, estimator=False, arm=False, **kw):
+                hold_last_s=5.0, clock=None, ros_clock=None, estimator=False, arm=False,
+                heartbeat_clock=None, **kw):
     """A bridge on udpout to ``port``; ``ros_clock()`` (ns) is what spin() passes to poll()."""
     link = LinkConfig(url=f'udpout:127.0.0.1:{port}', heartbeat_timeout_s=0.5,
                       reconnect_period_s=0.3, signing_key=key)
@@ -294,7 +295,8 @@ def make_bridge(port, autopilot='auto', source='config', hover=0.5, key=None,
                        hover_thrust_source=source, param_timeout_s=1.0, param_retry_s=0.2,
                        hold_last_s=hold_last_s, sequencer=seq, arm_on_start=arm,
                        estimator=EstimatorConfig(enabled=estimator), **kw)
-    bridge = MavlinkBridge(cfg) if clock is None else MavlinkBridge(cfg, clock)
+    bridge = MavlinkBridge(cfg, heartbeat_clock=heartbeat_clock) if clock is None \
+        else MavlinkBridge(cfg, clock, heartbeat_clock)
     bridge.test_ros_clock = ros_clock
     return bridge
 
@@ -859,6 +861,21 @@ def test_link_loss_hands_back_and_never_reengages_by_itself(peer_bridge):
     assert len(peer.set_mode_commands()) == n_modes
     assert bridge.link.counters.reconnects == 1
     assert bridge.link._conn.port.getsockname()[1] == own_port
+
+
+def test_heartbeats_are_timed_on_the_heartbeat_clock_when_one_is_given(peer_bridge):
+    """Under simulated time the node times HEARTBEATs on the ROS clock (a firmware in lockstep
+    sends them at 1 Hz of its own time): while that clock stands still the link stays up
+    however long the steady clock runs; once it passes heartbeat_timeout_s the link is lost."""
+    sim = FrozenClock()
+    peer, bridge = peer_bridge(bridge_kw={'heartbeat_clock': sim})
+    wait_link(bridge)
+    peer.heartbeats_on = False
+    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up)   # 4 x the timeout
+    assert not ok and bridge.link.link_up and bridge.link.heartbeat_age() == 0.0
+    sim.advance(0.6)                              # heartbeat_timeout_s 0.5 of the sim clock
+    ok, _ = spin(bridge, 0.1, until=lambda: not bridge.link.link_up)
+    assert ok and bridge.link.counters.link_losses == 1
 
 
 def test_link_back_still_offboard_applies_the_input_loss_action(peer_bridge):

@@ -726,3 +726,20 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         assert not peer.armed
     finally:
         runner.close()
+
+
+@pytest.mark.parametrize('sim_time', [False, True])
+def test_bridge_times_heartbeats_on_the_ros_clock_under_sim_time(ctx, sim_time):
+    """heartbeat_timeout_s: the steady clock onboard, the ROS clock under use_sim_time (0 s
+    before any /clock here), as MAVROS's connection timeout."""
+    context, executor, nodes = ctx
+    bridge = MavlinkBridgeNode(
+        node_name=f'bridge_hbclock_{TAG}', context=context, parameter_overrides=[
+            Parameter('use_sim_time', value=sim_time),
+            Parameter('url', value='udpin:127.0.0.1:0')])
+    nodes.append(bridge)
+    link = bridge._bridge.link
+    if sim_time:
+        assert link._heartbeat_clock is not link._clock and link._heartbeat_clock() == 0.0
+    else:
+        assert link._heartbeat_clock is link._clock

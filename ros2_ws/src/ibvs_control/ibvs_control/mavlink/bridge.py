@@ -47,12 +47,13 @@ class MavlinkBridge:
     """ROS-free bridge: call on_* for inputs, poll/stream/heartbeat from timers."""
 
     def __init__(self, config: BridgeConfig,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 heartbeat_clock: Callable[[], float] | None = None) -> None:
         self.config = config
         self.clock = clock
         self.events = EventLog()
         self.ros = RosTime()
-        self.link = MavlinkLink(config.link, clock)
+        self.link = MavlinkLink(config.link, clock, heartbeat_clock)
         self.time_sync = TimeSync(config.time_sync)
         self.timesync = TimesyncExchange(self.time_sync, self.link.send_timesync)
         self.telemetry = Telemetry(self.time_sync, clock, config.px4_events)

@@ -135,7 +135,8 @@ class LinkConfig:
     target_component: int = param(
         0, 'autopilot component id; 0 = learn from its first HEARTBEAT', 0, 255)
     heartbeat_timeout_s: float = param(
-        3.5, 's (steady clock), no autopilot HEARTBEAT this long: link lost; '
+        3.5, 's (steady clock; the ROS clock under use_sim_time), no autopilot HEARTBEAT this '
+        'long: link lost; '
         f'>= {MIN_HEARTBEAT_TIMEOUT_S} (3 heartbeat periods)', MIN_HEARTBEAT_TIMEOUT_S, None)
     reconnect_period_s: float = param(
         1.0, 's (steady clock), reopen a broken socket / serial port this often', 0.0, None)
@@ -188,13 +189,18 @@ class MavlinkLink:
     ``clock`` returns monotonic seconds (injected for tests). The owner calls :meth:`poll`
     often; it returns the autopilot's messages (HEARTBEATs are also decoded into
     :attr:`heartbeat`) and, while the link is lost, reopens the connection every
-    ``reconnect_period_s``.
+    ``reconnect_period_s``. ``heartbeat_clock`` (default: ``clock``) times the HEARTBEATs for
+    ``heartbeat_timeout_s``: the node gives it the ROS clock under simulated time, where the
+    autopilot's 1 Hz HEARTBEAT is 1 Hz of simulated time (a firmware in lockstep, slower than
+    real time on a busy machine), as MAVROS's connection timeout runs on ROS time.
     """
 
     def __init__(self, config: LinkConfig,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 heartbeat_clock: Callable[[], float] | None = None) -> None:
         self.config = config
         self._clock = clock
+        self._heartbeat_clock = clock if heartbeat_clock is None else heartbeat_clock
         self.counters = LinkCounters()
         self.target_system = config.target_system
         self.target_component = config.target_component
@@ -274,7 +280,7 @@ class MavlinkLink:
         """Seconds since the autopilot's last HEARTBEAT (inf if none)."""
         if self._last_heartbeat_t is None:
             return float('inf')
-        return self._clock() - self._last_heartbeat_t
+        return self._heartbeat_clock() - self._last_heartbeat_t
 
     # --- receiving ---------------------------------------------------------------------
     def poll(self, max_messages: int = 200) -> list:
@@ -392,13 +398,14 @@ class MavlinkLink:
                 return False
             self.heartbeat = AutopilotHeartbeat(msg.autopilot, msg.type, msg.base_mode,
                                                 msg.custom_mode, msg.system_status)
-            self._last_heartbeat_t = self._clock()
+            self._last_heartbeat_t = self._heartbeat_clock()
         return True
 
     def _supervise(self) -> None:
         now = self._clock()
         up = (self._last_heartbeat_t is not None
-              and now - self._last_heartbeat_t <= self.config.heartbeat_timeout_s)
+              and self._heartbeat_clock() - self._last_heartbeat_t
+              <= self.config.heartbeat_timeout_s)
         if self._link_up and not up:
             self.counters.link_losses += 1
         elif up and not self._link_up and self.counters.link_losses:
