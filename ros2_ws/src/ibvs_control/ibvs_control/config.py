@@ -43,6 +43,11 @@ class ModeSupervisorNodeConfig:
         True, 'true: ibvs/start is refused while the latest preflight verdict (ibvs/preflight) '
         'is no-go; false: the operator overrides it, the start goes on and the no-go is '
         'logged. No verdict at all (the preflight not run) refuses nothing')
+    preflight_max_age_s: float = param(
+        900.0, 's (ROS clock): with require_preflight_go, a preflight go older than this when '
+        'ibvs/start comes refuses the start (the checks describe the vehicle as it was: a '
+        'battery, a camera or a parameter may have changed since); 0 = a go never expires',
+        0.0)
     publish_camera_tf: bool = param(
         True, 'true: publish the cameras\' mounts of vehicle.yaml (base_link -> each '
         'optical frame) once at start on /tf_static (latched), for RViz and Foxglove; needs '

@@ -78,7 +78,7 @@ class ModeSupervisorNode(Node):
         self._clock_watch = BackstepWatch()    # the node clock, read in every callback
         self._n_reported = 0
         self._published: Mode | None = None
-        self._preflight = PreflightGate(cfg.require_preflight_go)
+        self._preflight = PreflightGate(cfg.require_preflight_go, cfg.preflight_max_age_s)
 
         self._mode_pub = self.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
@@ -364,7 +364,7 @@ class ModeSupervisorNode(Node):
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
-        refusal = self._preflight.refusal()
+        refusal = self._preflight.refusal(self.get_clock().now().nanoseconds / NS_PER_S)
         if refusal is not None:
             response.success, response.message = False, refusal
             self.get_logger().error(f'ibvs/start refused: {refusal}')

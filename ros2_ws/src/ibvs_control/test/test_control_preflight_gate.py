@@ -37,6 +37,20 @@ def test_the_gate_refuses_only_on_a_no_go_unless_overridden():
                                + NO_GO)
 
 
+def test_a_go_older_than_its_maximum_age_refuses_the_start():
+    gate = PreflightGate(required=True, max_age_s=900.0)
+    gate.on_verdict(True, GO, 100.0)
+    assert gate.refusal(now=1000.0) is None                 # 900 s old: still valid
+    refusal = gate.refusal(now=1000.5)
+    assert refusal.startswith('preflight go is 900 s old (preflight_max_age_s 900 s)')
+    assert 'run the preflight again' in refusal
+    assert gate.refusal() is None                           # no time given: age not judged
+    assert PreflightGate(required=True).refusal(now=1e9) is None   # 0: a go never expires
+    override = PreflightGate(required=False, max_age_s=1.0)
+    override.on_verdict(True, GO, 0.0)
+    assert override.refusal(now=50.0) is None
+
+
 def test_the_verdict_message_round_trips_and_a_bad_one_is_unreadable():
     msg = preflight_verdict_msg(False, NO_GO, [('armed or armable', 'OK: armed')], 7_000_000_000)
     assert preflight_verdict(msg) == (False, NO_GO)
@@ -117,3 +131,22 @@ def test_an_unreadable_verdict_refuses_the_start(ctx):
     assert _latest_verdict_is(executor, sup, False)
     res = call(executor, feed.node, 'ibvs/start')
     assert not res.success and 'unreadable preflight verdict' in res.message, res.message
+
+
+def test_ibvs_start_is_refused_on_a_go_older_than_preflight_max_age_s(ctx):
+    """The go's age is the node's clock (here sim time, /clock from the frames) between the
+    verdict's arrival and the start."""
+    _, executor, _ = ctx
+    sup, feed, verdict = _supervisor(ctx, '_age', Parameter('preflight_max_age_s', value=0.1))
+    _window_in_view(executor, feed, t0=1.0, frames=2)
+    verdict.publish(preflight_verdict_msg(True, GO, [], 1))
+    assert _latest_verdict_is(executor, sup, True)
+    t, xi = _window_in_view(executor, feed, t0=1.1, frames=10)     # 0.2 s of frames later
+    res = call(executor, feed.node, 'ibvs/start')
+    assert not res.success and res.message.startswith('preflight go is 0 s old '
+                                                      '(preflight_max_age_s 0.1 s)'), res.message
+    verdict.publish(preflight_verdict_msg(True, GO, [], 2))   # the preflight run again
+    assert spin_until(executor, lambda: sup._preflight.verdict.t >= t - 0.02, 5.0)
+    assert call(executor, feed.node, 'ibvs/start').success
+    feed.frame(t, xi, front_flow=np.zeros(3))
+    assert spin_until(executor, lambda: feed.modes[-1:] == [1], 2.0)
