@@ -1,6 +1,7 @@
 """The sim node in-process: images, camera_info, ground truth and /clock, consistently stamped."""
 import json
 import os
+import re
 import time
 
 import numpy as np
@@ -246,3 +247,17 @@ def test_sim_node_read_noise_and_frozen_front_camera(ros_context):
             frozen = [d for s, d in data.items() if s >= 40_000_000]
             assert len(frozen) >= 4 and len(set(frozen)) == 1
             assert all(d != frozen[0] for s, d in data.items() if s < 40_000_000)
+
+
+@pytest.mark.parametrize('overrides, reason', [
+    ({'firmware': 'ardupilot'}, "parameter firmware must be one of ('', 'px4'), got 'ardupilot'"),
+    ({'firmware': 'px4'}, "firmware 'px4' runs in lockstep only"),
+])
+def test_sim_node_refuses_a_bad_firmware_parameter(ros_context, overrides, reason):
+    """An unknown firmware, or a firmware off lockstep, is refused by name before any socket
+    opens or any firmware is waited for (the node never starts on it)."""
+    tag = f'{os.getpid()}_{int(time.monotonic() * 1e3) % 100000}'
+    with pytest.raises(ValueError, match=re.escape(reason)):
+        SimNode(node_name=f'sim_fw_{tag}', context=ros_context, parameter_overrides=[
+            Parameter('mavlink_url', value=KERNEL_PORT), Parameter('pacing', value='realtime'),
+            *(Parameter(k, value=v) for k, v in overrides.items())])
