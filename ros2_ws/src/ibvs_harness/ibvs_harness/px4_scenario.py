@@ -33,8 +33,8 @@ import numpy as np
 
 from ibvs_bringup import graph
 from ibvs_harness import report
-from ibvs_harness.scenario import (finish, missing_executables, run_block, supervisor_log,
-                                   supervisor_transitions)
+from ibvs_harness.scenario import (finish, missing_executables, mode_name, run_block,
+                                   supervisor_log, supervisor_transitions)
 from ibvs_harness.px4_sih import (free_instance, MAV_CMD_DO_REPOSITION, Pilot,
                                   px4_boot_parameters, Px4Sitl, SITL_NICE)
 from ibvs_common.core.config import load_pad_layout, load_vehicle
@@ -332,8 +332,8 @@ def _flight(opts, monitor, runner, pilot, xi0, t_wall0, info, respawning: set,
             next_print += 1.0
             xi = monitor.log.xi[-1] if monitor.log.xi else np.full(3, np.nan)
             st = monitor.sim_stats
-            print(f'  t = {t_run:6.2f} s  mode {mode}  xi_I = ({xi[0]:+.2f}, {xi[1]:+.2f}, '
-                  f'{xi[2]:+.2f})  PX4 main mode {pilot.main_mode}  frames '
+            print(f'  t = {t_run:6.2f} s  mode {mode_name(mode)}  xi_I = ({xi[0]:+.2f}, '
+                  f'{xi[1]:+.2f}, {xi[2]:+.2f})  PX4 main mode {pilot.main_mode}  frames '
                   f'{st.get("frames_published")} published / {st.get("frames_dropped")} '
                   'dropped', flush=True)
         if monitor.collision is not None:

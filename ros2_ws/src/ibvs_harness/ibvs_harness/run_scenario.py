@@ -26,7 +26,7 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle, PadLayout
 from ibvs_harness import plots, report
 from ibvs_common.core.mavlink_connection import free_udp_port
 from ibvs_harness.scenario import (AUTOPILOTS, DEFAULT_IMAGE_EVERY, FAILSAFE_MODE, finish,
-                                   IDLE_MODE, MAX_SIM_TIME_S, missing_executables,
+                                   IDLE_MODE, MAX_SIM_TIME_S, missing_executables, mode_name,
                                    prepare_out_dir, random_initial_position, run_block,
                                    RunOptions, SHUTDOWN_GRACE_S, SHUTDOWN_MODE,
                                    supervisor_log, supervisor_transitions)
@@ -235,7 +235,7 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
         if time.monotonic() >= next_print:
             next_print += 1.0
             xi = monitor.log.xi[-1] if monitor.log.xi else np.full(3, np.nan)
-            print(f'  t = {t_sim:6.2f} s  mode {mode}  xi_I = '
+            print(f'  t = {t_sim:6.2f} s  mode {mode_name(mode)}  xi_I = '
                   f'({xi[0]:+.2f}, {xi[1]:+.2f}, {xi[2]:+.2f})', flush=True)
         if monitor.collision is not None:
             return f"collision with {monitor.collision.get('surface')}"

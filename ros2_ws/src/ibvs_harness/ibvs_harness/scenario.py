@@ -103,17 +103,49 @@ def finish(opts: RunOptions, summary: dict, data: plots.RunData | None) -> int:
     if data is not None and opts.plots:
         plots.plot_run(data, opts.out_dir)
     w, ld = summary.get('window', {}), summary.get('landing', {})
+    why = failure_explanation(summary)
     print(f"run {opts.run_name}: success={summary.get('success')} "
           f"crossed={w.get('crossed')} clearance={w.get('min_clearance_m')} "
           f"landed={ld.get('landed')} error={ld.get('error_m')} "
           f"td_speed={ld.get('touchdown_speed_mps')} duration={summary.get('duration_s')} "
-          f"-> {opts.out_dir}", flush=True)
+          f"-> {opts.out_dir}" + (f'; failed: {why}' if why else ''), flush=True)
     if summary.get('run', {}).get('error'):
         return 2
     return 0 if summary.get('success') else 1
 
 
 TRANSITION_LINE = re.compile(r'\]: (mode \w+ -> \w+ at t = .*)$')
+
+
+def mode_name(mode: int | None) -> str:
+    """Return a supervisor mode's name (WINDOW, ...) for the console; '?' for none or unknown."""
+    from ibvs_common.core.modes import Mode
+    try:
+        return Mode(int(mode)).name
+    except (TypeError, ValueError):
+        return '?' if mode is None else str(mode)
+
+
+def failure_explanation(summary: dict) -> str | None:
+    """Say why a run failed in one phrase (None: a success), for its closing console line.
+
+    The run's error if it has one; else the campaign's failure cause (docs/spec.md section 5,
+    ``campaign_stats.failure_cause``), with the supervisor's own reason when it failed safe
+    (the last '-> FAILSAFE' transition of summary.json's ``run.transitions``).
+    """
+    from ibvs_harness.campaign_stats import failure_cause
+    if summary.get('success'):
+        return None
+    run = summary.get('run', {})
+    if run.get('error'):
+        return f"error: {run['error']}"
+    cause = failure_cause(summary) or 'other'
+    if cause.startswith('failsafe'):
+        reasons = [t.split(': ', 1)[1] for t in run.get('transitions', [])
+                   if '-> FAILSAFE' in t and ': ' in t]
+        if reasons:
+            return f'{cause} ({reasons[-1]})'
+    return cause
 
 
 def supervisor_log(out_dir: str) -> str:

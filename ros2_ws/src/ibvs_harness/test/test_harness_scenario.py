@@ -35,3 +35,31 @@ def test_runner_and_run_scenario_refuse_a_missing_parameter_file(tmp_path, capsy
     err = capsys.readouterr().err
     assert err.count(f"parameter file '{missing}' cannot be read") == 2
     assert 'Traceback' not in err and not (tmp_path / 'x').exists()
+
+
+def test_a_failed_run_says_why_on_its_closing_line(tmp_path, capsys):
+    """The closing console line of a failed run ends with its cause, and a failsafe's with
+    the supervisor's own reason; a success says nothing more; progress lines name modes."""
+    from ibvs_harness.scenario import failure_explanation, finish, mode_name, RunOptions
+    transitions = ['mode IDLE -> WINDOW at t = 1.000 s: auto-start at 1 s, window detected',
+                   'mode WINDOW -> FAILSAFE at t = 1.560 s: window stale for more than 0.5 s '
+                   'in WINDOW']
+    failsafe = {'success': False, 'window': {'crossed': False, 'min_clearance_m': None},
+                'landing': {'landed': False}, 'modes': [{'mode': 0}, {'mode': 1}, {'mode': 5}],
+                'run': {'transitions': transitions}}
+    assert failure_explanation(failsafe) == \
+        'failsafe in window (window stale for more than 0.5 s in WINDOW)'
+    assert failure_explanation({'success': False, 'run': {'error': 'a node died'}}) == \
+        'error: a node died'
+    landing = {'success': False, 'window': {'crossed': True, 'min_clearance_m': 0.1},
+               'landing': {'landed': True, 'error_m': 0.2, 'touchdown_speed_mps': 0.2},
+               'modes': [{'mode': 4}], 'run': {}}
+    assert failure_explanation(landing) == 'landing error'
+    assert failure_explanation({'success': True}) is None
+    opts = RunOptions(run_name='x', results_root=str(tmp_path), plots=False)
+    assert finish(opts, failsafe, None) == 1
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    assert last.endswith('; failed: failsafe in window (window stale for more than 0.5 s in '
+                         'WINDOW)')
+    assert [mode_name(m) for m in (0, 4, 5, None, 9)] == ['IDLE', 'SHUTDOWN', 'FAILSAFE', '?',
+                                                          '9']
