@@ -7,16 +7,22 @@ and messages are stamped with the receive time on the node's clock (sim time und
 (``max_image_mb``): two 752x480 mono8 cameras at 50 Hz write 36 MB/s, which fills an
 onboard computer's SD card in minutes. Past the cap the images are no longer written (said
 once in the log); every other topic goes on, so a long day on the vehicle keeps its
-telemetry.
+telemetry. A free-disk floor (``min_free_disk_mb``, checked every ``DISK_CHECK_PERIOD_S``)
+ends the recording before the disk fills: the bag is closed while there is room for its
+metadata, said once as an error, and nothing more is written; a write that fails (a full
+disk, an I/O error) ends it the same way. The recorder never raises for it: the flight path
+does not depend on it.
 
 Parameters (:class:`RecorderNodeConfig`, docs/parameters.md): ``bag_path`` (required, must
-not exist), ``image_every`` (int, default 1), ``max_image_mb`` (0: no cap), ``topics`` (list
-of relative names; default: every topic of ``bag.RUN_TOPICS``).
+not exist), ``image_every`` (int, default 1), ``max_image_mb`` (0: no cap),
+``min_free_disk_mb`` (0: no floor), ``topics`` (list of relative names; default: every topic
+of ``bag.RUN_TOPICS``).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import importlib
+import shutil
 
 from ibvs_harness import bag
 from rclpy.clock import Clock, ClockType
@@ -27,6 +33,7 @@ from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 
 DISCOVERY_PERIOD_S = 0.2      # s (steady clock), how often new publishers are looked for
+DISK_CHECK_PERIOD_S = 1.0     # s (steady clock), how often the free disk space is checked
 
 
 @dataclass(frozen=True)
@@ -39,6 +46,10 @@ class RecorderNodeConfig:
     max_image_mb: float = param(
         0.0, 'MB (10^6 bytes) of image messages after which the image topics are no longer '
         'recorded (the other topics are); 0: no cap', 0.0)
+    min_free_disk_mb: float = param(
+        500.0, 'MB (10^6 bytes) free on the bag\'s file system below which the recording ends '
+        '(the bag closed, nothing more written; checked every second, steady clock); 0: no '
+        'floor', 0.0)
     topics: list = param([t.topic for t in bag.RUN_TOPICS],
                          'relative topic names to record (default: all of bag.RUN_TOPICS)')
 
@@ -78,10 +89,15 @@ class RecorderNode(Node):
         self.counts: dict = {}
         self.image_bytes = 0          # image bytes written
         self.images_over_cap = 0      # image messages not written: past max_image_mb
+        self.stopped = ''             # why the recording ended early ('' while recording)
+        self.not_written = 0          # messages received after it ended
         # steady clock: under use_sim_time a sim-time timer would not fire before the first
         # /clock, and the first frames would go unrecorded
-        self.discovery_timer = self.create_timer(
-            DISCOVERY_PERIOD_S, self._discover, clock=Clock(clock_type=ClockType.STEADY_TIME))
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.discovery_timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover,
+                                                 clock=steady)
+        self.disk_timer = self.create_timer(DISK_CHECK_PERIOD_S, self._check_disk, clock=steady)
+        self._check_disk()
         self.get_logger().info(f'recording {len(self.specs)} topics to {self.config.bag_path}')
 
     def _declare_config(self) -> RecorderNodeConfig:
@@ -91,6 +107,8 @@ class RecorderNode(Node):
         return replace(cfg, image_every=max(1, cfg.image_every))
 
     def _discover(self) -> None:
+        if self.stopped:                     # the bag is closed: no new topic
+            return
         for topic, spec in self.specs.items():
             if topic in self.subs:
                 continue
@@ -109,11 +127,41 @@ class RecorderNode(Node):
     def _on_message(self, spec: bag.TopicSpec, data: bytes) -> None:
         n = self.counts[spec.topic]
         self.counts[spec.topic] = n + 1
+        if self.stopped:
+            self.not_written += 1
+            return
         if spec.image and n % self.config.image_every:
             return
         if spec.image and self._over_cap(len(data)):
             return
-        self.writer.write(spec.topic, self.get_clock().now().nanoseconds, data)
+        try:
+            self.writer.write(spec.topic, self.get_clock().now().nanoseconds, data)
+        except OSError as exc:
+            self._stop(f'writing {spec.topic} failed ({exc})')
+
+    def _check_disk(self) -> None:
+        """End the recording when the bag's file system has less than min_free_disk_mb free."""
+        floor = self.config.min_free_disk_mb * 1e6
+        if self.stopped or floor <= 0.0:
+            return
+        try:
+            free = shutil.disk_usage(self.writer.path).free
+        except OSError as exc:
+            self._stop(f'the free disk space cannot be read ({exc})')
+            return
+        if free < floor:
+            self._stop(f'{free / 1e6:.0f} MB free on the disk, below min_free_disk_mb '
+                       f'({self.config.min_free_disk_mb:g})')
+
+    def _stop(self, why: str) -> None:
+        """End the recording for good: close the bag (if it still can), say why once."""
+        self.stopped = why
+        try:
+            self.writer.close()
+        except OSError as exc:
+            why += f'; the bag could not be closed ({exc})'
+        self.get_logger().error(f'recorder: recording ended: {why}; the bag '
+                                f'{self.config.bag_path} holds what came before')
 
     def _over_cap(self, size: int) -> bool:
         """Count an image of ``size`` bytes; True when it would pass ``max_image_mb``."""
@@ -131,7 +179,10 @@ class RecorderNode(Node):
 
     def destroy_node(self) -> None:
         """Close the bag (metadata.yaml) before the node goes."""
-        self.writer.close()
+        try:
+            self.writer.close()
+        except OSError as exc:
+            self.get_logger().error(f'recorder: the bag could not be closed ({exc})')
         super().destroy_node()
 
 

@@ -219,3 +219,64 @@ def test_recorder_stops_images_at_the_cap_and_records_the_rest(tmp_path, ros):
     assert counts['/front_camera/image_raw'] == 2 and rec.image_bytes == 2 * size
     assert rec.images_over_cap == rec.counts['front_camera/image_raw'] - 2 >= 3
     assert counts['/sim/events'] == 1
+
+
+def test_recorder_ends_the_recording_at_the_free_disk_floor_and_on_a_failed_write(
+        tmp_path, ros, monkeypatch):
+    """Below min_free_disk_mb the bag is closed and nothing more is written; a write that
+    fails (a full disk) ends the recording the same way; neither raises."""
+    from collections import namedtuple
+    from ibvs_harness import recorder_node
+    from ibvs_harness.recorder_node import RecorderNode
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    usage = namedtuple('usage', 'total used free')
+    free = {'bytes': 10**12}
+    monkeypatch.setattr(recorder_node.shutil, 'disk_usage',
+                        lambda p: usage(2 * 10**12, 10**12, free['bytes']))
+    src = rclpy.create_node('disk_source')
+    ev_pub = src.create_publisher(String, 'sim/events', 10)
+    ex = SingleThreadedExecutor()
+    ex.add_node(src)
+    rec = None
+    try:
+        rec = RecorderNode(parameter_overrides=[
+            Parameter('bag_path', value=str(tmp_path / 'floor')),
+            Parameter('min_free_disk_mb', value=100.0), Parameter('topics', value=['sim/events'])])
+        ex.add_node(rec)
+        assert _spin_until(ex, lambda: len(rec.subs) == 1, 10.0)
+        time.sleep(0.3)
+        ev_pub.publish(String(data='{"type": "a"}'))
+        assert _spin_until(ex, lambda: rec.counts['sim/events'] == 1, 5.0)
+        free['bytes'] = 99 * 10**6                            # the disk fills
+        rec._check_disk()
+        assert rec.stopped.startswith('99 MB free on the disk, below min_free_disk_mb (100)')
+        ev_pub.publish(String(data='{"type": "b"}'))
+        assert _spin_until(ex, lambda: rec.counts['sim/events'] == 2, 5.0)
+        assert rec.not_written == 1
+    finally:
+        if rec is not None:
+            ex.remove_node(rec)
+            rec.destroy_node()
+    assert bag.topic_counts(tmp_path / 'floor')['/sim/events'] == 1    # closed, readable
+
+    def full_disk(*_):
+        raise OSError(28, 'No space left on device')
+
+    free['bytes'] = 10**12                                    # room again: a new recording
+    rec = RecorderNode(parameter_overrides=[
+        Parameter('bag_path', value=str(tmp_path / 'full')), Parameter('topics',
+                                                                       value=['sim/events'])])
+    try:
+        ex.add_node(rec)
+        assert _spin_until(ex, lambda: len(rec.subs) == 1, 10.0)
+        time.sleep(0.3)
+        monkeypatch.setattr(rec.writer, 'write', full_disk)
+        ev_pub.publish(String(data='{"type": "c"}'))
+        assert _spin_until(ex, lambda: bool(rec.stopped), 5.0)
+        assert 'No space left on device' in rec.stopped
+    finally:
+        ex.remove_node(rec)
+        rec.destroy_node()
+        src.destroy_node()
