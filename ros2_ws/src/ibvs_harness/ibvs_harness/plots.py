@@ -13,8 +13,12 @@ from typing import TYPE_CHECKING
 import matplotlib
 
 matplotlib.use('Agg')
+from matplotlib.patches import Patch  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 import numpy as np  # noqa: E402
+
+from ibvs_common.core.modes import Mode  # noqa: E402
 
 if TYPE_CHECKING:
     import numpy.typing as npt
@@ -58,6 +62,9 @@ class RunData:
     modes: list = field(default_factory=list)          # [(t_start_s, mode)]
     window_corners_I: np.ndarray | None = None         # (4, 3) aperture corners
     pad_center_I: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    window_outer_corners_I: np.ndarray | None = None   # (4, 3) outer edge of the dark band
+    wall_corners_I: np.ndarray | None = None           # (4, 3) the wall's face
+    pad_half_side: float | None = None                 # m, the pad's half side (outer markers)
 
     def get(self, name: str) -> TimeSeries | None:
         """Return a non-empty series or None."""
@@ -65,10 +72,28 @@ class RunData:
         return s if s is not None and len(s) else None
 
 
+def _mode_name(mode: int) -> str:
+    try:
+        return Mode(int(mode)).name
+    except ValueError:
+        return str(mode)
+
+
 def _shade_modes(ax, modes: list, t_end: float) -> None:
     for i, (t0, mode) in enumerate(modes):
         t1 = modes[i + 1][0] if i + 1 < len(modes) else t_end
         ax.axvspan(t0, t1, color=MODE_COLOURS.get(int(mode), '#eeeeee'), alpha=0.5, lw=0)
+
+
+def _mode_legend(fig, modes: list) -> None:
+    """Name the shading: one patch per mode of the run, in the order they came."""
+    seen = list(dict.fromkeys(int(m) for _, m in modes))
+    if not seen:
+        return
+    handles = [Patch(color=MODE_COLOURS.get(m, '#eeeeee'), alpha=0.5, label=_mode_name(m))
+               for m in seen]
+    fig.legend(handles=handles, loc='lower center', ncol=len(handles), fontsize=8,
+               frameon=False, title='modes (shading)', title_fontsize=8)
 
 
 def _t_end(data: RunData) -> float:
@@ -96,8 +121,9 @@ def _vector_figure(data: RunData, path: str, title: str, unit: str, names: list,
         ax.grid(True, alpha=0.3)
     axes[0, 0].set_title(title)
     axes[0, 0].legend(loc='best', fontsize=8)
-    axes[-1, 0].set_xlabel('t [s] (modes shaded)')
-    fig.tight_layout()
+    axes[-1, 0].set_xlabel('t [s]')
+    _mode_legend(fig, data.modes)
+    fig.tight_layout(rect=(0, 0.07 if data.modes else 0, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
@@ -118,10 +144,12 @@ def _position_figure(data: RunData, path: str) -> str | None:
         ts = [m[0] for m in data.modes] + [t_end]
         ms = [m[1] for m in data.modes] + [data.modes[-1][1]]
         axes[3].step(ts, ms, where='post')
+    axes[3].set_yticks([int(m) for m in Mode], [m.name for m in Mode], fontsize=7)
     axes[3].set_ylabel('mode')
     axes[3].set_xlabel('t [s]')
     axes[0].set_title('Position xi and mode')
-    fig.tight_layout()
+    _mode_legend(fig, data.modes)
+    fig.tight_layout(rect=(0, 0.06 if data.modes else 0, 1, 1))
     fig.savefig(path, dpi=100)
     plt.close(fig)
     return path
@@ -138,16 +166,38 @@ def _trajectory_figure(data: RunData, path: str) -> str | None:
     ax.plot(p[:, 0], p[:, 1], -p[:, 2], lw=1.5, label='trajectory')
     ax.scatter([p[0, 0]], [p[0, 1]], [-p[0, 2]], marker='o', label='start')
     ax.scatter([p[-1, 0]], [p[-1, 1]], [-p[-1, 2]], marker='x', label='end')
+    drawn = [p]
+
+    def outline(corners, style, label, **kw):
+        c = np.vstack([corners, corners[:1]])
+        ax.plot(c[:, 0], c[:, 1], -c[:, 2], style, label=label, **kw)
+        drawn.append(corners)
+
+    if data.wall_corners_I is not None:
+        w = data.wall_corners_I
+        ax.add_collection3d(Poly3DCollection([list(zip(w[:, 0], w[:, 1], -w[:, 2]))],
+                                             facecolor='#b0b0b0', alpha=0.15))
+        outline(w, '-', 'wall', color='#808080', lw=1)
+    if data.window_outer_corners_I is not None:
+        outline(data.window_outer_corners_I, '-', 'dark band', color='#404040', lw=1)
     if data.window_corners_I is not None:
-        c = np.vstack([data.window_corners_I, data.window_corners_I[:1]])
-        ax.plot(c[:, 0], c[:, 1], -c[:, 2], 'k-', lw=2, label='window')
+        outline(data.window_corners_I, 'k-', 'window', lw=2)
     pc = data.pad_center_I
-    ax.scatter([pc[0]], [pc[1]], [-pc[2]], marker='s', color='g', label='pad')
+    if data.pad_half_side:
+        h = data.pad_half_side
+        outline(pc + np.array([[h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0], [-h, h, 0.0]]), 'g-',
+                'pad', lw=1.5)
+    else:
+        ax.scatter([pc[0]], [pc[1]], [-pc[2]], marker='s', color='g', label='pad')
+    # to scale: the same metres on the three axes
+    pts = np.vstack(drawn)
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    ax.set_box_aspect(tuple(np.maximum(hi - lo, 1e-3)))
     ax.set_xlabel('x_I [m]')
     ax.set_ylabel('y_I [m]')
     ax.set_zlabel('height -z_I [m]')
-    ax.set_title('3-D trajectory through the window')
-    ax.legend(loc='best', fontsize=8)
+    ax.set_title('3-D trajectory through the window (to scale)')
+    ax.legend(loc='upper left', fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

@@ -150,8 +150,16 @@ def run_data(log: RunLog, world: WorldConfig, pad: PadLayout) -> RunData:
         series['flow_down_truth'] = TimeSeries.of(t, down)
         series['q_w_bar_truth'] = TimeSeries.of(t, q_w_bar_truth(xi, world))
         series['q_t_truth'] = TimeSeries.of(t, q_t_truth(xi, pad, world))
+    y0, y1 = world.wall_y_range
+    z0, z1 = world.wall_z_range
+    x = world.wall_x
+    wall = np.array([[x, y0, z0], [x, y1, z0], [x, y1, z1], [x, y0, z1]], dtype=float)
+    # the outermost marker's outer edge plus its quiet zone (a fraction of its side)
+    outer = max(g.c + g.side * (0.5 + pad.quiet_zone) for g in pad.groups)
     return RunData(series=series, modes=[(ts, m) for m, ts in log.modes],
-                   window_corners_I=world.window.corners_I(), pad_center_I=np.zeros(3))
+                   window_corners_I=world.window.corners_I(), pad_center_I=np.zeros(3),
+                   window_outer_corners_I=world.window.outer_corners_I(),
+                   wall_corners_I=wall, pad_half_side=float(outer))
 
 
 def summarize(log: RunLog, world: WorldConfig, envelope_radius: float,

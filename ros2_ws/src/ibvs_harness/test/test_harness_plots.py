@@ -64,8 +64,17 @@ def test_named_vector_accepts_the_usual_namings():
 
 
 def test_every_figure_is_written_from_a_synthetic_run(world, tmp_path):
-    data = report.run_data(_synthetic_log(world), world, load_pad_layout())
+    pad = load_pad_layout()
+    data = report.run_data(_synthetic_log(world), world, pad)
     assert data.modes[0] == (0.0, 0) and data.modes[-1] == (19.5, 4)
+    # the scene to scale: the wall's face in its plane, the band around the window, the pad
+    assert np.all(data.wall_corners_I[:, 0] == world.wall_x)
+    assert np.ptp(data.wall_corners_I[:, 1]) == pytest.approx(np.ptp(world.wall_y_range))
+    assert np.ptp(data.window_outer_corners_I[:, 1]) == pytest.approx(
+        world.window.width + 2 * world.window.frame_band)
+    biggest = max(pad.groups, key=lambda g: g.c)
+    assert data.pad_half_side == pytest.approx(
+        biggest.c + biggest.side / 2 + pad.quiet_zone * biggest.side)
     paths = plots.plot_run(data, str(tmp_path))
     names = {p.split('/')[-1] for p in paths}
     assert names == {'position_mode.png', 'velocity.png', 'force.png', 'angular_velocity.png',
