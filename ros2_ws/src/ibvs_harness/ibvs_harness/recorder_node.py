@@ -11,17 +11,20 @@ telemetry. A free-disk floor (``min_free_disk_mb``, checked every ``DISK_CHECK_P
 ends the recording before the disk fills: the bag is closed while there is room for its
 metadata, said once as an error, and nothing more is written; a write that fails (a full
 disk, an I/O error) ends it the same way. The recorder never raises for it: the flight path
-does not depend on it.
+does not depend on it. With ``split_s`` the recording is split in time: ``bag_path`` is then
+a folder of bags ``part_000``, ``part_001``, ..., each closed (readable) when the next one
+starts, so that a power cut loses only the part being written.
 
 Parameters (:class:`RecorderNodeConfig`, docs/parameters.md): ``bag_path`` (required, must
 not exist), ``image_every`` (int, default 1), ``max_image_mb`` (0: no cap),
-``min_free_disk_mb`` (0: no floor), ``topics`` (list of relative names; default: every topic
-of ``bag.RUN_TOPICS``).
+``min_free_disk_mb`` (0: no floor), ``split_s`` (0: one bag), ``topics`` (list of relative
+names; default: every topic of ``bag.RUN_TOPICS``).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 import importlib
+import os
 import shutil
 
 from ibvs_harness import bag
@@ -50,6 +53,10 @@ class RecorderNodeConfig:
         500.0, 'MB (10^6 bytes) free on the bag\'s file system below which the recording ends '
         '(the bag closed, nothing more written; checked every second, steady clock); 0: no '
         'floor', 0.0)
+    split_s: float = param(
+        0.0, 's (steady clock): start a new bag this often; bag_path is then a folder of '
+        'bags part_000, part_001, ..., each closed and readable when the next starts (a power '
+        'cut loses only the part being written); 0: one bag', 0.0)
     topics: list = param([t.topic for t in bag.RUN_TOPICS],
                          'relative topic names to record (default: all of bag.RUN_TOPICS)')
 
@@ -83,7 +90,11 @@ class RecorderNode(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__('recorder', **kwargs)
         self.config = self._declare_config()
-        self.writer = bag.BagWriter(self.config.bag_path)
+        self.parts = 0                # bags written so far (split_s)
+        self.records: dict = {}       # topic -> (msgtype, offered QoS), for each new part
+        if self.config.split_s > 0.0:
+            os.makedirs(self.config.bag_path)          # a folder of parts; must not exist
+        self.writer = bag.BagWriter(self._part_path())
         self.specs = {t.topic: t for t in bag.RUN_TOPICS if t.topic in self.config.topics}
         self.subs: dict = {}
         self.counts: dict = {}
@@ -97,6 +108,8 @@ class RecorderNode(Node):
         self.discovery_timer = self.create_timer(DISCOVERY_PERIOD_S, self._discover,
                                                  clock=steady)
         self.disk_timer = self.create_timer(DISK_CHECK_PERIOD_S, self._check_disk, clock=steady)
+        if self.config.split_s > 0.0:
+            self.split_timer = self.create_timer(self.config.split_s, self._split, clock=steady)
         self._check_disk()
         self.get_logger().info(f'recording {len(self.specs)} topics to {self.config.bag_path}')
 
@@ -116,8 +129,29 @@ class RecorderNode(Node):
             if offered:
                 self._subscribe(spec, offered)
 
+    def _part_path(self) -> str:
+        """Return the path of the next bag: bag_path, or its next part with split_s."""
+        path = self.config.bag_path
+        if self.config.split_s > 0.0:
+            path = os.path.join(path, f'part_{self.parts:03d}')
+        self.parts += 1
+        return path
+
+    def _split(self) -> None:
+        """Close the bag being written and go on in a new part with the same topics."""
+        if self.stopped:
+            return
+        try:
+            self.writer.close()
+            self.writer = bag.BagWriter(self._part_path())
+            for topic, (msgtype, records) in self.records.items():
+                self.writer.add_topic(topic, msgtype, records)
+        except OSError as exc:
+            self._stop(f'starting part {self.parts - 1} failed ({exc})')
+
     def _subscribe(self, spec: bag.TopicSpec, offered: list) -> None:
         qos, records = subscription_qos(offered)
+        self.records[spec.topic] = (spec.msgtype, records)
         self.writer.add_topic(spec.topic, spec.msgtype, records)
         self.counts[spec.topic] = 0
         self.subs[spec.topic] = self.create_subscription(

@@ -280,3 +280,35 @@ def test_recorder_ends_the_recording_at_the_free_disk_floor_and_on_a_failed_writ
         ex.remove_node(rec)
         rec.destroy_node()
         src.destroy_node()
+
+
+def test_recorder_splits_the_recording_into_closed_parts(tmp_path, ros):
+    """split_s: bag_path becomes a folder of bags, each closed and readable, with the same
+    topics; together they hold every message once."""
+    from ibvs_harness.recorder_node import RecorderNode
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.parameter import Parameter
+
+    src = rclpy.create_node('split_source')
+    ev_pub = src.create_publisher(String, 'sim/events', 10)
+    ex = SingleThreadedExecutor()
+    ex.add_node(src)
+    rec = RecorderNode(parameter_overrides=[
+        Parameter('bag_path', value=str(tmp_path / 'split')), Parameter('split_s', value=0.3),
+        Parameter('topics', value=['sim/events'])])
+    try:
+        ex.add_node(rec)
+        assert _spin_until(ex, lambda: len(rec.subs) == 1, 10.0)
+        time.sleep(0.3)
+        for k in range(12):                                  # ~1.2 s: 4 or 5 parts
+            ev_pub.publish(String(data=f'{{"type": "e{k}"}}'))
+            _spin_until(ex, lambda: rec.counts['sim/events'] == k + 1, 5.0)
+            _spin_until(ex, lambda: False, 0.1)
+    finally:
+        ex.remove_node(rec)
+        rec.destroy_node()
+        src.destroy_node()
+    parts = sorted(p for p in (tmp_path / 'split').iterdir())
+    assert len(parts) >= 3 and parts[0].name == 'part_000'
+    counts = [bag.topic_counts(p).get('/sim/events', 0) for p in parts]
+    assert sum(counts) == 12 and sum(1 for c in counts if c) >= 3
