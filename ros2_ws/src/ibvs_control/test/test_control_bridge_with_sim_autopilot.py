@@ -60,6 +60,13 @@ def lockstep_with_the_bridge(frames: int = 10, seed: float = 0.5, cable=None
                 stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]   # ... (old /clock)
                 ros_ns = t_ns                                    # ... then /clock
         assert t_ns == frames * 20_000_000, 'lockstep stalled'
+        # the last frame's telemetry is on its way: the loop above waited 2 ms for it, and a
+        # serial cable on a loaded machine took longer once in CI (the last stamp one frame
+        # short); wait for it, bounded, as the sim waits for its next exchange
+        end = time.monotonic() + 2.0
+        while (not stamps or max(stamps) < t_ns) and time.monotonic() < end:
+            time.sleep(0.002)
+            stamps += [s.stamp_ns for s in bridge.poll(ros_ns)]
         return stamps, bridge, ap.counters
     finally:
         bridge.close()
