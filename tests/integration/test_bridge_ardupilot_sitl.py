@@ -26,8 +26,9 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bridge_px4_sitl import (  # noqa: E402
-    AP_DIR, angle_diff, check, close_flight, Flight, free_instance, Run, RUN_S,
-    shipped_parameters, start, step_response, Truth, VEHICLE_MASS)
+    AP_DIR, angle_diff, check, check_pilot_switch, close_flight, Flight, free_instance,
+    PilotRadio, PilotSwitchConfig, Run, RUN_S, shipped_parameters, start, step_response, Truth,
+    VEHICLE_MASS)
 
 # one SITL at a time (instance 9's ports), on one pytest-xdist worker
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
@@ -328,7 +329,9 @@ def test_ardupilot_telemetry_slows_at_rest_and_is_full_again_on_an_arm_request(a
     # docs/mavlink.md "Telemetry at rest", on the real ArduCopter: disarmed, supervisor IDLE,
     # no frames: ATTITUDE_QUATERNION and SCALED_IMU at 10 Hz once asked; 100 Hz again right
     # after an arm request (which alone arms nothing: nothing engages here)
-    rest = Run(ardupilot['env']['AP_COMPANION_URL'], quiet_telemetry_delay_s=0.5)
+    rest = Run(ardupilot['env']['AP_COMPANION_URL'], quiet_telemetry_delay_s=0.5,
+               pilot_switch=PilotSwitchConfig(channel=7))
+    radio = PilotRadio(ardupilot['env']['AP_GCS_TCP_URL'], 1)    # the pilot's switch, channel 7
     try:
         ok = False
         t_end = time.monotonic() + 30.0
@@ -336,7 +339,8 @@ def test_ardupilot_telemetry_slows_at_rest_and_is_full_again_on_an_arm_request(a
             rest.spin(0.5)
             ok = rest.bridge.status().telemetry_slowed and rest.bridge.rates.streams.complete
         assert ok, rest.bridge.status()
-        rest.spin(1.5)
+        check_pilot_switch(rest, radio)
+        rest.spin(0.5)
         at_rest = rest.rate_hz('ATTITUDE_QUATERNION', 1.0), rest.rate_hz('SCALED_IMU', 1.0)
         assert rest.bridge.request_arm()[0]
         rest.spin(1.5)
@@ -348,4 +352,5 @@ def test_ardupilot_telemetry_slows_at_rest_and_is_full_again_on_an_arm_request(a
         assert not rest.bridge.status().telemetry_slowed
         assert not rest.bridge.link.heartbeat.armed
     finally:
+        radio.close()
         rest.close()

@@ -34,6 +34,7 @@ import signal
 import socket
 import statistics
 import subprocess
+import threading
 import time
 
 import numpy as np
@@ -46,7 +47,9 @@ from pymavlink import mavutil  # noqa: E402
 from ibvs_common.core.config import load_vehicle  # noqa: E402
 from ibvs_common.core.frames import GRAVITY  # noqa: E402
 from ibvs_control.mavlink.bridge import BridgeConfig, MavlinkBridge  # noqa: E402
+from ibvs_control.core.pilot_input import PilotInput  # noqa: E402
 from ibvs_control.mavlink.link import LinkConfig  # noqa: E402
+from ibvs_control.mavlink.pilot_switch import PilotSwitchConfig  # noqa: E402
 from ibvs_control.mavlink.sequencer import px4_main_mode  # noqa: E402
 from ibvs_harness.px4_sih import renice_threads, SITL_NICE  # noqa: E402
 from ibvs_sim.core.autopilot import AutopilotConfig  # noqa: E402
@@ -443,6 +446,58 @@ class Truth:
         self.conn.close()
 
 
+class PilotRadio:
+    """A pilot's radio as a GCS gives it: RC_CHANNELS_OVERRIDE at 10 Hz on the GCS link.
+
+    Channels 1-8 at 1500 us (3, the throttle, at 1000) and ``channel`` at ``us`` (settable);
+    PX4 and ArduPilot both feed the override into their RC input, and so into RC_CHANNELS.
+    ArduPilot takes it only from its GCS system id (SYSID_MYGCS, 255 by default).
+    """
+
+    def __init__(self, url: str, target_system: int, channel: int = 7) -> None:
+        self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190)
+        self.target_system = target_system
+        self.channel = channel
+        self.us = 1500
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.1):
+            rc = [1500, 1500, 1000, 1500, 1500, 1500, 1500, 1500]
+            rc[self.channel - 1] = int(self.us)
+            self.conn.mav.rc_channels_override_send(self.target_system, 1, *rc)
+            self.conn.mav.heartbeat_send(6, 8, 0, 0, 0)       # a GCS
+            while self.conn.recv_msg() is not None:          # keep its socket drained
+                pass
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.conn.close()
+
+
+def check_pilot_switch(rest: Run, radio: PilotRadio) -> None:
+    """The bridge reads the pilot's switch from the firmware's RC_CHANNELS, also at rest."""
+    rest.spin(1.0)
+    rc_hz = rest.rate_hz('RC_CHANNELS', 1.0)
+    radio.us = 1100
+
+    def wait(value: PilotInput) -> bool:
+        t_end = time.monotonic() + 3.0
+        while time.monotonic() < t_end:
+            rest.spin(0.1)
+            if rest.bridge.pilot_input() == value:
+                return True
+        return False
+    assert wait(PilotInput.OFF), rest.bridge.status()
+    radio.us = 1900
+    assert wait(PilotInput.ON), rest.bridge.status()
+    print(f'pilot switch: RC_CHANNELS at {rc_hz:.1f} Hz at rest; OFF and ON read')
+    assert 7.0 <= rc_hz <= 13.0, rc_hz
+
+
 class Flight:
     """The bridge core configured from the shipped params.yaml, polled every 4 ms (poll +
     repeat check; the node reads on arrival), HEARTBEAT at 1 Hz, with ROS time = system time,
@@ -735,9 +790,13 @@ def test_px4_imu_and_clock_sync_on_the_system_clock(px4):
         run.close()
     # At rest (disarmed, supervisor IDLE): PX4 itself sends the attitude at 10 Hz once asked,
     # and at 100 Hz again right after an arm request (nothing else engages here).
-    rest = Run(px4['env']['PX4_OFFBOARD_URL'], quiet_telemetry_delay_s=0.5)
+    rest = Run(px4['env']['PX4_OFFBOARD_URL'], quiet_telemetry_delay_s=0.5,
+               pilot_switch=PilotSwitchConfig(channel=7))
+    # the pilot's switch on RC channel 7 (PX4's system id is 1 + its instance)
+    radio = PilotRadio(f"udpout:127.0.0.1:{px4['env']['PX4_GCS_PORT']}", px4['i'] + 1)
     try:
-        rest.spin(3.0)
+        rest.spin(2.0)
+        check_pilot_switch(rest, radio)
         at_rest = rest.rate_hz('ATTITUDE_QUATERNION', 1.0), rest.rate_hz('HIGHRES_IMU', 1.0)
         slowed = rest.bridge.status().telemetry_slowed
         assert rest.bridge.request_arm()[0]
@@ -750,6 +809,7 @@ def test_px4_imu_and_clock_sync_on_the_system_clock(px4):
         assert all(r >= 60.0 for r in after_arm), after_arm
         assert not rest.bridge.link.heartbeat.armed        # an arm request alone arms nothing
     finally:
+        radio.close()
         rest.close()
     check(run, 'PX4 v1.16 SITL (SIH)')
     assert run.bridge.status().counters['timesync_answered'] >= 10   # PX4 asks us too

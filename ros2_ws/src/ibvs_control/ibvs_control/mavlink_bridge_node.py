@@ -3,8 +3,10 @@
 Thin ROS wrapper of :class:`ibvs_control.mavlink.bridge.MavlinkBridge`: its parameters are
 :class:`~ibvs_control.mavlink.config.MavlinkBridgeNodeConfig`; a reader thread
 (``MavlinkReader``) handles MAVLink input as it arrives, under the lock every callback holds;
-the stream, heartbeat and diagnostics timers run on the steady clock. Topics, services and
-threading: docs/mavlink.md and docs/interfaces.md.
+the stream, heartbeat and diagnostics timers run on the steady clock. The pilot's mission
+switch (RC_CHANNELS) is published on ``ibvs/pilot_input`` (latched, on change;
+:mod:`ibvs_control.core.pilot_input`). Topics, services and threading: docs/mavlink.md and
+docs/interfaces.md.
 """
 from __future__ import annotations
 
@@ -29,6 +31,7 @@ from ibvs_common.node_common import (
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import message_kind, ThrottledLog
+from ibvs_control.core.pilot_input import PilotInput
 from ibvs_control.mavlink.bridge import BridgeStatus, MavlinkBridge
 from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
 from ibvs_control.mavlink.link import MavlinkReader, SigningError
@@ -62,6 +65,8 @@ class MavlinkBridgeNode(Node):
         self._imu_local = imu_local             # the composed container's co-located nodes
         self.imu_dds_skipped = 0                # samples not published through DDS (no reader)
         self._diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._pilot_pub = self.create_publisher(UInt8, 'ibvs/pilot_input', MODE_QOS)
+        self._pilot_published: PilotInput | None = None
         # The heading subscription first: with both ready, the executor takes it first, so a
         # force finds the heading of its own stamp (the controller publishes the heading first).
         self.create_subscription(QuaternionStamped, 'ibvs/heading_setpoint', self._on_heading,
@@ -162,6 +167,16 @@ class MavlinkBridgeNode(Node):
                 self._check_imu_consumers()
             self._bridge.stream(ros_ns)    # a repeat if no setpoint left for 1 / stream_rate_hz
             self._log_events()
+            pilot = self._bridge.pilot_input()
+        self._publish_pilot_input(pilot)
+
+    def _publish_pilot_input(self, value: PilotInput) -> None:
+        """ibvs/pilot_input on change (latched: a late subscriber gets the last one)."""
+        if value == self._pilot_published:
+            return
+        self._pilot_published = value
+        self._pilot_pub.publish(UInt8(data=int(value)))
+        self.get_logger().info(f'ibvs/pilot_input: {value.name}')
 
     def _on_heartbeat_tick(self) -> None:
         with self._lock:
@@ -257,6 +272,7 @@ class MavlinkBridgeNode(Node):
                   'supervisor_mode': st.supervisor_mode, 'streaming': str(st.streaming),
                   'arm_requested': str(st.arm_requested),
                   'telemetry_slowed': str(st.telemetry_slowed),
+                  'pilot_input': st.pilot_input,
                   'hover_thrust': fmt(st.hover_thrust),
                   'hover_thrust_seed': fmt(st.hover_thrust_seed),
                   'hover_thrust_source': st.hover_thrust_source,

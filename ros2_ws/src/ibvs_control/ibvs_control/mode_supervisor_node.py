@@ -8,6 +8,8 @@ the frame stride the graph can hold (core/rate_governor.py), publishes ``ibvs/mo
 ``/diagnostics``, and serves ``ibvs/start`` and ``ibvs/abort``. ``ibvs/start`` is refused
 while the latest preflight verdict (``ibvs/preflight``) is no-go, unless
 ``require_preflight_go`` is false (:class:`~ibvs_control.core.preflight_gate.PreflightGate`).
+The pilot's mission switch (``ibvs/pilot_input``, from the bridge) starts and aborts as these
+services do (:mod:`ibvs_control.core.pilot_input`).
 At start it publishes the cameras' mounts on ``/tf_static`` (``publish_camera_tf``;
 :mod:`ibvs_control.camera_tf`).
 """
@@ -26,10 +28,11 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_l
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.lever_arm import camera_bearings_from_body, has_lever_arm
-from ibvs_common.core.modes import CAMERA_OF, Camera, InputKind, Mode, MODE_INPUTS
+from ibvs_common.core.modes import CAMERA_OF, Camera, FLYING_MODES, InputKind, Mode, MODE_INPUTS
 from ibvs_control.camera_tf import publish_camera_tf
 from ibvs_control.config import ModeSupervisorNodeConfig
 from ibvs_control.core.frame_stats import FrameStats
+from ibvs_control.core.pilot_input import PilotAction, PilotInputWatch
 from ibvs_control.core.preflight_gate import PreflightGate
 from ibvs_control.core.rate_governor import RateGovernor, SupervisorGrids
 from ibvs_control.core.supervisor import ModeSupervisor
@@ -79,6 +82,7 @@ class ModeSupervisorNode(Node):
         self._n_reported = 0
         self._published: Mode | None = None
         self._preflight = PreflightGate(cfg.require_preflight_go, cfg.preflight_max_age_s)
+        self._pilot = PilotInputWatch()
 
         self._mode_pub = self.create_publisher(UInt8, 'ibvs/mode', MODE_QOS)
         self._status_pub = self.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
@@ -91,6 +95,8 @@ class ModeSupervisorNode(Node):
         self._products = FrameProductSubscriptions(self, self._add)
         # the preflight's verdict (latched; only ibvs/start reads it)
         self.create_subscription(DiagnosticArray, PREFLIGHT_TOPIC, self._on_preflight, MODE_QOS)
+        # the pilot's mission switch, as the bridge reads it (latched)
+        self.create_subscription(UInt8, 'ibvs/pilot_input', self._on_pilot_input, MODE_QOS)
         self.create_service(Trigger, 'ibvs/start', self._on_start)
         self.create_service(Trigger, 'ibvs/abort', self._on_abort)
         self.create_timer(1.0 / cfg.update_rate_hz, self._on_timer)   # node clock
@@ -364,26 +370,56 @@ class ModeSupervisorNode(Node):
 
     def _on_start(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
-        refusal = self._preflight.refusal(self.get_clock().now().nanoseconds / NS_PER_S)
-        if refusal is not None:
-            response.success, response.message = False, refusal
-            self.get_logger().error(f'ibvs/start refused: {refusal}')
-            return response
-        self._imu.take()                   # the start checks the IMU's age
-        response.success, response.message = self._core.request_start(self._now())
-        self.get_logger().info(f'ibvs/start: {response.message}')
-        note = self._preflight.note()
-        if response.success and note:
-            self.get_logger().warning(f'ibvs/start: {note}')
+        response.success, response.message = self._start('ibvs/start')
         return response
 
     def _on_abort(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
-        self._imu.take()
-        response.success, response.message = self._core.abort(self._now(), 'ibvs/abort called')
-        self.get_logger().info(f'ibvs/abort: {response.message}')
-        self._publish_mode()
+        response.success, response.message = self._abort('ibvs/abort called')
         return response
+
+    def _on_pilot_input(self, msg: UInt8) -> None:
+        """Take the pilot's switch: OFF -> ON starts, -> OFF aborts (core/pilot_input.py)."""
+        try:
+            action = self._pilot.on_input(msg.data)
+        except ValueError:
+            self._error(f'ibvs/pilot_input {msg.data} is not a PilotInput value: ignored')
+            return
+        if action == PilotAction.START:
+            self._start('pilot switch')
+        elif action == PilotAction.ABORT:
+            if self._core.mode in FLYING_MODES:
+                self._abort('pilot switch OFF, or the vehicle left the bridge')
+            elif self._core.cancel_start():
+                self.get_logger().warning('pilot switch OFF: the pending start is dropped')
+        elif self._pilot.on_without_off and self._core.mode == Mode.IDLE:
+            self.get_logger().warning('pilot switch ON without an OFF before it (at boot, or '
+                                      'after an RC loss): no start; flip it OFF, then ON')
+
+    def _start(self, source: str) -> tuple[bool, str]:
+        """Request a start for ``source``: the preflight gate, then the core's checks."""
+        refusal = self._preflight.refusal(self.get_clock().now().nanoseconds / NS_PER_S)
+        if refusal is not None:
+            self.get_logger().error(f'{source}: start refused: {refusal}')
+            return False, refusal
+        self._imu.take()                   # the start checks the IMU's age
+        ok, message = self._core.request_start(self._now())
+        if ok:
+            self.get_logger().info(f'{source}: {message}')
+        else:
+            self.get_logger().error(f'{source}: start refused: {message}')
+        note = self._preflight.note()
+        if ok and note:
+            self.get_logger().warning(f'{source}: {note}')
+        return ok, message
+
+    def _abort(self, reason: str) -> tuple[bool, str]:
+        """Abort to FAILSAFE (the bridge hands the vehicle to the autopilot's land mode)."""
+        self._imu.take()
+        ok, message = self._core.abort(self._now(), reason)
+        self.get_logger().info(f'abort ({reason}): {message}')
+        self._publish_mode()
+        return ok, message
 
     def _on_timer(self) -> None:
         """Staleness when inputs stop (frames are evaluated as they are released).

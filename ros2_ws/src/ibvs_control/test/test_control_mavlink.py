@@ -124,8 +124,9 @@ class FakeAutopilot:
         self.commands = []         # (t_rx, msg)
         self.intervals = []        # (t_rx, msg id, interval us) of SET_MESSAGE_INTERVAL
         self.sources = set()       # (host, port) the bridge sent from
+        self.rc = None             # RC_CHANNELS at 10 Hz: list of 18 channels (us), or None
         self.signed = []           # _signed flag of every message received
-        self._next = {'hb': 0.0, 'att': 0.0, 'ts': 0.0, 'status': 0.0}
+        self._next = {'hb': 0.0, 'att': 0.0, 'ts': 0.0, 'status': 0.0, 'rc': 0.0}
 
     def close(self):
         self.conn.close()
@@ -169,6 +170,10 @@ class FakeAutopilot:
             self.conn.mav.extended_sys_state_send(0, 1 if self.landed else 2)
             self.conn.mav.sys_status_send(0, 0, (1 << 28) if self.armable else 0, 0, 0,
                                           -1, -1, 0, 0, 0, 0, 0, 0)
+        if self.rc is not None and now >= nxt['rc'] and alive:
+            nxt['rc'] = now + 0.1
+            used = [us for us in self.rc if us not in (0, 0xFFFF)]
+            self.conn.mav.rc_channels_send(self.boot_ms(), len(used), *self.rc, 255)
         if self.timesync_requests and now >= nxt['ts'] and self.conn.clients:
             nxt['ts'] = now + 0.2
             self.conn.mav.timesync_send(0, self.boot_clock())
@@ -1675,3 +1680,82 @@ def test_reader_poll_reads_the_ros_clock_only_for_messages_that_need_it():
         assert bridge.ros.ns == 7_000_000_000 and len(reads) == 2
     finally:
         bridge.close()
+
+
+# --- the pilot's mission switch (RC_CHANNELS) ---------------------------------------------------
+
+def rc_with(channel, us, count=8):
+    """18 RC channels: ``count`` used at 1500 us, ``channel`` (1-based) at ``us``."""
+    rc = [1500] * count + [0xFFFF] * (18 - count)
+    rc[channel - 1] = us
+    return rc
+
+
+@pytest.mark.parametrize('kind', ['px4', 'ardupilot'])
+def test_pilot_switch_read_from_rc_channels_asked_for_and_kept_at_rest(peer_bridge, kind):
+    from ibvs_control.core.pilot_input import PilotInput
+    from ibvs_control.mavlink.pilot_switch import PilotSwitchConfig
+    params = {'GUID_OPTIONS': 8, 'MOT_THST_HOVER': 0.5, 'ATC_ANGLE_BOOST': 0} \
+        if kind == 'ardupilot' else {}
+    peer, bridge = peer_bridge(
+        peer_kw={'kind': kind, 'params': params, 'armed': False},
+        bridge_kw={'source': 'autopilot' if params else 'config',
+                   'pilot_switch': PilotSwitchConfig(channel=7),
+                   'quiet_telemetry_delay_s': 0.3})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    assert bridge.pilot_input() == PilotInput.UNKNOWN          # no RC_CHANNELS yet
+    ok, _ = spin(bridge, 4.0, until=lambda: bridge.rates.slowed)
+    assert ok, 'telemetry never slowed at rest'
+    asked = {i: us for _, i, us in peer.intervals}
+    assert asked[65] == pytest.approx(1e5)          # RC_CHANNELS at 10 Hz, not slowed at rest
+    peer.rc = rc_with(7, 1100)
+    ok, _ = spin(bridge, 0.5, until=lambda: bridge.pilot_input() == PilotInput.OFF)
+    assert ok
+    peer.rc = rc_with(7, 1500)                       # the hysteresis band: unchanged
+    spin(bridge, 0.3)
+    assert bridge.pilot_input() == PilotInput.OFF
+    peer.rc = rc_with(7, 1900)
+    ok, _ = spin(bridge, 0.5, until=lambda: bridge.pilot_input() == PilotInput.ON)
+    assert ok and bridge.status().pilot_input == 'ON'
+    peer.rc = None                                   # RC_CHANNELS stop: UNKNOWN, not OFF
+    ok, _ = spin(bridge, 2.0, until=lambda: bridge.pilot_input() == PilotInput.UNKNOWN)
+    assert ok
+
+
+def test_pilot_takeover_in_flight_latches_off_until_the_switch_is_off(peer_bridge):
+    from ibvs_control.core.pilot_input import PilotInput
+    from ibvs_control.mavlink.pilot_switch import PilotSwitchConfig
+    peer, bridge = peer_bridge(bridge_kw={'pilot_switch': PilotSwitchConfig(channel=7)})
+    peer.rc = rc_with(7, 1900)
+    engage(bridge, peer)
+    assert bridge.pilot_input() == PilotInput.ON
+    peer.custom_mode = PX4_POSCTL                    # the pilot takes the vehicle
+    ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.HELD,
+                 force_fn=feeder(bridge))
+    assert ok
+    spin(bridge, 0.5)
+    assert bridge.pilot_input() == PilotInput.OFF    # switch still ON: OFF, latched
+    peer.rc = rc_with(7, 1100)
+    spin(bridge, 0.3)
+    peer.rc = rc_with(7, 1900)
+    ok, _ = spin(bridge, 0.5, until=lambda: bridge.pilot_input() == PilotInput.ON)
+    assert ok                                        # the switch cycled: it reads again
+
+
+def test_without_a_switch_a_link_loss_in_flight_is_off_until_the_next_standby(peer_bridge):
+    from ibvs_control.core.pilot_input import PilotInput
+    peer, bridge = peer_bridge()
+    engage(bridge, peer)
+    assert bridge.pilot_input() == PilotInput.UNKNOWN
+    assert 65 not in {i for _, i, _ in peer.intervals}     # no switch: no RC_CHANNELS asked
+    peer.heartbeats_on = False
+    ok, _ = spin(bridge, 2.0, until=lambda: not bridge.link.link_up, force_fn=feeder(bridge))
+    assert ok and bridge.pilot_input() == PilotInput.OFF
+    peer.custom_mode = PX4_POSCTL
+    peer.heartbeats_on = True
+    ok, _ = spin(bridge, 2.0, until=lambda: seq(bridge).state == EngageState.HELD)
+    assert ok and bridge.pilot_input() == PilotInput.OFF
+    bridge.on_supervisor_mode(Mode.IDLE)             # a new mission may start
+    ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.STANDBY)
+    assert ok and bridge.pilot_input() == PilotInput.UNKNOWN

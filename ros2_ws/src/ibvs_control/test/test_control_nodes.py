@@ -291,6 +291,50 @@ def test_supervisor_stale_input_failsafe_and_abort(ctx):
     assert not res.success and 'FAILSAFE' in res.message
 
 
+def test_supervisor_pilot_switch_starts_on_off_to_on_and_aborts_on_off(ctx, capfd):
+    """ibvs/pilot_input (the bridge's reading of the pilot's RC switch, latched): ON already at
+    boot starts nothing; OFF then ON starts at the next frame, as ibvs/start; OFF in flight
+    aborts to FAILSAFE; a value outside the enum is refused with an error."""
+    _, executor, _ = ctx
+    sup, feed = supervisor_on_sim_time(ctx, '_pilot')
+    pilot = feed.node.create_publisher(UInt8, 'ibvs/pilot_input', MODE_QOS)
+    xi, t, fed = np.array([-2.0, 0.0, -1.6]), 1.0, []
+
+    def step():
+        nonlocal t
+        feed.frame(t, xi, front_flow=np.zeros(3))
+        fed.append(int(round(t * 1e9)))
+        assert spin_until(executor, lambda: len(feed.statuses) >= len(fed), 2.0)
+        t += 0.02
+
+    for _ in range(5):
+        step()
+    pilot.publish(UInt8(data=2))                     # ON without an OFF before it
+    spin_for(executor, 0.1)
+    for _ in range(3):
+        step()
+    assert feed.modes == [0]
+    pilot.publish(UInt8(data=7))                     # not a PilotInput: refused, logged
+    spin_for(executor, 0.1)
+    pilot.publish(UInt8(data=1))                     # OFF in IDLE: nothing to abort
+    spin_for(executor, 0.1)
+    step()
+    assert feed.modes == [0]
+    pilot.publish(UInt8(data=2))                     # OFF -> ON: the start, at the next frame
+    spin_for(executor, 0.1)
+    step()
+    assert spin_until(executor, lambda: feed.modes[-1:] == [1], 2.0)
+    for _ in range(3):
+        step()
+    pilot.publish(UInt8(data=1))                     # OFF in flight: abort
+    assert spin_until(executor, lambda: feed.modes[-1:] == [5], 2.0)
+    assert feed.modes == [0, 1, 5]
+    err = capfd.readouterr().err
+    assert 'pilot switch ON without an OFF before it' in err
+    assert 'ibvs/pilot_input 7 is not a PilotInput value' in err
+    assert 'pilot switch: start accepted' in err
+
+
 def test_supervisor_bad_messages_no_output_no_exception(ctx, capfd):
     context, executor, nodes = ctx
     sup = ModeSupervisorNode(node_name=f'sup3_{TAG}', context=context)
@@ -656,12 +700,16 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
                 Parameter('url', value=f'udpout:127.0.0.1:{peer.udp_port}'),
                 Parameter('hover_thrust_source', value='config'),
                 Parameter('hover_estimator_enabled', value=False),
-                Parameter('diagnostics_rate_hz', value=5.0)])
+                Parameter('diagnostics_rate_hz', value=5.0),
+                Parameter('pilot_switch_channel', value=7)])
         feed = Feeder(context, f'feedbr_{TAG}')
         nodes += [bridge, feed.node]
         imus, diags = [], []
         feed.node.create_subscription(Imu, 'imu/data', imus.append, SENSOR_QOS)
         feed.node.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
+        pilot = []
+        feed.node.create_subscription(UInt8, 'ibvs/pilot_input', lambda m: pilot.append(m.data),
+                                      MODE_QOS)
         heading = feed.node.create_publisher(QuaternionStamped, 'ibvs/heading_setpoint',
                                              COMMAND_QOS)
         force = feed.node.create_publisher(Vector3Stamped, 'ibvs/force_setpoint', COMMAND_QOS)
@@ -724,6 +772,13 @@ def test_bridge_node_imu_setpoint_and_diagnostics(ctx):
         assert keys['COM_OBL_RC_ACT'] == '4' and keys['COM_OF_LOSS_T'] == '1'
         assert keys['source_system'] == '1' and keys['dead_bridge_failsafe'] == 'True'
         assert not peer.armed
+        # the pilot's switch on RC channel 7 (RC_CHANNELS), published on change, latched
+        assert pilot == [0] and keys['pilot_input'] == 'UNKNOWN'
+        peer.rc = [1500] * 6 + [1100] + [1500] + [0xFFFF] * 10
+        assert spin_until(executor, lambda: pilot[-1:] == [1], 3.0)
+        peer.rc = [1500] * 6 + [1900] + [1500] + [0xFFFF] * 10
+        assert spin_until(executor, lambda: pilot[-1:] == [2], 3.0)
+        assert pilot == [0, 1, 2]
     finally:
         runner.close()
 

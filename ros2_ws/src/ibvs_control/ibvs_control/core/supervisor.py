@@ -231,6 +231,11 @@ class ModeSupervisor:
         self._start_requested_at = t
         return True, 'start accepted: window approach (mode 1) from the next frame'
 
+    def cancel_start(self) -> bool:
+        """Drop a start accepted by :meth:`request_start` and not applied yet; whether one was."""
+        pending, self._start_requested_at = self._start_requested_at, None
+        return pending is not None
+
     def abort(self, t: float, reason: str = 'abort requested') -> tuple[bool, str]:
         """Go to FAILSAFE from any mode except SHUTDOWN (already landing the motors)."""
         self._start_requested_at = None

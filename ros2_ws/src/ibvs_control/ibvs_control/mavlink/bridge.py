@@ -6,6 +6,7 @@
 - :mod:`~ibvs_control.mavlink.setpoint_stream`: forces and headings -> SET_ATTITUDE_TARGET;
 - :mod:`~ibvs_control.mavlink.engagement`: supervisor mode, arm requests, the sequencer, safety;
 - :mod:`~ibvs_control.mavlink.rates`: the telemetry streams asked of the autopilot;
+- :mod:`~ibvs_control.mavlink.pilot_switch`: the pilot's mission switch (RC_CHANNELS);
 - :mod:`~ibvs_control.mavlink.params`: the autopilot parameters read and what they imply;
 - :mod:`~ibvs_control.mavlink.status`: log events and the /diagnostics snapshot.
 
@@ -21,14 +22,16 @@ from typing import Callable
 import numpy as np
 
 from ibvs_common.core.modes import Mode
+from ibvs_control.core.pilot_input import PilotInput
 from ibvs_control.mavlink.config import BridgeConfig
 from ibvs_control.mavlink.engagement import Engagement
 from ibvs_control.mavlink.hover import HoverThrust
 from ibvs_control.mavlink.imu_intake import ImuIntake
 from ibvs_control.mavlink.link import MavlinkLink
 from ibvs_control.mavlink.params import AutopilotParams, Changed, param_value
+from ibvs_control.mavlink.pilot_switch import PilotSwitch
 from ibvs_control.mavlink.rates import TelemetryRates
-from ibvs_control.mavlink.sequencer import Autopilot, EngageState
+from ibvs_control.mavlink.sequencer import Autopilot, EngageState, FLIGHT_STATES
 from ibvs_control.mavlink.setpoint_stream import SetpointStream
 from ibvs_control.mavlink.setpoints import SetpointSource
 from ibvs_control.mavlink.status import bridge_status, BridgeStatus, EventLog
@@ -41,6 +44,9 @@ MAV_CMD_SET_MESSAGE_INTERVAL = 511
 # the streams that arrive at 50-100 Hz and need no supervision step of their own (poll)
 HIGH_RATE_TYPES = frozenset(('ATTITUDE_QUATERNION', 'HIGHRES_IMU', 'SCALED_IMU',
                              'ATTITUDE_TARGET'))
+# leaving a flight state for one of these: the vehicle left the bridge's hands (pilot / GCS
+# mode switch, link lost, a command failed): the mission is over (core/pilot_input.py)
+RELEASED_STATES = (EngageState.HELD, EngageState.NO_LINK, EngageState.FAILED)
 
 
 class MavlinkBridge:
@@ -69,6 +75,7 @@ class MavlinkBridge:
         self.imu = ImuIntake(config, self.link, self.telemetry, self.hover, self.setpoints,
                              self.engagement)
         self.rates = TelemetryRates(config, self.link, self.engagement, self.events, clock)
+        self.pilot = PilotSwitch(config.pilot_switch)
         self._last_tick_t: float | None = None
         self._was_up = False
         self._sync_reboots = 0
@@ -197,6 +204,10 @@ class MavlinkBridge:
         return (self.events.pop() + self.link.pop_events() + self.telemetry.pop_events()
                 + self.engagement.pop_events())
 
+    def pilot_input(self) -> PilotInput:
+        """Return ``ibvs/pilot_input`` now: the switch, or OFF after a release in flight."""
+        return self.pilot.value(self.clock())
+
     def pop_heading_warning(self) -> str:
         """Text about forces flown without their heading since the last call, or ''."""
         return self.setpoints.pop_heading_warning()
@@ -225,6 +236,8 @@ class MavlinkBridge:
             value = param_value(float(msg.param_value), int(msg.param_type),
                                 self.engagement.autopilot == Autopilot.PX4)
             self._apply(self.params.on_param(msg.param_id, value))
+        elif kind == 'RC_CHANNELS':
+            self.pilot.on_rc_channels(msg, self.clock())
         elif kind == 'COMMAND_ACK':
             if int(msg.command) == MAV_CMD_SET_MESSAGE_INTERVAL:
                 self.rates.on_ack(msg.result)
@@ -259,6 +272,19 @@ class MavlinkBridge:
 
     def _run_sequencer(self, now: float) -> None:
         sp = self.setpoints
+        seq = self.engagement.sequencer
+        was = seq.state if seq is not None else None
         if self.engagement.run(now, sp.streaming_s(now), sp.shaper.ramp_done(now),
                                self.hover.seed.value is not None):
             sp.stopped()
+        if seq is not None and seq.state != was:
+            self._note_release(was, seq.state)
+
+    def _note_release(self, was: EngageState, state: EngageState) -> None:
+        """Latch the pilot input OFF on a release in flight; end the latch at standby."""
+        if was in FLIGHT_STATES and state in RELEASED_STATES:
+            self.pilot.release()
+            self.events.add('warn', f'the vehicle left the bridge in {was.name} '
+                                    f'({state.name}): ibvs/pilot_input OFF, the mission ends')
+        elif state == EngageState.STANDBY:
+            self.pilot.rearm()

@@ -14,6 +14,7 @@ from ibvs_common.core.config import ConfigError, load_vehicle
 from ibvs_common.core.params import group, param
 from ibvs_control.mavlink.hover import EstimatorConfig
 from ibvs_control.mavlink.link import LinkConfig, load_signing_key, MIN_HEARTBEAT_TIMEOUT_S
+from ibvs_control.mavlink.pilot_switch import PilotSwitchConfig
 from ibvs_control.mavlink.safety import SafetyConfig
 from ibvs_control.mavlink.sequencer import SequencerConfig
 from ibvs_control.mavlink.telemetry import load_px4_events, message_ids
@@ -87,6 +88,7 @@ class BridgeConfig:
         False, 'true: an arm request from the start (sim scenario only); otherwise only the '
         'ibvs/arm service arms')
     sequencer: SequencerConfig = group(SequencerConfig)
+    pilot_switch: PilotSwitchConfig = group(PilotSwitchConfig, 'pilot_switch_')
     estimator: EstimatorConfig = group(EstimatorConfig, 'hover_estimator_')
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     px4_events: dict | None = None           # PX4 event id -> text (all_events.json), or None

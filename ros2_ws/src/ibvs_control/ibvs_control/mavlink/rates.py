@@ -36,7 +36,8 @@ class TelemetryRates:
         c = self.config
         self.streams = StreamRequests(streams_for(
             autopilot.value, c.attitude_rate_hz, c.imu_rate_hz, c.thrust_rate_hz,
-            c.status_rate_hz, c.heartbeat_request_hz, c.streams_off))
+            c.status_rate_hz, c.heartbeat_request_hz, c.streams_off,
+            ((MavMsgId.RC_CHANNELS, c.pilot_switch.rate_hz),) if c.pilot_switch.enabled else ()))
         imu = MavMsgId.SCALED_IMU if autopilot == Autopilot.ARDUPILOT \
             else MavMsgId.HIGHRES_IMU
         self.quiet = QuietTelemetry(

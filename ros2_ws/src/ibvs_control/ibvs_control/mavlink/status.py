@@ -62,6 +62,7 @@ class BridgeStatus:
     # ArduPilot FS_GCS_ENABLE, SYSID_MYGCS), and this bridge's MAVLink system id
     dead_bridge_params: dict = field(default_factory=dict)
     source_system: int = 0
+    pilot_input: str = 'UNKNOWN'           # ibvs/pilot_input (core/pilot_input.py)
 
 
 def bridge_status(bridge: MavlinkBridge, now: float) -> BridgeStatus:
@@ -103,4 +104,5 @@ def bridge_status(bridge: MavlinkBridge, now: float) -> BridgeStatus:
         link_error=link.last_error, stale_setpoints=sp.shaper.stale,
         telemetry_slowed=bridge.rates.slowed,
         dead_bridge_params=dict(bridge.params.dead_bridge_params),
-        source_system=bridge.params.source_system)
+        source_system=bridge.params.source_system,
+        pilot_input=bridge.pilot.value(now).name)

@@ -319,7 +319,7 @@ def message_ids(names: Iterable[str]) -> tuple[int, ...]:
 
 def streams_for(autopilot: str, attitude_hz: float, imu_hz: float, thrust_hz: float,
                 status_hz: float, heartbeat_hz: float,
-                off: tuple = ()) -> list[tuple[int, float]]:
+                off: tuple = (), extra: tuple = ()) -> list[tuple[int, float]]:
     """Return the (message id, rate) list to ask ``autopilot`` ('px4' | 'ardupilot') for.
 
     PX4: ATTITUDE_QUATERNION, HIGHRES_IMU, ATTITUDE_TARGET, EXTENDED_SYS_STATE, SYS_STATUS
@@ -328,6 +328,7 @@ def streams_for(autopilot: str, attitude_hz: float, imu_hz: float, thrust_hz: fl
     then seen within 1 / heartbeat_hz). Then rate 0 (SET_MESSAGE_INTERVAL -1: stream off) for
     each message id of ``off`` that the bridge does not use (the others are ignored): what
     PX4's onboard link streams by default costs the bridge CPU for every message it parses.
+    ``extra``: more (message id, rate) streams wanted (RC_CHANNELS for the pilot's switch).
     """
     common = [(MavMsgId.ATTITUDE_QUATERNION, attitude_hz), (MavMsgId.ATTITUDE_TARGET, thrust_hz),
               (MavMsgId.EXTENDED_SYS_STATE, status_hz), (MavMsgId.SYS_STATUS, status_hz)]
@@ -336,6 +337,7 @@ def streams_for(autopilot: str, attitude_hz: float, imu_hz: float, thrust_hz: fl
             (MavMsgId.HEARTBEAT, heartbeat_hz)]
     else:
         wanted = common[:1] + [(MavMsgId.HIGHRES_IMU, imu_hz)] + common[1:]
+    wanted += [(int(i), float(r)) for i, r in extra]
     used = {int(i) for i, _ in wanted} | {int(i) for i in USED_UNREQUESTED}
     return wanted + [(int(i), 0.0) for i in dict.fromkeys(off) if int(i) not in used]
 

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 from ibvs_control.mavlink.sequencer.ardupilot import ArduPilotStrategy
 from ibvs_control.mavlink.sequencer.common import (
-    Autopilot, AutopilotStrategy, CommandRequest, EngageSequencer, EngageState, MavCmd,
-    MavResult, SequencerConfig, SequencerInputs)
+    Autopilot, AutopilotStrategy, CommandRequest, EngageSequencer, EngageState, FLIGHT_STATES,
+    MavCmd, MavResult, SequencerConfig, SequencerInputs)
 from ibvs_control.mavlink.sequencer.px4 import px4_main_mode, px4_sub_mode, Px4Strategy
 
 __all__ = ['ArduPilotStrategy', 'Autopilot', 'AutopilotStrategy', 'CommandRequest',
-           'engage_sequencer', 'EngageSequencer', 'EngageState', 'MavCmd', 'MavResult',
-           'px4_main_mode', 'px4_sub_mode', 'Px4Strategy', 'SequencerConfig',
+           'engage_sequencer', 'EngageSequencer', 'EngageState', 'FLIGHT_STATES', 'MavCmd',
+           'MavResult', 'px4_main_mode', 'px4_sub_mode', 'Px4Strategy', 'SequencerConfig',
            'SequencerInputs', 'strategy_for']
 
 

@@ -73,9 +73,10 @@ class EngageState(Enum):
     FAILED = 'failed'                # mode switch or arming failed after all retries
 
 
-# States where the bridge was flying the vehicle (a link loss there hands it to the autopilot).
-_FLIGHT_STATES = (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
-                  EngageState.ENGAGED)
+# States where the bridge was flying the vehicle (a link loss there hands it to the autopilot;
+# leaving them for HELD, NO_LINK or FAILED releases the mission: bridge.py, pilot_switch.py).
+FLIGHT_STATES = (EngageState.SET_MODE, EngageState.WAIT_ARM, EngageState.ARMING,
+                 EngageState.ENGAGED)
 _SHUTDOWN_STATES = (EngageState.SHUTDOWN_RAMP, EngageState.DISARMING, EngageState.LANDING)
 
 
@@ -353,7 +354,7 @@ class EngageSequencer:
         lost_in, self._lost_in = self._lost_in, None
         if lost_in in _SHUTDOWN_STATES:
             return self._resolve_shutdown(inp, 'link back during the shutdown')
-        if lost_in in _FLIGHT_STATES:
+        if lost_in in FLIGHT_STATES:
             if inp.armed and self.strategy.in_offboard(inp.custom_mode):
                 return self._inputs_lost(inp, 'link back, vehicle still in the offboard mode '
                                               'without our setpoints')
