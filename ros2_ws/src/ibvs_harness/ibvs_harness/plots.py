@@ -18,7 +18,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ibvs_common.core.modes import Mode  # noqa: E402
+from ibvs_common.core.modes import Mode, mode_name  # noqa: E402
 
 if TYPE_CHECKING:
     import numpy.typing as npt
@@ -72,13 +72,6 @@ class RunData:
         return s if s is not None and len(s) else None
 
 
-def _mode_name(mode: int) -> str:
-    try:
-        return Mode(int(mode)).name
-    except ValueError:
-        return str(mode)
-
-
 def _shade_modes(ax, modes: list, t_end: float) -> None:
     for i, (t0, mode) in enumerate(modes):
         t1 = modes[i + 1][0] if i + 1 < len(modes) else t_end
@@ -90,7 +83,7 @@ def _mode_legend(fig, modes: list) -> None:
     seen = list(dict.fromkeys(int(m) for _, m in modes))
     if not seen:
         return
-    handles = [Patch(color=MODE_COLOURS.get(m, '#eeeeee'), alpha=0.5, label=_mode_name(m))
+    handles = [Patch(color=MODE_COLOURS.get(m, '#eeeeee'), alpha=0.5, label=mode_name(m))
                for m in seen]
     fig.legend(handles=handles, loc='lower center', ncol=len(handles), fontsize=8,
                frameon=False, title='modes (shading)', title_fontsize=8)

@@ -33,7 +33,8 @@ import numpy as np
 
 from ibvs_bringup import graph
 from ibvs_harness import report
-from ibvs_harness.scenario import (finish, missing_executables, mode_name, run_block,
+from ibvs_common.core.modes import mode_name
+from ibvs_harness.scenario import (finish, missing_executables, run_block,
                                    supervisor_log, supervisor_transitions)
 from ibvs_harness.px4_sih import (free_instance, MAV_CMD_DO_REPOSITION, Pilot,
                                   px4_boot_parameters, Px4Sitl, SITL_NICE)

@@ -190,10 +190,9 @@ class RecorderNode(Node):
     def _stop(self, why: str) -> None:
         """End the recording for good: close the bag (if it still can), say why once."""
         self.stopped = why
-        try:
-            self.writer.close()
-        except OSError as exc:
-            why += f'; the bag could not be closed ({exc})'
+        error = self._close_writer()
+        if error:
+            why += f'; {error}'
         self.get_logger().error(f'recorder: recording ended: {why}; the bag '
                                 f'{self.config.bag_path} holds what came before')
 
@@ -211,12 +210,19 @@ class RecorderNode(Node):
         self.image_bytes += size
         return False
 
-    def destroy_node(self) -> None:
-        """Close the bag (metadata.yaml) before the node goes."""
+    def _close_writer(self) -> str:
+        """Close the bag being written (its metadata.yaml); '' or why it could not be."""
         try:
             self.writer.close()
         except OSError as exc:
-            self.get_logger().error(f'recorder: the bag could not be closed ({exc})')
+            return f'the bag could not be closed ({exc})'
+        return ''
+
+    def destroy_node(self) -> None:
+        """Close the bag before the node goes."""
+        error = self._close_writer()
+        if error:
+            self.get_logger().error(f'recorder: {error}')
         super().destroy_node()
 
 

@@ -25,8 +25,9 @@ from ibvs_bringup.runner import (DEFAULT_LAYOUT, LAYOUTS, ProcessRunner, raise_o
 from ibvs_common.core.config import load_pad_layout, load_vehicle, PadLayout
 from ibvs_harness import plots, report
 from ibvs_common.core.mavlink_connection import free_udp_port
+from ibvs_common.core.modes import mode_name
 from ibvs_harness.scenario import (AUTOPILOTS, DEFAULT_IMAGE_EVERY, FAILSAFE_MODE, finish,
-                                   IDLE_MODE, MAX_SIM_TIME_S, missing_executables, mode_name,
+                                   IDLE_MODE, MAX_SIM_TIME_S, missing_executables,
                                    prepare_out_dir, random_initial_position, run_block,
                                    RunOptions, SHUTDOWN_GRACE_S, SHUTDOWN_MODE,
                                    supervisor_log, supervisor_transitions)

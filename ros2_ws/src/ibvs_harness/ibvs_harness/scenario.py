@@ -117,15 +117,6 @@ def finish(opts: RunOptions, summary: dict, data: plots.RunData | None) -> int:
 TRANSITION_LINE = re.compile(r'\]: (mode \w+ -> \w+ at t = .*)$')
 
 
-def mode_name(mode: int | None) -> str:
-    """Return a supervisor mode's name (WINDOW, ...) for the console; '?' for none or unknown."""
-    from ibvs_common.core.modes import Mode
-    try:
-        return Mode(int(mode)).name
-    except (TypeError, ValueError):
-        return '?' if mode is None else str(mode)
-
-
 def failure_explanation(summary: dict) -> str | None:
     """Say why a run failed in one phrase (None: a success), for its closing console line.
 

@@ -40,7 +40,8 @@ def test_runner_and_run_scenario_refuse_a_missing_parameter_file(tmp_path, capsy
 def test_a_failed_run_says_why_on_its_closing_line(tmp_path, capsys):
     """The closing console line of a failed run ends with its cause, and a failsafe's with
     the supervisor's own reason; a success says nothing more; progress lines name modes."""
-    from ibvs_harness.scenario import failure_explanation, finish, mode_name, RunOptions
+    from ibvs_common.core.modes import mode_name
+    from ibvs_harness.scenario import failure_explanation, finish, RunOptions
     transitions = ['mode IDLE -> WINDOW at t = 1.000 s: auto-start at 1 s, window detected',
                    'mode WINDOW -> FAILSAFE at t = 1.560 s: window stale for more than 0.5 s '
                    'in WINDOW']

@@ -29,6 +29,14 @@ class Mode(IntEnum):
 FLYING_MODES = (Mode.WINDOW, Mode.CROSSING, Mode.LANDING)
 
 
+def mode_name(mode: int | None) -> str:
+    """Return a mode's name (WINDOW, ...) for people to read; '?' for None, else the number."""
+    try:
+        return Mode(int(mode)).name
+    except (TypeError, ValueError):
+        return '?' if mode is None else str(mode)
+
+
 class Camera(str, Enum):
     """The two cameras whose frames the modes are evaluated on."""
 
