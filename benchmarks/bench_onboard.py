@@ -372,8 +372,10 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
         out['cpu_pct'] = {k: 100.0 * (b - a[k]) / CLK_TCK / seconds
                           for k, b in cpu_ticks(pids).items() if b is not None and a[k]}
         rep.spin(1.0)
-        out['started'] = bool(rep.start_future and rep.start_future.done()
-                              and rep.start_future.result().success)
+        answer = rep.start_future.result() if rep.start_future and rep.start_future.done() \
+            else None
+        out['started'] = bool(answer and answer.success)
+        out['start_answer'] = answer.message if answer else 'no answer to ibvs/start'
     finally:
         stop.set()
         load_stop.set()
@@ -448,7 +450,8 @@ def report(r: dict) -> None:
     if len(lat):
         line += (f"; after arrival median {np.median(lat):.1f} ms, "
                  f"p99 {np.percentile(lat, 99):.1f} ms")
-    print(line + ('' if r.get('started') else '  (the supervisor did not start)'))
+    print(line + ('' if r.get('started') else
+                  f"  (the supervisor did not start: {r.get('start_answer', '?')})"))
     err = r.get('stamp_error_ms', np.zeros(0))
     if len(err):
         off = 100.0 * np.mean(np.abs(err) > MATCH_NS / 1e6)

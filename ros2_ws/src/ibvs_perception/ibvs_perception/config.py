@@ -24,7 +24,8 @@ class ImageInputConfig:
 
     mode_gating: bool = param(
         True, 'compute this product only for the images of a mode that uses it '
-        '(ibvs/supervisor_status; every image before the first status); false: every image')
+        '(ibvs/supervisor_status; before the first one the latched ibvs/mode, or every image '
+        'without it); false: every image')
     mode_gate_depth: int = param(
         4, 'images kept unprocessed while the mode does not use the product, processed at once '
         'if the mode switches to one that does within them (the status of a frame arrives '

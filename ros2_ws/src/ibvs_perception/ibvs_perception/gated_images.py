@@ -20,6 +20,7 @@ from typing import Callable
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image
+from std_msgs.msg import UInt8
 
 from ibvs_common.core.frame_grid import FrameGrid
 from ibvs_common.core.modes import InputKind, modes_using
@@ -58,6 +59,8 @@ class GatedImages:
             # core: the wall flow started 0.5 s after WINDOW, which failed safe)
             node.create_subscription(DiagnosticArray, 'ibvs/supervisor_status',
                                      self.on_status, FRAME_QOS)
+            # the supervisor's latched mode: the gate's state until its first status
+            node.create_subscription(UInt8, 'ibvs/mode', self.on_mode, MODE_QOS)
         node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self.on_grid, MODE_QOS)
 
     @property
@@ -111,6 +114,10 @@ class GatedImages:
                            THROTTLE_S)
             return
         self.grid = self.grid.with_stride(*grid)
+
+    def on_mode(self, msg: UInt8) -> None:
+        """Take the supervisor's latched mode (the gate's state until its first status)."""
+        self.gate.on_mode(msg.data)
 
     def on_status(self, msg: DiagnosticArray) -> None:
         stamp_ns, mode, err = mode_from_status(msg)

@@ -307,6 +307,27 @@ def test_a_pure_rotation_is_predicted_and_tracked_on_the_base_level(scene):
     assert max(results[True]) < 0.02 and max(results[False]) < 0.02     # v = 0: phi ~ 0
 
 
+def test_after_a_gap_the_flow_does_not_depend_on_the_frames_before_it(scene):
+    """A gated flow computes a few frames, then none for a while (another mode), then again:
+    what it estimates from there must be what a fresh estimator estimates (the replenishment
+    cadence started from the frames before the gap shifted every later track set)."""
+    _, vehicle, renderers = scene
+    cam = vehicle.cameras['down']
+    seq = _sequence(renderers['down'], np.eye(3), np.array([0.1, -0.2, 0.3]),
+                    np.array([0.0, 0.0, -1.2]), np.array([0.3, 0.1, 0.0]), 14)
+    before = [(img, t - 1.0, R) for img, t, R in seq[:3]]    # 1 s before: a gap >> 5 frames
+    outputs = []
+    for history in ([], before):
+        estimator = FlowEstimator(FlowConfig(), cam.model, cam.R_BC)
+        for img, t, R in history:
+            estimator.process(img, t, R, frames.e3)
+        results = [estimator.process(img, t, R, frames.e3) for img, t, R in seq]
+        outputs.append([r.phi_I for r in results if r is not None])
+    assert len(outputs[0]) >= 10
+    assert all(np.array_equal(a, b) for a, b in zip(*outputs)) and \
+        len(outputs[0]) == len(outputs[1])
+
+
 def test_a_translation_is_predicted_by_each_tracks_own_motion(scene):
     """0.5 m/s at 1.2 m over the floor, slow yaw: ~3 px a frame that the rotation does not
     predict; each track's last motion does (to a fraction of a px), so the search drops to

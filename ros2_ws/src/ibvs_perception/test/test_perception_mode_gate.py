@@ -33,6 +33,38 @@ def test_every_image_is_processed_before_any_status_and_when_disabled():
     assert released(off.on_image(20 * MS, 'b')) == [(20, True)]
 
 
+def test_before_any_status_the_supervisors_latched_mode_decides():
+    """A slow computer's first status comes late: the floor flow must not compute the IDLE
+    images before it (ibvs/mode says IDLE), and comes on at the first status that uses it."""
+    gate = ModeGate(DOWN_FLOW_MODES, depth=3)
+    gate.on_mode(Mode.IDLE)
+    assert not gate.active
+    assert [gate.on_image(t * MS, t) for t in (0, 20, 40)] == [[], [], []]
+    assert gate.on_status(40 * MS, Mode.IDLE) == []           # no change: nothing released
+    assert released(gate.on_status(60 * MS, Mode.CROSSING)) == [(40, False)]   # the primer
+    assert released(gate.on_image(60 * MS, 60)) == [(60, True)]
+    gate.on_mode(Mode.IDLE)                   # after a status, ibvs/mode decides nothing
+    assert released(gate.on_image(80 * MS, 80)) == [(80, True)]
+    # the ibvs/mode of a switch may come before the switch's status: the status still
+    # switches, and releases its image (the wall flow's first WINDOW frame, in lockstep)
+    wall = ModeGate((Mode.WINDOW,))
+    wall.on_mode(Mode.IDLE)
+    assert wall.on_status(0, Mode.IDLE) == [] and wall.on_image(20 * MS, 20) == []
+    assert wall.on_image(40 * MS, 40) == []
+    wall.on_mode(Mode.WINDOW)
+    assert released(wall.on_status(40 * MS, Mode.WINDOW)) == [(20, False), (40, True)]
+    # a mode that uses the product, latched before any status: computed at once
+    on = ModeGate(DOWN_FLOW_MODES)
+    on.on_mode(Mode.LANDING)
+    assert released(on.on_image(0, 'a')) == [(0, True)]
+    # after a clock step the gate computes every image again until the next status (the
+    # latched IDLE of before no longer holds)
+    assert gate.on_status(100 * MS, Mode.SHUTDOWN) == [] and gate.on_status(
+        120 * MS, Mode.WINDOW) == [] and not gate.active
+    assert gate.on_image(10_000 * MS, 'x') == []
+    assert released(gate.on_image(8_000 * MS, 'y')) == [(8_000, True)]
+
+
 def test_images_of_a_mode_that_does_not_use_the_product_are_kept_not_processed():
     gate = ModeGate(DOWN_FLOW_MODES, depth=3)
     assert gate.on_status(0, Mode.WINDOW) == []

@@ -353,6 +353,7 @@ class FlowEstimator:
             self._points, self._ids = np.zeros((0, 2), np.float32), np.zeros(0, np.int64)
             self._history.clear()
             self._motion_px = self._rotation_motion_px = None
+            self._frame_count = 0       # the replenishment cadence starts with the new tracks
         elif len(self._points):
             self._points, self._ids = self._track(gray, self._predicted(stamp_s, R_IB))
         p_I = None

@@ -8,8 +8,13 @@ the supervisor's ``ibvs/supervisor_status``, one per evaluated frame, stamped wi
 Rule (:class:`ModeGate`), with stamps on the ROS clock in integer nanoseconds:
 
 - The mode in force at an image stamp t is that of the newest status with a stamp <= t
-  among those received. Before any status every image is processed (a replay without a
-  supervisor, a node started alone); so is every image when gating is disabled.
+  among those received. Before any status, the supervisor's latched mode (``ibvs/mode``,
+  :meth:`ModeGate.on_mode`) decides; without either every image is processed (a replay
+  without a supervisor, a node started alone); so is every image when gating is disabled.
+  On a slow computer the first status can come a second or more after the first images: the
+  pad detector and the flows computed every IDLE image until then, starving the window
+  detector that the start needs (a sixth of a core: the start refused, "the full window is
+  not detected").
 - An image whose mode does not use the product is kept (the newest ``depth``), unprocessed.
 - A status at stamp t_s that turns the product on releases at once the newest kept image
   with a stamp >= t_s, to be processed and published, preceded by the kept image just before
@@ -67,6 +72,8 @@ class ModeGate:
         self._changes: deque = deque(maxlen=CHANGE_HISTORY)   # (stamp_ns, active)
         self._image_stamps = BackstepWatch()
         self._status_stamps = BackstepWatch()
+        self._initial = True         # the activity before any status (ibvs/mode, on_mode)
+        self._status_seen = False    # a status came (since the start or a clock step)
         self.superseded = 0          # kept images >= a switch dropped for a newer one
 
     @property
@@ -83,14 +90,26 @@ class ModeGate:
         if watch.observe(stamp_ns):
             self._changes.clear()
             self._kept.clear()
+            self._initial = True
+            self._status_seen = False
             self._image_stamps.forget()
             self._status_stamps.forget()
             watch.observe(stamp_ns)
 
     @property
     def active(self) -> bool:
-        """Whether the newest known mode uses the product (True before any status)."""
-        return not self._changes or self._changes[-1][1]
+        """Whether the newest known mode uses the product (before any status: on_mode's)."""
+        return self._changes[-1][1] if self._changes else self._initial
+
+    def on_mode(self, mode: int) -> None:
+        """Take the supervisor's latched mode (``ibvs/mode``): it decides until a status comes.
+
+        Once a status has come, the statuses alone decide (each is stamped with its frame):
+        the ``ibvs/mode`` of a switch comes with the switch's status, in either order, and
+        must not make the status look like no change (its image would never be computed).
+        """
+        if not self._status_seen:
+            self._initial = int(mode) in self.active_modes
 
     def active_at(self, stamp_ns: int) -> bool:
         """Whether the mode in force at ``stamp_ns`` (newest status <= it) uses the product."""
@@ -99,8 +118,8 @@ class ModeGate:
         for t, active in reversed(self._changes):
             if t <= stamp_ns:
                 return active
-        # older than every change: the activity before the first one (on, before any status)
-        return not self._changes or not self._changes[0][1]
+        # older than every change: the activity before the first one
+        return self._initial if not self._changes else not self._changes[0][1]
 
     def on_image(self, stamp_ns: int, item: Any) -> list[GatedImage]:
         """Take one image: [it] to process now, or [] when kept for a possible switch."""
@@ -115,6 +134,7 @@ class ModeGate:
         if not self.enabled:
             return []
         self._watch(self._status_stamps, stamp_ns)
+        self._status_seen = True
         active = int(mode) in self.active_modes
         if active == self.active:
             return []
