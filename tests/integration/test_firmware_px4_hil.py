@@ -77,9 +77,12 @@ def test_firmware_hover_command(capsys):
 
 
 def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
-    """``run_scenario --autopilot px4``: PX4 takes off to the start before frame 0, then the
-    graph flies through the window and lands on the pad on PX4's own attitude control and
-    estimator, in lockstep (docs/firmware_lockstep.md). The criteria are docs/spec.md's."""
+    """``run_scenario --autopilot px4 --pilot-switch``: PX4 takes off to the start before
+    frame 0; the pilot flips the mission switch on the radio (RC input the sim gives PX4) and
+    the graph, having read it in PX4's RC_CHANNELS, starts, flies through the window and
+    lands on the pad on PX4's own attitude control and estimator, in lockstep
+    (docs/firmware_lockstep.md, docs/onboard.md "Start and abort from the radio"). The
+    criteria are docs/spec.md's."""
     import json
     from ibvs_harness.run_scenario import main
     if os.environ.get(MISSION_ENV, '1') == '0':
@@ -88,8 +91,8 @@ def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
         find_px4_sitl()
     except FileNotFoundError as exc:
         pytest.skip(f'PX4 SITL absent: {exc}')
-    code = main(['--autopilot', 'px4', '--run-name', 'px4_lockstep', '--results-root',
-                 str(tmp_path), '--no-bag', '--no-plots'])
+    code = main(['--autopilot', 'px4', '--pilot-switch', '--run-name', 'px4_lockstep',
+                 '--results-root', str(tmp_path), '--no-bag', '--no-plots'])
     summary = json.loads((tmp_path / 'px4_lockstep' / 'summary.json').read_text())
     run, timing = summary['run'], summary['timing']
     assert code == 0 and summary['success'], (run.get('stop_reason'), run.get('error'))
@@ -98,3 +101,10 @@ def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
     # lockstep held: every frame answered in time, the firmware answered every sensor period
     assert timing['lockstep_timeouts'] == 0 and timing['products_given_up'] == 0
     assert timing['imu_hold_timeouts'] == 0 and timing['firmware_exchanges'] > 0
+    # started by the switch: OFF, then ON read from PX4's RC_CHANNELS, then the start
+    logs = tmp_path / 'px4_lockstep' / 'logs'
+    bridge_log = (logs / 'mavlink_bridge.log').read_text()
+    assert bridge_log.index('ibvs/pilot_input: OFF') < bridge_log.index('ibvs/pilot_input: ON')
+    assert 'pilot switch: start accepted' in (logs / 'mode_supervisor.log').read_text()
+    assert run['transitions'][0].startswith('mode IDLE -> WINDOW') and \
+        'pilot switch, window detected' in run['transitions'][0]

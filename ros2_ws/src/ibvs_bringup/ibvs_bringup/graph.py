@@ -113,6 +113,7 @@ class GraphOptions:
     extra_remappings: tuple = field(default_factory=tuple)
     extra_image_subscribers: int = 0                # e.g. 1 for a recorder of the images
     extra_imu_subscribers: int = 0                  # e.g. 1 for a recorder of imu/data
+    bridge_overrides: tuple = ()                    # more (name, value) for the bridge
     sim_overrides: tuple = ()                       # more (name, value) for the sim (faults,
     #                                                 the camera model)
     vehicle_file: str | None = None                 # the onboard nodes' vehicle YAML, also the
@@ -230,7 +231,7 @@ def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url:
         node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {
             BRIDGE_URL: mavlink_url,
             BRIDGE_MIN_IMU_SUBSCRIBERS: IMU_SUBSCRIBERS + int(opts.extra_imu_subscribers)},
-            bridge or {}),
+            bridge or {}, dict(opts.bridge_overrides)),
     ]
 
 

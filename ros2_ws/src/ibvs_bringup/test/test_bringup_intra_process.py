@@ -301,6 +301,9 @@ def test_composed_perception_nodes_take_each_camera_once(context, intra_process)
     from sensor_msgs.msg import CameraInfo, Image
     specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
                                                    mavlink_url='udpin:127.0.0.1:0'))
+    # the perception nodes alone: with the supervisor's latched IDLE the wall flow would keep
+    # the image unprocessed (mode gating), and this is about who receives it
+    specs = [s for s in specs if s.package == 'ibvs_perception']
     nodes = composed.build_nodes(specs, context, intra_process=intra_process)
     sender = rclpy.create_node(f'camera_{TAG}', context=context)
     try:

@@ -403,7 +403,7 @@ class ModeSupervisorNode(Node):
             self.get_logger().error(f'{source}: start refused: {refusal}')
             return False, refusal
         self._imu.take()                   # the start checks the IMU's age
-        ok, message = self._core.request_start(self._now())
+        ok, message = self._core.request_start(self._now(), source)
         if ok:
             self.get_logger().info(f'{source}: {message}')
         else:

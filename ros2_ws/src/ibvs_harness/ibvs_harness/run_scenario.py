@@ -144,12 +144,17 @@ def graph_specs(opts: RunOptions, port: int, initial_position: tuple,
     camera = [(k, list(v) if isinstance(v, tuple) else v) for k, v in opts.camera_model.items()]
     if px4_instance is not None:
         camera += [('firmware', 'px4'), ('firmware_instance', int(px4_instance))]
+    bridge, start_at = (), START_AT_SIM_S
+    if opts.pilot_switch:       # the simulated pilot flips the RC switch at 1 s instead
+        camera += [('firmware_pilot_switch_channel', PILOT_SWITCH_CHANNEL),
+                   ('firmware_pilot_switch_on_s', START_AT_SIM_S)]
+        bridge, start_at = (('pilot_switch_channel', PILOT_SWITCH_CHANNEL),), -1.0
     if opts.true_vehicle:
         camera.append(('true_vehicle_file', os.path.abspath(opts.true_vehicle)))
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
                                mavlink_port=port, initial_position=initial_position,
                                wind=opts.wind, crossing_law=opts.crossing_law,
-                               auto_start_at_s=START_AT_SIM_S,
+                               auto_start_at_s=start_at, bridge_overrides=bridge,
                                real_time_factor=opts.real_time_factor,
                                sim_overrides=tuple(
                                    [(f'fault_{cam}_camera_off_s', list(w))
@@ -179,6 +184,8 @@ START_WAIT_S = 20.0    # s of wall clock after START_AT_SIM_S for the supervisor
 # auto_start_at_s), so that every run starts at the same frame: an ibvs/start call lands at
 # a frame that depends on the machine's load, and lockstep runs would not repeat.
 START_AT_SIM_S = 1.0
+#: --pilot-switch: the RC channel of the mission switch (the sim's radio and the bridge)
+PILOT_SWITCH_CHANNEL = 7
 
 
 def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wall0: float,
@@ -223,11 +230,16 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
     while monitor.log.mode in (None, IDLE_MODE):
         if time.monotonic() > start_deadline:
             raise _Stop(f'the supervisor did not start by itself at sim t = '
-                        f'{START_AT_SIM_S:.2f} s (see logs/mode_supervisor.log)')
+                        f'{START_AT_SIM_S:.2f} s (see logs/mode_supervisor.log)'
+                        if not opts.pilot_switch else
+                        "the pilot's switch ON did not start the supervisor (see "
+                        'logs/mavlink_bridge.log and logs/mode_supervisor.log)')
         spin(0.02)
     t_start = monitor.now_s()
-    print(f'started by the supervisor at sim t = {START_AT_SIM_S:.2f} s (seen at '
-          f'{t_start:.2f} s)', flush=True)
+    how = ("by the pilot's switch, ON" if opts.pilot_switch
+           else 'by the supervisor')
+    print(f'started {how} at sim t = {START_AT_SIM_S:.2f} s (seen at {t_start:.2f} s)',
+          flush=True)
     next_print = time.monotonic()
     while True:
         spin(0.02)
@@ -503,6 +515,12 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--px4-flight-s', type=float, default=None, metavar='S',
                    help='px4-sih: stop S s (system clock) after ibvs/start (default 60, as a '
                         'sim run)')
+    p.add_argument('--pilot-switch', action='store_true',
+                   help="px4: the mission starts from the pilot's radio, not by itself: PX4 "
+                        'gets RC input from the sim, whose pilot flips a mission switch ON at '
+                        f'{START_AT_SIM_S:g} s of sim time; the bridge reads it (RC_CHANNELS, '
+                        f'pilot_switch_channel {PILOT_SWITCH_CHANNEL}) and the supervisor starts '
+                        '(docs/onboard.md "Start and abort from the radio")')
     p.add_argument('--px4-no-mocap', action='store_true',
                    help="px4-sih: PX4's estimator on SIH's GPS, baro and magnetometer instead "
                         'of the motion capture of params.yaml px4_sim mocap_rate_hz')
@@ -539,6 +557,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       max_sim_time_s=a.max_sim_time,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
                       px4_flight_s=a.px4_flight_s, px4_no_mocap=a.px4_no_mocap,
+                      pilot_switch=a.pilot_switch,
                       layout=a.layout or DEFAULT_LAYOUT['onboard' if a.autopilot == 'px4-sih'
                                                         else 'sim'])
 
@@ -555,6 +574,9 @@ def main(argv: list | None = None) -> int:
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
         if opts.autopilot == 'px4' and opts.feature_level:
             raise ValueError('--autopilot px4 flies the graph: not with --feature-level')
+        if opts.pilot_switch and opts.autopilot != 'px4':
+            raise ValueError('--pilot-switch needs --autopilot px4 (the sim gives PX4 its RC '
+                             'input; the emulated autopilot has no RC)')
         if (opts.camera_model or opts.true_vehicle or opts.onboard_vehicle) and (
                 opts.feature_level or opts.autopilot == 'px4-sih'):
             raise ValueError('the camera model options are the sim node\'s: not with '

@@ -146,6 +146,13 @@ class SimNodeConfig:
         'waits until PX4 took off and holds at the start (docs/firmware_lockstep.md); '
         'lockstep pacing only')
     firmware_instance: int = param(0, 'the PX4 instance of firmware px4 (its ports)', 0, 9)
+    firmware_pilot_switch_channel: int = param(
+        0, "firmware px4: the pilot's radio gives PX4 RC input (RC_CHANNELS, sticks "
+        'centred) with a mission switch on this channel (1-8), OFF until '
+        'firmware_pilot_switch_on_s; 0 = no RC input (docs/firmware_lockstep.md)', 0, 8)
+    firmware_pilot_switch_on_s: float = param(
+        1.0, 's of sim time (the mission clock): the simulated pilot flips the switch ON', 0.0,
+        None)
 
     def __post_init__(self) -> None:
         """Check what the ranges cannot say; raise ValueError naming the parameter."""

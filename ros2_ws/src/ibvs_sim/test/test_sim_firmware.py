@@ -267,3 +267,20 @@ def test_preroll_that_never_settles_fails_with_the_reason(plant):
     with pytest.raises(FirmwareLinkError, match='pre-roll'):
         physics.preroll(10 ** 6)
     assert fw.t <= 5.0 + 2 * fw.dt_ns / 1e9
+
+
+def test_pilot_radio_switch_off_then_on_at_its_mission_time_in_rc_channels():
+    """The simulated pilot's radio (--pilot-switch): 8 channels, sticks centred, the switch
+    OFF through the pre-roll (no mission time yet) and before on_at_s, ON from then (until
+    off_at_s); sent as PX4's simulator_mavlink takes RC input (RC_CHANNELS)."""
+    from ibvs_sim.core.firmware.radio import PilotSwitchRadio
+    radio = PilotSwitchRadio(channel=7, on_at_s=1.0, off_at_s=5.0)
+    assert [radio.switch_us(t) for t in (None, 0.0, 0.999, 1.0, 4.9, 5.0)] == \
+        [1100, 1100, 1100, 1900, 1900, 1100]
+    mav = mavlink.MAVLink(None, srcSystem=1, srcComponent=51)
+    m = _encoded(radio.message(mav, 3_456_789, 2.0))
+    assert m.get_type() == 'RC_CHANNELS' and m.time_boot_ms == 3456 and m.chancount == 8
+    raw = [getattr(m, f'chan{i}_raw') for i in range(1, 19)]
+    assert raw == [1500] * 6 + [1900, 1500] + [0xFFFF] * 10
+    with pytest.raises(ValueError, match='channels 1-8'):
+        PilotSwitchRadio(channel=9, on_at_s=1.0)

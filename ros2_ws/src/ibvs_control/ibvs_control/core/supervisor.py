@@ -194,6 +194,7 @@ class ModeSupervisor:
         self.auto_start_refusal = ''                    # why the last auto-start was refused
         self.start_refusal = ''                         # why the last start request was dropped
         self._start_requested_at: float | None = None   # t of an accepted ibvs/start request
+        self._start_source = 'ibvs/start'               # who asked (the transition's reason)
         self._t_complete: float | None = None           # stamp of the last complete frame
         self._skipped_run: list[tuple[float, tuple]] = []   # frames skipped since, (t, missing)
         self._late_in_run: set[str] = set()             # products that came late in that run
@@ -218,17 +219,19 @@ class ModeSupervisor:
             return False, 'the full window is not detected'
         return True, ''
 
-    def request_start(self, t: float) -> tuple[bool, str]:
+    def request_start(self, t: float, source: str = 'ibvs/start') -> tuple[bool, str]:
         """Accept a start (``ibvs/start``) for the next frame if :meth:`start` would now.
 
         The checks of :meth:`start` are made at ``t`` and again when :meth:`end_frame` applies
         the request; it lapses if that frame's stamp is more than ``window_timeout_s`` after
-        ``t`` (frames stopped meanwhile), on :meth:`abort` and on a clock step.
+        ``t`` (frames stopped meanwhile), on :meth:`abort` and on a clock step. ``source``
+        (``ibvs/start``, ``pilot switch``) names the start in its transition.
         """
         ok, message = self._start_checks(t)
         if not ok:
             return False, message
         self._start_requested_at = t
+        self._start_source = source
         return True, 'start accepted: window approach (mode 1) from the next frame'
 
     def cancel_start(self) -> bool:
@@ -407,7 +410,7 @@ class ModeSupervisor:
                 self.start_refusal = (f'no frame within {self.config.window_timeout_s:g} s of '
                                       'the request')
             else:
-                self.start_refusal = self._start_at_frame(t, 'ibvs/start', done)
+                self.start_refusal = self._start_at_frame(t, self._start_source, done)
         start_at = self.config.auto_start_at_s
         if 0.0 <= start_at <= t and self.mode == Mode.IDLE and not self.transitions:
             self.auto_start_refusal = self._start_at_frame(t, f'auto-start at {start_at:g} s',

@@ -30,6 +30,7 @@ from ibvs_sim.core.dynamics import PlantParams, QuadrotorPlant, State, Wind, Win
 from ibvs_sim.core.events import ContactMonitor, SimEvent
 from ibvs_sim.core.firmware.ardupilot_json import ArduPilotJsonLink, servo_outputs, state_json
 from ibvs_sim.core.firmware.motors import MotorModel
+from ibvs_sim.core.firmware.radio import PilotSwitchRadio
 from ibvs_sim.core.firmware.px4_hil import (ActuatorOutputs, FirmwareLinkError, Px4Sensors,
                                             Px4SimLink)
 from ibvs_sim.core.world import WorldConfig
@@ -44,6 +45,7 @@ class LockstepConfig:
 
     sensor_rate_hz: float = 250.0        # HIL_SENSOR (PX4's IMU_INTEG_RATE default)
     mocap_rate_hz: float = 50.0          # motion capture (ODOMETRY)
+    rc_rate_hz: float = 50.0             # the pilot's radio (RC_CHANNELS), when given
     #: wall clock, s: the firmware's answer to one HIL_SENSOR once it has answered any; a
     #: firmware this late is taken for dead (FirmwareLinkError)
     outputs_timeout_s: float = 10.0
@@ -139,9 +141,12 @@ class Px4Exchange:
     """PX4 (simulator_mavlink): sensors of the state now, then wait for PX4's outputs."""
 
     def __init__(self, link: Px4SimLink, sensors: Px4Sensors,
-                 config: LockstepConfig | None = None) -> None:
+                 config: LockstepConfig | None = None,
+                 radio: PilotSwitchRadio | None = None) -> None:
         self.link, self.sensors = link, sensors
         self.config = config or LockstepConfig()
+        self.radio = radio             # the pilot's radio (None: PX4 has no RC)
+        self.mission_origin_s: float | None = None   # plant time of the mission's t = 0
         self.answered = False          # PX4 has answered a HIL_SENSOR (it has booted)
 
     def before_step(self, plant: FirmwarePlant) -> ActuatorOutputs | None:
@@ -151,6 +156,10 @@ class Px4Exchange:
         if k % steps_per(rate, self.config.sensor_rate_hz):
             return None
         mav, t_us = self.link.mav, plant.time_us
+        if self.radio is not None and k % steps_per(rate, self.config.rc_rate_hz) == 0:
+            origin = self.mission_origin_s
+            self.link.send(self.radio.message(
+                mav, t_us, None if origin is None else plant.t - origin))
         self.link.send(self.sensors.hil_sensor(mav, t_us, plant.state,
                                                plant.plant.last_specific_force_B))
         if k % steps_per(rate, self.config.mocap_rate_hz) == 0:
@@ -237,6 +246,8 @@ class FirmwarePhysics:
                                                                    self.plant.state):
                 self.origin_ns = self.plant.t_ns
                 self.plant.reset_contacts()     # the mission's touchdown is the one to report
+                if isinstance(self.plant.exchange, Px4Exchange):
+                    self.plant.exchange.mission_origin_s = self.plant.t   # the radio's clock
                 return True
             if self.plant.t > self.pilot.hold.timeout_s:
                 raise FirmwareLinkError(
@@ -300,8 +311,11 @@ class FirmwarePhysics:
 
 def px4_lockstep(world: WorldConfig, vehicle: VehicleConfig, instance: int,
                  start_I: np.ndarray, start_yaw: float, wind: WindConfig | None = None,
-                 seed: int = 0, home_alt_m: float | None = None) -> FirmwarePhysics:
+                 seed: int = 0, home_alt_m: float | None = None,
+                 radio: PilotSwitchRadio | None = None) -> FirmwarePhysics:
     """Return the plant under PX4 (instance ``instance``) with its start pilot; opens the link.
+
+    ``radio``: the pilot's radio that PX4 gets as RC input (None: no RC, as before).
 
     The plant starts on the floor below ``start_I`` with yaw ``start_yaw``; PX4 must boot
     with MIS_TAKEOFF_ALT = the start's height above that rest (:func:`takeoff_altitude`).
@@ -314,7 +328,7 @@ def px4_lockstep(world: WorldConfig, vehicle: VehicleConfig, instance: int,
     link.open()
     sensors = Px4Sensors(SIH_DEFAULT_HOME[2] if home_alt_m is None else home_alt_m,
                          world.floor_z, seed=seed)
-    plant = FirmwarePlant(world, vehicle, Px4Exchange(link, sensors),
+    plant = FirmwarePlant(world, vehicle, Px4Exchange(link, sensors, radio=radio),
                           px4_motor_model(plant_params), start_I, start_yaw, wind)
     pilot = Px4StartPilot(instance, np.asarray(start_I, float))
     return FirmwarePhysics(plant, pilot, link)
