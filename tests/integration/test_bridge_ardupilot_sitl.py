@@ -27,8 +27,8 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from test_bridge_px4_sitl import (  # noqa: E402
     AP_DIR, angle_diff, check, check_pilot_switch, close_flight, Flight, free_instance,
-    PilotRadio, PilotSwitchConfig, Run, RUN_S, shipped_parameters, start, step_response, Truth,
-    VEHICLE_MASS)
+    PilotInput, PilotRadio, PilotSwitchConfig, Run, RUN_S, shipped_parameters, start,
+    step_response, Truth, VEHICLE_MASS)
 
 # one SITL at a time (instance 9's ports), on one pytest-xdist worker
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
@@ -256,6 +256,7 @@ def test_ardupilot_freeze_pilot_takeover_and_touchdown_disarm(ardupilot):
         t_held = time.monotonic()
         f.spin(1.0)
         assert f.hb().custom_mode == ALT_HOLD and f.sent[-1][0] <= t_held + 0.05
+        assert f.bridge.pilot_input() == PilotInput.OFF      # the graph's mission is over
         print(f'ArduPilot ALT_HOLD taken: setpoints stopped {t_held - t_cmd:.2f} s after the '
               'switch, none since')
         # A new start engages again (still armed); descend under the controller; SHUTDOWN.

@@ -946,6 +946,8 @@ def test_px4_pilot_takeover_failsafe_land_mode_and_touchdown_disarm(px4):
         f.spin(1.5)
         assert f.sent[-1][0] <= t_held + 0.05
         assert f.hb().custom_mode == (4 << 16) | (3 << 24)
+        # the mission is over for the graph: ibvs/pilot_input OFF (the supervisor aborts)
+        assert f.bridge.pilot_input() == PilotInput.OFF
         print(f'\nPX4 POSCTL asked by a GCS: {posctl}; Hold taken by a GCS: setpoints stopped '
               f'{t_held - t_cmd:.2f} s after the switch (its 1 Hz heartbeat), none since')
         # A new start engages again (armed: no ARM); FAILSAFE -> PX4's AUTO.LAND.
