@@ -511,8 +511,12 @@ def assert_lockstep_clean(summary: dict) -> None:
     assert timing['products_given_up'] == 0 and timing['imu_hold_timeouts'] == 0, timing
 
 
-def test_late_cameras_30_ms_with_5_ms_jitter(tmp_path):
+def test_late_cameras_30_ms_with_5_ms_jitter_started_from_the_radio(tmp_path):
     """Images stamped at exposure, published 30 +- 5 ms later: the graph flies the mission.
+
+    As on a vehicle, the pilot starts it: the sim's radio flips the mission switch ON at 1 s,
+    the emulated autopilot reports it in RC_CHANNELS, the bridge publishes it on
+    ibvs/pilot_input and the supervisor starts (``--pilot-switch``).
 
     In lockstep the sim publishes each frame when sim time reaches its delivery and waits for
     the graph then, so the controller is 30 ms late in the simulated world, physics running on
@@ -520,7 +524,7 @@ def test_late_cameras_30_ms_with_5_ms_jitter(tmp_path):
     landing error 0.034 m (the reference: 7.12, 12.64 s, 0.0961 m, 0.036 m).
     """
     summary = run_scenario(tmp_path, 'late-cameras', '--camera-latency', '30',
-                           '--camera-jitter', '5', '--no-bag', '--no-plots')
+                           '--camera-jitter', '5', '--pilot-switch', '--no-bag', '--no-plots')
     camera = summary['run']['camera']
     cameras = _preflight_cameras(summary)
     print(f"late cameras: {camera}; preflight {cameras}; modes {summary['modes']}; "
@@ -534,6 +538,8 @@ def test_late_cameras_30_ms_with_5_ms_jitter(tmp_path):
         assert 25.0 <= delivered_ms <= 60.0 and configured_hz == 50.0, cameras
     assert_success(summary)
     assert [m['mode'] for m in summary['modes']] == [0, 1, 2, 3, 4], summary['modes']
+    assert 'pilot switch, window detected' in summary['run']['transitions'][0], \
+        summary['run']['transitions']
     assert_lockstep_clean(summary)
 
 

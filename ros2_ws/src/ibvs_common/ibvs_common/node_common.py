@@ -183,9 +183,14 @@ def set_vector3(v_msg: Vector3, v: np.ndarray) -> None:
 # value arrays are empty. Stamped, so that a subscriber pairs the two by stamp: two topics are
 # not ordered with respect to each other (an executor that fell behind takes the next
 # landmarks before the last groups).
-def pad_groups_msg(stamp: Time, frame_id: str, groups: Iterable[str]) -> JointState:
-    """Build the ``pad/groups`` message of one image (``stamp``: builtin_interfaces/Time)."""
-    msg = JointState(name=[str(g) for g in groups])
+def pad_groups_msg(stamp: Time, frame_id: str, groups: Iterable[str],
+                   weights: Iterable[float] = ()) -> JointState:
+    """Build the ``pad/groups`` message of one image (``stamp``: builtin_interfaces/Time).
+
+    ``name``: the groups in the order of the landmarks; ``position``: each group's weight in
+    the pad feature (the pad detector's group_weight), or empty.
+    """
+    msg = JointState(name=[str(g) for g in groups], position=[float(w) for w in weights])
     msg.header.stamp, msg.header.frame_id = stamp, frame_id
     return msg
 
@@ -193,6 +198,19 @@ def pad_groups_msg(stamp: Time, frame_id: str, groups: Iterable[str]) -> JointSt
 def pad_group_names(msg: JointState) -> tuple[str, ...]:
     """Group names of a ``pad/groups`` message, in the order of the landmarks."""
     return tuple(str(g) for g in msg.name)
+
+
+def pad_group_weights(msg: JointState) -> tuple[float, ...] | None:
+    """Group weights of a ``pad/groups`` message, or None (equal weights then).
+
+    None when it has none (an older bag) or bad ones (not one finite value >= 0 per group, or
+    all 0).
+    """
+    w = [float(x) for x in msg.position]
+    if len(w) != len(msg.name) or not w or not all(math.isfinite(x) and x >= 0.0 for x in w) \
+            or not any(x > 0.0 for x in w):
+        return None
+    return tuple(w)
 
 
 # ibvs/supervisor_status (diagnostic_msgs/DiagnosticArray): one per frame the supervisor

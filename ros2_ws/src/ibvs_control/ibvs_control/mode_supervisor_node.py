@@ -31,6 +31,7 @@ from ibvs_common.core.lever_arm import camera_bearings_from_body, has_lever_arm
 from ibvs_common.core.modes import CAMERA_OF, Camera, FLYING_MODES, InputKind, Mode, MODE_INPUTS
 from ibvs_control.camera_tf import publish_camera_tf
 from ibvs_control.config import ModeSupervisorNodeConfig
+from ibvs_control.core.frame_inputs import unpack_pad
 from ibvs_control.core.frame_stats import FrameStats
 from ibvs_control.core.pilot_input import PilotAction, PilotInputWatch
 from ibvs_control.core.preflight_gate import PreflightGate
@@ -250,10 +251,11 @@ class ModeSupervisorNode(Node):
             if ok:
                 self._core.on_window(t, corners_I)
         elif kind == InputKind.PAD:
-            landmarks_C, groups = value or (None, ())
+            landmarks_C, groups, weights = unpack_pad(value)
+            groups = groups or ()
             ok, landmarks_I = self._to_I(landmarks_C, stamp_ns, 'down', tuple(groups))
             if ok:
-                self._core.on_pad(t, landmarks_I, list(groups))
+                self._core.on_pad(t, landmarks_I, list(groups), weights)
         elif value is not None:
             self._core.on_flow(t, 'front' if kind == InputKind.FLOW_FRONT else 'down', value)
 
@@ -389,7 +391,8 @@ class ModeSupervisorNode(Node):
             self._start('pilot switch')
         elif action == PilotAction.ABORT:
             if self._core.mode in FLYING_MODES:
-                self._abort('pilot switch OFF, or the vehicle left the bridge')
+                self._abort('ibvs/pilot_input OFF: the pilot switch, or the vehicle left the '
+                            "bridge (a pilot's or GCS's mode switch, link or input loss)")
             elif self._core.cancel_start():
                 self.get_logger().warning('pilot switch OFF: the pending start is dropped')
         elif self._pilot.on_without_off and self._core.mode == Mode.IDLE:
@@ -414,11 +417,19 @@ class ModeSupervisorNode(Node):
         return ok, message
 
     def _abort(self, reason: str) -> tuple[bool, str]:
-        """Abort to FAILSAFE (the bridge hands the vehicle to the autopilot's land mode)."""
+        """Abort to FAILSAFE (the bridge hands the vehicle to the autopilot's land mode).
+
+        As a staleness transition, it has no frame: its status is stamped now, so that the
+        controller answers it (level) and every later stamp's mode is known even while no
+        frame comes (the cameras off).
+        """
         self._imu.take()
-        ok, message = self._core.abort(self._now(), reason)
+        now_ns = self._now_ns()
+        ok, message = self._core.abort(now_ns / NS_PER_S, reason)
         self.get_logger().info(f'abort ({reason}): {message}')
         self._publish_mode()
+        if ok:
+            self._publish_status(now_ns)
         return ok, message
 
     def _on_timer(self) -> None:

@@ -25,7 +25,7 @@ from sensor_msgs.msg import JointState
 
 from ibvs_common.core.modes import InputKind
 from ibvs_common.node_common import (
-    pad_group_names, polygon_points, PRODUCT_QOS, stamp_to_ns, vector3)
+    pad_group_names, pad_group_weights, polygon_points, PRODUCT_QOS, stamp_to_ns, vector3)
 from ibvs_control.core.frame_inputs import check_bearings, check_flow, PadPairing
 
 LANDMARKS_PER_GROUP = 4
@@ -63,10 +63,10 @@ class FrameProductSubscriptions:
 
     def _on_groups(self, msg: JointState) -> None:
         self._add_pad(self.pad_pairing.add_groups(stamp_to_ns(msg.header.stamp),
-                                                  pad_group_names(msg)))
+                                                  pad_group_names(msg), pad_group_weights(msg)))
 
     def _add_pad(self, pair: tuple | None) -> None:
-        if pair is not None:                     # (stamp_ns, bearings, groups)
+        if pair is not None:                     # (stamp_ns, bearings, groups, weights)
             self._add(InputKind.PAD, pair[0], pair[1:], '')
 
     def _on_flow(self, kind: InputKind, msg: Vector3Stamped) -> None:

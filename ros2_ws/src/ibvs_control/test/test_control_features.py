@@ -216,6 +216,35 @@ def test_pad_feature_is_the_same_for_every_set_of_complete_groups():
             np.testing.assert_allclose(R @ q, square_truth, atol=1e-12)
 
 
+def test_pad_feature_weights_fade_a_biased_group_in_and_out():
+    """Weights (the pad detector's, per group): equal weights are the plain mean; a group of
+    weight 0+ counts for nothing (the feature of the other groups), so a group with a bias of
+    its own (here 0.5 deg, a calibration error or blur) moves q_t by the bias times its share
+    of the weights, and by nothing while its weight is ~0 at the frame it appears."""
+    pad = load_pad_layout()
+    xi = np.array([0.2, -0.1, -0.9])
+    A, B, C = (bearings(g.marker_centres_I(), xi) for g in pad.groups[:3])
+    bias = rot_from_euler_zyx(0.0, np.radians(0.5), 0.0)
+    C_biased = C @ bias.T
+    p = np.vstack([A, B, C_biased])
+    np.testing.assert_array_equal(ft.pad_feature(p, weights=[2.0, 2.0, 2.0]), ft.pad_feature(p))
+    np.testing.assert_allclose(ft.pad_feature(p, weights=[1.0, 1.0, 1e-12]),
+                               ft.pad_feature(np.vstack([A, B])), atol=1e-12)
+    truth = xi / np.linalg.norm(xi)
+    alone_C = ft.pad_feature(C_biased)
+
+    def moved(weights):       # the angle (deg) q_t moves when C joins A and B
+        q = ft.pad_feature(p, weights=weights)
+        return np.degrees(np.arccos(np.clip(q @ truth / np.linalg.norm(q), -1.0, 1.0)))
+    full = np.degrees(np.arccos(alone_C @ truth / np.linalg.norm(alone_C)))
+    assert full == pytest.approx(0.5, abs=0.05)
+    assert moved([1.0, 1.0, 1.0]) == pytest.approx(full / 3.0, rel=0.05)
+    assert moved([1.0, 1.0, 0.1]) == pytest.approx(full * 0.1 / 2.1, rel=0.05)
+    for bad in ([1.0, 1.0], [1.0, -1.0, 1.0], [0.0, 0.0, 0.0], [1.0, np.nan, 1.0]):
+        with pytest.raises(ValueError, match='weights'):
+            ft.pad_feature(p, weights=bad)
+
+
 def test_pad_reference_bearings_of_one_group_are_the_true_bearings():
     """Any pad point, seen through one group's plane map: its true bearing (inside or out)."""
     pad = load_pad_layout()

@@ -238,14 +238,24 @@ def test_pad_pairing_pairs_by_stamp_in_either_order():
     pairing = PadPairing()
     b8 = np.tile([0.0, 0.0, 1.0], (8, 1))
     assert pairing.add_landmarks(5, b8) is None
-    stamp, bearings, groups = pairing.add_groups(5, ['A', 'B'])
-    assert stamp == 5 and bearings is b8 and groups == ('A', 'B')
+    stamp, bearings, groups, weights = pairing.add_groups(5, ['A', 'B'], (1.0, 0.25))
+    assert stamp == 5 and bearings is b8 and groups == ('A', 'B') and weights == (1.0, 0.25)
     assert pairing.add_groups(6, ()) is None                 # groups first
-    assert pairing.add_landmarks(6, None) == (6, None, ())
+    assert pairing.add_landmarks(6, None) == (6, None, (), None)
     # a count mismatch is not a pair
     pairing.add_landmarks(7, b8[:4])
     assert pairing.add_groups(7, ('A', 'B')) is None
     assert pairing.unpaired == 1
+
+
+def test_pad_group_weights_are_read_only_when_one_valid_weight_per_group():
+    from builtin_interfaces.msg import Time
+    from ibvs_common.node_common import pad_group_weights, pad_groups_msg
+    stamp = Time(sec=1)
+    assert pad_group_weights(pad_groups_msg(stamp, 'f', ['A', 'B'], [1.0, 0.2])) == (1.0, 0.2)
+    for names, weights in ((['A', 'B'], []), (['A', 'B'], [1.0]), (['A'], [-0.1]),
+                           (['A'], [float('nan')]), (['A', 'B'], [0.0, 0.0]), ([], [])):
+        assert pad_group_weights(pad_groups_msg(stamp, 'f', names, weights)) is None
 
 
 def test_pad_pairing_never_labels_landmarks_with_another_images_groups():
@@ -259,15 +269,15 @@ def test_pad_pairing_never_labels_landmarks_with_another_images_groups():
     ab, bc = np.tile([0.0, 0.0, 1.0], (8, 1)), np.tile([0.0, 0.1, 0.995], (8, 1))
     assert pairing.add_landmarks(20, bc) is None             # frame k: B, C
     assert pairing.add_landmarks(40, ab) is None             # frame k+1: A, B (taken first)
-    stamp, bearings, groups = pairing.add_groups(20, ('B', 'C'))
+    stamp, bearings, groups, _ = pairing.add_groups(20, ('B', 'C'))
     assert stamp == 20 and bearings is bc and groups == ('B', 'C')
-    stamp, bearings, groups = pairing.add_groups(40, ('A', 'B'))
+    stamp, bearings, groups, _ = pairing.add_groups(40, ('A', 'B'))
     assert stamp == 40 and bearings is ab and groups == ('A', 'B')
     assert pairing.unpaired == 0
     # a lost half: the other one is dropped once a newer pair completes, never mispaired
     pairing.add_landmarks(60, bc)                            # its groups are lost
     assert pairing.add_groups(80, ('A', 'B')) is None        # its landmarks are late
-    assert pairing.add_landmarks(80, ab) == (80, ab, ('A', 'B'))
+    assert pairing.add_landmarks(80, ab) == (80, ab, ('A', 'B'), None)
     assert pairing.unpaired == 1
     # refused landmarks: their groups are forgotten
     pairing.add_groups(100, ('A', 'B'))

@@ -146,8 +146,8 @@ def graph_specs(opts: RunOptions, port: int, initial_position: tuple,
         camera += [('firmware', 'px4'), ('firmware_instance', int(px4_instance))]
     bridge, start_at = (), START_AT_SIM_S
     if opts.pilot_switch:       # the simulated pilot flips the RC switch at 1 s instead
-        camera += [('firmware_pilot_switch_channel', PILOT_SWITCH_CHANNEL),
-                   ('firmware_pilot_switch_on_s', START_AT_SIM_S)]
+        camera += [('pilot_switch_channel', PILOT_SWITCH_CHANNEL),
+                   ('pilot_switch_on_s', START_AT_SIM_S)]
         bridge, start_at = (('pilot_switch_channel', PILOT_SWITCH_CHANNEL),), -1.0
     if opts.true_vehicle:
         camera.append(('true_vehicle_file', os.path.abspath(opts.true_vehicle)))
@@ -516,8 +516,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                    help='px4-sih: stop S s (system clock) after ibvs/start (default 60, as a '
                         'sim run)')
     p.add_argument('--pilot-switch', action='store_true',
-                   help="px4: the mission starts from the pilot's radio, not by itself: PX4 "
-                        'gets RC input from the sim, whose pilot flips a mission switch ON at '
+                   help="the mission starts from the pilot's radio, not by itself: the "
+                        'autopilot (the emulated one, or PX4 in lockstep) gets RC input from '
+                        'the sim, whose pilot flips a mission switch ON at '
                         f'{START_AT_SIM_S:g} s of sim time; the bridge reads it (RC_CHANNELS, '
                         f'pilot_switch_channel {PILOT_SWITCH_CHANNEL}) and the supervisor starts '
                         '(docs/onboard.md "Start and abort from the radio")')
@@ -574,9 +575,9 @@ def main(argv: list | None = None) -> int:
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
         if opts.autopilot == 'px4' and opts.feature_level:
             raise ValueError('--autopilot px4 flies the graph: not with --feature-level')
-        if opts.pilot_switch and opts.autopilot != 'px4':
-            raise ValueError('--pilot-switch needs --autopilot px4 (the sim gives PX4 its RC '
-                             'input; the emulated autopilot has no RC)')
+        if opts.pilot_switch and opts.autopilot not in ('sim', 'px4'):
+            raise ValueError('--pilot-switch needs the sim: its radio is the RC input of the '
+                             'emulated autopilot or of PX4 in lockstep')
         if (opts.camera_model or opts.true_vehicle or opts.onboard_vehicle) and (
                 opts.feature_level or opts.autopilot == 'px4-sih'):
             raise ValueError('the camera model options are the sim node\'s: not with '

@@ -58,7 +58,7 @@ class RunOptions:
     px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
     px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
     px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
-    pilot_switch: bool = False          # px4: started by the pilot's RC switch, not by itself
+    pilot_switch: bool = False          # started by the pilot's RC switch (the sim's radio)
     layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
     max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
     # the sim's camera model: sim parameter -> value (camera_latency_s, camera_rate_hz, ...)

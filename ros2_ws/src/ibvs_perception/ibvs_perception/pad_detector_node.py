@@ -67,7 +67,7 @@ class PadDetectorNode(Node):
         """Detect the pad in one image and publish (a mode-gating primer: nothing to do)."""
         if not publish:
             return
-        bearings, names = None, ()
+        bearings, names, weights = None, (), ()
         try:
             gray = mono8_from_image(msg)
             if self.frozen.drop(gray, msg.header.stamp):
@@ -77,6 +77,7 @@ class PadDetectorNode(Node):
             detection = self.detector.process(gray, camera, stamp_to_s(msg.header.stamp))
             if len(detection.bearings_C):
                 bearings, names = detection.bearings_C, detection.group_names
+                weights = detection.group_weights
             if detection.rejected_groups:
                 self.log.warning(f'pad_detector: group(s) {", ".join(detection.rejected_groups)} '
                                  "complete but off the pad layout (a foreign marker with a pad "
@@ -84,7 +85,7 @@ class PadDetectorNode(Node):
         except ValueError as exc:
             self.log.error(f'pad_detector: image dropped: {exc}', THROTTLE_S)
         self.pub_landmarks.publish(polygon_from_vectors(msg.header, self.frame_id, bearings))
-        self.pub_groups.publish(pad_groups_msg(msg.header.stamp, self.frame_id, names))
+        self.pub_groups.publish(pad_groups_msg(msg.header.stamp, self.frame_id, names, weights))
 
 
 def main(args: list[str] | None = None) -> None:

@@ -283,3 +283,52 @@ def test_a_foreign_marker_with_a_pad_id_does_not_complete_its_group(setup):
     np.testing.assert_allclose(checked.bearings_C[:4], a_clean, atol=1e-5)
     shift = angle_deg(unchecked.bearings_C.mean(axis=0), clean.bearings_C.mean(axis=0))
     assert shift > 1.0, shift                                 # the centroid it would move
+
+
+def test_group_weight_ramps_with_the_border_distance_and_the_marker_size():
+    """Closed-form points of the two smoothstep ramps: 0 and 1 at their ends, 1/2 in the
+    middle (by symmetry), their product; never below MIN_GROUP_WEIGHT."""
+    from ibvs_perception.core.pad import group_weight, MIN_GROUP_WEIGHT
+
+    def group(x0, y0, side, n=4, gap=100.0):     # n axis-aligned square markers in a row
+        sq = np.array([[0.0, 0.0], [side, 0.0], [side, side], [0.0, side]])
+        return np.stack([sq + [x0 + k * gap, y0] for k in range(n)])
+    w = lambda c: group_weight(c, 752, 480, 20.0, 8.0, 24.0)   # noqa: E731
+    assert w(group(100.0, 100.0, 40.0)) == 1.0                  # far inside, large
+    assert w(group(10.0, 100.0, 40.0)) == pytest.approx(0.5)    # 10 px of a 20 px ramp
+    assert w(group(100.0, 100.0, 16.0)) == pytest.approx(0.5)   # halfway from 8 to 24 px
+    assert w(group(10.0, 100.0, 16.0)) == pytest.approx(0.25)
+    assert w(group(0.0, 100.0, 40.0)) == MIN_GROUP_WEIGHT        # on the border
+    assert w(group(100.0, 100.0, 7.0)) == MIN_GROUP_WEIGHT       # too small to count
+    right = group(752.0 - 1.0 - 10.0 - 3 * 100.0 - 40.0, 100.0, 40.0)   # 10 px from the right
+    assert w(right) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match='group_weight_min_side_px'):
+        PadDetectorConfig(group_weight_min_side_px=30.0, group_weight_full_side_px=24.0)
+
+
+def test_descent_group_weights_and_q_t_at_the_group_switches(setup):
+    """On a descent beside the pad, groups leave the image at its border and appear as their
+    markers grow: their weights (pad/groups) are 1 well inside and large, small at the frame a
+    group comes or goes; q_t with them moves at a switch no more than between other frames
+    (issue 51: <= 0.3 deg)."""
+    layout, cam, renderer = setup
+    detector = PadDetector(layout, PadDetectorConfig())
+    previous, steps, weights_seen = None, {True: [], False: []}, []
+    for k, h in enumerate(np.linspace(2.2, 0.15, 110)):
+        xi = np.array([0.12 * h, -0.08 * h, -h])          # along one ray: q_t's truth is fixed
+        R_IB = frames.rot_from_euler_zyx(0.04 * np.sin(k / 5), 0.03 * np.cos(k / 7), 0.0)
+        det = detector.process(renderer.render(R_IB, xi), cam.model)
+        assert len(det.group_weights) == len(det.group_names)
+        if not det.group_names:
+            previous = None
+            continue
+        weights_seen += list(det.group_weights)
+        q = pad_feature(frames.bearings_C_to_I(det.bearings_C, R_IB, cam.R_BC),
+                        weights=det.group_weights)
+        assert angle_deg(q, xi) <= 0.15
+        if previous is not None:
+            steps[previous[0] != det.group_names].append(angle_deg(q, previous[1]))
+        previous = det.group_names, q
+    assert len(steps[True]) >= 5
+    assert max(steps[True]) <= 0.3 and max(steps[True]) <= max(steps[False]) + 0.02
+    assert max(weights_seen) == 1.0 and min(weights_seen) < 0.5

@@ -21,6 +21,7 @@ from ibvs_sim.core.dynamics import WindConfig
 from ibvs_sim.core.faults import CameraFaults, fault_windows
 from ibvs_sim.core.pacing import Pacing
 from ibvs_sim.core.px4_plant import SIH_DEFAULT_HOME
+from ibvs_sim.core.radio import PilotSwitchRadio
 from ibvs_sim.core.sim_core import SimConfig
 
 CAMERAS = ('front', 'down')
@@ -146,11 +147,12 @@ class SimNodeConfig:
         'waits until PX4 took off and holds at the start (docs/firmware_lockstep.md); '
         'lockstep pacing only')
     firmware_instance: int = param(0, 'the PX4 instance of firmware px4 (its ports)', 0, 9)
-    firmware_pilot_switch_channel: int = param(
-        0, "firmware px4: the pilot's radio gives PX4 RC input (RC_CHANNELS, sticks "
-        'centred) with a mission switch on this channel (1-8), OFF until '
-        'firmware_pilot_switch_on_s; 0 = no RC input (docs/firmware_lockstep.md)', 0, 8)
-    firmware_pilot_switch_on_s: float = param(
+    pilot_switch_channel: int = param(
+        0, "the pilot's radio: RC input (sticks centred) with a mission switch on this channel "
+        '(1-8), OFF until pilot_switch_on_s; reported in RC_CHANNELS by the emulated '
+        'autopilot when asked, given to a firmware (px4) as its RC input; 0 = no RC '
+        '(docs/sim_autopilot.md, docs/firmware_lockstep.md)', 0, 8)
+    pilot_switch_on_s: float = param(
         1.0, 's of sim time (the mission clock): the simulated pilot flips the switch ON', 0.0,
         None)
 
@@ -263,7 +265,14 @@ class SimNodeConfig:
             attitude_estimate_offset_rad=tuple(
                 float(x) for x in self.attitude_estimate_offset_rad),
             attitude_noise_std=float(self.attitude_noise_std_rad),
-            attitude_noise_tau_s=float(self.attitude_noise_tau_s))
+            attitude_noise_tau_s=float(self.attitude_noise_tau_s),
+            radio=self.radio())
+
+    def radio(self) -> PilotSwitchRadio | None:
+        """Return the pilot's RC input with its mission switch (None: no RC)."""
+        if not self.pilot_switch_channel:
+            return None
+        return PilotSwitchRadio(int(self.pilot_switch_channel), float(self.pilot_switch_on_s))
 
     def camera_faults(self) -> CameraFaults:
         """Return the cameras' fault injection: each camera's off and frozen windows."""

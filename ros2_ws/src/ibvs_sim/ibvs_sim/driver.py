@@ -24,7 +24,6 @@ from ibvs_sim.core.dynamics import State
 from ibvs_sim.core.events import SimEvent
 from ibvs_sim.core.firmware.lockstep import px4_lockstep
 from ibvs_sim.core.firmware.px4_hil import FirmwareLinkError
-from ibvs_sim.core.firmware.radio import PilotSwitchRadio
 from ibvs_sim.core.firmware.relay import CompanionRelay
 from ibvs_sim.core.graph_sync import (FirstFrameHold, graph_products, ImuBeforeImages,
                                       STATUS_TOPIC)
@@ -93,9 +92,7 @@ class SimDriver:
                      else tuple(world.initial_position_I))
             yaw = (sim_config.initial_yaw if sim_config.initial_yaw is not None
                    else world.initial_yaw)
-            radio = (PilotSwitchRadio(int(cfg.firmware_pilot_switch_channel),
-                                      float(cfg.firmware_pilot_switch_on_s))
-                     if cfg.firmware_pilot_switch_channel else None)
+            radio = cfg.radio()
             self.firmware = px4_lockstep(world, vehicle, int(cfg.firmware_instance),
                                          np.asarray(start, float), float(yaw),
                                          sim_config.wind, int(cfg.seed), radio=radio)

@@ -995,3 +995,36 @@ def test_the_hover_stand_in_sleeps_until_a_stream_is_due_and_serves_it_on_time()
     finally:
         client.close()
         served.close()
+
+
+@pytest.mark.parametrize('with_radio', [True, False])
+def test_rc_channels_are_the_pilots_radio_once_asked_and_nothing_without_one(with_radio):
+    """As PX4: RC_CHANNELS streams only once asked (the onboard link), at the asked rate, with
+    the radio's channels at sim time: the mission switch (channel 7) OFF, then ON from 0.5 s.
+    Without a radio the request is accepted and nothing is sent (PX4 without RC)."""
+    from ibvs_sim.core.radio import PilotSwitchRadio
+    radio = PilotSwitchRadio(channel=7, on_at_s=0.5) if with_radio else None
+    r = make_rig(radio=radio)
+    try:
+        r.poll()
+
+        def rc_over(duration_s, dt=0.002):
+            got = []
+            for i in range(int(round(duration_s / dt))):
+                r.poll(dt)
+                got += [m for m in r.drain() if m.get_type() == 'RC_CHANNELS']
+            return got + [m for m in r.drain() if m.get_type() == 'RC_CHANNELS']
+        assert rc_over(0.2) == []                                  # not asked: none
+        ack = r.command(CMD_SET_MESSAGE_INTERVAL, 65, 100_000)     # 10 Hz
+        assert ack.result == RESULT_ACCEPTED
+        got = rc_over(0.8)
+        if not with_radio:
+            assert got == [] and r.ap.counters.rc_channels_sent == 0
+            return
+        assert len(got) in (8, 9) and all(m.chancount == 8 for m in got)
+        ms = np.array([m.time_boot_ms for m in got])
+        assert np.all(np.diff(ms) == 100)                         # 10 Hz of sim time
+        assert [m.chan7_raw for m in got] == [1100 if t < 500 else 1900 for t in ms]
+        assert {m.chan3_raw for m in got} == {1500} and {m.chan9_raw for m in got} == {0xFFFF}
+    finally:
+        r.close()

@@ -273,7 +273,7 @@ def test_pilot_radio_switch_off_then_on_at_its_mission_time_in_rc_channels():
     """The simulated pilot's radio (--pilot-switch): 8 channels, sticks centred, the switch
     OFF through the pre-roll (no mission time yet) and before on_at_s, ON from then (until
     off_at_s); sent as PX4's simulator_mavlink takes RC input (RC_CHANNELS)."""
-    from ibvs_sim.core.firmware.radio import PilotSwitchRadio
+    from ibvs_sim.core.radio import PilotSwitchRadio
     radio = PilotSwitchRadio(channel=7, on_at_s=1.0, off_at_s=5.0)
     assert [radio.switch_us(t) for t in (None, 0.0, 0.999, 1.0, 4.9, 5.0)] == \
         [1100, 1100, 1100, 1900, 1900, 1100]

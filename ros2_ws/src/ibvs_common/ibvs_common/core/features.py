@@ -282,7 +282,8 @@ def pad_reference_points(reference_half_side: float) -> np.ndarray:
 
 
 def pad_feature(landmark_bearings: np.ndarray, half_sides: list[float] | None = None,
-                reference_half_side: float = 0.0) -> np.ndarray:
+                reference_half_side: float = 0.0,
+                weights: list[float] | None = None) -> np.ndarray:
     """Return q_t = -(1/n) sum p_j over a fixed set of pad points, from any complete groups.
 
     eq:q_t on a landmark set that does not depend on which groups are complete: the pad
@@ -298,8 +299,13 @@ def pad_feature(landmark_bearings: np.ndarray, half_sides: list[float] | None = 
     groups, groups one after the other, each in layout id order (pad/landmarks); the frame
     of q_t is theirs. ``half_sides``: each group's c (m); needed only when
     ``reference_half_side`` > 0 (the pad centre is the same point in every group's units).
-    A group whose view is degenerate (pad_plane_map) is left out. Raises ValueError for no
-    group, a count that is not 4 k, or when every group is degenerate.
+    A group whose view is degenerate (pad_plane_map) is left out. ``weights`` (one per group,
+    >= 0, not all 0; None: equal): a weighted mean over the groups instead, so that a group can
+    come and go with a weight near 0 (the pad detector's group weights: small near the image
+    border and for markers near the size ArUco can read) and a bias of its own (a calibration
+    error, its markers' blur) moves q_t gradually instead of by a step. Raises ValueError for
+    no group, a count that is not 4 k, weights that are not one per group, or when every group
+    is degenerate.
     """
     p = np.asarray(landmark_bearings, dtype=float).reshape(-1, 3)
     k = len(p) // 4
@@ -312,12 +318,21 @@ def pad_feature(landmark_bearings: np.ndarray, half_sides: list[float] | None = 
         cs = [float(c) for c in half_sides]
     else:
         cs = [1.0] * k
-    rays = []
+    if weights is not None:
+        w_all = np.asarray(weights, dtype=float).reshape(-1)
+        if len(w_all) != k or not np.all(np.isfinite(w_all)) or np.any(w_all < 0.0) \
+                or not np.any(w_all > 0.0):
+            raise ValueError(f'weights: one finite weight >= 0 per group ({k}), not all 0, '
+                             f'got {list(w_all)}')
+    rays, w = [], []
     for g in range(k):
         try:
             rays.append(pad_reference_bearings(p[4 * g:4 * g + 4], cs[g], ref))
         except ValueError:
             continue
-    if not rays:
+        w.append(1.0 if weights is None else float(w_all[g]))
+    if not rays or not sum(w) > 0.0:
         raise ValueError('no pad group gives a non-degenerate view')
-    return -np.mean(np.concatenate(rays), axis=0)
+    if weights is None:
+        return -np.mean(np.concatenate(rays), axis=0)
+    return -np.average(np.concatenate(rays), axis=0, weights=np.repeat(w, len(ref)))

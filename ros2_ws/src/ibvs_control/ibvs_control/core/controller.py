@@ -134,6 +134,7 @@ class Measurements:
     phi_front_I: np.ndarray | None            # wall flow v/d_o (1/s), or None
     phi_down_I: np.ndarray | None             # floor flow v/d_t (1/s), or None
     pad_groups: tuple | None = None           # names of the groups in pad_bearings_C, in order
+    pad_group_weights: tuple | None = None    # their weights in q_t (pad/groups; None: equal)
     specific_force_I: np.ndarray | None = None  # m/s^2, IMU's, mean since the last step
 
 
@@ -285,7 +286,7 @@ class IbvsController:
         q_t = None
         if pad_I is not None:
             try:        # eq:q_t on the pad centre, seen through every complete group
-                q_t = pad_feature(pad_I)
+                q_t = pad_feature(pad_I, weights=meas.pad_group_weights)
             except ValueError:          # not 4 bearings per group, or no usable group
                 q_t = None
         phi_w = None

@@ -42,13 +42,14 @@ class PadPairing:
         self._groups: dict[int, tuple] = {}
 
     def add_landmarks(self, stamp_ns: int, bearings: np.ndarray | None) -> tuple | None:
-        """Hold a landmarks message; return (stamp_ns, bearings, groups) if it completes a pair."""
+        """Hold a landmarks message; return (stamp_ns, bearings, groups, weights) on a pair."""
         self._landmarks[int(stamp_ns)] = bearings
         return self._pair(int(stamp_ns))
 
-    def add_groups(self, stamp_ns: int, groups: Iterable[str]) -> tuple | None:
-        """Hold a groups message; return (stamp_ns, bearings, groups) if it completes a pair."""
-        self._groups[int(stamp_ns)] = tuple(groups)
+    def add_groups(self, stamp_ns: int, groups: Iterable[str],
+                   weights: tuple | None = None) -> tuple | None:
+        """Hold a groups message (its group weights or None); return the pair it completes."""
+        self._groups[int(stamp_ns)] = (tuple(groups), weights)
         return self._pair(int(stamp_ns))
 
     def drop(self, stamp_ns: int) -> None:
@@ -59,13 +60,13 @@ class PadPairing:
     def _pair(self, stamp_ns: int) -> tuple | None:
         if stamp_ns in self._landmarks and stamp_ns in self._groups:
             bearings = self._landmarks.pop(stamp_ns)
-            groups = self._groups.pop(stamp_ns)
+            groups, weights = self._groups.pop(stamp_ns)
             self._forget_before(stamp_ns)
             n = 0 if bearings is None else len(bearings)
             if n != self.landmarks_per_group * len(groups):
                 self.unpaired += 1
                 return None
-            return stamp_ns, bearings, groups
+            return stamp_ns, bearings, groups, weights
         for held in (self._landmarks, self._groups):
             while len(held) > self.depth:
                 del held[min(held)]
@@ -195,13 +196,26 @@ def heading_quat_enu_flu(yaw_ned: float) -> np.ndarray:
     return quat_ned_frd_to_enu_flu(quat_from_rot(rot_z(float(yaw_ned))))
 
 
+def unpack_pad(value) -> tuple:
+    """Return (bearings or None, group names or None, group weights or None) of a PAD input.
+
+    The PAD input is PadPairing's (bearings, groups, weights); (bearings, groups) and a bare
+    array (no group names) are accepted too.
+    """
+    if not isinstance(value, tuple):
+        return value, None, None
+    if len(value) == 2:
+        return value[0], value[1], None
+    return value[0], value[1], value[2]
+
+
 def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
                     R_IB: np.ndarray | None, specific_force_I: np.ndarray | None = None
                     ) -> tuple[ControlOutput | None, np.ndarray]:
     """Answer one frame: (controller output or None, force F in {I} (N)).
 
-    The PAD input of the frame is (landmark bearings or None, group names), as PadPairing
-    gives it; a bare array (no group names) is accepted too.
+    The PAD input of the frame is (landmark bearings or None, group names, group weights), as
+    PadPairing gives it (:func:`unpack_pad`).
 
     Without any IMU attitude yet the controller cannot derotate the bearings: the answer is
     the hover force m g e3 (level) and no output (no heading, no features). A non-finite
@@ -210,14 +224,13 @@ def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
     hover = controller.config.mass * GRAVITY * e3
     if R_IB is None:
         return None, hover
-    pad, pad_groups = frame.get(InputKind.PAD), None
-    if isinstance(pad, tuple):
-        pad, pad_groups = pad
+    pad, pad_groups, pad_weights = unpack_pad(frame.get(InputKind.PAD))
     meas = Measurements(
         t=frame.stamp_ns / NS_PER_S, R_IB=R_IB,
         window_bearings_C=frame.get(InputKind.WINDOW), pad_bearings_C=pad,
         phi_front_I=frame.get(InputKind.FLOW_FRONT), phi_down_I=frame.get(InputKind.FLOW_DOWN),
-        pad_groups=pad_groups, specific_force_I=specific_force_I)
+        pad_groups=pad_groups, pad_group_weights=pad_weights,
+        specific_force_I=specific_force_I)
     out = controller.step(mode, meas)
     F = np.asarray(out.F_I, dtype=float)
     if F.shape != (3,) or not np.all(np.isfinite(F)) or not np.isfinite(out.yaw_des):

@@ -297,8 +297,11 @@ class ModeSupervisor:
             self._request(Mode.CROSSING, reason)
 
     def on_pad(self, t: float, landmark_bearings_I: np.ndarray | None,
-               groups: list[str]) -> None:
-        """Landmarks of complete pad groups in {I} (4 per group, groups in ``groups`` order)."""
+               groups: list[str], weights: tuple | None = None) -> None:
+        """Landmarks of complete pad groups in {I} (4 per group, groups in ``groups`` order).
+
+        ``weights``: the groups' weights in q_t (pad/groups; None: equal).
+        """
         if landmark_bearings_I is None or len(groups) == 0:
             return
         p = np.asarray(landmark_bearings_I, dtype=float).reshape(-1, 3)
@@ -318,7 +321,7 @@ class ModeSupervisor:
         self._height_est = height
         if self.mode == Mode.LANDING:           # the frame's pad for _landing_frame
             try:
-                self._frame_pad = (pad_feature(p), height)
+                self._frame_pad = (pad_feature(p, weights=weights), height)
             except ValueError:                  # no usable group: as no pad this frame
                 self._frame_pad = None
         if self.mode == Mode.CROSSING and not self._landing_entered and self._crossed():

@@ -125,6 +125,16 @@ class PadDetectorConfig:
         'on VMs)')
     opencv_threads: int = param(
         1, "OpenCV threads inside the detector (0: leave OpenCV's setting)", 0, 1024)
+    group_weight_border_px: float = param(
+        20.0,
+        "px: a group's weight in the pad feature (pad/groups) grows from 0 to 1 as its "
+        "markers' corners get this far from the image border: a group that enters or leaves "
+        'the image moves q_t gradually, not by a step (0: off)', 0.0)
+    group_weight_min_side_px: float = param(
+        8.0, "px: a group's weight is 0 when its smallest marker side is this small ...", 0.0)
+    group_weight_full_side_px: float = param(
+        24.0, '... and 1 from this side on (markers near the size ArUco can read come and go)',
+        0.0)
 
     def __post_init__(self) -> None:
         """Raise ValueError naming the parameter for what a range cannot check (OpenCV)."""
@@ -136,6 +146,10 @@ class PadDetectorConfig:
         if not self.adaptive_thresh_win_size_step > 0:
             raise ValueError('parameter adaptive_thresh_win_size_step must be > 0, got '
                              f'{self.adaptive_thresh_win_size_step}')
+        if not self.group_weight_min_side_px <= self.group_weight_full_side_px:
+            raise ValueError('parameters group_weight_min_side_px '
+                             f'({self.group_weight_min_side_px}) and group_weight_full_side_px '
+                             f'({self.group_weight_full_side_px}): need min <= full')
 
 
 @dataclass(frozen=True)
@@ -146,6 +160,7 @@ class PadDetection:
     group_names: tuple[str, ...]    # the complete groups used, same order
     centres_px: np.ndarray          # (N, 2) distorted pixels of the centres (debug)
     rejected_groups: tuple[str, ...] = ()   # complete groups that failed the layout check
+    group_weights: tuple[float, ...] = ()   # per group in group_names: group_weight()
 
 
 def aruco_dictionary(name: str) -> 'cv2.aruco.Dictionary':
@@ -171,6 +186,39 @@ def marker_centre_normalized(corners_xy: np.ndarray) -> np.ndarray | None:
     if abs(cw) < _MIN_DIAGONAL_CROSS:
         return None
     return np.array([cx, cy]) / cw
+
+
+def _ramp(x: float) -> float:
+    """Return the smoothstep of ``x``: 0 below 0, 1 above 1, C1 in between."""
+    x = min(max(float(x), 0.0), 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+#: the smallest weight a complete group gets (a lone group at the border still counts)
+MIN_GROUP_WEIGHT = 1e-3
+
+
+def group_weight(corners_px: np.ndarray, width: int, height: int, border_px: float,
+                 min_side_px: float, full_side_px: float) -> float:
+    """Return a complete group's weight in the pad feature from its markers' corners (px).
+
+    The product of two ramps (smoothstep): the distance of its nearest corner to the image
+    border over ``border_px``, and its smallest marker's mean side between ``min_side_px``
+    (0) and ``full_side_px`` (1); at least :data:`MIN_GROUP_WEIGHT`. A group is seen until it
+    reaches the border, or shrinks to what ArUco cannot read, so its weight is near 0 when it
+    appears or goes: q_t (features.pad_feature) then moves by a fraction of the group's own
+    bias at that frame instead of by the whole step. ``corners_px`` (n, 4, 2), distorted.
+    """
+    c = np.asarray(corners_px, dtype=float).reshape(-1, MARKER_CORNERS, 2)
+    margin = float(np.min(np.concatenate([c[..., 0].ravel(), c[..., 1].ravel(),
+                                          (width - 1.0 - c[..., 0]).ravel(),
+                                          (height - 1.0 - c[..., 1]).ravel()])))
+    side = float(np.min(np.linalg.norm(c - np.roll(c, 1, axis=1), axis=2).mean(axis=1)))
+    w_border = 1.0 if border_px <= 0.0 else _ramp(margin / border_px)
+    span = full_side_px - min_side_px
+    w_size = (1.0 if side >= full_side_px else 0.0) if span <= 0.0 \
+        else _ramp((side - min_side_px) / span)
+    return max(w_border * w_size, MIN_GROUP_WEIGHT)
 
 
 def layout_errors(group: MarkerGroup, corners_xy: list[np.ndarray], centres_xy: np.ndarray,
@@ -442,7 +490,8 @@ class PadDetector:
         """
         with opencv_settings(self.config.use_ipp, self.config.opencv_threads):
             markers = self._track(gray, camera, stamp_s)
-        bearings, names, rejected = [], [], []
+        bearings, names, rejected, weights = [], [], [], []
+        cfg = self.config
         for group in self.layout.groups:
             if not all(i in markers for i in group.ids):
                 continue
@@ -459,9 +508,13 @@ class PadDetector:
                 continue
             names.append(group.name)
             bearings.extend(np.column_stack([centres_xy, np.ones(len(centres_xy))]))
+            weights.append(group_weight(
+                np.stack([markers[i] for i in group.ids]), gray.shape[1], gray.shape[0],
+                cfg.group_weight_border_px, cfg.group_weight_min_side_px,
+                cfg.group_weight_full_side_px))
         if not bearings:
             return PadDetection(np.zeros((0, 3)), (), np.zeros((0, 2)), tuple(rejected))
         b = np.asarray(bearings)
         b /= np.linalg.norm(b, axis=1, keepdims=True)
         centres, _ = camera.bearings_to_pixels(b)
-        return PadDetection(b, tuple(names), centres, tuple(rejected))
+        return PadDetection(b, tuple(names), centres, tuple(rejected), tuple(weights))

@@ -16,6 +16,7 @@ from typing import Callable
 import numpy as np
 
 from ibvs_sim.core.autopilot.protocol import MAV_COMP_ID_AUTOPILOT1
+from ibvs_sim.core.radio import PilotSwitchRadio
 
 # One logger for every part of the autopilot: 'ibvs_sim.core.autopilot', as before the split.
 LOG = logging.getLogger(__package__)
@@ -38,6 +39,7 @@ class AutopilotConfig:
     system_id: int = 1
     component_id: int = MAV_COMP_ID_AUTOPILOT1
     offboard_timeout_s: float = 1.0         # PX4 COM_OF_LOSS_T (v1.16 default); sim time
+    radio: PilotSwitchRadio | None = None    # the pilot's RC input (RC_CHANNELS); None: no RC
     offboard_timeout_wall_s: float = 2.0    # wall-clock bound on the same loss (lockstep stall)
     offboard_stream_min_s: float = 0.5      # setpoints needed this long before OFFBOARD
     signing_key_file: str | None = None
@@ -169,6 +171,7 @@ class AutopilotCounters:
     imu_faulted: int = 0            # IMU messages withheld or sent as NaN (fault injection)
     extended_sys_state_sent: int = 0
     sys_status_sent: int = 0
+    rc_channels_sent: int = 0
     state_invalid: int = 0          # non-finite ground truth handed in by the sim
 
 

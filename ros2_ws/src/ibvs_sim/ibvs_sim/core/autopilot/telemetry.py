@@ -3,11 +3,13 @@
 Streams (message id -> default rate): ATTITUDE_QUATERNION and HIGHRES_IMU at
 ``telemetry_default_hz`` (noisy, see :mod:`~ibvs_sim.core.autopilot.noise`), ATTITUDE_TARGET at
 ``thrust_telemetry_hz`` (the inner-loop reference now), EXTENDED_SYS_STATE (landed state) and
-SYS_STATUS (pre-arm health bit) at ``status_telemetry_hz``. A stream falls due every interval
-of sim time; when polled slower than that it re-phases instead of bursting. SET_MESSAGE_INTERVAL
-changes a stream's interval (the same interval again keeps its phase); REQUEST_MESSAGE sends
-one at once. HEARTBEAT every ``heartbeat_period_wall_s`` of wall clock, at once to a new peer.
-Messages are stamped with sim time (``time_boot_ms = round(1000 t)``, ``time_usec``).
+SYS_STATUS (pre-arm health bit) at ``status_telemetry_hz``; RC_CHANNELS (the pilot's radio,
+``config.radio``: none without one, as PX4 without RC) only once asked. A stream falls due
+every interval of sim time; when polled slower than that it re-phases instead of bursting.
+SET_MESSAGE_INTERVAL changes a stream's interval (the same interval again keeps its phase);
+REQUEST_MESSAGE sends one at once. HEARTBEAT every ``heartbeat_period_wall_s`` of wall clock,
+at once to a new peer. Messages are stamped with sim time (``time_boot_ms = round(1000 t)``,
+``time_usec``).
 """
 from __future__ import annotations
 
@@ -26,8 +28,11 @@ from ibvs_sim.core.autopilot.protocol import (
     MAV_RESULT_ACCEPTED, MAV_RESULT_DENIED, MAV_RESULT_FAILED, MAV_STATE_ACTIVE,
     MAV_STATE_CRITICAL, MAV_STATE_STANDBY, MAV_SYS_STATUS_PREARM_CHECK, MAV_TYPE_QUADROTOR,
     MAV_VTOL_STATE_UNDEFINED, MS_PER_S, MSG_ID_ATTITUDE_QUATERNION, MSG_ID_ATTITUDE_TARGET,
-    MSG_ID_EXTENDED_SYS_STATE, MSG_ID_HEARTBEAT, MSG_ID_HIGHRES_IMU, MSG_ID_SYS_STATUS,
+    MSG_ID_EXTENDED_SYS_STATE, MSG_ID_HEARTBEAT, MSG_ID_HIGHRES_IMU, MSG_ID_RC_CHANNELS,
+    MSG_ID_SYS_STATUS,
     SET_INTERVAL_DEFAULT, SET_INTERVAL_DISABLE, TYPEMASK_BODY_RATES_IGNORE, US_PER_S)
+
+RC_CHANNELS_DEFAULT_HZ = 5.0     # RC_CHANNELS at SET_MESSAGE_INTERVAL 0 (the default rate)
 
 
 @dataclass
@@ -67,6 +72,8 @@ class Telemetry:
                      MSG_ID_EXTENDED_SYS_STATE: 1.0 / config.status_telemetry_hz,
                      MSG_ID_SYS_STATUS: 1.0 / config.status_telemetry_hz}
         self.streams = {i: TelemetryStream(v, v) for i, v in intervals.items()}
+        # RC_CHANNELS: off until asked (PX4's onboard link), then at the asked rate
+        self.streams[MSG_ID_RC_CHANNELS] = TelemetryStream(1.0 / RC_CHANNELS_DEFAULT_HZ, None)
         self._last_heartbeat_wall: float | None = None
         # time_boot_ms of the newest valid ATTITUDE_QUATERNION sent: the bridge's newest
         # imu/data stamp (lockstep: the sim holds images until the graph has it)
@@ -175,7 +182,17 @@ class Telemetry:
                 MSG_ID_HIGHRES_IMU: self._send_highres_imu,
                 MSG_ID_ATTITUDE_TARGET: self._send_attitude_target,
                 MSG_ID_EXTENDED_SYS_STATE: self._send_extended_sys_state,
-                MSG_ID_SYS_STATUS: self._send_sys_status}
+                MSG_ID_SYS_STATUS: self._send_sys_status,
+                MSG_ID_RC_CHANNELS: self._send_rc_channels}
+
+    def _send_rc_channels(self, state: VehicleStateView) -> None:
+        """RC_CHANNELS: the pilot's radio at sim time (nothing without one: no RC)."""
+        radio = self.config.radio
+        if radio is None:
+            return
+        mav = self._link.mav
+        mav.send(radio.message(mav, int(round(state.t * US_PER_S)), state.t))
+        self.counters.rc_channels_sent += 1
 
     def _send_attitude_target(self, state: VehicleStateView) -> None:
         """ATTITUDE_TARGET: the inner-loop reference (attitude, thrust) now, as PX4 reports it.

@@ -30,7 +30,7 @@ from ibvs_sim.core.dynamics import PlantParams, QuadrotorPlant, State, Wind, Win
 from ibvs_sim.core.events import ContactMonitor, SimEvent
 from ibvs_sim.core.firmware.ardupilot_json import ArduPilotJsonLink, servo_outputs, state_json
 from ibvs_sim.core.firmware.motors import MotorModel
-from ibvs_sim.core.firmware.radio import PilotSwitchRadio
+from ibvs_sim.core.radio import PilotSwitchRadio
 from ibvs_sim.core.firmware.px4_hil import (ActuatorOutputs, FirmwareLinkError, Px4Sensors,
                                             Px4SimLink)
 from ibvs_sim.core.world import WorldConfig
