@@ -12,7 +12,9 @@ fully visible (>= 8 px from the image border), post-processed per condition:
   ``occluded`` dark and light posts beyond the window, across the aperture;
 - image degradations: Gaussian noise (sigma, grey levels, clipped), linear motion blur
   (length px, random direction), gain 0.3, glare (+0..140 grey levels across one side of the
-  image, saturating).
+  image, saturating), ``covered side``: a light-grey (240) elliptic blob across one side of
+  the band (a lamp, a reflection, a person's arm), centred 30-70 % along it, 20-40 % of the
+  side long and 1.5 band widths across; the other three sides clean (issue 51).
 
 Per condition: ``acq`` % of frames found by a fresh detector (a full search), ``track`` % of
 the frames of a 50-frame approach (one detector, frame to frame) found, median and max corner
@@ -55,10 +57,15 @@ BRIGHT_RANGE = (200.0, 255.0)
 BRICK_CONTRAST, BRICK_PIVOT = 1.9, 128.0
 POSTS_Y_M = ((-1.1, -0.8, 10.0), (-0.2, 0.1, 240.0), (0.6, 0.95, 10.0))   # y0, y1, grey
 GLARE_GREY = 140.0
+COVER_GREY = 240.0               # the blob across one band side
+COVER_ALONG = (0.2, 0.4)         # its length, fraction of the side
+COVER_CENTRE = (0.3, 0.7)        # its centre along the side
+COVER_ACROSS = 1.5               # its width, band widths
 SCENES = ('sim', 'dim room', 'bright side', 'brick', 'occluded')
 DEGRADATIONS = (('clean', None, 0.0), ('noise 10', 'noise', 10.0), ('noise 12', 'noise', 12.0),
                 ('noise 15', 'noise', 15.0), ('blur 6', 'blur', 6.0), ('blur 8', 'blur', 8.0),
-                ('gain 0.3', 'gain', 0.3), ('glare', 'glare', GLARE_GREY))
+                ('gain 0.3', 'gain', 0.3), ('glare', 'glare', GLARE_GREY),
+                ('covered side', 'cover', COVER_GREY))
 
 
 def _mapped(plane: render.TexturedPlane, fn) -> render.TexturedPlane:
@@ -130,6 +137,27 @@ def degrade(img: np.ndarray, kind: str | None, value: float,
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
+def cover_one_side(img: np.ndarray, world, cam, R_IB: np.ndarray, xi: np.ndarray,
+                   grey: float, rng: np.random.Generator) -> np.ndarray:
+    """Draw a light blob across one random side of the band (``covered side``)."""
+    def px(points_I):
+        b = frames.bearings_I_to_C(points_I - xi, R_IB, cam.R_BC)
+        return cam.model.bearings_to_pixels(b / np.linalg.norm(b, axis=1, keepdims=True))[0]
+    outer, inner = px(world.window.outer_corners_I()), px(world.window.corners_I())
+    k = int(rng.integers(4))
+    mid_a, mid_b = 0.5 * (outer[k] + inner[k]), 0.5 * (outer[(k + 1) % 4] + inner[(k + 1) % 4])
+    side = mid_b - mid_a
+    centre = mid_a + rng.uniform(*COVER_CENTRE) * side
+    band = 0.5 * (np.linalg.norm(outer[k] - inner[k])
+                  + np.linalg.norm(outer[(k + 1) % 4] - inner[(k + 1) % 4]))
+    axes = (0.5 * rng.uniform(*COVER_ALONG) * np.linalg.norm(side), 0.5 * COVER_ACROSS * band)
+    angle = float(np.degrees(np.arctan2(side[1], side[0])))
+    out = img.copy()
+    cv2.ellipse(out, (tuple(float(c) for c in centre), tuple(float(2 * a) for a in axes),
+                      angle), int(grey), -1, cv2.LINE_AA)
+    return out
+
+
 def clearance_px(world, cam, R_IB: np.ndarray, xi: np.ndarray) -> float:
     """Smallest distance (px) of the band's outer outline to the image border (< 0: cut)."""
     outer = world.window.outer_corners_I()
@@ -182,8 +210,14 @@ def run_condition(world, cam, renderer, degradation, poses, track_poses, seed: i
     _, kind, value = degradation
     rng = np.random.default_rng(seed)
     errors, wrong, found, reasons, times = [], 0, 0, collections.Counter(), []
+
+    def image(R_IB, xi):
+        if kind == 'cover':
+            return cover_one_side(renderer.render(R_IB, xi), world, cam, R_IB, xi, value, rng)
+        return degrade(renderer.render(R_IB, xi), kind, value, rng)
+
     for R_IB, xi in poses:
-        img = degrade(renderer.render(R_IB, xi), kind, value, rng)
+        img = image(R_IB, xi)
         t0 = time.perf_counter()
         result = WindowDetector(WindowDetectorConfig()).process(img, cam.model)
         times.append(time.perf_counter() - t0)
@@ -197,7 +231,7 @@ def run_condition(world, cam, renderer, degradation, poses, track_poses, seed: i
         wrong += bool(err.max() > WRONG_PX)
     detector, tracked = WindowDetector(WindowDetectorConfig()), 0
     for R_IB, xi in track_poses:
-        img = degrade(renderer.render(R_IB, xi), kind, value, rng)
+        img = image(R_IB, xi)
         tracked += detector.process(img, cam.model).status == WindowStatus.DETECTED
     return {'acq': 100.0 * found / len(poses),
             'track': 100.0 * tracked / len(track_poses) if track_poses else float('nan'),

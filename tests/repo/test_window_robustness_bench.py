@@ -81,6 +81,26 @@ def test_bright_object_across_one_side_of_the_aperture(scene):
     assert np.median(errors) <= 0.3
 
 
+def test_one_band_side_covered_by_something_bright(scene):
+    """A light-grey blob across one side of the band (issue 51, the bench's ``covered side``):
+    the ring is open, its convex hull is the candidate. Before: 0 of 60 (bench)."""
+    world, cam, base, poses = scene
+    rng, found, wrong, errors = np.random.default_rng(51), 0, 0, []
+    for R_IB, xi in poses:
+        img = bench.cover_one_side(base.render(R_IB, xi), world, cam, R_IB, xi,
+                                   bench.COVER_GREY, rng)
+        result = WindowDetector(WindowDetectorConfig()).process(img, cam.model)
+        if result.status != WindowStatus.DETECTED:
+            continue
+        found += 1
+        err = np.linalg.norm(result.detection.corners_px
+                             - bench.true_corners_px(world, cam, R_IB, xi), axis=1)
+        wrong += bool(err.max() > WRONG_PX)
+        errors.extend(err)
+    assert found >= N_POSES - 2 and wrong == 0
+    assert np.median(errors) <= 0.3
+
+
 def test_partly_occluded_aperture_posts_beyond(scene):
     """Dark and light posts across the aperture: a post beside the band is not its edge.
 

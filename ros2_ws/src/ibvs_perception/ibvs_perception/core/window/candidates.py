@@ -3,7 +3,9 @@
 An adaptive dark mask of a down-scaled image, its contours with their holes, and for each dark
 component the outer quads it may be the band of: its outer boundary's, or those the band's
 proportions predict around its quadrilateral holes (the aperture, when dark texture touching
-the band bends the outer boundary).
+the band bends the outer boundary), and for a dark component without a hole, the quad of its
+convex hull when the hull is mostly not dark: an open ring, the band with one side covered by
+something bright (a lamp, a reflection, an arm), whose covered stretch the edge fits leave out.
 """
 from __future__ import annotations
 
@@ -73,7 +75,13 @@ class CandidateSearch:
         min_hole_points = 4.0 * np.sqrt(min_hole_area)
         rings = []
         for i, (_, _, child, parent) in enumerate(hierarchy):
-            if parent != -1 or child == -1 or len(contours[i]) < min_hole_points:
+            if parent != -1:
+                continue
+            # last, for any large component: the hull of an open ring (lazy, as the rest)
+            open_ring = self._open_ring_quads(contours[i], camera, scale, image_area) \
+                if len(contours[i]) >= min_points else iter(())
+            if child == -1 or len(contours[i]) < min_hole_points:
+                rings.append(open_ring)
                 continue
             outer = None
             if len(contours[i]) >= min_points:
@@ -84,11 +92,44 @@ class CandidateSearch:
                         and cv2.contourArea(contours[child]) >= min_hole_area:
                     holes.append(contours[child])
                 child = hierarchy[child][0]
-            if outer is not None or holes:
-                rings.append(itertools.chain(
-                    () if outer is None else (outer,),
-                    self._hole_quads(holes, camera, scale, image_area / (scale * scale))))
+            rings.append(itertools.chain(
+                () if outer is None else (outer,),
+                self._hole_quads(holes, camera, scale, image_area / (scale * scale)),
+                open_ring))
         return rings
+
+    def _open_ring_quads(self, contour: np.ndarray, camera: CameraModel, scale: float,
+                         image_area: float) -> Iterator[np.ndarray]:
+        """Yield the open-ring quad of a component (:meth:`_open_ring_quad_u`), if any."""
+        quad = self._open_ring_quad_u(contour, camera, scale, image_area)
+        if quad is not None:
+            yield quad
+
+    def _open_ring_quad_u(self, contour: np.ndarray, camera: CameraModel, scale: float,
+                          image_area: float) -> np.ndarray | None:
+        """Outer quad (undistorted px) of a dark component's convex hull, or None.
+
+        A band with one side cut by something bright is a dark "U": no hole, but its convex
+        hull is the band's outer quad (while the cut leaves the side's two ends) and mostly
+        not dark, as a ring's outline is mostly holes. The hull's 4 vertices (approxPolyDP)
+        give the candidate; the area, hollowness (``min_holes_fraction``) and aspect checks
+        of a ring apply. The edge refiner then fits each side on the stretches it finds, and
+        the band's proportions give the aperture: what is not a band fails there.
+        """
+        cfg = self.config
+        hull = cv2.convexHull(contour)
+        hull_area = cv2.contourArea(hull)
+        if not cfg.min_area_fraction * image_area <= hull_area \
+                <= cfg.max_area_fraction * image_area:
+            return None
+        if hull_area - cv2.contourArea(contour) < cfg.min_holes_fraction * hull_area:
+            return None
+        approx = cv2.approxPolyDP(hull, cfg.approx_tolerance * cv2.arcLength(hull, True), True)
+        if len(approx) != N_CORNERS or not cv2.isContourConvex(approx):
+            return None
+        corners = _undistorted_px(camera, (approx.reshape(N_CORNERS, 2) + 0.5) / scale - 0.5)
+        quad = order_corners_clockwise(corners)
+        return quad if self._plausible(quad, image_area / (scale * scale)) else None
 
     def _hole_quads(self, holes: list, camera: CameraModel, scale: float,
                     image_area: float) -> Iterator[np.ndarray]:
