@@ -124,6 +124,43 @@ def test_rendered_front_flow_with_the_floor_in_view(scene):
     assert max(errors[True]) < max(errors[False]), errors
 
 
+def test_tracked_front_flow_approaching_with_the_floor_filling_the_lower_image(scene):
+    """Issue 51's sequences: 2.5-4 m from the wall, 0.8-1.1 m up (the floor fills the lower
+    image), level within 4 deg, 0.2-0.7 m/s mostly towards the wall, 50 Hz with read noise,
+    the window detector's wall normal each frame: |phi - v/d| / |v/d| p95 <= 10 % (the
+    issue's target; measured here 2.5 % over 6 such sequences, one plane 6.3 %)."""
+    world, vehicle, renderers = scene
+    cam, renderer = vehicle.cameras['front'], renderers['front']
+    errors = []
+    for seed in (2, 3):                            # the two slowest of the measured six
+        rng = np.random.default_rng(100 + seed)
+        speed = rng.uniform(0.2, 0.7)
+        d = np.array([1.0, rng.uniform(-0.3, 0.3), rng.uniform(-0.15, 0.15)])
+        v = speed * d / np.linalg.norm(d)
+        xi0 = np.array([world.wall_x - rng.uniform(2.5, 4.0), rng.uniform(-0.3, 0.3),
+                        -rng.uniform(0.8, 1.1)])
+        estimator = FlowEstimator(FlowConfig(), cam.model, cam.R_BC)
+        detector = WindowDetector(WindowDetectorConfig())
+        for k in range(45):
+            t = k * DT
+            R = frames.rot_from_euler_zyx(np.radians(4) * np.sin(3 * t + seed),
+                                          np.radians(3) * np.sin(2.3 * t),
+                                          np.radians(3) * np.sin(1.7 * t + seed))
+            img = renderer.render(R, xi0 + v * t)
+            img = np.clip(img + rng.normal(0.0, 1.5, img.shape), 0, 255).astype(np.uint8)
+            window = detector.process(img, cam.model).detection
+            assert window is not None
+            eta, exclude = wall_normal_from_corners(window.bearings_C, R, cam.R_BC)
+            result = estimator.process(img, t, R, eta, exclude, frames.e3)
+            if k < 5 or result is None or result.phi_I is None:
+                continue
+            t_mid = t - estimator.last_baseline_frames * DT / 2.0
+            truth = v / (world.wall_x - (xi0[0] + v[0] * t_mid))
+            errors.append(np.linalg.norm(result.phi_I - truth) / np.linalg.norm(truth))
+    assert len(errors) >= 70
+    assert np.percentile(errors, 95) <= 0.10, np.percentile(errors, 95)
+
+
 def wall_fraction(camera, R_IB, xi, wall_x):
     """Fraction of the image whose rays meet the wall (x = wall_x, behind) before the floor."""
     u, v = np.meshgrid(np.arange(8, camera.model.width, 16), np.arange(8, camera.model.height, 16))
