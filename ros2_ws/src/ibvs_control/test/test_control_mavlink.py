@@ -1759,3 +1759,20 @@ def test_without_a_switch_a_link_loss_in_flight_is_off_until_the_next_standby(pe
     bridge.on_supervisor_mode(Mode.IDLE)             # a new mission may start
     ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.STANDBY)
     assert ok and bridge.pilot_input() == PilotInput.UNKNOWN
+
+
+def test_a_supervisor_that_stops_flying_before_engagement_is_no_release(peer_bridge):
+    """SET_MODE -> HELD because the supervisor left its flying modes (an abort before PX4 took
+    OFFBOARD, measured in lockstep): the mission ended on the graph's side, ibvs/pilot_input
+    stays as it was (no latched OFF)."""
+    from ibvs_control.core.pilot_input import PilotInput
+    peer, bridge = peer_bridge(bridge_kw={'prestream_s': 5.0})
+    wait_link(bridge)
+    bridge.on_supervisor_mode(Mode.IDLE)
+    bridge.on_supervisor_mode(Mode.WINDOW)
+    ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.SET_MODE,
+                 force_fn=feeder(bridge))
+    assert ok
+    bridge.on_supervisor_mode(Mode.FAILSAFE)
+    ok, _ = spin(bridge, 1.0, until=lambda: seq(bridge).state == EngageState.HELD)
+    assert ok and bridge.pilot_input() == PilotInput.UNKNOWN

@@ -149,6 +149,8 @@ def graph_specs(opts: RunOptions, port: int, initial_position: tuple,
         camera += [('pilot_switch_channel', PILOT_SWITCH_CHANNEL),
                    ('pilot_switch_on_s', START_AT_SIM_S)]
         bridge, start_at = (('pilot_switch_channel', PILOT_SWITCH_CHANNEL),), -1.0
+        if opts.pilot_switch_off_s is not None:
+            camera.append(('pilot_switch_off_s', float(opts.pilot_switch_off_s)))
     if opts.true_vehicle:
         camera.append(('true_vehicle_file', os.path.abspath(opts.true_vehicle)))
     gopts = graph.GraphOptions(params_file=opts.params_file, use_sim_time=True,
@@ -522,6 +524,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                         f'{START_AT_SIM_S:g} s of sim time; the bridge reads it (RC_CHANNELS, '
                         f'pilot_switch_channel {PILOT_SWITCH_CHANNEL}) and the supervisor starts '
                         '(docs/onboard.md "Start and abort from the radio")')
+    p.add_argument('--pilot-switch-off-at', type=float, default=None, metavar='S',
+                   help='with --pilot-switch: the pilot flips the switch OFF at S s of sim '
+                        'time, an abort (FAILSAFE: the autopilot lands)')
     p.add_argument('--px4-no-mocap', action='store_true',
                    help="px4-sih: PX4's estimator on SIH's GPS, baro and magnetometer instead "
                         'of the motion capture of params.yaml px4_sim mocap_rate_hz')
@@ -558,7 +563,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       max_sim_time_s=a.max_sim_time,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
                       px4_flight_s=a.px4_flight_s, px4_no_mocap=a.px4_no_mocap,
-                      pilot_switch=a.pilot_switch,
+                      pilot_switch=a.pilot_switch, pilot_switch_off_s=a.pilot_switch_off_at,
                       layout=a.layout or DEFAULT_LAYOUT['onboard' if a.autopilot == 'px4-sih'
                                                         else 'sim'])
 
@@ -575,6 +580,10 @@ def main(argv: list | None = None) -> int:
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
         if opts.autopilot == 'px4' and opts.feature_level:
             raise ValueError('--autopilot px4 flies the graph: not with --feature-level')
+        if opts.pilot_switch_off_s is not None and not (
+                opts.pilot_switch and opts.pilot_switch_off_s > START_AT_SIM_S):
+            raise ValueError(f'--pilot-switch-off-at needs --pilot-switch and a time after the '
+                             f'start ({START_AT_SIM_S:g} s)')
         if opts.pilot_switch and opts.autopilot not in ('sim', 'px4'):
             raise ValueError('--pilot-switch needs the sim: its radio is the RC input of the '
                              'emulated autopilot or of PX4 in lockstep')

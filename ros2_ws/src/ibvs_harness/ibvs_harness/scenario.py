@@ -59,6 +59,7 @@ class RunOptions:
     px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
     px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
     pilot_switch: bool = False          # started by the pilot's RC switch (the sim's radio)
+    pilot_switch_off_s: float | None = None   # ... and aborted by it at this sim time
     layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
     max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
     # the sim's camera model: sim parameter -> value (camera_latency_s, camera_rate_hz, ...)

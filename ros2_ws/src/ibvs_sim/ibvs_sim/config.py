@@ -155,6 +155,9 @@ class SimNodeConfig:
     pilot_switch_on_s: float = param(
         1.0, 's of sim time (the mission clock): the simulated pilot flips the switch ON', 0.0,
         None)
+    pilot_switch_off_s: float = param(
+        -1.0, 's of sim time: the simulated pilot flips the switch OFF again (an abort); < 0: '
+        'never')
 
     def __post_init__(self) -> None:
         """Check what the ranges cannot say; raise ValueError naming the parameter."""
@@ -272,7 +275,9 @@ class SimNodeConfig:
         """Return the pilot's RC input with its mission switch (None: no RC)."""
         if not self.pilot_switch_channel:
             return None
-        return PilotSwitchRadio(int(self.pilot_switch_channel), float(self.pilot_switch_on_s))
+        off = float(self.pilot_switch_off_s)
+        return PilotSwitchRadio(int(self.pilot_switch_channel), float(self.pilot_switch_on_s),
+                                off if off >= 0.0 else None)
 
     def camera_faults(self) -> CameraFaults:
         """Return the cameras' fault injection: each camera's off and frozen windows."""

@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from ibvs_common.core.modes import Mode
+from ibvs_common.core.modes import FLYING_MODES, Mode
 from ibvs_control.core.pilot_input import PilotInput
 from ibvs_control.mavlink.config import BridgeConfig
 from ibvs_control.mavlink.engagement import Engagement
@@ -282,8 +282,9 @@ class MavlinkBridge:
 
     def _note_release(self, was: EngageState, state: EngageState) -> None:
         """Latch the pilot input OFF on a release in flight; end the latch at standby."""
-        if was in FLIGHT_STATES and state in RELEASED_STATES:
-            self.pilot.release()
+        if was in FLIGHT_STATES and state in RELEASED_STATES \
+                and self.engagement.supervisor_mode in FLYING_MODES:
+            self.pilot.release()        # (a supervisor that stopped flying ended it itself)
             self.events.add('warn', f'the vehicle left the bridge in {was.name} '
                                     f'({state.name}): ibvs/pilot_input OFF, the mission ends')
         elif state == EngageState.STANDBY:
