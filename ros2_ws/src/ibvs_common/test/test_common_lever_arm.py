@@ -58,6 +58,32 @@ def test_the_floor_flow_scales_with_the_cameras_height_over_the_bodys():
     assert np.allclose(got, v / h_body)
 
 
+def test_a_rotating_body_carries_the_camera_and_its_flow_is_removed():
+    """The camera's velocity by finite differences of its position xi(t) + R(t) t_BC while the
+    body turns at omega and moves at v (no formula of the module): the camera's flow is
+    v_C / d_C; from the body origin, with the rate given, the flow is v / d_body again; without
+    it, off by the rotation's part (0.5 rad/s x 10 cm here, 5 cm/s of 0.4 m/s)."""
+    from ibvs_common.core.frames import exp_so3
+    v = np.array([0.4, 0.05, 0.1])                       # the wall ahead at x = 0, {I}
+    omega_B = np.array([0.1, -0.3, 0.4])
+    t_BC = np.array([0.1, 0.02, 0.03])
+    xi0, eta = np.array([-2.0, 0.1, -1.5]), np.array([1.0, 0.0, 0.0])
+
+    def camera(t):
+        return xi0 + v * t + (R_IB @ exp_so3(omega_B * t)) @ t_BC
+    dt = 1e-6
+    v_C = (camera(dt) - camera(-dt)) / (2 * dt)
+    t_I = R_IB @ t_BC
+    d_C, d_body = -camera(0.0)[0], -xi0[0]
+    omega_I = R_IB @ omega_B
+    got = flow_from_body(v_C / d_C, eta, d_C, t_I, omega_I)
+    assert np.allclose(got, v / d_body, atol=1e-8)
+    without = flow_from_body(v_C / d_C, eta, d_C, t_I)
+    assert np.linalg.norm(without - v / d_body) * d_body > 0.02     # the rotation's part
+    assert np.allclose(flow_from_body(v / d_body, eta, d_body, np.zeros(3), omega_I),
+                       v / d_body)                                  # no lever arm: unchanged
+
+
 def test_no_lever_arm_changes_nothing_and_bad_geometry_is_refused():
     assert not has_lever_arm(np.zeros(3)) and has_lever_arm(np.array([0.0, 0.01, 0.0]))
     q = unit_rows(CORNERS - np.array([-2.0, 0.1, -1.82]))

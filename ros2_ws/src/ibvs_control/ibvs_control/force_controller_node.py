@@ -203,7 +203,8 @@ class ForceControllerNode(Node):
                                                     self._attitudes.attitude_at)
         self._t_answered = t
         out, F_I = step_controller(self._controller, frame.tag, frame,
-                                   self._attitudes.attitude_at(t), f_I)
+                                   self._attitudes.attitude_at(t), f_I,
+                                   self._attitudes.rate_at(t))
         if out is None:
             self.log.warning('no IMU attitude (or no valid output): answering with hover',
                              LOG_THROTTLE_S)

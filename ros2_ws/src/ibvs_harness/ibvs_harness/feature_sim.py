@@ -326,7 +326,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         supervisor.end_frame(t)             # the frame closed, as the supervisor node does
         mode = supervisor.mode
         out = controller.step(mode, Measurements(t, R_est, win_C, pad_C, phi_front, phi_down,
-                                                 tuple(groups), specific_force_I=f_I_mean))
+                                                 tuple(groups), specific_force_I=f_I_mean,
+                                                 omega_B=Omega_B))   # the gyro, as onboard
         sp = attitude_from_force(out.F_I, out.yaw_des, m, vehicle.hover_thrust,
                                  vehicle.max_thrust_factor)
         thrust_new = sp.thrust_N

@@ -447,6 +447,17 @@ def test_attitude_buffer_interpolates_and_propagates_a_constant_rate():
         buf.add(0.2, np.full((3, 3), np.nan), omega)
 
 
+def test_attitude_buffer_rate_at_interpolates_the_gyro_and_holds_the_newest():
+    buf = AttitudeBuffer(AttitudeBufferConfig())
+    for k, t in enumerate((0.0, 0.01, 0.02)):
+        buf.add(t, np.eye(3), np.array([0.1 * k, -0.2, 0.0]))
+    np.testing.assert_allclose(buf.rate_at(0.015), [0.15, -0.2, 0.0], atol=1e-12)
+    np.testing.assert_allclose(buf.rate_at(0.01), [0.1, -0.2, 0.0])
+    np.testing.assert_allclose(buf.rate_at(0.03), [0.2, -0.2, 0.0])       # held, 10 ms after
+    assert buf.rate_at(-0.01) is None and buf.rate_at(0.5) is None and \
+        buf.rate_at(float('nan')) is None
+
+
 def test_image_decoding():
     rgb = np.zeros((2, 3, 3), np.uint8)
     rgb[..., 0] = 255                         # pure red

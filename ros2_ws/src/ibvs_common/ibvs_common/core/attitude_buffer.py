@@ -171,6 +171,29 @@ class AttitudeBuffer:
         R0 = self._rotation(i - 1)
         return R0 @ exp_so3(s * log_so3(R0.T @ self._rotation(i)))
 
+    def rate_at(self, stamp_s: float) -> np.ndarray | None:
+        """Body rate omega_B (rad/s, FRD) at ``stamp_s``: interpolated, or the newest held.
+
+        None where :meth:`attitude_at` is None (not covered by the buffer).
+        """
+        if not self._stamps or not np.isfinite(stamp_s):
+            return None
+        i = bisect.bisect_right(self._stamps, stamp_s)
+        if i > 0 and self._stamps[i - 1] == stamp_s:
+            return np.array(self._omega[i - 1], dtype=float)
+        if i == len(self._stamps):
+            if stamp_s - self._stamps[-1] > self.config.max_extrapolation_s:
+                return None
+            return np.array(self._omega[-1], dtype=float)
+        if i == 0:
+            return None
+        t0, t1 = self._stamps[i - 1], self._stamps[i]
+        if t1 - t0 > self.config.max_interpolation_gap_s:
+            return None
+        s = (stamp_s - t0) / (t1 - t0)
+        return (1.0 - s) * np.asarray(self._omega[i - 1], float) \
+            + s * np.asarray(self._omega[i], float)
+
     def gyro_rotation(self, t0: float, t1: float) -> np.ndarray | None:
         """Body rotation dR from t0 to t1 integrated from the buffered rates (R(t1) = R(t0) dR).
 

@@ -12,10 +12,13 @@ point is located from the camera and its bearing taken again from the body origi
                                       from the camera towards it, d_C its distance)
     q_i' = unit(X_i + t_BC_I)        (from the body origin; t_BC_I = R_IB t_BC)
 
-Flows v/d of a plane scale with the distance: phi' = phi d_C / (d_C + eta^T t_BC_I). The
-camera's own velocity from the rotation, Omega x t_BC (at most |Omega| |t_BC|: 2.5 cm/s at
-0.5 rad/s and 5 cm), is not removed. All vectors in {I}; m, rad; with t_BC = 0 everything is
-returned unchanged. ROS-free.
+Flows v/d of a plane: the camera moves at v_C = v + omega x t_BC_I (omega the body rate in
+{I}: a rotation about the body origin carries the camera along), its translational flow is
+phi = v_C / d_C (the flow estimator removes the rotation of the view, not this), so the body
+origin's is phi' = (phi d_C - omega x t_BC_I) / (d_C + eta^T t_BC_I). Without omega only the
+distance is corrected (the rotation's part, at most |omega| |t_BC|: 2.5 cm/s at 0.5 rad/s and
+5 cm, stays). All vectors in {I}; m, rad, rad/s; with t_BC = 0 everything is returned
+unchanged. ROS-free.
 """
 from __future__ import annotations
 
@@ -97,15 +100,20 @@ def pad_landmarks_from_body(landmarks_I: np.ndarray, groups: list, half_sides: d
 
 
 def flow_from_body(phi_C_I: np.ndarray, eta_I: np.ndarray, distance_C: float,
-                   t_BC_I: np.ndarray) -> np.ndarray:
+                   t_BC_I: np.ndarray, omega_I: np.ndarray | None = None) -> np.ndarray:
     """Return a plane's flow v/d at the body origin from the camera's (module doc).
 
-    ``distance_C``: the camera's distance to the plane along ``eta_I`` (from camera to plane).
+    ``distance_C``: the camera's distance to the plane along ``eta_I`` (from camera to plane);
+    ``omega_I``: the body rate (rad/s) in {I}, or None (then only the distance is corrected).
     """
-    d_body = distance_C + float(np.asarray(eta_I, dtype=float) @ np.asarray(t_BC_I, float))
+    t = np.asarray(t_BC_I, dtype=float)
+    d_body = distance_C + float(np.asarray(eta_I, dtype=float) @ t)
     if not (distance_C > 0.0 and d_body > 0.0):
         raise ValueError(f'plane distances must be > 0 (camera {distance_C}, body {d_body})')
-    return np.asarray(phi_C_I, dtype=float) * (distance_C / d_body)
+    v_C = np.asarray(phi_C_I, dtype=float) * distance_C
+    if omega_I is not None:
+        v_C = v_C - np.cross(np.asarray(omega_I, dtype=float), t)
+    return v_C / d_body
 
 
 def camera_bearings_from_body(camera: str, bearings_I: np.ndarray, t_BC_I: np.ndarray,

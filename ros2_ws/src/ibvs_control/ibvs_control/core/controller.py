@@ -136,6 +136,7 @@ class Measurements:
     pad_groups: tuple | None = None           # names of the groups in pad_bearings_C, in order
     pad_group_weights: tuple | None = None    # their weights in q_t (pad/groups; None: equal)
     specific_force_I: np.ndarray | None = None  # m/s^2, IMU's, mean since the last step
+    omega_B: np.ndarray | None = None         # rad/s, body rate (FRD) at t: lever-arm flows
 
 
 @dataclass(frozen=True)
@@ -236,16 +237,18 @@ class IbvsController:
         """Return (wall flow, floor flow) at the body origin (the camera's without lever arm).
 
         The wall's distance from the window's corners (camera bearings), the floor's from the
-        pad's smallest group; a flow whose plane distance is not known is the camera's.
+        pad's smallest group; a flow whose plane distance is not known is the camera's. With
+        the body rate (``meas.omega_B``) the camera's velocity from the rotation is removed too.
         """
         cfg = self.config
         phi_w, phi_t = meas.phi_front_I, meas.phi_down_I
+        omega_I = None if meas.omega_B is None else R_IB @ np.asarray(meas.omega_B, float)
         if phi_w is not None and meas.window_bearings_C is not None \
                 and has_lever_arm(cfg.t_BC_front):
             try:
                 eta, d_o = window_plane(bearings_C_to_I(meas.window_bearings_C, R_IB,
                                                         cfg.R_BC_front), cfg.r_w, self._eta_w)
-                phi_w = flow_from_body(phi_w, eta, d_o, R_IB @ cfg.t_BC_front)
+                phi_w = flow_from_body(phi_w, eta, d_o, R_IB @ cfg.t_BC_front, omega_I)
             except ValueError:
                 pass
         if phi_t is not None and meas.pad_bearings_C is not None and meas.pad_groups \
@@ -255,7 +258,7 @@ class IbvsController:
                                          list(meas.pad_groups), cfg.group_half_sides)
             if h_C is not None:
                 try:
-                    phi_t = flow_from_body(phi_t, E3, h_C, R_IB @ cfg.t_BC_down)
+                    phi_t = flow_from_body(phi_t, E3, h_C, R_IB @ cfg.t_BC_down, omega_I)
                 except ValueError:
                     pass
         return phi_w, phi_t

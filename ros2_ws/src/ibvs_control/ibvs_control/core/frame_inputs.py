@@ -210,7 +210,8 @@ def unpack_pad(value) -> tuple:
 
 
 def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
-                    R_IB: np.ndarray | None, specific_force_I: np.ndarray | None = None
+                    R_IB: np.ndarray | None, specific_force_I: np.ndarray | None = None,
+                    omega_B: np.ndarray | None = None
                     ) -> tuple[ControlOutput | None, np.ndarray]:
     """Answer one frame: (controller output or None, force F in {I} (N)).
 
@@ -230,7 +231,7 @@ def step_controller(controller: IbvsController, mode: Mode, frame: Frame,
         window_bearings_C=frame.get(InputKind.WINDOW), pad_bearings_C=pad,
         phi_front_I=frame.get(InputKind.FLOW_FRONT), phi_down_I=frame.get(InputKind.FLOW_DOWN),
         pad_groups=pad_groups, pad_group_weights=pad_weights,
-        specific_force_I=specific_force_I)
+        specific_force_I=specific_force_I, omega_B=omega_B)
     out = controller.step(mode, meas)
     F = np.asarray(out.F_I, dtype=float)
     if F.shape != (3,) or not np.all(np.isfinite(F)) or not np.isfinite(out.yaw_des):
