@@ -252,3 +252,30 @@ def test_camera_services_get_their_device_and_the_video_group():
     # the host's two cameras are distinct devices by default
     assert _default(services['camera-front']['devices'][0]).split(':')[0] != \
         _default(services['camera-down']['devices'][0]).split(':')[0]
+
+
+def test_the_documented_native_install_matches_the_dockerfile_and_the_pins():
+    """docs/onboard.md section 1 (native Ubuntu 24.04): rosdep initialised and updated, the
+    same keys skipped as the Dockerfile, each skipped key's package pip-installed with
+    PIP_BREAK_SYSTEM_PACKAGES at requirements.txt's pin (issue 49 item 5)."""
+    doc = (ROOT / 'docs' / 'onboard.md').read_text()
+    block = doc[doc.index('## 1. Install'):doc.index('## 2.')]
+    block = block[block.index('```') + 3:]
+    block = block[:block.index('```')].replace('\\\n', ' ')
+    lines = [ln.split('#')[0].strip() for ln in block.splitlines() if ln.strip()]
+    assert any(ln.startswith('sudo rosdep init') for ln in lines)
+    assert 'rosdep update' in lines
+    install = [ln for ln in lines if ln.startswith('rosdep install')]
+    assert len(install) == 1 and '--from-paths src' in install[0]
+    doc_skipped = set(re.search(r'--skip-keys "([^"]+)"', install[0]).group(1).split())
+    run = ' '.join(a for op, a in _instructions() if op == 'RUN')
+    docker_skipped = set(re.search(r'--skip-keys "([^"]+)"', run).group(1).split())
+    assert doc_skipped == docker_skipped
+    pins = dict(ln.split('==') for ln in (ROOT / 'requirements.txt').read_text().splitlines()
+                if '==' in ln and not ln.startswith('#'))
+    pip = [ln for ln in lines if 'pip3 install' in ln]
+    assert len(pip) == 1 and pip[0].startswith('PIP_BREAK_SYSTEM_PACKAGES=1 ')
+    for key in doc_skipped:
+        name = key[len('python3-'):-len('-pip')] if key.endswith('-pip') \
+            else key[len('python3-'):]
+        assert f'{name}=={pins[name]}' in pip[0].split(), (key, pip[0])
