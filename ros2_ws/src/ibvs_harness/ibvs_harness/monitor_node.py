@@ -25,7 +25,7 @@ import numpy as np
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import JointState
-from std_msgs.msg import String
+from std_msgs.msg import Bool, String, UInt8
 
 if TYPE_CHECKING:
     from rclpy.executors import Executor
@@ -104,6 +104,11 @@ class ScenarioMonitor(Node):
         self.create_subscription(DiagnosticArray, 'sim/stats', self._on_sim_stats, LATCHED)
         self.bridge_history: deque = deque(maxlen=BRIDGE_HISTORY_LEN)
         self.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        # the pilot's side (--pilot-switch): what the bridge reads, and the sim's radio
+        self.pilot_inputs: list = []
+        self.create_subscription(UInt8, 'ibvs/pilot_input',
+                                 lambda m: self.pilot_inputs.append(int(m.data)), LATCHED)
+        self.pilot_switch = self.create_publisher(Bool, 'sim/pilot_switch', COMMAND_QOS)
 
     def now_s(self) -> float:
         """Return the node's (sim) time in seconds, from ``time_origin_s``."""

@@ -145,9 +145,9 @@ def graph_specs(opts: RunOptions, port: int, initial_position: tuple,
     if px4_instance is not None:
         camera += [('firmware', 'px4'), ('firmware_instance', int(px4_instance))]
     bridge, start_at = (), START_AT_SIM_S
-    if opts.pilot_switch:       # the simulated pilot flips the RC switch at 1 s instead
+    if opts.pilot_switch:       # the simulated pilot flips the RC switch (fly(), below)
         camera += [('pilot_switch_channel', PILOT_SWITCH_CHANNEL),
-                   ('pilot_switch_on_s', START_AT_SIM_S)]
+                   ('pilot_switch_on_s', -1.0)]
         bridge, start_at = (('pilot_switch_channel', PILOT_SWITCH_CHANNEL),), -1.0
         if opts.pilot_switch_off_s is not None:
             camera.append(('pilot_switch_off_s', float(opts.pilot_switch_off_s)))
@@ -188,6 +188,23 @@ START_WAIT_S = 20.0    # s of wall clock after START_AT_SIM_S for the supervisor
 START_AT_SIM_S = 1.0
 #: --pilot-switch: the RC channel of the mission switch (the sim's radio and the bridge)
 PILOT_SWITCH_CHANNEL = 7
+PILOT_INPUT_OFF = 1                # ibvs/pilot_input: the bridge read the switch OFF
+
+
+def flip_pilot_switch(monitor: ScenarioMonitor, spin, deadline: float) -> None:
+    """Flip the mission switch ON as the pilot, after the preflight's go (``--pilot-switch``).
+
+    As a pilot looks at the switch before flipping it, this waits until the bridge has read
+    it OFF (``ibvs/pilot_input`` 1): a switch ON that the graph never saw OFF starts nothing.
+    """
+    from std_msgs.msg import Bool
+    while PILOT_INPUT_OFF not in monitor.pilot_inputs:
+        if time.monotonic() > deadline:
+            raise _Stop("the bridge never read the pilot's switch OFF (ibvs/pilot_input; see "
+                        'logs/mavlink_bridge.log)')
+        spin(0.02)
+    monitor.pilot_switch.publish(Bool(data=True))
+    print(f"the pilot's switch ON at sim t = {monitor.now_s():.2f} s", flush=True)
 
 
 def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wall0: float,
@@ -229,6 +246,8 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
     while monitor.now_s() < START_AT_SIM_S:
         spin(0.01)
     start_deadline = time.monotonic() + START_WAIT_S
+    if opts.pilot_switch:
+        flip_pilot_switch(monitor, spin, start_deadline)
     while monitor.log.mode in (None, IDLE_MODE):
         if time.monotonic() > start_deadline:
             raise _Stop(f'the supervisor did not start by itself at sim t = '
@@ -238,10 +257,9 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
                         'logs/mavlink_bridge.log and logs/mode_supervisor.log)')
         spin(0.02)
     t_start = monitor.now_s()
-    how = ("by the pilot's switch, ON" if opts.pilot_switch
-           else 'by the supervisor')
-    print(f'started {how} at sim t = {START_AT_SIM_S:.2f} s (seen at {t_start:.2f} s)',
-          flush=True)
+    how = ("by the pilot's switch" if opts.pilot_switch
+           else f'by the supervisor at sim t = {START_AT_SIM_S:.2f} s')
+    print(f'started {how} (seen at {t_start:.2f} s)', flush=True)
     next_print = time.monotonic()
     while True:
         spin(0.02)
@@ -520,8 +538,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--pilot-switch', action='store_true',
                    help="the mission starts from the pilot's radio, not by itself: the "
                         'autopilot (the emulated one, or PX4 in lockstep) gets RC input from '
-                        'the sim, whose pilot flips a mission switch ON at '
-                        f'{START_AT_SIM_S:g} s of sim time; the bridge reads it (RC_CHANNELS, '
+                        'the sim, whose pilot flips a mission switch ON once the preflight '
+                        f'passed, from {START_AT_SIM_S:g} s of sim time on, and the bridge '
+                        'read it OFF (sim/pilot_switch); the bridge reads it (RC_CHANNELS, '
                         f'pilot_switch_channel {PILOT_SWITCH_CHANNEL}) and the supervisor starts '
                         '(docs/onboard.md "Start and abort from the radio")')
     p.add_argument('--pilot-switch-off-at', type=float, default=None, metavar='S',

@@ -153,8 +153,8 @@ class SimNodeConfig:
         'autopilot when asked, given to a firmware (px4) as its RC input; 0 = no RC '
         '(docs/sim_autopilot.md, docs/firmware_lockstep.md)', 0, 8)
     pilot_switch_on_s: float = param(
-        1.0, 's of sim time (the mission clock): the simulated pilot flips the switch ON', 0.0,
-        None)
+        1.0, 's of sim time (the mission clock): the simulated pilot flips the switch ON; < 0: '
+        'only when told (sim/pilot_switch, std_msgs/Bool)')
     pilot_switch_off_s: float = param(
         -1.0, 's of sim time: the simulated pilot flips the switch OFF again (an abort); < 0: '
         'never')
@@ -256,8 +256,12 @@ class SimNodeConfig:
                           gust_frequency_hz=float(self.wind_gust_frequency_hz),
                           seed=int(self.seed))
 
-    def autopilot_config(self, vehicle: VehicleConfig, floor_z: float) -> AutopilotConfig:
-        """Return the autopilot's settings (raises ValueError for a bad estimate error)."""
+    def autopilot_config(self, vehicle: VehicleConfig, floor_z: float,
+                         radio: PilotSwitchRadio | None = None) -> AutopilotConfig:
+        """Return the autopilot's settings (raises ValueError for a bad estimate error).
+
+        ``radio``: the pilot's radio it reports (:meth:`radio`), or None.
+        """
         return AutopilotConfig(
             url=str(self.mavlink_url), hover_thrust=vehicle.hover_thrust,
             signing_key_file=self.signing_key_file or None, noise_seed=int(self.seed),
@@ -269,14 +273,14 @@ class SimNodeConfig:
                 float(x) for x in self.attitude_estimate_offset_rad),
             attitude_noise_std=float(self.attitude_noise_std_rad),
             attitude_noise_tau_s=float(self.attitude_noise_tau_s),
-            radio=self.radio())
+            radio=radio)
 
     def radio(self) -> PilotSwitchRadio | None:
         """Return the pilot's RC input with its mission switch (None: no RC)."""
         if not self.pilot_switch_channel:
             return None
-        off = float(self.pilot_switch_off_s)
-        return PilotSwitchRadio(int(self.pilot_switch_channel), float(self.pilot_switch_on_s),
+        on, off = float(self.pilot_switch_on_s), float(self.pilot_switch_off_s)
+        return PilotSwitchRadio(int(self.pilot_switch_channel), on if on >= 0.0 else None,
                                 off if off >= 0.0 else None)
 
     def camera_faults(self) -> CameraFaults:

@@ -87,19 +87,20 @@ class SimDriver:
         self.port, self.log = port, log
         sim_config = cfg.sim_config(vehicle)
         self.firmware = None
+        self.radio = cfg.radio()       # the pilot's RC input (None: no RC), both autopilots
         if cfg.firmware:       # a real PX4 flies the plant; the sim relays the companion link
             start = (sim_config.initial_position_I if sim_config.initial_position_I is not None
                      else tuple(world.initial_position_I))
             yaw = (sim_config.initial_yaw if sim_config.initial_yaw is not None
                    else world.initial_yaw)
-            radio = cfg.radio()
             self.firmware = px4_lockstep(world, vehicle, int(cfg.firmware_instance),
                                          np.asarray(start, float), float(yaw),
-                                         sim_config.wind, int(cfg.seed), radio=radio)
+                                         sim_config.wind, int(cfg.seed), radio=self.radio)
             self.autopilot = CompanionRelay(str(cfg.mavlink_url), int(cfg.firmware_instance),
                                             boot_offset_ms=0)
         else:
-            self.autopilot = Autopilot(cfg.autopilot_config(vehicle, world.floor_z))
+            self.autopilot = Autopilot(cfg.autopilot_config(vehicle, world.floor_z,
+                                                            self.radio))
         self.products = graph_products()
         if self.firmware is not None:
             self.autopilot.graph_flies = self._graph_flies
@@ -144,6 +145,13 @@ class SimDriver:
                 f's, sim t = {self.sim.t:.3f} s): waited for again')
 
     # --- the tick ---
+    def flip_pilot_switch(self, on: bool) -> str:
+        """Flip the radio's mission switch now (sim time), as the pilot; '' or why not."""
+        if self.radio is None:
+            return 'no radio (pilot_switch_channel 0)'
+        self.radio.flip(on, self.sim.t)
+        return ''
+
     def tick(self) -> None:
         """Release what may go now, advance the simulation as the pacing allows, publish."""
         if not self.first_frame_hold.released and not self._first_frame_may_go():

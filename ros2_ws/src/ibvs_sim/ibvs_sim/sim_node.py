@@ -22,7 +22,7 @@ from geometry_msgs.msg import PolygonStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 from rosgraph_msgs.msg import Clock as ClockMsg
 from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
-from std_msgs.msg import String
+from std_msgs.msg import Bool, String
 
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from ibvs_common.dds_profile import use_dds_profile_here
@@ -88,6 +88,8 @@ class SimNode(Node):
                 self.create_subscription(msg_type, topic, self._product_callback(topic),
                                          qos_profile_sensor_data)
             self.create_subscription(DiagnosticArray, STATUS_TOPIC, self._on_status, reliable)
+        # the pilot's hand on the radio's mission switch (pilot_switch_channel)
+        self.create_subscription(Bool, 'sim/pilot_switch', self._on_pilot_switch, reliable)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.timer = self.create_timer(cfg.tick_period_s, self.driver.tick, clock=steady)
         self.create_timer(STATS_PERIOD_S, self._publish_stats, clock=steady)
@@ -106,6 +108,15 @@ class SimNode(Node):
                 f"{cfg.true_vehicle_file or cfg.vehicle_file or 'vehicle.yaml'})")
 
     # --- in ---
+    def _on_pilot_switch(self, msg: Bool) -> None:
+        """sim/pilot_switch: the pilot flips the radio's mission switch ON (true) or OFF."""
+        why = self.driver.flip_pilot_switch(bool(msg.data))
+        if why:
+            self.get_logger().error(f'sim/pilot_switch ignored: {why}')
+        else:
+            self.get_logger().info(f'pilot switch {"ON" if msg.data else "OFF"} at sim t = '
+                                   f'{self.sim.t:.3f} s')
+
     def _on_imu(self, msg: Imu) -> None:
         self.driver.note_imu(stamp_to_ns(msg.header.stamp))
 

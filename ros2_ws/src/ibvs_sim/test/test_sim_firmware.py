@@ -284,3 +284,9 @@ def test_pilot_radio_switch_off_then_on_at_its_mission_time_in_rc_channels():
     assert raw == [1500] * 6 + [1900, 1500] + [0xFFFF] * 10
     with pytest.raises(ValueError, match='channels 1-8'):
         PilotSwitchRadio(channel=9, on_at_s=1.0)
+    # no schedule: the pilot's flips (sim/pilot_switch); the last event by a time holds
+    hand = PilotSwitchRadio(channel=7, off_at_s=6.0)
+    hand.flip(True, 2.5)
+    assert [hand.switch_us(t) for t in (2.4, 2.5, 5.9, 6.0)] == [1100, 1900, 1900, 1100]
+    hand.flip(True, 7.0)
+    assert hand.switch_us(7.5) == 1900
