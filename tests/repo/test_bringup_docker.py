@@ -9,6 +9,7 @@ import re
 import shlex
 import xml.etree.ElementTree as ET
 
+import pytest
 import yaml
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -254,18 +255,28 @@ def test_camera_services_get_their_device_and_the_video_group():
         _default(services['camera-down']['devices'][0]).split(':')[0]
 
 
-def test_the_documented_native_install_matches_the_dockerfile_and_the_pins():
-    """docs/onboard.md section 1 (native Ubuntu 24.04): rosdep initialised and updated, the
-    same keys skipped as the Dockerfile, each skipped key's package pip-installed with
-    PIP_BREAK_SYSTEM_PACKAGES at requirements.txt's pin (issue 49 item 5)."""
-    doc = (ROOT / 'docs' / 'onboard.md').read_text()
-    block = doc[doc.index('## 1. Install'):doc.index('## 2.')]
+def _install_lines(path: Path, heading: str) -> list:
+    """The command lines of the first code block after ``heading`` (comments dropped)."""
+    doc = path.read_text()
+    block = doc[doc.index(heading):]
     block = block[block.index('```') + 3:]
     block = block[:block.index('```')].replace('\\\n', ' ')
-    lines = [ln.split('#')[0].strip() for ln in block.splitlines() if ln.strip()]
-    assert any(ln.startswith('sudo rosdep init') for ln in lines)
-    assert 'rosdep update' in lines
-    install = [ln for ln in lines if ln.startswith('rosdep install')]
+    return [ln.split('#')[0].strip() for ln in block.splitlines() if ln.strip()]
+
+
+@pytest.mark.parametrize('path, heading, init', [
+    ('docs/onboard.md', '## 1. Install', True),
+    ('README.md', '## On a ROS 2 Jazzy install', False)])
+def test_the_documented_native_install_matches_the_dockerfile_and_the_pins(path, heading, init):
+    """docs/onboard.md section 1 and the README's Jazzy block (native Ubuntu 24.04): rosdep
+    initialised and updated (onboard.md), the same keys skipped as the Dockerfile, each
+    skipped key's package pip-installed with PIP_BREAK_SYSTEM_PACKAGES at requirements.txt's
+    pin (issue 49 item 5)."""
+    lines = _install_lines(ROOT / path, heading)
+    if init:
+        assert any(ln.startswith('sudo rosdep init') for ln in lines)
+        assert 'rosdep update' in lines
+    install = [ln for ln in lines if 'rosdep install' in ln]
     assert len(install) == 1 and '--from-paths src' in install[0]
     doc_skipped = set(re.search(r'--skip-keys "([^"]+)"', install[0]).group(1).split())
     run = ' '.join(a for op, a in _instructions() if op == 'RUN')
