@@ -48,6 +48,8 @@ import time
 
 import numpy as np
 
+from ibvs_common.core.modes import mode_name
+
 HOVER_S = 1.0                    # s of hover at the start pose before the flight
 START_AT_S = 1.0                 # ibvs/start at this replay time
 WARMUP_S = 1.0                   # s after the start not counted (engage, first flows)
@@ -58,7 +60,6 @@ SERIAL_BAUD = 921600
 GRAPH_CORE, HARNESS_CORE = 1, 0
 ALL_CORES = os.sched_getaffinity(0)
 CACHE_DIR = os.path.join('results', 'bench_onboard')
-MODE_NAMES = {0: 'IDLE', 1: 'WINDOW', 2: 'CROSSING', 3: 'LANDING', 4: 'SHUTDOWN', 5: 'FAILSAFE'}
 # (name, keyword arguments of run_once)
 CASES = (
     ('punctual 50 Hz', {}),
@@ -422,7 +423,7 @@ def summarise(out: dict, rep: Replayer, got: list, boot_to_sys_ns: int, stamps: 
                rate_held_hz=len(answered) / span_s,
                max_stride=max((s for _, _, s in rep.rates), default=1),
                diagnostics=dict(rep.diagnostics),
-               modes=[(MODE_NAMES.get(m, str(m)), (ns - t0_ns) / 1e9 - START_AT_S)
+               modes=[(mode_name(m), (ns - t0_ns) / 1e9 - START_AT_S)
                       for ns, m in modes])
     return out
 

@@ -26,6 +26,7 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle, PadLayout
 from ibvs_harness import plots, report
 from ibvs_common.core.mavlink_connection import free_udp_port
 from ibvs_common.core.modes import mode_name
+from ibvs_control.core.pilot_input import PilotInput
 from ibvs_harness.scenario import (AUTOPILOTS, DEFAULT_IMAGE_EVERY, FAILSAFE_MODE, finish,
                                    IDLE_MODE, MAX_SIM_TIME_S, missing_executables,
                                    prepare_out_dir, random_initial_position, run_block,
@@ -188,17 +189,16 @@ START_WAIT_S = 20.0    # s of wall clock after START_AT_SIM_S for the supervisor
 START_AT_SIM_S = 1.0
 #: --pilot-switch: the RC channel of the mission switch (the sim's radio and the bridge)
 PILOT_SWITCH_CHANNEL = 7
-PILOT_INPUT_OFF = 1                # ibvs/pilot_input: the bridge read the switch OFF
 
 
 def flip_pilot_switch(monitor: ScenarioMonitor, spin, deadline: float) -> None:
     """Flip the mission switch ON as the pilot, after the preflight's go (``--pilot-switch``).
 
     As a pilot looks at the switch before flipping it, this waits until the bridge has read
-    it OFF (``ibvs/pilot_input`` 1): a switch ON that the graph never saw OFF starts nothing.
+    it OFF (``ibvs/pilot_input``): a switch ON that the graph never saw OFF starts nothing.
     """
     from std_msgs.msg import Bool
-    while PILOT_INPUT_OFF not in monitor.pilot_inputs:
+    while PilotInput.OFF not in monitor.pilot_inputs:
         if time.monotonic() > deadline:
             raise _Stop("the bridge never read the pilot's switch OFF (ibvs/pilot_input; see "
                         'logs/mavlink_bridge.log)')

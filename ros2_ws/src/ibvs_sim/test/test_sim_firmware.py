@@ -290,3 +290,17 @@ def test_pilot_radio_switch_off_then_on_at_its_mission_time_in_rc_channels():
     assert [hand.switch_us(t) for t in (2.4, 2.5, 5.9, 6.0)] == [1100, 1900, 1900, 1100]
     hand.flip(True, 7.0)
     assert hand.switch_us(7.5) == 1900
+
+
+def test_a_pilot_switch_flip_without_a_radio_is_refused_with_its_reason():
+    """sim/pilot_switch with pilot_switch_channel 0: the sim node logs the reason (no crash);
+    with a radio the flip lands at the sim's time."""
+    from types import SimpleNamespace
+    from ibvs_sim.core.radio import PilotSwitchRadio
+    from ibvs_sim.driver import SimDriver
+    no_radio = SimpleNamespace(radio=None, sim=SimpleNamespace(t=2.0))
+    assert 'no radio' in SimDriver.flip_pilot_switch(no_radio, True)
+    radio = PilotSwitchRadio(channel=7)
+    with_radio = SimpleNamespace(radio=radio, sim=SimpleNamespace(t=2.0))
+    assert SimDriver.flip_pilot_switch(with_radio, True) == ''
+    assert (radio.switch_us(1.99), radio.switch_us(2.0)) == (1100, 1900)
