@@ -366,7 +366,7 @@ def test_a_shared_camera_applies_its_time_offset_once_and_refuses_another(contex
     try:
         shared, got = SharedCameraInputs(), []
 
-        def stamps(images):
+        def stamps(images, taken_ns):
             got.extend(m.header.stamp.nanosec for m in images)
 
         first = shared.attach(node, camera, 'raw', stamps, 'a')
@@ -379,7 +379,59 @@ def test_a_shared_camera_applies_its_time_offset_once_and_refuses_another(contex
         assert got == [5_000_000, 5_000_000]             # 1 ms + 4 ms, not + 8 ms
         other = dataclasses.replace(camera, time_offset_s=0.0)
         with pytest.raises(ValueError, match='time_offset_s 0.0, but a in the same process'):
-            shared.attach(node, other, 'raw', got.append, 'c')
-        assert shared.attach(node, other, 'compressed', got.append, 'd') is not first
+            shared.attach(node, other, 'raw', stamps, 'c')
+        assert shared.attach(node, other, 'compressed', stamps, 'd') is not first
+    finally:
+        node.destroy_node()
+
+
+def test_a_shared_camera_second_node_computes_the_frames_the_first_computed(context):
+    """The two nodes of a shared camera judge an image's age as it was taken, not at their turn.
+
+    On a slow computer the first node's processing outlasts a frame period. Judged at its own
+    turn, the second node found every image a period older than the camera delivers, took it
+    as superseded by the next one and skipped it: the wall flow computed frames whose window
+    never came (a sixth of a core: "window stale" in WINDOW, docs/journal/sensors.md).
+    """
+    import time
+    from ibvs_common.core.config import load_vehicle
+    from ibvs_common.core.modes import InputKind
+    from ibvs_common.node_common import ns_to_stamp
+    from ibvs_perception.camera_input import SharedCameraInputs
+    from ibvs_perception.config import ImageInputConfig
+    from ibvs_perception.gated_images import GatedImages
+    from sensor_msgs.msg import Image
+    camera = load_vehicle().cameras['front']
+    node = rclpy.create_node(f'shared_age_{TAG}', context=context)
+    period_ns, delivery_ns = 20_000_000, 30_000_000
+    try:
+        computed = {'first': [], 'second': []}
+        busy = []                        # the first node outlasts a frame period once set
+
+        def first_node(msg, publish):
+            computed['first'].append(msg.header.stamp.nanosec)
+            if busy:
+                time.sleep(2.5 * period_ns / 1e9)
+
+        def second_node(msg, publish):
+            computed['second'].append(msg.header.stamp.nanosec)
+
+        config = ImageInputConfig(mode_gating=False)
+        nodes = [GatedImages(node, kind, fn, name, config, 'front', period_ns)
+                 for kind, fn, name in ((InputKind.FLOW_FRONT, first_node, 'first'),
+                                        (InputKind.WINDOW, second_node, 'second'))]
+        shared = SharedCameraInputs()
+        camera_in = shared.attach(node, camera, 'raw', nodes[0].on_images, 'first')
+        shared.attach(node, camera, 'raw', nodes[1].on_images, 'second')
+        for k in range(30):
+            if k == 15:                  # the delivery floor is learnt: the first node slows
+                busy.append(True)
+            msg = Image()                # delivered 30 ms after its stamp
+            msg.header.frame_id = camera.frame_id
+            ns_to_stamp(node.get_clock().now().nanoseconds - delivery_ns, msg.header.stamp)
+            camera_in._deliver([msg])
+        assert len(computed['first']) == 30
+        assert computed['second'] == computed['first']
+        assert [g.counts.superseded for g in nodes] == [0, 0]
     finally:
         node.destroy_node()

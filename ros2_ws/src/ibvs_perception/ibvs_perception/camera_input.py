@@ -66,22 +66,23 @@ def image_topic(camera_name: str, transport: str) -> str:
 class CameraInput:
     """One camera's images, converted and time-corrected, and its CameraInfo, for consumers.
 
-    ``handler(images)`` and ``on_info(camera_info)`` are the first consumer's;
+    ``handler(images, taken_ns)`` and ``on_info(camera_info)`` are the first consumer's;
     :meth:`add_consumer` adds another one (a second node of the same process). ``images`` is
     the list of images taken at once, oldest first: the one the executor delivered and those
     already waiting behind it (:func:`ibvs_common.waiting_messages.take_waiting`), so that a
-    consumer that is behind can compute the newest and skip the others.
+    consumer that is behind can compute the newest and skip the others; ``taken_ns`` the
+    time they were taken (ns, the node's ROS clock).
     """
 
     def __init__(self, node: Node, camera: CameraConfig, transport: str,
-                 handler: Callable[[list[Image]], None], log_prefix: str,
+                 handler: Callable[[list[Image], int], None], log_prefix: str,
                  on_info: Callable[[CameraInfo], None] | None = None) -> None:
         if transport not in TRANSPORTS:
             raise ValueError(f"parameter image_transport must be one of {TRANSPORTS}, got "
                              f'{transport!r}')
         self.node, self.prefix = node, log_prefix
         self.camera_name, self.transport = camera.name, transport
-        self.handlers: list[Callable[[list[Image]], None]] = [handler]
+        self.handlers: list[Callable[[list[Image], int], None]] = [handler]
         self.info_handlers: list[Callable[[CameraInfo], None]] = \
             [] if on_info is None else [on_info]
         self.frame_id = camera.frame_id
@@ -102,7 +103,7 @@ class CameraInput:
                                                          self._on_compressed, IMAGE_QOS)
         self._silence_timer = node.create_timer(SILENCE_CHECK_S, self._check_silence)
 
-    def add_consumer(self, handler: Callable[[list[Image]], None],
+    def add_consumer(self, handler: Callable[[list[Image], int], None],
                      on_info: Callable[[CameraInfo], None] | None = None) -> None:
         """Hand every image (and CameraInfo) to ``handler`` (``on_info``) too, after the others."""
         self.handlers.append(handler)
@@ -128,7 +129,14 @@ class CameraInput:
             self._deliver(images)
 
     def _deliver(self, images: list[Image]) -> None:
-        """Correct and check each image taken at once, then hand the list to every consumer."""
+        """Correct and check each image taken at once, then hand the list to every consumer.
+
+        Every consumer also gets the time they were taken (ns, ROS clock): an image's age is
+        judged as taken, not when a consumer's turn comes after the others' processing (the
+        second consumer would otherwise find each image a processing time older and skip the
+        frames the first one computed: a frame with half its products).
+        """
+        taken_ns = self.node.get_clock().now().nanoseconds
         for msg in images:
             self.received += 1
             if msg.header.frame_id != self.frame_id:
@@ -139,7 +147,7 @@ class CameraInput:
             if self.offset_ns:
                 ns_to_stamp(stamp_to_ns(msg.header.stamp) + self.offset_ns, msg.header.stamp)
         for handler in self.handlers:
-            handler(images)
+            handler(images, taken_ns)
 
     def _check_silence(self) -> None:
         """Say why nothing comes, once every SILENCE_CHECK_S, until an image has come."""
@@ -164,7 +172,7 @@ class SharedCameraInputs:
         self.inputs: dict[tuple[str, str], CameraInput] = {}   # (image, info) topics
 
     def attach(self, node: Node, camera: CameraConfig, transport: str,
-               handler: Callable[[list[Image]], None], log_prefix: str,
+               handler: Callable[[list[Image], int], None], log_prefix: str,
                on_info: Callable[[CameraInfo], None] | None = None) -> CameraInput:
         """Return the process's input of this camera, with ``handler`` and ``on_info`` added.
 
@@ -192,7 +200,7 @@ class SharedCameraInputs:
 
 
 def camera_input(node: Node, camera: CameraConfig, transport: str,
-                 handler: Callable[[list[Image]], None], log_prefix: str,
+                 handler: Callable[[list[Image], int], None], log_prefix: str,
                  on_info: Callable[[CameraInfo], None] | None = None,
                  shared: SharedCameraInputs | None = None) -> CameraInput:
     """Subscribe a node to a camera: through ``shared`` when given (composed), else its own."""

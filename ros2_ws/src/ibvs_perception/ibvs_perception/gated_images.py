@@ -68,20 +68,31 @@ class GatedImages:
         """Return the time between two frames this node computes: period times stride (s)."""
         return self.grid.period_ns * self.grid.stride / 1e9
 
-    def on_images(self, images: list[Image]) -> None:
+    def on_images(self, images: list[Image], taken_ns: int | None = None) -> None:
         """Take the images taken at once (oldest first), each through :meth:`on_image`.
 
         A grid image with a newer grid image behind it in ``images`` is superseded.
+        ``taken_ns``: when they were taken (ns, ROS clock; None: now).
         """
         on_grid = [self.grid.on_grid(stamp_to_ns(m.header.stamp)) for m in images]
         newest = max((i for i, ok in enumerate(on_grid) if ok), default=-1)
         for i, msg in enumerate(images):
-            self.on_image(msg, newer_waiting=i < newest)
+            self.on_image(msg, newer_waiting=i < newest, taken_ns=taken_ns)
 
-    def on_image(self, msg: Image, newer_waiting: bool = False) -> None:
-        """Take one image; ``newer_waiting``: a newer grid image has been taken behind it."""
+    def on_image(self, msg: Image, newer_waiting: bool = False,
+                 taken_ns: int | None = None) -> None:
+        """Take one image; ``newer_waiting``: a newer grid image has been taken behind it.
+
+        Its age is judged at ``taken_ns`` (ns, ROS clock; None: now), the time the camera
+        input took it: in a process whose camera feeds two nodes
+        (:class:`~ibvs_perception.camera_input.SharedCameraInputs`), the second one's turn
+        comes a processing time later, and judged then it would skip every frame the first
+        one computes on a slow computer.
+        """
         stamp_ns = stamp_to_ns(msg.header.stamp)
-        age_ns = self.clock.now().nanoseconds - stamp_ns
+        if taken_ns is None:
+            taken_ns = self.clock.now().nanoseconds
+        age_ns = int(taken_ns) - stamp_ns
         self.latest.observe(age_ns)
         if not self.grid.on_grid(stamp_ns):
             self.counts.off_grid += 1
