@@ -305,10 +305,12 @@ class ModeSupervisorNode(Node):
         """Count a complete frame and let the governor see it."""
         self._stats.frame(frame.stamp_ns)
         self._newest_ns = max(self._newest_ns, frame.stamp_ns)
-        self._governor_step(frame, complete=True)
+        self._governor_step(frame, complete=True,
+                            lag_s=(self._now_ns() - frame.stamp_ns) / NS_PER_S)
 
-    def _governor_step(self, frame: Frame, complete: bool) -> None:
-        stride = self._governor.observe(frame.stamp_ns / NS_PER_S, complete)
+    def _governor_step(self, frame: Frame, complete: bool, lag_s: float | None = None) -> None:
+        stride = self._governor.observe(frame.stamp_ns / NS_PER_S, complete, lag_s,
+                                        1.0 / self._rate_hz[frame.tag])
         if stride is None:
             return
         camera = frame.tag
@@ -319,7 +321,7 @@ class ModeSupervisorNode(Node):
         self.get_logger().info(f'frame stride {old} -> {stride} at t = '
                                f'{frame.stamp_ns / NS_PER_S:.3f} s: the {camera.value} camera\'s '
                                f'every {stride}. frame ({rate / stride:.1f} Hz) '
-                               f'{"(frames were skipped)" if stride > old else "(none skipped)"}')
+                               f'({self._governor.reason})')
 
     def _publish_status(self, stamp_ns: int, camera: Camera | None = None) -> None:
         """Publish the mode of frame ``stamp_ns`` (``camera``: its camera) or of a time."""

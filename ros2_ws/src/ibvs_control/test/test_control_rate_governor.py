@@ -1,4 +1,5 @@
 """The rate governor: a larger stride when frames are skipped, a smaller one tried later."""
+import numpy as np
 import pytest
 
 from ibvs_control.core.rate_governor import GovernorConfig, RateGovernor, SupervisorGrids
@@ -121,3 +122,48 @@ def test_supervisor_grids_expect_a_larger_stride_at_once_and_a_smaller_one_after
     grids.set_stride('front', 4, 400 * MS, lead_ns=100 * MS)
     grids.reset()
     assert grids.stride('front') == 1 and grids.on_grid('front', 420 * MS)
+
+
+def _at_stride_2_until_a_try(gov, lag_s, period=0.02):
+    """Skip 3 frames (stride 2), then complete ones of lag ``lag_s`` until the try of 1."""
+    run(gov, 0.0, 3, False)
+    t = 0.04
+    while gov.stride == 2:
+        t += 2 * period
+        gov.observe(t, True, lag_s, period)
+    return t
+
+
+def test_a_try_ends_at_its_first_frame_that_falls_half_a_period_behind():
+    # a slow computer at stride 2 holds each frame 45 ms after its stamp; at stride 1 every
+    # frame costs more than its 20 ms, so each completes 8 ms later than the one before: the
+    # try ends when one is 10 ms (half the try's period) behind, before any frame is skipped
+    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0))
+    t = _at_stride_2_until_a_try(gov, 0.045)
+    assert gov.stride == 1
+    lags = [0.045 + 0.008 * k for k in range(1, 6)]
+    out = [gov.observe(t + 0.02 * k, True, lag, 0.02) for k, lag in enumerate(lags, 1)]
+    assert out == [None, 2, None, None, None]            # 0.061 - 0.045 >= 0.010
+    assert gov.stride == 2 and gov.reason == 'the try fell behind'
+    # a failed try: the next waits twice as long
+    t2 = t + 0.04
+    while gov.stride == 2:
+        t2 += 0.04
+        gov.observe(t2, True, 0.045, 0.02)
+    assert t2 - (t + 0.04) == pytest.approx(2.0, abs=0.05)
+
+
+def test_a_try_that_keeps_the_lag_of_the_frames_before_it_holds():
+    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0))
+    t = _at_stride_2_until_a_try(gov, 0.045)
+    lags = 0.045 + 0.009 * np.sin(np.arange(200))         # noise below half a period (10 ms)
+    out = [gov.observe(t + 0.02 * k, True, lag, 0.02) for k, lag in enumerate(lags, 1)]
+    assert all(s is None for s in out) and gov.stride == 1
+
+
+def test_the_lag_rule_can_be_switched_off_and_needs_the_lag():
+    for cfg, lag in ((GovernorConfig(stride_down_hold_s=1.0, stride_try_lag_periods=0.0), 0.5),
+                     (GovernorConfig(stride_down_hold_s=1.0), None)):
+        gov = RateGovernor(cfg)
+        t = _at_stride_2_until_a_try(gov, None if lag is None else 0.045)
+        assert gov.observe(t + 0.02, True, lag, 0.02) is None and gov.stride == 1

@@ -7,7 +7,10 @@ frames of the mode's camera and, when the graph cannot hold their rate (several 
 row: it fell behind; or many among the recent ones), doubles the frame stride, so that every
 node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when none is
 skipped for a while it tries half the stride again: the first skipped frame of the try ends it
-(``stride_try_skipped``), and the next try waits twice as long. A lone
+(``stride_try_skipped``), or its first frame completed later than the frames before it by
+half a frame period or more (``stride_try_lag_periods``: the graph is falling behind; on a
+slow computer a try that waits for a skipped frame has piled up a backlog of several frames,
+and forces hundreds of ms old), and the next try waits twice as long. A lone
 skipped frame (a late delivery, a busy moment of the computer) costs that frame; a doubled
 stride costs half of them for seconds, so it does not double the stride.
 :class:`SupervisorGrids` is the supervisor's view of which frames to expect. Times are frame
@@ -17,6 +20,8 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+
+import numpy as np
 
 from ibvs_common.core.frame_grid import FrameGrid, MAX_STRIDE
 from ibvs_common.core.params import param
@@ -41,6 +46,10 @@ class GovernorConfig:
         1, 'frames: this many skipped while a smaller stride is on trial end the trial at once '
         '(back to the stride that held): a trial that does not fit must not last until the '
         'overload rules see it, the graph falls behind meanwhile', 1, 100)
+    stride_try_lag_periods: float = param(
+        0.5, 'frame periods (of the stride on trial): a frame of the try completed this much '
+        'later after its stamp (ROS clock) than the median of the frames before the try ends '
+        'the try: the graph is falling behind; 0 = off (only skipped frames end a try)', 0.0)
     stride_down_hold_s: float = param(
         2.0, 's (frame stamps): no frame skipped for this long at a stride: try half of it '
         '(after a try that failed, twice as long each time, up to stride_down_hold_max_s)',
@@ -68,31 +77,55 @@ class RateGovernor:
         self.config = config
         self.stride = 1
         self.changes = 0
+        self.reason = ''                # why the stride last changed, for the log
         self._recent: deque[bool] = deque(maxlen=config.stride_window_frames)
         self._t_change: float | None = None
         self._hold_s = config.stride_down_hold_s
         self._probing = False           # the last change was a try of a smaller stride
+        self._lags: deque[float] = deque(maxlen=config.stride_window_frames)
+        self._lag_before: float | None = None   # median lag of the frames before the try
 
-    def observe(self, t: float, complete: bool) -> int | None:
-        """Take one frame of the current grid (stamp t); return the new stride if it changed."""
+    def observe(self, t: float, complete: bool, lag_s: float | None = None,
+                period_s: float | None = None) -> int | None:
+        """Take one frame of the current grid (stamp t); return the new stride if it changed.
+
+        ``lag_s``: for a complete frame, the time from its stamp to its completion (s, ROS
+        clock: camera delivery and the graph's processing); ``period_s``: the camera's frame
+        period (s). Without them only skipped frames end a try.
+        """
         cfg = self.config
         if self._t_change is None:
             self._t_change = t
         self._recent.append(bool(complete))
         skipped = sum(1 for ok in self._recent if not ok)
-        if self._probing and skipped >= cfg.stride_try_skipped:
+        lagging = self._probing and self._lagging(lag_s, period_s)
+        if self._probing and (skipped >= cfg.stride_try_skipped or lagging):
             self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
+            self.reason = 'the try fell behind' if lagging else 'frames were skipped'
             return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
         if self._overloaded(skipped) and self.stride < cfg.max_frame_stride:
             if self._probing:       # the smaller stride did not hold: wait longer next time
                 self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
+            self.reason = 'frames were skipped'
             return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
         if self._probing and t - self._t_change >= self._hold_s:
             self._probing = False   # the try held: the next one waits the shortest time
             self._hold_s = cfg.stride_down_hold_s
+        if complete and lag_s is not None and not self._probing:
+            self._lags.append(float(lag_s))
         if self.stride > 1 and skipped == 0 and t - self._t_change >= self._hold_s:
+            self._lag_before = float(np.median(self._lags)) if self._lags else None
+            self.reason = 'none skipped: a try'
             return self._change(t, self.stride // 2, probing=True)
         return None
+
+    def _lagging(self, lag_s: float | None, period_s: float | None) -> bool:
+        """Whether a frame of the try completed later than those before it (module doc)."""
+        cfg = self.config
+        if lag_s is None or period_s is None or self._lag_before is None \
+                or cfg.stride_try_lag_periods <= 0.0:
+            return False
+        return lag_s - self._lag_before >= cfg.stride_try_lag_periods * self.stride * period_s
 
     def _overloaded(self, skipped: int) -> bool:
         """Whether the recent frames say the graph cannot hold this stride."""
@@ -107,6 +140,7 @@ class RateGovernor:
     def _change(self, t: float, stride: int, probing: bool) -> int:
         self.stride, self._t_change, self._probing = stride, t, probing
         self._recent.clear()
+        self._lags.clear()
         self.changes += 1
         return stride
 
