@@ -29,7 +29,8 @@ and the modes its images lead it through.
 Cases (``--case``, repeatable; default: all): camera delivery ``--latency-ms`` after the
 stamp (with ``--jitter-ms``), ``--rate-hz`` 50 or 30, the graph ``--cpu`` full (both cores),
 one (pinned to one core), half (one core shared with one busy process), third (two busy
-processes) or shared (both cores, one busy process on each: ``--layout processes`` spreads
+processes), sixth (five: below what the graph needs, to see how it fails) or shared (both
+cores, one busy process on each: ``--layout processes`` spreads
 the nodes over them), and the autopilot link over UDP or a serial cable (two pseudo-terminals at
 921600 baud, ibvs_common.testing.SerialCable).
 
@@ -69,13 +70,16 @@ CASES = (
     ('one core', {'latency_ms': 30.0, 'cpu': 'one'}),
     ('half a core', {'latency_ms': 30.0, 'cpu': 'half'}),
     ('a third of a core', {'latency_ms': 30.0, 'cpu': 'third'}),
+    ('a sixth of a core', {'latency_ms': 30.0, 'cpu': 'sixth'}),
     ('two cores shared', {'latency_ms': 30.0, 'cpu': 'shared'}),
 )
 # the cores of the competing busy processes, per CPU case ('shared': one on each core, the
 # graph and the harness on both: a 2-core companion computer that also runs other work)
-BUSY = {'full': (), 'one': (), 'half': (GRAPH_CORE,), 'third': (GRAPH_CORE, GRAPH_CORE),
+BUSY = {'full': (), 'one': (), 'half': (GRAPH_CORE,), 'third': (GRAPH_CORE,) * 2,
+        'sixth': (GRAPH_CORE,) * 5,
         'shared': (HARNESS_CORE, GRAPH_CORE)}
-PINNED = ('one', 'half', 'third')     # the graph on GRAPH_CORE, the harness on HARNESS_CORE
+# the graph on GRAPH_CORE, the harness on HARNESS_CORE
+PINNED = ('one', 'half', 'third', 'sixth')
 
 
 # --- the flight ------------------------------------------------------------------------------
@@ -306,8 +310,11 @@ def cpu_ticks(pids: dict) -> dict:
 
 def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
              latency_ms: float = 0.0, jitter_ms: float = 0.0, cpu: str = 'full',
-             link: str = 'udp', layout: str = 'composed', seed: int = 0) -> dict:
-    """One replay of the flight through a fresh onboard graph; return its figures."""
+             link: str = 'udp', layout: str = 'composed', seed: int = 0, run: int = 0) -> dict:
+    """One replay of the flight through a fresh onboard graph; return its figures.
+
+    The nodes' logs go to ``results/bench_onboard/<case>_r<run>/``.
+    """
     from ibvs_bringup.runner import ProcessRunner
     from ibvs_common.core.mavlink_connection import free_udp_port
     from ibvs_common.testing import SerialCable
@@ -327,7 +334,8 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
     for p in loads:
         p.start()
     pin = ['taskset', '-c', str(GRAPH_CORE)] if cpu in PINNED else []
-    runner = ProcessRunner(log_dir=os.path.join(CACHE_DIR, name.replace(' ', '_')))
+    case_dir = os.path.join(CACHE_DIR, f"{name.replace(' ', '_')}_r{run}")
+    runner = ProcessRunner(log_dir=case_dir)
     os.sched_setaffinity(0, {HARNESS_CORE} if cpu in PINNED else ALL_CORES)
     rep = Replayer()
     rng = np.random.default_rng(seed)
@@ -391,12 +399,23 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
             if cable is not None:
                 out['serial_bytes'] = list(cable.moved)
                 cable.close()
-    case_dir = os.path.join(CACHE_DIR, name.replace(' ', '_'))
+    out['failsafe'] = failsafe_reasons(case_dir)
     np.savez(os.path.join(case_dir, 'replay.npz'), stamps=np.array(stamps, dtype=np.int64),
              delivered=np.array([delivered[s] for s in stamps], dtype=np.int64),
              setpoints=np.array(got, dtype=np.int64).reshape(-1, 2),
              boot_to_sys_ns=boot_to_sys_ns, t0_ns=t0_ns)
     return summarise(out, rep, got, boot_to_sys_ns, stamps, delivered, t0_ns)
+
+
+def failsafe_reasons(log_dir: str) -> list:
+    """Return the supervisor's reasons for FAILSAFE, from the nodes' logs in ``log_dir``."""
+    reasons = []
+    for log in sorted(os.listdir(log_dir)):
+        if log.endswith('.log'):
+            with open(os.path.join(log_dir, log), errors='replace') as f:
+                reasons += [line.split(' s: ', 1)[-1].strip() for line in f
+                            if '[mode_supervisor]: mode ' in line and '-> FAILSAFE at' in line]
+    return reasons
 
 
 def summarise(out: dict, rep: Replayer, got: list, boot_to_sys_ns: int, stamps: list,
@@ -458,7 +477,8 @@ def report(r: dict) -> None:
         off = 100.0 * np.mean(np.abs(err) > MATCH_NS / 1e6)
         print(f'    setpoint time - frame stamp: median {np.median(err):+.2f} ms, {off:.0f} % '
               f'beyond {MATCH_NS / 1e6:g} ms (the bridge\'s TIMESYNC estimate)')
-    print('    modes: ' + ' -> '.join(f'{m} {t:+.2f} s' for m, t in r['modes']))
+    print('    modes: ' + ' -> '.join(f'{m} {t:+.2f} s' for m, t in r['modes'])
+          + ''.join(f' (FAILSAFE: {why})' for why in r.get('failsafe', ())))
     print_diagnostics(r.get('diagnostics', {}))
     cpu = r.get('cpu_pct', {})
     print('    CPU (% of one core): ' + ', '.join(f'{n} {v:.0f}' for n, v in cpu.items())
@@ -518,7 +538,7 @@ def main(argv: list | None = None) -> int:
 
 def run_cases(cases: list, args, flights: dict, frames: dict) -> None:
     """Each case once per repeat, rendering each camera rate's frames once."""
-    for _ in range(args.repeats):
+    for run in range(args.repeats):
         for name, kw in cases:
             rate = kw.get('rate_hz', 50.0)
             if rate not in flights:
@@ -527,7 +547,8 @@ def run_cases(cases: list, args, flights: dict, frames: dict) -> None:
                 frames[rate] = render(flights[rate], rate, args.smoke)
                 print(f'{len(flights[rate]["r"])} frames at {rate:g} Hz ready '
                       f'({time.monotonic() - t0:.1f} s)')
-            report(run_once(name, flights[rate], frames[rate], layout=args.layout, **kw))
+            report(run_once(name, flights[rate], frames[rate], layout=args.layout, run=run,
+                            **kw))
 
 
 if __name__ == '__main__':
