@@ -172,6 +172,7 @@ class ForceControllerNode(Node):
 
     def _on_deadline(self) -> None:
         self._imu.take()
+        self._products.take_waiting()     # products that came, queued behind other callbacks
         self._release()
 
     def _release(self) -> None:

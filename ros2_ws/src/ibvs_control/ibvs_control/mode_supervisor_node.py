@@ -232,6 +232,7 @@ class ModeSupervisorNode(Node):
 
     def _on_deadline(self) -> None:
         self._imu.take()
+        self._products.take_waiting()     # products that came, queued behind other callbacks
         self._release()
 
     def _release(self) -> None:

@@ -14,6 +14,12 @@ keep last 2), validates each message (:func:`~ibvs_control.core.frame_inputs.che
 
 ``err`` is '' or why the message was refused (the product then counts as "not detected").
 What a product means for a frame is the node's business; this piece only converts messages.
+
+:meth:`FrameProductSubscriptions.take_waiting` hands over the products already waiting in the
+readers, for a frame deadline to judge what has arrived: in a busy process (composed, a slow
+computer) a product's event can wait behind image callbacks until after its frame's deadline,
+and the frame was skipped with its product in the reader (a third of a core: the first floor
+flows of CROSSING, 2026-12-04).
 """
 from __future__ import annotations
 
@@ -26,6 +32,7 @@ from sensor_msgs.msg import JointState
 from ibvs_common.core.modes import InputKind
 from ibvs_common.node_common import (
     pad_group_names, pad_group_weights, polygon_points, PRODUCT_QOS, stamp_to_ns, vector3)
+from ibvs_common.waiting_messages import take_waiting
 from ibvs_control.core.frame_inputs import check_bearings, check_flow, PadPairing
 
 LANDMARKS_PER_GROUP = 4
@@ -38,15 +45,22 @@ class FrameProductSubscriptions:
     def __init__(self, node: Node, add: AddProduct) -> None:
         self._add = add
         self.pad_pairing = PadPairing(LANDMARKS_PER_GROUP)
-        node.create_subscription(PolygonStamped, 'window/corners', self._on_window,
-                                 PRODUCT_QOS)
-        node.create_subscription(PolygonStamped, 'pad/landmarks', self._on_landmarks,
-                                 PRODUCT_QOS)
-        node.create_subscription(JointState, 'pad/groups', self._on_groups, PRODUCT_QOS)
+        self.taken_waiting = 0              # products handed over by take_waiting
+        topics = [(PolygonStamped, 'window/corners', self._on_window),
+                  (PolygonStamped, 'pad/landmarks', self._on_landmarks),
+                  (JointState, 'pad/groups', self._on_groups)]
         for kind, camera in ((InputKind.FLOW_FRONT, 'front'), (InputKind.FLOW_DOWN, 'down')):
-            node.create_subscription(Vector3Stamped, f'{camera}_camera/translational_flow',
-                                     lambda msg, kind=kind: self._on_flow(kind, msg),
-                                     PRODUCT_QOS)
+            topics.append((Vector3Stamped, f'{camera}_camera/translational_flow',
+                           lambda msg, kind=kind: self._on_flow(kind, msg)))
+        self._subscriptions = [(node.create_subscription(msg_type, topic, handler, PRODUCT_QOS),
+                                handler) for msg_type, topic, handler in topics]
+
+    def take_waiting(self) -> None:
+        """Hand over every product already waiting in the readers (call on the node's thread)."""
+        for subscription, handler in self._subscriptions:
+            for msg in take_waiting(subscription):
+                self.taken_waiting += 1
+                handler(msg)
 
     def _on_window(self, msg: PolygonStamped) -> None:
         bearings, err = check_bearings(polygon_points(msg), expected=4)

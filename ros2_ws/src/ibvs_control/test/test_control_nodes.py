@@ -544,6 +544,33 @@ def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clo
     assert stamps_of(feed.forces[1:]) == [int(round(t3 * 1e9))]
 
 
+def test_a_deadline_takes_the_products_waiting_in_the_readers_first(ctx):
+    """A product in its reader when the frame's deadline timer runs completes the frame.
+
+    In a busy process the product's own event may wait behind image callbacks until after
+    the deadline; the deadline takes what has arrived before judging the frame (here the
+    deadline runs before any spin took the flow: answered, not skipped).
+    """
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, '8', use_sim_time=True, frame_deadline_s=0.04)
+    xi = np.array([-2.0, 0.1, -1.82])
+    t = 5.0
+    feed.clock.publish(Clock(clock=stamp(t)))
+    spin_for(executor, 0.3)
+    feed.imu.publish(imu_msg(t))
+    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+    status(feed, t, 1)
+    spin_for(executor, 0.3)
+    assert feed.forces == [] and fc.skipped == 0          # WINDOW waits for its front flow
+    feed.front.publish(flow_msg(t, np.zeros(3)))
+    time.sleep(0.1)                                       # in the reader, not taken
+    taken = fc._products.taken_waiting
+    fc._on_deadline()
+    assert fc._products.taken_waiting == taken + 1
+    assert spin_until(executor, lambda: len(feed.forces) == 1, 2.0) and fc.skipped == 0
+    assert stamps_of(feed.forces) == [int(round(t * 1e9))]
+
+
 def test_controller_hands_a_switch_to_an_unsynchronised_camera_over_to_its_next_frame(ctx):
     """WINDOW -> CROSSING decided on a front frame: the floor flow has no image of its stamp.
 
