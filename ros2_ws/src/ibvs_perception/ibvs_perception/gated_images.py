@@ -48,6 +48,7 @@ class GatedImages:
         self.prefix = log_prefix
         self.camera = camera
         self.grid = FrameGrid(int(period_ns))
+        self._before: tuple[FrameGrid, int] | None = None   # the grid before a smaller stride
         self.counts = ImageCounts()
         self.timer = ProcessingTimer()
         self._last_index: int | None = None
@@ -74,7 +75,7 @@ class GatedImages:
         A grid image with a newer grid image behind it in ``images`` is superseded.
         ``taken_ns``: when they were taken (ns, ROS clock; None: now).
         """
-        on_grid = [self.grid.on_grid(stamp_to_ns(m.header.stamp)) for m in images]
+        on_grid = [self.on_grid_at(stamp_to_ns(m.header.stamp)) for m in images]
         newest = max((i for i, ok in enumerate(on_grid) if ok), default=-1)
         for i, msg in enumerate(images):
             self.on_image(msg, newer_waiting=i < newest, taken_ns=taken_ns)
@@ -94,7 +95,7 @@ class GatedImages:
             taken_ns = self.clock.now().nanoseconds
         age_ns = int(taken_ns) - stamp_ns
         self.latest.observe(age_ns)
-        if not self.grid.on_grid(stamp_ns):
+        if not self.on_grid_at(stamp_ns):
             self.counts.off_grid += 1
             return
         self._count_missed(stamp_ns)
@@ -117,14 +118,29 @@ class GatedImages:
             self.counts.missed += max((index - self._last_index) // self.grid.stride - 1, 0)
         self._last_index = index
 
+    def on_grid_at(self, stamp_ns: int) -> bool:
+        """Whether the frame of ``stamp_ns`` is on the grid (the old one before a smaller one)."""
+        if self._before is not None and stamp_ns < self._before[1]:
+            return self._before[0].on_grid(stamp_ns)
+        return self.grid.on_grid(stamp_ns)
+
     def on_grid(self, msg: DiagnosticArray) -> None:
-        """Take this camera's frame grid (ibvs/frame_grid: stride, reference frame)."""
+        """Take this camera's frame grid (ibvs/frame_grid: stride, reference frame).
+
+        A smaller stride applies from its reference frame on, the old grid before it, as the
+        supervisor expects them (ibvs_control's ``SupervisorGrids``).
+        """
         grid = grid_from_msg(msg, self.camera)
         if grid is None:
             self.log.error(f'{self.prefix}: ibvs/frame_grid without this camera: ignored',
                            THROTTLE_S)
             return
-        self.grid = self.grid.with_stride(*grid)
+        stride, ref_ns = grid
+        if stride < self.grid.stride:
+            self._before = (self.grid, ref_ns)
+        elif stride > self.grid.stride:
+            self._before = None
+        self.grid = self.grid.with_stride(stride, ref_ns)
 
     def on_mode(self, msg: UInt8) -> None:
         """Take the supervisor's latched mode (the gate's state until its first status)."""

@@ -177,12 +177,20 @@ class SupervisorGrids:
         return self._grid[camera].on_grid(stamp_ns)
 
     def set_stride(self, camera, stride: int, ref_ns: int, lead_ns: int) -> None:
-        """Use ``stride`` from the frame ``ref_ns`` on (a smaller one from ``lead_ns`` later)."""
+        """Use ``stride`` from the frame ``ref_ns`` on (a smaller one from ``lead_ns`` later).
+
+        A smaller stride's reference is its first frame at least ``lead_ns`` after ``ref_ns``
+        (:meth:`ref_ns`, published on ibvs/frame_grid): the perception nodes keep the old grid
+        until that frame too, instead of computing frames the supervisor does not expect yet
+        (on a slow computer they cost the try its margin).
+        """
         old = self._grid[camera]
-        self._grid[camera] = old.with_stride(stride, ref_ns)
         self._before.pop(camera, None)
         if stride < old.stride:
-            self._before[camera] = (old, int(ref_ns) + int(lead_ns))
+            step = int(stride) * old.period_ns
+            ref_ns = int(ref_ns) + -(-int(lead_ns) // step) * step
+            self._before[camera] = (old, ref_ns)
+        self._grid[camera] = old.with_stride(stride, ref_ns)
 
     def reset(self) -> None:
         """Every frame again (the clock stepped back: old references mean nothing)."""

@@ -1,0 +1,56 @@
+"""GatedImages on a real rclpy node: which frames a perception node computes from the grid."""
+import rclpy
+from sensor_msgs.msg import Image
+
+from ibvs_common.core.modes import InputKind
+from ibvs_common.node_common import frame_grid_msg, ns_to_stamp
+from ibvs_control.core.rate_governor import SupervisorGrids
+from ibvs_perception.config import ImageInputConfig
+from ibvs_perception.core.latest_only import LatestOnlyConfig
+from ibvs_perception.gated_images import GatedImages
+
+MS = 1_000_000
+PERIOD = 20 * MS
+EVERY_IMAGE = LatestOnlyConfig(latest_only=False)   # stamps of 1970: ages mean nothing here
+
+
+def image(stamp_ns):
+    msg = Image()
+    ns_to_stamp(stamp_ns, msg.header.stamp)
+    return msg
+
+
+def test_a_smaller_stride_applies_from_its_reference_as_the_supervisor_expects_it(context):
+    """The nodes keep the old grid until the smaller stride's first frame, as the supervisor.
+
+    Before, the nodes computed the new grid's frames from the moment they got the grid, while
+    the supervisor expected them only after its lead (0.1 s): frames computed for nothing, on
+    a slow computer the margin of the try.
+    """
+    node = rclpy.create_node('gated_grid', context=context)
+    try:
+        computed = []
+        gated = GatedImages(node, InputKind.WINDOW,
+                            lambda msg, publish: computed.append(msg.header.stamp.nanosec),
+                            'test', ImageInputConfig(mode_gating=False, latest=EVERY_IMAGE),
+                            'front', PERIOD)
+        supervisor = SupervisorGrids({'front': PERIOD})
+        for stride, at in ((2, 100 * MS), (1, 180 * MS)):   # a try of 1 decided at 180 ms
+            supervisor.set_stride('front', stride, at, lead_ns=100 * MS)
+            gated.on_grid(frame_grid_msg({'front': (stride, supervisor.ref_ns('front'))}, at))
+        stamps = range(200 * MS, 400 * MS, PERIOD)
+        for s in stamps:
+            gated.on_image(image(s))
+        expected = [s for s in stamps if supervisor.on_grid('front', s)]
+        assert computed == expected
+        # the stride-2 grid of 100 ms until the try's first frame, 100 ms (the lead) later
+        assert expected == [220 * MS, 260 * MS] + list(range(280 * MS, 400 * MS, PERIOD))
+        # a larger stride applies at once
+        supervisor.set_stride('front', 4, 400 * MS, lead_ns=100 * MS)
+        gated.on_grid(frame_grid_msg({'front': (4, supervisor.ref_ns('front'))}, 400 * MS))
+        computed.clear()
+        for s in range(400 * MS, 500 * MS, PERIOD):
+            gated.on_image(image(s))
+        assert computed == [400 * MS, 480 * MS]
+    finally:
+        node.destroy_node()
