@@ -7,10 +7,12 @@ true, so that perception nodes under ``use_sim_time`` see the original time line
 Parameters (:class:`BagPlayerNodeConfig`, docs/parameters.md): ``bag_path`` (required),
 ``topics`` (default: both cameras' image_raw and camera_info, and imu/data), ``rate``
 (default 1.0), ``clock`` (default true), ``start_delay`` (s of wall time before the first
-message, to let subscribers match; default 1.0).
+message, to let subscribers match; default 1.0), ``image_delay_s`` (images published that
+long after their place in the bag, as a camera delivers them after the IMU; default 0).
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, replace
 import time
 
@@ -26,6 +28,7 @@ from ibvs_common.spin import run_node
 from rosgraph_msgs.msg import Clock
 
 INFO_SUFFIX = 'camera_info'
+IMAGE_SUFFIX = 'image_raw'
 PRIME_LEAD_S = 0.5            # s (wall) before playback: first CameraInfo of each camera
 REPLAY_TOPICS = ('front_camera/image_raw', 'down_camera/image_raw', 'front_camera/camera_info',
                  'down_camera/camera_info', 'imu/data')
@@ -40,6 +43,12 @@ class BagPlayerNodeConfig:
     rate: float = param(1.0, 'bag time / wall time (0: 1.0)', 0.0)
     clock: bool = param(True, 'publish /clock from the bag time')
     start_delay: float = param(1.0, 's (wall, steady clock) before the first message', 0.0)
+    image_delay_s: float = param(
+        0.0, 's (wall, steady clock): each image is published this long after its place in the '
+        'bag, the other topics at theirs, as a camera driver delivers an image after the IMU '
+        'samples of its stamp (a replay on a busy machine otherwise hands a node an image '
+        'before the IMU sample it needs, and the node answers with a propagated attitude)',
+        0.0)
 
 
 class BagPlayerNode(Node):
@@ -56,6 +65,7 @@ class BagPlayerNode(Node):
         self.stream = bag.read_messages(self.config.bag_path, self.config.topics)
         self.pending = next(self.stream, None)
         self.published = 0
+        self.delayed: deque = deque()         # (wall time due, topic, data): images held back
         self.t0_wall = time.monotonic() + self.config.start_delay
         self.t0_bag = self.pending[2] if self.pending else 0
         # each camera's first CameraInfo, published PRIME_LEAD_S before playback: the detectors
@@ -83,12 +93,20 @@ class BagPlayerNode(Node):
             if self.config.clock:
                 self.clock_pub.publish(Clock(clock=Time(sec=t_ns // 10**9,
                                                         nanosec=t_ns % 10**9)))
-            self.pubs[topic].publish(data)
-            self.published += 1
+            if self.config.image_delay_s > 0.0 and topic.endswith(IMAGE_SUFFIX):
+                self.delayed.append((time.monotonic() + self.config.image_delay_s, topic, data))
+            else:
+                self._publish(topic, data)
             self.pending = next(self.stream, None)
-        if self.pending is None:
+        while self.delayed and self.delayed[0][0] <= time.monotonic():
+            self._publish(*self.delayed.popleft()[1:])
+        if self.pending is None and not self.delayed:
             self.timer.cancel()
             self.get_logger().info(f'bag finished: {self.published} messages')
+
+    def _publish(self, topic: str, data) -> None:
+        self.pubs[topic].publish(data)
+        self.published += 1
 
 
 def first_messages(path: str, topics: list) -> list[tuple[str, bytes]]:

@@ -2,6 +2,7 @@
 import time
 
 from ibvs_harness import bag
+import numpy as np
 import pytest
 import rclpy
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -182,6 +183,27 @@ def test_recorder_then_player_reproduce_topics_and_stamps(tmp_path, ros):
         assert [c.sec * 10**9 + c.nanosec for c in clocks] == bag_times
     finally:
         for n in (player, sink, src):
+            n.destroy_node()
+    # images held image_delay_s after their place in the bag (the clock keeps its place)
+    arrivals = {'image': [], 'clock': []}
+    sink = rclpy.create_node('sink_delay')
+    sink.create_subscription(Image, 'front_camera/image_raw',
+                             lambda m: arrivals['image'].append(time.monotonic()),
+                             rclpy.qos.qos_profile_sensor_data)
+    sink.create_subscription(Clock, '/clock',
+                             lambda m: arrivals['clock'].append(time.monotonic()), 10)
+    player = BagPlayerNode(parameter_overrides=[
+        Parameter('bag_path', value=str(path)), Parameter('rate', value=1.0),
+        Parameter('topics', value=['front_camera/image_raw']),
+        Parameter('start_delay', value=1.0), Parameter('image_delay_s', value=0.3)])
+    try:
+        ex.add_node(sink)
+        ex.add_node(player)
+        assert _spin_until(ex, lambda: len(arrivals['image']) == len(recorded), 15.0)
+        delays = np.subtract(arrivals['image'], arrivals['clock'])
+        assert np.all(delays >= 0.29) and np.all(delays < 0.6), delays
+    finally:
+        for n in (player, sink):
             n.destroy_node()
 
 
