@@ -344,8 +344,9 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
     delivered = {}
     try:
         argv = pin + [sys.executable, '-m', 'ibvs_bringup.composed', '--mavlink-url', graph_url]
-        if layout == 'composed':
-            runner.start('composed', argv)
+        if layout in ('composed', 'composed-single'):
+            runner.start('composed', argv + (['--single-executor']
+                                             if layout == 'composed-single' else []))
         else:                                # a process per node, each pinned as the graph
             from ibvs_bringup import graph
             from ibvs_bringup.runner import command_for
@@ -511,7 +512,10 @@ def main(argv: list | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--case', action='append', default=[], choices=[c[0] for c in CASES])
     p.add_argument('--repeats', type=int, default=1)
-    p.add_argument('--layout', choices=('composed', 'processes'), default='composed')
+    p.add_argument('--layout', choices=('composed', 'composed-single', 'processes'),
+                   default='composed',
+                   help='composed-single: composed with --single-executor (every node on one '
+                   'executor)')
     p.add_argument('--smoke', action='store_true',
                    help='4 s of the flight, the first case only (CI: the command still runs)')
     args = p.parse_args(argv)

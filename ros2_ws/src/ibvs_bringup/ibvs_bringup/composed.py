@@ -1,11 +1,12 @@
-"""The onboard nodes of graph.py in ONE process on one executor (like a component container).
+"""The onboard nodes of graph.py in ONE process (like a component container).
 
 Same node classes, names, parameter files and per-run overrides as the separate processes of
 ``graph.onboard_graph`` (the node list comes from there); only the process layout differs: one
-Python interpreter, one DDS participant and one rclpy ``EventsExecutor`` for all of them, so
-that the per-process and per-wake-up costs are paid once (docs/performance.md measures both
-layouts). Callbacks run one at a time: the per-frame work (detectors, flows, supervisor,
-controller) then shares one core, OpenCV's own threads aside. The bridge's 100 Hz imu/data
+Python interpreter, one DDS participant and rclpy ``EventsExecutor``s (one for the
+perception nodes, one for the control nodes, below), so that the per-process and per-wake-up
+costs are paid once (docs/performance.md measures the layouts). Python runs one thread at a
+time: the per-frame work (detectors, flows, supervisor, controller) shares one core, OpenCV's
+own threads and the interpreter's releases aside. The bridge's 100 Hz imu/data
 reaches the nodes beside it in process, without DDS (``ibvs_common.intra_process``); it is
 still published for everything else.
 
@@ -17,8 +18,15 @@ node's own ``main``. A node cannot die alone here: the process is the unit that 
 split into a few processes, e.g. one per camera plus one for control (GROUPS), each one
 container of several nodes (docs/performance.md measures it).
 
+Two executors: the control nodes (supervisor, controller, bridge) spin on an executor of
+their own in a second thread, so that a product, a status or a force does not wait in one
+executor's queue behind the images that arrived before it (on a slow computer the first
+forces of a new mode came too late for the bridge's hold; docs/performance.md "The onboard
+graph on a vehicle's sensors and computer"). ``--single-executor``: every node on one.
+
 Usage: ``composed [--nodes NAMES] [--mavlink-url URL] [--params-file FILE] [--use-sim-time]
-[--no-intra-process] [--specs FILE] [--ros-args ...]`` (``--ros-args`` apply to every node).
+[--no-intra-process] [--single-executor] [--specs FILE] [--ros-args ...]`` (``--ros-args``
+apply to every node).
 Each node gets its own command-line tail (``NodeSpec.ros_args``: parameter files, overrides,
 remappings), as its own process would. ``--specs``: the node list of a run, written by the
 runner (``ProcessRunner.start_composed``), e.g. the onboard nodes of a sim or PX4 SIH run.
@@ -98,6 +106,14 @@ def build_nodes(specs: list, context: Context, intra_process: bool = True,
     return nodes
 
 
+def executor_groups(nodes: list, control_thread: bool) -> list:
+    """Return the nodes by executor: all on one, or the control nodes on a second one."""
+    if not control_thread:
+        return [nodes]
+    control = [n for n in nodes if n.get_name() in GROUPS['control']]
+    return [[n for n in nodes if n not in control], control]
+
+
 def write_specs(specs: list, path: str) -> None:
     """Write node specs as JSON for ``composed --specs`` (the runner's composed layout)."""
     with open(path, 'w') as f:
@@ -121,7 +137,7 @@ def main(argv: list | None = None) -> int:
     import rclpy
     from rclpy.executors import ExternalShutdownException
     from rclpy.utilities import remove_ros_args
-    from ibvs_common.spin import spin_guarded_nodes
+    from ibvs_common.spin import spin_guarded_groups
     argv = sys.argv[1:] if argv is None else list(argv)
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--mavlink-url', default=None, help="the autopilot's MAVLink URL")
@@ -132,6 +148,10 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--no-intra-process', action='store_true',
                    help='imu/data and the images through DDS to every node, as between '
                    'processes')
+    p.add_argument('--single-executor', action='store_true',
+                   help='every node on one executor in one thread (by default the control '
+                   'nodes, GROUPS["control"], have an executor of their own in a second '
+                   'thread: their callbacks do not queue behind image processing)')
     p.add_argument('--specs', default=None, help='JSON node specs (write_specs) instead of the '
                    'onboard graph of the options above: how the runner composes a run')
     a = p.parse_args(remove_ros_args(['composed'] + argv)[1:])
@@ -160,7 +180,7 @@ def main(argv: list | None = None) -> int:
         nodes = build_nodes(specs, rclpy.get_default_context(),
                             intra_process=not a.no_intra_process,
                             user_ros_args=tuple(user_ros_args))
-        spin_guarded_nodes(nodes)
+        spin_guarded_groups(executor_groups(nodes, control_thread=not a.single_executor))
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:          # a bad parameter of one node: never fly with it

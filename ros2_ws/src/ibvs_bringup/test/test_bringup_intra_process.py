@@ -435,3 +435,19 @@ def test_a_shared_camera_second_node_computes_the_frames_the_first_computed(cont
         assert [g.counts.superseded for g in nodes] == [0, 0]
     finally:
         node.destroy_node()
+
+
+def test_the_control_thread_takes_the_control_nodes_and_nothing_else(context):
+    from ibvs_bringup import composed, graph
+    specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
+                                                   mavlink_url='udpin:127.0.0.1:0'))
+    nodes = composed.build_nodes(specs, context)
+    try:
+        assert composed.executor_groups(nodes, False) == [nodes]
+        images, control = composed.executor_groups(nodes, True)
+        assert sorted(n.get_name() for n in control) == sorted(composed.GROUPS['control'])
+        assert sorted(n.get_name() for n in images) == sorted(
+            composed.GROUPS['front'] + composed.GROUPS['down'])
+    finally:
+        for node in nodes:
+            node.destroy_node()

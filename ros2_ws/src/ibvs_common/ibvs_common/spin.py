@@ -95,29 +95,70 @@ def spin_guarded(node: Node) -> int:
 
 def spin_guarded_nodes(nodes: list) -> int:
     """Spin ``nodes`` on one executor until shutdown; return the RuntimeErrors survived."""
-    errors = 0
-    context = nodes[0].context
-    executor = make_executor(context)
-    for node in nodes:
-        executor.add_node(node)
+    return spin_guarded_groups([nodes])
+
+
+def spin_guarded_groups(groups: list) -> int:
+    """Spin each group of nodes on an executor of its own, each in its own thread.
+
+    The first group spins in the calling thread (the main thread: it takes SIGINT/SIGTERM),
+    the others in threads of their own; all stop together. A group's callbacks never wait
+    behind another group's: the composed container's control nodes do not queue behind the
+    images (``ibvs_bringup.composed``). Python runs one thread at a time, but
+    hands over at least every 5 ms (``sys.getswitchinterval``) and whenever OpenCV or the
+    middleware releases the interpreter. Return the RuntimeErrors survived, all groups.
+    """
+    groups = [list(g) for g in groups if g]
+    context = groups[0][0].context
+    executors = [make_executor(context) for _ in groups]
+    for executor, nodes in zip(executors, groups):
+        for node in nodes:
+            executor.add_node(node)
     gc.freeze()                 # start-up objects: never scanned again by a full collection
     stop: list = []
+    errors = [0] * len(groups)
     previous = _catch_stop_signals(stop)
+    failed: list = []           # an exception that ended a side thread: ends them all
+
+    def side(i: int) -> None:
+        try:
+            _spin_until_stop(executors[i], groups[i], stop, errors, i)
+        except BaseException as exc:       # noqa: B902 - re-raised in the main thread
+            failed.append(exc)
+            stop.append('failed')
+
+    threads = [threading.Thread(target=side, args=(i,), name=f'executor-{i}', daemon=True)
+               for i in range(1, len(groups))]
     try:
-        while rclpy.ok(context=context) and not stop:
-            try:
-                executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
-            except RuntimeError as exc:
-                if not rclpy.ok(context=context):
-                    return errors
-                errors += 1
-                nodes[0].get_logger().error(
-                    f'dropped a message rclpy could not take ({exc}); {errors} so far',
-                    throttle_duration_sec=LOG_THROTTLE_S)
+        for thread in threads:
+            thread.start()
+        _spin_until_stop(executors[0], groups[0], stop, errors, 0)
     finally:
-        executor.shutdown()
+        stop.append('done')
+        for thread in threads:
+            thread.join(timeout=2.0 * SPIN_ONCE_TIMEOUT_S + 1.0)
+        for executor in executors:
+            executor.shutdown()
         _restore_signals(previous)
-    return errors
+    if failed:                  # as if it had been raised here: the process ends on it
+        raise failed[0]
+    return sum(errors)
+
+
+def _spin_until_stop(executor: Executor, nodes: list, stop: list, errors: list,
+                     index: int) -> None:
+    """Spin ``executor`` until rclpy shuts down or ``stop`` fills; count survived errors."""
+    context = nodes[0].context
+    while rclpy.ok(context=context) and not stop:
+        try:
+            executor.spin_once(timeout_sec=SPIN_ONCE_TIMEOUT_S)
+        except RuntimeError as exc:
+            if not rclpy.ok(context=context):
+                return
+            errors[index] += 1
+            nodes[0].get_logger().error(
+                f'dropped a message rclpy could not take ({exc}); {errors[index]} so far',
+                throttle_duration_sec=LOG_THROTTLE_S)
 
 
 def _catch_stop_signals(stop: list) -> dict:
