@@ -79,6 +79,7 @@ class ModeSupervisorNode(Node):
                                        self._rate_hz.items()})
         self._stats = FrameStats()
         self._newest_ns = 0                     # newest frame stamp released
+        self._last_opened: tuple | None = None  # ((mode, camera, stride, ref), stamp) opened
         self._clock_watch = BackstepWatch()    # the node clock, read in every callback
         self._n_reported = 0
         self._published: Mode | None = None
@@ -227,6 +228,7 @@ class ModeSupervisorNode(Node):
             self._stats.off_grid_dropped += 1        # a frame the graph does not compute now
         elif self._frames.open(stamp_ns, camera, now_ns):
             self._stats.opened(camera.value, stamp_ns, now_ns)
+            self._count_missed(camera, stamp_ns)
         else:
             self._feed(kind, stamp_ns, value)        # its frame was evaluated: after it
 
@@ -309,20 +311,48 @@ class ModeSupervisorNode(Node):
         self._governor_step(frame, complete=True,
                             lag_s=(self._now_ns() - frame.stamp_ns) / NS_PER_S)
 
-    def _governor_step(self, frame: Frame, complete: bool, lag_s: float | None = None) -> None:
-        stride = self._governor.observe(frame.stamp_ns / NS_PER_S, complete, lag_s,
-                                        1.0 / self._rate_hz[frame.tag])
-        if stride is None:
+    def _count_missed(self, camera: Camera, stamp_ns: int) -> None:
+        """Count the grid frames before this one that no product came for: skipped too.
+
+        A graph that falls behind skips images for the newest (latest only): their frames
+        never open, and without them the governor saw only complete frames and kept a stride
+        the computer could not hold (a sixth of a core: one frame in six computed at stride 1,
+        the trackers lost across the gaps). Counted within one mode, camera and grid only; the
+        first of a gap is not given to the governor (a node one image behind skips one).
+        """
+        key = (self._core.mode, camera, self._grids.stride(camera), self._grids.ref_ns(camera))
+        last = self._last_opened if self._last_opened and self._last_opened[0] == key else None
+        self._last_opened = (key, stamp_ns)
+        if last is None or stamp_ns <= last[1]:
             return
-        camera = frame.tag
+        step = self._grids.stride(camera) * self._grids.period_ns(camera)
+        missed = (stamp_ns - last[1] + step // 2) // step - 1
+        self._stats.missed += max(missed, 0)
+        # a lone missed frame (a node skipped one image for the next) costs that frame, as a
+        # lone skipped one does; each further one in the gap counts as skipped
+        for k in range(2, min(missed, self._governor.config.stride_window_frames) + 1):
+            if self._governor_at(camera, last[1] + k * step, complete=False):
+                break                   # a new grid: the frames after it count on it
+
+    def _governor_step(self, frame: Frame, complete: bool, lag_s: float | None = None) -> None:
+        self._governor_at(frame.tag, frame.stamp_ns, complete, lag_s)
+
+    def _governor_at(self, camera: Camera, stamp_ns: int, complete: bool,
+                     lag_s: float | None = None) -> bool:
+        """Let the governor see a frame of ``camera``; apply and publish a new stride (True)."""
+        stride = self._governor.observe(stamp_ns / NS_PER_S, complete, lag_s,
+                                        1.0 / self._rate_hz[camera])
+        if stride is None:
+            return False
         old = self._grids.stride(camera)
-        self._grids.set_stride(camera, stride, frame.stamp_ns, self._lead_ns)
+        self._grids.set_stride(camera, stride, stamp_ns, self._lead_ns)
         self._publish_grid()
         rate = self._rate_hz[camera]
         self.get_logger().info(f'frame stride {old} -> {stride} at t = '
-                               f'{frame.stamp_ns / NS_PER_S:.3f} s: the {camera.value} camera\'s '
+                               f'{stamp_ns / NS_PER_S:.3f} s: the {camera.value} camera\'s '
                                f'every {stride}. frame ({rate / stride:.1f} Hz) '
                                f'({self._governor.reason})')
+        return True
 
     def _publish_status(self, stamp_ns: int, camera: Camera | None = None) -> None:
         """Publish the mode of frame ``stamp_ns`` (``camera``: its camera) or of a time."""

@@ -29,8 +29,10 @@ from ibvs_common.core.frames import (
 from ibvs_control.force_controller_node import ForceControllerNode
 from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
+from ibvs_common.core.modes import Camera
 from ibvs_common.node_common import (
-    COMMAND_QOS, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS, supervisor_status_msg)
+    COMMAND_QOS, grid_from_msg, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS,
+    supervisor_status_msg)
 
 from test_control_mavlink import FakeAutopilot, PeerThread, same_rotation  # noqa: E402
 
@@ -261,6 +263,44 @@ def test_supervisor_after_a_clock_step_back_idle_goes_on_and_flight_fails_safe(c
     assert spin_until(executor, lambda: feed.modes[-1:] == [5], 2.0)
     assert spin_until(executor, lambda: mode_from_status(feed.statuses[-1])[1] == 5, 2.0)
     assert mode_from_status(feed.statuses[-1])[0] == int(round(t * 1e9))
+
+
+def test_supervisor_counts_grid_frames_no_product_came_for_and_lowers_the_rate(ctx):
+    """Frames a node behind never computed (latest only) are missed; gaps double the stride.
+
+    Only every 4th front frame gets its window product, as from a detector three images
+    behind: the frames between never open. A lone missed frame costs that frame; each further
+    one in a gap counts as skipped for the rate governor, which then doubles the stride
+    (published on ibvs/frame_grid) instead of keeping a rate the computer cannot hold.
+    """
+    context, executor, nodes = ctx
+    sup = ModeSupervisorNode(node_name=f'sup_missed_{TAG}', context=context,
+                             parameter_overrides=[Parameter('use_sim_time', value=True)])
+    feed = Feeder(context, f'feed_missed_{TAG}')
+    grids = []
+    feed.node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', grids.append, MODE_QOS)
+    nodes += [sup, feed.node]
+    executor.add_node(sup)
+    executor.add_node(feed.node)
+    assert spin_until(executor, lambda: feed.modes == [0], 5.0)
+    xi = np.array([-2.0, 0.0, -1.6])
+    for k in range(0, 40, 4):                        # 3 frames missed in each gap
+        n = len(feed.statuses)
+        feed.frame(1.0 + 0.02 * k, xi)
+        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+        if sup._grids.stride(Camera.FRONT) > 1:
+            break
+    assert sup._grids.stride(Camera.FRONT) == 2 and sup._stats.missed >= 6
+    assert spin_until(executor, lambda: any(
+        grid_from_msg(g, 'front') is not None and grid_from_msg(g, 'front')[0] == 2
+        for g in grids), 2.0)
+    # complete frames on every frame of the new grid: nothing more is missed
+    missed, ref = sup._stats.missed, sup._grids.ref_ns(Camera.FRONT)
+    for k in range(1, 6):
+        n = len(feed.statuses)
+        feed.frame(ref / 1e9 + 0.04 * k, xi)
+        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+    assert sup._stats.missed == missed and sup._grids.stride(Camera.FRONT) == 2
 
 
 def test_supervisor_stale_input_failsafe_and_abort(ctx):

@@ -27,6 +27,7 @@ from ibvs_common.core.modes import InputKind, modes_using
 from ibvs_common.node_common import (FRAME_QOS, grid_from_msg, MODE_QOS, mode_from_status,
                                      stamp_to_ns)
 from ibvs_common.throttled_log import ThrottledLog
+from ibvs_common.waiting_messages import take_waiting
 from ibvs_perception.config import ImageInputConfig
 from ibvs_perception.core.latest_only import LatestOnly
 from ibvs_perception.core.mode_gate import ModeGate
@@ -54,15 +55,19 @@ class GatedImages:
         self._last_index: int | None = None
         self.log = ThrottledLog(node.get_logger())
         self.diagnostics = ImageDiagnostics(node, log_prefix, self.counts, self.timer)
+        # the grid, the latched mode and the statuses, in the order taken before an image
+        self._control_subs = [(node.create_subscription(DiagnosticArray, 'ibvs/frame_grid',
+                                                        self.on_grid, MODE_QOS), self.on_grid)]
         if config.mode_gating:
+            # the supervisor's latched mode: the gate's state until its first status
+            self._control_subs.append((node.create_subscription(
+                UInt8, 'ibvs/mode', self.on_mode, MODE_QOS), self.on_mode))
             # the newest statuses only: behind a busy executor a deeper queue hands the gate
             # statuses 10 frames old, and a product switched on waits for them (a third of a
             # core: the wall flow started 0.5 s after WINDOW, which failed safe)
-            node.create_subscription(DiagnosticArray, 'ibvs/supervisor_status',
-                                     self.on_status, FRAME_QOS)
-            # the supervisor's latched mode: the gate's state until its first status
-            node.create_subscription(UInt8, 'ibvs/mode', self.on_mode, MODE_QOS)
-        node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self.on_grid, MODE_QOS)
+            self._control_subs.append((node.create_subscription(
+                DiagnosticArray, 'ibvs/supervisor_status', self.on_status, FRAME_QOS),
+                self.on_status))
 
     @property
     def frame_period_s(self) -> float:
@@ -73,8 +78,11 @@ class GatedImages:
         """Take the images taken at once (oldest first), each through :meth:`on_image`.
 
         A grid image with a newer grid image behind it in ``images`` is superseded.
-        ``taken_ns``: when they were taken (ns, ROS clock; None: now).
+        ``taken_ns``: when they were taken (ns, ROS clock; None: now). The frame grid, mode
+        and statuses already waiting in their readers are taken first
+        (:meth:`take_control_messages`).
         """
+        self.take_control_messages()
         on_grid = [self.on_grid_at(stamp_to_ns(m.header.stamp)) for m in images]
         newest = max((i for i, ok in enumerate(on_grid) if ok), default=-1)
         for i, msg in enumerate(images):
@@ -104,6 +112,17 @@ class GatedImages:
             self.counts.superseded += 1
             return
         self._process_all(self.gate.on_image(stamp_ns, msg))
+
+    def take_control_messages(self) -> None:
+        """Apply the grid, mode and statuses waiting in their readers, before an image.
+
+        Their events wait in the executor's queue behind the images that arrived before them:
+        a node behind judged its images on a grid the supervisor had left (a sixth of a core:
+        a stride-2 grid 80 ms late, frames computed that the supervisor dropped as off-grid).
+        """
+        for subscription, handler in self._control_subs:
+            for msg in take_waiting(subscription):
+                handler(msg)
 
     def _process_all(self, gated_items) -> None:
         for gated in gated_items:

@@ -54,3 +54,35 @@ def test_a_smaller_stride_applies_from_its_reference_as_the_supervisor_expects_i
         assert computed == [400 * MS, 480 * MS]
     finally:
         node.destroy_node()
+
+
+def test_a_grid_waiting_in_its_reader_is_applied_before_the_image(context):
+    """The node takes the grid (mode, statuses) already waiting before judging an image.
+
+    Behind a busy executor their events wait behind the images that arrived before them:
+    a node judged its images on a grid the supervisor had left (frames computed for nothing).
+    """
+    import time
+    from diagnostic_msgs.msg import DiagnosticArray
+    from ibvs_common.node_common import MODE_QOS
+    node = rclpy.create_node('gated_take', context=context)
+    sender = rclpy.create_node('gated_grid_sender', context=context)
+    try:
+        computed = []
+        gated = GatedImages(node, InputKind.WINDOW,
+                            lambda msg, publish: computed.append(msg.header.stamp.nanosec),
+                            'test', ImageInputConfig(mode_gating=False, latest=EVERY_IMAGE),
+                            'front', PERIOD)
+        pub = sender.create_publisher(DiagnosticArray, 'ibvs/frame_grid', MODE_QOS)
+        deadline = time.monotonic() + 5.0
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        pub.publish(frame_grid_msg({'front': (4, 0)}, 0))     # every 4th frame from 0
+        time.sleep(0.2)                                       # in the reader, not taken
+        gated.on_images([image(k * PERIOD) for k in range(1, 9)])
+        assert gated.grid.stride == 4
+        assert computed == [8 * PERIOD]      # the newest grid image; 1-3, 5-7 off the grid
+        assert gated.counts.off_grid == 6 and gated.counts.superseded == 1
+    finally:
+        sender.destroy_node()
+        node.destroy_node()
