@@ -123,7 +123,7 @@ def spin_guarded_groups(groups: list) -> int:
     def side(i: int) -> None:
         try:
             _spin_until_stop(executors[i], groups[i], stop, errors, i)
-        except BaseException as exc:       # noqa: B902 - re-raised in the main thread
+        except BaseException as exc:       # re-raised in the main thread
             failed.append(exc)
             stop.append('failed')
 

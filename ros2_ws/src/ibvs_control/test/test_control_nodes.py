@@ -533,6 +533,25 @@ def test_controller_that_fell_behind_answers_the_newest_frames_not_a_backlog(ctx
     assert stamps_of(feed.forces) == sent[-2:]
 
 
+def window_frame_without_flow(ctx, suffix):
+    """A controller on sim time (40 ms deadline) with a WINDOW frame open at t = 5 s.
+
+    Its status, IMU sample and window came; the front flow it needs did not. Return
+    (controller, feeder, t, xi).
+    """
+    _, executor, _ = ctx
+    fc, feed = controller_with_feeder(ctx, suffix, use_sim_time=True, frame_deadline_s=0.04)
+    xi = np.array([-2.0, 0.1, -1.82])
+    t = 5.0
+    feed.clock.publish(Clock(clock=stamp(t)))
+    spin_for(executor, 0.3)
+    feed.imu.publish(imu_msg(t))
+    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
+    status(feed, t, 1)
+    spin_for(executor, 0.3)
+    return fc, feed, t, xi
+
+
 def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clock(ctx):
     """WINDOW needs the front flow: no answer while sim time stands still, skipped after.
 
@@ -542,15 +561,8 @@ def test_controller_waits_for_a_needed_product_until_the_deadline_on_the_ros_clo
     a frame.
     """
     _, executor, _ = ctx
-    fc, feed = controller_with_feeder(ctx, '7', use_sim_time=True, frame_deadline_s=0.04)
-    xi = np.array([-2.0, 0.1, -1.82])
-    t = 5.0
-    feed.clock.publish(Clock(clock=stamp(t)))
-    spin_for(executor, 0.3)
-    feed.imu.publish(imu_msg(t))
-    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
-    status(feed, t, 1)
-    spin_for(executor, 0.5)            # half a second of wall clock, sim time stands still
+    fc, feed, t, xi = window_frame_without_flow(ctx, '7')
+    spin_for(executor, 0.2)            # half a second of wall clock, sim time stands still
     assert feed.forces == [] and fc.skipped == 0
     feed.clock.publish(Clock(clock=stamp(t + 0.039)))
     spin_for(executor, 0.2)
@@ -592,15 +604,7 @@ def test_a_deadline_takes_the_products_waiting_in_the_readers_first(ctx):
     deadline runs before any spin took the flow: answered, not skipped).
     """
     _, executor, _ = ctx
-    fc, feed = controller_with_feeder(ctx, '8', use_sim_time=True, frame_deadline_s=0.04)
-    xi = np.array([-2.0, 0.1, -1.82])
-    t = 5.0
-    feed.clock.publish(Clock(clock=stamp(t)))
-    spin_for(executor, 0.3)
-    feed.imu.publish(imu_msg(t))
-    feed.corners.publish(polygon(t, corners_C(xi), 'front_camera_optical_frame'))
-    status(feed, t, 1)
-    spin_for(executor, 0.3)
+    fc, feed, t, _ = window_frame_without_flow(ctx, '8')
     assert feed.forces == [] and fc.skipped == 0          # WINDOW waits for its front flow
     feed.front.publish(flow_msg(t, np.zeros(3)))
     time.sleep(0.1)                                       # in the reader, not taken

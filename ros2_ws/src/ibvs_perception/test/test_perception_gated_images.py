@@ -20,6 +20,16 @@ def image(stamp_ns):
     return msg
 
 
+def window_gate(node):
+    """Return a front-camera GatedImages without mode gating and the stamps it computes."""
+    computed = []
+    gated = GatedImages(node, InputKind.WINDOW,
+                        lambda msg, publish: computed.append(msg.header.stamp.nanosec),
+                        'test', ImageInputConfig(mode_gating=False, latest=EVERY_IMAGE),
+                        'front', PERIOD)
+    return gated, computed
+
+
 def test_a_smaller_stride_applies_from_its_reference_as_the_supervisor_expects_it(context):
     """The nodes keep the old grid until the smaller stride's first frame, as the supervisor.
 
@@ -29,11 +39,7 @@ def test_a_smaller_stride_applies_from_its_reference_as_the_supervisor_expects_i
     """
     node = rclpy.create_node('gated_grid', context=context)
     try:
-        computed = []
-        gated = GatedImages(node, InputKind.WINDOW,
-                            lambda msg, publish: computed.append(msg.header.stamp.nanosec),
-                            'test', ImageInputConfig(mode_gating=False, latest=EVERY_IMAGE),
-                            'front', PERIOD)
+        gated, computed = window_gate(node)
         supervisor = SupervisorGrids({'front': PERIOD})
         for stride, at in ((2, 100 * MS), (1, 180 * MS)):   # a try of 1 decided at 180 ms
             supervisor.set_stride('front', stride, at, lead_ns=100 * MS)
@@ -68,11 +74,7 @@ def test_a_grid_waiting_in_its_reader_is_applied_before_the_image(context):
     node = rclpy.create_node('gated_take', context=context)
     sender = rclpy.create_node('gated_grid_sender', context=context)
     try:
-        computed = []
-        gated = GatedImages(node, InputKind.WINDOW,
-                            lambda msg, publish: computed.append(msg.header.stamp.nanosec),
-                            'test', ImageInputConfig(mode_gating=False, latest=EVERY_IMAGE),
-                            'front', PERIOD)
+        gated, computed = window_gate(node)
         pub = sender.create_publisher(DiagnosticArray, 'ibvs/frame_grid', MODE_QOS)
         deadline = time.monotonic() + 5.0
         while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
