@@ -5,6 +5,8 @@ import pytest
 from ibvs_control.core.rate_governor import GovernorConfig, RateGovernor, SupervisorGrids
 
 MS = 1_000_000
+# the try rules, judged from the try's decision (the lead has a test of its own)
+NO_LEAD = {'stride_down_lead_s': 0.0}
 
 
 def run(gov, t0, n, complete, period=0.02):
@@ -59,7 +61,7 @@ def test_a_smaller_stride_is_tried_after_the_hold_and_kept_if_it_holds():
 
 
 def test_a_failed_try_doubles_the_wait_before_the_next():
-    cfg = GovernorConfig(stride_down_hold_s=1.0, stride_down_hold_max_s=8.0)
+    cfg = GovernorConfig(stride_down_hold_s=1.0, stride_down_hold_max_s=8.0, **NO_LEAD)
     gov = RateGovernor(cfg)
     run(gov, 0.0, 3, False)                          # stride 2
     t = 0.04
@@ -86,7 +88,7 @@ def test_a_failed_try_doubles_the_wait_before_the_next():
 def test_a_try_of_a_smaller_stride_ends_at_its_first_skipped_frame(try_skipped):
     # at the larger stride a lone skipped frame changes nothing; in a try it ends the try,
     # before the overload rules (3 in a row, 4 in 10) would
-    cfg = GovernorConfig(stride_down_hold_s=1.0, stride_try_skipped=try_skipped)
+    cfg = GovernorConfig(stride_down_hold_s=1.0, stride_try_skipped=try_skipped, **NO_LEAD)
     gov = RateGovernor(cfg)
     run(gov, 0.0, 3, False)                          # stride 2 at 0.04
     assert run(gov, 0.08, 10, lambda k: k != 4) == [] and gov.stride == 2
@@ -98,6 +100,20 @@ def test_a_try_of_a_smaller_stride_ends_at_its_first_skipped_frame(try_skipped):
     # the try failed: the next one waits twice the hold
     again = run(gov, t + 0.1, 60, True)
     assert again[0][0] - (t + 0.02 * try_skipped) == pytest.approx(2.0, abs=0.05)
+
+
+def test_a_try_is_judged_from_its_lead_on_not_on_the_old_strides_frames_before_it():
+    # the try's decision reaches the nodes stride_down_lead_s later: a frame of the old stride
+    # skipped before then (a slow computer: now and then one) says nothing of the try. It
+    # ended such tries at once, and the next waited twice as long
+    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0, stride_down_lead_s=0.1))
+    run(gov, 0.0, 3, False)                          # stride 2 at 0.04
+    changes = run(gov, 0.08, 40, True)
+    assert [s for _, s in changes] == [1]
+    t = changes[0][0]
+    assert gov.observe(t + 0.08, False) is None and gov.stride == 1     # before the lead
+    assert gov.observe(t + 0.12, True) is None and gov.stride == 1      # the try's first
+    assert gov.observe(t + 0.14, False) == 2 and gov.reason == 'frames were skipped'
 
 
 def test_bad_governor_thresholds_are_refused():
@@ -138,7 +154,7 @@ def test_a_try_ends_at_its_first_frame_that_falls_half_a_period_behind():
     # a slow computer at stride 2 holds each frame 45 ms after its stamp; at stride 1 every
     # frame costs more than its 20 ms, so each completes 8 ms later than the one before: the
     # try ends when one is 10 ms (half the try's period) behind, before any frame is skipped
-    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0))
+    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0, **NO_LEAD))
     t = _at_stride_2_until_a_try(gov, 0.045)
     assert gov.stride == 1
     lags = [0.045 + 0.008 * k for k in range(1, 6)]
@@ -154,7 +170,7 @@ def test_a_try_ends_at_its_first_frame_that_falls_half_a_period_behind():
 
 
 def test_a_try_that_keeps_the_lag_of_the_frames_before_it_holds():
-    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0))
+    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0, **NO_LEAD))
     t = _at_stride_2_until_a_try(gov, 0.045)
     lags = 0.045 + 0.009 * np.sin(np.arange(200))         # noise below half a period (10 ms)
     out = [gov.observe(t + 0.02 * k, True, lag, 0.02) for k, lag in enumerate(lags, 1)]
@@ -162,8 +178,9 @@ def test_a_try_that_keeps_the_lag_of_the_frames_before_it_holds():
 
 
 def test_the_lag_rule_can_be_switched_off_and_needs_the_lag():
-    for cfg, lag in ((GovernorConfig(stride_down_hold_s=1.0, stride_try_lag_periods=0.0), 0.5),
-                     (GovernorConfig(stride_down_hold_s=1.0), None)):
+    for cfg, lag in ((GovernorConfig(stride_down_hold_s=1.0, stride_try_lag_periods=0.0,
+                                     **NO_LEAD), 0.5),
+                     (GovernorConfig(stride_down_hold_s=1.0, **NO_LEAD), None)):
         gov = RateGovernor(cfg)
         t = _at_stride_2_until_a_try(gov, None if lag is None else 0.045)
         assert gov.observe(t + 0.02, True, lag, 0.02) is None and gov.stride == 1

@@ -6,7 +6,9 @@ one image rarely all come, and the control rate collapses. :class:`RateGovernor`
 frames of the mode's camera and, when the graph cannot hold their rate (several skipped in a
 row: it fell behind; or many among the recent ones), doubles the frame stride, so that every
 node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when none is
-skipped for a while it tries half the stride again: the first skipped frame of the try ends it
+skipped for a while it tries half the stride again (judged from ``stride_down_lead_s`` after
+the decision, when the nodes compute its frames; the old stride's frames before then say
+nothing of the try): the first skipped frame of the try ends it
 (``stride_try_skipped``), or its first frame completed later than the frames before it by
 half a frame period or more (``stride_try_lag_periods``: the graph is falling behind; on a
 slow computer a try that waits for a skipped frame has piled up a backlog of several frames,
@@ -58,7 +60,8 @@ class GovernorConfig:
         16.0, 's (frame stamps): the longest wait before trying a smaller stride', 0.0)
     stride_down_lead_s: float = param(
         0.1, 's (frame stamps): a smaller stride is expected only from this long after its '
-        'decision (the perception nodes learn it from the frame status first)', 0.0)
+        'decision (the perception nodes learn it from the frame status first), and its try is '
+        'judged from then on', 0.0)
 
     def __post_init__(self) -> None:
         """Raise ValueError for thresholds that cannot work together."""
@@ -84,6 +87,7 @@ class RateGovernor:
         self._probing = False           # the last change was a try of a smaller stride
         self._lags: deque[float] = deque(maxlen=config.stride_window_frames)
         self._lag_before: float | None = None   # median lag of the frames before the try
+        self._try_from = float('-inf')  # the first stamp a try of a smaller stride is judged on
 
     def observe(self, t: float, complete: bool, lag_s: float | None = None,
                 period_s: float | None = None) -> int | None:
@@ -96,6 +100,8 @@ class RateGovernor:
         cfg = self.config
         if self._t_change is None:
             self._t_change = t
+        if self._probing and t < self._try_from:
+            return None     # a frame of the old stride: the try has not started (its lead)
         self._recent.append(bool(complete))
         skipped = sum(1 for ok in self._recent if not ok)
         lagging = self._probing and self._lagging(lag_s, period_s)
@@ -139,6 +145,7 @@ class RateGovernor:
 
     def _change(self, t: float, stride: int, probing: bool) -> int:
         self.stride, self._t_change, self._probing = stride, t, probing
+        self._try_from = t + self.config.stride_down_lead_s if probing else float('-inf')
         self._recent.clear()
         self._lags.clear()
         self.changes += 1
