@@ -47,10 +47,14 @@ VEHICLE_FILE = 'vehicle_file'                 # every node: the vehicle YAML (''
 # backoff): a detector or flow that comes back is an input that comes back. The supervisor,
 # controller and bridge are not: their death is handled by the safety policy (no statuses ->
 # no forces -> the bridge hands the vehicle back; no bridge -> the autopilot's offboard loss).
-# the names of the graph's nodes, in launch order (the sections of params.yaml)
-ONBOARD_NODE_NAMES = ('window_detector', 'pad_detector', 'front_optical_flow',
-                      'down_optical_flow', 'mode_supervisor', 'force_controller',
-                      'mavlink_bridge')
+# the names of the graph's nodes, in launch order (the sections of params.yaml). In one process
+# (ibvs_bringup.composed) a camera's two nodes compute each image in this order: the window
+# detector before the wall flow (the flow takes this image's window for its wall plane), the
+# floor flow before the pad detector (CROSSING waits for the floor flow only, the pad is its cue
+# for LANDING: behind a whole-image pad search the flow missed the frame's deadline on a slow
+# computer)
+ONBOARD_NODE_NAMES = ('window_detector', 'front_optical_flow', 'down_optical_flow',
+                      'pad_detector', 'mode_supervisor', 'force_controller', 'mavlink_bridge')
 SIM_NODE_NAMES = ('sim',) + ONBOARD_NODE_NAMES
 RESPAWN_DELAY_S = 1.0                         # s before the first restart (then doubled)
 
@@ -223,9 +227,9 @@ def _onboard_nodes(params: tuple, common: dict, opts: GraphOptions, mavlink_url:
 
     return [
         node('ibvs_perception', 'window_detector', 'window_detector'),
-        node('ibvs_perception', 'pad_detector', 'pad_detector'),
         node('ibvs_perception', 'optical_flow', 'front_optical_flow', {'camera': 'front'}),
         node('ibvs_perception', 'optical_flow', 'down_optical_flow', {'camera': 'down'}),
+        node('ibvs_perception', 'pad_detector', 'pad_detector'),
         node('ibvs_control', 'mode_supervisor', 'mode_supervisor', start),
         node('ibvs_control', 'force_controller', 'force_controller', law),
         node('ibvs_control', 'mavlink_bridge', 'mavlink_bridge', {

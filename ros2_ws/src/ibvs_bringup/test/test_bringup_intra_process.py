@@ -338,6 +338,28 @@ def test_composed_perception_nodes_take_each_camera_once(context, intra_process)
             node.destroy_node()
 
 
+def test_a_shared_camera_hands_each_image_first_to_the_node_its_modes_wait_for(context):
+    """Front: the window detector, then the wall flow (it takes this image's window). Down:
+    the floor flow, then the pad detector (CROSSING waits for the floor flow only; behind a
+    whole-image pad search it missed the frame's deadline on a third of a core)."""
+    from ibvs_bringup import composed, graph
+    specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
+                                                   mavlink_url='udpin:127.0.0.1:0'))
+    specs = [s for s in specs if s.package == 'ibvs_perception']
+    nodes = composed.build_nodes(specs, context)
+    try:
+        by_name = {n.get_name(): n for n in nodes}
+        for first, second in (('window_detector', 'front_optical_flow'),
+                              ('down_optical_flow', 'pad_detector')):
+            shared = by_name[first].images
+            assert by_name[second].images is shared
+            assert shared.handlers == [by_name[first].gated.on_images,
+                                       by_name[second].gated.on_images]
+    finally:
+        for node in nodes:
+            node.destroy_node()
+
+
 def test_nodes_remapped_apart_do_not_share_a_camera(context):
     from ibvs_bringup import composed, graph
     specs = graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
