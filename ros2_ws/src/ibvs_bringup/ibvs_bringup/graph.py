@@ -48,11 +48,11 @@ VEHICLE_FILE = 'vehicle_file'                 # every node: the vehicle YAML (''
 # controller and bridge are not: their death is handled by the safety policy (no statuses ->
 # no forces -> the bridge hands the vehicle back; no bridge -> the autopilot's offboard loss).
 # the names of the graph's nodes, in launch order (the sections of params.yaml). In one process
-# (ibvs_bringup.composed) a camera's two nodes compute each image in this order: the window
-# detector before the wall flow (the flow takes this image's window for its wall plane), the
-# floor flow before the pad detector (CROSSING waits for the floor flow only, the pad is its cue
-# for LANDING: behind a whole-image pad search the flow missed the frame's deadline on a slow
-# computer)
+# (ibvs_bringup.composed) a camera's two nodes compute each image in this order, the product a
+# mode waits for first: the window detector before the wall flow (IDLE waits for the window
+# only), the floor flow before the pad detector (CROSSING waits for the floor flow only, the pad
+# is its cue for LANDING: behind a whole-image pad search the flow missed the frame's deadline
+# on a third of a core)
 ONBOARD_NODE_NAMES = ('window_detector', 'front_optical_flow', 'down_optical_flow',
                       'pad_detector', 'mode_supervisor', 'force_controller', 'mavlink_bridge')
 SIM_NODE_NAMES = ('sim',) + ONBOARD_NODE_NAMES

@@ -339,7 +339,7 @@ def test_composed_perception_nodes_take_each_camera_once(context, intra_process)
 
 
 def test_a_shared_camera_hands_each_image_first_to_the_node_its_modes_wait_for(context):
-    """Front: the window detector, then the wall flow (it takes this image's window). Down:
+    """Front: the window detector, then the wall flow (IDLE waits for the window only). Down:
     the floor flow, then the pad detector (CROSSING waits for the floor flow only; behind a
     whole-image pad search it missed the frame's deadline on a third of a core)."""
     from ibvs_bringup import composed, graph
