@@ -141,6 +141,9 @@ class CampaignConfig:
     run_timeout_s: float = 900.0      # image level: wall-clock limit of one run
     camera_rate_hz: float = 50.0      # the camera rate (feature level: 1 / camera_dt)
     command_delay_s: float = 0.0      # feature level: frame stamp -> setpoint applied, s
+    # feature level: (front, down) each flow measured on every Nth frame, held between (the
+    # graph shedding that flow's work); (1, 1) = every frame
+    flow_strides: tuple = (1, 1)
     sensors: str = 'ideal'            # sensor_errors.PROFILES: each run draws its errors
     sensor_overrides: tuple = ()      # (field, value) pairs replacing the profile's ranges
 
@@ -165,6 +168,8 @@ class CampaignConfig:
                 **({'camera_rate_hz': self.camera_rate_hz}
                    if self.camera_rate_hz != 50.0 else {}),
                 **({'command_delay_s': self.command_delay_s} if self.command_delay_s else {}),
+                **({'flow_strides': list(self.flow_strides)}
+                   if tuple(self.flow_strides) != (1, 1) else {}),
                 **({'sensors': self.sensors} if self.sensors != 'ideal' else {}),
                 **({'sensor_overrides': [list(o) for o in self.sensor_overrides]}
                    if self.sensor_overrides else {})}
@@ -317,7 +322,8 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
         attitude_estimate_offset_rad=tuple(cfg.estimate_error_rad),
         attitude_noise_std=noise_std, attitude_noise_tau_s=noise_tau,
         seed=spec.gust_seed, camera_dt=feature_camera_dt(errors.camera_rate_hz),
-        command_delay_s=cfg.command_delay_s + errors.latency_s)
+        command_delay_s=cfg.command_delay_s + errors.latency_s,
+        flow_stride_front=cfg.flow_strides[0], flow_stride_down=cfg.flow_strides[1])
     t0 = time.monotonic()
     summary, flog = feature_sim.run_feature_scenario(setup.world, setup.pad, true_vehicle,
                                                      controller, setup.supervisor, sim_cfg,
@@ -669,6 +675,10 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
     p.add_argument('--command-delay', type=float, default=0.0, metavar='MS',
                    help='feature level: ms from a frame stamp to its setpoint at the vehicle '
                         '(camera delivery + the graph), on top of the sensors\' latency')
+    p.add_argument('--flow-strides', type=int, nargs=2, default=(1, 1),
+                   metavar=('FRONT', 'DOWN'),
+                   help='feature level: each flow measured on every Nth frame and held on the '
+                   'others (the graph shedding that flow on a slow computer)')
     p.add_argument('--sensors', default='ideal', choices=('ideal', 'realistic'),
                    help="each run draws its camera errors: 'realistic' = latency 15-40 ms, "
                         'mounts within 1 deg, focal 0.5 %%, principal point 2 px, lever arms '
@@ -721,6 +731,10 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
         laws = [LawSpec(str(ctrl.disturbance_law))]
     if len({law.label for law in laws}) != len(laws):
         p.error('law labels must be unique')
+    if min(a.flow_strides) < 1:
+        p.error('--flow-strides must be >= 1')
+    if a.image_level and tuple(a.flow_strides) != (1, 1):
+        p.error('--flow-strides is a feature-level model: the image level flies the graph')
     if a.image_level and a.command_delay:
         p.error('--command-delay is the feature level\'s model of the graph\'s delay: the '
                 'image level flies the graph itself (--sensors for the cameras\' latency)')
@@ -735,7 +749,8 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          params_file=a.params_file, results_root=a.results_root,
                          image_level=a.image_level, domain_base=a.domain_base,
                          run_timeout_s=a.run_timeout, camera_rate_hz=a.camera_rate,
-                         command_delay_s=a.command_delay / 1e3, sensors=a.sensors,
+                         command_delay_s=a.command_delay / 1e3,
+                         flow_strides=tuple(a.flow_strides), sensors=a.sensors,
                          sensor_overrides=checked_sensor_overrides(p, a.sensor_set))
     return cfg, a.workers, not a.no_plots, a.aggregate_only, a.max_wall
 

@@ -79,6 +79,11 @@ class FeatureSimConfig:
     shutdown_ramp_s: float = 2.0       # s, mode 4 thrust ramp
     max_time_s: float = 60.0
     flow_noise: float = 0.0            # 1/s, white noise std on each flow component
+    # frames: each flow measured on every Nth frame only and held on the others (the graph
+    # shedding that flow's work on a slow computer: the force answers with a flow up to N - 1
+    # frames old); 1 = every frame
+    flow_stride_front: int = 1
+    flow_stride_down: int = 1
     bearing_noise_rad: float = 0.0     # white noise on each bearing
     seed: int = 0
 
@@ -300,6 +305,10 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     Omega_B = np.zeros(3)
     accel_bias_B = np.asarray(config.accel_bias_B, dtype=float).reshape(3)
     estimate_error = estimate_error_model(config)
+    if min(config.flow_stride_front, config.flow_stride_down) < 1:
+        raise ValueError('flow strides must be >= 1')
+    held = {'front': None, 'down': None}    # the last measured flows ({I}), shed frames reuse
+    frame = 0
     while t <= config.max_time_s:
         R_err = estimate_error(t)
         # --- one camera frame: sense, supervise, control ---------------------------------
@@ -312,6 +321,12 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
             rot_I = R_est @ R.T
             phi_down = None if phi_down is None else rot_I @ phi_down
             phi_front = None if phi_front is None else rot_I @ phi_front
+        if frame % config.flow_stride_front:
+            phi_front = held['front']
+        if frame % config.flow_stride_down:
+            phi_down = held['down']
+        held['front'], held['down'] = phi_front, phi_down
+        frame += 1
         supervisor.on_imu(t, R_est)
         supervisor.on_window(t, None if win_C is None else camera_bearings_from_body(
             'front', bearings_C_to_I(win_C, R_est, R_BC_front), R_est @ t_BC['front'],

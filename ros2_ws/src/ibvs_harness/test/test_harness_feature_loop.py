@@ -60,6 +60,24 @@ def test_noisy_features_still_succeed():
     assert_success(s)
 
 
+@pytest.mark.parametrize('front, down', [(2, 1), (1, 2)])
+def test_a_shed_flow_is_held_between_its_frames_and_the_flight_succeeds(front, down):
+    # a flow measured on every 2nd frame only (the graph shedding its work): the controller
+    # sees the same flow on the frame after each measured one, and a new one on the next
+    _, every = fly()
+    s, shed = fly(flow_stride_front=front, flow_stride_down=down)
+    assert_success(s)
+    mode = Mode.WINDOW if front == 2 else Mode.LANDING
+    phi = np.array([p for p, m in zip(shed.phi_w if front == 2 else shed.phi_t, shed.mode)
+                    if m == mode], dtype=float)
+    assert len(phi) > 20
+    changes = np.linalg.norm(np.diff(phi, axis=0), axis=1)
+    assert np.count_nonzero(changes == 0.0) >= len(changes) // 2 - 1, (len(changes), changes)
+    ref = np.array([p for p, m in zip(every.phi_w if front == 2 else every.phi_t, every.mode)
+                    if m == mode], dtype=float)
+    assert np.count_nonzero(np.linalg.norm(np.diff(ref, axis=0), axis=1) == 0.0) <= 2
+
+
 def test_the_estimate_error_model_is_the_sim_autopilots_and_is_flown():
     """attitude_noise_std > 0: the image-level autopilot's error process, seed for seed.
 
