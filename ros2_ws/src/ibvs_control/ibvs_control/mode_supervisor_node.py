@@ -318,8 +318,7 @@ class ModeSupervisorNode(Node):
         never open, and without them the governor saw only complete frames and kept a stride
         the computer could not hold (a sixth of a core: one frame in six computed at stride 1,
         the trackers lost across the gaps). Counted within one mode, camera and grid only; the
-        first of a gap counts only for the governor's majority rule (a node one image behind
-        skips one; one that misses every other frame runs behind at half the rate).
+        first of a gap is not given to the governor (a node one image behind skips one).
         """
         key = (self._core.mode, camera, self._grids.stride(camera), self._grids.ref_ns(camera))
         last = self._last_opened if self._last_opened and self._last_opened[0] == key else None
@@ -330,24 +329,19 @@ class ModeSupervisorNode(Node):
         missed = (stamp_ns - last[1] + step // 2) // step - 1
         self._stats.missed += max(missed, 0)
         # a lone missed frame (a node skipped one image for the next) costs that frame, as a
-        # lone skipped one does (only the governor's majority rule counts it); each further
-        # one in the gap counts as skipped
-        for k in range(1, min(missed, self._governor.config.stride_window_frames) + 1):
-            if self._governor_at(camera, last[1] + k * step, complete=False, lone=k == 1):
+        # lone skipped one does; each further one in the gap counts as skipped
+        for k in range(2, min(missed, self._governor.config.stride_window_frames) + 1):
+            if self._governor_at(camera, last[1] + k * step, complete=False):
                 break                   # a new grid: the frames after it count on it
 
     def _governor_step(self, frame: Frame, complete: bool, lag_s: float | None = None) -> None:
         self._governor_at(frame.tag, frame.stamp_ns, complete, lag_s)
 
     def _governor_at(self, camera: Camera, stamp_ns: int, complete: bool,
-                     lag_s: float | None = None, lone: bool = False) -> bool:
-        """Let the governor see a frame of ``camera``; apply and publish a new stride (True).
-
-        ``lone``: the first grid frame of a gap no product came for (RateGovernor.observe_missed).
-        """
-        t = stamp_ns / NS_PER_S
-        stride = self._governor.observe_missed(t) if lone else \
-            self._governor.observe(t, complete, lag_s, 1.0 / self._rate_hz[camera])
+                     lag_s: float | None = None) -> bool:
+        """Let the governor see a frame of ``camera``; apply and publish a new stride (True)."""
+        stride = self._governor.observe(stamp_ns / NS_PER_S, complete, lag_s,
+                                        1.0 / self._rate_hz[camera])
         if stride is None:
             return False
         old = self._grids.stride(camera)

@@ -116,43 +116,6 @@ def test_a_try_is_judged_from_its_lead_on_not_on_the_old_strides_frames_before_i
     assert gov.observe(t + 0.14, False) == 2 and gov.reason == 'frames were skipped'
 
 
-def test_lone_misses_of_most_frames_double_the_stride_and_a_quarter_do_not():
-    # a node one image behind misses one frame for the next: alone, no skipped-frame rule
-    # counts it. Every other frame missed (a graph a frame behind at half the rate): half of
-    # the window unanswered doubles the stride; one in four (37 Hz of 50) keeps it
-    gov = RateGovernor(GovernorConfig(**NO_LEAD))
-    changes = []
-    for k in range(40):
-        t = k * 0.02
-        s = gov.observe_missed(t) if k % 4 == 3 else gov.observe(t, True)
-        if s is not None:
-            changes.append(s)
-    assert changes == [] and gov.stride == 1
-    for k in range(40, 80):
-        t = k * 0.02
-        s = gov.observe_missed(t) if k % 2 else gov.observe(t, True)
-        if s is not None:
-            changes.append((round(t, 6), s))
-            break
-    # the window of 10 frames holds 5 misses first at frame 47 (frames 38-47: 39, the first
-    # phase's last miss, and 41, 43, 45, 47)
-    assert changes == [(round(47 * 0.02, 6), 2)]
-    assert gov.reason == 'most frames were not answered'
-
-
-def test_a_lone_miss_among_the_recent_frames_postpones_a_try():
-    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0, **NO_LEAD))
-    run(gov, 0.0, 3, False)                          # stride 2 at 0.04
-    t = 0.04
-    for k in range(40):                              # 1.6 s with a lone miss every 5th frame
-        t += 0.04
-        assert (gov.observe_missed(t) if k % 5 == 4 else gov.observe(t, True)) is None
-    assert gov.stride == 2
-    changes = run(gov, t + 0.04, 20, True)           # clean frames: a try once 10 are clean
-    assert [s for _, s in changes] == [1]
-    assert changes[0][0] == pytest.approx(t + 0.04 * 10, abs=1e-6)
-
-
 def test_bad_governor_thresholds_are_refused():
     with pytest.raises(ValueError):
         GovernorConfig(stride_window_frames=3, stride_up_skipped=4)

@@ -4,9 +4,7 @@ A computer that cannot compute every camera frame in time skips frames (a produc
 lost: the frame is skipped, never flown on stale data). Skipped at random, the products of
 one image rarely all come, and the control rate collapses. :class:`RateGovernor` watches the
 frames of the mode's camera and, when the graph cannot hold their rate (several skipped in a
-row: it fell behind; or many among the recent ones; or half of the recent grid frames or more
-not answered, lone misses of a node one image behind included: it runs a frame behind at half
-the rate or less), doubles the frame stride, so that every
+row: it fell behind; or many among the recent ones), doubles the frame stride, so that every
 node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when none is
 skipped for a while it tries half the stride again (judged from ``stride_down_lead_s`` after
 the decision, when the nodes compute its frames; the old stride's frames before then say
@@ -46,10 +44,6 @@ class GovernorConfig:
     stride_up_in_a_row: int = param(
         3, 'frames: this many skipped in a row double the stride at once (a graph that fell '
         'behind)', 1, 100)
-    stride_up_unanswered_fraction: float = param(
-        0.5, 'this fraction or more of the recent grid frames not answered (skipped, or '
-        'missed: a node behind took a newer image; lone misses included) doubles the stride: '
-        'the doubled stride answers as many frames, without the backlog; 1 = off', 0.0, 1.0)
     stride_try_skipped: int = param(
         1, 'frames: this many skipped while a smaller stride is on trial end the trial at once '
         '(back to the stride that held): a trial that does not fit must not last until the '
@@ -88,8 +82,6 @@ class RateGovernor:
         self.changes = 0
         self.reason = ''                # why the stride last changed, for the log
         self._recent: deque[bool] = deque(maxlen=config.stride_window_frames)
-        # every grid frame, lone misses included: answered or not (the majority rule)
-        self._answered: deque[bool] = deque(maxlen=config.stride_window_frames)
         self._t_change: float | None = None
         self._hold_s = config.stride_down_hold_s
         self._probing = False           # the last change was a try of a smaller stride
@@ -111,59 +103,27 @@ class RateGovernor:
         if self._probing and t < self._try_from:
             return None     # a frame of the old stride: the try has not started (its lead)
         self._recent.append(bool(complete))
-        self._answered.append(bool(complete))
         skipped = sum(1 for ok in self._recent if not ok)
         lagging = self._probing and self._lagging(lag_s, period_s)
         if self._probing and (skipped >= cfg.stride_try_skipped or lagging):
             self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
             self.reason = 'the try fell behind' if lagging else 'frames were skipped'
             return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
-        mostly = self._mostly_unanswered()
-        if (self._overloaded(skipped) or mostly) and self.stride < cfg.max_frame_stride:
+        if self._overloaded(skipped) and self.stride < cfg.max_frame_stride:
             if self._probing:       # the smaller stride did not hold: wait longer next time
                 self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
-            self.reason = 'frames were skipped' if self._overloaded(skipped) \
-                else 'most frames were not answered'
+            self.reason = 'frames were skipped'
             return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
         if self._probing and t - self._t_change >= self._hold_s:
             self._probing = False   # the try held: the next one waits the shortest time
             self._hold_s = cfg.stride_down_hold_s
         if complete and lag_s is not None and not self._probing:
             self._lags.append(float(lag_s))
-        if self.stride > 1 and skipped == 0 and all(self._answered) \
-                and t - self._t_change >= self._hold_s:
+        if self.stride > 1 and skipped == 0 and t - self._t_change >= self._hold_s:
             self._lag_before = float(np.median(self._lags)) if self._lags else None
             self.reason = 'none skipped: a try'
             return self._change(t, self.stride // 2, probing=True)
         return None
-
-    def observe_missed(self, t: float) -> int | None:
-        """Take a lone grid frame no product came for (stamp t); return the new stride if any.
-
-        A node one image behind skips one for the newer: alone it costs that frame and counts
-        for none of the skipped-frame rules, only for ``stride_up_unanswered_fraction`` (a
-        graph that misses every other frame runs a frame behind at half the rate).
-        """
-        if self._t_change is None:
-            self._t_change = t
-        if self._probing and t < self._try_from:
-            return None
-        self._answered.append(False)
-        if self._mostly_unanswered() and self.stride < self.config.max_frame_stride:
-            if self._probing:
-                self._hold_s = min(2.0 * self._hold_s, self.config.stride_down_hold_max_s)
-            self.reason = 'most frames were not answered'
-            return self._change(t, min(2 * self.stride, self.config.max_frame_stride),
-                                probing=False)
-        return None
-
-    def _mostly_unanswered(self) -> bool:
-        """Whether the fraction or more of a full window of grid frames was not answered."""
-        window = self._answered
-        if len(window) < window.maxlen:
-            return False
-        return sum(1 for ok in window if not ok) >= \
-            self.config.stride_up_unanswered_fraction * len(window)
 
     def _lagging(self, lag_s: float | None, period_s: float | None) -> bool:
         """Whether a frame of the try completed later than those before it (module doc)."""
@@ -187,7 +147,6 @@ class RateGovernor:
         self.stride, self._t_change, self._probing = stride, t, probing
         self._try_from = t + self.config.stride_down_lead_s if probing else float('-inf')
         self._recent.clear()
-        self._answered.clear()
         self._lags.clear()
         self.changes += 1
         return stride
