@@ -316,6 +316,7 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
     The nodes' logs go to ``results/bench_onboard/<case>_r<run>/``.
     """
     from ibvs_bringup.runner import ProcessRunner
+    from ibvs_harness.run_scenario import write_vehicle_at_rates
     from ibvs_common.core.mavlink_connection import free_udp_port
     from ibvs_common.testing import SerialCable
     ctx = mp.get_context('spawn')
@@ -343,7 +344,14 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
     out = {'name': name, 'rate_hz': rate_hz, 'latency_ms': latency_ms, 'cpu': cpu, 'link': link}
     delivered = {}
     try:
+        # the graph configured for its cameras' rate, as a user sets vehicle.yaml's rate_hz
+        os.makedirs(case_dir, exist_ok=True)
+        vehicle = None if rate_hz == 50.0 else write_vehicle_at_rates(
+            None, (rate_hz, rate_hz), os.path.join(case_dir, 'vehicle_onboard.yaml'),
+            f'bench_onboard: cameras at {rate_hz:g} Hz')
         argv = pin + [sys.executable, '-m', 'ibvs_bringup.composed', '--mavlink-url', graph_url]
+        if vehicle is not None:
+            argv += ['--ros-args', '-p', f'vehicle_file:={vehicle}']
         if layout in ('composed', 'composed-single'):
             runner.start('composed', argv + (['--single-executor']
                                              if layout == 'composed-single' else []))
@@ -351,7 +359,8 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
             from ibvs_bringup import graph
             from ibvs_bringup.runner import command_for
             for spec in graph.onboard_graph(graph.GraphOptions(use_sim_time=False,
-                                                               mavlink_url=graph_url)):
+                                                               mavlink_url=graph_url,
+                                                               vehicle_file=vehicle)):
                 runner.start(spec.name, pin + command_for(spec.package, spec.executable,
                                                           spec.ros_args()))
         pids = {c.name: c.proc.pid for c in runner.children}

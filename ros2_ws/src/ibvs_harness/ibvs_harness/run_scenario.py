@@ -104,17 +104,26 @@ def onboard_vehicle_file(opts: RunOptions) -> str | None:
     rates = opts.camera_model.get(CAMERA_RATE)
     if rates is None:
         return os.path.abspath(opts.onboard_vehicle) if opts.onboard_vehicle else None
+    return write_vehicle_at_rates(opts.onboard_vehicle, rates,
+                                  os.path.join(opts.out_dir, 'vehicle_onboard.yaml'),
+                                  'run_scenario --camera-rate')
+
+
+def write_vehicle_at_rates(source: str | None, rates, path: str, why: str) -> str:
+    """Write ``source`` (None: the installed vehicle.yaml) with the cameras' ``rate_hz``.
+
+    ``rates``: (front, down) in Hz. Returns the absolute path written.
+    """
     import yaml
     from ibvs_common.core.config import default_config_path
-    source = opts.onboard_vehicle or default_config_path('vehicle.yaml')
+    source = source or default_config_path('vehicle.yaml')
     with open(source, encoding='utf-8') as f:
         data = yaml.safe_load(f)
     for name, rate in zip(CAMERA_NAMES, rates):
         data['cameras'][name]['rate_hz'] = float(rate)
-    path = os.path.abspath(os.path.join(opts.out_dir, 'vehicle_onboard.yaml'))
+    path = os.path.abspath(path)
     with open(path, 'w', encoding='utf-8') as f:
-        f.write(f'# {os.path.basename(source)} with the cameras at {list(rates)} Hz '
-                '(run_scenario --camera-rate)\n')
+        f.write(f'# {os.path.basename(source)} with the cameras at {list(rates)} Hz ({why})\n')
         yaml.safe_dump(data, f, sort_keys=False)
     return path
 
