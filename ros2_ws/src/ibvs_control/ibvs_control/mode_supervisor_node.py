@@ -282,6 +282,9 @@ class ModeSupervisorNode(Node):
             self._feed(kind, frame.stamp_ns, value)
         self._observe_rate(frame)
         self._core.end_frame(t)
+        if self._core.crossing_note:
+            self.get_logger().info(self._core.crossing_note)
+            self._core.crossing_note = ''
         if self._core.auto_start_refusal:
             self._error(f'auto-start refused: {self._core.auto_start_refusal}')
         if self._core.start_refusal:

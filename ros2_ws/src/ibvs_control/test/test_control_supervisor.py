@@ -93,6 +93,11 @@ def test_whole_sequence_with_crossing_length_from_images():
     # d_o(T2) = 0.7 m plus the margin: the switch comes that far after T2 (+- one frame)
     assert sup.mode == Mode.LANDING
     assert abs(travelled - (0.7 + sup.config.crossing_margin_m)) < 0.02
+    # the log's note of the measure: the window plane 0.7 m ahead, the floor 1.6 m below (the
+    # wall flow of the frame before T2: 1 % far)
+    note = sup.crossing_note
+    assert 'd_o(T2) 0.700 m' in note, note
+    assert abs(float(note.split('floor ')[1].split(' m below')[0]) - 1.6) < 0.02, note
     # descend over the pad: mode 4 below 0.14 m from the smallest complete group
     xi = np.array([0.0, 0.0, -0.5])
     v = np.array([0.0, 0.0, 0.2])

@@ -192,6 +192,9 @@ class ModeSupervisor:
         self._t_carried_below: float | None = None      # first carried frame below, off-centre
         self.frame_period_s = 0.02    # s between two computed front frames (the node sets it)
         self.auto_start_refusal = ''                    # why the last auto-start was refused
+        # the blind crossing's length as measured at the first floor flow, for the log (the
+        # node logs and clears it)
+        self.crossing_note = ''
         self.start_refusal = ''                         # why the last start request was dropped
         self._start_requested_at: float | None = None   # t of an accepted ibvs/start request
         self._start_source = 'ibvs/start'               # who asked (the transition's reason)
@@ -509,13 +512,19 @@ class ModeSupervisor:
         self._travel_needed = self.config.crossing_fallback_travel
         self._t_flow_down = None          # the travel integral starts at the first floor flow
         self._phi_front_T2 = None
+        fallback = (f'blind crossing: {{}}: the fallback travel '
+                    f'{self.config.crossing_fallback_travel:.3f} of floor flow')
         if self._corners is None or self._eta_w is None:
+            self.crossing_note = fallback.format('no window corners or wall normal at T2')
             return
         try:
             self._d_o_T2 = distance_to_window_plane(self._corners, self._eta_w, self.config.r_w)
         except (ValueError, ZeroDivisionError, FloatingPointError):
+            self.crossing_note = fallback.format('no distance to the window plane at T2')
             return
         self._phi_front_T2 = self._phi_front
+        if self._phi_front is None:
+            self.crossing_note = fallback.format('no wall flow at T2')
 
     def _measure_crossing(self, phi_front: np.ndarray | None, phi_down: np.ndarray) -> None:
         """Blind-crossing length from d_o(T2) and the two flows (same v at T2)."""
@@ -526,6 +535,10 @@ class ModeSupervisor:
             return
         d_t = self._d_o_T2 * n_front / n_down          # same velocity seen by both cameras
         self._travel_needed = (self._d_o_T2 + self.config.crossing_margin_m) / d_t
+        self.crossing_note = (f'blind crossing: d_o(T2) {self._d_o_T2:.3f} m, |phi_front| '
+                              f'{n_front:.3f} 1/s, first |phi_down| {n_down:.3f} 1/s: floor '
+                              f'{d_t:.3f} m below, {self._travel_needed:.3f} of floor-flow '
+                              'travel to the window plane plus the margin')
 
     def _crossed(self) -> bool:
         return self._travel_needed is not None and self._travel_norm >= self._travel_needed
