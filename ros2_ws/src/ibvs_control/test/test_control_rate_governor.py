@@ -159,7 +159,7 @@ def test_a_try_ends_at_its_first_frame_that_falls_half_a_period_behind():
     assert gov.stride == 1
     lags = [0.045 + 0.008 * k for k in range(1, 6)]
     out = [gov.observe(t + 0.02 * k, True, lag, 0.02) for k, lag in enumerate(lags, 1)]
-    assert out == [None, 2, None, None, None]            # 0.061 - 0.045 >= 0.010
+    assert out == [None, None, 2, None, None]            # 0.069 - 0.053 (the first) >= 0.010
     assert gov.stride == 2 and gov.reason == 'the try fell behind'
     # a failed try: the next waits twice as long
     t2 = t + 0.04
@@ -175,6 +175,38 @@ def test_a_try_that_keeps_the_lag_of_the_frames_before_it_holds():
     lags = 0.045 + 0.009 * np.sin(np.arange(200))         # noise below half a period (10 ms)
     out = [gov.observe(t + 0.02 * k, True, lag, 0.02) for k, lag in enumerate(lags, 1)]
     assert all(s is None for s in out) and gov.stride == 1
+
+
+def test_a_try_whose_frames_keep_a_constant_extra_lag_holds():
+    # from stride 4 to 2 on a third of a core: each frame of the busier stride completes ~20 ms
+    # later than at stride 4, but no later frame after frame: no backlog, the try holds
+    gov = RateGovernor(GovernorConfig(stride_down_hold_s=1.0, max_frame_stride=4, **NO_LEAD))
+    run(gov, 0.0, 3, False)
+    run(gov, 0.08, 3, False)                             # stride 4
+    assert gov.stride == 4
+    t = 0.4
+    while gov.stride == 4:
+        t += 0.08
+        gov.observe(t, True, 0.045, 0.02)
+    assert gov.stride == 2
+    lags = 0.070 + 0.004 * np.sin(np.arange(24))         # +25 ms, steady, until the hold
+    out = [gov.observe(t + 0.04 * k, True, lag, 0.02) for k, lag in enumerate(lags, 1)]
+    assert all(s is None for s in out) and gov.stride == 2
+
+
+def test_a_handover_waits_for_the_new_cameras_first_complete_frame_within_the_grace():
+    cfg = GovernorConfig(stride_handover_grace_s=0.2)
+    gov = RateGovernor(cfg)
+    run(gov, 0.0, 20, True)
+    gov.handover(0.5)
+    assert run(gov, 0.5, 5, False) == [] and gov.stride == 1   # 0.5-0.58: starting
+    assert gov.observe(0.6, True) is None                      # its first complete frame
+    assert run(gov, 0.62, 3, False) == [(0.66, 2)]              # now they count
+    # without a complete frame the grace ends after stride_handover_grace_s
+    gov = RateGovernor(cfg)
+    run(gov, 0.0, 20, True)
+    gov.handover(0.5)
+    assert run(gov, 0.5, 13, False) == [(0.74, 2)]   # 0.70, 0.72, 0.74: 3 in a row past it
 
 
 def test_the_lag_rule_can_be_switched_off_and_needs_the_lag():

@@ -9,12 +9,14 @@ node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`);
 skipped for a while it tries half the stride again (judged from ``stride_down_lead_s`` after
 the decision, when the nodes compute its frames; the old stride's frames before then say
 nothing of the try): the first skipped frame of the try ends it
-(``stride_try_skipped``), or its first frame completed later than the frames before it by
-half a frame period or more (``stride_try_lag_periods``: the graph is falling behind; on a
+(``stride_try_skipped``), or its first frame completed later than the frames before it and
+than the try's first frame by half a frame period or more (``stride_try_lag_periods``: the
+graph is falling behind; on a
 slow computer a try that waits for a skipped frame has piled up a backlog of several frames,
 and forces hundreds of ms old), and the next try waits twice as long. A lone
 skipped frame (a late delivery, a busy moment of the computer) costs that frame; a doubled
-stride costs half of them for seconds, so it does not double the stride.
+stride costs half of them for seconds, so it does not double the stride. Nor do the frames of
+a new camera skipped at a handover before its first complete one (``stride_handover_grace_s``).
 :class:`SupervisorGrids` is the supervisor's view of which frames to expect. Times are frame
 stamps (s, ROS clock).
 """
@@ -50,14 +52,21 @@ class GovernorConfig:
         'overload rules see it, the graph falls behind meanwhile', 1, 100)
     stride_try_lag_periods: float = param(
         0.5, 'frame periods (of the stride on trial): a frame of the try completed this much '
-        'later after its stamp (ROS clock) than the median of the frames before the try ends '
-        'the try: the graph is falling behind; 0 = off (only skipped frames end a try)', 0.0)
+        'later after its stamp (ROS clock) than the median of the frames before the try and '
+        "than the try's first frame ends the try: the graph is falling behind (a backlog "
+        'grows frame after frame; a constant extra lag of the busier stride does not); 0 = '
+        'off (only skipped frames end a try)', 0.0)
     stride_down_hold_s: float = param(
         2.0, 's (frame stamps): no frame skipped for this long at a stride: try half of it '
         '(after a try that failed, twice as long each time, up to stride_down_hold_max_s)',
         0.0)
     stride_down_hold_max_s: float = param(
         16.0, 's (frame stamps): the longest wait before trying a smaller stride', 0.0)
+    stride_handover_grace_s: float = param(
+        0.2, "s (frame stamps): after the mode's camera changes (WINDOW -> CROSSING), its "
+        'frames skipped before its first complete one, within this long, do not count: the '
+        "new camera's products start (the floor flow's first pair, the pad's whole-image "
+        'search); 0 = off', 0.0)
     stride_down_lead_s: float = param(
         0.1, 's (frame stamps): a smaller stride is expected only from this long after its '
         'decision (the perception nodes learn it from the frame status first), and its try is '
@@ -87,6 +96,8 @@ class RateGovernor:
         self._probing = False           # the last change was a try of a smaller stride
         self._lags: deque[float] = deque(maxlen=config.stride_window_frames)
         self._lag_before: float | None = None   # median lag of the frames before the try
+        self._lag_first: float | None = None    # lag of the try's first complete frame
+        self._grace_until = float('-inf')       # handover: skips before then may not count
         self._try_from = float('-inf')  # the first stamp a try of a smaller stride is judged on
 
     def observe(self, t: float, complete: bool, lag_s: float | None = None,
@@ -102,6 +113,10 @@ class RateGovernor:
             self._t_change = t
         if self._probing and t < self._try_from:
             return None     # a frame of the old stride: the try has not started (its lead)
+        if complete:
+            self._grace_until = float('-inf')   # the new camera's first complete frame
+        elif t < self._grace_until:
+            return None     # the new camera's products are starting (handover)
         self._recent.append(bool(complete))
         skipped = sum(1 for ok in self._recent if not ok)
         lagging = self._probing and self._lagging(lag_s, period_s)
@@ -125,13 +140,33 @@ class RateGovernor:
             return self._change(t, self.stride // 2, probing=True)
         return None
 
+    def handover(self, t: float) -> None:
+        """Note that the mode's camera changed at stamp t (skips wait for its first frame).
+
+        For ``stride_handover_grace_s`` the new camera's skipped frames do not count until one
+        completes (at a handover on a third of a core, the floor flow's first frames missed
+        their deadline and the stride doubled to 4 for the rest of the flight).
+        """
+        self._recent.clear()
+        self._grace_until = t + self.config.stride_handover_grace_s
+
     def _lagging(self, lag_s: float | None, period_s: float | None) -> bool:
-        """Whether a frame of the try completed later than those before it (module doc)."""
+        """Whether a frame of the try completed later than those before it (module doc).
+
+        The reference is the later of the frames before the try (median) and the try's first
+        complete frame: a backlog grows frame after frame, while a busier stride may hold a
+        constant extra lag (a third of a core: 4 -> 2 tries ended at their second frame, and
+        the graph kept 12.5 Hz where it holds 25).
+        """
         cfg = self.config
         if lag_s is None or period_s is None or self._lag_before is None \
                 or cfg.stride_try_lag_periods <= 0.0:
             return False
-        return lag_s - self._lag_before >= cfg.stride_try_lag_periods * self.stride * period_s
+        if self._lag_first is None:
+            self._lag_first = float(lag_s)
+            return False
+        ref = max(self._lag_before, self._lag_first)
+        return lag_s - ref >= cfg.stride_try_lag_periods * self.stride * period_s
 
     def _overloaded(self, skipped: int) -> bool:
         """Whether the recent frames say the graph cannot hold this stride."""
@@ -145,6 +180,7 @@ class RateGovernor:
 
     def _change(self, t: float, stride: int, probing: bool) -> int:
         self.stride, self._t_change, self._probing = stride, t, probing
+        self._lag_first = None
         self._try_from = t + self.config.stride_down_lead_s if probing else float('-inf')
         self._recent.clear()
         self._lags.clear()
