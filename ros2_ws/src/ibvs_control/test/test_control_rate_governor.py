@@ -177,6 +177,33 @@ def test_a_try_that_keeps_the_lag_of_the_frames_before_it_holds():
     assert all(s is None for s in out) and gov.stride == 1
 
 
+def _at_stride_4_until_a_try_of_2(gov):
+    """Skip frames up to stride 4, then complete ones until the try of 2: its stamp."""
+    run(gov, 0.0, 3, False)
+    run(gov, 0.08, 3, False)
+    assert gov.stride == 4
+    t = 0.4
+    while gov.stride == 4:
+        t += 0.08
+        gov.observe(t, True)
+    assert gov.stride == 2
+    return t
+
+
+def test_a_sporadic_skip_after_the_probation_keeps_the_try():
+    # stride 2 held with a skip now and then (a third of a core); the try of 4 -> 2 passes
+    # its 0.5 s probation, and the overload rules (3 in a row, 4 in 10) ignore a lone skip
+    cfg = GovernorConfig(stride_down_hold_s=1.0, stride_try_s=0.5, **NO_LEAD)
+    gov = RateGovernor(cfg)
+    t = _at_stride_4_until_a_try_of_2(gov)
+    out = [gov.observe(t + 0.04 * k, k != 15) for k in range(1, 24)]   # a skip at 0.6 s
+    assert all(s is None for s in out) and gov.stride == 2
+    # within the probation the same skip ends the try
+    gov = RateGovernor(cfg)
+    t = _at_stride_4_until_a_try_of_2(gov)
+    assert [gov.observe(t + 0.04 * k, k != 5) for k in range(1, 6)] == [None] * 4 + [4]
+
+
 def test_a_try_whose_frames_keep_a_constant_extra_lag_holds():
     # from stride 4 to 2 on a third of a core: each frame of the busier stride completes ~20 ms
     # later than at stride 4, but no later frame after frame: no backlog, the try holds

@@ -8,7 +8,8 @@ row: it fell behind; or many among the recent ones), doubles the frame stride, s
 node computes the same frames (:class:`~ibvs_common.core.frame_grid.FrameGrid`); when none is
 skipped for a while it tries half the stride again (judged from ``stride_down_lead_s`` after
 the decision, when the nodes compute its frames; the old stride's frames before then say
-nothing of the try): the first skipped frame of the try ends it
+nothing of the try), on probation for ``stride_try_s``: the first skipped frame of the try
+within it ends it
 (``stride_try_skipped``), or its first frame completed later than the frames before it and
 than the try's first frame by half a frame period or more (``stride_try_lag_periods``: the
 graph is falling behind; on a
@@ -56,6 +57,12 @@ class GovernorConfig:
         "than the try's first frame ends the try: the graph is falling behind (a backlog "
         'grows frame after frame; a constant extra lag of the busier stride does not); 0 = '
         'off (only skipped frames end a try)', 0.0)
+    stride_try_s: float = param(
+        0.5, 's (frame stamps): the probation of a try of a smaller stride, from its lead on: '
+        'its first skipped or lagging frame within it ends the try (a stride that does not '
+        'fit falls behind within a few frames); then the overload rules judge it, which a '
+        'sporadic skip does not trip (a probation as long as the hold, up to 16 s, ended '
+        'tries that held on their first sporadic skip)', 0.0)
     stride_down_hold_s: float = param(
         2.0, 's (frame stamps): no frame skipped for this long at a stride: try half of it '
         '(after a try that failed, twice as long each time, up to stride_down_hold_max_s)',
@@ -93,7 +100,8 @@ class RateGovernor:
         self._recent: deque[bool] = deque(maxlen=config.stride_window_frames)
         self._t_change: float | None = None
         self._hold_s = config.stride_down_hold_s
-        self._probing = False           # the last change was a try of a smaller stride
+        self._probing = False           # a try of a smaller stride on probation
+        self._trying = False            # the last change was a try, within its hold
         self._lags: deque[float] = deque(maxlen=config.stride_window_frames)
         self._lag_before: float | None = None   # median lag of the frames before the try
         self._lag_first: float | None = None    # lag of the try's first complete frame
@@ -125,12 +133,14 @@ class RateGovernor:
             self.reason = 'the try fell behind' if lagging else 'frames were skipped'
             return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
         if self._overloaded(skipped) and self.stride < cfg.max_frame_stride:
-            if self._probing:       # the smaller stride did not hold: wait longer next time
+            if self._trying:        # the smaller stride did not hold: wait longer next time
                 self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
             self.reason = 'frames were skipped'
             return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
-        if self._probing and t - self._t_change >= self._hold_s:
-            self._probing = False   # the try held: the next one waits the shortest time
+        if self._probing and t - self._try_from >= cfg.stride_try_s:
+            self._probing = False   # probation passed: the overload rules judge the try now
+        if self._trying and t - self._t_change >= self._hold_s:
+            self._trying = False    # the try held: the next one waits the shortest time
             self._hold_s = cfg.stride_down_hold_s
         if complete and lag_s is not None and not self._probing:
             self._lags.append(float(lag_s))
@@ -179,7 +189,7 @@ class RateGovernor:
         return skipped >= cfg.stride_up_skipped or in_a_row >= cfg.stride_up_in_a_row
 
     def _change(self, t: float, stride: int, probing: bool) -> int:
-        self.stride, self._t_change, self._probing = stride, t, probing
+        self.stride, self._t_change, self._probing, self._trying = stride, t, probing, probing
         self._lag_first = None
         self._try_from = t + self.config.stride_down_lead_s if probing else float('-inf')
         self._recent.clear()
