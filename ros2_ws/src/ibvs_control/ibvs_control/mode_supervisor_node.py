@@ -260,6 +260,11 @@ class ModeSupervisorNode(Node):
             ok, landmarks_I = self._to_I(landmarks_C, stamp_ns, 'down', tuple(groups))
             if ok:
                 self._core.on_pad(t, landmarks_I, list(groups), weights)
+            if ok and landmarks_I is not None and self._core.mode == Mode.CROSSING:
+                travel, needed = self._core.crossing_progress
+                self.log.info(f'pad seen in CROSSING at {t:.3f} s: floor-flow travel '
+                              f'{travel:.3f} of {needed if needed is None else round(needed, 3)}'
+                              ' to the window plane plus the margin', LOG_THROTTLE_S)
         elif value is not None:
             self._core.on_flow(t, 'front' if kind == InputKind.FLOW_FRONT else 'down', value)
 

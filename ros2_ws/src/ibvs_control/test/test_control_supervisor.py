@@ -98,6 +98,8 @@ def test_whole_sequence_with_crossing_length_from_images():
     note = sup.crossing_note
     assert 'd_o(T2) 0.700 m' in note, note
     assert abs(float(note.split('floor ')[1].split(' m below')[0]) - 1.6) < 0.02, note
+    travel, needed = sup.crossing_progress    # the switch came once flown (within 2 frames)
+    assert needed is not None and needed <= travel < needed + 2 * 0.25 * 0.02 / 1.6 + 1e-9
     # descend over the pad: mode 4 below 0.14 m from the smallest complete group
     xi = np.array([0.0, 0.0, -0.5])
     v = np.array([0.0, 0.0, 0.2])

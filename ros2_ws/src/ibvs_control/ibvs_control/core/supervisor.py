@@ -540,6 +540,11 @@ class ModeSupervisor:
                               f'{d_t:.3f} m below, {self._travel_needed:.3f} of floor-flow '
                               'travel to the window plane plus the margin')
 
+    @property
+    def crossing_progress(self) -> tuple[float, float | None]:
+        """(floor-flow travel since the first floor flow of CROSSING, travel needed or None)."""
+        return self._travel_norm, self._travel_needed
+
     def _crossed(self) -> bool:
         return self._travel_needed is not None and self._travel_norm >= self._travel_needed
 
