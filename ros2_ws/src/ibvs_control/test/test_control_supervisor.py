@@ -87,6 +87,33 @@ def fly_through_the_window(sup, floor_flow_in_window=True):
     return t, xi, v, v[0] * (t - t_cross)
 
 
+def test_a_window_detection_after_t2_does_not_turn_the_crossings_travel():
+    # the window leaving the view: a detection 0.2 s after T2 (past the corner-jump check's
+    # gap) whose normal is off by 80 deg; the travel is measured along the wall normal of T2,
+    # so the switch to LANDING still comes d_o(T2) + margin after T2
+    sup = started()
+    v = np.array([0.25, 0.0, 0.0])
+    xi, t = np.array([-1.5, 0.0, -1.6]), 0.0
+    while sup.mode == Mode.WINDOW:
+        t += 0.02
+        xi = xi + v * 0.02
+        feed(sup, t, xi, v, window=xi[0] < -1.2)
+    t_cross, c = t, np.mean(CORNERS, axis=0)
+    a = np.radians(80.0)
+    Rz = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    skewed = (np.asarray(CORNERS) - c) @ Rz.T + c
+    k = 0
+    while sup.mode == Mode.CROSSING and k < 400:     # the crossing: ~240 frames
+        k += 1
+        t += 0.02
+        xi = xi + v * 0.02
+        if k == 10:
+            sup.on_window(t, bearings(skewed, xi))
+        feed(sup, t, xi, v, window=False, pad=pad_groups(xi))
+    assert sup.mode == Mode.LANDING
+    assert abs(v[0] * (t - t_cross) - (0.7 + sup.config.crossing_margin_m)) < 0.03
+
+
 def test_whole_sequence_with_crossing_length_from_images():
     sup = started()
     t, xi, v, travelled = fly_through_the_window(sup)

@@ -175,6 +175,9 @@ class ModeSupervisor:
         self._corners: np.ndarray | None = None         # last full-window corners, {I}
         self._window_close = False
         self._eta_w: np.ndarray | None = None
+        # the wall normal at T2: the blind crossing's travel is measured along it (a window
+        # detection after T2, the window leaving the view, does not move it)
+        self._eta_w_T2: np.ndarray | None = None
         self._d_o_T2: float | None = None
         self._phi_front_T2: np.ndarray | None = None    # wall flow at T2, until phi_t comes
         self._phi_front: np.ndarray | None = None
@@ -387,9 +390,10 @@ class ModeSupervisor:
             if self.mode == Mode.CROSSING and self._phi_front_T2 is not None:
                 self._measure_crossing(self._phi_front_T2, phi)
                 self._phi_front_T2 = None
-            if self.mode == Mode.CROSSING and self._eta_w is not None \
+            if self.mode == Mode.CROSSING and self._eta_w_T2 is not None \
                     and self._t_flow_down is not None:
-                self._travel_norm += float(self._eta_w @ phi) * max(t - self._t_flow_down, 0.0)
+                dt = max(t - self._t_flow_down, 0.0)
+                self._travel_norm += float(self._eta_w_T2 @ phi) * dt
             self._t_flow_down = t
             self._last['down_flow'] = t
             self._frame_phi_down = phi
@@ -512,6 +516,7 @@ class ModeSupervisor:
         self._travel_needed = self.config.crossing_fallback_travel
         self._t_flow_down = None          # the travel integral starts at the first floor flow
         self._phi_front_T2 = None
+        self._eta_w_T2 = self._eta_w
         fallback = (f'blind crossing: {{}}: the fallback travel '
                     f'{self.config.crossing_fallback_travel:.3f} of floor flow')
         if self._corners is None or self._eta_w is None:
