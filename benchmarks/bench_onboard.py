@@ -354,11 +354,11 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
             None, (rate_hz, rate_hz), os.path.join(case_dir, 'vehicle_onboard.yaml'),
             f'bench_onboard: cameras at {rate_hz:g} Hz')
         argv = pin + [sys.executable, '-m', 'ibvs_bringup.composed', '--mavlink-url', graph_url]
-        if vehicle is not None:
-            argv += ['--ros-args', '-p', f'vehicle_file:={vehicle}']
+        # the ROS arguments last: an option after --ros-args would be read as one of them
+        ros_args = [] if vehicle is None else ['--ros-args', '-p', f'vehicle_file:={vehicle}']
         if layout in ('composed', 'composed-single'):
             runner.start('composed', argv + (['--single-executor']
-                                             if layout == 'composed-single' else []))
+                                             if layout == 'composed-single' else []) + ros_args)
         else:                                # a process per node, each pinned as the graph
             from ibvs_bringup import graph
             from ibvs_bringup.runner import command_for
