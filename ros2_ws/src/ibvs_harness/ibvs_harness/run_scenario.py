@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import socket
 import sys
 import time
 from typing import TYPE_CHECKING
@@ -145,15 +146,16 @@ def camera_block(opts: RunOptions, onboard_vehicle: str | None) -> dict:
 
 
 def graph_specs(opts: RunOptions, port: int, initial_position: tuple,
-                onboard_vehicle: str | None = None, px4_instance: int | None = None) -> list:
+                onboard_vehicle: str | None = None, firmware_instance: int | None = None) -> list:
     """Return the node specs of a run: the sim graph plus the recorder.
 
     ``onboard_vehicle``: the onboard nodes' vehicle YAML (None: params.yaml's);
-    ``px4_instance``: a real PX4 (px4-hil) flies the sim's plant (``--autopilot px4``).
+    ``firmware_instance``: a real firmware flies the sim's plant (``--autopilot px4`` or
+    ``ardupilot``), this instance of it.
     """
     camera = [(k, list(v) if isinstance(v, tuple) else v) for k, v in opts.camera_model.items()]
-    if px4_instance is not None:
-        camera += [('firmware', 'px4'), ('firmware_instance', int(px4_instance))]
+    if firmware_instance is not None:
+        camera += [('firmware', opts.autopilot), ('firmware_instance', int(firmware_instance))]
     bridge, start_at = (), START_AT_SIM_S
     if opts.pilot_switch:       # the simulated pilot flips the RC switch (fly(), below)
         camera += [('pilot_switch_channel', PILOT_SWITCH_CHANNEL),
@@ -321,7 +323,7 @@ def run_graph(opts: RunOptions) -> int:
     xi0 = opts.initial_position or tuple(float(x) for x in world.initial_position_I)
     port = opts.mavlink_port or free_udp_port()
     onboard_vehicle = onboard_vehicle_file(opts)
-    px4 = firmware_px4(opts, world, vehicle, xi0) if opts.autopilot == 'px4' else None
+    px4 = lockstep_firmware(opts, world, vehicle, xi0)
     specs = graph_specs(opts, port, xi0, onboard_vehicle,
                         None if px4 is None else px4.instance)
     missing = missing_executables(specs)
@@ -351,14 +353,16 @@ def run_graph(opts: RunOptions) -> int:
         runner.start_layout(specs, opts.layout)
         print(f'run {opts.run_name}: started {len(specs)} nodes (MAVLink port {port}), '
               f'initial position {xi0}', flush=True)
-        if px4 is not None:     # after the sim, whose TCP server PX4 connects to
-            px4.start()
-            print(f'run {opts.run_name}: PX4 v1.16 SITL (px4-hil) instance {px4.instance} '
-                  f'flies the plant in lockstep ({px4.env.get("PX4_WORKDIR")})', flush=True)
+        if px4 is not None:     # after the sim, whose port the firmware connects to
+            wait_for_port(px4, runner)
+            env = px4.start()
+            print(f'run {opts.run_name}: {firmware_name(opts)} instance {px4.instance} flies '
+                  f'the plant in lockstep ({env.get("PX4_WORKDIR") or env.get("AP_WORKDIR")})',
+                  flush=True)
         stop_reason = fly(opts, monitor, runner, t_wall0, specs, restarts, executor)
     except _Stop as exc:
         error = str(exc)
-    except RuntimeError as exc:           # PX4 did not start
+    except RuntimeError as exc:           # the firmware did not start
         error = str(exc)
     except (KeyboardInterrupt, Terminated, ExternalShutdownException):
         error = 'interrupted'
@@ -369,7 +373,7 @@ def run_graph(opts: RunOptions) -> int:
         rclpy.try_shutdown()
         if px4 is not None:
             if error:
-                print('PX4 log tail:\n' + px4.log_tail(), flush=True)
+                print('firmware log tail:\n' + px4.log_tail(), flush=True)
             px4.stop()
     print(f'stopped: {stop_reason or error} (exit codes {codes})', flush=True)
     summary = report.summarize(log, world, vehicle.envelope_radius, vehicle.envelope_height)
@@ -386,14 +390,78 @@ def run_graph(opts: RunOptions) -> int:
 
 
 def firmware_block(px4) -> dict:
-    """Return summary.json's firmware keys of a run on a real PX4 (none for the sim's own)."""
+    """Return summary.json's firmware keys of a run on a real firmware (none for the sim's)."""
     if px4 is None:
         return {}
+    if not hasattr(px4, 'script'):      # ArduPilotSitl
+        from ibvs_harness.ardupilot_sitl import ARDUPILOT_FIRMWARE
+        return {'autopilot': 'ardupilot', 'firmware': ARDUPILOT_FIRMWARE,
+                'ardupilot_instance': px4.instance, 'ardupilot_parameters': px4.params}
     return {'autopilot': 'px4', 'firmware': PX4_FIRMWARE, 'px4_instance': px4.instance,
             'px4_parameters': px4.params}
 
 
 PX4_FIRMWARE = 'PX4 v1.16.0 SITL (px4-hil: simulator_mavlink, lockstep)'
+
+
+def firmware_name(opts: RunOptions) -> str:
+    """Return the firmware of ``--autopilot px4|ardupilot`` in words."""
+    return ('ArduCopter 4.5.6 SITL (JSON backend)' if opts.autopilot == 'ardupilot'
+            else 'PX4 v1.16 SITL (px4-hil)')
+
+
+def lockstep_firmware(opts: RunOptions, world, vehicle, xi0: tuple):
+    """Return the firmware (not started) of ``--autopilot px4|ardupilot``; None for the others."""
+    if opts.autopilot == 'px4':
+        return firmware_px4(opts, world, vehicle, xi0)
+    if opts.autopilot == 'ardupilot':
+        return firmware_ardupilot(opts, vehicle)
+    return None
+
+
+def firmware_ardupilot(opts: RunOptions, vehicle):
+    """Return ArduCopter SITL (JSON backend, not started) with the Pelican's parameters.
+
+    The plant starts on the floor below the start; the sim's start pilot takes off to it in
+    GUIDED before frame 0. The dead-bridge failsafe (GCS failsafe on the bridge's system id:
+    LAND) is set as docs/mavlink.md asks of a user.
+    """
+    from ibvs_common.core.params import node_values
+    from ibvs_control.mavlink.config import MavlinkBridgeNodeConfig
+    from ibvs_harness.ardupilot_sitl import (ardupilot_mission_parameters, ArduPilotSitl,
+                                             free_instance)
+    import yaml
+    with open(opts.params_file or graph.default_params_file(), encoding='utf-8') as f:
+        bridge = node_values(MavlinkBridgeNodeConfig, yaml.safe_load(f), 'mavlink_bridge')
+    params = ardupilot_mission_parameters(vehicle, int(bridge['source_system']))
+    instance = opts.px4_instance if opts.px4_instance is not None else free_instance()
+    return ArduPilotSitl(instance, params)
+
+
+#: s (steady): the sim node binds the firmware's port (ArduPilot's JSON port) within this
+FIRMWARE_PORT_WAIT_S = 60.0
+
+
+def wait_for_port(firmware, runner) -> None:
+    """ArduPilot: wait until the sim bound its JSON port (its first packet must find it).
+
+    PX4 connects to the sim's TCP server and retries by itself; ArduPilot sends its servo
+    packets to a UDP port and re-sends a lost one only after 10 s.
+    """
+    if hasattr(firmware, 'script'):
+        return
+    from ibvs_sim.core.firmware.ardupilot_json import JSON_PORT_BASE
+    port = JSON_PORT_BASE + 10 * int(firmware.instance)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < FIRMWARE_PORT_WAIT_S:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind(('127.0.0.1', port))
+            except OSError:
+                return                  # the sim holds it
+        time.sleep(0.2)
+    raise RuntimeError(f'the sim did not bind the ArduPilot JSON port {port} within '
+                       f'{FIRMWARE_PORT_WAIT_S:.0f} s')
 
 
 def firmware_px4(opts: RunOptions, world, vehicle, xi0: tuple):
@@ -532,7 +600,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                         "'px4-sih': PX4 SITL with SIH is plant and autopilot, real time on "
                         "the system clock, needs ../shared/px4-sitl (docs/px4_sih.md); 'px4': "
                         "PX4 v1.16 SITL (px4-hil) flies the sim's plant in lockstep, it takes "
-                        'off to the start before frame 0 (docs/firmware_lockstep.md)')
+                        "off to the start before frame 0; 'ardupilot': ArduCopter 4.5.6 SITL "
+                        '(JSON backend) likewise, needs ../shared/ardupilot-sitl '
+                        '(docs/firmware_lockstep.md)')
     p.add_argument('--layout', choices=LAYOUTS, default=None,
                    help="onboard nodes as one process per node ('processes', the default with "
                         "the sim) or all in one process on one executor ('composed', "
@@ -540,7 +610,8 @@ def parse_args(argv: list | None = None) -> RunOptions:
                         'px4-sih, which runs in real time); the sim, monitor and recorder run '
                         'beside them either way')
     p.add_argument('--px4-instance', type=int, default=None, choices=range(10),
-                   metavar='I', help='px4-sih, px4: PX4 instance 0-9 (default: a free one >= 5)')
+                   metavar='I', help='px4-sih, px4, ardupilot: the firmware instance 0-9 '
+                   '(default: a free one, PX4 >= 5, ArduPilot 1-4)')
     p.add_argument('--px4-flight-s', type=float, default=None, metavar='S',
                    help='px4-sih: stop S s (system clock) after ibvs/start (default 60, as a '
                         'sim run)')
@@ -606,8 +677,9 @@ def main(argv: list | None = None) -> int:
             raise ValueError(f'--max-sim-time must be > 0, got {opts.max_sim_time_s}')
         if opts.kill_node and opts.layout == 'composed':
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
-        if opts.autopilot == 'px4' and opts.feature_level:
-            raise ValueError('--autopilot px4 flies the graph: not with --feature-level')
+        if opts.autopilot in ('px4', 'ardupilot') and opts.feature_level:
+            raise ValueError(f'--autopilot {opts.autopilot} flies the graph: not with '
+                             '--feature-level')
         if opts.pilot_switch_off_s is not None and not (
                 opts.pilot_switch and opts.pilot_switch_off_s > START_AT_SIM_S):
             raise ValueError(f'--pilot-switch-off-at needs --pilot-switch and a time after the '

@@ -25,7 +25,7 @@ IDLE_MODE = 0
 FAILSAFE_MODE = 5
 SHUTDOWN_MODE = 4
 DEFAULT_IMAGE_EVERY = 5       # bag: every 5th camera frame (10 Hz), all other topics in full
-AUTOPILOTS = ('sim', 'px4-sih', 'px4')   # --autopilot: the first is the default
+AUTOPILOTS = ('sim', 'px4-sih', 'px4', 'ardupilot')   # --autopilot: the first is the default
 
 
 @dataclass
@@ -55,7 +55,7 @@ class RunOptions:
     plots: bool = True
     extra: dict = field(default_factory=dict)
     autopilot: str = 'sim'              # 'sim' | 'px4-sih' (PX4 SITL is plant and autopilot)
-    px4_instance: int | None = None     # px4-sih: PX4 instance (None: a free one from 5 on)
+    px4_instance: int | None = None     # px4-sih, px4, ardupilot: the firmware's instance
     px4_flight_s: float | None = None   # px4-sih: stop this long after ibvs/start (None: 60 s)
     px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
     pilot_switch: bool = False          # started by the pilot's RC switch (the sim's radio)

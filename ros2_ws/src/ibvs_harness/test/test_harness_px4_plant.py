@@ -189,8 +189,10 @@ def test_autopilot_option_default_is_the_sim():
     assert parse_args([]).autopilot == 'sim'
     opts = parse_args(['--autopilot', 'px4-sih', '--px4-instance', '7'])
     assert (opts.autopilot, opts.px4_instance) == ('px4-sih', 7)
+    opts = parse_args(['--autopilot', 'ardupilot', '--px4-instance', '2'])
+    assert (opts.autopilot, opts.px4_instance) == ('ardupilot', 2)
     with pytest.raises(SystemExit):
-        parse_args(['--autopilot', 'ardupilot'])
+        parse_args(['--autopilot', 'betaflight'])
 
 
 def test_px4_sih_run_without_px4_fails_clearly(tmp_path, monkeypatch, capsys):

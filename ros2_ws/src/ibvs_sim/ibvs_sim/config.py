@@ -43,7 +43,7 @@ def _fault_window(values: list, name: str) -> tuple[float, float]:
     return fault_windows(f'parameter {name}', values)[0]
 
 
-FIRMWARES = ('', 'px4')      # SimNodeConfig.firmware
+FIRMWARES = ('', 'px4', 'ardupilot')      # SimNodeConfig.firmware
 
 
 @dataclass(frozen=True)
@@ -143,10 +143,11 @@ class SimNodeConfig:
     firmware: str = param(
         '', "'' = the sim's own autopilot emulation on mavlink_url; 'px4' = a real PX4 SITL "
         '(px4-hil, started by the caller) flies the plant in lockstep on TCP 4560 + '
-        'firmware_instance, the sim relays mavlink_url to its companion port, and frame 0 '
-        'waits until PX4 took off and holds at the start (docs/firmware_lockstep.md); '
-        'lockstep pacing only')
-    firmware_instance: int = param(0, 'the PX4 instance of firmware px4 (its ports)', 0, 9)
+        "firmware_instance; 'ardupilot' = a real ArduCopter SITL (ardupilot-sitl start --json, "
+        'started by the caller) on its JSON backend, UDP 9002 + 10 firmware_instance. The sim '
+        'relays mavlink_url to its companion port, and frame 0 waits until the firmware took '
+        'off and holds at the start (docs/firmware_lockstep.md); lockstep pacing only')
+    firmware_instance: int = param(0, 'the instance of the firmware (its ports)', 0, 9)
     pilot_switch_channel: int = param(
         0, "the pilot's radio: RC input (sticks centred) with a mission switch on this channel "
         '(1-8), OFF until pilot_switch_on_s; reported in RC_CHANNELS by the emulated '
@@ -209,6 +210,9 @@ class SimNodeConfig:
         if self.firmware not in FIRMWARES:
             raise ValueError(f'parameter firmware must be one of {FIRMWARES}, got '
                              f'{self.firmware!r}')
+        if self.firmware == 'ardupilot' and self.pilot_switch_channel:
+            raise ValueError('firmware ardupilot takes no RC input from the sim (its JSON '
+                             'backend has none here): pilot_switch_channel must be 0')
         if self.firmware and Pacing(self.pacing) is not Pacing.LOCKSTEP:
             raise ValueError(f'firmware {self.firmware!r} runs in lockstep only (pacing '
                              f'{self.pacing!r})')

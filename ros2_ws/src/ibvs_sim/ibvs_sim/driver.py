@@ -22,9 +22,9 @@ from ibvs_sim.config import SimNodeConfig
 from ibvs_sim.core.autopilot import Autopilot
 from ibvs_sim.core.dynamics import State
 from ibvs_sim.core.events import SimEvent
-from ibvs_sim.core.firmware.lockstep import px4_lockstep
+from ibvs_sim.core.firmware.lockstep import ardupilot_lockstep, px4_lockstep
 from ibvs_sim.core.firmware.px4_hil import FirmwareLinkError
-from ibvs_sim.core.firmware.relay import CompanionRelay
+from ibvs_sim.core.firmware.relay import CompanionPort, CompanionRelay
 from ibvs_sim.core.graph_sync import (FirstFrameHold, graph_products, ImuBeforeImages,
                                       STATUS_TOPIC)
 from ibvs_sim.core.pacing import Pacing
@@ -88,16 +88,26 @@ class SimDriver:
         sim_config = cfg.sim_config(vehicle)
         self.firmware = None
         self.radio = cfg.radio()       # the pilot's RC input (None: no RC), both autopilots
-        if cfg.firmware:       # a real PX4 flies the plant; the sim relays the companion link
+        if cfg.firmware:       # a real firmware flies the plant; the sim relays the companion
             start = (sim_config.initial_position_I if sim_config.initial_position_I is not None
                      else tuple(world.initial_position_I))
             yaw = (sim_config.initial_yaw if sim_config.initial_yaw is not None
                    else world.initial_yaw)
-            self.firmware = px4_lockstep(world, vehicle, int(cfg.firmware_instance),
-                                         np.asarray(start, float), float(yaw),
-                                         sim_config.wind, int(cfg.seed), radio=self.radio)
-            self.autopilot = CompanionRelay(str(cfg.mavlink_url), int(cfg.firmware_instance),
-                                            boot_offset_ms=0)
+            instance = int(cfg.firmware_instance)
+            if cfg.firmware == 'ardupilot':
+                self.firmware = ardupilot_lockstep(world, vehicle, instance,
+                                                   np.asarray(start, float), float(yaw),
+                                                   sim_config.wind)
+                port = CompanionPort.ardupilot(instance)
+            else:
+                self.firmware = px4_lockstep(world, vehicle, instance, np.asarray(start, float),
+                                             float(yaw), sim_config.wind, int(cfg.seed),
+                                             radio=self.radio)
+                port = CompanionPort.px4(instance)
+            self.autopilot = CompanionRelay(str(cfg.mavlink_url), instance, boot_offset_ms=0,
+                                            port=port)
+            if port.timesync_in_lockstep:
+                self.firmware.after_substep = self.autopilot.pass_timesync
         else:
             self.autopilot = Autopilot(cfg.autopilot_config(vehicle, world.floor_z,
                                                             self.radio))

@@ -304,3 +304,34 @@ def test_a_pilot_switch_flip_without_a_radio_is_refused_with_its_reason():
     with_radio = SimpleNamespace(radio=radio, sim=SimpleNamespace(t=2.0))
     assert SimDriver.flip_pilot_switch(with_radio, True) == ''
     assert (radio.switch_us(1.99), radio.switch_us(2.0)) == (1100, 1900)
+
+
+def test_ardupilot_json_link_try_accept_peeks_and_keeps_the_packet():
+    """The pre-roll's "has ArduPilot started" check leaves the first servo packet for the
+    exchange, and says no (after its wait) while nothing came."""
+    import socket
+    import struct
+    from ibvs_sim.core.firmware.ardupilot_json import ArduPilotJsonLink
+    link = None
+    for instance in range(9, 0, -1):
+        try:
+            link = ArduPilotJsonLink(instance)
+            link.open()
+            break
+        except OSError:
+            link = None
+    if link is None:
+        pytest.skip('no free ArduPilot JSON port (9012-9092)')
+    sender = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        assert not link.try_accept(0.01) and not link.connected
+        pwm = [1000] * 16
+        pwm[0] = 1500
+        sender.sendto(struct.pack('<HHI16H', 18458, 500, 7, *pwm), ('127.0.0.1', link.port))
+        assert link.try_accept(1.0)
+        packet = link.receive(1.0)          # the packet peeked at is still there
+        assert packet is not None and packet.frame_count == 7 and packet.pwm_us[0] == 1500
+        assert link.connected and link.try_accept(0.0)
+    finally:
+        sender.close()
+        link.close()

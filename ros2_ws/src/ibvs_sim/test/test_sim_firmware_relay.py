@@ -14,8 +14,9 @@ import pytest
 os.environ.setdefault('MAVLINK20', '1')
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
-from ibvs_sim.core.firmware.relay import (CompanionRelay, PX4_COMPANION_LISTEN_BASE,  # noqa
-                                          PX4_COMPANION_SEND_BASE, IMU_TOLERANCE_MS)
+from ibvs_sim.core.firmware.relay import (CompanionPort, CompanionRelay,  # noqa: E402
+                                          IMU_TOLERANCE_MS, PX4_COMPANION_LISTEN_BASE,
+                                          PX4_COMPANION_SEND_BASE)
 
 OFFSET_MS = 24_160
 
@@ -104,7 +105,7 @@ def test_awaits_setpoints_in_offboard_while_the_graph_flies(link):
     relay, bridge, firmware, mav_b, mav_f, from_bridge, from_firmware, settle = link
     from_firmware(mav_f.heartbeat_encode(2, 12, 129, (4 << 16) | (3 << 24), 4))  # AUTO.LOITER
     settle()
-    assert relay.main_mode == 4 and not relay.awaits_setpoints
+    assert not relay.flying_mode and not relay.awaits_setpoints
     from_firmware(mav_f.heartbeat_encode(2, 12, 129, 6 << 16, 4))                # OFFBOARD
     settle()
     assert relay.awaits_setpoints
@@ -156,3 +157,92 @@ def test_timesync_answer_passes_within_the_same_poll(link):
     time.sleep(0.02)
     relay.poll()
     assert relay.timesync_unanswered == 1
+
+
+@pytest.fixture()
+def ardupilot_link():
+    """(relay, bridge, firmware, mav_b, mav_f, to_relay_bridge, to_relay_firmware): ArduPilot.
+
+    ArduPilot's SERIAL1 sends to 14540 + i from a port of its own and takes datagrams only
+    from 14540 + i: the firmware socket here is bound to an ephemeral port.
+    """
+    i = _free_instance()
+    relay = CompanionRelay('udpin:127.0.0.1:0', i, OFFSET_MS, port=CompanionPort.ardupilot(i))
+    bridge = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    bridge.settimeout(1.0)
+    firmware = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    firmware.bind(('127.0.0.1', 0))
+    firmware.settimeout(1.0)
+    mav_b = mavlink.MAVLink(None, srcSystem=255, srcComponent=191)
+    mav_f = mavlink.MAVLink(None, srcSystem=1, srcComponent=1)
+    yield (relay, bridge, firmware, mav_b, mav_f, ('127.0.0.1', relay.local_port),
+           ('127.0.0.1', PX4_COMPANION_SEND_BASE + i))
+    relay.close()
+    bridge.close()
+    firmware.close()
+
+
+def test_ardupilot_answered_at_the_port_it_sends_from_and_flies_in_guided_nogps(ardupilot_link):
+    relay, bridge, firmware, mav_b, mav_f, to_bridge_side, to_firmware_side = ardupilot_link
+    # GUIDED (4): ArduPilot's own hold; the relay learns where ArduPilot listens
+    firmware.sendto(mav_f.heartbeat_encode(2, 3, 129, 4, 4).pack(mav_f), to_firmware_side)
+    time.sleep(0.05)
+    relay.discard_firmware()            # the pre-roll's datagrams: dropped, the port learnt
+    sent = mav_b.heartbeat_encode(6, 8, 0, 0, 0).pack(mav_b)
+    bridge.sendto(sent, to_bridge_side)
+    time.sleep(0.05)
+    relay.poll()
+    assert firmware.recvfrom(1024)[0] == sent
+    assert not relay.flying_mode
+    firmware.sendto(mav_f.heartbeat_encode(2, 3, 129, 20, 4).pack(mav_f), to_firmware_side)
+    time.sleep(0.05)
+    relay.poll()
+    assert relay.flying_mode and relay.awaits_setpoints      # GUIDED_NOGPS (20)
+    # a PX4 heartbeat's custom mode means nothing to an ArduPilot relay
+    firmware.sendto(mav_f.heartbeat_encode(2, 12, 129, 6 << 16, 4).pack(mav_f),
+                    to_firmware_side)
+    time.sleep(0.05)
+    relay.poll()
+    assert relay.flying_mode
+
+
+def test_ardupilot_timesync_answer_passes_between_deliveries_telemetry_waits(ardupilot_link):
+    """ArduPilot answers TIMESYNC as its clock steps: the answer goes on at the step that
+    brought it (before the next /clock), the telemetry with it at the next delivery's poll,
+    in order, and the poll does not wait for an answer the frozen firmware cannot make. The
+    answer sets the relay's clock offset as the bridge reads it: tc1 less the sim time the
+    request was passed on at."""
+    from types import SimpleNamespace
+    relay, bridge, firmware, mav_b, mav_f, to_bridge_side, to_firmware_side = ardupilot_link
+    firmware.sendto(mav_f.heartbeat_encode(2, 3, 129, 4, 4).pack(mav_f), to_firmware_side)
+    time.sleep(0.05)
+    relay.discard_firmware()
+    bridge.sendto(mav_b.timesync_encode(0, 123_000).pack(mav_b), to_bridge_side)
+    time.sleep(0.05)
+    t0 = time.monotonic()
+    relay.poll(SimpleNamespace(t=1.0))               # the delivery at sim 1.000 s
+    assert time.monotonic() - t0 < 0.02              # no wait for the answer
+    assert relay.timesync_unanswered == 0
+    firmware.recvfrom(1024)                          # the request reached the firmware
+    # ArduPilot stamps the request 2 ms after the sim time it was passed on at
+    attitude = mav_f.attitude_quaternion_encode(OFFSET_MS + 1012, 1, 0, 0, 0, 0, 0,
+                                                0).pack(mav_f)
+    answer = mav_f.timesync_encode((OFFSET_MS + 1002) * 1_000_000, 123_000).pack(mav_f)
+    firmware.sendto(attitude, to_firmware_side)
+    firmware.sendto(answer, to_firmware_side)
+    time.sleep(0.05)
+    relay.pass_timesync()                            # a physics step between deliveries
+    bridge.settimeout(0.2)
+    assert bridge.recvfrom(1024)[0] == answer
+    with pytest.raises(socket.timeout):
+        bridge.recvfrom(1024)                        # the attitude waits for the delivery
+    assert relay.newest_attitude_ms is None
+    assert relay.boot_offset_ms == OFFSET_MS + 2     # the bridge's offset from that answer
+    relay.poll(SimpleNamespace(t=1.02))
+    assert bridge.recvfrom(1024)[0] == attitude
+    assert relay.newest_attitude_ms == 1010          # on the bridge's map of the clock
+    # an answer to a request the relay never passed on does not move the offset
+    firmware.sendto(mav_f.timesync_encode(5 * 10**12, 999).pack(mav_f), to_firmware_side)
+    time.sleep(0.05)
+    relay.pass_timesync()
+    assert relay.boot_offset_ms == OFFSET_MS + 2

@@ -250,8 +250,12 @@ def test_sim_node_read_noise_and_frozen_front_camera(ros_context):
 
 
 @pytest.mark.parametrize('overrides, reason', [
-    ({'firmware': 'ardupilot'}, "parameter firmware must be one of ('', 'px4'), got 'ardupilot'"),
+    ({'firmware': 'betaflight'},
+     "parameter firmware must be one of ('', 'px4', 'ardupilot'), got 'betaflight'"),
     ({'firmware': 'px4'}, "firmware 'px4' runs in lockstep only"),
+    ({'firmware': 'ardupilot'}, "firmware 'ardupilot' runs in lockstep only"),
+    ({'firmware': 'ardupilot', 'pilot_switch_channel': 7},
+     'firmware ardupilot takes no RC input from the sim'),
 ])
 def test_sim_node_refuses_a_bad_firmware_parameter(ros_context, overrides, reason):
     """An unknown firmware, or a firmware off lockstep, is refused by name before any socket

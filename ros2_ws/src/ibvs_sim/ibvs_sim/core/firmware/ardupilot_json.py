@@ -126,6 +126,28 @@ class ArduPilotJsonLink:
         sock.bind(('127.0.0.1', self.port))
         self._sock = sock
 
+    @property
+    def connected(self) -> bool:
+        """Whether a servo packet came (ArduPilot runs on this link)."""
+        return self._peer is not None
+
+    def try_accept(self, timeout_s: float) -> bool:
+        """Return whether ArduPilot sends: a packet came, or one waits (up to ``timeout_s``).
+
+        The waiting packet stays for :meth:`receive`. The connectionless twin of
+        :meth:`~ibvs_sim.core.firmware.px4_hil.Px4SimLink.try_accept`.
+        """
+        if self.connected:
+            return True
+        self._sock.settimeout(timeout_s)
+        try:
+            self._sock.recvfrom(1024, socket.MSG_PEEK)
+        except socket.timeout:
+            return False
+        except OSError as exc:
+            raise FirmwareLinkError(f'ArduPilot JSON link: {exc!r}') from None
+        return True
+
     def receive(self, timeout_s: float) -> ServoPacket | None:
         """Wait up to ``timeout_s`` (wall) for the next servo packet; None on timeout."""
         self._sock.settimeout(timeout_s)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 import time
-from typing import Protocol
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -210,12 +210,15 @@ class FirmwarePhysics:
     ``origin_ns`` plus :data:`BOOT_OFFSET_US` (:attr:`boot_offset_ms`).
     """
 
-    def __init__(self, plant: FirmwarePlant, pilot, link: Px4SimLink,
-                 connect_timeout_s: float = 60.0) -> None:
+    def __init__(self, plant: FirmwarePlant, pilot, link: Px4SimLink | ArduPilotJsonLink,
+                 connect_timeout_s: float = 60.0, name: str = 'PX4') -> None:
         self.plant = plant
         self.pilot = pilot
         self.link = link
-        self.connect_timeout_s = float(connect_timeout_s)   # wall, s, PX4's connection
+        self.name = name
+        self.connect_timeout_s = float(connect_timeout_s)   # wall, s, the firmware's link
+        #: called after each physics step of the mission (the relay's TIMESYNC hand-on)
+        self.after_substep: Callable[[], None] | None = None
         self._waiting_since: float | None = None
         self.origin_ns: int | None = None
         self.params = plant.params
@@ -228,8 +231,9 @@ class FirmwarePhysics:
     def preroll(self, steps: int) -> bool:
         """Step the plant with the pilot for up to ``steps`` steps; True once at the start.
 
-        First waits (a little per call, wall clock) for PX4 to connect; FirmwareLinkError
-        when it has not within ``connect_timeout_s`` or the pre-roll fails.
+        First waits (a little per call, wall clock) for the firmware's link (PX4 connects,
+        ArduPilot sends its first servo packet); FirmwareLinkError when it has not within
+        ``connect_timeout_s`` or the pre-roll fails.
         """
         if self.ready:
             return True
@@ -237,8 +241,8 @@ class FirmwarePhysics:
             now = time.monotonic()
             self._waiting_since = self._waiting_since or now
             if now - self._waiting_since > self.connect_timeout_s:
-                raise FirmwareLinkError(f'PX4 did not connect to TCP {self.link.port} within '
-                                        f'{self.connect_timeout_s:.0f} s (wall)')
+                raise FirmwareLinkError(f'{self.name} did not connect to port {self.link.port} '
+                                        f'within {self.connect_timeout_s:.0f} s (wall)')
             return False
         for _ in range(int(steps)):
             self.plant.substep()
@@ -253,14 +257,14 @@ class FirmwarePhysics:
                 raise FirmwareLinkError(
                     f'pre-roll: not holding at the start {self.plant.t:.0f} s after boot '
                     f'(armed {self.pilot.armed}, truth {self.plant.state.xi_I.round(2)}, '
-                    f'PX4 said {self.pilot.texts})')
+                    f'{self.name} said {self.pilot.texts})')
         return False
 
     def status(self) -> str:
         """One line on the pre-roll: plant time, armed, height, PX4's last words."""
         s = self.plant.state
         return (f'plant t = {self.plant.t:.1f} s, connected {self.link.connected}, armed '
-                f'{self.pilot.armed}, xi_I {np.round(s.xi_I, 2).tolist()}, PX4 said '
+                f'{self.pilot.armed}, xi_I {np.round(s.xi_I, 2).tolist()}, {self.name} said '
                 f'{self.pilot.texts[-2:]}')
 
     @property
@@ -301,7 +305,10 @@ class FirmwarePhysics:
 
     def substep(self, receive: bool = True) -> SimEvent | None:
         """One physics step in lockstep with the firmware; a contact event."""
-        return self.plant.substep()
+        event = self.plant.substep()
+        if self.after_substep is not None:
+            self.after_substep()
+        return event
 
     def close(self) -> None:
         """Close the pilot's and the firmware's links."""
@@ -332,6 +339,30 @@ def px4_lockstep(world: WorldConfig, vehicle: VehicleConfig, instance: int,
                           px4_motor_model(plant_params), start_I, start_yaw, wind)
     pilot = Px4StartPilot(instance, np.asarray(start_I, float))
     return FirmwarePhysics(plant, pilot, link)
+
+
+def ardupilot_lockstep(world: WorldConfig, vehicle: VehicleConfig, instance: int,
+                       start_I: np.ndarray, start_yaw: float,
+                       wind: WindConfig | None = None) -> FirmwarePhysics:
+    """Return the plant under ArduCopter (JSON backend, ``instance``) with its start pilot.
+
+    Binds the JSON port (9002 + 10 instance) and the pilot's GCS port; ArduPilot is started
+    by the caller afterwards (``ardupilot-sitl start --json``), so that its first servo
+    packet finds the port. The plant starts on the floor below ``start_I`` with yaw
+    ``start_yaw``; the pilot takes off to the start's height above that rest. ArduPilot
+    makes its own IMU, GPS, barometer and compass from the state: no sensor noise seed.
+    """
+    from ibvs_sim.core.firmware.ardupilot_json import ardupilot_motor_model
+    from ibvs_sim.core.firmware.pilot import ArduPilotStartPilot
+    plant_params = PlantParams.from_vehicle(vehicle, floor_z=world.floor_z)
+    link = ArduPilotJsonLink(instance)
+    link.open()
+    plant = FirmwarePlant(world, vehicle, ArduPilotExchange(link),
+                          ardupilot_motor_model(plant_params), start_I, start_yaw, wind)
+    # home is the plant's rest below the start: the position ArduPilot gets is relative to it
+    pilot = ArduPilotStartPilot(instance, np.asarray(start_I, float), plant.z_home,
+                                plant.z_home - float(start_I[2]))
+    return FirmwarePhysics(plant, pilot, link, name='ArduPilot')
 
 
 def takeoff_altitude(world: WorldConfig, vehicle: VehicleConfig, start_I) -> float:

@@ -7,8 +7,11 @@ camera frame: once EKF2 has had ``arm_after_s`` of motion capture it sends the E
 PX4's own take-off (MIS_TAKEOFF_ALT, set at boot to the start's height above the floor
 rest) and the arming, every ``command_period_s``, until PX4 is armed; then it waits until
 the vehicle holds still at the start (:meth:`settled`). The plant starts on the floor right
-below the start with the start's yaw, so a vertical take-off reaches it. All times are sim
-time (s); ROS-free.
+below the start with the start's yaw, so a vertical take-off reaches it.
+:class:`ArduPilotStartPilot` does the same on ArduPilot's GCS link (SERIAL2, udpin
+127.0.0.1:(14550 + instance)): GUIDED, arm, then ArduCopter's own take-off
+(MAV_CMD_NAV_TAKEOFF to the start's height above home), once EKF3 uses the GPS it makes from
+the plant's position (about 65 s after boot). All times are sim time (s); ROS-free.
 """
 from __future__ import annotations
 
@@ -29,6 +32,8 @@ MAV_CMD_NAV_TAKEOFF = 22
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_MODE_FLAG_SAFETY_ARMED = 128
 MAV_AUTOPILOT_PX4 = 12
+ARDUPILOT_GCS_SEND_BASE = 14550     # ArduPilot's SERIAL2 sends to 127.0.0.1:(14550 + instance)
+ARDUCOPTER_MODE_GUIDED = 4
 
 
 @dataclass(frozen=True)
@@ -41,6 +46,20 @@ class StartHold:
     speed_tol_mps: float = 0.05      # m/s, and slower than this
     still_for_s: float = 1.0         # s, for this long
     timeout_s: float = 120.0         # s, from boot: the pre-roll failed after this
+
+    def still(self, t: float, since: float | None, armed: bool, state: State,
+              start_I: np.ndarray) -> float | None:
+        """Return since when (sim s) the armed vehicle is still at the start; None if not now."""
+        near = float(np.linalg.norm(state.xi_I - start_I)) < self.position_tol_m
+        slow = float(np.linalg.norm(state.v_I)) < self.speed_tol_mps
+        if not (armed and near and slow):
+            return None
+        return t if since is None else since
+
+
+#: ArduPilot: EKF3 uses its GPS ~65 s after boot; its take-off holds within ~7 cm of the
+#: height (barometer and EKF: docs/firmware_lockstep.md, the hover check)
+ARDUPILOT_START_HOLD = StartHold(arm_after_s=1.0, position_tol_m=0.15, timeout_s=150.0)
 
 
 class Px4StartPilot:
@@ -78,13 +97,10 @@ class Px4StartPilot:
             self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
         if self.armed and self.armed_at_s is None:
             self.armed_at_s = t
-        near = float(np.linalg.norm(state.xi_I - self.start_I)) < self.hold.position_tol_m
-        slow = float(np.linalg.norm(state.v_I)) < self.hold.speed_tol_mps
-        if not (self.armed and near and slow):
-            self._still_since = None
-            return False
-        self._still_since = t if self._still_since is None else self._still_since
-        return t - self._still_since >= self.hold.still_for_s
+        self._still_since = self.hold.still(t, self._still_since, self.armed, state,
+                                            self.start_I)
+        return (self._still_since is not None
+                and t - self._still_since >= self.hold.still_for_s)
 
     def _command(self, cmd: int, *params: float) -> None:
         p = list(params) + [0.0] * (7 - len(params))
@@ -101,6 +117,75 @@ class Px4StartPilot:
             kind = m.get_type()
             if kind == 'HEARTBEAT' and m.autopilot == MAV_AUTOPILOT_PX4:
                 self.target = (m.get_srcSystem(), m.get_srcComponent())
+                self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
+            elif kind == 'STATUSTEXT':
+                self.texts = (self.texts + [str(m.text)])[-5:]
+
+    def close(self) -> None:
+        """Close the GCS socket."""
+        self.conn.close()
+
+
+class ArduPilotStartPilot:
+    """ArduCopter's GUIDED take-off and hold at the start, by sim time (see module doc).
+
+    ``z_home``: the {I} height (NED, m) of home, the body origin at rest on the floor;
+    ``takeoff_m``: the start's height above it.
+    """
+
+    def __init__(self, instance: int, start_I: np.ndarray, z_home: float, takeoff_m: float,
+                 hold: StartHold | None = None) -> None:
+        self.conn = mavutil.mavlink_connection(
+            f'udpin:127.0.0.1:{ARDUPILOT_GCS_SEND_BASE + int(instance)}',
+            source_system=255, source_component=190)
+        self.start_I = np.asarray(start_I, float)
+        self.z_home, self.takeoff_m = float(z_home), float(takeoff_m)
+        self.hold = hold or ARDUPILOT_START_HOLD
+        self.armed = False
+        self.mode: int | None = None
+        self.texts: list = []
+        self.armed_at_s: float | None = None
+        self._next_command = self.hold.arm_after_s
+        self._still_since: float | None = None
+        self._beat = -math.inf
+
+    def step(self, t: float, state: State) -> bool:
+        """Read ArduPilot, command what is due at sim time ``t``; True once settled at start."""
+        self._read()
+        height_m = self.z_home - float(state.xi_I[2])
+        if t - self._beat >= 1.0:
+            self._beat = t
+            self.conn.mav.heartbeat_send(6, 8, 0, 0, 0)     # a GCS
+        if self.mode is not None and t >= self._next_command:
+            self._next_command = t + self.hold.command_period_s
+            if self.mode != ARDUCOPTER_MODE_GUIDED:
+                self.conn.mav.set_mode_send(1, 1, ARDUCOPTER_MODE_GUIDED)
+            elif not self.armed:
+                self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            elif height_m < 0.5 * self.takeoff_m:       # once: a take-off in the air re-aims
+                self._command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, self.takeoff_m)
+        if self.armed and self.armed_at_s is None:
+            self.armed_at_s = t
+        self._still_since = self.hold.still(t, self._still_since, self.armed, state,
+                                            self.start_I)
+        return (self._still_since is not None
+                and t - self._still_since >= self.hold.still_for_s)
+
+    def _command(self, cmd: int, *params: float) -> None:
+        p = list(params) + [0.0] * (7 - len(params))
+        self.conn.mav.command_long_send(1, 1, int(cmd), 0, *p)
+
+    def _read(self) -> None:
+        while True:
+            try:
+                m = self.conn.recv_match(blocking=False)
+            except (OSError, ValueError):
+                continue
+            if m is None:
+                return
+            kind = m.get_type()
+            if kind == 'HEARTBEAT' and m.get_srcComponent() == 1 and m.type != 6:
+                self.mode = int(m.custom_mode)
                 self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
             elif kind == 'STATUSTEXT':
                 self.texts = (self.texts + [str(m.text)])[-5:]
