@@ -85,3 +85,32 @@ def test_whole_graph_flies_the_scenario_on_ardupilot_in_lockstep(tmp_path):
     bridge_log = (tmp_path / 'ap_lockstep' / 'logs' / 'mavlink_bridge.log').read_text()
     assert 'engage: set_mode -> engaged: autopilot reports custom_mode 20' in bridge_log
     assert 'dead-bridge failsafe: FS_GCS_ENABLE = 5' in bridge_log
+
+
+def test_a_camera_stall_hands_the_vehicle_to_ardupilots_land_mode(tmp_path):
+    """The front camera stops at 3 s (WINDOW): the supervisor fails safe on the stale window,
+    the bridge switches ArduCopter to LAND (9), and ArduCopter's own land mode puts the
+    vehicle down, after which the bridge disarms it (``--follow-failsafe``)."""
+    import json
+    from ibvs_harness.run_scenario import main
+    if os.environ.get(MISSION_ENV, '1') == '0':
+        pytest.skip(f'the missions on ArduPilot in lockstep skipped: {MISSION_ENV}=0')
+    try:
+        shared = os.path.dirname(find_px4_sitl())
+    except FileNotFoundError as exc:
+        pytest.skip(f'../shared absent: {exc}')
+    if not os.path.isfile(os.path.join(shared, 'ardupilot-sitl', 'ardupilot-sitl')):
+        pytest.skip(f'ArduPilot SITL absent from {shared}/ardupilot-sitl')
+    main(['--autopilot', 'ardupilot', '--run-name', 'ap_stall', '--front-camera-off', '3',
+          '60', '--follow-failsafe', '--results-root', str(tmp_path), '--no-bag',
+          '--no-plots'])
+    summary = json.loads((tmp_path / 'ap_stall' / 'summary.json').read_text())
+    run = summary['run']
+    assert not summary['success']
+    assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
+    assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
+    assert 'window stale' in run['transitions'][-1]
+    bridge_log = (tmp_path / 'ap_stall' / 'logs' / 'mavlink_bridge.log').read_text()
+    assert 'command DO_SET_MODE (1.0, 9.0)' in bridge_log
+    assert 'autopilot in its land mode (custom_mode 9)' in bridge_log
+    assert 'landing -> done: disarmed (landed by the autopilot)' in bridge_log

@@ -108,3 +108,28 @@ def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
     assert 'pilot switch: start accepted' in (logs / 'mode_supervisor.log').read_text()
     assert run['transitions'][0].startswith('mode IDLE -> WINDOW') and \
         'pilot switch, window detected' in run['transitions'][0]
+
+
+def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
+    """The front camera stops at 3 s (WINDOW): the supervisor fails safe on the stale window,
+    the bridge switches PX4 to AUTO.LAND, and PX4's own land mode puts the vehicle down, after
+    which the bridge disarms it (``--follow-failsafe``)."""
+    import json
+    from ibvs_harness.run_scenario import main
+    if os.environ.get(MISSION_ENV, '1') == '0':
+        pytest.skip(f'the missions on PX4 in lockstep skipped: {MISSION_ENV}=0')
+    try:
+        find_px4_sitl()
+    except FileNotFoundError as exc:
+        pytest.skip(f'PX4 SITL absent: {exc}')
+    main(['--autopilot', 'px4', '--run-name', 'px4_stall', '--front-camera-off', '3', '60',
+          '--follow-failsafe', '--results-root', str(tmp_path), '--no-bag', '--no-plots'])
+    summary = json.loads((tmp_path / 'px4_stall' / 'summary.json').read_text())
+    run = summary['run']
+    assert not summary['success']
+    assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
+    assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
+    assert 'window stale' in run['transitions'][-1]
+    bridge_log = (tmp_path / 'px4_stall' / 'logs' / 'mavlink_bridge.log').read_text()
+    assert 'command DO_SET_MODE (1.0, 4.0, 6.0)' in bridge_log
+    assert 'landing -> done: disarmed (landed by the autopilot)' in bridge_log

@@ -193,6 +193,9 @@ class _Stop(Exception):
     pass
 
 
+#: s of sim time after a FAILSAFE that --follow-failsafe waits for the autopilot to land and
+#: disarm (a land mode descends at 0.4-0.5 m/s from at most ~2 m, then its land detector)
+FOLLOW_FAILSAFE_S = 20.0
 START_WAIT_S = 20.0    # s of wall clock after START_AT_SIM_S for the supervisor to start
 # The supervisor starts by itself at the first frame at or after this sim time (graph option
 # auto_start_at_s), so that every run starts at the same frame: an ibvs/start call lands at
@@ -272,6 +275,7 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
            else f'by the supervisor at sim t = {START_AT_SIM_S:.2f} s')
     print(f'started {how} (seen at {t_start:.2f} s)', flush=True)
     next_print = time.monotonic()
+    failsafe_at = None
     while True:
         spin(0.02)
         t_sim = monitor.now_s()
@@ -284,7 +288,15 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
         if monitor.collision is not None:
             return f"collision with {monitor.collision.get('surface')}"
         if mode == FAILSAFE_MODE:
-            return 'failsafe'
+            if not opts.follow_failsafe:
+                return 'failsafe'
+            failsafe_at = t_sim if failsafe_at is None else failsafe_at
+            if monitor.touchdown is not None and monitor.health.armed is False:
+                return 'failsafe, then the autopilot landed and disarmed'
+            if t_sim - failsafe_at > FOLLOW_FAILSAFE_S:
+                return (f'failsafe, and the autopilot had not landed and disarmed '
+                        f'{FOLLOW_FAILSAFE_S:g} s later')
+            continue
         if monitor.touchdown is not None and mode == SHUTDOWN_MODE:
             if monitor.health.armed is False:
                 return 'touchdown, mode 4, disarmed'
@@ -545,6 +557,11 @@ def parse_args(argv: list | None = None) -> RunOptions:
     p.add_argument('--mavlink-port', type=int, default=None,
                    help='default: a free UDP port in 6100-6899 (free_udp_port)')
     p.add_argument('--params-file', default=None)
+    p.add_argument('--follow-failsafe', action='store_true',
+                   help='after a FAILSAFE, go on until the autopilot (its land mode, to which '
+                        'the bridge hands the vehicle) has put it down and disarmed, or '
+                        f'{FOLLOW_FAILSAFE_S:g} s of sim time passed; the run still fails '
+                        '(docs/firmware_lockstep.md "Fault tests")')
     p.add_argument('--kill-node', default=None, metavar='NAME',
                    help='fault injection: SIGKILL this node at --kill-at-s (sim time)')
     p.add_argument('--kill-at-s', type=float, default=2.0, metavar='T')
@@ -659,7 +676,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                           if w},
                       imu_off=tuple(a.imu_off) if a.imu_off else None,
                       imu_nan=tuple(a.imu_nan) if a.imu_nan else None,
-                      max_sim_time_s=a.max_sim_time,
+                      max_sim_time_s=a.max_sim_time, follow_failsafe=a.follow_failsafe,
                       autopilot=a.autopilot, px4_instance=a.px4_instance,
                       px4_flight_s=a.px4_flight_s, px4_no_mocap=a.px4_no_mocap,
                       pilot_switch=a.pilot_switch, pilot_switch_off_s=a.pilot_switch_off_at,

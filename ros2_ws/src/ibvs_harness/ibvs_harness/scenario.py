@@ -62,6 +62,7 @@ class RunOptions:
     pilot_switch_off_s: float | None = None   # ... and aborted by it at this sim time
     layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
     max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
+    follow_failsafe: bool = False       # after FAILSAFE, watch the autopilot land and disarm
     # the sim's camera model: sim parameter -> value (camera_latency_s, camera_rate_hz, ...)
     camera_model: dict = field(default_factory=dict)
     true_vehicle: str | None = None     # the vehicle the sim flies and renders (None: onboard's)
