@@ -73,7 +73,6 @@ class ModeSupervisorNode(Node):
         # frames of the current mode's camera wait for the products that mode needs
         self._frames = FrameAssembler(cfg.frame_deadline_s, self._needed)
         self._governor = RateGovernor(cfg.governor)
-        self._governor_camera: Camera | None = None     # the camera the governor last saw
         self._lead_ns = int(round(cfg.governor.stride_down_lead_s * NS_PER_S))
         self._rate_hz = {cam: vehicle.cameras[cam.value].rate_hz for cam in Camera}
         self._grids = SupervisorGrids({cam: period_ns(rate) for cam, rate in
@@ -349,12 +348,8 @@ class ModeSupervisorNode(Node):
     def _governor_at(self, camera: Camera, stamp_ns: int, complete: bool,
                      lag_s: float | None = None) -> bool:
         """Let the governor see a frame of ``camera``; apply and publish a new stride (True)."""
-        if camera != self._governor_camera:
-            if self._governor_camera is not None:
-                self._governor.handover(stamp_ns / NS_PER_S)    # the mode's camera changed
-            self._governor_camera = camera
         stride = self._governor.observe(stamp_ns / NS_PER_S, complete, lag_s,
-                                        1.0 / self._rate_hz[camera])
+                                        1.0 / self._rate_hz[camera], camera)
         if stride is None:
             return False
         old = self._grids.stride(camera)

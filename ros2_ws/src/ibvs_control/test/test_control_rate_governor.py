@@ -236,6 +236,24 @@ def test_a_handover_waits_for_the_new_cameras_first_complete_frame_within_the_gr
     assert run(gov, 0.5, 13, False) == [(0.74, 2)]   # 0.70, 0.72, 0.74: 3 in a row past it
 
 
+def test_a_frame_of_another_camera_is_a_handover():
+    """The supervisor passes each frame's camera: the first camera is no handover, a change
+    of camera is one at the new camera's first stamp, the same camera again is none."""
+    cfg = GovernorConfig(stride_handover_grace_s=0.2)
+    gov = RateGovernor(cfg)
+    for k in range(20):
+        gov.observe(0.02 * k, True, camera='front')
+    out = [gov.observe(0.5 + 0.02 * k, False, camera='down') for k in range(5)]
+    assert out == [None] * 5 and gov.stride == 1            # the grace: not counted
+    assert gov.observe(0.6, True, camera='down') is None
+    out = [gov.observe(0.62 + 0.02 * k, False, camera='down') for k in range(3)]
+    assert out == [None, None, 2]                            # the same camera: they count
+    # the first camera seen is no handover: its skips count at once
+    gov = RateGovernor(cfg)
+    out = [gov.observe(0.02 * k, False, camera='front') for k in range(3)]
+    assert out == [None, None, 2]
+
+
 def test_the_lag_rule_can_be_switched_off_and_needs_the_lag():
     for cfg, lag in ((GovernorConfig(stride_down_hold_s=1.0, stride_try_lag_periods=0.0,
                                      **NO_LEAD), 0.5),

@@ -38,6 +38,9 @@ its own ROS_DOMAIN_ID (``--domain-base`` + worker). The steady wind goes on its 
 the law's overrides and the gusts (amplitude, frequency, the sim's ``seed`` for the phases)
 in a per-run params.yaml (``--params-file``); the sim node has one gust sine per axis, so
 ``--gust-components`` must be 1. About a minute of wall clock per run on this machine.
+``--autopilot px4|ardupilot``: the same starts and wind, flown by a real firmware on the
+sim's plant in lockstep (``run_scenario --autopilot``; worker w on its own instance,
+docs/firmware_lockstep.md "Campaigns").
 """
 from __future__ import annotations
 
@@ -145,6 +148,9 @@ class CampaignConfig:
     # graph shedding that flow's work); (1, 1) = every frame
     flow_strides: tuple = (1, 1)
     sensors: str = 'ideal'            # sensor_errors.PROFILES: each run draws its errors
+    #: image level: the autopilot, 'sim' (the emulation) or a real firmware in lockstep ('px4',
+    #: 'ardupilot'; worker w flies instance FIRMWARE_INSTANCE_BASE[autopilot] + w)
+    autopilot: str = 'sim'
     sensor_overrides: tuple = ()      # (field, value) pairs replacing the profile's ranges
 
     @property
@@ -171,6 +177,7 @@ class CampaignConfig:
                 **({'flow_strides': list(self.flow_strides)}
                    if tuple(self.flow_strides) != (1, 1) else {}),
                 **({'sensors': self.sensors} if self.sensors != 'ideal' else {}),
+                **({'autopilot': self.autopilot} if self.autopilot != 'sim' else {}),
                 **({'sensor_overrides': [list(o) for o in self.sensor_overrides]}
                    if self.sensor_overrides else {})}
 
@@ -460,7 +467,7 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
            '--timeout', f'{cfg.run_timeout_s:g}', '--initial-position',
            *(f'{x!r}' for x in spec.initial_position_I),
            '--wind', *(f'{x!r}' for x in wind.steady_force_I),
-           *image_sensor_options(run_dir, errors)]
+           *image_sensor_options(run_dir, errors), *firmware_options(cfg)]
     env = dict(os.environ)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     t0 = time.monotonic()
@@ -483,14 +490,39 @@ def fly_image_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
     return summary
 
 
+#: image level on a real firmware: worker w flies this instance + w (PX4: 5-9, whose ports
+#: px4_sih.free_instance also picks from; ArduPilot: 1-4)
+FIRMWARE_INSTANCE_BASE = {'px4': 5, 'ardupilot': 1}
+FIRMWARE_MAX_WORKERS = {'px4': 5, 'ardupilot': 4}
+WORKER_ENV = 'IBVS_CAMPAIGN_WORKER'
+
+
+def firmware_options(cfg: CampaignConfig) -> list:
+    """Return run_scenario's autopilot options of an image-level run (none for the emulation).
+
+    Each worker flies its own firmware instance (its ports), so parallel runs never race
+    for a free one.
+    """
+    if cfg.autopilot == 'sim':
+        return []
+    worker = int(os.environ.get(WORKER_ENV, '0'))
+    return ['--autopilot', cfg.autopilot,
+            '--px4-instance', str(FIRMWARE_INSTANCE_BASE[cfg.autopilot] + worker)]
+
+
 def _fly_task(task: tuple) -> tuple[int, dict | None]:
     k, cfg, spec = task
     return k, fly_run(cfg, spec)
 
 
 def _init_worker(domains) -> None:
-    """Pool initializer: this worker's own ROS_DOMAIN_ID (image level: isolated graphs)."""
-    os.environ['ROS_DOMAIN_ID'] = str(domains.get())
+    """Pool initializer: this worker's own ROS_DOMAIN_ID (image level: isolated graphs).
+
+    Also its index (:data:`WORKER_ENV`), for its firmware instance.
+    """
+    domain, worker = domains.get()
+    os.environ['ROS_DOMAIN_ID'] = str(domain)
+    os.environ[WORKER_ENV] = str(worker)
 
 
 def read_summary(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
@@ -556,7 +588,7 @@ def run_campaign(cfg: CampaignConfig, workers: int = 1,
     if cfg.image_level:                    # every run in a worker with its own domain
         domains = ctx.Queue()
         for w in range(workers):
-            domains.put((cfg.domain_base + w) % 233)
+            domains.put(((cfg.domain_base + w) % 233, w))
         pool = ctx.Pool(workers, initializer=_init_worker, initargs=(domains,))
     elif workers > 1 and len(tasks) > 1:
         pool = ctx.Pool(workers)
@@ -591,6 +623,8 @@ def write_outputs(cfg: CampaignConfig, summaries: list[dict], plots: bool = True
     with open(os.path.join(cfg.out_dir, 'aggregate.json'), 'w', encoding='utf-8') as f:
         json.dump({'name': cfg.name, 'rows': rows}, f, indent=2)
     level = 'image level (whole graph, lockstep)' if cfg.image_level else 'feature level'
+    if cfg.autopilot != 'sim':
+        level += f', on {cfg.autopilot} firmware'
     header = (f'Campaign {cfg.name}: {level}, {cfg.runs} runs per law and level, starts '
               f'in the SPEC box, wind towards a random horizontal direction, vertical '
               f'x{cfg.vertical_factor:g} (down), gusts {100 * cfg.gust_level:g} % '
@@ -695,6 +729,10 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
     p.add_argument('--image-level', action='store_true',
                    help='fly the whole graph in lockstep (run_scenario subprocesses, one '
                         'ROS_DOMAIN_ID per worker; minutes per run)')
+    p.add_argument('--autopilot', choices=('sim', 'px4', 'ardupilot'), default='sim',
+                   help="image level: the sim's autopilot emulation, or a real firmware flying "
+                        'the plant in lockstep (PX4 v1.16, ArduCopter 4.5.6; needs ../shared; '
+                        'docs/firmware_lockstep.md); the same starts and wind for every choice')
     p.add_argument('--domain-base', type=int, default=100,
                    help='image level: worker w uses ROS_DOMAIN_ID base + w')
     p.add_argument('--run-timeout', type=float, default=900.0, metavar='S',
@@ -735,6 +773,11 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
         p.error('--flow-strides must be >= 1')
     if a.image_level and tuple(a.flow_strides) != (1, 1):
         p.error('--flow-strides is a feature-level model: the image level flies the graph')
+    if a.autopilot != 'sim' and not a.image_level:
+        p.error('--autopilot px4|ardupilot flies the graph: it needs --image-level')
+    if a.autopilot != 'sim' and a.workers > FIRMWARE_MAX_WORKERS[a.autopilot]:
+        p.error(f'--autopilot {a.autopilot}: at most {FIRMWARE_MAX_WORKERS[a.autopilot]} '
+                'workers (one firmware instance each)')
     if a.image_level and a.command_delay:
         p.error('--command-delay is the feature level\'s model of the graph\'s delay: the '
                 'image level flies the graph itself (--sensors for the cameras\' latency)')
@@ -751,6 +794,7 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          run_timeout_s=a.run_timeout, camera_rate_hz=a.camera_rate,
                          command_delay_s=a.command_delay / 1e3,
                          flow_strides=tuple(a.flow_strides), sensors=a.sensors,
+                         autopilot=a.autopilot,
                          sensor_overrides=checked_sensor_overrides(p, a.sensor_set))
     return cfg, a.workers, not a.no_plots, a.aggregate_only, a.max_wall
 

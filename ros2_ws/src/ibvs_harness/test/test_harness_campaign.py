@@ -419,3 +419,23 @@ def test_an_image_level_realistic_run_gives_the_sim_the_truth_and_the_graph_the_
     with pytest.raises(SystemExit):
         campaign.parse_args(['--name', 'i', '--image-level', '--command-delay', '20'])
     assert 'feature level' in capsys.readouterr().err
+
+
+def test_firmware_campaign_options_give_each_worker_its_own_instance(monkeypatch):
+    """--autopilot px4|ardupilot: image level only, at most one worker per instance, worker w
+    flies instance base + w (parallel runs never race for a free one); it is in the model, so
+    a campaign stored with another autopilot does not resume into it."""
+    cfg, workers, _, _, _ = campaign.parse_args(['--image-level', '--autopilot', 'ardupilot',
+                                                 '--workers', '2'])
+    assert cfg.autopilot == 'ardupilot' and workers == 2
+    monkeypatch.setenv(campaign.WORKER_ENV, '1')
+    assert campaign.firmware_options(cfg) == ['--autopilot', 'ardupilot', '--px4-instance', '2']
+    px4 = campaign.parse_args(['--image-level', '--autopilot', 'px4'])[0]
+    assert campaign.firmware_options(px4) == ['--autopilot', 'px4', '--px4-instance', '6']
+    sim = campaign.parse_args(['--image-level'])[0]
+    assert campaign.firmware_options(sim) == []
+    assert 'autopilot' not in sim.model('') and cfg.model('')['autopilot'] == 'ardupilot'
+    for bad in (['--autopilot', 'px4'],
+                ['--image-level', '--autopilot', 'ardupilot', '--workers', '5']):
+        with pytest.raises(SystemExit):
+            campaign.parse_args(bad)

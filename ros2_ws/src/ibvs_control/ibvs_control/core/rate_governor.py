@@ -107,16 +107,23 @@ class RateGovernor:
         self._lag_first: float | None = None    # lag of the try's first complete frame
         self._grace_until = float('-inf')       # handover: skips before then may not count
         self._try_from = float('-inf')  # the first stamp a try of a smaller stride is judged on
+        self._camera: object = None     # the camera of the frames seen last (a handover)
 
     def observe(self, t: float, complete: bool, lag_s: float | None = None,
-                period_s: float | None = None) -> int | None:
+                period_s: float | None = None, camera: object = None) -> int | None:
         """Take one frame of the current grid (stamp t); return the new stride if it changed.
 
         ``lag_s``: for a complete frame, the time from its stamp to its completion (s, ROS
         clock: camera delivery and the graph's processing); ``period_s``: the camera's frame
-        period (s). Without them only skipped frames end a try.
+        period (s). Without them only skipped frames end a try. ``camera``: the camera the
+        frame is of (the mode's); a frame of another camera than the last one is a
+        :meth:`handover` at its stamp.
         """
         cfg = self.config
+        if camera is not None and camera != self._camera:
+            if self._camera is not None:
+                self.handover(t)        # the mode's camera changed
+            self._camera = camera
         if self._t_change is None:
             self._t_change = t
         if self._probing and t < self._try_from:
