@@ -18,14 +18,19 @@ from ibvs_sim.core.px4_plant import find_px4_sitl
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 
 
-@pytest.fixture(scope='module')
-def hover():
+def need_ardupilot() -> None:
+    """Skip, naming the reason, unless ../shared/ardupilot-sitl is next to the repository."""
     try:
         shared = os.path.dirname(find_px4_sitl())
     except FileNotFoundError as exc:
         pytest.skip(f'../shared absent: {exc}')
     if not os.path.isfile(os.path.join(shared, 'ardupilot-sitl', 'ardupilot-sitl')):
         pytest.skip(f'ArduPilot SITL absent from {shared}/ardupilot-sitl')
+
+
+@pytest.fixture(scope='module')
+def hover():
+    need_ardupilot()
     report = fly_hover_ardupilot(height_m=1.5, hold_s=5.0)
     assert report.ok, report.error
     return report
@@ -63,12 +68,7 @@ def test_whole_graph_flies_the_scenario_on_ardupilot_in_lockstep(tmp_path):
     from ibvs_harness.run_scenario import main
     if os.environ.get(MISSION_ENV, '1') == '0':
         pytest.skip(f'the mission on ArduPilot in lockstep skipped: {MISSION_ENV}=0')
-    try:
-        shared = os.path.dirname(find_px4_sitl())
-    except FileNotFoundError as exc:
-        pytest.skip(f'../shared absent: {exc}')
-    if not os.path.isfile(os.path.join(shared, 'ardupilot-sitl', 'ardupilot-sitl')):
-        pytest.skip(f'ArduPilot SITL absent from {shared}/ardupilot-sitl')
+    need_ardupilot()
     code = main(['--autopilot', 'ardupilot', '--run-name', 'ap_lockstep',
                  '--results-root', str(tmp_path), '--no-bag', '--no-plots'])
     summary = json.loads((tmp_path / 'ap_lockstep' / 'summary.json').read_text())
@@ -95,12 +95,7 @@ def test_a_camera_stall_hands_the_vehicle_to_ardupilots_land_mode(tmp_path):
     from ibvs_harness.run_scenario import main
     if os.environ.get(MISSION_ENV, '1') == '0':
         pytest.skip(f'the missions on ArduPilot in lockstep skipped: {MISSION_ENV}=0')
-    try:
-        shared = os.path.dirname(find_px4_sitl())
-    except FileNotFoundError as exc:
-        pytest.skip(f'../shared absent: {exc}')
-    if not os.path.isfile(os.path.join(shared, 'ardupilot-sitl', 'ardupilot-sitl')):
-        pytest.skip(f'ArduPilot SITL absent from {shared}/ardupilot-sitl')
+    need_ardupilot()
     main(['--autopilot', 'ardupilot', '--run-name', 'ap_stall', '--front-camera-off', '3',
           '60', '--follow-failsafe', '--results-root', str(tmp_path), '--no-bag',
           '--no-plots'])

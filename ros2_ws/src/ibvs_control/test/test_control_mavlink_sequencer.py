@@ -282,6 +282,27 @@ def test_land_mode_refused_five_times_stops_streaming():
     assert len(r.commands(MavCmd.DO_SET_MODE)) == 1 + 5
 
 
+def test_a_mode_switch_is_judged_only_on_a_heartbeat_sent_after_it():
+    """An attempt counts as failed only once a HEARTBEAT came after it: a firmware in
+    lockstep at 0.13 x real time reports its mode at 1 Hz of its own clock, 7.7 s of this
+    one; without this rule its five attempts ran out before any report. With HEARTBEATs
+    that keep the old mode, FAILED after max_attempts as before."""
+    r = Rig()
+    r.step(heartbeat_t=0.0, supervisor_mode=Mode.WINDOW)
+    assert r.seq.state == EngageState.SET_MODE and len(r.commands(MavCmd.DO_SET_MODE)) == 1
+    r.run(7.0)                                   # no HEARTBEAT since the first attempt
+    assert r.seq.state == EngageState.SET_MODE and len(r.commands(MavCmd.DO_SET_MODE)) == 1
+    r.step(t=r.inp.t + 0.01, heartbeat_t=r.inp.t + 0.01, custom_mode=OFFBOARD)
+    assert r.seq.state == EngageState.ENGAGED
+    # HEARTBEATs at 2 Hz that keep the old mode: five attempts, then FAILED
+    r = Rig()
+    r.step(heartbeat_t=0.0, supervisor_mode=Mode.WINDOW)
+    while r.seq.state == EngageState.SET_MODE and r.inp.t < 10.0:
+        t = round(r.inp.t + 0.01, 6)
+        r.step(t=t, heartbeat_t=t if round(t * 100) % 50 == 0 else r.inp.heartbeat_t)
+    assert r.seq.state == EngageState.FAILED and len(r.commands(MavCmd.DO_SET_MODE)) == 5
+
+
 def test_shutdown_disarm_plain_first_forced_only_under_the_touchdown_rule():
     r = Rig(disarm_force_after_s=1.0)
     r.engage()

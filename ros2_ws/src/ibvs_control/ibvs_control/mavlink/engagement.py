@@ -121,7 +121,8 @@ class Engagement:
             params_timed_out=self.params.timed_out(now), ramp_done=ramp_done,
             armable=self.telemetry.armable, landed=self.telemetry.landed,
             inputs_lost=safety.inputs_lost(vehicle), touchdown=safety.touchdown,
-            airborne_at_low_thrust=safety.airborne_at_low_thrust)
+            airborne_at_low_thrust=safety.airborne_at_low_thrust,
+            heartbeat_t=self.link.heartbeat_at)
         for req in self.sequencer.step(inp):
             self.events.add('info', f'command {req.command.name} {req.params}: {req.reason}')
             self.link.send_command_long(req.command, req.params)

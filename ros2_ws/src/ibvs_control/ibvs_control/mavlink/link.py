@@ -207,6 +207,7 @@ class MavlinkLink:
         self.target_component = config.target_component
         self.heartbeat: AutopilotHeartbeat | None = None
         self._last_heartbeat_t: float | None = None
+        self.heartbeat_at: float | None = None     # ``clock`` s of the newest HEARTBEAT
         self._link_up = False
         self._last_open_t = -np.inf
         self._conn = None
@@ -400,6 +401,7 @@ class MavlinkLink:
             self.heartbeat = AutopilotHeartbeat(msg.autopilot, msg.type, msg.base_mode,
                                                 msg.custom_mode, msg.system_status)
             self._last_heartbeat_t = self._heartbeat_clock()
+            self.heartbeat_at = self._clock()
         return True
 
     def _supervise(self) -> None:

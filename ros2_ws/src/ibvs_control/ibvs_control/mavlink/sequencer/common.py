@@ -146,6 +146,9 @@ class SequencerInputs:
     inputs_lost: bool = False          # safety: no valid force for hold_last_s while engaged
     touchdown: bool = False            # safety: the touchdown rule holds
     airborne_at_low_thrust: bool = False  # safety: no ground contact, thrust far below hover
+    #: monotonic s (``t``'s clock) of the newest autopilot HEARTBEAT; None: not given (a
+    #: command is then judged by ``command_retry_s`` alone)
+    heartbeat_t: float | None = None
 
 
 class AutopilotStrategy(ABC):
@@ -208,6 +211,7 @@ class EngageSequencer:
     _engaged_at_idle: int = 0          # idle_reports when the last engagement started
     _lost_in: EngageState | None = None   # state when the link was lost
     _pending: _Pending | None = None
+    _heartbeat_t: float | None = None  # the newest HEARTBEAT of the last step's inputs
     _entered_t: float = 0.0
     _arm_start_t: float | None = None
     _land_confirmed: bool = False
@@ -309,6 +313,13 @@ class EngageSequencer:
         if p is not None and p.command == command:
             if t - p.sent_t < period:
                 return []  # answered or not, the heartbeat tells whether it took effect
+            if self._heartbeat_t is not None and self._heartbeat_t <= p.sent_t:
+                # no HEARTBEAT since it was sent: whether it took effect is not known yet. A
+                # firmware in lockstep slower than real time reports its mode at 1 Hz of its
+                # own clock: 5 attempts 1 s apart on this clock saw none (a PX4 campaign run
+                # failed "offboard mode not effective" at 0.13 x real time). A link without
+                # HEARTBEATs is lost after heartbeat_timeout_s (NO_LINK).
+                return []
             if p.attempts >= self.config.max_attempts:
                 return None
             attempts = p.attempts + 1
@@ -321,6 +332,7 @@ class EngageSequencer:
     def step(self, inp: SequencerInputs) -> list[CommandRequest]:
         """Advance the machine; return the commands to send now."""
         s = self.state
+        self._heartbeat_t = inp.heartbeat_t
         if not inp.link_up:
             if s not in (EngageState.NO_LINK, EngageState.REFUSED, EngageState.DONE,
                          EngageState.FAILED):

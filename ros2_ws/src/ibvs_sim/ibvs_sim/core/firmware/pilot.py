@@ -62,45 +62,47 @@ class StartHold:
 ARDUPILOT_START_HOLD = StartHold(arm_after_s=1.0, position_tol_m=0.15, timeout_s=150.0)
 
 
-class Px4StartPilot:
-    """PX4's take-off and hold at the start, by sim time (see module doc)."""
+class _GroundStation:
+    """The pilot's GCS on a firmware's link: heartbeat, STATUSTEXT, arming, the settled check.
 
-    def __init__(self, instance: int, start_I: np.ndarray, hold: StartHold | None = None,
-                 home: tuple = SIH_DEFAULT_HOME) -> None:
-        self.conn = mavutil.mavlink_connection(
-            f'udpout:127.0.0.1:{PX4_GCS_LISTEN_BASE + int(instance)}',
-            source_system=255, source_component=190)
+    A firmware's pilot gives its own ``url``, which HEARTBEATs are the firmware's
+    (:meth:`_firmware_heartbeat`, which also sets ``target``) and the commands due at a time
+    (:meth:`_command_due`, called every ``hold.command_period_s`` once ``target`` is known).
+    """
+
+    def __init__(self, url: str, start_I: np.ndarray, hold: StartHold) -> None:
+        self.conn = mavutil.mavlink_connection(url, source_system=255, source_component=190)
         self.start_I = np.asarray(start_I, float)
-        self.hold = hold or StartHold()
-        self.home = home
+        self.hold = hold
         self.target: tuple | None = None
         self.armed = False
         self.texts: list = []
+        self.armed_at_s: float | None = None
         self._next_command = self.hold.arm_after_s
         self._still_since: float | None = None
         self._beat = -math.inf
-        self.armed_at_s: float | None = None
 
     def step(self, t: float, state: State) -> bool:
-        """Read PX4, command what is due at sim time ``t``; return True once settled at start."""
+        """Read the firmware, command what is due at sim time ``t``; True once settled."""
         self._read()
         if t - self._beat >= 1.0:
             self._beat = t
             self.conn.mav.heartbeat_send(6, 8, 0, 0, 0)     # a GCS
-        if not self.armed and self.target is not None and t >= self._next_command:
+        if self.target is not None and t >= self._next_command:
             self._next_command = t + self.hold.command_period_s
-            lat, lon, alt = self.home
-            self.conn.mav.set_gps_global_origin_send(self.target[0], int(lat * 1e7),
-                                                     int(lon * 1e7), int(alt * 1e3), 0)
-            self._command(MAV_CMD_NAV_TAKEOFF, -1, 0, 0, math.nan, math.nan, math.nan,
-                          math.nan)
-            self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            self._command_due(state)
         if self.armed and self.armed_at_s is None:
             self.armed_at_s = t
         self._still_since = self.hold.still(t, self._still_since, self.armed, state,
                                             self.start_I)
         return (self._still_since is not None
                 and t - self._still_since >= self.hold.still_for_s)
+
+    def _command_due(self, state: State) -> None:
+        raise NotImplementedError
+
+    def _firmware_heartbeat(self, m) -> bool:
+        raise NotImplementedError
 
     def _command(self, cmd: int, *params: float) -> None:
         p = list(params) + [0.0] * (7 - len(params))
@@ -115,7 +117,7 @@ class Px4StartPilot:
             if m is None:
                 return
             kind = m.get_type()
-            if kind == 'HEARTBEAT' and m.autopilot == MAV_AUTOPILOT_PX4:
+            if kind == 'HEARTBEAT' and self._firmware_heartbeat(m):
                 self.target = (m.get_srcSystem(), m.get_srcComponent())
                 self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
             elif kind == 'STATUSTEXT':
@@ -126,7 +128,33 @@ class Px4StartPilot:
         self.conn.close()
 
 
-class ArduPilotStartPilot:
+class Px4StartPilot(_GroundStation):
+    """PX4's take-off and hold at the start, by sim time (see module doc)."""
+
+    def __init__(self, instance: int, start_I: np.ndarray, hold: StartHold | None = None,
+                 home: tuple = SIH_DEFAULT_HOME) -> None:
+        super().__init__(f'udpout:127.0.0.1:{PX4_GCS_LISTEN_BASE + int(instance)}', start_I,
+                         hold or StartHold())
+        self.home = home
+
+    def _firmware_heartbeat(self, m) -> bool:
+        return m.autopilot == MAV_AUTOPILOT_PX4
+
+    def _command_due(self, state: State) -> None:
+        """Send the EKF origin, PX4's take-off and the arming until armed.
+
+        Once armed, a repeated origin or take-off would move PX4's target.
+        """
+        if self.armed:
+            return
+        lat, lon, alt = self.home
+        self.conn.mav.set_gps_global_origin_send(self.target[0], int(lat * 1e7),
+                                                 int(lon * 1e7), int(alt * 1e3), 0)
+        self._command(MAV_CMD_NAV_TAKEOFF, -1, 0, 0, math.nan, math.nan, math.nan, math.nan)
+        self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+
+
+class ArduPilotStartPilot(_GroundStation):
     """ArduCopter's GUIDED take-off and hold at the start, by sim time (see module doc).
 
     ``z_home``: the {I} height (NED, m) of home, the body origin at rest on the floor;
@@ -135,61 +163,22 @@ class ArduPilotStartPilot:
 
     def __init__(self, instance: int, start_I: np.ndarray, z_home: float, takeoff_m: float,
                  hold: StartHold | None = None) -> None:
-        self.conn = mavutil.mavlink_connection(
-            f'udpin:127.0.0.1:{ARDUPILOT_GCS_SEND_BASE + int(instance)}',
-            source_system=255, source_component=190)
-        self.start_I = np.asarray(start_I, float)
+        super().__init__(f'udpin:127.0.0.1:{ARDUPILOT_GCS_SEND_BASE + int(instance)}',
+                         start_I, hold or ARDUPILOT_START_HOLD)
         self.z_home, self.takeoff_m = float(z_home), float(takeoff_m)
-        self.hold = hold or ARDUPILOT_START_HOLD
-        self.armed = False
         self.mode: int | None = None
-        self.texts: list = []
-        self.armed_at_s: float | None = None
-        self._next_command = self.hold.arm_after_s
-        self._still_since: float | None = None
-        self._beat = -math.inf
 
-    def step(self, t: float, state: State) -> bool:
-        """Read ArduPilot, command what is due at sim time ``t``; True once settled at start."""
-        self._read()
-        height_m = self.z_home - float(state.xi_I[2])
-        if t - self._beat >= 1.0:
-            self._beat = t
-            self.conn.mav.heartbeat_send(6, 8, 0, 0, 0)     # a GCS
-        if self.mode is not None and t >= self._next_command:
-            self._next_command = t + self.hold.command_period_s
-            if self.mode != ARDUCOPTER_MODE_GUIDED:
-                self.conn.mav.set_mode_send(1, 1, ARDUCOPTER_MODE_GUIDED)
-            elif not self.armed:
-                self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
-            elif height_m < 0.5 * self.takeoff_m:       # once: a take-off in the air re-aims
-                self._command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, self.takeoff_m)
-        if self.armed and self.armed_at_s is None:
-            self.armed_at_s = t
-        self._still_since = self.hold.still(t, self._still_since, self.armed, state,
-                                            self.start_I)
-        return (self._still_since is not None
-                and t - self._still_since >= self.hold.still_for_s)
+    def _firmware_heartbeat(self, m) -> bool:
+        if m.get_srcComponent() != 1 or m.type == 6:       # not a GCS's
+            return False
+        self.mode = int(m.custom_mode)
+        return True
 
-    def _command(self, cmd: int, *params: float) -> None:
-        p = list(params) + [0.0] * (7 - len(params))
-        self.conn.mav.command_long_send(1, 1, int(cmd), 0, *p)
-
-    def _read(self) -> None:
-        while True:
-            try:
-                m = self.conn.recv_match(blocking=False)
-            except (OSError, ValueError):
-                continue
-            if m is None:
-                return
-            kind = m.get_type()
-            if kind == 'HEARTBEAT' and m.get_srcComponent() == 1 and m.type != 6:
-                self.mode = int(m.custom_mode)
-                self.armed = bool(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED)
-            elif kind == 'STATUSTEXT':
-                self.texts = (self.texts + [str(m.text)])[-5:]
-
-    def close(self) -> None:
-        """Close the GCS socket."""
-        self.conn.close()
+    def _command_due(self, state: State) -> None:
+        """GUIDED, then the arming, then ArduCopter's take-off (once: one in the air re-aims)."""
+        if self.mode != ARDUCOPTER_MODE_GUIDED:
+            self.conn.mav.set_mode_send(self.target[0], 1, ARDUCOPTER_MODE_GUIDED)
+        elif not self.armed:
+            self._command(MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        elif self.z_home - float(state.xi_I[2]) < 0.5 * self.takeoff_m:
+            self._command(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, self.takeoff_m)
