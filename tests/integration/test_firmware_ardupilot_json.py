@@ -88,7 +88,7 @@ def test_whole_graph_flies_the_scenario_on_ardupilot_in_lockstep(tmp_path):
 
 
 def test_a_camera_stall_hands_the_vehicle_to_ardupilots_land_mode(tmp_path):
-    """The front camera stops at 3 s (WINDOW): the supervisor fails safe on the stale window,
+    """The front camera stops at 2 s (WINDOW, well before the wall): the supervisor fails safe on the stale window,
     the bridge switches ArduCopter to LAND (9), and ArduCopter's own land mode puts the
     vehicle down, after which the bridge disarms it (``--follow-failsafe``)."""
     import json
@@ -96,7 +96,7 @@ def test_a_camera_stall_hands_the_vehicle_to_ardupilots_land_mode(tmp_path):
     if os.environ.get(MISSION_ENV, '1') == '0':
         pytest.skip(f'the missions on ArduPilot in lockstep skipped: {MISSION_ENV}=0')
     need_ardupilot()
-    main(['--autopilot', 'ardupilot', '--run-name', 'ap_stall', '--front-camera-off', '3',
+    main(['--autopilot', 'ardupilot', '--run-name', 'ap_stall', '--front-camera-off', '2',
           '60', '--follow-failsafe', '--results-root', str(tmp_path), '--no-bag',
           '--no-plots'])
     summary = json.loads((tmp_path / 'ap_stall' / 'summary.json').read_text())

@@ -111,7 +111,7 @@ def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
 
 
 def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
-    """The front camera stops at 3 s (WINDOW): the supervisor fails safe on the stale window,
+    """The front camera stops at 2 s (WINDOW, well before the wall): the supervisor fails safe on the stale window,
     the bridge switches PX4 to AUTO.LAND, and PX4's own land mode puts the vehicle down, after
     which the bridge disarms it (``--follow-failsafe``)."""
     import json
@@ -122,7 +122,7 @@ def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
         find_px4_sitl()
     except FileNotFoundError as exc:
         pytest.skip(f'PX4 SITL absent: {exc}')
-    main(['--autopilot', 'px4', '--run-name', 'px4_stall', '--front-camera-off', '3', '60',
+    main(['--autopilot', 'px4', '--run-name', 'px4_stall', '--front-camera-off', '2', '60',
           '--follow-failsafe', '--results-root', str(tmp_path), '--no-bag', '--no-plots'])
     summary = json.loads((tmp_path / 'px4_stall' / 'summary.json').read_text())
     run = summary['run']

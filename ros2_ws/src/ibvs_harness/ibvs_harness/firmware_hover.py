@@ -22,10 +22,8 @@ import argparse
 from dataclasses import asdict, dataclass, field
 import json
 import math
-import os
 import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
@@ -42,6 +40,7 @@ from ibvs_sim.core.firmware.px4_hil import (FirmwareLinkError, px4_hil_parameter
                                             px4_motor_model, Px4Sensors, Px4SimLink)
 from ibvs_sim.core.px4_plant import find_px4_sitl, SIH_DEFAULT_HOME
 from ibvs_sim.core.world import load_world
+from ibvs_harness.ardupilot_sitl import ArduPilotSitl
 from ibvs_harness.px4_sih import free_instance, Pilot, Px4Sitl
 
 MAV_CMD_COMPONENT_ARM_DISARM = 400
@@ -190,9 +189,7 @@ def _fly(fw: FirmwarePlant, pilot: Pilot, report: HoverReport, hold_s: float,
 
 
 ARDUPILOT_VERSION = 'ArduCopter V4.5.6 SITL (JSON backend, lockstep)'
-ARDUPILOT_SPEEDUP = 50          # ArduPilot's pacing limit against the wall: lockstep sets it
 ARDUCOPTER_GUIDED = 4
-ARDUPILOT_START_TIMEOUT_S = 60.0    # s (wall), ardupilot-sitl start
 ARDUPILOT_ARM_BY_S = 120.0          # s (sim), GPS lock and EKF3 ready take 40-60 s of it
 SETTLED_M = 0.15                    # m, a take-off is over within this of its height
 
@@ -206,20 +203,13 @@ def fly_hover_ardupilot(height_m: float = 1.5, hold_s: float = 10.0,
     report = HoverReport(firmware=ARDUPILOT_VERSION, height_target_m=height_m,
                          parameters=params)
     inst = free_instance(1, 4) if instance is None else instance
-    script = os.path.join(os.path.dirname(find_px4_sitl()), 'ardupilot-sitl', 'ardupilot-sitl')
     link = ArduPilotJsonLink(inst)
     link.open()
-    work = tempfile.mkdtemp(prefix=f'ap-json-{inst}-')
-    args = [script, 'start', '--json', '--speedup', str(ARDUPILOT_SPEEDUP), '-i', str(inst),
-            '-w', work] + [a for k, v in params.items() for a in ('-p', f'{k}={v}')]
-    env, gcs = {}, None
+    sitl = ArduPilotSitl(inst, params)
+    gcs = None
     t_wall0 = time.monotonic()
     try:
-        out = subprocess.run(args, capture_output=True, text=True,
-                             timeout=ARDUPILOT_START_TIMEOUT_S)
-        env = dict(line.split('=', 1) for line in out.stdout.split() if '=' in line)
-        if out.returncode != 0:
-            raise RuntimeError(f'ardupilot-sitl start failed: {out.stderr[-800:]}')
+        sitl.start()
         gcs = mavutil.mavlink_connection(f'udpin:127.0.0.1:{14550 + inst}',
                                          source_system=255, source_component=190)
         fw = FirmwarePlant(world, vehicle, ArduPilotExchange(link),
@@ -236,8 +226,7 @@ def fly_hover_ardupilot(height_m: float = 1.5, hold_s: float = 10.0,
         report.wall_s = time.monotonic() - t_wall0
         if gcs is not None:
             gcs.close()
-        if env.get('AP_WORKDIR'):
-            subprocess.run([script, 'stop', env['AP_WORKDIR']], capture_output=True)
+        sitl.stop()
         link.close()
     return report
 

@@ -405,8 +405,8 @@ def firmware_block(px4) -> dict:
     """Return summary.json's firmware keys of a run on a real firmware (none for the sim's)."""
     if px4 is None:
         return {}
-    if not hasattr(px4, 'script'):      # ArduPilotSitl
-        from ibvs_harness.ardupilot_sitl import ARDUPILOT_FIRMWARE
+    from ibvs_harness.ardupilot_sitl import ARDUPILOT_FIRMWARE, ArduPilotSitl
+    if isinstance(px4, ArduPilotSitl):
         return {'autopilot': 'ardupilot', 'firmware': ARDUPILOT_FIRMWARE,
                 'ardupilot_instance': px4.instance, 'ardupilot_parameters': px4.params}
     return {'autopilot': 'px4', 'firmware': PX4_FIRMWARE, 'px4_instance': px4.instance,
@@ -460,9 +460,10 @@ def wait_for_port(firmware, runner) -> None:
     PX4 connects to the sim's TCP server and retries by itself; ArduPilot sends its servo
     packets to a UDP port and re-sends a lost one only after 10 s.
     """
-    if hasattr(firmware, 'script'):
-        return
+    from ibvs_harness.ardupilot_sitl import ArduPilotSitl
     from ibvs_sim.core.firmware.ardupilot_json import JSON_PORT_BASE
+    if not isinstance(firmware, ArduPilotSitl):
+        return
     port = JSON_PORT_BASE + 10 * int(firmware.instance)
     t0 = time.monotonic()
     while time.monotonic() - t0 < FIRMWARE_PORT_WAIT_S:
