@@ -111,9 +111,9 @@ def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
 
 
 def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
-    """The front camera stops at 2 s (WINDOW, before the wall): the supervisor fails safe on
-    the stale window, the bridge switches PX4 to AUTO.LAND, and PX4's own land mode puts the vehicle down, after
-    which the bridge disarms it (``--follow-failsafe``)."""
+    """The front camera stops at 2 s (WINDOW, before the wall): the supervisor fails safe
+    on the stale window, the bridge switches PX4 to AUTO.LAND, and PX4's own land
+    mode puts the vehicle down, after which the bridge disarms it (``--follow-failsafe``)."""
     import json
     from ibvs_harness.run_scenario import main
     if os.environ.get(MISSION_ENV, '1') == '0':
