@@ -254,6 +254,56 @@ def test_inputs_lost_stops_the_stream_or_lands(autopilot, action, land_params):
         assert r.sent[-1][1].params == land_params
 
 
+@pytest.mark.parametrize('custom_mode, lands', [(OFFBOARD, True), (AUTO_LAND, False),
+                                                (POSCTL, False)])
+def test_failsafe_just_after_a_loss_stop_lands_while_the_autopilot_is_still_offboard(
+        custom_mode, lands):
+    """A dead camera stops the forces and goes stale at one instant (hold_last_s = the
+    staleness timeouts): the bridge may stop the stream before the supervisor's FAILSAFE
+    reaches it (a CI run: 14 ms apart, PX4 then flew the last setpoint 1 s more, 0.7 m towards
+    the wall). While PX4 is still armed in OFFBOARD nobody else has the vehicle: land mode.
+    Once its own failsafe or the pilot has it, the bridge stays out."""
+    r = Rig()
+    r.engage()
+    r.step(t=r.inp.t + 0.01, inputs_lost=True)
+    assert r.seq.state == EngageState.HELD and not r.seq.streaming
+    r.step(t=r.inp.t + 0.01, custom_mode=custom_mode, supervisor_mode=Mode.FAILSAFE)
+    if lands:
+        assert r.seq.state == EngageState.LANDING and r.seq.streaming and r.seq.level_hold
+        assert r.sent[-1][1].params == (1.0, 4.0, 6.0)
+    else:
+        assert r.seq.state == EngageState.HELD and not r.seq.streaming
+        assert len(r.commands(MavCmd.DO_SET_MODE)) == 1           # the engagement's only
+    # a HELD of another cause (the pilot took POSCTL) never lands on a FAILSAFE
+    r = Rig()
+    r.engage()
+    r.step(t=r.inp.t + 0.01, custom_mode=POSCTL)
+    r.step(t=r.inp.t + 0.01, custom_mode=OFFBOARD, supervisor_mode=Mode.FAILSAFE)
+    assert r.seq.state == EngageState.HELD and len(r.commands(MavCmd.DO_SET_MODE)) == 1
+
+
+@pytest.mark.parametrize('autopilot, land_params', [(Autopilot.PX4, (1.0, 4.0, 6.0)),
+                                                    (Autopilot.ARDUPILOT, (1.0, 9.0))])
+def test_failsafe_after_the_offboard_switch_was_asked_lands_before_its_heartbeat(
+        autopilot, land_params):
+    """The switch may have taken effect before a HEARTBEAT shows it (PX4: 1 Hz): a FAILSAFE
+    then asks for the land mode rather than leaving the autopilot in a mode without setpoints.
+    A FAILSAFE before any switch was asked leaves the vehicle where it is (HELD)."""
+    r = Rig(autopilot)
+    r.step(heartbeat_t=0.0, supervisor_mode=Mode.WINDOW)
+    assert r.seq.state == EngageState.SET_MODE and len(r.commands(MavCmd.DO_SET_MODE)) == 1
+    r.run(0.3)
+    r.step(t=r.inp.t + 0.01, supervisor_mode=Mode.FAILSAFE)
+    assert r.seq.state == EngageState.LANDING and r.seq.level_hold and r.seq.streaming
+    assert r.sent[-1][1].params == land_params
+    r = Rig(autopilot)
+    r.step(streaming_s=0.0, supervisor_mode=Mode.WINDOW)     # PX4: prestream not done yet
+    if autopilot == Autopilot.PX4:
+        assert r.seq.state == EngageState.SET_MODE and not r.commands(MavCmd.DO_SET_MODE)
+        r.step(t=r.inp.t + 0.01, supervisor_mode=Mode.FAILSAFE)
+        assert r.seq.state == EngageState.HELD and not r.commands(MavCmd.DO_SET_MODE)
+
+
 @pytest.mark.parametrize('autopilot, land_mode', [(Autopilot.PX4, AUTO_LAND),
                                                   (Autopilot.ARDUPILOT, LAND)])
 def test_failsafe_lands_in_the_autopilots_mode_then_stops_and_disarms_when_landed(

@@ -50,7 +50,9 @@ POLICY: tuple[Rule, ...] = (
          '(input_loss_action)', 'autopilot: offboard-loss failsafe (PX4) / LAND (ArduPilot)'),
     Rule('supervisor FAILSAFE',
          "the autopilot's land mode (PX4 AUTO.LAND, ArduPilot LAND); level hold until it "
-         'shows, then no setpoints', 'autopilot'),
+         'shows, then no setpoints; also after a forces-lost stop while the autopilot is '
+         'still in its offboard mode, and after an offboard switch not yet confirmed',
+         'autopilot'),
     Rule('supervisor SHUTDOWN',
          'thrust ramp to 0 over shutdown_ramp_s, then disarm (touchdown rule for a force)',
          'bridge'),

@@ -216,6 +216,7 @@ class EngageSequencer:
     _arm_start_t: float | None = None
     _land_confirmed: bool = False
     _first_refusal_t: float | None = None
+    _stopped_on_loss: bool = False     # HELD because the forces stopped ('stop' action)
     _said: set = field(default_factory=set)
     _events: list = field(default_factory=list)
 
@@ -274,6 +275,7 @@ class EngageSequencer:
             self.state = state
             self.last_reason = reason
             self._pending = None
+            self._stopped_on_loss = False
             self._said.discard('state')
             if t is not None:
                 self._entered_t = t
@@ -388,13 +390,32 @@ class EngageSequencer:
         return []
 
     def _idle_again(self, inp: SequencerInputs) -> list[CommandRequest]:
-        """HELD / DONE: silent; a new engagement needs the supervisor back in IDLE first."""
+        """HELD / DONE: silent; a new engagement needs the supervisor back in IDLE first.
+
+        One exception: setpoints stopped because the forces did, the autopilot still armed in
+        the offboard mode (its offboard-loss failsafe has not acted yet) and the supervisor
+        now fails safe: the land mode is asked for. A dead camera stops the forces and goes
+        stale at the same instant (``hold_last_s`` = the staleness timeouts), and which of the
+        two the bridge hears first is a race; PX4 would otherwise fly the last setpoint for
+        ``COM_OF_LOSS_T`` more (0.7 m towards the wall in a CI run).
+        """
+        if self.state == EngageState.HELD and self._stopped_on_loss \
+                and inp.supervisor_mode == Mode.FAILSAFE and inp.armed \
+                and self.strategy.in_offboard(inp.custom_mode):
+            return self._land(inp, 'supervisor FAILSAFE after the forces stopped, the autopilot '
+                                   "still in the offboard mode: the autopilot's land mode")
         if inp.supervisor_mode == Mode.IDLE and inp.idle_reports > self._engaged_at_idle:
             self._go(EngageState.STANDBY, 'supervisor IDLE again: ready for a new engagement',
                      inp.t)
         return []
 
     def _set_mode(self, inp: SequencerInputs) -> list[CommandRequest]:
+        asked = self._pending is not None and self._pending.command == MavCmd.DO_SET_MODE
+        if inp.supervisor_mode in (Mode.FAILSAFE, Mode.SHUTDOWN) and asked and inp.armed:
+            # the switch may have taken effect before its HEARTBEAT (PX4 reports its mode at
+            # 1 Hz): the autopilot may be flying our setpoints, which now end
+            return self._land(inp, f'supervisor {inp.supervisor_mode.name} after the offboard '
+                                   "mode was asked for: the autopilot's land mode")
         if inp.supervisor_mode not in FLYING_MODES:
             self._go(EngageState.HELD, f'supervisor mode {inp.supervisor_mode.name} before '
                      'engagement: not switching', inp.t)
@@ -503,6 +524,7 @@ class EngageSequencer:
             return self._land(inp, f"{why}: the autopilot's land mode")
         self._go(EngageState.HELD, f"{why}: setpoints stopped, the autopilot's offboard-loss "
                  'failsafe takes the vehicle (PX4 COM_OF_LOSS_T, COM_OBL_RC_ACT)', inp.t)
+        self._stopped_on_loss = True
         return []
 
     def _shutdown_ramp(self, inp: SequencerInputs) -> list[CommandRequest]:
