@@ -221,6 +221,30 @@ def flip_pilot_switch(monitor: ScenarioMonitor, spin, deadline: float) -> None:
     print(f"the pilot's switch ON at sim t = {monitor.now_s():.2f} s", flush=True)
 
 
+#: ``--autopilot`` values whose firmware flies the plant in lockstep (a pre-roll before frame 0)
+LOCKSTEP_FIRMWARES = ('px4', 'ardupilot')
+#: s (wall): the longest wait for a firmware's pre-roll (boot, take-off, hold at the start).
+#: The sim itself fails the pre-roll after 120 s of plant time; this only bounds a lockstep
+#: far slower than real time
+PREROLL_WAIT_S = 600.0
+
+
+def wait_for_preroll(monitor: ScenarioMonitor, spin) -> None:
+    """Wait for the sim's first frame, which comes once the firmware holds at the start.
+
+    The preflight's wall-clock limit counts from then: a pre-roll that took long (PX4 in
+    gusts, not still enough for the start pilot: 137 s of plant time) is not a preflight
+    that failed. A pre-roll that fails (the sim logs it: "firmware: pre-roll: ...") ends
+    here after ``PREROLL_WAIT_S``, or at the run's own wall-clock limit (``spin``).
+    """
+    deadline = time.monotonic() + PREROLL_WAIT_S
+    while monitor.first_truth_wall is None:
+        if time.monotonic() > deadline:
+            raise _Stop(f'the firmware did not hold at the start within {PREROLL_WAIT_S:.0f} '
+                        's of wall time (logs/sim.log: "frame 0 waits for the firmware")')
+        spin(0.05)
+
+
 def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wall0: float,
         runner_specs: list, restarts: list, executor: Executor) -> str:
     """Preflight, start, watch; return the stop reason (raise _Stop on a run error).
@@ -248,6 +272,8 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
         if time.monotonic() - t_wall0 > opts.timeout_s:
             raise _Stop(f'wall-clock timeout {opts.timeout_s:.0f} s')
 
+    if opts.autopilot in LOCKSTEP_FIRMWARES:
+        wait_for_preroll(monitor, spin)
     deadline = time.monotonic() + opts.preflight_timeout_s
     while not monitor.health.healthy() and time.monotonic() < deadline:
         spin(0.05)

@@ -30,3 +30,32 @@ def test_distance_and_heading_still_count_inside_the_box():
 def test_a_start_chosen_outside_the_box_is_judged_by_distance_alone():
     start = np.array([-2.0, 0.6, -1.82])          # a user's --initial-position
     assert at_start(start + [0.0, 0.1, 0.0], start, 0.0, BOX)
+
+
+def test_the_preflight_limit_counts_from_the_end_of_the_firmwares_pre_roll(monkeypatch):
+    """A lockstep firmware's pre-roll (boot, take-off, hold) comes before frame 0; the wait
+    for it returns at the first truth message, and a pre-roll that never ends stops the run
+    after PREROLL_WAIT_S of wall time (a PX4 campaign start was lost: its 137 s pre-roll
+    outlasted the preflight's own 120 s)."""
+    from types import SimpleNamespace
+
+    import pytest
+
+    from ibvs_harness import run_scenario
+
+    monitor = SimpleNamespace(first_truth_wall=None)
+    spins = []
+
+    def spin(dt):
+        spins.append(dt)
+        if len(spins) == 5:
+            monitor.first_truth_wall = 1.0
+
+    run_scenario.wait_for_preroll(monitor, spin)
+    assert len(spins) == 5
+    monitor.first_truth_wall = None
+    monkeypatch.setattr(run_scenario, 'PREROLL_WAIT_S', -1.0)     # the limit has passed
+    with pytest.raises(run_scenario._Stop, match='did not hold at the start'):
+        run_scenario.wait_for_preroll(monitor, lambda dt: None)
+    assert 'px4' in run_scenario.LOCKSTEP_FIRMWARES
+    assert 'ardupilot' in run_scenario.LOCKSTEP_FIRMWARES
