@@ -47,3 +47,20 @@ def test_period_of_a_rate():
     assert period_ns(50.0) == 20 * MS and period_ns(30.0) == 33_333_333
     with pytest.raises(ValueError):
         period_ns(0.0)
+
+
+def test_a_follower_keeps_the_old_grid_before_a_smaller_strides_reference():
+    """Stride 2 from frame 0; then stride 1 announced from frame 10: frames 1-9 are still
+    judged on stride 2 (the supervisor expects them so), every frame from 10 on; a larger
+    stride applies at once."""
+    from ibvs_common.core.frame_grid import GridFollower
+    period = 20_000_000
+    f = GridFollower(period)
+    assert all(f.on_grid_at(k * period) for k in range(5))
+    f.update(2, 0)
+    assert [f.on_grid_at(k * period) for k in range(4)] == [True, False, True, False]
+    f.update(1, 10 * period)
+    assert [f.on_grid_at(k * period) for k in (7, 8, 9, 10, 11)] == [
+        False, True, False, True, True]
+    f.update(4, 12 * period)
+    assert [f.on_grid_at(k * period) for k in (9, 12, 13, 16)] == [False, True, False, True]

@@ -22,7 +22,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image
 from std_msgs.msg import UInt8
 
-from ibvs_common.core.frame_grid import FrameGrid
+from ibvs_common.core.frame_grid import FrameGrid, GridFollower
 from ibvs_common.core.modes import InputKind, modes_using
 from ibvs_common.node_common import (FRAME_QOS, grid_from_msg, MODE_QOS, mode_from_status,
                                      stamp_to_ns)
@@ -48,8 +48,7 @@ class GatedImages:
         self.process = process
         self.prefix = log_prefix
         self.camera = camera
-        self.grid = FrameGrid(int(period_ns))
-        self._before: tuple[FrameGrid, int] | None = None   # the grid before a smaller stride
+        self.follower = GridFollower(int(period_ns))
         self.counts = ImageCounts()
         self.timer = ProcessingTimer()
         self._last_index: int | None = None
@@ -68,6 +67,11 @@ class GatedImages:
             self._control_subs.append((node.create_subscription(
                 DiagnosticArray, 'ibvs/supervisor_status', self.on_status, FRAME_QOS),
                 self.on_status))
+
+    @property
+    def grid(self) -> FrameGrid:
+        """Return this camera's current frame grid: its stride and reference frame."""
+        return self.follower.grid
 
     @property
     def frame_period_s(self) -> float:
@@ -139,9 +143,7 @@ class GatedImages:
 
     def on_grid_at(self, stamp_ns: int) -> bool:
         """Whether the frame of ``stamp_ns`` is on the grid (the old one before a smaller one)."""
-        if self._before is not None and stamp_ns < self._before[1]:
-            return self._before[0].on_grid(stamp_ns)
-        return self.grid.on_grid(stamp_ns)
+        return self.follower.on_grid_at(stamp_ns)
 
     def on_grid(self, msg: DiagnosticArray) -> None:
         """Take this camera's frame grid (ibvs/frame_grid: stride, reference frame).
@@ -154,12 +156,7 @@ class GatedImages:
             self.log.error(f'{self.prefix}: ibvs/frame_grid without this camera: ignored',
                            THROTTLE_S)
             return
-        stride, ref_ns = grid
-        if stride < self.grid.stride:
-            self._before = (self.grid, ref_ns)
-        elif stride > self.grid.stride:
-            self._before = None
-        self.grid = self.grid.with_stride(stride, ref_ns)
+        self.follower.update(*grid)
 
     def on_mode(self, msg: UInt8) -> None:
         """Take the supervisor's latched mode (the gate's state until its first status)."""

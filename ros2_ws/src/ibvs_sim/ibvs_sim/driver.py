@@ -16,6 +16,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from ibvs_common.core.config import PadLayout, VehicleConfig
+from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.modes import Mode
 from ibvs_common.core.stamps import NS_PER_S
 from ibvs_sim.config import SimNodeConfig
@@ -147,6 +148,12 @@ class SimDriver:
         """Note the supervisor's mode of the frame at ``stamp_ns``."""
         self.products.note_status(stamp_ns, mode)
 
+    def note_grid(self, camera: str, stride: int, ref_ns: int) -> None:
+        """Note the graph's frame grid of ``camera`` (``ibvs/frame_grid``)."""
+        timing = self.sim.config.timings().get(camera)
+        if timing is not None:
+            self.products.note_grid(camera, period_ns(timing.rate_hz), stride, ref_ns)
+
     def note_product(self, topic: str, stamp_ns: int) -> None:
         """Note a product of the graph stamped ``stamp_ns``; log one given up that came back."""
         if self.products.note(topic, stamp_ns):
@@ -171,13 +178,16 @@ class SimDriver:
             if self.imu_hold.timed_out:
                 self.log.warning(
                     f'lockstep: imu/data did not reach t = {held.t:.3f} s within '
-                    f'{self.imu_hold.timeout_s} s (wall): frame published without it',
+                    f'{self.imu_hold.timeout_s} s (wall): frame published without it'
+                    + ('; frames are no longer held for it until it comes again'
+                       if self.imu_hold.silent else ''),
                     throttle_duration_sec=LOG_THROTTLE_S)
             self._publish(held)
         if self.imu_hold.holding:
             return
         lockstep, realtime = self.sim.lockstep, self.sim.realtime
         timeouts_before, dropped_before = lockstep.timeouts, realtime.frames_dropped
+        silent_before = lockstep.silent
         given_up_before = len(lockstep.given_up)
         try:
             out = self.sim.tick()
@@ -192,6 +202,13 @@ class SimDriver:
                 f't = {self.sim.t:.3f} s with the last one; {lockstep.timeouts} '
                 'time-outs so far (the run no longer repeats exactly)',
                 throttle_duration_sec=LOG_THROTTLE_S)
+        if lockstep.silent != silent_before:
+            self.log.warning(
+                f'lockstep: {lockstep.silent_after} time-outs in a row: no setpoint is waited '
+                f'for until one comes again (t = {self.sim.t:.3f} s; the bridge died or '
+                'stopped streaming?)' if lockstep.silent else
+                f'lockstep: a setpoint came again at t = {self.sim.t:.3f} s: each frame waits '
+                'for its answer again')
         if len(lockstep.given_up) > given_up_before:
             self.log.warning(
                 f'lockstep: {", ".join(lockstep.given_up[given_up_before:])} not '

@@ -26,7 +26,7 @@ from std_msgs.msg import Bool, String
 
 from ibvs_common.core.config import ConfigError, load_pad_layout, load_vehicle
 from ibvs_common.dds_profile import use_dds_profile_here
-from ibvs_common.node_common import mode_from_status, stamp_to_ns
+from ibvs_common.node_common import grid_from_msg, MODE_QOS, mode_from_status, stamp_to_ns
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_sim.config import CAMERAS, SimNodeConfig
@@ -88,6 +88,8 @@ class SimNode(Node):
                 self.create_subscription(msg_type, topic, self._product_callback(topic),
                                          qos_profile_sensor_data)
             self.create_subscription(DiagnosticArray, STATUS_TOPIC, self._on_status, reliable)
+            self.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self._on_grid,
+                                     MODE_QOS)
         # the pilot's hand on the radio's mission switch (pilot_switch_channel)
         self.create_subscription(Bool, 'sim/pilot_switch', self._on_pilot_switch, reliable)
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -124,6 +126,13 @@ class SimNode(Node):
         stamp_ns, mode, err = mode_from_status(msg)
         if not err:
             self.driver.note_status(stamp_ns, mode)
+
+    def _on_grid(self, msg: DiagnosticArray) -> None:
+        """ibvs/frame_grid: which frames the graph computes (lockstep owes no wait to others)."""
+        for camera in self.cameras:
+            grid = grid_from_msg(msg, camera)
+            if grid is not None:
+                self.driver.note_grid(camera, *grid)
 
     def _product_callback(self, topic: str):
         def note(msg: PolygonStamped | Vector3Stamped | JointState) -> None:

@@ -291,6 +291,34 @@ def test_images_wait_for_every_imu_sample_sent_by_their_delivery():
     assert hold.release(now=0.1) is late
 
 
+def test_frames_stop_waiting_for_an_imu_that_stopped_until_it_comes_again():
+    """imu/data comes from the bridge: a bridge that died would hold every frame for the
+    time-out. Two time-outs in a row and frames go at once, until a newer sample comes."""
+    hold = ImuBeforeImages(timeout_s=1.0)
+    hold.note_imu(20 * MS)
+
+    def frame(ms):
+        return FrameOutput(ms * MS, {}, None, [], {'down': ms * MS}, ms * MS)
+
+    for k, ms in enumerate((40, 60)):
+        assert hold.hold(frame(ms), now=10.0 * k) is None
+        assert hold.release(now=10.0 * k + 0.5) is None
+        assert hold.release(now=10.0 * k + 1.0).t_ns == ms * MS and hold.timed_out
+    assert hold.silent and hold.timeouts == 2
+    assert hold.hold(frame(80), now=30.0).t_ns == 80 * MS       # not held
+    hold.note_imu(100 * MS)                                     # imu/data again
+    assert not hold.silent
+    assert hold.hold(frame(120), now=31.0) is None              # held again
+    # one time-out between covered frames never silences it
+    hold = ImuBeforeImages(timeout_s=1.0)
+    for k in range(4):
+        hold.note_imu((40 * k + 20) * MS)
+        assert hold.hold(frame(40 * k + 20), now=float(k)) is not None    # covered
+        assert hold.hold(frame(40 * k + 40), now=float(k)) is None
+        assert hold.release(now=k + 1.0) is not None
+    assert hold.timeouts == 4 and not hold.silent
+
+
 def test_the_node_parameters_make_each_cameras_timing_with_the_true_offsets(configs):
     from dataclasses import replace
     vehicle = configs[2]

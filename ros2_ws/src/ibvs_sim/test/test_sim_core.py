@@ -101,6 +101,39 @@ def test_lockstep_stops_waiting_for_answers_once_the_autopilot_flies_its_own_mod
     assert sim.lockstep.timeouts == 0
 
 
+def test_lockstep_stops_waiting_for_a_silent_answerer_until_it_answers_again(configs):
+    """Two full time-outs in a row (a bridge that died): the next frames go without a wait,
+    frame after frame, until a new answer comes; then each frame waits for its answer again.
+    A time-out between answered frames (a frame the graph skipped) never makes it silent."""
+    ap, clock = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap, clock, pacing=Pacing.LOCKSTEP, lockstep_timeout_s=1.0)
+    assert sim.tick().t_ns == 0
+    ap.last_setpoint_time_boot_ms = 0
+    assert sim.tick().t_ns == 20_000_000
+    for k in (2, 3):                               # the bridge died: two full time-outs
+        assert sim.tick() is None
+        clock.now += 1.0
+        assert sim.tick().t_ns == k * 20_000_000
+    assert sim.lockstep.timeouts == 2 and sim.lockstep.silent and sim.lockstep.silences == 1
+    for k in (4, 5, 6):                            # silent: no wall-clock wait
+        assert sim.tick().t_ns == k * 20_000_000
+    assert sim.lockstep.timeouts == 2
+    ap.last_setpoint_time_boot_ms = 120            # an answer again (a bridge restarted)
+    assert sim.tick().t_ns == 7 * 20_000_000 and not sim.lockstep.silent
+    assert sim.tick() is None                      # the answer to 140 ms is waited for
+    # alternating: a skipped frame's time-out, then an answered frame, never silent
+    ap2, clock2 = FakeAutopilot(), FakeClock()
+    sim = _sim(configs, ap2, clock2, pacing=Pacing.LOCKSTEP, lockstep_timeout_s=1.0)
+    assert sim.tick().t_ns == 0
+    for k in range(1, 7):
+        if k % 2:
+            ap2.last_setpoint_time_boot_ms = (k - 1) * 20
+        else:
+            clock2.now += 1.0
+        assert sim.tick().t_ns == k * 20_000_000
+    assert sim.lockstep.timeouts == 3 and not sim.lockstep.silent
+
+
 @pytest.mark.parametrize('pacing, receiving_substeps', [(Pacing.LOCKSTEP, 0),
                                                         (Pacing.REALTIME, 'all')])
 def test_lockstep_reads_mavlink_only_between_frames(configs, pacing, receiving_substeps):
@@ -485,3 +518,31 @@ def test_lockstep_waits_for_the_frame_status_and_only_the_products_its_mode_uses
     products.note_status(60_000_000, Mode.CROSSING)       # it comes back: waited for again
     products.expect(80_000_000, both, live)
     assert products.missing() == [STATUS_TOPIC]
+
+
+def test_lockstep_owes_no_wait_to_a_frame_off_the_graphs_grid(configs):
+    """The rate governor computes every 2nd frame (ibvs/frame_grid): a frame off the grid gets
+    no answer, status or product, so the clock moves on at once (it waited the whole time-out
+    per frame: a 0.2 s camera dropout cost a CI test 49 of them); on the grid it waits."""
+    ap, clock = FakeAutopilot(), FakeClock()
+    products = GraphProducts({'window/corners': 'front'})
+    sim = _sim(configs, ap, clock, products=products, pacing=Pacing.LOCKSTEP,
+               lockstep_timeout_s=1.0)
+    live = {'window/corners': 1}
+    assert sim.tick().t_ns == 0
+    products.note_grid('front', 20_000_000, 2, 0)       # every 2nd frame from t = 0
+    products.expect(0, ['front'], live)
+    ap.last_setpoint_time_boot_ms = 0
+    products.note('window/corners', 0)
+    out = sim.tick()
+    assert out.t_ns == 20_000_000                       # frame 1: off the grid
+    products.expect(out.t_ns, ['front'], live)
+    assert products.missing() == [] and products.off_grid(20_000_000)
+    out = sim.tick()
+    assert out.t_ns == 40_000_000 and sim.lockstep.timeouts == 0
+    products.expect(out.t_ns, ['front'], live)          # frame 2: on the grid, waited for
+    assert products.missing() == ['window/corners'] and sim.tick() is None
+    products.note('window/corners', 40_000_000)
+    assert sim.tick() is None                           # the answer too
+    ap.last_setpoint_time_boot_ms = 40
+    assert sim.tick().t_ns == 60_000_000

@@ -55,3 +55,31 @@ def period_ns(rate_hz: float) -> int:
     if not rate_hz > 0.0:
         raise ValueError(f'camera rate must be > 0 Hz, got {rate_hz}')
     return int(round(1e9 / rate_hz))
+
+
+class GridFollower:
+    """A camera's grid as the supervisor announces it (``ibvs/frame_grid``), for its users.
+
+    A smaller stride applies from its reference frame on and the old grid before it, as the
+    supervisor expects the frames (ibvs_control's ``SupervisorGrids``: a try of a smaller
+    stride starts a little after its decision); a larger one applies at once. The perception
+    nodes compute only the frames on it; the lockstep sim owes no wait to a frame off it.
+    """
+
+    def __init__(self, period_ns: int) -> None:
+        self.grid = FrameGrid(int(period_ns))
+        self._before: tuple[FrameGrid, int] | None = None   # the grid before a smaller stride
+
+    def update(self, stride: int, ref_ns: int) -> None:
+        """Take a new (stride, reference frame) of this camera."""
+        if stride < self.grid.stride:
+            self._before = (self.grid, int(ref_ns))
+        elif stride > self.grid.stride:
+            self._before = None
+        self.grid = self.grid.with_stride(stride, ref_ns)
+
+    def on_grid_at(self, stamp_ns: int) -> bool:
+        """Whether the frame of ``stamp_ns`` is on the grid (the old one before a smaller one)."""
+        if self._before is not None and stamp_ns < self._before[1]:
+            return self._before[0].on_grid(stamp_ns)
+        return self.grid.on_grid(stamp_ns)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from typing import Collection, TYPE_CHECKING
 
+from ibvs_common.core.frame_grid import GridFollower
 from ibvs_common.core.modes import InputKind, Mode, MODE_INPUTS, modes_using
 
 if TYPE_CHECKING:
@@ -78,17 +79,22 @@ class ImuBeforeImages:
     (the delivery time itself when not given), so every node has the same IMU with the images.
 
     Before any IMU sample was seen nothing is held; a frame waits at most ``timeout_s`` (wall
-    clock, s) and is then released anyway. Disabled (pass-through) outside lockstep.
+    clock, s) and is then released anyway. ``silent_after`` time-outs in a row (imu/data
+    stopped: the bridge that publishes it died) and nothing is held until a newer sample
+    comes. Disabled (pass-through) outside lockstep.
     """
 
-    def __init__(self, timeout_s: float, enabled: bool = True) -> None:
+    def __init__(self, timeout_s: float, enabled: bool = True, silent_after: int = 2) -> None:
         if not timeout_s > 0.0:
             raise ValueError(f'timeout_s must be > 0, got {timeout_s}')
         self.timeout_s = float(timeout_s)
         self.enabled = bool(enabled)
+        self.silent_after = int(silent_after)
+        self.silent = False                        # imu/data stopped: nothing held
         self.imu_through_ns: int | None = None     # newest IMU stamp seen
         self.timed_out = False
         self.timeouts = 0
+        self._in_a_row = 0
         self.held_s = 0.0                          # wall s frames were held, in all
         self._held: FrameOutput | None = None
         self._since = 0.0
@@ -102,10 +108,14 @@ class ImuBeforeImages:
         """Note an imu/data stamp (ns, ROS clock = sim time)."""
         if self.imu_through_ns is None or stamp_ns > self.imu_through_ns:
             self.imu_through_ns = int(stamp_ns)
+            self.silent = False
 
     def hold(self, frame: FrameOutput, now: float) -> FrameOutput | None:
         """Return the frame if it may go now, else keep it (:meth:`release` gives it later)."""
-        if not self.enabled or self._covered(frame):
+        if not self.enabled or self.silent:
+            return frame
+        if self._covered(frame):
+            self._in_a_row = 0
             return frame
         self._held, self._since = frame, now
         return None
@@ -121,6 +131,11 @@ class ImuBeforeImages:
                 return None
             self.timed_out = True
             self.timeouts += 1
+            self._in_a_row += 1
+            if self._in_a_row >= self.silent_after:
+                self.silent, self._in_a_row = True, 0
+        else:
+            self._in_a_row = 0
         self._held = None
         self.held_s += max(0.0, now - self._since)
         return frame
@@ -139,7 +154,9 @@ class GraphProducts:
     the cameras whose images went out, with a publisher, that the mode at their image's stamp
     uses (from the supervisor's status of the frame, waited for first when the image of the
     mode's camera went out); a missing one is given up until it is published again
-    (docs/sim.md "Loop, pacing and events").
+    (docs/sim.md "Loop, pacing and events"). A camera's image off the graph's frame grid
+    (``ibvs/frame_grid``: the rate governor computes every 2nd or 4th frame) is owed
+    nothing: no status, no product, no answer.
     """
 
     def __init__(self, products: dict, used_in: dict | None = None) -> None:
@@ -153,6 +170,19 @@ class GraphProducts:
         self.stamps_ns: dict[str, int] = {}           # camera -> its image's stamp
         self.status_expected = False
         self.statuses: list[tuple[int, int]] = []     # (stamp ns, mode), newest last
+        self.grids: dict[str, GridFollower] = {}      # camera -> the graph's frame grid
+
+    def note_grid(self, camera: str, period_ns: int, stride: int, ref_ns: int) -> None:
+        """Take the graph's frame grid of ``camera`` (``period_ns``: its frame period)."""
+        follower = self.grids.get(camera)
+        if follower is None or follower.grid.period_ns != int(period_ns):
+            follower = self.grids[camera] = GridFollower(int(period_ns))
+        follower.update(int(stride), int(ref_ns))
+
+    def on_grid(self, camera: str, stamp_ns: int) -> bool:
+        """Whether the graph computes the frame of ``camera`` stamped ``stamp_ns``."""
+        follower = self.grids.get(camera)
+        return follower is None or follower.on_grid_at(int(stamp_ns))
 
     def expect(self, frame_ns: int, cameras: Collection[str], publishers: dict,
                stamps_ns: dict | None = None, status: bool = True) -> None:
@@ -164,11 +194,13 @@ class GraphProducts:
         """
         self.frame_ns = int(frame_ns)
         self.stamps_ns = {c: int((stamps_ns or {}).get(c, frame_ns)) for c in cameras}
+        computed = {c for c, stamp in self.stamps_ns.items() if self.on_grid(c, stamp)}
         self.expected = {t for t, cam in self.products.items()
-                         if cam in self.stamps_ns and publishers.get(t, 0) > 0
+                         if cam in computed and publishers.get(t, 0) > 0
                          and t not in self.given_up}
         self.status_expected = status and bool(self.used_in) \
-            and publishers.get(STATUS_TOPIC, 0) > 0 and STATUS_TOPIC not in self.given_up
+            and publishers.get(STATUS_TOPIC, 0) > 0 and STATUS_TOPIC not in self.given_up \
+            and self.on_grid(self.mode_camera(), self.frame_ns)
 
     def mode_camera(self) -> str:
         """Return the camera the newest status's mode is evaluated on (IDLE's before any)."""
@@ -184,6 +216,10 @@ class GraphProducts:
         """Mode of the newest status stamped at or before ``stamp_ns``, or None."""
         older = [mode for t, mode in self.statuses if t <= stamp_ns]
         return older[-1] if older else None
+
+    def off_grid(self, answer_ns: int | None) -> bool:
+        """Whether the frame at ``answer_ns`` of the mode's camera is off the graph's grid."""
+        return answer_ns is not None and not self.on_grid(self.mode_camera(), answer_ns)
 
     def handed_over(self, answer_ns: int, stamps_ns: dict) -> bool:
         """Whether the frame at ``answer_ns`` is owed no answer: it handed the mode over.

@@ -78,29 +78,62 @@ class LockstepGate:
     clock since the frame went out: a missing answer then counts in ``timeouts`` (only for a
     full ``timeout_s`` wait: a fault-injection frame's shorter wait expects none), missing
     products are given up (``given_up``) until they are published again.
+
+    ``silent_after`` time-outs in a row make the answerer *silent* (``silences`` counts
+    how often): answers are no longer waited for until a new one comes (the caller passes
+    the latest answer it has seen; a different one ends the silence). A bridge that died
+    leaves the autopilot flying on its own: its offboard-loss failsafe acts after ~1 s of
+    its own (sim) time, which would otherwise take 50 frames x ``timeout_s`` of wall time.
     """
 
-    def __init__(self, timeout_s: float, products: GraphProducts) -> None:
+    def __init__(self, timeout_s: float, products: GraphProducts,
+                 silent_after: int = 2) -> None:
         self.timeout_s = timeout_s
         self.products = products
+        self.silent_after = int(silent_after)
         # wall wait for the answer to the last frame; shorter when fault injection withheld
         # some of its images (the graph may have nothing to answer)
         self.answer_wait_s = timeout_s
         self.timeouts = 0
+        self.silences = 0
         self.given_up: list[str] = []         # products no longer waited for
         self._since: float | None = None
+        self._in_a_row = 0                    # full time-outs since the last answer in time
+        self._silent = False
+        self._silent_answer: object = None    # the latest answer when the silence began
 
     def frame_out(self, now: float) -> None:
         """Note that a frame went out at wall time ``now`` (s): the wait for its answer starts."""
         self._since = now
 
-    def may_step(self, now: float, answered: bool) -> bool:
-        """Return whether sim time may move on at wall time ``now`` (s)."""
+    @property
+    def silent(self) -> bool:
+        """Whether answers are not waited for (the answerer timed out ``silent_after`` times)."""
+        return self._silent
+
+    def may_step(self, now: float, answered: bool, latest_answer: object = None) -> bool:
+        """Return whether sim time may move on at wall time ``now`` (s).
+
+        ``latest_answer``: the newest answer the caller has seen (any comparable token, e.g.
+        its stamp); while silent, a different one ends the silence.
+        """
+        if self._silent:
+            if latest_answer == self._silent_answer:
+                answered = True
+            else:
+                self._silent = False
         if answered and not self.products.missing():
+            if not self._silent:
+                self._in_a_row = 0
             return True
         if now - self._since >= self.answer_wait_s:
             if not answered and self.answer_wait_s >= self.timeout_s:
                 self.timeouts += 1
+                self._in_a_row += 1
+                if self._in_a_row >= self.silent_after:
+                    self._silent, self._silent_answer = True, latest_answer
+                    self.silences += 1
+                    self._in_a_row = 0
             self.given_up += self.products.give_up()
             return True
         return False

@@ -173,8 +173,9 @@ class Simulation:
         answered = self.answer_ms is None \
             or (answer is not None and answer >= self.answer_ms) \
             or not self.autopilot.awaits_setpoints \
-            or self.lockstep.products.handed_over(self._answer_ns, self._delivered_ns)
-        if self.lockstep.may_step(now, answered):
+            or self.lockstep.products.handed_over(self._answer_ns, self._delivered_ns) \
+            or self.lockstep.products.off_grid(self._answer_ns)
+        if self.lockstep.may_step(now, answered, answer):
             return self.step_frame()
         return None
 
