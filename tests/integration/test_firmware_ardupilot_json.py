@@ -109,3 +109,26 @@ def test_a_camera_stall_hands_the_vehicle_to_ardupilots_land_mode(tmp_path):
     assert 'command DO_SET_MODE (1.0, 9.0)' in bridge_log
     assert 'autopilot in its land mode (custom_mode 9)' in bridge_log
     assert 'landing -> done: disarmed (landed by the autopilot)' in bridge_log
+
+
+def test_a_killed_bridge_leaves_the_vehicle_to_ardupilots_gcs_failsafe(tmp_path):
+    """The bridge is killed at 1.5 s (WINDOW): its HEARTBEATs stop, ArduCopter's GCS failsafe
+    (FS_GCS_ENABLE 5 on SYSID_MYGCS = the bridge) switches to LAND, lands and disarms. The
+    supervisor fails safe on the IMU, which the bridge published. The lockstep stops waiting
+    for setpoints and imu/data after two time-outs each."""
+    import json
+    from ibvs_harness.run_scenario import main
+    if os.environ.get(MISSION_ENV, '1') == '0':
+        pytest.skip(f'the missions on ArduPilot in lockstep skipped: {MISSION_ENV}=0')
+    need_ardupilot()
+    main(['--autopilot', 'ardupilot', '--run-name', 'ap_dead_bridge', '--kill-node',
+          'mavlink_bridge', '--kill-at-s', '1.5', '--follow-failsafe', '--results-root',
+          str(tmp_path), '--no-bag', '--no-plots'])
+    summary = json.loads((tmp_path / 'ap_dead_bridge' / 'summary.json').read_text())
+    run, timing = summary['run'], summary['timing']
+    assert not summary['success'] and summary['window']['crossed'] is False
+    assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
+    assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
+    assert 'IMU stale' in run['transitions'][-1]
+    assert timing['answer_silences'] >= 1
+    assert summary['landing']['touchdown_speed_mps'] < 1.0

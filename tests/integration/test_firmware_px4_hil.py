@@ -133,3 +133,29 @@ def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
     bridge_log = (tmp_path / 'px4_stall' / 'logs' / 'mavlink_bridge.log').read_text()
     assert 'command DO_SET_MODE (1.0, 4.0, 6.0)' in bridge_log
     assert 'landing -> done: disarmed (landed by the autopilot)' in bridge_log
+
+
+def test_a_killed_bridge_leaves_the_vehicle_to_px4s_offboard_loss_failsafe(tmp_path):
+    """The bridge is killed at 1.5 s (WINDOW): its setpoints stop, PX4's offboard-loss failsafe
+    (COM_OF_LOSS_T 1 s, COM_OBL_RC_ACT 4 = land) lands the vehicle and PX4 disarms on its
+    own. The supervisor fails safe on the IMU, which the bridge published. The lockstep stops
+    waiting for setpoints and imu/data after two time-outs each."""
+    import json
+    from ibvs_harness.run_scenario import main
+    if os.environ.get(MISSION_ENV, '1') == '0':
+        pytest.skip(f'the missions on PX4 in lockstep skipped: {MISSION_ENV}=0')
+    try:
+        find_px4_sitl()
+    except FileNotFoundError as exc:
+        pytest.skip(f'PX4 SITL absent: {exc}')
+    main(['--autopilot', 'px4', '--run-name', 'px4_dead_bridge', '--kill-node',
+          'mavlink_bridge', '--kill-at-s', '1.5', '--follow-failsafe', '--results-root',
+          str(tmp_path), '--no-bag', '--no-plots'])
+    summary = json.loads((tmp_path / 'px4_dead_bridge' / 'summary.json').read_text())
+    run, timing = summary['run'], summary['timing']
+    assert not summary['success'] and summary['window']['crossed'] is False
+    assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
+    assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
+    assert 'IMU stale' in run['transitions'][-1]
+    assert timing['answer_silences'] >= 1
+    assert summary['landing']['touchdown_speed_mps'] < 1.0

@@ -229,6 +229,18 @@ LOCKSTEP_FIRMWARES = ('px4', 'ardupilot')
 PREROLL_WAIT_S = 600.0
 
 
+def autopilot_disarmed(monitor: ScenarioMonitor) -> bool:
+    """Whether the autopilot is disarmed, in the sim's word where it has one.
+
+    The sim's: the vehicle's own HEARTBEAT or state (``sim/stats``); else the bridge's
+    (/diagnostics, stale once the bridge died: ``--kill-node mavlink_bridge``).
+    """
+    armed = monitor.sim_stats.get('autopilot_armed')
+    if armed is not None:
+        return not armed
+    return monitor.health.armed is False
+
+
 def wait_for_preroll(monitor: ScenarioMonitor, spin) -> None:
     """Wait for the sim's first frame, which comes once the firmware holds at the start.
 
@@ -267,7 +279,9 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
         for event in runner.supervise():
             print(f'runner: {event}', flush=True)
             restarts.append(f't = {monitor.now_s():.2f} s: {event.splitlines()[0]}')
-            if 'died' in event and not any(f"'{n}'" in event for n in respawning):
+            expected = opts.follow_failsafe and any(f"'{n}'" in event for n in killed)
+            if 'died' in event and not expected \
+                    and not any(f"'{n}'" in event for n in respawning):
                 raise _Stop(event)
         if time.monotonic() - t_wall0 > opts.timeout_s:
             raise _Stop(f'wall-clock timeout {opts.timeout_s:.0f} s')
@@ -317,7 +331,7 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
             if not opts.follow_failsafe:
                 return 'failsafe'
             failsafe_at = t_sim if failsafe_at is None else failsafe_at
-            if monitor.touchdown is not None and monitor.health.armed is False:
+            if monitor.touchdown is not None and autopilot_disarmed(monitor):
                 return 'failsafe, then the autopilot landed and disarmed'
             if t_sim - failsafe_at > FOLLOW_FAILSAFE_S:
                 return (f'failsafe, and the autopilot had not landed and disarmed '
@@ -590,7 +604,9 @@ def parse_args(argv: list | None = None) -> RunOptions:
                         f'{FOLLOW_FAILSAFE_S:g} s of sim time passed; the run still fails '
                         '(docs/firmware_lockstep.md "Fault tests")')
     p.add_argument('--kill-node', default=None, metavar='NAME',
-                   help='fault injection: SIGKILL this node at --kill-at-s (sim time)')
+                   help='fault injection: SIGKILL this node at --kill-at-s (sim time); '
+                        'with --follow-failsafe its death does not stop the run (e.g. '
+                        'mavlink_bridge: the autopilot\'s own failsafe lands the vehicle)')
     p.add_argument('--kill-at-s', type=float, default=2.0, metavar='T')
     for cam in ('front', 'down'):
         p.add_argument(f'--{cam}-camera-off', type=float, nargs=2, metavar=('START', 'END'),

@@ -126,6 +126,7 @@ class CompanionRelay:
         self.newest_attitude_ms: int | None = None             # sim time, ms
         self.new_setpoints: deque = deque()                  # (sim ms, wall s)
         self.flying_mode = False       # the firmware's mode flies the bridge's setpoints
+        self.armed: bool | None = None  # the firmware's HEARTBEAT (None: none seen yet)
         self._held: list = []          # the firmware's datagrams held to the next poll
         self.forwarded = {'to_firmware': 0, 'to_bridge': 0, 'unparsed': 0}
         self.timesync_unanswered = 0
@@ -296,6 +297,7 @@ class CompanionRelay:
                 self._timesync_answered = True
             if kind == 'HEARTBEAT' and m.autopilot == self.port.autopilot:
                 self.flying_mode = self.port.flying(int(m.custom_mode))
+                self.armed = bool(m.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
             elif kind == ATTITUDE_MESSAGE:
                 t_ms = int(m.time_boot_ms) - self.boot_offset_ms
                 self.newest_attitude_ms = max(t_ms, self.newest_attitude_ms or t_ms)
