@@ -57,9 +57,9 @@ from ibvs_common.core.stamps import NS_PER_S, s_to_ns, stamp_to_ns
 from ibvs_common.node_common import IMAGE_QOS, PREFLIGHT_TOPIC, preflight_verdict_msg
 from ibvs_common.throttled_log import ThrottledLog
 from ibvs_control.mavlink.params import (
-    GCS_FAILSAFE_PARAM, MY_GCS_PARAM, OFFBOARD_LOSS_ACT_PARAM, OFFBOARD_LOSS_T_PARAM,
-    PX4_OFFBOARD_LOSS_ACTIONS, PX4_OFFBOARD_LOSS_LAND, PX4_OFFBOARD_LOSS_T_MAX_S,
-    PX4_OFFBOARD_LOSS_WHY)
+    ARDUPILOT_TIMEOUT_MAX_S, GCS_FAILSAFE_PARAM, MY_GCS_PARAM, OFFBOARD_LOSS_ACT_PARAM,
+    OFFBOARD_LOSS_T_PARAM, PX4_OFFBOARD_LOSS_ACTIONS, PX4_OFFBOARD_LOSS_LAND,
+    PX4_OFFBOARD_LOSS_T_MAX_S, PX4_OFFBOARD_LOSS_WHY)
 
 IMU_MIN_MESSAGES = 10
 IMU_MAX_AGE_S = 1.0
@@ -264,7 +264,9 @@ def failsafe_setup(values: dict | None) -> tuple[bool, str]:
     actions need a position estimate or a pilot, or stop the motors) and ``COM_OF_LOSS_T`` at
     most ``PX4_OFFBOARD_LOSS_T_MAX_S`` (the vehicle flies the last setpoint that long).
     ArduPilot: ``FS_GCS_ENABLE`` not 0 and ``SYSID_MYGCS`` = the bridge's ``source_system``
-    (its GCS failsafe then acts on the loss of our HEARTBEAT). docs/mavlink.md "Autopilot
+    (its GCS failsafe then acts on the loss of our HEARTBEAT), and where reported
+    ``GUID_TIMEOUT`` and ``FS_GCS_TIMEOUT`` at most ``ARDUPILOT_TIMEOUT_MAX_S`` (how long the
+    vehicle flies the last target, then coasts, before LAND). docs/mavlink.md "Autopilot
     set-up". Not read yet, or another autopilot: not ok.
     """
     if values is None:
@@ -303,6 +305,13 @@ def failsafe_setup(values: dict | None) -> tuple[bool, str]:
         if int(gcs) != int(ours):
             return False, (f"{said}: not this bridge's system id {int(ours)}; set "
                            f'{MY_GCS_PARAM} = {int(ours)}')
+        timing = {n: _number(values.get(n)) for n in ARDUPILOT_TIMEOUT_MAX_S}
+        said += ''.join(f', {n} = {v:g} s' for n, v in timing.items() if v is not None)
+        long = [f'{n} <= {ARDUPILOT_TIMEOUT_MAX_S[n]:g} s' for n, v in timing.items()
+                if v is not None and v > ARDUPILOT_TIMEOUT_MAX_S[n]]
+        if long:
+            return False, (f'{said}: a dead bridge leaves the vehicle flying the last target, '
+                           f'then coasting, that long; set {" and ".join(long)}')
         return True, f'{said} (this bridge): ArduPilot acts when our HEARTBEAT stops'
     return False, f'autopilot {autopilot}: its failsafe parameters are not known'
 

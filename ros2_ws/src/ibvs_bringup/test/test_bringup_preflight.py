@@ -173,6 +173,16 @@ def test_ardupilot_failsafe_is_go_only_with_its_gcs_failsafe_on_this_bridge():
     assert not ok and "not this bridge's system id 1; set SYSID_MYGCS = 1" in detail
     assert not _failsafe(autopilot='ardupilot', FS_GCS_ENABLE='5', SYSID_MYGCS='1')[0]
     assert not _failsafe(autopilot='ardupilot', source_system='1')[0]     # not read yet
+    # its timing, where reported: ArduCopter's defaults (3 s, 5 s) flew a dead bridge's
+    # vehicle on for seconds; what the lockstep mission sets (0.5 s, 2 s) is go
+    gcs = dict(autopilot='ardupilot', FS_GCS_ENABLE='5', SYSID_MYGCS='1', source_system='1')
+    ok, detail = _failsafe(**gcs, GUID_TIMEOUT='3', FS_GCS_TIMEOUT='5')
+    assert not ok and detail.endswith('set GUID_TIMEOUT <= 1 s and FS_GCS_TIMEOUT <= 3 s'), \
+        detail
+    ok, detail = _failsafe(**gcs, GUID_TIMEOUT='0.5', FS_GCS_TIMEOUT='2')
+    assert ok and 'GUID_TIMEOUT = 0.5 s, FS_GCS_TIMEOUT = 2 s (this bridge)' in detail, detail
+    assert _failsafe(**gcs, GUID_TIMEOUT='1', FS_GCS_TIMEOUT='3')[0]            # the limits
+    assert not _failsafe(**gcs, GUID_TIMEOUT='1.5')[0]
 
 
 def test_failsafe_is_no_go_before_the_autopilot_or_the_bridge_is_known():

@@ -96,6 +96,22 @@ def test_ardupilot_gcs_failsafe_lands_only_for_this_bridge(enabled, gcs, failsaf
         assert f'SYSID_MYGCS = {gcs} is not this bridge' in text
 
 
+@pytest.mark.parametrize('name, value, warned', [
+    ('GUID_TIMEOUT', 3.0, True), ('GUID_TIMEOUT', 0.5, False), ('GUID_TIMEOUT', 1.0, False),
+    ('FS_GCS_TIMEOUT', 5.0, True), ('FS_GCS_TIMEOUT', 2.0, False)])
+def test_ardupilot_dead_bridge_timeouts_are_read_and_long_ones_warned(name, value, warned):
+    """GUID_TIMEOUT (the last target flown) and FS_GCS_TIMEOUT (then coasting, before
+    LAND) are read with the pair, and a value over the advised limit is warned about."""
+    p = params(Autopilot.ARDUPILOT, use_autopilot=False)
+    assert name in p.due(0.0)[0]                             # asked for, advisory
+    p.on_param(name, value)
+    assert p.dead_bridge_params[name] == value and p.dead_bridge_failsafe is None
+    events = p.pop_events()
+    assert [lv for lv, _ in events] == (['warn'] if warned else [])
+    if warned:
+        assert f'ArduPilot {name} = {value:g} s' in events[0][1]
+
+
 def test_advisory_reads_stop_after_their_budget():
     p = params(Autopilot.PX4, use_autopilot=False)
     reads = [p.due(0.5 * k)[0] for k in range(ADVISORY_PARAM_READS + 3)]

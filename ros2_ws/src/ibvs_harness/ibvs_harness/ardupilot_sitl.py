@@ -36,6 +36,12 @@ GUID_OPTIONS_THRUST = 8
 #: the default 57600 a burst of the bridge's datagrams made that 11 ms, and the bridge's clock
 #: offset 11 ms short (measured: every lockstep frame then waited for its setpoint in vain)
 SERIAL1_BAUD = 921
+# the dead-bridge failsafe's timing: the last attitude target is flown GUID_TIMEOUT (default
+# 3 s: the bridge killed in WINDOW flew the vehicle into the window frame), then ArduCopter
+# levels it and holds its height until FS_GCS_TIMEOUT (default 5 s, at least 2) without our
+# HEARTBEAT, then LAND
+GUID_TIMEOUT_S = 0.5
+FS_GCS_TIMEOUT_S = 2.0
 
 
 def ardupilot_sitl_dir() -> Path:
@@ -58,7 +64,8 @@ def ardupilot_mission_parameters(vehicle: VehicleConfig, bridge_system: int) -> 
     """
     return {**ardupilot_parameters(vehicle), 'GUID_OPTIONS': GUID_OPTIONS_THRUST,
             'SERIAL1_BAUD': SERIAL1_BAUD, 'FS_GCS_ENABLE': FS_GCS_LAND,
-            'SYSID_MYGCS': int(bridge_system)}
+            'SYSID_MYGCS': int(bridge_system), 'GUID_TIMEOUT': GUID_TIMEOUT_S,
+            'FS_GCS_TIMEOUT': FS_GCS_TIMEOUT_S}
 
 
 def free_instance(first: int = 1, last: int = 4) -> int:

@@ -36,6 +36,16 @@ ARDUPILOT_ANGLE_BOOST_DEFAULT = 1
 # ArduPilot's GCS failsafe: the only thing that lands the vehicle when this bridge dies in
 # GUIDED_NOGPS (GUID_TIMEOUT only levels it and keeps the last thrust); read, never required
 GCS_FAILSAFE_PARAM, MY_GCS_PARAM = 'FS_GCS_ENABLE', 'SYSID_MYGCS'
+# ... and its timing: the last attitude target is flown GUID_TIMEOUT (default 3 s), then the
+# vehicle is levelled at its height and coasts (GUIDED_NOGPS holds no position) until
+# FS_GCS_TIMEOUT (default 5 s, at least 2) without our HEARTBEAT; then LAND, which first holds
+# 4 s. The bridge killed in WINDOW on ArduCopter 4.5.6 in lockstep: GUID_TIMEOUT 3 s flew into
+# the window frame; 1 s stopped 0.31 m from the wall and touched it landing; 0.5 s, 0.44 m
+GUID_TIMEOUT_PARAM, GCS_TIMEOUT_PARAM = 'GUID_TIMEOUT', 'FS_GCS_TIMEOUT'
+ARDUPILOT_GUID_TIMEOUT_MAX_S = 1.0   # s, a longer GUID_TIMEOUT is warned about (default 3 s)
+ARDUPILOT_GCS_TIMEOUT_MAX_S = 3.0    # s, a longer FS_GCS_TIMEOUT is warned about (default 5 s)
+ARDUPILOT_TIMEOUT_MAX_S = {GUID_TIMEOUT_PARAM: ARDUPILOT_GUID_TIMEOUT_MAX_S,
+                           GCS_TIMEOUT_PARAM: ARDUPILOT_GCS_TIMEOUT_MAX_S}
 # PX4's offboard-loss failsafe: what acts when the bridge stops streaming or dies (read, never
 # required). COM_OBL_RC_ACT (PX4 v1.16; the action with or without RC):
 OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM = 'COM_OF_LOSS_T', 'COM_OBL_RC_ACT'
@@ -43,8 +53,12 @@ PX4_OFFBOARD_LOSS_ACTIONS = {0: 'Position mode', 1: 'Altitude mode', 2: 'Manual'
                              4: 'Land mode', 5: 'Hold mode', 6: 'Terminate', 7: 'Disarm'}
 PX4_OFFBOARD_LOSS_LAND = 4
 PX4_OFFBOARD_LOSS_T_MAX_S = 2.0   # s, a longer time-out is warned about (PX4's default: 1 s)
-DEAD_BRIDGE_PARAMS = {Autopilot.ARDUPILOT: (GCS_FAILSAFE_PARAM, MY_GCS_PARAM),
-                      Autopilot.PX4: (OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM)}
+# the pair that says whether the autopilot lands a dead bridge's vehicle at all
+FAILSAFE_PAIR = {Autopilot.ARDUPILOT: (GCS_FAILSAFE_PARAM, MY_GCS_PARAM),
+                 Autopilot.PX4: (OFFBOARD_LOSS_T_PARAM, OFFBOARD_LOSS_ACT_PARAM)}
+DEAD_BRIDGE_PARAMS = {Autopilot.ARDUPILOT: (*FAILSAFE_PAIR[Autopilot.ARDUPILOT],
+                                            GUID_TIMEOUT_PARAM, GCS_TIMEOUT_PARAM),
+                      Autopilot.PX4: FAILSAFE_PAIR[Autopilot.PX4]}
 MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32 = 6, 9
 ADVISORY_PARAM_READS = 30     # read requests (every retry_s) before giving them up
 _NEEDS_POSITION = 'needs a position estimate, which this vehicle does not have'
@@ -166,12 +180,30 @@ class AutopilotParams:
         elif self.autopilot is not None and name in DEAD_BRIDGE_PARAMS[self.autopilot] \
                 and np.isfinite(value) and name not in self.dead_bridge_params:
             self.dead_bridge_params[name] = value
-            if len(self.dead_bridge_params) == 2 and self.dead_bridge_failsafe is None:
+            if name in ARDUPILOT_TIMEOUT_MAX_S:
+                self._assess_ardupilot_timeout(name, value)
+            elif all(n in self.dead_bridge_params for n in FAILSAFE_PAIR[self.autopilot]) \
+                    and self.dead_bridge_failsafe is None:
                 if self.autopilot == Autopilot.PX4:
                     self._assess_px4_offboard_loss()
                 else:
                     self._assess_ardupilot_gcs_failsafe()
         return Changed.NOTHING
+
+    def _assess_ardupilot_timeout(self, name: str, value: float) -> None:
+        """Warn (once) about a long GUID_TIMEOUT or FS_GCS_TIMEOUT.
+
+        Either lets a dead bridge's vehicle fly on (docs/mavlink.md "Autopilot set-up").
+        """
+        limit = ARDUPILOT_TIMEOUT_MAX_S[name]
+        if value <= limit:
+            return
+        what = ('flies the last attitude target' if name == GUID_TIMEOUT_PARAM
+                else 'coasts, levelled at its height, before LAND')
+        self._events.append((
+            'warn', f'ArduPilot {name} = {value:g} s: if this bridge dies in flight the vehicle '
+                    f'{what} that long (at most {limit:g} s advised; the bridge killed in the '
+                    'approach with the defaults flew the vehicle into the window frame)'))
 
     def _set_angle_boost(self, value: int, why: str) -> Changed:
         self.angle_boost = value
