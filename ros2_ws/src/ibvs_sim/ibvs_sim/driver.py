@@ -251,6 +251,8 @@ class SimDriver:
         (a slice of it per tick); the companion link is relayed only from then on.
         """
         if self.firmware is not None and not self.firmware.ready:
+            if self.sim.ended:          # the pre-roll failed: never start the clock after it
+                return False
             try:
                 ready = self.firmware.preroll(PREROLL_STEPS_PER_TICK)
             except FirmwareLinkError as exc:

@@ -109,3 +109,32 @@ def test_a_bad_parameter_combination_is_refused_naming_it():
         SimNodeConfig(fault_down_camera_freeze_s=[2.0, 1.0])
     with pytest.raises(ValueError, match='wind_force_map'):
         SimNodeConfig(wind_force_map=[0.0, 1.0])
+
+
+def test_a_failed_pre_roll_never_starts_the_clock_afterwards(configs):
+    """A firmware's pre-roll that failed (not still at the start in time) ends the run: the
+    sim never starts its clock when the vehicle holds later (a campaign run did, with the sim
+    ended, and the harness waited for frames that could not come)."""
+    from ibvs_sim.core.firmware.px4_hil import FirmwareLinkError
+
+    class Firmware:
+        ready, calls = False, 0
+
+        def preroll(self, steps):
+            self.calls += 1
+            if self.calls == 1:
+                raise FirmwareLinkError('pre-roll: not holding at the start 300 s after boot')
+            return True                      # it would hold now
+
+    port = FakePort(subscribers=2)
+    driver = _driver(configs, port, min_image_subscribers=2)
+    try:
+        driver.firmware = Firmware()
+        for _ in range(3):
+            driver.tick()
+        assert driver.firmware.calls == 1 and driver.sim.ended
+        assert port.calls == [] and driver.sim.frame_index == -1
+        assert any('pre-roll' in m for level, m in driver.log.lines if level == 'error')
+    finally:
+        driver.firmware = None
+        driver.close()
