@@ -114,8 +114,8 @@ def test_a_camera_stall_hands_the_vehicle_to_ardupilots_land_mode(tmp_path):
 def test_a_killed_bridge_leaves_the_vehicle_to_ardupilots_gcs_failsafe(tmp_path):
     """The bridge is killed at 1.5 s (WINDOW): its HEARTBEATs stop, ArduCopter's GCS failsafe
     (FS_GCS_ENABLE 5 on SYSID_MYGCS = the bridge) switches to LAND, lands and disarms. The
-    supervisor fails safe on the IMU, which the bridge published. The lockstep stops waiting
-    for setpoints and imu/data after two time-outs each."""
+    supervisor fails safe on the IMU, which the bridge published. The lockstep waits for the
+    dead bridge at most twice (then it is silent: no 50 frames x the time-out)."""
     import json
     from ibvs_harness.run_scenario import main
     if os.environ.get(MISSION_ENV, '1') == '0':
@@ -130,5 +130,8 @@ def test_a_killed_bridge_leaves_the_vehicle_to_ardupilots_gcs_failsafe(tmp_path)
     assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
     assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
     assert 'IMU stale' in run['transitions'][-1]
-    assert timing['answer_silences'] >= 1
+    # (how long the lockstep waited for the dead bridge depends on whether the firmware was
+    # already flying its setpoints when it died: killed before the OFFBOARD switch showed,
+    # none is awaited; the silence itself is a unit test of LockstepGate)
+    assert timing['lockstep_timeouts'] <= 2 * 2
     assert summary['landing']['touchdown_speed_mps'] < 1.0

@@ -138,8 +138,8 @@ def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
 def test_a_killed_bridge_leaves_the_vehicle_to_px4s_offboard_loss_failsafe(tmp_path):
     """The bridge is killed at 1.5 s (WINDOW): its setpoints stop, PX4's offboard-loss failsafe
     (COM_OF_LOSS_T 1 s, COM_OBL_RC_ACT 4 = land) lands the vehicle and PX4 disarms on its
-    own. The supervisor fails safe on the IMU, which the bridge published. The lockstep stops
-    waiting for setpoints and imu/data after two time-outs each."""
+    own. The supervisor fails safe on the IMU, which the bridge published. The lockstep waits
+    for the dead bridge at most twice (then it is silent: no 50 frames x the time-out)."""
     import json
     from ibvs_harness.run_scenario import main
     if os.environ.get(MISSION_ENV, '1') == '0':
@@ -157,5 +157,8 @@ def test_a_killed_bridge_leaves_the_vehicle_to_px4s_offboard_loss_failsafe(tmp_p
     assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
     assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
     assert 'IMU stale' in run['transitions'][-1]
-    assert timing['answer_silences'] >= 1
+    # (how long the lockstep waited for the dead bridge depends on whether the firmware was
+    # already flying its setpoints when it died: killed before the OFFBOARD switch showed,
+    # none is awaited; the silence itself is a unit test of LockstepGate)
+    assert timing['lockstep_timeouts'] <= 2 * 2
     assert summary['landing']['touchdown_speed_mps'] < 1.0
