@@ -15,6 +15,8 @@ import pytest
 from ibvs_harness.firmware_hover import fly_hover_ardupilot
 from ibvs_sim.core.px4_plant import find_px4_sitl
 
+from firmware_faults import killed_bridge_run
+
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 
 
@@ -113,25 +115,9 @@ def test_a_camera_stall_hands_the_vehicle_to_ardupilots_land_mode(tmp_path):
 
 def test_a_killed_bridge_leaves_the_vehicle_to_ardupilots_gcs_failsafe(tmp_path):
     """The bridge is killed at 1.5 s (WINDOW): its HEARTBEATs stop, ArduCopter's GCS failsafe
-    (FS_GCS_ENABLE 5 on SYSID_MYGCS = the bridge) switches to LAND, lands and disarms. The
-    supervisor fails safe on the IMU, which the bridge published. The lockstep waits for the
-    dead bridge at most twice (then it is silent: no 50 frames x the time-out)."""
-    import json
-    from ibvs_harness.run_scenario import main
+    (FS_GCS_ENABLE 5 on SYSID_MYGCS = the bridge) switches to LAND, lands and disarms
+    (checks: firmware_faults.killed_bridge_run)."""
     if os.environ.get(MISSION_ENV, '1') == '0':
         pytest.skip(f'the missions on ArduPilot in lockstep skipped: {MISSION_ENV}=0')
     need_ardupilot()
-    main(['--autopilot', 'ardupilot', '--run-name', 'ap_dead_bridge', '--kill-node',
-          'mavlink_bridge', '--kill-at-s', '1.5', '--follow-failsafe', '--results-root',
-          str(tmp_path), '--no-bag', '--no-plots'])
-    summary = json.loads((tmp_path / 'ap_dead_bridge' / 'summary.json').read_text())
-    run, timing = summary['run'], summary['timing']
-    assert not summary['success'] and summary['window']['crossed'] is False
-    assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
-    assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
-    assert 'IMU stale' in run['transitions'][-1]
-    # (how long the lockstep waited for the dead bridge depends on whether the firmware was
-    # already flying its setpoints when it died: killed before the OFFBOARD switch showed,
-    # none is awaited; the silence itself is a unit test of LockstepGate)
-    assert timing['lockstep_timeouts'] <= 2 * 2
-    assert summary['landing']['touchdown_speed_mps'] < 1.0
+    killed_bridge_run(tmp_path, 'ap_dead_bridge', 'ardupilot')

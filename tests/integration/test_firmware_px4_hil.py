@@ -16,6 +16,8 @@ import pytest
 from ibvs_harness.firmware_hover import fly_hover
 from ibvs_sim.core.px4_plant import find_px4_sitl
 
+from firmware_faults import killed_bridge_run
+
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group('sitl')]
 
 HEIGHT_M = 1.5
@@ -24,6 +26,16 @@ HEIGHT_M = 1.5
 #: lockstep slowed by CPU load no longer loses the link. Measured beside two busy loops: 2 of 2
 #: succeeded at 0.20 and 0.27 x real time (before: the link lost in WINDOW).
 MISSION_ENV = 'IBVS_PX4_LOCKSTEP_TEST'
+
+
+def need_px4_mission() -> None:
+    """Skip, naming the reason, when the missions are switched off or PX4 SITL is absent."""
+    if os.environ.get(MISSION_ENV, '1') == '0':
+        pytest.skip(f'the missions on PX4 in lockstep skipped: {MISSION_ENV}=0')
+    try:
+        find_px4_sitl()
+    except FileNotFoundError as exc:
+        pytest.skip(f'PX4 SITL absent: {exc}')
 
 
 @pytest.fixture(scope='module')
@@ -85,12 +97,7 @@ def test_whole_graph_flies_the_scenario_on_px4_in_lockstep(tmp_path):
     criteria are docs/spec.md's."""
     import json
     from ibvs_harness.run_scenario import main
-    if os.environ.get(MISSION_ENV, '1') == '0':
-        pytest.skip(f'the mission on PX4 in lockstep skipped: {MISSION_ENV}=0')
-    try:
-        find_px4_sitl()
-    except FileNotFoundError as exc:
-        pytest.skip(f'PX4 SITL absent: {exc}')
+    need_px4_mission()
     code = main(['--autopilot', 'px4', '--pilot-switch', '--run-name', 'px4_lockstep',
                  '--results-root', str(tmp_path), '--no-bag', '--no-plots'])
     summary = json.loads((tmp_path / 'px4_lockstep' / 'summary.json').read_text())
@@ -116,12 +123,7 @@ def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
     mode puts the vehicle down, after which the bridge disarms it (``--follow-failsafe``)."""
     import json
     from ibvs_harness.run_scenario import main
-    if os.environ.get(MISSION_ENV, '1') == '0':
-        pytest.skip(f'the missions on PX4 in lockstep skipped: {MISSION_ENV}=0')
-    try:
-        find_px4_sitl()
-    except FileNotFoundError as exc:
-        pytest.skip(f'PX4 SITL absent: {exc}')
+    need_px4_mission()
     main(['--autopilot', 'px4', '--run-name', 'px4_stall', '--front-camera-off', '2', '60',
           '--follow-failsafe', '--results-root', str(tmp_path), '--no-bag', '--no-plots'])
     summary = json.loads((tmp_path / 'px4_stall' / 'summary.json').read_text())
@@ -138,27 +140,6 @@ def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
 def test_a_killed_bridge_leaves_the_vehicle_to_px4s_offboard_loss_failsafe(tmp_path):
     """The bridge is killed at 1.5 s (WINDOW): its setpoints stop, PX4's offboard-loss failsafe
     (COM_OF_LOSS_T 1 s, COM_OBL_RC_ACT 4 = land) lands the vehicle and PX4 disarms on its
-    own. The supervisor fails safe on the IMU, which the bridge published. The lockstep waits
-    for the dead bridge at most twice (then it is silent: no 50 frames x the time-out)."""
-    import json
-    from ibvs_harness.run_scenario import main
-    if os.environ.get(MISSION_ENV, '1') == '0':
-        pytest.skip(f'the missions on PX4 in lockstep skipped: {MISSION_ENV}=0')
-    try:
-        find_px4_sitl()
-    except FileNotFoundError as exc:
-        pytest.skip(f'PX4 SITL absent: {exc}')
-    main(['--autopilot', 'px4', '--run-name', 'px4_dead_bridge', '--kill-node',
-          'mavlink_bridge', '--kill-at-s', '1.5', '--follow-failsafe', '--results-root',
-          str(tmp_path), '--no-bag', '--no-plots'])
-    summary = json.loads((tmp_path / 'px4_dead_bridge' / 'summary.json').read_text())
-    run, timing = summary['run'], summary['timing']
-    assert not summary['success'] and summary['window']['crossed'] is False
-    assert run['stop_reason'] == 'failsafe, then the autopilot landed and disarmed', run
-    assert run['transitions'][-1].startswith('mode WINDOW -> FAILSAFE')
-    assert 'IMU stale' in run['transitions'][-1]
-    # (how long the lockstep waited for the dead bridge depends on whether the firmware was
-    # already flying its setpoints when it died: killed before the OFFBOARD switch showed,
-    # none is awaited; the silence itself is a unit test of LockstepGate)
-    assert timing['lockstep_timeouts'] <= 2 * 2
-    assert summary['landing']['touchdown_speed_mps'] < 1.0
+    own (checks: firmware_faults.killed_bridge_run)."""
+    need_px4_mission()
+    killed_bridge_run(tmp_path, 'px4_dead_bridge', 'px4')

@@ -351,13 +351,12 @@ class SimDriver:
             autopilot = {f'relay_{k}': v for k, v in self.autopilot.forwarded.items()}
             autopilot['relay_timesync_unanswered'] = self.autopilot.timesync_unanswered
             autopilot['firmware_exchanges'] = self.firmware.plant.exchanges
-            armed = self.autopilot.armed
         else:
             counters = self.autopilot.counters
             autopilot = {'autopilot_timesync_requests': counters.timesync_requests_sent,
                          'autopilot_timesync_answers': counters.timesync_answers_received,
                          'autopilot_timesync_foreign': counters.timesync_answers_foreign}
-            armed = self.autopilot.armed
+        armed = self.autopilot.armed
         if armed is not None:           # the vehicle's own word, whatever the bridge says
             autopilot['autopilot_armed'] = int(bool(armed))
         return {'pacing': sim.config.pacing.value,
