@@ -360,6 +360,10 @@ def test_a_short_down_camera_dropout_in_landing_is_ridden_through_to_the_pad(
           + '; '.join(run.get('transitions', [])) + f"; landing {summary['landing']}")
     sim_log = (tmp_path / 'down-dropout-short' / 'logs' / 'sim.log').read_text()
     assert 'fault injection: down camera off' in sim_log
+    # a dropout is no want of CPU: the governor kept every frame (it held stride 2 for 2 s
+    # when it counted the frames the camera never delivered as skipped)
+    supervisor_log = (tmp_path / 'down-dropout-short' / 'logs' / 'mode_supervisor.log')
+    assert 'frame stride' not in supervisor_log.read_text()
     assert list(modes) == [0, 1, 2, 3, 4], summary['modes']
     assert modes[3] < t_off < modes[4], (t_off, summary['modes'])
     assert_success(summary)

@@ -15,6 +15,7 @@ from rclpy.node import Node
 from rclpy.qos import (
     DurabilityPolicy, HistoryPolicy, qos_profile_sensor_data, QoSProfile, ReliabilityPolicy)
 from sensor_msgs.msg import Imu, JointState
+from std_msgs.msg import Header
 
 from ibvs_common.core.stamps import NS_PER_S, stamp_to_ns
 
@@ -269,6 +270,23 @@ def grid_from_msg(msg: DiagnosticArray, camera: str) -> tuple[int, int] | None:
         if stride.isdigit() and int(stride) >= 1 and ref.lstrip('-').isdigit():
             return int(stride), int(ref)
     return None
+
+
+#: a perception node skipped a grid image for a newer one (latest only): std_msgs/Header, the
+#: image's stamp, frame_id the camera's name ('front', 'down'), one per image and node
+SUPERSEDED_TOPIC = 'ibvs/frames_superseded'
+
+
+def superseded_msg(camera: str, stamp_ns: int) -> Header:
+    """Build ibvs/frames_superseded: ``camera``'s grid image of ``stamp_ns`` was skipped."""
+    msg = Header(frame_id=str(camera))
+    ns_to_stamp(stamp_ns, msg.stamp)
+    return msg
+
+
+def superseded_from_msg(msg: Header) -> tuple[str, int]:
+    """Return (camera name, image stamp ns) of an ibvs/frames_superseded message."""
+    return msg.frame_id, stamp_to_ns(msg.stamp)
 
 
 def mode_from_status(msg: DiagnosticArray) -> tuple[int, int | None, str]:

@@ -20,7 +20,7 @@ import numpy as np
 from rclpy.node import Node
 
 from sensor_msgs.msg import Imu
-from std_msgs.msg import UInt8
+from std_msgs.msg import Header, UInt8
 from std_srvs.srv import Trigger
 
 from ibvs_common.intra_process import IntraProcessTopic, subscribe
@@ -35,7 +35,7 @@ from ibvs_control.core.frame_inputs import unpack_pad
 from ibvs_control.core.frame_stats import FrameStats
 from ibvs_control.core.pilot_input import PilotAction, PilotInputWatch
 from ibvs_control.core.preflight_gate import PreflightGate
-from ibvs_control.core.rate_governor import RateGovernor, SupervisorGrids
+from ibvs_control.core.rate_governor import RateGovernor, SupersededFrames, SupervisorGrids
 from ibvs_control.core.supervisor import ModeSupervisor
 from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from ibvs_common.core.clock_step import BackstepWatch
@@ -43,10 +43,12 @@ from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
     COMMAND_QOS, DeadlineTimer, frame_grid_msg, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S,
-    PREFLIGHT_TOPIC, preflight_verdict, SENSOR_QOS, supervisor_status_msg)
+    PREFLIGHT_TOPIC, preflight_verdict, SENSOR_QOS, superseded_from_msg, SUPERSEDED_TOPIC,
+    supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_config
 from ibvs_common.spin import run_node
 from ibvs_common.throttled_log import ThrottledLog
+from ibvs_common.waiting_messages import take_waiting
 
 LOG_THROTTLE_S = 2.0
 DIAGNOSTICS_PERIOD_S = 1.0          # s (ROS clock) between /diagnostics
@@ -78,6 +80,7 @@ class ModeSupervisorNode(Node):
         self._grids = SupervisorGrids({cam: period_ns(rate) for cam, rate in
                                        self._rate_hz.items()})
         self._stats = FrameStats()
+        self._superseded = SupersededFrames()   # grid images the perception nodes skipped
         self._newest_ns = 0                     # newest frame stamp released
         self._last_opened: tuple | None = None  # ((mode, camera, stride, ref), stamp) opened
         self._clock_watch = BackstepWatch()    # the node clock, read in every callback
@@ -95,6 +98,9 @@ class ModeSupervisorNode(Node):
         # in process (composed), the IMU samples are taken at the start of every callback
         self._imu = subscribe(self, Imu, 'imu/data', self._on_imu, SENSOR_QOS, imu_local)
         self._products = FrameProductSubscriptions(self, self._add)
+        # the images the perception nodes skipped for newer ones: a gap is the computer's
+        self._superseded_sub = self.create_subscription(Header, SUPERSEDED_TOPIC,
+                                                        self._on_superseded, COMMAND_QOS)
         # the preflight's verdict (latched; only ibvs/start reads it)
         self.create_subscription(DiagnosticArray, PREFLIGHT_TOPIC, self._on_preflight, MODE_QOS)
         # the pilot's mission switch, as the bridge reads it (latched)
@@ -130,6 +136,7 @@ class ModeSupervisorNode(Node):
                        'until it comes again', LOG_THROTTLE_S)
         self._frames.reset()
         self._grids.reset()
+        self._superseded.clear()
         self._publish_grid()
         self._attitudes.clear()
         self._deadline.arm(None)
@@ -190,6 +197,16 @@ class ModeSupervisorNode(Node):
         self._late_imu.check(self._attitudes)
         self._core.on_imu(stamp_ns / NS_PER_S)
         self._release()
+
+    def _on_superseded(self, msg: Header) -> None:
+        """Note a grid image a perception node skipped for a newer one (ibvs/frames_superseded)."""
+        name, stamp_ns = superseded_from_msg(msg)
+        try:
+            camera = Camera(name)
+        except ValueError:
+            self._error(f'{SUPERSEDED_TOPIC} refused: unknown camera {name!r}')
+            return
+        self._superseded.note(camera, stamp_ns)
 
     def _add(self, kind: InputKind, stamp_ns: int, value, err: str) -> None:
         """Route one product: into its frame, or to the core at once (see the module doc)."""
@@ -326,7 +343,9 @@ class ModeSupervisorNode(Node):
         never open, and without them the governor saw only complete frames and kept a stride
         the computer could not hold (a sixth of a core: one frame in six computed at stride 1,
         the trackers lost across the gaps). Counted within one mode, camera and grid only; the
-        first of a gap is not given to the governor (a node one image behind skips one).
+        first of a gap is not given to the governor (a node one image behind skips one), nor a
+        frame no node reported skipping (``ibvs/frames_superseded``): the camera never
+        delivered it (a dropout is no want of CPU; ``frames_undelivered``).
         """
         key = (self._core.mode, camera, self._grids.stride(camera), self._grids.ref_ns(camera))
         last = self._last_opened if self._last_opened and self._last_opened[0] == key else None
@@ -338,7 +357,16 @@ class ModeSupervisorNode(Node):
         self._stats.missed += max(missed, 0)
         # a lone missed frame (a node skipped one image for the next) costs that frame, as a
         # lone skipped one does; each further one in the gap counts as skipped
+        if missed <= 0:
+            return
+        for msg in take_waiting(self._superseded_sub):     # reports queued behind this product
+            self._on_superseded(msg)
+        tolerance_ns = self._grids.period_ns(camera) // 2
+        self._stats.undelivered += missed - self._superseded.count_in_gap(
+            camera, last[1], step, missed, tolerance_ns)
         for k in range(2, min(missed, self._governor.config.stride_window_frames) + 1):
+            if not self._superseded.reported(camera, last[1] + k * step, tolerance_ns):
+                continue                # never delivered: not the computer's doing
             if self._governor_at(camera, last[1] + k * step, complete=False):
                 break                   # a new grid: the frames after it count on it
 

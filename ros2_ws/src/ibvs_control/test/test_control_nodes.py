@@ -18,7 +18,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PolygonStamped, QuaternionStamped, Vector3Stamped
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Imu, JointState
-from std_msgs.msg import UInt8
+from std_msgs.msg import Header, UInt8
 from std_srvs.srv import Trigger
 
 from ibvs_common.core.config import load_pad_layout, load_vehicle
@@ -32,7 +32,7 @@ from ibvs_control.mode_supervisor_node import ModeSupervisorNode
 from ibvs_common.core.modes import Camera
 from ibvs_common.node_common import (
     COMMAND_QOS, grid_from_msg, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS,
-    supervisor_status_msg)
+    superseded_msg, SUPERSEDED_TOPIC, supervisor_status_msg)
 
 from test_control_mavlink import FakeAutopilot, PeerThread, same_rotation  # noqa: E402
 
@@ -131,6 +131,11 @@ class Feeder:
                               COMMAND_QOS)
         self.status = n.create_publisher(DiagnosticArray, 'ibvs/supervisor_status',
                                          COMMAND_QOS)
+        self.superseded = n.create_publisher(Header, SUPERSEDED_TOPIC, COMMAND_QOS)
+
+    def skipped(self, t, camera='front'):
+        """Report the image of ``camera`` at time t skipped for a newer one (latest only)."""
+        self.superseded.publish(superseded_msg(camera, round(t * 1e9)))
 
     def frame(self, t, xi, window=True, pad=None, front_flow=None, down_flow=None,
               groups_first=False):
@@ -265,32 +270,43 @@ def test_supervisor_after_a_clock_step_back_idle_goes_on_and_flight_fails_safe(c
     assert mode_from_status(feed.statuses[-1])[0] == int(round(t * 1e9))
 
 
-def test_supervisor_counts_grid_frames_no_product_came_for_and_lowers_the_rate(ctx):
-    """Frames a node behind never computed (latest only) are missed; gaps double the stride.
-
-    Only every 4th front frame gets its window product, as from a detector three images
-    behind: the frames between never open. A lone missed frame costs that frame; each further
-    one in a gap counts as skipped for the rate governor, which then doubles the stride
-    (published on ibvs/frame_grid) instead of keeping a rate the computer cannot hold.
-    """
+def supervisor_with_grids(ctx, suffix):
+    """A mode supervisor on sim time, its Feeder and the ibvs/frame_grid messages it sends."""
     context, executor, nodes = ctx
-    sup = ModeSupervisorNode(node_name=f'sup_missed_{TAG}', context=context,
+    sup = ModeSupervisorNode(node_name=f'sup{suffix}_{TAG}', context=context,
                              parameter_overrides=[Parameter('use_sim_time', value=True)])
-    feed = Feeder(context, f'feed_missed_{TAG}')
+    feed = Feeder(context, f'feed{suffix}_{TAG}')
     grids = []
     feed.node.create_subscription(DiagnosticArray, 'ibvs/frame_grid', grids.append, MODE_QOS)
     nodes += [sup, feed.node]
     executor.add_node(sup)
     executor.add_node(feed.node)
     assert spin_until(executor, lambda: feed.modes == [0], 5.0)
+    return sup, feed, grids
+
+
+def test_supervisor_counts_grid_frames_no_product_came_for_and_lowers_the_rate(ctx):
+    """Frames a node behind never computed (latest only) are missed; gaps double the stride.
+
+    Only every 4th front frame gets its window product, as from a detector three images
+    behind, which reports the three it skipped (ibvs/frames_superseded): the frames between
+    never open. A lone missed frame costs that frame; each further one in a gap counts as
+    skipped for the rate governor, which then doubles the stride (published on
+    ibvs/frame_grid) instead of keeping a rate the computer cannot hold.
+    """
+    _, executor, _ = ctx
+    sup, feed, grids = supervisor_with_grids(ctx, '_missed')
     xi = np.array([-2.0, 0.0, -1.6])
     for k in range(0, 40, 4):                        # 3 frames missed in each gap
         n = len(feed.statuses)
+        for j in range(k - 3, k) if k else ():
+            feed.skipped(1.0 + 0.02 * j)
         feed.frame(1.0 + 0.02 * k, xi)
         assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
         if sup._grids.stride(Camera.FRONT) > 1:
             break
     assert sup._grids.stride(Camera.FRONT) == 2 and sup._stats.missed >= 6
+    assert sup._stats.undelivered == 0
     assert spin_until(executor, lambda: any(
         grid_from_msg(g, 'front') is not None and grid_from_msg(g, 'front')[0] == 2
         for g in grids), 2.0)
@@ -301,6 +317,26 @@ def test_supervisor_counts_grid_frames_no_product_came_for_and_lowers_the_rate(c
         feed.frame(ref / 1e9 + 0.04 * k, xi)
         assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
     assert sup._stats.missed == missed and sup._grids.stride(Camera.FRONT) == 2
+
+
+def test_supervisor_keeps_the_rate_through_frames_the_camera_never_delivered(ctx):
+    """A camera dropout is no want of CPU: the same gaps, unreported, leave the stride at 1.
+
+    Every 4th front frame comes and no node reports skipping the three between (the camera
+    never delivered them): they are missed and counted undelivered on /diagnostics, and the
+    governor keeps every frame (it raised the stride to 2 for 2 s after a 0.2 s dropout).
+    """
+    _, executor, _ = ctx
+    sup, feed, _ = supervisor_with_grids(ctx, '_dropout')
+    xi = np.array([-2.0, 0.0, -1.6])
+    for k in range(0, 40, 4):
+        n = len(feed.statuses)
+        feed.frame(1.0 + 0.02 * k, xi)
+        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+    assert sup._grids.stride(Camera.FRONT) == 1
+    assert sup._stats.missed == 27 and sup._stats.undelivered == 27
+    values = sup._stats.values(sup._newest_ns, 1, 'front')
+    assert values['frames_undelivered'] == '27' and values['frames_missed'] == '27'
 
 
 def test_supervisor_stale_input_failsafe_and_abort(ctx):

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from ibvs_control.core.rate_governor import GovernorConfig, RateGovernor, SupervisorGrids
+from ibvs_control.core.rate_governor import (GovernorConfig, RateGovernor, SupersededFrames,
+                                             SupervisorGrids)
 
 MS = 1_000_000
 # the try rules, judged from the try's decision (the lead has a test of its own)
@@ -261,3 +262,23 @@ def test_the_lag_rule_can_be_switched_off_and_needs_the_lag():
         gov = RateGovernor(cfg)
         t = _at_stride_2_until_a_try(gov, None if lag is None else 0.045)
         assert gov.observe(t + 0.02, True, lag, 0.02) is None and gov.stride == 1
+
+
+def test_superseded_frames_match_a_gap_within_the_tolerance_per_camera():
+    """Reports match the gap's frames within the tolerance, per camera; a clock step clears."""
+    seen = SupersededFrames(keep=4)
+    base, step, tol = 1_000_000_000, 20_000_000, 10_000_000
+    seen.note('front', base + step + 3_000_000)       # frame 1, jittered 3 ms
+    seen.note('front', base + 3 * step)               # frame 3
+    seen.note('down', base + 2 * step)                # the other camera's frame 2
+    assert seen.reported('front', base + step, tol)
+    assert not seen.reported('front', base + 2 * step, tol)
+    assert seen.count_in_gap('front', base, step, 3, tol) == 2
+    assert seen.count_in_gap('front', base, step, 2, tol) == 1     # frame 3 is past the gap
+    assert seen.count_in_gap('down', base, step, 3, tol) == 1
+    assert seen.count_in_gap('front', base, step, 3, 2_000_000) == 1   # 3 ms off: not frame 1
+    for k in range(4):                                # only the newest `keep` are kept
+        seen.note('front', base + (10 + k) * step)
+    assert seen.count_in_gap('front', base, step, 3, tol) == 0
+    seen.clear()
+    assert not seen.reported('front', base + 10 * step, tol)

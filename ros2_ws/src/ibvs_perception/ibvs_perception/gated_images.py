@@ -11,7 +11,8 @@ takes those already waiting behind the one delivered), or one that
 :class:`~ibvs_perception.core.latest_only.LatestOnly` says the next one has surely arrived
 behind. Counts the frames it leaves out by the grid, those superseded and the grid frames that
 never came (dropped on the way), and says so on ``/diagnostics``
-(:mod:`ibvs_perception.image_diagnostics`).
+(:mod:`ibvs_perception.image_diagnostics`); each grid image superseded is also published on
+``ibvs/frames_superseded``, for the supervisor's rate governor.
 """
 from __future__ import annotations
 
@@ -20,12 +21,13 @@ from typing import Callable
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image
-from std_msgs.msg import UInt8
+from std_msgs.msg import Header, UInt8
 
 from ibvs_common.core.frame_grid import FrameGrid, GridFollower
 from ibvs_common.core.modes import InputKind, modes_using
-from ibvs_common.node_common import (FRAME_QOS, grid_from_msg, MODE_QOS, mode_from_status,
-                                     stamp_to_ns)
+from ibvs_common.node_common import (COMMAND_QOS, FRAME_QOS, grid_from_msg, MODE_QOS,
+                                     mode_from_status, stamp_to_ns, superseded_msg,
+                                     SUPERSEDED_TOPIC)
 from ibvs_common.throttled_log import ThrottledLog
 from ibvs_common.waiting_messages import take_waiting
 from ibvs_perception.config import ImageInputConfig
@@ -54,6 +56,9 @@ class GatedImages:
         self._last_index: int | None = None
         self.log = ThrottledLog(node.get_logger())
         self.diagnostics = ImageDiagnostics(node, log_prefix, self.counts, self.timer)
+        # each grid image skipped for a newer one, told to the supervisor: its gap is the
+        # computer's, not the camera's (ibvs_control's SupersededFrames)
+        self._superseded_pub = node.create_publisher(Header, SUPERSEDED_TOPIC, COMMAND_QOS)
         # the grid, the latched mode and the statuses, in the order taken before an image
         self._control_subs = [(node.create_subscription(DiagnosticArray, 'ibvs/frame_grid',
                                                         self.on_grid, MODE_QOS), self.on_grid)]
@@ -114,6 +119,7 @@ class GatedImages:
         if self.gate.active_at(stamp_ns) and (newer_waiting or self.latest.superseded(
                 age_ns, self.grid.period_ns * self.grid.stride)):
             self.counts.superseded += 1
+            self._superseded_pub.publish(superseded_msg(self.camera, stamp_ns))
             return
         self._process_all(self.gate.on_image(stamp_ns, msg))
 

@@ -19,12 +19,13 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import Point32, PolygonStamped, Vector3Stamped
 from sensor_msgs.msg import CameraInfo, Image, Imu, JointState
-from std_msgs.msg import Float32
+from std_msgs.msg import Float32, Header
 
 from ibvs_common.core import frames
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_common.core.modes import Mode
-from ibvs_common.node_common import LateImuReport, supervisor_status_msg
+from ibvs_common.node_common import (LateImuReport, superseded_from_msg, SUPERSEDED_TOPIC,
+                                     supervisor_status_msg)
 from ibvs_sim.core.world import load_world
 from ibvs_control.core.frame_inputs import is_no_flow
 from ibvs_perception.optical_flow_node import OpticalFlowNode
@@ -164,9 +165,11 @@ def test_window_detector_node(ctx, renderers):
 def test_a_node_behind_computes_the_newest_image_waiting_and_skips_the_older(ctx, renderers):
     """Three images already waiting when the node gets to its camera: it takes them at once
     (latest only at the reader) and answers only the newest; the other two count as
-    superseded, and the executor's events of the two taken find nothing."""
+    superseded, each reported on ibvs/frames_superseded for the supervisor's rate governor,
+    and the executor's events of the two taken find nothing."""
     executor = ctx[1]
-    node, pubs, got = window_node(ctx, {'window/corners': PolygonStamped})
+    node, pubs, got = window_node(ctx, {'window/corners': PolygonStamped,
+                                        SUPERSEDED_TOPIC: Header})
     pubs['front_camera/camera_info'].publish(info_msg('front'))
     spin_until(executor, lambda: node.camera_info is not None)
     img = renderers['front'].render(np.eye(3), START)
@@ -178,6 +181,8 @@ def test_a_node_behind_computes_the_newest_image_waiting_and_skips_the_older(ctx
     assert [(m.header.stamp.sec, m.header.stamp.nanosec) for m in got['window/corners']] \
         == [(5, 40_000_000)]
     assert node.gated.counts.superseded == 2 and node.gated.counts.computed == 1
+    assert sorted(superseded_from_msg(m) for m in got[SUPERSEDED_TOPIC]) == \
+        [('front', 5_000_000_000), ('front', 5_020_000_000)]
 
 
 def test_window_detector_node_tracks_through_a_fast_yaw_with_the_imu(ctx, renderers):

@@ -2,7 +2,8 @@
 
 Counted per frame of the mode's camera: complete frames (evaluated and flown), skipped ones
 (a product the mode needs did not come by the deadline) by the product that was missing,
-grid frames no product came for at all (missed: a node behind took a newer image),
+grid frames no product came for at all (missed: a node behind took a newer image; of them
+undelivered: no node reported skipping the image, the camera never delivered it),
 products dropped because their frame had been skipped (late), and products of frames off the
 frame grid. The control rate held is the complete frames per second of stamps over the last
 second; the delivery latency is the ROS time at a frame's first product minus its stamp
@@ -28,6 +29,7 @@ class FrameStats:
         self.late_dropped = 0
         self.off_grid_dropped = 0
         self.missed = 0               # grid frames no product came for (a node behind)
+        self.undelivered = 0          # ... of which no node reported skipping the image
         self._complete_stamps: deque[int] = deque()
         self._skipped_stamps: deque[int] = deque()
         self._delivery_ns: dict[str, deque] = {}
@@ -76,7 +78,8 @@ class FrameStats:
                'frames_complete': str(self.complete), 'frames_skipped': str(self.skipped),
                'late_products_dropped': str(self.late_dropped),
                'off_grid_products_dropped': str(self.off_grid_dropped),
-               'frames_missed': str(self.missed)}
+               'frames_missed': str(self.missed),
+               'frames_undelivered': str(self.undelivered)}
         for name, n in sorted(self.skipped_without.items()):
             out[f'frames_skipped_without_{name}'] = str(n)
         for cam, ms in delivery.items():

@@ -256,3 +256,40 @@ class SupervisorGrids:
         """Every frame again (the clock stepped back: old references mean nothing)."""
         self._grid = {cam: FrameGrid(g.period_ns) for cam, g in self._grid.items()}
         self._before.clear()
+
+
+class SupersededFrames:
+    """The grid images the perception nodes reported skipping for a newer one (latest only).
+
+    A grid frame that no product came for is the computer's doing only when a node had its
+    image and skipped it (``ibvs/frames_superseded``); a frame the camera never delivered (a
+    dropout, a camera below its rate) is not, and must not make the governor halve the control
+    rate (a 0.2 s dropout of the floor camera held stride 2 for 2 s). Stamps are integer ns on
+    the ROS clock; a frame matches a report within ``tolerance_ns`` (camera stamps jitter).
+    """
+
+    def __init__(self, keep: int = 64) -> None:
+        self._stamps: dict = {}         # camera -> deque of reported stamps (ns), newest last
+        self._keep = int(keep)
+
+    def note(self, camera, stamp_ns: int) -> None:
+        """Take one report: ``camera``'s image of ``stamp_ns`` was skipped by a node."""
+        self._stamps.setdefault(camera, deque(maxlen=self._keep)).append(int(stamp_ns))
+
+    def reported(self, camera, stamp_ns: int, tolerance_ns: int) -> bool:
+        """Whether a node skipped ``camera``'s image of ``stamp_ns`` (within the tolerance)."""
+        return any(abs(t - int(stamp_ns)) <= tolerance_ns for t in self._stamps.get(camera, ()))
+
+    def count_in_gap(self, camera, base_ns: int, step_ns: int, n: int,
+                     tolerance_ns: int) -> int:
+        """Return how many of the frames ``base_ns + k step_ns`` (k = 1 ... n) were reported."""
+        found = set()
+        for t in self._stamps.get(camera, ()):
+            k = (t - int(base_ns) + step_ns // 2) // step_ns
+            if 1 <= k <= n and abs(t - (int(base_ns) + k * step_ns)) <= tolerance_ns:
+                found.add(k)
+        return len(found)
+
+    def clear(self) -> None:
+        """Forget every report (the clock stepped back: old stamps mean nothing)."""
+        self._stamps.clear()
