@@ -339,6 +339,70 @@ def test_supervisor_keeps_the_rate_through_frames_the_camera_never_delivered(ctx
     assert values['frames_undelivered'] == '27' and values['frames_missed'] == '27'
 
 
+def handover_strides(ctx, suffix, grace_s):
+    """Fly a supervisor to CROSSING, skip the floor camera's first 3 frames; return strides.
+
+    The down frames open on their (empty) pad cue and miss the floor flow CROSSING needs
+    (the flow's first pair after its gate opens, on a slow computer), then 4 complete ones
+    come. Returns the down camera's stride then.
+    """
+    context, executor, nodes = ctx
+    sup = ModeSupervisorNode(node_name=f'sup{suffix}_{TAG}', context=context,
+                             parameter_overrides=[Parameter('use_sim_time', value=True),
+                                                  Parameter('stride_handover_grace_s',
+                                                            value=grace_s)])
+    feed = Feeder(context, f'feed{suffix}_{TAG}')
+    nodes += [sup, feed.node]
+    executor.add_node(sup)
+    executor.add_node(feed.node)
+    assert spin_until(executor, lambda: feed.modes == [0], 5.0)
+    dt, v, t, xi = 0.02, 1.0, 1.0, np.array([-2.0, 0.0, -1.6])
+
+    def step(**kw):
+        nonlocal t
+        n = len(feed.statuses)
+        feed.frame(t, xi, **kw)
+        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+        t += dt
+
+    for _ in range(3):
+        step(front_flow=np.zeros(3))
+    assert call(executor, feed.node, 'ibvs/start').success
+    step(front_flow=np.zeros(3))
+    while WORLD.wall_x - xi[0] > 0.75:          # WINDOW: the approach
+        xi = xi + [v * dt, 0, 0]
+        step(front_flow=np.array([v / (WORLD.wall_x - xi[0]), 0, 0]))
+    xi = xi + [v * dt, 0, 0]                    # the window lost close: CROSSING
+    step(window=False, front_flow=np.array([v / (WORLD.wall_x - xi[0]), 0, 0]))
+    assert spin_until(executor, lambda: feed.modes[-1:] == [2], 2.0)
+    skipped = sup._stats.skipped
+
+    def down_frame(**kw):     # opened, or dropped off a stride-2 grid (no status either way)
+        nonlocal t
+        off_grid, stamp_ns = sup._stats.off_grid_dropped, round(t * 1e9)
+        feed.frame(t, xi, window=False, **kw)
+        assert spin_until(executor, lambda: sup._stats.off_grid_dropped > off_grid or (
+            sup._last_opened is not None and sup._last_opened[1] == stamp_ns), 2.0)
+        t += dt
+
+    for _ in range(3):                          # the floor flow's first frames miss
+        down_frame()
+    for _ in range(4):
+        down_frame(down_flow=np.array([v / -xi[2], 0, 0]))
+    spin_for(executor, 0.05)                    # the last frame's evaluation
+    assert sup._stats.skipped - skipped >= 3 and sup._core.mode == 2
+    return sup._grids.stride(Camera.DOWN)
+
+
+@pytest.mark.parametrize('grace_s, stride', [(0.2, 1), (0.0, 2)])
+def test_supervisor_handover_does_not_count_the_new_cameras_first_skipped_frames(
+        ctx, grace_s, stride):
+    """WINDOW -> CROSSING: the floor camera's frames skipped before its first complete one
+    (within stride_handover_grace_s) leave the stride at 1; without the grace the same three
+    skipped in a row double it (the supervisor tells the governor of the camera change)."""
+    assert handover_strides(ctx, f'_handover_{stride}', grace_s) == stride
+
+
 def test_supervisor_stale_input_failsafe_and_abort(ctx):
     context, executor, nodes = ctx
     sup = ModeSupervisorNode(node_name=f'sup2_{TAG}', context=context)
