@@ -138,8 +138,8 @@ def test_a_camera_stall_hands_the_vehicle_to_px4s_land_mode(tmp_path):
 
 
 def test_a_killed_bridge_leaves_the_vehicle_to_px4s_offboard_loss_failsafe(tmp_path):
-    """The bridge is killed at 1.5 s (WINDOW): its setpoints stop, PX4's offboard-loss failsafe
-    (COM_OF_LOSS_T 1 s, COM_OBL_RC_ACT 4 = land) lands the vehicle and PX4 disarms on its
-    own (checks: firmware_faults.killed_bridge_run)."""
+    """The bridge is killed at 1.5 s (WINDOW), or later once engaged: its setpoints stop,
+    PX4's offboard-loss failsafe (COM_OF_LOSS_T 1 s, COM_OBL_RC_ACT 4 = land) lands the
+    vehicle and PX4 disarms on its own (checks: firmware_faults.killed_bridge_run)."""
     need_px4_mission()
     killed_bridge_run(tmp_path, 'px4_dead_bridge', 'px4')

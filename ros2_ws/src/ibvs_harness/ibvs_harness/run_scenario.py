@@ -229,6 +229,16 @@ LOCKSTEP_FIRMWARES = ('px4', 'ardupilot')
 PREROLL_WAIT_S = 600.0
 
 
+def bridge_engaged(monitor: ScenarioMonitor) -> bool:
+    """Whether the bridge's latest /diagnostics says the autopilot flies its setpoints.
+
+    'engaged': the autopilot's HEARTBEAT showed the offboard mode (PX4 OFFBOARD, ArduCopter
+    GUIDED_NOGPS) it was asked for; the firmware's offboard-loss failsafe applies from then on.
+    """
+    return bool(monitor.bridge_history) \
+        and monitor.bridge_history[-1].get('engage_state') == 'engaged'
+
+
 def autopilot_disarmed(monitor: ScenarioMonitor) -> bool:
     """Whether the autopilot is disarmed, in the sim's word where it has one.
 
@@ -272,7 +282,8 @@ def fly(opts: RunOptions, monitor: ScenarioMonitor, runner: ProcessRunner, t_wal
 
     def spin(dt: float) -> None:
         executor.spin_once(timeout_sec=dt)
-        if opts.kill_node and not killed and monitor.now_s() >= opts.kill_at_s:
+        if opts.kill_node and not killed and monitor.now_s() >= opts.kill_at_s \
+                and (bridge_engaged(monitor) or not opts.kill_once_engaged):
             killed.append(runner.kill(opts.kill_node))
             print(f'fault injected: {opts.kill_node} killed at sim t = {monitor.now_s():.2f} s',
                   flush=True)
@@ -608,6 +619,11 @@ def parse_args(argv: list | None = None) -> RunOptions:
                         'with --follow-failsafe its death does not stop the run (e.g. '
                         'mavlink_bridge: the autopilot\'s own failsafe lands the vehicle)')
     p.add_argument('--kill-at-s', type=float, default=2.0, metavar='T')
+    p.add_argument('--kill-once-engaged', action='store_true',
+                   help='with --kill-node: kill it at --kill-at-s or later, once the bridge '
+                        'reports the autopilot flying its setpoints (engaged; its /diagnostics '
+                        'come once a second of wall clock): a fault while the firmware flies '
+                        'the graph, not in the switch to its offboard mode')
     for cam in ('front', 'down'):
         p.add_argument(f'--{cam}-camera-off', type=float, nargs=2, metavar=('START', 'END'),
                        action='append',
@@ -711,7 +727,7 @@ def parse_args(argv: list | None = None) -> RunOptions:
                       preflight_timeout_s=a.preflight_timeout, mavlink_port=a.mavlink_port,
                       params_file=a.params_file, plots=not a.no_plots, extra=extra,
                       real_time_factor=a.real_time_factor, kill_node=a.kill_node,
-                      kill_at_s=a.kill_at_s,
+                      kill_at_s=a.kill_at_s, kill_once_engaged=a.kill_once_engaged,
                       camera_off={cam: _flat(w) for cam, w in (
                           ('front', a.front_camera_off), ('down', a.down_camera_off)) if w},
                       camera_freeze={cam: _flat(w) for cam, w in (
@@ -735,6 +751,8 @@ def main(argv: list | None = None) -> int:
         graph.checked_params_file(opts.params_file, graph.SIM_NODE_NAMES)
         if not opts.max_sim_time_s > 0.0:
             raise ValueError(f'--max-sim-time must be > 0, got {opts.max_sim_time_s}')
+        if opts.kill_once_engaged and not opts.kill_node:
+            raise ValueError('--kill-once-engaged needs --kill-node')
         if opts.kill_node and opts.layout == 'composed':
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
         if opts.autopilot in ('px4', 'ardupilot') and opts.feature_level:

@@ -47,6 +47,7 @@ class RunOptions:
     real_time_factor: float | None = None   # free-running sim at this factor (None: lockstep)
     kill_node: str | None = None        # fault injection: SIGKILL this node ...
     kill_at_s: float = 2.0              # ... at this sim time (perception nodes come back)
+    kill_once_engaged: bool = False     # ... and not before the bridge reports 'engaged'
     # fault injection: camera -> [start, end, start, end, ...] (sim s), one or more windows
     camera_off: dict = field(default_factory=dict)
     camera_freeze: dict = field(default_factory=dict)

@@ -59,3 +59,25 @@ def test_the_preflight_limit_counts_from_the_end_of_the_firmwares_pre_roll(monke
         run_scenario.wait_for_preroll(monitor, lambda dt: None)
     assert 'px4' in run_scenario.LOCKSTEP_FIRMWARES
     assert 'ardupilot' in run_scenario.LOCKSTEP_FIRMWARES
+
+
+def test_a_kill_once_engaged_waits_for_the_bridges_engaged_report():
+    """``--kill-once-engaged``: the bridge's latest /diagnostics decides (the firmware's
+    offboard-loss failsafe applies only once it flies the setpoints); the option needs
+    ``--kill-node``."""
+    from collections import deque
+    from types import SimpleNamespace
+
+    from ibvs_harness import run_scenario
+
+    monitor = SimpleNamespace(bridge_history=deque())
+    assert not run_scenario.bridge_engaged(monitor)
+    monitor.bridge_history.append({'t': 1.2, 'engage_state': 'set_mode'})
+    assert not run_scenario.bridge_engaged(monitor)
+    monitor.bridge_history.append({'t': 1.6, 'engage_state': 'engaged'})
+    assert run_scenario.bridge_engaged(monitor)
+    monitor.bridge_history.append({'t': 2.0, 'engage_state': 'held'})
+    assert not run_scenario.bridge_engaged(monitor)
+    opts = run_scenario.parse_args(['--kill-node', 'mavlink_bridge', '--kill-once-engaged'])
+    assert opts.kill_once_engaged and opts.kill_node == 'mavlink_bridge'
+    assert run_scenario.main(['--kill-once-engaged', '--no-plots']) != 0
