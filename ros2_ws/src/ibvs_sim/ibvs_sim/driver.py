@@ -322,8 +322,9 @@ class SimDriver:
         stamps = {name: out.stamp_ns(name) for name in images}
         self.port.publish_images(images, stamps)
         # the graph's answer echoes the stamp of the mode's camera (or none is owed)
-        self.latency.published(out.t_ns if out.answer_ns is None else out.answer_ns,
-                               time.monotonic())
+        answer_ns = out.t_ns if out.answer_ns is None else out.answer_ns
+        self.latency.published(answer_ns, time.monotonic(), self.products.on_grid(
+            self.products.mode_camera(), answer_ns))
         self.port.publish_ground_truth(out.t_ns, out.state)
         for event in out.events:
             self._event(event)

@@ -87,9 +87,10 @@ class SimNode(Node):
             for topic, msg_type in PRODUCT_TYPES.items():
                 self.create_subscription(msg_type, topic, self._product_callback(topic),
                                          qos_profile_sensor_data)
-            self.create_subscription(DiagnosticArray, STATUS_TOPIC, self._on_status, reliable)
-            self.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self._on_grid,
-                                     MODE_QOS)
+        # the graph's modes and frame grids: which frames it computes (lockstep owes no wait
+        # to the others; sim/stats counts the answers of those it computes in either pacing)
+        self.create_subscription(DiagnosticArray, STATUS_TOPIC, self._on_status, reliable)
+        self.create_subscription(DiagnosticArray, 'ibvs/frame_grid', self._on_grid, MODE_QOS)
         # the pilot's hand on the radio's mission switch (pilot_switch_channel)
         self.create_subscription(Bool, 'sim/pilot_switch', self._on_pilot_switch, reliable)
         steady = Clock(clock_type=ClockType.STEADY_TIME)

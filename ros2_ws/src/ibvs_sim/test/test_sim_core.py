@@ -413,6 +413,21 @@ def test_answer_latency_takes_the_nearest_frame_within_the_clock_sync_error():
     assert st['answer_stamp_error_max_ms'] == 2 and st['answer_stamp_exact_fraction'] == 0.0
 
 
+def test_answer_latency_counts_the_grid_frames_answered_apart():
+    """At a frame stride of 2 the graph answers every other frame by design: of the frames
+    published on its grid, the fraction answered is its own; of all, it is half at best."""
+    lat = AnswerLatency()
+    for k in range(8):                                   # frames at 0 ... 140 ms, stride 2
+        lat.published(k * 20_000_000, wall=1.0 + 0.02 * k, on_grid=k % 2 == 0)
+    for k in (0, 2, 4):                                  # grid frames 0, 40, 80 ms; not 120
+        lat.answered(k * 20, 1.005 + 0.02 * k)
+    lat.answered(140, 1.30)                              # an off-grid frame answered
+    st = lat.stats()
+    assert st['frames_published'] == 8 and st['frames_on_grid'] == 4
+    assert st['frames_answered'] == 4 and st['answered_fraction'] == pytest.approx(0.5)
+    assert st['answered_grid_fraction'] == pytest.approx(3 / 4)
+
+
 def test_lockstep_also_waits_for_every_product_of_the_frame_then_gives_up_a_dead_one(configs):
     """The clock stands still until the graph made all it makes of a frame, not only the answer.
 

@@ -16,21 +16,30 @@ class AnswerLatency:
     setpoint's time_boot_ms and the wall time it was read: the published frame nearest it,
     within ``tolerance_ms``, is answered, its latency the read minus the publication.
     ``stamp_errors_ms`` keeps time_boot_ms minus the frame's time (docs/sim.md "Timing").
+    Frames off the graph's frame grid when published (a stride above 1: the graph computes
+    every n-th frame by design) are owed no answer: ``answered_grid_fraction`` counts the
+    others only.
     """
 
     def __init__(self, keep: int = 200, tolerance_ms: int = 9) -> None:
-        self._published: dict[int, float] = {}     # frame ms -> wall s
+        self._published: dict[int, tuple[float, bool]] = {}   # frame ms -> (wall s, on grid)
         self._keep = int(keep)
         self.tolerance_ms = int(tolerance_ms)
         self.latencies_s: list[float] = []
         self.stamp_errors_ms: list[int] = []
         self.frames = 0
+        self.grid_frames = 0            # published on the graph's frame grid
+        self.grid_answered = 0
         self._last_ms: int | None = None
 
-    def published(self, t_ns: int, wall: float) -> None:
-        """Note that the frame at sim time ``t_ns`` was published at ``wall``."""
+    def published(self, t_ns: int, wall: float, on_grid: bool = True) -> None:
+        """Note that the frame at sim time ``t_ns`` was published at ``wall``.
+
+        ``on_grid``: whether it was on the graph's frame grid then (the graph computes it).
+        """
         self.frames += 1
-        self._published[t_ns // NS_PER_MS] = wall
+        self.grid_frames += int(bool(on_grid))
+        self._published[t_ns // NS_PER_MS] = (wall, bool(on_grid))
         while len(self._published) > self._keep:
             del self._published[min(self._published)]
 
@@ -43,14 +52,19 @@ class AnswerLatency:
         near = [k for k in self._published if abs(k - ms) <= self.tolerance_ms]
         if near:
             frame_ms = min(near, key=lambda k: abs(k - ms))
-            self.latencies_s.append(wall - self._published.pop(frame_ms))
+            published, on_grid = self._published.pop(frame_ms)
+            self.latencies_s.append(wall - published)
+            self.grid_answered += int(on_grid)
             self.stamp_errors_ms.append(ms - frame_ms)
 
     def stats(self) -> dict:
-        """Median, p95, p99, max (ms) and the fraction of published frames answered."""
+        """Median, p95, p99, max (ms); the fraction of published (and of grid) frames answered."""
         lat = np.asarray(self.latencies_s, dtype=float) * 1e3
         out = {'frames_published': self.frames, 'frames_answered': int(lat.size),
-               'answered_fraction': float(lat.size / self.frames) if self.frames else 0.0}
+               'answered_fraction': float(lat.size / self.frames) if self.frames else 0.0,
+               'frames_on_grid': self.grid_frames,
+               'answered_grid_fraction': (float(self.grid_answered / self.grid_frames)
+                                          if self.grid_frames else 0.0)}
         if lat.size:
             out.update({f'latency_{k}_ms': float(v) for k, v in (
                 ('median', np.median(lat)), ('p95', np.percentile(lat, 95)),
