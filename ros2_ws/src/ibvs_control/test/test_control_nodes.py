@@ -339,6 +339,20 @@ def test_supervisor_keeps_the_rate_through_frames_the_camera_never_delivered(ctx
     assert values['frames_undelivered'] == '27' and values['frames_missed'] == '27'
 
 
+def test_supervisor_refuses_a_superseded_report_of_an_unknown_camera(ctx, capfd):
+    """ibvs/frames_superseded with a camera name that is not 'front' or 'down': a clear error,
+    nothing noted (no gap is counted on it), the node goes on."""
+    _, executor, _ = ctx
+    sup, feed, _ = supervisor_with_grids(ctx, '_bad_superseded')
+    feed.skipped(1.0, camera='side')
+    feed.skipped(1.02, camera='front')
+    assert spin_until(executor, lambda: sup._superseded.reported(Camera.FRONT, 1_020_000_000, 0),
+                      2.0)
+    assert not sup._superseded.reported('side', 1_000_000_000, 0)
+    assert not sup._superseded.reported(Camera.FRONT, 1_000_000_000, 0)
+    assert "refused: unknown camera 'side'" in capfd.readouterr().err
+
+
 def handover_strides(ctx, suffix, grace_s):
     """Fly a supervisor to CROSSING, skip the floor camera's first 3 frames; return strides.
 
