@@ -28,6 +28,7 @@ from ibvs_harness import plots, report
 from ibvs_common.core.mavlink_connection import free_udp_port
 from ibvs_common.core.modes import mode_name
 from ibvs_control.core.pilot_input import PilotInput
+from ibvs_control.mavlink.sequencer.common import EngageState
 from ibvs_harness.scenario import (AUTOPILOTS, DEFAULT_IMAGE_EVERY, FAILSAFE_MODE, finish,
                                    IDLE_MODE, MAX_SIM_TIME_S, missing_executables,
                                    prepare_out_dir, random_initial_position, run_block,
@@ -236,7 +237,7 @@ def bridge_engaged(monitor: ScenarioMonitor) -> bool:
     GUIDED_NOGPS) it was asked for; the firmware's offboard-loss failsafe applies from then on.
     """
     return bool(monitor.bridge_history) \
-        and monitor.bridge_history[-1].get('engage_state') == 'engaged'
+        and monitor.bridge_history[-1].get('engage_state') == EngageState.ENGAGED.value
 
 
 def autopilot_disarmed(monitor: ScenarioMonitor) -> bool:
