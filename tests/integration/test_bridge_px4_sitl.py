@@ -86,6 +86,10 @@ SENSOR_LOSS = re.compile(r'failed:\s+TIMEOUT|No valid data from')
 SKEW_AGREEMENT_PPM = 3000.0        # bridge's skew vs the floors' rate, a run without jumps
 JUMP_WINDOW_S = 0.2                # s, windows of the one-way delay floor
 AFTER_JUMP_S = 1.0                 # s after a jump whose samples are not judged
+# a poll this long after the previous one found its samples waiting in the socket for the test
+# (this harness starved, not the stamps late): their receipt - stamp is not judged (CI of
+# 6f594cc: p90 57.7 ms on a starved machine, rtt p95 20 ms, 14 TIMESYNC answers rejected)
+HARNESS_STALL_MS = 3 * POLL_PERIOD_S * 1e3
 MS = 1_000_000
 VEHICLE_MASS = load_vehicle().mass         # the controller's mass (vehicle.yaml), as in the graph
 
@@ -278,10 +282,23 @@ class Run:
         moves = np.diff(f) - rate * 1e-6 * np.diff(t)
         return [int(b) for b, move in zip(t[1:], moves) if abs(move) > JUMP_MS * MS]
 
-    def judged_ages_ms(self) -> np.ndarray:
-        """Receipt - stamp (ms) of the samples not within AFTER_JUMP_S after a clock jump."""
+    def stalled_polls(self) -> list:
+        """Indices of the polls that came more than HARNESS_STALL_MS after the previous one."""
+        ros = np.array([p[0] for p in self.polls], dtype=np.int64)
+        return [int(i) + 1 for i in np.flatnonzero(np.diff(ros) > HARNESS_STALL_MS * MS)]
+
+    def judged_ages_ms(self, after_stalls: bool = False) -> np.ndarray:
+        """Receipt - stamp (ms) of the samples not within AFTER_JUMP_S after a clock jump.
+
+        Only those of punctual polls, unless ``after_stalls``: a poll after a stall of this
+        harness (``stalled_polls``) adds the test's own delay to the age (it can only raise
+        it, so the check of early stamps takes them all).
+        """
         jumps = self.clock_jumps()
-        return np.array([(ros - s.stamp_ns) / MS for ros, _, _, _, samples in self.polls
+        stalled = set() if after_stalls else set(self.stalled_polls())
+        return np.array([(ros - s.stamp_ns) / MS
+                         for i, (ros, _, _, _, samples) in enumerate(self.polls)
+                         if i not in stalled
                          for s in samples
                          if not any(j - JUMP_WINDOW_S * 1e9 <= ros <= j + AFTER_JUMP_S * 1e9
                                     for j in jumps)])
@@ -309,6 +326,8 @@ class Run:
             else f'synced {self.t_sync - self.t_link:.2f} s later'
         link = 'no link' if self.t_link is None else f'link after {self.t_link:.2f} s'
         t0 = self.polls[0][0] if self.polls else 0
+        stalled = self.stalled_polls()
+        gaps = np.diff([p[0] for p in self.polls]) / MS if len(self.polls) > 1 else np.zeros(1)
 
         def times(ns: list) -> str:
             return '[' + ', '.join(f'{(t - t0) / 1e9:.2f}' for t in ns) + '] s'
@@ -320,7 +339,9 @@ class Run:
                 f'{self.clock_quantum_ms():.3f} ms; autopilot clock jumps seen '
                 f'{len(self.clock_jumps())} at {times(self.clock_jumps())}; IMU receipt - '
                 f'stamp over {len(ages)} samples '
-                f'(of {len(every)}, those within {AFTER_JUMP_S} s after a jump left out): '
+                f'(of {len(every)}, those within {AFTER_JUMP_S} s after a jump and those of '
+                f'{len(stalled)} polls after a stall of this harness left out; poll gaps p99 '
+                f'{np.percentile(gaps, 99):.1f}, max {gaps.max():.1f} ms): '
                 f'{spread_ms(ages)}; '
                 f'{self.bridge.telemetry.imu_dropped_unsynced} dropped while unsynced')
 
@@ -360,7 +381,7 @@ def check(run: Run, name: str) -> None:
                     f'({len(ages)}) outside the jumps to judge the clock sync: {report}')
     assert len(ages) >= 100, report
     assert np.percentile(ages, 90) <= MAX_AGE_MS, report
-    assert ages.min() >= -LATE_STAMP_TOLERANCE_MS, report
+    assert run.judged_ages_ms(after_stalls=True).min() >= -LATE_STAMP_TOLERANCE_MS, report
     assert -LATE_STAMP_TOLERANCE_MS / 2 <= statistics.median(ages) <= MAX_AGE_MS / 2, report
     # nothing published while unsynced, every valid sample once synced
     assert all(not samples for _, _, after, _, samples in run.polls if not after)
