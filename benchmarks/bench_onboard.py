@@ -34,13 +34,18 @@ cores, one busy process on each: ``--layout processes`` spreads
 the nodes over them), and the autopilot link over UDP or a serial cable (two pseudo-terminals at
 921600 baud, ibvs_common.testing.SerialCable).
 
+``--callback-cpu`` runs the composed graph under callback_cpu.py and prints, for each mode,
+the thread CPU per camera frame of every node's callbacks (its largest ones named): where a
+frame's CPU goes, without the GIL waits that a sampling profiler counts as busy.
+
 Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
-benchmarks/bench_onboard.py [--case NAME] [--repeats N] [--smoke]``. Needs a quiet machine
-for meaningful figures (the load average and the speed reference are printed).
+benchmarks/bench_onboard.py [--case NAME] [--repeats N] [--callback-cpu] [--smoke]``. Needs a
+quiet machine for meaningful figures (the load average and the speed reference are printed).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import multiprocessing as mp
 import os
 import select
@@ -65,6 +70,8 @@ SERIAL_BAUD = 921600
 GRAPH_CORE, HARNESS_CORE = 1, 0
 ALL_CORES = os.sched_getaffinity(0)
 CACHE_DIR = os.path.join('results', 'bench_onboard')
+HERE = os.path.dirname(os.path.abspath(__file__))
+CALLBACKS_SHOWN = 4                 # --callback-cpu: the largest callbacks printed per node
 # (name, keyword arguments of run_once)
 CASES = (
     ('punctual 50 Hz', {}),
@@ -314,10 +321,12 @@ def cpu_ticks(pids: dict) -> dict:
 
 def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
              latency_ms: float = 0.0, jitter_ms: float = 0.0, cpu: str = 'full',
-             link: str = 'udp', layout: str = 'composed', seed: int = 0, run: int = 0) -> dict:
+             link: str = 'udp', layout: str = 'composed', seed: int = 0, run: int = 0,
+             callback_cpu: bool = False) -> dict:
     """One replay of the flight through a fresh onboard graph; return its figures.
 
-    The nodes' logs go to ``results/bench_onboard/<case>_r<run>/``.
+    The nodes' logs go to ``results/bench_onboard/<case>_r<run>/``. ``callback_cpu``: the
+    composed graph runs under callback_cpu.py (its callbacks' thread CPU, by mode).
     """
     from ibvs_bringup.runner import ProcessRunner
     from ibvs_harness.run_scenario import write_vehicle_at_rates
@@ -353,7 +362,13 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
         vehicle = None if rate_hz == 50.0 else write_vehicle_at_rates(
             None, (rate_hz, rate_hz), os.path.join(case_dir, 'vehicle_onboard.yaml'),
             f'bench_onboard: cameras at {rate_hz:g} Hz')
-        argv = pin + [sys.executable, '-m', 'ibvs_bringup.composed', '--mavlink-url', graph_url]
+        callbacks_json = os.path.join(case_dir, 'callback_cpu.json')
+        if callback_cpu and os.path.exists(callbacks_json):
+            os.remove(callbacks_json)
+        launcher = [os.path.join(HERE, 'callback_cpu.py'), callbacks_json] if callback_cpu \
+            else []
+        argv = pin + [sys.executable, *launcher, '-m', 'ibvs_bringup.composed', '--mavlink-url',
+                      graph_url]
         # the ROS arguments last: an option after --ros-args would be read as one of them
         ros_args = [] if vehicle is None else ['--ros-args', '-p', f'vehicle_file:={vehicle}']
         if layout in ('composed', 'composed-single'):
@@ -392,6 +407,7 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
             if rep.start_future is None and flight['r'][k] >= START_AT_S:
                 rep.start_future = rep.start.call_async(rep.start_request)
         seconds = time.monotonic() - t0_mono
+        end_ns = time.time_ns()
         out['cpu_pct'] = {k: 100.0 * (b - a[k]) / CLK_TCK / seconds
                           for k, b in cpu_ticks(pids).items() if b is not None and a[k]}
         rep.spin(1.0)
@@ -418,7 +434,42 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
              delivered=np.array([delivered[s] for s in stamps], dtype=np.int64),
              setpoints=np.array(got, dtype=np.int64).reshape(-1, 2),
              boot_to_sys_ns=boot_to_sys_ns, t0_ns=t0_ns)
-    return summarise(out, rep, got, boot_to_sys_ns, stamps, delivered, t0_ns)
+    out = summarise(out, rep, got, boot_to_sys_ns, stamps, delivered, t0_ns)
+    if callback_cpu and os.path.exists(callbacks_json):
+        out['callbacks'] = callbacks_by_mode(callbacks_json, rep.modes, stamps, end_ns)
+    return out
+
+
+def callbacks_by_mode(path: str, modes: list, stamps: list, end_ns: int) -> dict:
+    """callback_cpu.py's figures per mode: {mode: (frames published, {key: (calls, ns)})}."""
+    from callback_cpu import per_mode
+    with open(path) as f:
+        snapshot = json.load(f)
+    named = [(ns, mode_name(m)) for ns, m in modes]
+    split = per_mode(snapshot, named, end_ns)
+    starts = [ns for ns, _ in named] + [end_ns]
+    stamps = np.array(stamps, dtype=np.int64)
+    return {name: (int(np.count_nonzero((stamps >= starts[i]) & (stamps < starts[i + 1]))),
+                   split[name])
+            for i, (_, name) in enumerate(named)}
+
+
+def print_callbacks(callbacks: dict) -> None:
+    """Print each mode's callback CPU per camera frame: per node, and its largest callbacks."""
+    for mode, (n_frames, keys) in callbacks.items():
+        if n_frames < 10 or not keys:
+            continue
+        nodes: dict = {}
+        for key, (calls, ns) in keys.items():
+            nodes.setdefault(key.split(' ', 1)[0], []).append((ns, calls, key.split(' ', 1)[1]))
+        total = sum(ns for _, ns in keys.values()) / 1e3 / n_frames
+        print(f'    callbacks in {mode} ({n_frames} frames): {total:.0f} us of thread CPU a '
+              'frame')
+        for node, rows in sorted(nodes.items(), key=lambda kv: -sum(r[0] for r in kv[1])):
+            rows.sort(reverse=True)
+            top = ', '.join(f'{what} {ns / 1e3 / n_frames:.0f} ({ns / 1e3 / max(calls, 1):.0f} '
+                            'a call)' for ns, calls, what in rows[:CALLBACKS_SHOWN])
+            print(f'      {node} {sum(r[0] for r in rows) / 1e3 / n_frames:.0f} us: {top}')
 
 
 def failsafe_reasons(log_dir: str) -> list:
@@ -498,6 +549,8 @@ def report(r: dict) -> None:
     cpu = r.get('cpu_pct', {})
     print('    CPU (% of one core): ' + ', '.join(f'{n} {v:.0f}' for n, v in cpu.items())
           + (f"; serial bytes {r['serial_bytes']}" if 'serial_bytes' in r else ''))
+    if r.get('callbacks'):
+        print_callbacks(r['callbacks'])
 
 
 def print_diagnostics(diagnostics: dict) -> None:
@@ -530,9 +583,14 @@ def main(argv: list | None = None) -> int:
                    default='composed',
                    help='composed-single: composed with --single-executor (every node on one '
                    'executor)')
+    p.add_argument('--callback-cpu', action='store_true',
+                   help='the composed graph under callback_cpu.py: each mode\'s thread CPU per '
+                   'frame, by node and callback')
     p.add_argument('--smoke', action='store_true',
                    help='4 s of the flight, the first case only (CI: the command still runs)')
     args = p.parse_args(argv)
+    if args.callback_cpu and args.layout == 'processes':
+        p.error('--callback-cpu measures a composed layout')
     from ibvs_bringup.graph import ensure_ament_prefix_path
     from ibvs_common.dds_profile import use_dds_profile_here
     from ibvs_common.testing import isolate_dds
@@ -566,7 +624,7 @@ def run_cases(cases: list, args, flights: dict, frames: dict) -> None:
                 print(f'{len(flights[rate]["r"])} frames at {rate:g} Hz ready '
                       f'({time.monotonic() - t0:.1f} s)')
             report(run_once(name, flights[rate], frames[rate], layout=args.layout, run=run,
-                            **kw))
+                            callback_cpu=args.callback_cpu, **kw))
 
 
 if __name__ == '__main__':

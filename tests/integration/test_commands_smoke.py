@@ -21,7 +21,8 @@ BENCH_ARGS = {'bench_perception.py': ['--frames', '5'], 'bench_sim.py': ['--fram
               'bench_latency.py': ['--smoke', '--grouped'],
               'bench_window_robustness.py': ['--smoke'], 'bench_idle_cpu.py': ['--smoke'],
               'bench_pad_groups.py': ['--poses', '2'], 'bench_lockstep.py': ['--smoke'],
-              'bench_mavlink_receive.py': ['--smoke'], 'bench_onboard.py': ['--smoke'],
+              'bench_mavlink_receive.py': ['--smoke'],
+              'bench_onboard.py': ['--smoke', '--callback-cpu'],
               'bench_instructions.py': ['--smoke']}
 
 
