@@ -95,14 +95,13 @@ PINNED = ('one', 'half', 'third', 'sixth')
 
 # --- the flight ------------------------------------------------------------------------------
 
-def reference_flight(rate_hz: float, max_s: float | None = None) -> dict:
-    """Return the feature-level reference flight at the camera rate: times, poses, rates.
+def reference_run_args() -> tuple:
+    """Return the arguments of ``feature_sim.run_feature_scenario`` for the reference run.
 
-    Returns ``r`` (replay time of each frame, s), ``xi`` (N, 3), ``R`` (N, 3, 3), ``omega``
-    (N, 3), with HOVER_S of the start pose first.
+    (world, pad, vehicle, controller config, supervisor config, feature-sim config): the
+    installed configuration, no wind, the reference start.
     """
     from ibvs_common.core.config import load_pad_layout, load_vehicle
-    from ibvs_common.core.frames import quat_from_rot, rot_from_quat
     from ibvs_control.config import ForceControllerNodeConfig, ModeSupervisorNodeConfig
     from ibvs_harness import feature_sim
     from ibvs_harness.scenario import MAX_SIM_TIME_S
@@ -114,7 +113,18 @@ def reference_flight(rate_hz: float, max_s: float | None = None) -> dict:
         initial_position_I=np.asarray(world.initial_position_I, float),
         initial_yaw=world.initial_yaw, wind_accel_I=np.zeros(3),
         crossing_law=ctrl.crossing_law, max_time_s=MAX_SIM_TIME_S)
-    _, log = feature_sim.run_feature_scenario(world, pad, vehicle, ctrl, sup, cfg)
+    return world, pad, vehicle, ctrl, sup, cfg
+
+
+def reference_flight(rate_hz: float, max_s: float | None = None) -> dict:
+    """Return the feature-level reference flight at the camera rate: times, poses, rates.
+
+    Returns ``r`` (replay time of each frame, s), ``xi`` (N, 3), ``R`` (N, 3, 3), ``omega``
+    (N, 3), with HOVER_S of the start pose first.
+    """
+    from ibvs_common.core.frames import quat_from_rot, rot_from_quat
+    from ibvs_harness import feature_sim
+    _, log = feature_sim.run_feature_scenario(*reference_run_args())
     t_ctrl = np.asarray(log.t_ctrl)
     q = np.array([quat_from_rot(R) for R in log.R_IB])
     t_end = t_ctrl[-1] + HOVER_S
