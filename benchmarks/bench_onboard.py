@@ -30,9 +30,9 @@ Cases (``--case``, repeatable; default: all): camera delivery ``--latency-ms`` a
 stamp (with ``--jitter-ms``), ``--rate-hz`` 50 or 30, the graph ``--cpu`` full (both cores),
 one (pinned to one core), half (one core shared with one busy process), third (two busy
 processes), sixth (five: below what the graph needs, to see how it fails) or shared (both
-cores, one busy process on each: ``--layout processes`` spreads
-the nodes over them), and the autopilot link over UDP or a serial cable (two pseudo-terminals at
-921600 baud, ibvs_common.testing.SerialCable).
+cores, one busy process on each: ``--layout grouped`` (a container per camera and one
+for control) or ``processes`` spread the nodes over them), and the autopilot link over UDP
+or a serial cable (two pseudo-terminals at 921600 baud, ibvs_common.testing.SerialCable).
 
 ``--callback-cpu`` runs the composed graph under callback_cpu.py and prints, for each mode,
 the thread CPU per camera frame of every node's callbacks (its largest ones named): where a
@@ -384,6 +384,10 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
         if layout in ('composed', 'composed-single'):
             runner.start('composed', argv + (['--single-executor']
                                              if layout == 'composed-single' else []) + ros_args)
+        elif layout == 'grouped':            # a container per camera and one for control
+            from ibvs_bringup.composed import GROUPS
+            for group, names in GROUPS.items():
+                runner.start(group, argv + ['--nodes', ','.join(names)] + ros_args)
         else:                                # a process per node, each pinned as the graph
             from ibvs_bringup import graph
             from ibvs_bringup.runner import command_for
@@ -589,10 +593,10 @@ def main(argv: list | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument('--case', action='append', default=[], choices=[c[0] for c in CASES])
     p.add_argument('--repeats', type=int, default=1)
-    p.add_argument('--layout', choices=('composed', 'composed-single', 'processes'),
+    p.add_argument('--layout', choices=('composed', 'composed-single', 'grouped', 'processes'),
                    default='composed',
                    help='composed-single: composed with --single-executor (every node on one '
-                   'executor)')
+                   'executor); grouped: a container per camera and one for control')
     p.add_argument('--callback-cpu', action='store_true',
                    help='the composed graph under callback_cpu.py: each mode\'s thread CPU per '
                    'frame, by node and callback')

@@ -277,17 +277,18 @@ def test_a_second_run_with_a_perception_node_killed_repeats(reference, tmp_path)
         assert set(names.split(', ')) <= {'pad/groups', 'pad/landmarks'}, given_up
 
 
-def test_the_composed_layout_repeats_the_reference(reference, tmp_path):
-    """The onboard nodes in one process (``--layout composed``) fly the reference's flight.
+@pytest.mark.parametrize('layout', ['composed', 'grouped'])
+def test_the_composed_layouts_repeat_the_reference(reference, tmp_path, layout):
+    """The onboard nodes composed (``--layout composed|grouped``) fly the reference's flight.
 
-    Same nodes, parameters and per-node overrides (composed --specs), one executor, imu/data
-    from the bridge in process: in lockstep nothing of that may change the flight (measured
-    bit-identical here; the same tolerances as the repeat above are required).
+    One process, or a container per camera and one for control. Same nodes, parameters and
+    per-node overrides (composed --specs), imu/data from the bridge in process to the nodes
+    beside it: in lockstep nothing of that may change the flight (both measured bit-identical
+    here; the same tolerances as the repeat above are required).
     """
     _, first = reference
-    second = run_scenario(tmp_path, 'composed', '--layout', 'composed', '--no-bag',
-                          '--no-plots')
-    assert second['run']['layout'] == 'composed'
+    second = run_scenario(tmp_path, layout, '--layout', layout, '--no-bag', '--no-plots')
+    assert second['run']['layout'] == layout
     assert len(second['run']['transitions']) == 4, second['run']['transitions']
     assert_repeats(first, second)
 

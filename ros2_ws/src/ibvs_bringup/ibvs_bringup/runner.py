@@ -42,10 +42,24 @@ from ibvs_common.dds_profile import dds_env_overrides
 
 STDERR_TAIL_LINES = 20
 COMPOSED_NAME = 'onboard'     # process (and log) name of the composed onboard nodes
-LAYOUTS = ('composed', 'processes')                   # the onboard nodes' process layouts
+# the onboard nodes' process layouts: one composed process; a composed container per camera
+# and one for control (composed.GROUPS; processes named COMPOSED_NAME_<group>); a process each
+LAYOUTS = ('composed', 'grouped', 'processes')
 DEFAULT_LAYOUT = {'onboard': 'composed', 'sim': 'processes'}
 RESPAWN_MAX_DELAY_S = 16.0    # s, longest wait before a restart
 RESPAWN_RESET_S = 30.0        # s of running that resets the backoff
+
+
+def container_name(group: str) -> str:
+    """Return the process (and log) name of composed.GROUPS' ``group`` in the grouped layout."""
+    return f'{COMPOSED_NAME}_{group}'
+
+
+def process_names(node: str) -> tuple:
+    """Return the process names that may hold ``node``: its own, composed, its group's."""
+    from ibvs_bringup.composed import GROUPS
+    return (node, COMPOSED_NAME) + tuple(container_name(g) for g, names in GROUPS.items()
+                                         if node in names)
 
 
 @dataclass(frozen=True)
@@ -160,13 +174,26 @@ class ProcessRunner:
                    respawn=respawn)
 
     def start_layout(self, specs: list, layout: str, respawn_composed: bool = False) -> None:
-        """Start ``specs``: a process each, or the onboard ones composed in one process."""
+        """Start ``specs``: a process each, or the onboard ones in one or a few containers.
+
+        ``grouped``: a container per group of composed.GROUPS that has nodes in ``specs``
+        (named by :func:`container_name`); an onboard node of no group gets its own process.
+        """
         if layout not in LAYOUTS:
             raise ValueError(f'layout must be one of {LAYOUTS}, got {layout!r}')
+        onboard = [s for s in specs if s.role == 'onboard']
         if layout == 'composed':
             self.start_graph([s for s in specs if s.role != 'onboard'])
-            self.start_composed([s for s in specs if s.role == 'onboard'],
-                                respawn=respawn_composed)
+            self.start_composed(onboard, respawn=respawn_composed)
+        elif layout == 'grouped':
+            from ibvs_bringup.composed import GROUPS
+            grouped = {name for names in GROUPS.values() for name in names}
+            self.start_graph([s for s in specs if s.role != 'onboard' or s.name not in grouped])
+            for group, names in GROUPS.items():
+                members = [s for s in onboard if s.name in names]
+                if members:
+                    self.start_composed(members, name=container_name(group),
+                                        respawn=respawn_composed)
         else:
             self.start_graph(specs)
 
@@ -289,8 +316,10 @@ def main(argv: list | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('graph', nargs='?', choices=('sim', 'onboard'), default='sim')
     parser.add_argument('--layout', choices=LAYOUTS, default=None,
-                        help='the onboard nodes in one composed process or a process each '
-                             '(default: composed for onboard, processes for sim)')
+                        help='the onboard nodes in one composed process, in a container per '
+                             'camera and one for control (grouped: for two or more cores), or '
+                             'a process each (default: composed for onboard, processes for '
+                             'sim)')
     add_graph_arguments(parser)
     parser.add_argument('--log-dir', default=None, help='write <node>.log files here')
     args = parser.parse_args(argv)

@@ -1,12 +1,13 @@
 """Onboard IBVS nodes only (no sim), against a vehicle's MAVLink URL: nodes from graph.py.
 
 Usage: ros2 launch ibvs_bringup onboard.launch.py [mavlink_url:=udpin:0.0.0.0:14540]
-[layout:=composed|processes]
+[layout:=composed|grouped|processes]
 (default: PX4's companion port; ArduPilot: udpin on its SERIALn UDP port, or a serial port in
 pymavlink's format, e.g. /dev/ttyUSB0,921600; docs/mavlink.md). ``layout``: the onboard nodes
-in one process on one executor (``composed``, the default: ibvs_bringup.composed, respawned
-as a whole) or a process each (``processes``: the perception nodes respawned alone); the same
-as ``runner onboard --layout`` (runner.LAYOUTS, docs/onboard.md).
+in one process (``composed``, the default: ibvs_bringup.composed, respawned as a whole), in a
+container per camera and one for control (``grouped``: composed.GROUPS, each respawned as a
+whole; for two or more cores), or a process each (``processes``: the perception nodes
+respawned alone); the same as ``runner onboard --layout`` (runner.LAYOUTS, docs/onboard.md).
 """
 import os
 import tempfile
@@ -35,18 +36,23 @@ def _nodes(context):
     env = dds_env_overrides()
     prefix = parent_death.launch_prefix()     # each node ends with ros2 launch, as with the runner
     specs = graph.onboard_graph(opts)
-    if layout == 'composed':        # one process; its node list and parameters in a file
-        fd, path = tempfile.mkstemp(prefix='ibvs-onboard-', suffix='.json')
+    containers = {'onboard': specs} if layout == 'composed' else {} if layout == 'processes' \
+        else {group: [s for s in specs if s.name in names]
+              for group, names in composed.GROUPS.items()}
+    in_containers = {s.name for members in containers.values() for s in members}
+    nodes = []
+    for group, members in containers.items():   # a container's node list in a file
+        fd, path = tempfile.mkstemp(prefix=f'ibvs-{group}-', suffix='.json')
         os.close(fd)
-        composed.write_specs(specs, path)
-        return [Node(package='ibvs_bringup', executable='composed',
-                     arguments=['--specs', path], output='screen', additional_env=env,
-                     prefix=prefix, respawn=True, respawn_delay=graph.RESPAWN_DELAY_S)]
-    return [Node(package=s.package, executable=s.executable, name=s.name,
-                 parameters=list(s.parameters), remappings=list(s.remappings), output='screen',
-                 additional_env=env, prefix=prefix, respawn=s.respawn,
-                 respawn_delay=graph.RESPAWN_DELAY_S)
-            for s in specs]
+        composed.write_specs(members, path)
+        nodes.append(Node(package='ibvs_bringup', executable='composed',
+                          arguments=['--specs', path], output='screen', additional_env=env,
+                          prefix=prefix, respawn=True, respawn_delay=graph.RESPAWN_DELAY_S))
+    return nodes + [Node(package=s.package, executable=s.executable, name=s.name,
+                         parameters=list(s.parameters), remappings=list(s.remappings),
+                         output='screen', additional_env=env, prefix=prefix,
+                         respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)
+                    for s in specs if s.name not in in_containers]
 
 
 def generate_launch_description():
@@ -61,6 +67,8 @@ def generate_launch_description():
                               description='closed | intended | seed (empty: the parameter '
                                           "file's, else the code default)"),
         DeclareLaunchArgument('layout', default_value=DEFAULT_LAYOUT['onboard'],
-                              description='composed (one process) | processes (one per node)'),
+                              description='composed (one process) | grouped (a container per '
+                                          'camera, one for control) | processes (one per '
+                                          'node)'),
         OpaqueFunction(function=_nodes),
     ])

@@ -67,3 +67,22 @@ def test_onboard_default_layout_is_one_respawned_process(tmp_path, monkeypatch):
         s.name for s in specs if s.respawn]
     with pytest.raises(ValueError, match='layout'):
         runner.start_layout(specs, 'threads')
+
+
+def test_the_grouped_layout_starts_a_respawned_container_per_group(tmp_path, monkeypatch):
+    """--layout grouped: the sim alone, then one container per GROUPS entry, its nodes only."""
+    from ibvs_bringup import runner as runner_mod
+    started = []
+    runner = runner_mod.ProcessRunner(log_dir=str(tmp_path))
+    monkeypatch.setattr(runner, 'start', lambda name, argv, respawn=False:
+                        started.append((name, argv, respawn)))
+    specs = graph.sim_graph(graph.GraphOptions(mavlink_port=14999))
+    runner.start_layout(specs, 'grouped', respawn_composed=True)
+    assert [n for n, _, _ in started] == ['sim'] + [f'onboard_{g}' for g in composed.GROUPS]
+    for (name, argv, respawn), (group, names) in zip(started[1:], composed.GROUPS.items()):
+        assert name == runner_mod.container_name(group) and respawn is True
+        assert [s.name for s in composed.read_specs(argv[4])] == [
+            s.name for s in specs if s.name in names]
+    # where a node's log is: its own process, the composed one, or its group's container
+    assert runner_mod.process_names('mode_supervisor') == (
+        'mode_supervisor', 'onboard', 'onboard_control')

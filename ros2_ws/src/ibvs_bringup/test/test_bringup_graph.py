@@ -233,6 +233,28 @@ def test_onboard_launch_composes_the_same_nodes_by_default(monkeypatch):
         opaque.kwargs['function'](_Context({**values, 'layout': 'threads'}))
 
 
+def test_onboard_launch_grouped_is_a_respawned_container_per_group(monkeypatch):
+    """layout:=grouped: one composed container per composed.GROUPS entry, all nodes in one."""
+    from ibvs_bringup import composed
+    module = _load_launch(LAUNCH / 'onboard.launch.py', monkeypatch)
+    ld = module.generate_launch_description()
+    values = {'params_file': PARAMS, 'mavlink_url': 'udpout:10.0.0.2:14540',
+              'use_sim_time': 'false', 'crossing_law': '', 'layout': 'grouped'}
+    opaque = next(a for a in ld.args[0] if type(a).__name__ == 'OpaqueFunction')
+    nodes = opaque.kwargs['function'](_Context(values))
+    assert len(nodes) == len(composed.GROUPS)
+    expected = graph.onboard_graph(graph.GraphOptions(
+        params_file=PARAMS, use_sim_time=False, mavlink_url='udpout:10.0.0.2:14540'))
+    for node, names in zip(nodes, composed.GROUPS.values()):
+        assert node.kwargs['executable'] == 'composed' and 'name' not in node.kwargs
+        assert node.kwargs['respawn'] is True
+        _assert_ends_with_launch(node)
+        flag, path = node.kwargs['arguments']
+        specs = composed.read_specs(path)
+        os.remove(path)
+        assert specs == [s for s in expected if s.name in names]
+
+
 def test_free_running_option_changes_only_the_sim():
     plain = graph.sim_graph(graph.GraphOptions(params_file=PARAMS))
     free = graph.sim_graph(graph.GraphOptions(params_file=PARAMS, real_time_factor=0.25))

@@ -682,10 +682,10 @@ def parse_args(argv: list | None = None) -> RunOptions:
                         '(docs/firmware_lockstep.md)')
     p.add_argument('--layout', choices=LAYOUTS, default=None,
                    help="onboard nodes as one process per node ('processes', the default with "
-                        "the sim) or all in one process on one executor ('composed', "
-                        'ibvs_bringup.composed: the onboard default, and the default with '
-                        'px4-sih, which runs in real time); the sim, monitor and recorder run '
-                        'beside them either way')
+                        "the sim), all in one process ('composed', ibvs_bringup.composed: the "
+                        'onboard default, and the default with px4-sih, which runs in real '
+                        "time), or a container per camera and one for control ('grouped'); "
+                        'the sim, monitor and recorder run beside them in every layout')
     p.add_argument('--px4-instance', type=int, default=None, choices=range(10),
                    metavar='I', help='px4-sih, px4, ardupilot: the firmware instance 0-9 '
                    '(default: a free one, PX4 >= 5, ArduPilot 1-4)')
@@ -754,7 +754,7 @@ def main(argv: list | None = None) -> int:
             raise ValueError(f'--max-sim-time must be > 0, got {opts.max_sim_time_s}')
         if opts.kill_once_engaged and not opts.kill_node:
             raise ValueError('--kill-once-engaged needs --kill-node')
-        if opts.kill_node and opts.layout == 'composed':
+        if opts.kill_node and opts.layout != 'processes':
             raise ValueError('--kill-node kills one node process: it needs --layout processes')
         if opts.autopilot in ('px4', 'ardupilot') and opts.feature_level:
             raise ValueError(f'--autopilot {opts.autopilot} flies the graph: not with '

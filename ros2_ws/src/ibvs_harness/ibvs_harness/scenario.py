@@ -14,7 +14,7 @@ import shutil
 from typing import Iterable
 
 from ibvs_bringup import graph
-from ibvs_bringup.runner import COMPOSED_NAME
+from ibvs_bringup.runner import process_names
 from ibvs_harness import plots, report
 from ibvs_sim.core.world import load_world, WorldConfig
 import numpy as np
@@ -61,7 +61,7 @@ class RunOptions:
     px4_no_mocap: bool = False          # px4-sih: PX4 on SIH's GPS / baro / mag, no mocap
     pilot_switch: bool = False          # started by the pilot's RC switch (the sim's radio)
     pilot_switch_off_s: float | None = None   # ... and aborted by it at this sim time
-    layout: str = 'processes'           # 'processes' (a process per node) | 'composed'
+    layout: str = 'processes'           # runner.LAYOUTS: 'processes' | 'composed' | 'grouped'
     max_sim_time_s: float = MAX_SIM_TIME_S  # sim s after the start, then the run stops
     follow_failsafe: bool = False       # after FAILSAFE, watch the autopilot land and disarm
     # the sim's camera model: sim parameter -> value (camera_latency_s, camera_rate_hz, ...)
@@ -144,9 +144,13 @@ def failure_explanation(summary: dict) -> str | None:
 
 
 def supervisor_log(out_dir: str) -> str:
-    """Return the log holding the supervisor's lines: its own, or the composed process's."""
-    own = os.path.join(out_dir, 'logs', 'mode_supervisor.log')
-    return own if os.path.exists(own) else os.path.join(out_dir, 'logs', f'{COMPOSED_NAME}.log')
+    """Return the log holding the supervisor's lines: its own, or its container's.
+
+    The first of runner.process_names that exists (the last one when none does).
+    """
+    logs = [os.path.join(out_dir, 'logs', f'{name}.log')
+            for name in process_names('mode_supervisor')]
+    return next((log for log in logs if os.path.exists(log)), logs[-1])
 
 
 def supervisor_transitions(log_path: str) -> list[str]:

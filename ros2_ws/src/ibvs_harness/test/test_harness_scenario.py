@@ -1,12 +1,16 @@
 """What every scenario run shares (scenario.py): its log reading, its refusal of bad options."""
-from ibvs_bringup.runner import COMPOSED_NAME
+from ibvs_bringup.runner import COMPOSED_NAME, container_name
 from ibvs_harness.scenario import supervisor_log, supervisor_transitions
 
 
-def test_the_supervisor_log_is_the_composed_process_s_when_it_has_none_of_its_own(tmp_path):
+def test_the_supervisor_log_is_its_container_s_when_it_has_none_of_its_own(tmp_path):
+    logs = tmp_path / 'run' / 'logs'
+    logs.mkdir(parents=True)
+    (logs / f'{container_name("control")}.log').write_text('')       # --layout grouped
+    assert supervisor_log(str(tmp_path / 'run')).endswith(f'logs/{container_name("control")}.log')
+    (logs / f'{COMPOSED_NAME}.log').write_text('')                      # --layout composed
     assert supervisor_log(str(tmp_path / 'run')).endswith(f'logs/{COMPOSED_NAME}.log')
-    (tmp_path / 'run' / 'logs').mkdir(parents=True)
-    (tmp_path / 'run' / 'logs' / 'mode_supervisor.log').write_text('')
+    (logs / 'mode_supervisor.log').write_text('')                       # --layout processes
     assert supervisor_log(str(tmp_path / 'run')).endswith('logs/mode_supervisor.log')
 
 
