@@ -36,9 +36,7 @@ def _nodes(context):
     env = dds_env_overrides()
     prefix = parent_death.launch_prefix()     # each node ends with ros2 launch, as with the runner
     specs = graph.onboard_graph(opts)
-    containers = {'onboard': specs} if layout == 'composed' else {} if layout == 'processes' \
-        else {group: [s for s in specs if s.name in names]
-              for group, names in composed.GROUPS.items()}
+    containers = _containers(layout, specs)
     in_containers = {s.name for members in containers.values() for s in members}
     nodes = []
     for group, members in containers.items():   # a container's node list in a file
@@ -53,6 +51,17 @@ def _nodes(context):
                          output='screen', additional_env=env, prefix=prefix,
                          respawn=s.respawn, respawn_delay=graph.RESPAWN_DELAY_S)
                     for s in specs if s.name not in in_containers]
+
+
+def _containers(layout: str, specs: list) -> dict:
+    """Return the composed containers of ``layout``: name -> their node specs (graph order)."""
+    if layout == 'composed':
+        return {'onboard': specs}
+    if layout == 'grouped':
+        groups = {group: [s for s in specs if s.name in names]
+                  for group, names in composed.GROUPS.items()}
+        return {group: members for group, members in groups.items() if members}
+    return {}                       # processes: a process per node
 
 
 def generate_launch_description():
