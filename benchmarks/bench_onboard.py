@@ -603,8 +603,9 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--smoke', action='store_true',
                    help='4 s of the flight, the first case only (CI: the command still runs)')
     args = p.parse_args(argv)
-    if args.callback_cpu and args.layout == 'processes':
-        p.error('--callback-cpu measures a composed layout')
+    if args.callback_cpu and args.layout not in ('composed', 'composed-single'):
+        p.error('--callback-cpu measures one composed process (--layout composed or '
+                'composed-single)')
     from ibvs_bringup.graph import ensure_ament_prefix_path
     from ibvs_common.dds_profile import use_dds_profile_here
     from ibvs_common.testing import isolate_dds
