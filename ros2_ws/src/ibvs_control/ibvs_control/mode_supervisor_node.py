@@ -307,6 +307,9 @@ class ModeSupervisorNode(Node):
         if self._core.crossing_note:
             self.get_logger().info(self._core.crossing_note)
             self._core.crossing_note = ''
+        if self._core.window_loss_note:
+            self.log.warning(self._core.window_loss_note, LOG_THROTTLE_S)
+            self._core.window_loss_note = ''
         if self._core.auto_start_refusal:
             self._error(f'auto-start refused: {self._core.auto_start_refusal}')
         if self._core.start_refusal:

@@ -63,6 +63,35 @@ def test_window_lost_far_away_is_failsafe_not_crossing():
     assert 'window stale' in sup.transitions[-1].reason
 
 
+def test_a_window_lost_far_away_is_noted_once_with_its_angular_height():
+    """The loss that ends in staleness says why it is not a crossing: the window's size."""
+    sup = started()                                  # 1.5 m from the wall plane
+    xi, v = np.array([-2.0, 0.0, -1.6]), np.array([0.3, 0, 0])
+    feed(sup, 0.02, xi, v)
+    height = 2.0 * np.arctan(0.5 * WORLD.window.height / (WORLD.wall_x - xi[0]))  # geometry
+    assert sup.window_loss_note == ''
+    feed(sup, 0.04, xi, v, window=False)
+    note = sup.window_loss_note
+    assert note.startswith('forward camera lost the full window at t = 0.040 s while not '
+                           'close')
+    assert f'angular height {height:.3f} rad < 0.85 rad' in note
+    sup.window_loss_note = ''                        # the node logs and clears it
+    feed(sup, 0.06, xi, v, window=False)
+    assert sup.window_loss_note == ''                # once per loss
+    feed(sup, 0.08, xi, v)                           # seen again, then lost again: noted again
+    feed(sup, 0.10, xi, v, window=False)
+    assert 'at t = 0.100 s' in sup.window_loss_note
+    assert sup.mode == Mode.WINDOW
+
+
+def test_a_window_lost_up_close_is_a_crossing_and_no_note():
+    xi, v = np.array([-1.25, 0.0, -1.6]), np.array([0.3, 0, 0])    # 0.75 m: about 1.2 rad
+    sup = started(xi)
+    feed(sup, 0.02, xi, v)
+    feed(sup, 0.04, xi, v, window=False)
+    assert sup.mode == Mode.CROSSING and sup.window_loss_note == ''
+
+
 def fly_through_the_window(sup, floor_flow_in_window=True):
     """Approach at 0.25 m/s until the window is lost up close, cross until LANDING.
 

@@ -6,7 +6,8 @@ Transitions and their image cues (no position or velocity estimate is used):
 - 1 -> 2  the forward camera no longer sees the full window, or the corners jump in a way
           incompatible with smooth motion, while the window was seen close (its angular height
           above ``crossing_min_angular_height_rad``). A loss far from the window is not a
-          crossing: it ends in failsafe after ``window_timeout_s``.
+          crossing: it ends in failsafe after ``window_timeout_s`` (``window_loss_note`` says
+          so once per loss, with the last corners' angular height, for the node's log).
 - 2 -> 3  only once, when the down camera sees a complete pad group AFTER the window plane is
           crossed by ``crossing_margin_m``. The crossing length is measured from images only:
           d_o(T2) from the last corners and the known width r_w, the height d_t(T2) from the
@@ -174,6 +175,11 @@ class ModeSupervisor:
         self._pending: list[tuple[Mode, str]] = []       # requested (mode, reason)
         self._corners: np.ndarray | None = None         # last full-window corners, {I}
         self._window_close = False
+        self._window_angular_height: float | None = None    # of the last accepted corners
+        self._window_loss_noted = False                 # this loss of the window was noted
+        # a loss of the window in WINDOW while it was not close (no crossing), for the log:
+        # the node logs and clears it (once per loss)
+        self.window_loss_note = ''
         self._eta_w: np.ndarray | None = None
         # the wall normal at T2: the blind crossing's travel is measured along it (a window
         # detection after T2, the window leaving the view, does not move it)
@@ -288,7 +294,10 @@ class ModeSupervisor:
             if not jumped:
                 self._corners = p
                 self._last['window'] = t
-                self._window_close = _angular_height(p) >= cfg.crossing_min_angular_height_rad
+                self._window_angular_height = _angular_height(p)
+                self._window_close = \
+                    self._window_angular_height >= cfg.crossing_min_angular_height_rad
+                self._window_loss_noted = False
                 try:
                     h = edge_normals(p)
                     u_w, rho_w = window_axes(h, p)
@@ -301,6 +310,14 @@ class ModeSupervisor:
             reason = 'forward camera lost the full window'
         if self.mode == Mode.WINDOW and self._window_close:
             self._request(Mode.CROSSING, reason)
+        elif self.mode == Mode.WINDOW and not self._window_loss_noted:
+            self._window_loss_noted = True
+            height = 'none' if self._window_angular_height is None \
+                else f'{self._window_angular_height:.3f} rad'
+            self.window_loss_note = (
+                f'{reason} at t = {t:.3f} s while not close: the last accepted corners\' '
+                f'angular height {height} < {cfg.crossing_min_angular_height_rad:g} rad, so no '
+                f'crossing (stale after {cfg.window_timeout_s:g} s unless it comes back)')
 
     def on_pad(self, t: float, landmark_bearings_I: np.ndarray | None,
                groups: list[str], weights: tuple | None = None) -> None:
