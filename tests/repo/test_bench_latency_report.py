@@ -1,17 +1,14 @@
 """bench_latency: the dead-input report (differences within a round) and its case selection."""
-import importlib.util
 from pathlib import Path
 
 import numpy as np
+from script_module import load_script
 
 BENCH = Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_latency.py'
 
 
 def load_bench():
-    spec = importlib.util.spec_from_file_location('bench_latency', BENCH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(BENCH, 'bench_latency')
 
 
 def test_dead_input_differences_are_paired_by_round(capsys):

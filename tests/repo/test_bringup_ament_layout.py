@@ -1,28 +1,24 @@
 """scripts/ament_layout.py: the install layout the ros2 CLI reads (colcon --symlink-install)."""
-import importlib.util
 import os
 from pathlib import Path
 
 import pytest
 
 from ibvs_bringup import ros2run
+from script_module import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 PACKAGES = ('ibvs_common', 'ibvs_control', 'ibvs_perception', 'ibvs_sim', 'ibvs_bringup')
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location('ament_layout',
-                                                  ROOT / 'scripts' / 'ament_layout.py')
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def load_ament_layout():
+    return load_script(ROOT / 'scripts' / 'ament_layout.py', 'ament_layout')
 
 
 @pytest.fixture()
 def prefix(tmp_path):
     """A venv-like prefix: bin/<exe> for every console script, share/ in the OLD layout."""
-    layout = load_script()
+    layout = load_ament_layout()
     bin_dir = tmp_path / 'bin'
     bin_dir.mkdir()
     for package in PACKAGES:
@@ -42,7 +38,7 @@ def walked_files(root: Path) -> set:
 
 
 def test_layout_as_the_ros2_cli_reads_it(prefix, monkeypatch):
-    layout = load_script()
+    layout = load_ament_layout()
     assert layout.main(['--prefix', str(prefix)]
                        + [str(ROOT / 'ros2_ws/src' / p) for p in PACKAGES]) == 0
     index = prefix / 'share/ament_index/resource_index/packages'
@@ -64,7 +60,7 @@ def test_layout_as_the_ros2_cli_reads_it(prefix, monkeypatch):
 
 
 def test_layout_is_idempotent_and_prunes_stale_links(prefix):
-    layout = load_script()
+    layout = load_ament_layout()
     bringup = ROOT / 'ros2_ws/src/ibvs_bringup'
     first = layout.install_layout(prefix, bringup)
     stale = prefix / 'share/ibvs_bringup/config/removed.yaml'
@@ -74,7 +70,7 @@ def test_layout_is_idempotent_and_prunes_stale_links(prefix):
 
 
 def test_a_package_that_is_not_installed_is_a_clear_error(prefix, tmp_path, capsys):
-    layout = load_script()
+    layout = load_ament_layout()
     fake = tmp_path / 'src' / 'not_installed_pkg'
     fake.mkdir(parents=True)
     (fake / 'package.xml').write_text('<package format="3"><name>not_installed_pkg</name>'

@@ -1,19 +1,16 @@
 """benchmarks/callback_cpu.py: what a wrapped callback counts, and the split by mode."""
-import importlib.util
 import inspect
 from pathlib import Path
 import time
 
 import pytest
+from script_module import load_script
 
 LAUNCHER = Path(__file__).resolve().parents[2] / 'benchmarks' / 'callback_cpu.py'
 
 
 def load():
-    spec = importlib.util.spec_from_file_location('callback_cpu', LAUNCHER)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(LAUNCHER, 'callback_cpu')
 
 
 def test_a_wrapped_callback_counts_its_thread_cpu_not_its_sleep():

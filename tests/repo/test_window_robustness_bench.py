@@ -6,9 +6,7 @@ the tests and the documented table use the same frames): a dim room beyond the w
 dark as the band), a bright object across one side of the aperture, dark and light posts
 beyond the aperture, a high-contrast light-mortar brick wall, noise, motion blur, gain 0.3.
 """
-import importlib.util
 from pathlib import Path
-import sys
 
 import cv2
 import numpy as np
@@ -20,6 +18,7 @@ from ibvs_perception.core.window import (Reject, WindowDetector, WindowDetectorC
                                          WindowStatus)
 from ibvs_sim.core.render import SceneRenderer
 from ibvs_sim.core.world import load_world
+from script_module import load_script
 
 BENCH = Path(__file__).resolve().parents[2] / 'benchmarks' / 'bench_window_robustness.py'
 N_POSES = 15
@@ -27,11 +26,7 @@ WRONG_PX = 2.0
 
 
 def _bench():
-    spec = importlib.util.spec_from_file_location('bench_window_robustness', BENCH)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script(BENCH, 'bench_window_robustness')
 
 
 bench = _bench()
