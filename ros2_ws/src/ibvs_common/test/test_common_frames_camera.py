@@ -180,6 +180,22 @@ def test_principal_point_is_optical_axis_and_behind_is_invalid():
     assert list(ok) == [False, True, False] and np.all(np.isnan(uv[0]))
 
 
+def test_border_margin_is_the_closest_points_distance_to_the_image_edge():
+    """Pinhole (no distortion): a bearing aimed at pixel (u, v) keeps min(u + 0.5, ...) px."""
+    cam = CameraModel.from_camera_info(752, 480, SPEC_K, [], 'plumb_bob')
+    fx, cx, cy = SPEC_K[0], SPEC_K[2], SPEC_K[5]
+
+    def aimed_at(u, v):
+        return [(u - cx) / fx, (v - cy) / fx, 1.0]
+
+    assert cam.border_margin_px([aimed_at(375.5, 239.5)]) == pytest.approx(239.5 + 0.5)
+    assert cam.border_margin_px([aimed_at(375.5, 239.5), aimed_at(700.0, 100.0)]) == \
+        pytest.approx(751.5 - 700.0)
+    assert cam.border_margin_px([aimed_at(375.5, -10.0)]) == pytest.approx(-9.5)   # outside
+    assert cam.border_margin_px([[0.0, 0.0, -1.0]]) == -np.inf                        # behind
+    assert cam.border_margin_px(np.zeros((0, 3))) == -np.inf
+
+
 @pytest.mark.parametrize('kw', [
     dict(width=0), dict(k=[0] * 9), dict(k=[1.0] * 8), dict(d=[np.nan, 0, 0, 0, 0]),
     dict(distortion_model='fancy'), dict(distortion_model='equidistant'),

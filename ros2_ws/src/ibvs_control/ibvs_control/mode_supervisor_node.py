@@ -70,6 +70,7 @@ class ModeSupervisorNode(Node):
         self._core = ModeSupervisor(config)
         self._R_BC = {name: vehicle.cameras[name].R_BC for name in ('front', 'down')}
         self._t_BC = {name: vehicle.cameras[name].t_BC for name in ('front', 'down')}
+        self._front_model = vehicle.cameras['front'].model    # the corners' image border margin
         self._attitudes = AttitudeBuffer(cfg.imu)
         self._late_imu = LateImuReport(self.log, LOG_THROTTLE_S)
         # frames of the current mode's camera wait for the products that mode needs
@@ -269,7 +270,10 @@ class ModeSupervisorNode(Node):
         if kind == InputKind.WINDOW:
             ok, corners_I = self._to_I(value, stamp_ns, 'front')
             if ok:
-                self._core.on_window(t, corners_I)
+                # only WINDOW judges a loss: the margin is computed there only
+                margin = self._front_model.border_margin_px(value) \
+                    if corners_I is not None and self._core.mode == Mode.WINDOW else None
+                self._core.on_window(t, corners_I, margin)
         elif kind == InputKind.PAD:
             landmarks_C, groups, weights = unpack_pad(value)
             groups = groups or ()

@@ -136,6 +136,21 @@ def test_distance_to_window_plane_and_pad_height():
             assert ft.pad_height_estimate(p, g.c) == pytest.approx(h, rel=1e-9)
 
 
+def test_window_centre_offset_is_the_centre_off_the_axis_in_the_wall_plane():
+    """From the window's geometry: its centre minus the camera, without the part along the
+    wall normal (the image alone says how far off the axis the camera is)."""
+    eta = np.array([1.0, 0, 0])
+    centre = WORLD.window.center_I
+    for _ in range(10):
+        xi = random_approach_position()
+        offset = ft.window_centre_offset(bearings(CORNERS, xi), eta, WORLD.window.width)
+        expected = (centre - xi) - ((centre - xi) @ eta) * eta
+        assert offset == pytest.approx(expected, abs=1e-9)
+    xi = np.array([-1.5, 0.3, -1.4])                  # 0.3 m left, 0.2 m low: sign and size
+    assert ft.window_centre_offset(bearings(CORNERS, xi), eta, WORLD.window.width) == \
+        pytest.approx([0.0, -0.3, -0.2], abs=1e-9)
+
+
 def test_pad_height_is_exact_off_the_pad_centre():
     """The height from the group's known size, not from how far below the group looks.
 

@@ -92,6 +92,44 @@ def test_a_window_lost_up_close_is_a_crossing_and_no_note():
     assert sup.mode == Mode.CROSSING and sup.window_loss_note == ''
 
 
+def lost_after(xi, margin_px, offset_known=True):
+    """The mode after one frame of the window seen from xi (its corners margin_px from the
+    image border) and the next frame without it."""
+    sup = started(xi)
+    v = np.array([0.3, 0, 0])
+    sup.on_imu(0.02, R)
+    sup.on_window(0.02, bearings(CORNERS, xi), margin_px)
+    sup.end_frame(0.02)
+    feed(sup, 0.04, xi, v, window=False)
+    return sup
+
+
+def angular_height(xi):
+    """The window's angular height from xi on its axis (geometry, not the supervisor's)."""
+    return 2.0 * np.arctan(0.5 * WORLD.window.height / (WORLD.wall_x - xi[0]))
+
+
+def test_a_window_that_left_the_image_early_near_its_axis_is_a_crossing():
+    """Between 0.72 and 0.85 rad a loss counts when the corners were at the image border and
+    the window centre lay within 0.4 m of the camera's axis through it (the PX4 SIH case: the
+    vehicle 0.2 m low lost the window's top edge at 0.83 rad)."""
+    xi = np.array([-1.65, 0.1, -1.4])      # 1.15 m from the wall, 0.2 m low, 0.1 m aside
+    assert 0.72 < angular_height(xi) < 0.85
+    assert lost_after(xi, 30.0).mode == Mode.CROSSING
+
+
+@pytest.mark.parametrize('xi, margin_px, why', [
+    ((-1.65, 0.1, -1.4), 100.0, 'margin 100 px'),       # lost in the middle of the image
+    ((-1.65, 0.1, -1.4), None, 'margin unknown'),        # no camera model: the old rule
+    ((-1.65, 0.45, -1.4), 30.0, 'margin 30 px'),        # 0.49 m off the axis: no crossing
+    ((-1.90, 0.0, -1.6), 30.0, 'margin 30 px'),         # 0.71 rad: too far
+])
+def test_a_window_lost_early_is_no_crossing_in_the_middle_off_axis_or_far(xi, margin_px, why):
+    sup = lost_after(np.array(xi), margin_px)
+    assert sup.mode == Mode.WINDOW
+    assert 'while not close' in sup.window_loss_note and why in sup.window_loss_note
+
+
 def fly_through_the_window(sup, floor_flow_in_window=True):
     """Approach at 0.25 m/s until the window is lost up close, cross until LANDING.
 

@@ -147,6 +147,9 @@ class CampaignConfig:
     # feature level: (front, down) each flow measured on every Nth frame, held between (the
     # graph shedding that flow's work); (1, 1) = every frame
     flow_strides: tuple = (1, 1)
+    # feature level: m/s^2, std per body axis (FRD) of one accelerometer sample (PX4 SIH's:
+    # 0.28 0.95 0.80); the frame mean the observer reads has std / sqrt(samples per frame)
+    accel_noise_std: tuple = (0.0, 0.0, 0.0)
     sensors: str = 'ideal'            # sensor_errors.PROFILES: each run draws its errors
     #: image level: the autopilot, 'sim' (the emulation) or a real firmware in lockstep ('px4',
     #: 'ardupilot'; worker w flies instance FIRMWARE_INSTANCE_BASE[autopilot] + w)
@@ -176,6 +179,8 @@ class CampaignConfig:
                 **({'command_delay_s': self.command_delay_s} if self.command_delay_s else {}),
                 **({'flow_strides': list(self.flow_strides)}
                    if tuple(self.flow_strides) != (1, 1) else {}),
+                **({'accel_noise_std': list(self.accel_noise_std)}
+                   if any(self.accel_noise_std) else {}),
                 **({'sensors': self.sensors} if self.sensors != 'ideal' else {}),
                 **({'autopilot': self.autopilot} if self.autopilot != 'sim' else {}),
                 **({'sensor_overrides': [list(o) for o in self.sensor_overrides]}
@@ -330,7 +335,8 @@ def fly_run(cfg: CampaignConfig, spec: RunSpec) -> dict | None:
         attitude_noise_std=noise_std, attitude_noise_tau_s=noise_tau,
         seed=spec.gust_seed, camera_dt=feature_camera_dt(errors.camera_rate_hz),
         command_delay_s=cfg.command_delay_s + errors.latency_s,
-        flow_stride_front=cfg.flow_strides[0], flow_stride_down=cfg.flow_strides[1])
+        flow_stride_front=cfg.flow_strides[0], flow_stride_down=cfg.flow_strides[1],
+        accel_noise_std_B=tuple(cfg.accel_noise_std))
     t0 = time.monotonic()
     summary, flog = feature_sim.run_feature_scenario(setup.world, setup.pad, true_vehicle,
                                                      controller, setup.supervisor, sim_cfg,
@@ -713,6 +719,11 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                    metavar=('FRONT', 'DOWN'),
                    help='feature level: each flow measured on every Nth frame and held on the '
                    'others (the graph shedding that flow on a slow computer)')
+    p.add_argument('--accel-noise', type=float, nargs=3, default=(0.0, 0.0, 0.0),
+                   metavar=('X', 'Y', 'Z'),
+                   help='feature level: m/s^2, std per body axis (FRD) of one accelerometer '
+                        "sample at 100 Hz, white (PX4 SIH's as the bridge receives it: 0.28 "
+                        '0.95 0.80); the observer reads the frame mean')
     p.add_argument('--sensors', default='ideal', choices=('ideal', 'realistic'),
                    help="each run draws its camera errors: 'realistic' = latency 15-40 ms, "
                         'mounts within 1 deg, focal 0.5 %%, principal point 2 px, lever arms '
@@ -771,6 +782,11 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
         p.error('law labels must be unique')
     if min(a.flow_strides) < 1:
         p.error('--flow-strides must be >= 1')
+    if not all(math.isfinite(x) and x >= 0.0 for x in a.accel_noise):
+        p.error('--accel-noise: each std finite and >= 0')
+    if a.image_level and any(a.accel_noise):
+        p.error("--accel-noise is a feature-level model: the image level's IMU is the sim's "
+                "autopilot's (or the firmware's)")
     if a.image_level and tuple(a.flow_strides) != (1, 1):
         p.error('--flow-strides is a feature-level model: the image level flies the graph')
     if a.autopilot != 'sim' and not a.image_level:
@@ -794,6 +810,7 @@ def parse_args(argv: list | None = None) -> tuple[CampaignConfig, int, bool, boo
                          run_timeout_s=a.run_timeout, camera_rate_hz=a.camera_rate,
                          command_delay_s=a.command_delay / 1e3,
                          flow_strides=tuple(a.flow_strides), sensors=a.sensors,
+                         accel_noise_std=tuple(a.accel_noise),
                          autopilot=a.autopilot,
                          sensor_overrides=checked_sensor_overrides(p, a.sensor_set))
     return cfg, a.workers, not a.no_plots, a.aggregate_only, a.max_wall

@@ -85,6 +85,12 @@ class FeatureSimConfig:
     flow_stride_front: int = 1
     flow_stride_down: int = 1
     bearing_noise_rad: float = 0.0     # white noise on each bearing
+    # m/s^2, std per body axis (FRD) of one accelerometer sample, white between samples (PX4
+    # SIH's as the bridge receives it: 0.28 0.95 0.80, docs/sim_autopilot.md "How it differs
+    # from real PX4"); the graph averages imu_rate_hz * camera_dt samples a frame (the frame
+    # mean's std is std / sqrt(n))
+    accel_noise_std_B: tuple = (0.0, 0.0, 0.0)
+    imu_rate_hz: float = 100.0         # Hz, the accelerometer samples the graph receives
     seed: int = 0
 
 
@@ -268,6 +274,24 @@ def estimate_error_model(config: FeatureSimConfig) -> Callable[[float], np.ndarr
         attitude_estimate_offset_rad=(roll, pitch), noise_seed=int(config.seed))).attitude_error
 
 
+def accel_noise_model(config: FeatureSimConfig) -> Callable[[np.ndarray], np.ndarray]:
+    """Return R_est -> the frame mean's accelerometer noise in {I} (m/s^2).
+
+    One draw per frame: each body axis's std over sqrt(the samples a frame averages), put into
+    {I} with the attitude estimate R_est (as the graph puts the IMU's specific force). Its own
+    random stream (seed, 3): runs without accelerometer noise draw exactly as before.
+    """
+    std_B = np.asarray(config.accel_noise_std_B, dtype=float).reshape(3)
+    if np.any(std_B < 0.0) or not np.all(np.isfinite(std_B)) or not config.imu_rate_hz > 0.0:
+        raise ValueError(f'accelerometer noise std >= 0 and IMU rate > 0, got {std_B}, '
+                         f'{config.imu_rate_hz}')
+    if not np.any(std_B > 0.0):
+        return lambda R_est: np.zeros(3)
+    n = max(1.0, config.imu_rate_hz * config.camera_dt)
+    rng = np.random.default_rng([int(config.seed), 3])
+    return lambda R_est: R_est @ (rng.standard_normal(3) * std_B / np.sqrt(n))
+
+
 def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleConfig,
                          controller_config: ControllerConfig,
                          supervisor_config: SupervisorConfig,
@@ -297,6 +321,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     n_sub = int(round(config.camera_dt / config.physics_dt))
     R_BC_front, R_BC_down = onboard.cameras['front'].R_BC, onboard.cameras['down'].R_BC
     t_BC = {cam: onboard.cameras[cam].t_BC for cam in ('front', 'down')}
+    front_model = onboard.cameras['front'].model     # the supervisor's image border margin
     wind = Wind(config.wind or WindConfig())
     wind_accel_steady = np.asarray(config.wind_accel_I, dtype=float).reshape(3)
     f_I_mean = None             # no IMU specific force before the first frame's physics
@@ -308,6 +333,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
     if min(config.flow_stride_front, config.flow_stride_down) < 1:
         raise ValueError('flow strides must be >= 1')
     held = {'front': None, 'down': None}    # the last measured flows ({I}), shed frames reuse
+    accel_noise = accel_noise_model(config)
     frame = 0
     while t <= config.max_time_s:
         R_err = estimate_error(t)
@@ -330,7 +356,8 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
         supervisor.on_imu(t, R_est)
         supervisor.on_window(t, None if win_C is None else camera_bearings_from_body(
             'front', bearings_C_to_I(win_C, R_est, R_BC_front), R_est @ t_BC['front'],
-            supervisor_config.r_w, supervisor_config.group_half_sides))
+            supervisor_config.r_w, supervisor_config.group_half_sides),
+            None if win_C is None else front_model.border_margin_px(win_C))
         supervisor.on_pad(t, None if pad_C is None else camera_bearings_from_body(
             'down', bearings_C_to_I(pad_C, R_est, R_BC_down), R_est @ t_BC['down'],
             supervisor_config.r_w, supervisor_config.group_half_sides, tuple(groups)), groups)
@@ -388,7 +415,7 @@ def run_feature_scenario(world: WorldConfig, pad: PadLayout, vehicle: VehicleCon
                 break
         if done:
             break
-        f_I_mean = f_I_sum / n_sub
+        f_I_mean = f_I_sum / n_sub + accel_noise(R if R_err is None else R @ R_err)
     modes = [(int(tr.to_mode), tr.t) for tr in supervisor.transitions]
     log.transitions = [(int(tr.to_mode), float(tr.t), tr.reason)
                        for tr in supervisor.transitions]

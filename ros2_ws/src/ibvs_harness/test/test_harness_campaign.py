@@ -439,3 +439,29 @@ def test_firmware_campaign_options_give_each_worker_its_own_instance(monkeypatch
                 ['--image-level', '--autopilot', 'ardupilot', '--workers', '5']):
         with pytest.raises(SystemExit):
             campaign.parse_args(bad)
+
+
+def test_accel_noise_reaches_the_feature_sim_and_is_refused_at_image_level(tmp_path,
+                                                                           monkeypatch):
+    """--accel-noise X Y Z (m/s^2 per sample, body FRD): in the manifest and the sim's config."""
+    from ibvs_harness import feature_sim
+    cfg, *_ = campaign.parse_args(['--name', 'acc', '--runs', '1', '--levels', '0',
+                                   '--accel-noise', '0.28', '0.95', '0.80',
+                                   '--results-root', str(tmp_path)])
+    assert cfg.model('x')['accel_noise_std'] == [0.28, 0.95, 0.80]
+    assert 'accel_noise_std' not in CampaignConfig(name='old').model('x')   # old ones resume
+    seen = []
+    flown = feature_sim.run_feature_scenario
+
+    def spy(*args, **kwargs):
+        seen.append(args[5].accel_noise_std_B)
+        return flown(*args, **kwargs)
+
+    monkeypatch.setattr(feature_sim, 'run_feature_scenario', spy)
+    run_campaign(cfg, workers=1, progress=None)
+    assert seen == [(0.28, 0.95, 0.80)]
+    for bad in (['--accel-noise', '-1', '0', '0'],
+                ['--accel-noise', '0.3', '0.3', '0.3', '--image-level']):
+        with pytest.raises(SystemExit) as e:
+            campaign.parse_args(bad)
+        assert e.value.code == 2

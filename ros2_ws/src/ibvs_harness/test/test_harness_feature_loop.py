@@ -185,3 +185,21 @@ def test_feature_level_inner_loop_is_the_plant_model_without_rotors(params):
     assert first_order.delay_s == 0.0
     R1, _ = first_order.step(np.eye(3), np.zeros(3), R_d, 0.05)
     assert euler_zyx_from_rot(R1)[0] == pytest.approx(step)       # dt / tau = 1: there
+
+
+def test_accelerometer_noise_is_the_frame_mean_of_white_samples_put_into_I():
+    """std per sample / sqrt(samples a frame), per body axis, rotated by the estimate; none by
+    default (the runs without it draw exactly as before)."""
+    from ibvs_harness.feature_sim import accel_noise_model
+    start = np.array([-2.0, 0.1, -1.82])
+    assert not np.any(accel_noise_model(FeatureSimConfig(initial_position_I=start))(np.eye(3)))
+    cfg = FeatureSimConfig(initial_position_I=start, accel_noise_std_B=(0.3, 0.0, 0.8),
+                           imu_rate_hz=200.0, camera_dt=0.02)        # 4 samples a frame
+    noise = accel_noise_model(cfg)
+    R = rot_from_euler_zyx(0.0, 0.0, 0.5 * np.pi)    # yaw 90 deg: body x is {I} y
+    draws = np.array([noise(R) for _ in range(20000)])
+    assert draws.std(axis=0) == pytest.approx([0.0, 0.15, 0.4], abs=0.01)
+    assert abs(draws.mean(axis=0)).max() < 0.01
+    with pytest.raises(ValueError):
+        accel_noise_model(FeatureSimConfig(initial_position_I=start,
+                                           accel_noise_std_B=(-0.1, 0.0, 0.0)))

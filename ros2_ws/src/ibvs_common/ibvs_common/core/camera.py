@@ -9,6 +9,7 @@ convention: (u, v) with (0, 0) the centre of the top-left pixel.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 
 import cv2
 import numpy as np
@@ -116,6 +117,20 @@ class CameraModel:
         inside = front & (uv[:, 0] >= -0.5) & (uv[:, 0] <= self.width - 0.5) \
             & (uv[:, 1] >= -0.5) & (uv[:, 1] <= self.height - 0.5)
         return uv, inside
+
+    def border_margin_px(self, bearings_C: np.ndarray) -> float:
+        """Return how far (px) the projected points keep from the image border, the closest one.
+
+        The pixel grid spans -0.5 ... width - 0.5 (and height); the margin of a pixel (u, v)
+        is min(u + 0.5, width - 0.5 - u, v + 0.5, height - 0.5 - v): negative outside the
+        image, -inf for a point behind the lens or no point at all.
+        """
+        uv, _ = self.bearings_to_pixels(bearings_C)
+        if len(uv) == 0 or not np.all(np.isfinite(uv)):
+            return -math.inf
+        u, v = uv[:, 0], uv[:, 1]
+        return float(min(np.min(u + 0.5), np.min(self.width - 0.5 - u),
+                         np.min(v + 0.5), np.min(self.height - 0.5 - v)))
 
     def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
         """Normalised perspective coordinates (x/z, y/z), (N, 2) -> distorted pixels (N, 2).

@@ -154,6 +154,21 @@ def distance_to_window_plane(corner_bearings_I: np.ndarray, eta_w: np.ndarray,
     return float(r_w / width)
 
 
+def window_centre_offset(corner_bearings_I: np.ndarray, eta_w: np.ndarray,
+                         r_w: float) -> np.ndarray:
+    """Return the window centre's offset (m, {I}) from the camera, in the window plane.
+
+    With the corners at P_i = d_o s_i, s_i = p_i / (eta^T p_i) and d_o from
+    :func:`distance_to_window_plane`, the centre (the mean of a rectangle's corners) is
+    d_o mean(s_i), and its part orthogonal to eta is d_o (mean(s_i) - eta) (eta^T s_i = 1):
+    how far off the window's axis the camera is, as the image tells (no position estimate).
+    """
+    p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
+    eta = np.asarray(eta_w, dtype=float).reshape(3)
+    s = p / (p @ eta)[:, None]
+    return distance_to_window_plane(p, eta, r_w) * (s.mean(axis=0) - eta)
+
+
 @dataclass(frozen=True)
 class WindowFeatures:
     """The window features of section 3.2, all in {I}."""

@@ -4,10 +4,14 @@ Transitions and their image cues (no position or velocity estimate is used):
 
 - 0 -> 1  ``start``: accepted when the full window is detected and the IMU is fresh.
 - 1 -> 2  the forward camera no longer sees the full window, or the corners jump in a way
-          incompatible with smooth motion, while the window was seen close (its angular height
-          above ``crossing_min_angular_height_rad``). A loss far from the window is not a
+          incompatible with smooth motion, while the window was seen close: its angular height
+          at least ``crossing_min_angular_height_rad``, or at least
+          ``crossing_border_angular_height_rad`` with the last corners within
+          ``crossing_border_margin_px`` of the image border (the window left the view early:
+          the vehicle off the window's axis or tilted). A loss far from the window is not a
           crossing: it ends in failsafe after ``window_timeout_s`` (``window_loss_note`` says
-          so once per loss, with the last corners' angular height, for the node's log).
+          so once per loss, with the last corners' angular height and border margin, for the
+          node's log).
 - 2 -> 3  only once, when the down camera sees a complete pad group AFTER the window plane is
           crossed by ``crossing_margin_m``. The crossing length is measured from images only:
           d_o(T2) from the last corners and the known width r_w, the height d_t(T2) from the
@@ -46,7 +50,7 @@ import numpy as np
 from ibvs_common.core.params import param
 from ibvs_common.core.features import (
     centroid_feature, distance_to_window_plane, edge_normals, pad_feature,
-    pad_height_estimate, window_axes, window_normal)
+    pad_height_estimate, window_axes, window_centre_offset, window_normal)
 from ibvs_common.core.frames import e3
 from ibvs_common.core.modes import FLYING_MODES, InputKind, Mode
 from ibvs_control.core.pad_prediction import PadPrediction
@@ -76,6 +80,22 @@ class SupervisorConfig:
     crossing_min_angular_height_rad: float = param(
         0.85, 'rad, window lost while its angular height is this big -> mode 2 (crossing), > 0',
         0.0)
+    crossing_border_angular_height_rad: float = param(
+        0.72, 'rad: a window lost while its last corners lay within crossing_border_margin_px '
+        'of the image border (it left the view: an offset or a tilt takes it out before '
+        'crossing_min_angular_height_rad) and its angular height was this big -> mode 2 too; '
+        'above the largest at a start in the spec box (0.70); >= '
+        'crossing_min_angular_height_rad = off, > 0', 0.0)
+    crossing_border_margin_px: float = param(
+        60.0, 'px: the last corners this close to the image border (the closest one) count as '
+        'leaving the view (the detector drops the window when its dark band reaches the '
+        'border: 17-52 px at the losses measured; a centred window at 0.85 rad keeps ~74 px), '
+        '> 0', 0.0)
+    crossing_border_max_offset_m: float = param(
+        0.4, 'm: ... and only while the window centre lay at most this far off the camera\'s '
+        'axis through the window (in its plane, from the last corners and r_w): further off, '
+        'a blind crossing hits the frame as often as not (feature-level campaign at 1 m/s^2 '
+        'of wind), > 0', 0.0)
     window_jump_rad: float = param(
         0.1, 'rad, a corner jump this big between frames = window lost, > 0', 0.0)
     window_jump_max_gap_frames: float = param(
@@ -176,6 +196,7 @@ class ModeSupervisor:
         self._corners: np.ndarray | None = None         # last full-window corners, {I}
         self._window_close = False
         self._window_angular_height: float | None = None    # of the last accepted corners
+        self._window_border_margin_px: float | None = None  # theirs in the image (None: unknown)
         self._window_loss_noted = False                 # this loss of the window was noted
         # a loss of the window in WINDOW while it was not close (no crossing), for the log:
         # the node logs and clears it (once per loss)
@@ -281,8 +302,14 @@ class ModeSupervisor:
         """Note a valid IMU sample at t (its attitude R_IB is not needed: only its age is)."""
         self._last['imu'] = t
 
-    def on_window(self, t: float, corner_bearings_I: np.ndarray | None) -> None:
-        """Full-window corners in {I} (TL, TR, BR, BL), or None when not fully detected."""
+    def on_window(self, t: float, corner_bearings_I: np.ndarray | None,
+                  border_margin_px: float | None = None) -> None:
+        """Full-window corners in {I} (TL, TR, BR, BL), or None when not fully detected.
+
+        ``border_margin_px``: how far the corners lie from the image border, the closest one
+        (``CameraModel.border_margin_px`` of the camera-frame corners; None: not known, a loss
+        then counts as a crossing only at ``crossing_min_angular_height_rad``).
+        """
         cfg = self.config
         if corner_bearings_I is not None:
             p = np.asarray(corner_bearings_I, dtype=float).reshape(4, 3)
@@ -295,8 +322,7 @@ class ModeSupervisor:
                 self._corners = p
                 self._last['window'] = t
                 self._window_angular_height = _angular_height(p)
-                self._window_close = \
-                    self._window_angular_height >= cfg.crossing_min_angular_height_rad
+                self._window_border_margin_px = border_margin_px
                 self._window_loss_noted = False
                 try:
                     h = edge_normals(p)
@@ -304,6 +330,7 @@ class ModeSupervisor:
                     self._eta_w = window_normal(u_w, rho_w, centroid_feature(p), self._eta_w)
                 except ValueError:
                     pass
+                self._window_close = self._close_enough(p, border_margin_px)
                 return
             reason = 'window corners jumped (incompatible with smooth motion)'
         else:
@@ -314,10 +341,29 @@ class ModeSupervisor:
             self._window_loss_noted = True
             height = 'none' if self._window_angular_height is None \
                 else f'{self._window_angular_height:.3f} rad'
+            margin = 'unknown' if self._window_border_margin_px is None \
+                else f'{self._window_border_margin_px:.0f} px'
             self.window_loss_note = (
                 f'{reason} at t = {t:.3f} s while not close: the last accepted corners\' '
-                f'angular height {height} < {cfg.crossing_min_angular_height_rad:g} rad, so no '
+                f'angular height {height} < {cfg.crossing_min_angular_height_rad:g} rad '
+                f'(or < {cfg.crossing_border_angular_height_rad:g} rad at the image border: '
+                f'their margin {margin}, border <= {cfg.crossing_border_margin_px:g} px), so no '
                 f'crossing (stale after {cfg.window_timeout_s:g} s unless it comes back)')
+
+    def _close_enough(self, corners_I: np.ndarray, border_margin_px: float | None) -> bool:
+        """Whether a loss of the window after these corners would be a crossing (1 -> 2)."""
+        cfg = self.config
+        height = self._window_angular_height
+        if height >= cfg.crossing_min_angular_height_rad:
+            return True
+        if height < cfg.crossing_border_angular_height_rad or border_margin_px is None \
+                or border_margin_px > cfg.crossing_border_margin_px or self._eta_w is None:
+            return False
+        try:       # at the border: near enough to the window's axis for a blind crossing?
+            offset = window_centre_offset(corners_I, self._eta_w, cfg.r_w)
+        except (ValueError, ZeroDivisionError, FloatingPointError):
+            return False
+        return bool(np.linalg.norm(offset) <= cfg.crossing_border_max_offset_m)
 
     def on_pad(self, t: float, landmark_bearings_I: np.ndarray | None,
                groups: list[str], weights: tuple | None = None) -> None:
