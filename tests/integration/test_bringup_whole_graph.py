@@ -527,8 +527,8 @@ def test_late_cameras_30_ms_with_5_ms_jitter_started_from_the_radio(tmp_path):
 
     In lockstep the sim publishes each frame when sim time reaches its delivery and waits for
     the graph then, so the controller is 30 ms late in the simulated world, physics running on
-    meanwhile. Measured 2026-12-03: modes at 1.0, 3.64, 7.10, 12.62 s, clearance 0.0960 m,
-    landing error 0.034 m (the reference: 7.12, 12.64 s, 0.0961 m, 0.036 m).
+    meanwhile. Measured 2026-12-05: modes at 1.0, 3.76, 7.18, 12.78 s, clearance 0.0892 m,
+    landing error 0.034 m (the reference: 7.20, 12.78 s, 0.0885 m, 0.038 m).
     """
     summary = run_scenario(tmp_path, 'late-cameras', '--camera-latency', '30',
                            '--camera-jitter', '5', '--pilot-switch', '--no-bag', '--no-plots')
@@ -553,8 +553,8 @@ def test_late_cameras_30_ms_with_5_ms_jitter_started_from_the_radio(tmp_path):
 def test_cameras_at_30_hz(tmp_path):
     """Both cameras at 30 Hz (stamps on the 2 ms grid, 34 / 32 ms apart), the graph told so.
 
-    Measured 2026-12-03: modes at 1.0, 3.634, 7.134, 13.0 s, clearance 0.0900 m, landing
-    error 0.035 m, 451 frames in 15.0 s of sim time.
+    Measured 2026-12-05: modes at 1.0, 3.766, 7.20, 12.734 s, clearance 0.0923 m, landing
+    error 0.037 m, 461 frames in 15.3 s of sim time.
     """
     summary = run_scenario(tmp_path, 'cameras-30hz', '--camera-rate', '30', '--no-bag',
                            '--no-plots')

@@ -43,6 +43,15 @@ def _fault_window(values: list, name: str) -> tuple[float, float]:
     return fault_windows(f'parameter {name}', values)[0]
 
 
+def _accel_noise(values: list) -> tuple[float, float, float]:
+    """Return the accelerometer noise std per body axis (m/s^2), each finite in [0, 5]."""
+    std = tuple(float(v) for v in values)
+    if len(std) != 3 or not all(math.isfinite(v) and 0.0 <= v <= 5.0 for v in std):
+        raise ValueError('parameter accel_noise_std_mps2 needs 3 stds (m/s^2, FRD x, y, z), '
+                         f'each in [0, 5], got {list(values)}')
+    return std
+
+
 FIRMWARES = ('', 'px4', 'ardupilot')      # SimNodeConfig.firmware
 
 
@@ -129,6 +138,10 @@ class SimNodeConfig:
         0.0, 0.1)
     attitude_noise_tau_s: float = param(
         2.0, 's (sim time), correlation time of that error; 0 = white', 0.0, 600.0)
+    accel_noise_std_mps2: list = param(
+        [0.28, 0.95, 0.80], "m/s^2, std per body axis (FRD x, y, z) of the white noise on each "
+        "HIGHRES_IMU accelerometer sample: PX4 SIH's as the bridge receives it (SIH's 0.5, 1.7, "
+        "1.4 through PX4's IMU filter; the sim had 0.05 before 2026-12-05), each within [0, 5]")
     fault_front_camera_off_s: list = param([0.0, 0.0], 'no front images in' + _FAULTS)
     fault_down_camera_off_s: list = param([0.0, 0.0], 'no down images in' + _FAULTS)
     fault_front_camera_freeze_s: list = param(
@@ -277,6 +290,7 @@ class SimNodeConfig:
                 float(x) for x in self.attitude_estimate_offset_rad),
             attitude_noise_std=float(self.attitude_noise_std_rad),
             attitude_noise_tau_s=float(self.attitude_noise_tau_s),
+            accel_noise_std=_accel_noise(self.accel_noise_std_mps2),
             radio=radio)
 
     def radio(self) -> PilotSwitchRadio | None:

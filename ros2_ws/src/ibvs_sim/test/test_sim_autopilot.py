@@ -535,6 +535,24 @@ def test_attitude_error_is_gauss_markov_with_the_configured_std(std, tau):
         ap.close()
 
 
+def test_accelerometer_noise_has_its_std_per_body_axis():
+    """accel_noise_std per FRD axis (PX4 SIH's 0.28 / 0.95 / 0.80 by the sim node's default)."""
+    r = make_rig(state_fn=lambda t: hover_state(t), accel_noise_std=(0.28, 0.95, 0.80))
+    try:
+        r.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_HIGHRES_IMU, 4000)
+        imu = []
+        for i in range(3000):
+            r.poll(0.001)
+            if i % 10 == 0:
+                imu += [m for m in r.drain() if m.get_type() == 'HIGHRES_IMU']
+        acc = np.array([[m.xacc, m.yacc, m.zacc] for m in imu])
+        assert len(acc) > 600
+        np.testing.assert_allclose(acc.std(axis=0), [0.28, 0.95, 0.80], rtol=0.12)
+        np.testing.assert_allclose(acc.mean(axis=0), [0.0, 0.0, -9.80665], atol=0.12)
+    finally:
+        r.close()
+
+
 def test_a_bad_attitude_noise_setting_is_refused():
     """A negative, NaN or implausible (> 5.7 deg) std, or a negative time constant: ValueError."""
     for bad in (-0.01, np.nan, 0.2):

@@ -341,3 +341,14 @@ def test_the_node_parameters_make_each_cameras_timing_with_the_true_offsets(conf
             SimNodeConfig(**bad)
     with pytest.raises(ValueError, match='exposure'):
         SimNodeConfig(camera_exposure_s=0.05).camera_timing(vehicle)
+
+
+def test_the_accelerometer_noise_parameter_reaches_the_autopilot_and_is_checked(configs):
+    """accel_noise_std_mps2: 3 stds (FRD), PX4 SIH's by default; a wrong one is refused."""
+    vehicle = configs[2]
+    assert SimNodeConfig().autopilot_config(vehicle, 0.0).accel_noise_std == (0.28, 0.95, 0.80)
+    cfg = SimNodeConfig(accel_noise_std_mps2=[0.0, 0.1, 0.2])
+    assert cfg.autopilot_config(vehicle, 0.0).accel_noise_std == (0.0, 0.1, 0.2)
+    for bad in ([0.1, 0.1], [0.1, -0.1, 0.1], [0.1, float('nan'), 0.1], [0.1, 0.1, 6.0]):
+        with pytest.raises(ValueError, match='accel_noise_std_mps2'):
+            SimNodeConfig(accel_noise_std_mps2=bad).autopilot_config(vehicle, 0.0)

@@ -53,7 +53,9 @@ class AutopilotConfig:
     telemetry_max_hz: float = 250.0
     timesync_request_hz: float = 10.0       # own TIMESYNC requests, sim time (PX4: ~10 Hz)
     gyro_noise_std: float = 0.005           # rad/s, white, per axis
-    accel_noise_std: float = 0.05           # m/s^2, white, per axis
+    # m/s^2, white, per body axis (FRD x, y, z) of each HIGHRES_IMU sample (the sim node's
+    # accel_noise_std_mps2; PX4 SIH's as the bridge receives it: 0.28, 0.95, 0.80)
+    accel_noise_std: tuple = (0.05, 0.05, 0.05)
     # The estimate's error wanders (first-order Gauss-Markov per axis), it is not white from one
     # sample to the next: white noise per sample would read as spurious rotation between two
     # camera frames 20 ms apart. Fitted to PX4 v1.16 SIH's EKF2 on motion capture during a

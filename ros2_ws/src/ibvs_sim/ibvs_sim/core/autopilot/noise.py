@@ -1,18 +1,19 @@
 """Sensor noise of the sim autopilot's telemetry, a function of sim time only.
 
-Gyro (``gyro_noise_std``, rad/s) and accelerometer (``accel_noise_std``, m/s²) white Gaussian
-per axis. The attitude estimate's error is a small body rotation ``R_err``: the autopilot's
-estimate is ``R_IB R_err`` (R_IB the truth, FRD -> NED). It is a static offset
-(``attitude_estimate_offset_rad``: roll and pitch, a body rotation vector (x, y, 0), e.g. the
-tilt b/g that an accelerometer bias b leaves in an estimator levelling on it; PX4 SIH measured
-1.5-1.8 deg in one axis, docs/sim.md) composed with a first-order Gauss-Markov process per axis
-(stationary std ``attitude_noise_std`` rad, correlation time ``attitude_noise_tau_s`` s),
-advanced on a fixed sim-time grid of ``NOISE_GRID_S``: an attitude estimator's error wanders,
-white noise per message would read as spurious rotation between two camera frames. The
-autopilot both reports that estimate (ATTITUDE_QUATERNION) and flies it (its attitude loop
-drives the estimate, not the truth, to the setpoint: ``PhysicsLoop`` gives the inner loop
-``R_d R_err^T``). Every draw is keyed by (``noise_seed``, stream, sim-time index), so the noise
-does not depend on how many messages were sent before: two lockstep runs see the same noise.
+Gyro (``gyro_noise_std``, rad/s) and accelerometer (``accel_noise_std``, m/s², one std per body
+axis) white Gaussian per axis. The attitude estimate's error is a small body rotation
+``R_err``: the autopilot's estimate is ``R_IB R_err`` (R_IB the truth, FRD -> NED). It is a
+static offset (``attitude_estimate_offset_rad``: roll and pitch, a body rotation vector (x, y,
+0), e.g. the tilt b/g that an accelerometer bias b leaves in an estimator levelling on it; PX4
+SIH measured 1.5-1.8 deg in one axis, docs/sim.md) composed with a first-order Gauss-Markov
+process per axis (stationary std ``attitude_noise_std`` rad, correlation time
+``attitude_noise_tau_s`` s), advanced on a fixed sim-time grid of ``NOISE_GRID_S``: an attitude
+estimator's error wanders, white noise per message would read as spurious rotation between two
+camera frames. The autopilot both reports that estimate (ATTITUDE_QUATERNION) and flies it (its
+attitude loop drives the estimate, not the truth, to the setpoint: ``PhysicsLoop`` gives the
+inner loop ``R_d R_err^T``). Every draw is keyed by (``noise_seed``, stream, sim-time index),
+so the noise does not depend on how many messages were sent before: two lockstep runs see the
+same noise.
 """
 from __future__ import annotations
 
@@ -95,6 +96,7 @@ class SensorNoise:
         """Return (specific force m/s², rates rad/s) in FRD plus noise, as HIGHRES_IMU sends."""
         c = self.config
         rng = self.rng_at(NoiseStream.HIGHRES_IMU, int(round(t * US_PER_S)))
-        acc = np.asarray(accel_B_specific, dtype=float) + rng.normal(0.0, c.accel_noise_std, 3)
+        acc = np.asarray(accel_B_specific, dtype=float) + rng.normal(
+            0.0, np.asarray(c.accel_noise_std, dtype=float), 3)
         gyro = np.asarray(Omega_B, dtype=float) + rng.normal(0.0, c.gyro_noise_std, 3)
         return acc, gyro
