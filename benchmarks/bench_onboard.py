@@ -7,7 +7,8 @@ autopilot stand-in serving that flight's attitude at 100 Hz, and prints per case
 
 - frames answered: camera frames of the mode's camera after the start that got a
   SET_ATTITUDE_TARGET (a frame stride of 2 answers half of them by design);
-- the control rate held (answered frames per second) and the largest frame stride used;
+- the control rate held (answered frames per second), the largest frame stride used and the
+  share of the supervisor's 1 Hz reports with the flows shed (computed on every 2nd frame);
 - the latency added after the image arrived: setpoint on the wire minus the image's delivery
   (median, p99), as the targets of late cameras and a slower computer are stated;
 - the modes reached (time after the start) and the CPU of the graph (% of one core);
@@ -276,7 +277,7 @@ class Replayer:
                                                     qos_profile_sensor_data)
                       for c in ('front', 'down')}
         self.modes: list = []                     # (system ns, mode)
-        self.rates: list = []                     # (system ns, control rate, stride)
+        self.rates: list = []           # (system ns, control rate, stride, flow stride)
         self.diagnostics: dict = {}               # status name -> its newest values
         self.node.create_subscription(UInt8, 'ibvs/mode', self._on_mode, MODE_QOS)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag,
@@ -295,7 +296,7 @@ class Replayer:
             v = {kv.key: kv.value for kv in s.values}
             if s.name == SUPERVISOR_STATUS:
                 self.rates.append((time.time_ns(), float(v['control_rate_hz']),
-                                   int(v['frame_stride'])))
+                                   int(v['frame_stride']), int(v.get('flow_stride', '1'))))
             if s.name == SUPERVISOR_STATUS or s.name.endswith(STATUS_SUFFIX):
                 self.diagnostics[s.name] = v          # the newest counts of each
 
@@ -520,7 +521,8 @@ def summarise(out: dict, rep: Replayer, got: list, boot_to_sys_ns: int, stamps: 
     out.update(stamp_error_ms=stamp_errors_ms(got, boot_to_sys_ns, counted))
     out.update(frames=len(counted), answered=len(answered), latency_ms=np.array(lat),
                rate_held_hz=len(answered) / span_s,
-               max_stride=max((s for _, _, s in rep.rates), default=1),
+               max_stride=max((r[2] for r in rep.rates), default=1),
+               shed_pct=100.0 * sum(r[3] > 1 for r in rep.rates) / max(len(rep.rates), 1),
                diagnostics=dict(rep.diagnostics),
                modes=[(mode_name(m), (ns - t0_ns) / 1e9 - START_AT_S)
                       for ns, m in modes])
@@ -546,7 +548,8 @@ def report(r: dict) -> None:
     lat = r['latency_ms']
     frac = 100.0 * r['answered'] / max(r['frames'], 1)
     line = (f"{r['name']:22s} answered {r['answered']}/{r['frames']} ({frac:.1f} %), "
-            f"rate held {r['rate_held_hz']:.1f} Hz, max stride {r['max_stride']}")
+            f"rate held {r['rate_held_hz']:.1f} Hz, max stride {r['max_stride']}, "
+            f"flows shed {r.get('shed_pct', 0.0):.0f} %")
     if len(lat):
         line += (f"; after arrival median {np.median(lat):.1f} ms, "
                  f"p99 {np.percentile(lat, 99):.1f} ms")

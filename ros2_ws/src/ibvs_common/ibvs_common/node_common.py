@@ -222,6 +222,29 @@ def pad_group_weights(msg: JointState) -> tuple[float, ...] | None:
 STATUS_NAME = 'mode_supervisor'
 STATUS_MODE_KEY = 'mode'
 STATUS_CAMERA_KEY = 'camera'
+# '<product>_from_ns' (e.g. 'flow_front_from_ns'): the frame took that product from the earlier
+# frame of this stamp (ns), not its own (the rate governor sheds the flows); absent: its own.
+STATUS_HELD_SUFFIX = '_from_ns'
+
+
+def held_key(product: str) -> str:
+    """Return the supervisor status key of a product held from an earlier frame."""
+    return f'{product}{STATUS_HELD_SUFFIX}'
+
+
+def held_from_status(msg: DiagnosticArray) -> tuple[dict, str]:
+    """Return ({product name: source stamp ns} of an ibvs/supervisor_status, '' or an error)."""
+    out = {}
+    for status in msg.status:
+        if status.name != STATUS_NAME:
+            continue
+        for kv in status.values:
+            if kv.key.endswith(STATUS_HELD_SUFFIX):
+                value = kv.value.lstrip('-')
+                if not value.isdigit():
+                    return {}, f'{kv.key} value {kv.value!r} is not an integer'
+                out[kv.key[:-len(STATUS_HELD_SUFFIX)]] = int(kv.value)
+    return out, ''
 
 
 def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes,
@@ -243,32 +266,52 @@ def supervisor_status_msg(stamp_ns: int, mode: int, mode_name: str, level: bytes
 
 # ibvs/frame_grid (diagnostic_msgs/DiagnosticArray, latched): which frames of each camera the
 # graph computes (ibvs_common.core.frame_grid): per camera, every ``stride``-th frame counted
-# from the frame stamped ``ref_ns``. Published by the supervisor on every change and once a
-# second; every perception node computes only the frames on its camera's grid.
+# from the frame stamped ``ref_ns``, and the frames its translational flow is computed on
+# (``flow_stride``, ``flow_ref_ns``: the same grid, or a sparser one while the rate governor
+# sheds the flows; absent: the same grid). Published by the supervisor on every change and
+# once a second; every perception node computes only the frames on its camera's grid (the
+# optical-flow nodes: on its flow grid).
 FRAME_GRID_NAME = 'frame_grid'
 
 
 def frame_grid_msg(grids: dict, stamp_ns: int) -> DiagnosticArray:
-    """Build ibvs/frame_grid from camera name -> (stride, ref_ns)."""
+    """Build ibvs/frame_grid from camera name -> (stride, ref_ns[, flow_stride, flow_ref_ns])."""
     values = []
-    for camera, (stride, ref_ns) in sorted(grids.items()):
+    for camera, grid in sorted(grids.items()):
+        stride, ref_ns = grid[:2]
+        flow_stride, flow_ref_ns = grid[2:4] if len(grid) >= 4 else (stride, ref_ns)
         values += [KeyValue(key=f'{camera}_stride', value=str(int(stride))),
-                   KeyValue(key=f'{camera}_ref_ns', value=str(int(ref_ns)))]
+                   KeyValue(key=f'{camera}_ref_ns', value=str(int(ref_ns))),
+                   KeyValue(key=f'{camera}_flow_stride', value=str(int(flow_stride))),
+                   KeyValue(key=f'{camera}_flow_ref_ns', value=str(int(flow_ref_ns)))]
     msg = DiagnosticArray(status=[DiagnosticStatus(level=DiagnosticStatus.OK,
                                                    name=FRAME_GRID_NAME, values=values)])
     ns_to_stamp(stamp_ns, msg.header.stamp)
     return msg
 
 
-def grid_from_msg(msg: DiagnosticArray, camera: str) -> tuple[int, int] | None:
-    """Return (stride, ref_ns) of ``camera`` in an ibvs/frame_grid message, else None."""
+def grid_from_msg(msg: DiagnosticArray, camera: str,
+                  flow: bool = False) -> tuple[int, int] | None:
+    """Return (stride, ref_ns) of ``camera`` in an ibvs/frame_grid message, else None.
+
+    ``flow``: the camera's flow grid instead (its frame grid when the message has none).
+    """
     for status in msg.status:
         if status.name != FRAME_GRID_NAME:
             continue
         values = {kv.key: kv.value for kv in status.values}
-        stride, ref = values.get(f'{camera}_stride', ''), values.get(f'{camera}_ref_ns', '')
-        if stride.isdigit() and int(stride) >= 1 and ref.lstrip('-').isdigit():
-            return int(stride), int(ref)
+        grid = _grid_values(values, camera, '')
+        if grid is not None and flow and f'{camera}_flow_stride' in values:
+            return _grid_values(values, camera, 'flow_')
+        return grid
+    return None
+
+
+def _grid_values(values: dict, camera: str, prefix: str) -> tuple[int, int] | None:
+    stride = values.get(f'{camera}_{prefix}stride', '')
+    ref = values.get(f'{camera}_{prefix}ref_ns', '')
+    if stride.isdigit() and int(stride) >= 1 and ref.lstrip('-').isdigit():
+        return int(stride), int(ref)
     return None
 
 

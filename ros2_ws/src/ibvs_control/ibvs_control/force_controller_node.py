@@ -1,10 +1,11 @@
 """force_controller: detections + flows + IMU + mode -> the paper's force F and a heading.
 
 Thin ROS wrapper of :class:`~ibvs_control.core.controller.IbvsController` on the timing layer
-(core/timing.py; docs/design.md "Time"). Each ``ibvs/supervisor_status`` of a frame is
-answered once, in its mode, from that frame's products (they come by its deadline, or the
-frame is skipped: never flown on a stale or missing product), with the IMU attitude at the
-stamp. A frame that hands the mode over to the other camera is answered only if that camera
+(core/timing.py; docs/design.md "Time"). Each ``ibvs/supervisor_status`` of a frame is answered
+once, in its mode, from that frame's products (they come by its deadline, or the frame is
+skipped: never flown on a stale or missing product; while the rate governor sheds the flows,
+the status names the earlier flow frame a frame holds its flow from), with the IMU attitude at
+the stamp. A frame that hands the mode over to the other camera is answered only if that camera
 has an image of the same stamp (timing.py, "Camera handover"). Publishes, stamped with the
 frame: ``ibvs/heading_setpoint``, ``ibvs/force_setpoint`` (map, N) and ``ibvs/features``
 (docs/interfaces.md).
@@ -33,7 +34,8 @@ from ibvs_common.core.attitude_buffer import AttitudeBuffer
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    camera_from_status, COMMAND_QOS, DeadlineTimer, FRAME_QOS, imu_attitude, LateImuReport,
+    camera_from_status, COMMAND_QOS, DeadlineTimer, FRAME_QOS, held_from_status, imu_attitude,
+    LateImuReport,
     mode_from_status, NS_PER_S,
     ns_to_stamp, SENSOR_QOS, set_quat, set_vector3, vector3)
 from ibvs_common.param_descriptors import declare_config
@@ -144,7 +146,14 @@ class ForceControllerNode(Node):
         if self._status_stamps.observe(stamp_ns):
             self._frames.reset()
             self._clock_stepped('ibvs/supervisor_status', 'pending frames')
-        if not self._frames.open(stamp_ns, mode, self.get_clock().now().nanoseconds):
+        held, err = held_from_status(msg)
+        try:
+            held = {InputKind(name): (src, src) for name, src in held.items()}
+        except ValueError:
+            held, err = {}, f'unknown product in {sorted(held)}'
+        if err:     # the frame waits for its own products: skipped if they never come
+            self._refused('ibvs/supervisor_status held products', err)
+        if not self._frames.open(stamp_ns, mode, self.get_clock().now().nanoseconds, held):
             self.log.warning(f'status of {stamp_ns} ns is a duplicate or older than '
                              'a frame already answered: dropped', LOG_THROTTLE_S)
         elif camera is not None and camera != MODE_INPUTS[mode].camera.value:

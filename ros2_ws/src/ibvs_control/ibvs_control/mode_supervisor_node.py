@@ -28,7 +28,8 @@ from ibvs_common.core.config import load_pad_layout, load_vehicle, load_window_l
 from ibvs_common.core.frames import bearings_C_to_I
 from ibvs_common.core.frame_grid import period_ns
 from ibvs_common.core.lever_arm import camera_bearings_from_body, has_lever_arm
-from ibvs_common.core.modes import CAMERA_OF, Camera, FLYING_MODES, InputKind, Mode, MODE_INPUTS
+from ibvs_common.core.modes import (
+    CAMERA_OF, Camera, FLOW_OF, FLYING_MODES, InputKind, Mode, MODE_INPUTS)
 from ibvs_control.camera_tf import publish_camera_tf
 from ibvs_control.config import ModeSupervisorNodeConfig
 from ibvs_control.core.frame_inputs import unpack_pad
@@ -42,7 +43,8 @@ from ibvs_common.core.clock_step import BackstepWatch
 from ibvs_control.core.timing import Frame, FrameAssembler
 from ibvs_control.product_subscriptions import FrameProductSubscriptions
 from ibvs_common.node_common import (
-    COMMAND_QOS, DeadlineTimer, frame_grid_msg, imu_attitude, LateImuReport, MODE_QOS, NS_PER_S,
+    COMMAND_QOS, DeadlineTimer, frame_grid_msg, held_key, imu_attitude, LateImuReport, MODE_QOS,
+    NS_PER_S,
     PREFLIGHT_TOPIC, preflight_verdict, SENSOR_QOS, superseded_from_msg, SUPERSEDED_TOPIC,
     supervisor_status_msg)
 from ibvs_common.param_descriptors import declare_config
@@ -184,6 +186,19 @@ class ModeSupervisorNode(Node):
         inputs = MODE_INPUTS[self._core.mode]
         return inputs.needed if camera == inputs.camera else frozenset()
 
+    def _held_flows(self, camera: Camera, stamp_ns: int) -> dict:
+        """Return the flow a frame of ``camera`` holds from an earlier frame (flows shed), or {}.
+
+        While the governor sheds the flows, a frame off the flow grid takes the flow of the
+        newest flow frame before it (SupervisorGrids.flow_source_ns), matched within half a
+        period (camera stamps jitter).
+        """
+        source_ns = self._grids.flow_source_ns(camera, stamp_ns)
+        half_ns = self._grids.period_ns(camera) // 2
+        if abs(source_ns - stamp_ns) <= half_ns:
+            return {}
+        return {FLOW_OF[camera]: (source_ns - half_ns, source_ns + half_ns)}
+
     # --- inputs ----------------------------------------------------------------------------
     def _on_imu(self, msg: Imu) -> None:
         self._now_ns()                         # watch the clock between frames too
@@ -239,12 +254,13 @@ class ModeSupervisorNode(Node):
     def _new_frame(self, kind: InputKind, camera: Camera, stamp_ns: int, value,
                    now_ns: int) -> None:
         """Open the frame of a product of the mode's camera (if on the grid and not done)."""
-        if self._grids.stride(camera) != self._governor.stride:   # the mode's camera changed
-            self._grids.set_stride(camera, self._governor.stride, stamp_ns, self._lead_ns)
-            self._publish_grid()
+        level = (self._governor.stride, self._governor.flow_stride)
+        if (self._grids.stride(camera), self._grids.flow_stride(camera)) != level:
+            self._grids.set_stride(camera, level[0], stamp_ns, self._lead_ns, level[1])
+            self._publish_grid()                     # the mode's camera changed
         if not self._grids.on_grid(camera, stamp_ns):
             self._stats.off_grid_dropped += 1        # a frame the graph does not compute now
-        elif self._frames.open(stamp_ns, camera, now_ns):
+        elif self._frames.open(stamp_ns, camera, now_ns, self._held_flows(camera, stamp_ns)):
             self._stats.opened(camera.value, stamp_ns, now_ns)
             self._count_missed(camera, stamp_ns)
         else:
@@ -319,7 +335,7 @@ class ModeSupervisorNode(Node):
         if self._core.start_refusal:
             self._error(f'ibvs/start dropped: {self._core.start_refusal}')
         self._publish_mode()
-        self._publish_status(frame.stamp_ns, frame.tag)
+        self._publish_status(frame.stamp_ns, frame.tag, frame.held)
         for kind, value in extras:
             self._feed(kind, frame.stamp_ns, value)
 
@@ -383,26 +399,34 @@ class ModeSupervisorNode(Node):
     def _governor_at(self, camera: Camera, stamp_ns: int, complete: bool,
                      lag_s: float | None = None) -> bool:
         """Let the governor see a frame of ``camera``; apply and publish a new stride (True)."""
-        stride = self._governor.observe(stamp_ns / NS_PER_S, complete, lag_s,
-                                        1.0 / self._rate_hz[camera], camera)
-        if stride is None:
+        level = self._governor.observe(stamp_ns / NS_PER_S, complete, lag_s,
+                                       1.0 / self._rate_hz[camera], camera)
+        if level is None:
             return False
-        old = self._grids.stride(camera)
-        self._grids.set_stride(camera, stride, stamp_ns, self._lead_ns)
+        old = (self._grids.stride(camera), self._grids.flow_stride(camera))
+        self._grids.set_stride(camera, level.stride, stamp_ns, self._lead_ns, level.flow_stride)
         self._publish_grid()
-        rate = self._rate_hz[camera]
-        self.get_logger().info(f'frame stride {old} -> {stride} at t = '
-                               f'{stamp_ns / NS_PER_S:.3f} s: the {camera.value} camera\'s '
-                               f'every {stride}. frame ({rate / stride:.1f} Hz) '
-                               f'({self._governor.reason})')
+        rate = self._rate_hz[camera] / level.stride
+        self.get_logger().info(
+            f'frame stride {old[0]} -> {level.stride}, flow stride {old[1]} -> '
+            f'{level.flow_stride} at t = {stamp_ns / NS_PER_S:.3f} s: the {camera.value} '
+            f'camera\'s every {level.stride}. frame ({rate:.1f} Hz), its flow on every '
+            f'{level.flow_stride}. of them ({rate / level.flow_stride:.1f} Hz) '
+            f'({self._governor.reason})')
         return True
 
-    def _publish_status(self, stamp_ns: int, camera: Camera | None = None) -> None:
-        """Publish the mode of frame ``stamp_ns`` (``camera``: its camera) or of a time."""
+    def _publish_status(self, stamp_ns: int, camera: Camera | None = None,
+                        held: dict | None = None) -> None:
+        """Publish the mode of frame ``stamp_ns`` (``camera``: its camera) or of a time.
+
+        ``held``: kind -> the stamp of a product the frame took from an earlier frame (flows
+        shed): the controller answers the frame with the same one.
+        """
         mode = self._core.mode
         level = DiagnosticStatus.WARN if mode == Mode.FAILSAFE else DiagnosticStatus.OK
         height = self._core.height_estimate
         values = {'pad_height_estimate_m': 'none' if height is None else f'{height:.4f}'}
+        values.update({held_key(kind.value): str(int(src)) for kind, src in (held or {}).items()})
         self._status_pub.publish(supervisor_status_msg(
             stamp_ns, int(mode), mode.name, level, values,
             None if camera is None else camera.value))
@@ -416,20 +440,26 @@ class ModeSupervisorNode(Node):
         self._core.frame_period_s = (self._grids.stride(front)
                                      * self._grids.period_ns(front) / NS_PER_S)
         self._grid_pub.publish(frame_grid_msg(
-            {cam.value: (self._grids.stride(cam), self._grids.ref_ns(cam)) for cam in Camera},
+            {cam.value: (self._grids.stride(cam), self._grids.ref_ns(cam),
+                         self._grids.flow_grid(cam).stride, self._grids.flow_grid(cam).ref_ns)
+             for cam in Camera},
             self.get_clock().now().nanoseconds))
 
     def _publish_diagnostics(self) -> None:
         """Publish the frame counts, the control rate held and the stride on /diagnostics."""
         camera = MODE_INPUTS[self._core.mode].camera
-        values = self._stats.values(self._newest_ns, self._grids.stride(camera), camera.value)
-        degraded = int(values['frames_skipped_last_s']) > 0 or self._grids.stride(camera) > 1
+        flow_stride = self._grids.flow_stride(camera)
+        values = self._stats.values(self._newest_ns, self._grids.stride(camera), camera.value,
+                                    flow_stride)
+        degraded = int(values['frames_skipped_last_s']) > 0 or self._grids.stride(camera) > 1 \
+            or flow_stride > 1
+        shed = f', its flow on every {flow_stride}. of them' if flow_stride > 1 else ''
         status = DiagnosticStatus(
             level=DiagnosticStatus.WARN if degraded else DiagnosticStatus.OK,
             name=DIAGNOSTICS_NAME, hardware_id='companion computer',
             message=(f"{values['control_rate_hz']} Hz held, every {values['frame_stride']}. "
-                     f"{camera.value} frame, {values['frames_skipped_last_s']} skipped in the "
-                     'last second'),
+                     f"{camera.value} frame{shed}, {values['frames_skipped_last_s']} skipped "
+                     'in the last second'),
             values=[KeyValue(key=k, value=v) for k, v in values.items()])
         msg = DiagnosticArray(status=[status])
         msg.header.stamp = self.get_clock().now().to_msg()

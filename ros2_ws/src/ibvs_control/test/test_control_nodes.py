@@ -31,8 +31,8 @@ from ibvs_control.mavlink_bridge_node import MavlinkBridgeNode
 from ibvs_control.mode_supervisor_node import ModeSupervisorNode
 from ibvs_common.core.modes import Camera
 from ibvs_common.node_common import (
-    COMMAND_QOS, grid_from_msg, mode_from_status, MODE_QOS, pad_groups_msg, SENSOR_QOS,
-    superseded_msg, SUPERSEDED_TOPIC, supervisor_status_msg)
+    COMMAND_QOS, grid_from_msg, held_from_status, mode_from_status, MODE_QOS, pad_groups_msg,
+    SENSOR_QOS, stamp_to_ns, superseded_msg, SUPERSEDED_TOPIC, supervisor_status_msg)
 
 from test_control_mavlink import FakeAutopilot, PeerThread, same_rotation  # noqa: E402
 
@@ -291,8 +291,8 @@ def test_supervisor_counts_grid_frames_no_product_came_for_and_lowers_the_rate(c
     Only every 4th front frame gets its window product, as from a detector three images
     behind, which reports the three it skipped (ibvs/frames_superseded): the frames between
     never open. A lone missed frame costs that frame; each further one in a gap counts as
-    skipped for the rate governor, which then doubles the stride (published on
-    ibvs/frame_grid) instead of keeping a rate the computer cannot hold.
+    skipped for the rate governor, which first sheds the flows and then doubles the stride
+    (published on ibvs/frame_grid) instead of keeping a rate the computer cannot hold.
     """
     _, executor, _ = ctx
     sup, feed, grids = supervisor_with_grids(ctx, '_missed')
@@ -310,11 +310,14 @@ def test_supervisor_counts_grid_frames_no_product_came_for_and_lowers_the_rate(c
     assert spin_until(executor, lambda: any(
         grid_from_msg(g, 'front') is not None and grid_from_msg(g, 'front')[0] == 2
         for g in grids), 2.0)
-    # complete frames on every frame of the new grid: nothing more is missed
-    missed, ref = sup._stats.missed, sup._grids.ref_ns(Camera.FRONT)
+    # complete frames on every frame of the new grid: nothing more is missed (the grid may
+    # count from the flow frame before the decision: its frames from the last one fed on)
+    missed, ref = sup._stats.missed, sup._grids.ref_ns(Camera.FRONT) / 1e9
+    last = 1.0 + 0.02 * k
+    t0 = ref + 0.04 * round((last - ref) / 0.04)
     for k in range(1, 6):
         n = len(feed.statuses)
-        feed.frame(ref / 1e9 + 0.04 * k, xi)
+        feed.frame(t0 + 0.04 * k, xi)
         assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
     assert sup._stats.missed == missed and sup._grids.stride(Camera.FRONT) == 2
 
@@ -358,7 +361,7 @@ def handover_strides(ctx, suffix, grace_s):
 
     The down frames open on their (empty) pad cue and miss the floor flow CROSSING needs
     (the flow's first pair after its gate opens, on a slow computer), then 4 complete ones
-    come. Returns the down camera's stride then.
+    come. Returns the down camera's (frame stride, flow stride) then.
     """
     context, executor, nodes = ctx
     sup = ModeSupervisorNode(node_name=f'sup{suffix}_{TAG}', context=context,
@@ -405,16 +408,77 @@ def handover_strides(ctx, suffix, grace_s):
         down_frame(down_flow=np.array([v / -xi[2], 0, 0]))
     spin_for(executor, 0.05)                    # the last frame's evaluation
     assert sup._stats.skipped - skipped >= 3 and sup._core.mode == 2
-    return sup._grids.stride(Camera.DOWN)
+    return sup._grids.stride(Camera.DOWN), sup._grids.flow_stride(Camera.DOWN)
 
 
-@pytest.mark.parametrize('grace_s, stride', [(0.2, 1), (0.0, 2)])
+@pytest.mark.parametrize('grace_s, level', [(0.2, (1, 1)), (0.0, (1, 2))])
 def test_supervisor_handover_does_not_count_the_new_cameras_first_skipped_frames(
-        ctx, grace_s, stride):
+        ctx, grace_s, level):
     """WINDOW -> CROSSING: the floor camera's frames skipped before its first complete one
-    (within stride_handover_grace_s) leave the stride at 1; without the grace the same three
-    skipped in a row double it (the supervisor tells the governor of the camera change)."""
-    assert handover_strides(ctx, f'_handover_{stride}', grace_s) == stride
+    (within stride_handover_grace_s) leave every frame computed; without the grace the same
+    three skipped in a row take the governor's first step, the flows shed (the supervisor
+    tells the governor of the camera change)."""
+    assert handover_strides(ctx, f'_handover_{level[1]}', grace_s) == level
+
+
+def test_shed_flows_are_held_by_the_supervisor_and_the_controller_alike(ctx):
+    """The governor's first step: the wall flow on every 2nd frame, every frame still flown.
+
+    Three WINDOW frames without their wall flow (a computer behind) shed the flows
+    (ibvs/frame_grid: front_flow_stride 2). From then on the flow comes only for the flow
+    grid's frames, as from the flow node: every frame still completes, a frame between two
+    flow frames names the flow frame before it in its status, and the controller answers
+    every frame with a force.
+    """
+    context, executor, nodes = ctx
+    sup, feed, grids = supervisor_with_grids(ctx, '_shed')
+    ctl = make_controller(context, f'ctl_shed_{TAG}', use_sim_time=True)
+    nodes.append(ctl)
+    executor.add_node(ctl)
+    dt, t, xi = 0.02, 1.0, np.array([-2.0, 0.0, -1.6])
+    phi = np.array([0.4, 0.0, 0.0])
+
+    def step(**kw):
+        nonlocal t
+        n = len(feed.statuses)
+        feed.frame(t, xi, **kw)
+        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+        t += dt
+
+    for _ in range(3):
+        step(front_flow=phi)
+    assert call(executor, feed.node, 'ibvs/start').success
+    for _ in range(3):
+        step(front_flow=phi)
+    assert feed.modes[-1] == 1                              # WINDOW
+    for _ in range(3):                  # no wall flow: skipped once the next flow passes them
+        stamp_ns = round(t * 1e9)
+        feed.frame(t, xi)
+        assert spin_until(executor, lambda: sup._frames.is_pending(stamp_ns), 2.0)
+        t += dt
+    step(front_flow=phi)
+    assert sup._stats.skipped == 3
+    assert (sup._grids.stride(Camera.FRONT), sup._grids.flow_stride(Camera.FRONT)) == (1, 2)
+    assert spin_until(executor, lambda: any(
+        grid_from_msg(g, 'front', flow=True) == (2, sup._grids.flow_grid(Camera.FRONT).ref_ns)
+        for g in grids), 2.0)
+    skipped, n_status = sup._stats.skipped, len(feed.statuses)
+    stamps = []
+    for _ in range(8):
+        stamps.append(round(t * 1e9))
+        on_flow_grid = sup._grids.flow_grid(Camera.FRONT).on_grid(stamps[-1])
+        step(front_flow=phi if on_flow_grid else None)
+    assert sup._stats.skipped == skipped                    # every frame flown
+    held = {}
+    for msg in feed.statuses[n_status:]:
+        from_ns, err = held_from_status(msg)
+        assert not err
+        held[mode_from_status(msg)[0]] = from_ns.get('flow_front')
+    assert sorted(held) == stamps
+    assert [s - held[s] for s in stamps if held[s] is not None] == [round(dt * 1e9)] * 4
+    assert spin_until(executor, lambda: {stamp_to_ns(f.header.stamp) for f in feed.forces}
+                      >= set(stamps), 2.0)
+    assert ctl.skipped == 0
 
 
 def test_supervisor_stale_input_failsafe_and_abort(ctx):

@@ -2,10 +2,17 @@
 import numpy as np
 import pytest
 
-from ibvs_control.core.rate_governor import (GovernorConfig, RateGovernor, SupersededFrames,
+from ibvs_control.core import rate_governor
+from ibvs_control.core.rate_governor import (Level, ladder, RateGovernor, SupersededFrames,
                                              SupervisorGrids)
 
 MS = 1_000_000
+
+
+def GovernorConfig(**kw):   # noqa: N802  the stride rules alone (the flow step: its own tests)
+    return rate_governor.GovernorConfig(**{'flow_shed_stride': 1, **kw})
+
+
 # the try rules, judged from the try's decision (the lead has a test of its own)
 NO_LEAD = {'stride_down_lead_s': 0.0}
 
@@ -18,7 +25,7 @@ def run(gov, t0, n, complete, period=0.02):
         ok = complete(k) if callable(complete) else complete
         s = gov.observe(t, ok)
         if s is not None:
-            out.append((round(t, 6), s))
+            out.append((round(t, 6), s.stride if s.flow_stride == 1 else s))
     return out
 
 
@@ -114,7 +121,7 @@ def test_a_try_is_judged_from_its_lead_on_not_on_the_old_strides_frames_before_i
     t = changes[0][0]
     assert gov.observe(t + 0.08, False) is None and gov.stride == 1     # before the lead
     assert gov.observe(t + 0.12, True) is None and gov.stride == 1      # the try's first
-    assert gov.observe(t + 0.14, False) == 2 and gov.reason == 'frames were skipped'
+    assert gov.observe(t + 0.14, False) == Level(2) and gov.reason == 'frames were skipped'
 
 
 def test_bad_governor_thresholds_are_refused():
@@ -160,7 +167,7 @@ def test_a_try_ends_at_its_first_frame_that_falls_half_a_period_behind():
     assert gov.stride == 1
     lags = [0.045 + 0.008 * k for k in range(1, 6)]
     out = [gov.observe(t + 0.02 * k, True, lag, 0.02) for k, lag in enumerate(lags, 1)]
-    assert out == [None, None, 2, None, None]            # 0.069 - 0.053 (the first) >= 0.010
+    assert out == [None, None, Level(2), None, None]     # 0.069 - 0.053 (the first) >= 0.010
     assert gov.stride == 2 and gov.reason == 'the try fell behind'
     # a failed try: the next waits twice as long
     t2 = t + 0.04
@@ -202,7 +209,7 @@ def test_a_sporadic_skip_after_the_probation_keeps_the_try():
     # within the probation the same skip ends the try
     gov = RateGovernor(cfg)
     t = _at_stride_4_until_a_try_of_2(gov)
-    assert [gov.observe(t + 0.04 * k, k != 5) for k in range(1, 6)] == [None] * 4 + [4]
+    assert [gov.observe(t + 0.04 * k, k != 5) for k in range(1, 6)] == [None] * 4 + [Level(4)]
 
 
 def test_a_try_whose_frames_keep_a_constant_extra_lag_holds():
@@ -248,11 +255,11 @@ def test_a_frame_of_another_camera_is_a_handover():
     assert out == [None] * 5 and gov.stride == 1            # the grace: not counted
     assert gov.observe(0.6, True, camera='down') is None
     out = [gov.observe(0.62 + 0.02 * k, False, camera='down') for k in range(3)]
-    assert out == [None, None, 2]                            # the same camera: they count
+    assert out == [None, None, Level(2)]                            # the same camera: they count
     # the first camera seen is no handover: its skips count at once
     gov = RateGovernor(cfg)
     out = [gov.observe(0.02 * k, False, camera='front') for k in range(3)]
-    assert out == [None, None, 2]
+    assert out == [None, None, Level(2)]
 
 
 def test_the_lag_rule_can_be_switched_off_and_needs_the_lag():
@@ -282,3 +289,89 @@ def test_superseded_frames_match_a_gap_within_the_tolerance_per_camera():
     assert seen.count_in_gap('front', base, step, 3, tol) == 0
     seen.clear()
     assert not seen.reported('front', base + 10 * step, tol)
+
+
+# --- the flow step: flows at half rate before the control rate is halved --------------------
+
+def test_the_ladder_sheds_the_flows_before_it_doubles_the_stride():
+    cfg = rate_governor.GovernorConfig
+    assert ladder(cfg()) == (Level(1), Level(1, 2), Level(2), Level(4))
+    assert ladder(cfg(flow_shed_stride=1)) == (Level(1), Level(2), Level(4))
+    assert ladder(cfg(max_frame_stride=1)) == (Level(1), Level(1, 2))
+    assert ladder(cfg(max_frame_stride=8, flow_shed_stride=3))[:3] == (
+        Level(1), Level(1, 3), Level(2))
+
+
+def test_an_overload_sheds_the_flows_first_and_a_lasting_one_then_doubles_the_stride():
+    gov = RateGovernor(rate_governor.GovernorConfig(stride_down_hold_s=1.0, **NO_LEAD))
+    changes = run(gov, 0.0, 3, False)                      # 3 in a row: the flows first
+    assert changes == [(0.04, Level(1, 2))] and (gov.stride, gov.flow_stride) == (1, 2)
+    assert run(gov, 0.06, 3, False) == [(0.1, 2)]          # still behind: every 2nd frame
+    # it holds: after the hold, the flows shed again (not every frame at once), then all
+    t = 0.1
+    while gov.stride == 2:
+        t += 0.04
+        gov.observe(t, True)
+    assert (gov.stride, gov.flow_stride) == (1, 2) and gov.reason == 'none skipped: a try'
+    while gov.flow_stride == 2:
+        t += 0.02
+        gov.observe(t, True)
+    assert (gov.stride, gov.flow_stride) == (1, 1) and t - 0.1 > 2.0
+
+
+def _follow(grids, follower, camera='front'):
+    """The flow node's view of the flow grid, as it reads it on ibvs/frame_grid."""
+    g = grids.flow_grid(camera)
+    follower.update(g.stride, g.ref_ns)
+
+
+def test_every_frame_s_flow_source_is_a_frame_the_flow_node_computes():
+    # walk the whole ladder up and down; after each decision (and its lead) every frame the
+    # supervisor expects takes its flow from a frame on the flow node's grid, at most one
+    # frame of the grid older, and its own when the flows are not shed
+    from ibvs_common.core.frame_grid import GridFollower
+    P, lead = 20 * MS, 100 * MS
+    grids = SupervisorGrids({'front': P})
+    follower = GridFollower(P)
+    t = 1000 * MS
+    for level in (Level(1, 2), Level(2), Level(4), Level(2), Level(1, 2), Level(1),
+                  Level(1, 2), Level(2), Level(1, 2), Level(1)):
+        t += 17 * P                                         # a decision on some frame
+        while not grids.on_grid('front', t):
+            t += P
+        grids.set_stride('front', level.stride, t, lead, level.flow_stride)
+        _follow(grids, follower)
+        assert (grids.stride('front'), grids.flow_stride('front')) == level
+        for s in range(t + lead + P, t + lead + 20 * P, P):
+            if not grids.on_grid('front', s):
+                continue
+            src = grids.flow_source_ns('front', s)
+            assert follower.on_grid_at(src), (level, s, src)
+            assert 0 <= s - src <= (level.flow_stride - 1) * level.stride * P
+            if level.flow_stride == 1:
+                assert src == s
+
+
+def test_shedding_starts_at_the_next_frame_and_a_larger_stride_takes_the_flow_frames():
+    P = 20 * MS
+    grids = SupervisorGrids({'front': P})
+    grids.set_stride('front', 1, 100 * MS, 100 * MS, flow_stride=2)
+    assert grids.flow_grid('front').ref_ns == 120 * MS      # the grid frame after 100 ms
+    assert [grids.flow_source_ns('front', s * MS) for s in (120, 140, 160, 180)] == [
+        120 * MS, 120 * MS, 160 * MS, 160 * MS]
+    grids.set_stride('front', 2, 180 * MS, 100 * MS)        # a decision at a held frame
+    assert grids.ref_ns('front') == 160 * MS                # on the flow frames: own flows
+    assert all(grids.flow_source_ns('front', s) == s for s in range(200 * MS, 400 * MS, 2 * P))
+    grids.set_stride('front', 1, 400 * MS, 100 * MS, flow_stride=2)   # a try: flows stay
+    g = grids.flow_grid('front')
+    assert g.stride == 2 and g.on_grid(160 * MS) and grids.stride('front') == 1
+    assert grids.flow_source_ns('front', 520 * MS) == 520 * MS
+    assert grids.flow_source_ns('front', 540 * MS) == 520 * MS
+    grids.set_stride('front', 1, 600 * MS, 100 * MS)        # flows on every frame: from 700
+    assert grids.flow_source_ns('front', 680 * MS) == 680 * MS      # on the old flow grid
+    assert grids.flow_source_ns('front', 660 * MS) == 640 * MS
+    assert grids.flow_source_ns('front', 700 * MS) == 700 * MS
+    assert grids.flow_source_ns('front', 720 * MS) == 720 * MS
+    grids.reset()
+    assert grids.flow_stride('front') == 1
+    assert grids.flow_source_ns('front', 730 * MS) == 730 * MS

@@ -103,6 +103,34 @@ def test_a_frame_whose_missing_product_was_passed_leaves_before_its_deadline():
     assert a.release(now_ns=101 * MS) == []
 
 
+def test_a_frame_holding_a_shed_flow_takes_the_flow_frame_before_it_never_an_older_one():
+    """Flows shed: the frame at 140 ms takes the flow of 120 ms (within 110-130 ms)."""
+    a = assembler()
+    held = {FF: (110 * MS, 130 * MS)}
+    a.add_input(FF, 100 * MS, 'phi_100')              # older than the window: never taken
+    a.add_input(W, 140 * MS, 'corners_140')
+    assert a.open(140 * MS, Mode.WINDOW, now_ns=140 * MS, held=held)
+    assert a.release(now_ns=141 * MS) == []           # the 120 ms flow is not in yet
+    a.add_input(FF, 121 * MS, 'phi_121')              # a stamp that jittered by 1 ms
+    (frame,) = a.release(now_ns=142 * MS)
+    assert frame.complete and frame.get(FF) == 'phi_121' and frame.held == {FF: 121 * MS}
+    assert frame.get(W) == 'corners_140'
+    # a frame's own flow, if one came anyway, is not what it holds
+    a.add_input(FF, 160 * MS, 'phi_160')
+    a.add_input(FF, 180 * MS, 'phi_180')
+    a.add_input(W, 180 * MS, 'corners_180')
+    a.open(180 * MS, Mode.WINDOW, now_ns=180 * MS, held={FF: (150 * MS, 170 * MS)})
+    (frame,) = a.release(now_ns=181 * MS)
+    assert frame.get(FF) == 'phi_160' and frame.extras == {}
+    # the held flow never came and a newer one did: skipped before its deadline
+    a.add_input(W, 220 * MS, 'corners_220')
+    a.open(220 * MS, Mode.WINDOW, now_ns=220 * MS, held={FF: (190 * MS, 210 * MS)})
+    assert a.release(now_ns=221 * MS) == []
+    a.add_input(FF, 240 * MS, 'phi_240')
+    (frame,) = a.release(now_ns=241 * MS)
+    assert frame.passed and frame.missing == (FF,) and frame.held == {}
+
+
 def test_frames_leave_in_stamp_order_and_a_late_or_repeated_one_is_refused():
     a = assembler()
     a.open(120 * MS, Mode.SHUTDOWN, now_ns=121 * MS)      # needs nothing: ready at once

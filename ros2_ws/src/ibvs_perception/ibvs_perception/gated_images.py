@@ -2,7 +2,8 @@
 
 Every perception node hands its images to :meth:`GatedImages.on_images` instead of
 processing them itself. From ``ibvs/frame_grid``: only every stride-th frame of this camera is
-computed, the same in every node (ibvs_common.core.frame_grid); from
+computed, the same in every node (ibvs_common.core.frame_grid; an optical-flow node follows
+its camera's flow grid, sparser while the rate governor sheds the flows); from
 ``ibvs/supervisor_status``: the modes (:class:`~ibvs_perception.core.mode_gate.ModeGate`: a
 product is computed only for the images of a mode that uses it, docs/interfaces.md "Mode
 gating"); and latest only: a node that is behind computes the newest grid image it has taken
@@ -43,13 +44,15 @@ class GatedImages:
 
     def __init__(self, node: Node, kind: InputKind,
                  process: Callable[[Image, bool], None], log_prefix: str,
-                 config: ImageInputConfig, camera: str, period_ns: int) -> None:
+                 config: ImageInputConfig, camera: str, period_ns: int,
+                 flow: bool = False) -> None:
         self.gate = ModeGate(modes_using(kind), config.mode_gate_depth, config.mode_gating)
         self.latest = LatestOnly(config.latest)
         self.clock = node.get_clock()
         self.process = process
         self.prefix = log_prefix
         self.camera = camera
+        self.flow = bool(flow)          # follow the camera's flow grid (an optical-flow node)
         self.follower = GridFollower(int(period_ns))
         self.counts = ImageCounts()
         self.timer = ProcessingTimer()
@@ -157,7 +160,7 @@ class GatedImages:
         A smaller stride applies from its reference frame on, the old grid before it, as the
         supervisor expects them (ibvs_control's ``SupervisorGrids``).
         """
-        grid = grid_from_msg(msg, self.camera)
+        grid = grid_from_msg(msg, self.camera, self.flow)
         if grid is None:
             self.log.error(f'{self.prefix}: ibvs/frame_grid without this camera: ignored',
                            THROTTLE_S)

@@ -83,7 +83,7 @@ class OpticalFlowNode(Node):
         self.gated = GatedImages(
             self, InputKind.FLOW_FRONT if self.camera_name == FRONT else InputKind.FLOW_DOWN,
             self.process, f'{self.camera_name}_optical_flow', cfg.images, camera.name,
-            period_ns(camera.rate_hz))
+            period_ns(camera.rate_hz), flow=True)
         self.attitudes = AttitudeBuffer(cfg.imu)
         self.late_imu = LateImuReport(self.log, THROTTLE_S, 'optical_flow: ')
         self.derotation = GyroDerotation(self.attitudes)

@@ -62,6 +62,38 @@ def test_a_smaller_stride_applies_from_its_reference_as_the_supervisor_expects_i
         node.destroy_node()
 
 
+def test_a_flow_node_computes_its_flow_grid_and_a_detector_every_frame_of_the_grid(context):
+    """Flows shed: the window detector computes every frame, the front flow every 2nd one."""
+    node = rclpy.create_node('gated_flow_grid', context=context)
+    try:
+        detector, computed = window_gate(node)
+        flowed = []
+        flow = GatedImages(node, InputKind.FLOW_FRONT,
+                           lambda msg, publish: flowed.append(msg.header.stamp.nanosec),
+                           'test', ImageInputConfig(mode_gating=False, latest=EVERY_IMAGE),
+                           'front', PERIOD, flow=True)
+        supervisor = SupervisorGrids({'front': PERIOD})
+        supervisor.set_stride('front', 1, 100 * MS, lead_ns=100 * MS, flow_stride=2)
+        g = supervisor.flow_grid('front')
+        msg = frame_grid_msg({'front': (1, supervisor.ref_ns('front'), g.stride, g.ref_ns)},
+                             100 * MS)
+        for gated in (detector, flow):
+            gated.on_grid(msg)
+        stamps = range(120 * MS, 300 * MS, PERIOD)
+        for s in stamps:
+            detector.on_image(image(s))
+            flow.on_image(image(s))
+        assert computed == list(stamps)
+        assert flowed == list(range(120 * MS, 300 * MS, 2 * PERIOD))
+        assert all(supervisor.flow_source_ns('front', s) in flowed for s in stamps)
+        assert flow.frame_period_s == 0.04          # the flow's image pairs: 40 ms apart
+        # grids given without a flow grid: the flow grid is the frame grid
+        flow.on_grid(frame_grid_msg({'front': (1, 0)}, 300 * MS))
+        assert flow.grid.stride == 1
+    finally:
+        node.destroy_node()
+
+
 def test_a_grid_waiting_in_its_reader_is_applied_before_the_image(context):
     """The node takes the grid (mode, statuses) already waiting before judging an image.
 

@@ -148,11 +148,11 @@ class SimDriver:
         """Note the supervisor's mode of the frame at ``stamp_ns``."""
         self.products.note_status(stamp_ns, mode)
 
-    def note_grid(self, camera: str, stride: int, ref_ns: int) -> None:
-        """Note the graph's frame grid of ``camera`` (``ibvs/frame_grid``)."""
+    def note_grid(self, camera: str, stride: int, ref_ns: int, flow: bool = False) -> None:
+        """Note the graph's frame grid of ``camera`` (ibvs/frame_grid; ``flow``: its flow's)."""
         timing = self.sim.config.timings().get(camera)
         if timing is not None:
-            self.products.note_grid(camera, period_ns(timing.rate_hz), stride, ref_ns)
+            self.products.note_grid(camera, period_ns(timing.rate_hz), stride, ref_ns, flow)
 
     def note_product(self, topic: str, stamp_ns: int) -> None:
         """Note a product of the graph stamped ``stamp_ns``; log one given up that came back."""

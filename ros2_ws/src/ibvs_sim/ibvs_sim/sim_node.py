@@ -131,9 +131,10 @@ class SimNode(Node):
     def _on_grid(self, msg: DiagnosticArray) -> None:
         """ibvs/frame_grid: which frames the graph computes (lockstep owes no wait to others)."""
         for camera in self.cameras:
-            grid = grid_from_msg(msg, camera)
-            if grid is not None:
-                self.driver.note_grid(camera, *grid)
+            for flow in (False, True):
+                grid = grid_from_msg(msg, camera, flow)
+                if grid is not None:
+                    self.driver.note_grid(camera, *grid, flow=flow)
 
     def _product_callback(self, topic: str):
         def note(msg: PolygonStamped | Vector3Stamped | JointState) -> None:

@@ -561,3 +561,22 @@ def test_lockstep_owes_no_wait_to_a_frame_off_the_graphs_grid(configs):
     assert sim.tick() is None                           # the answer too
     ap.last_setpoint_time_boot_ms = 40
     assert sim.tick().t_ns == 60_000_000
+
+
+def test_lockstep_owes_no_flow_to_a_frame_off_the_flow_grid():
+    """The governor sheds the flows (ibvs/frame_grid's flow grid: every 2nd frame): a frame
+    between two flow frames is owed its window, not its flow; a flow frame is owed both."""
+    flow = 'front_camera/translational_flow'
+    products = GraphProducts({'window/corners': 'front', flow: 'front'}, flow_topics={flow})
+    live = {'window/corners': 1, flow: 1}
+    products.note_grid('front', 20_000_000, 1, 0)
+    products.note_grid('front', 20_000_000, 2, 20_000_000, flow=True)
+    products.expect(20_000_000, ['front'], live)
+    assert sorted(products.expected) == sorted(['window/corners', flow])
+    products.expect(40_000_000, ['front'], live)
+    assert products.expected == {'window/corners'}
+    # without a flow grid the frame grid rules the flows too
+    fresh = GraphProducts({'window/corners': 'front', flow: 'front'}, flow_topics={flow})
+    fresh.note_grid('front', 20_000_000, 2, 0)
+    fresh.expect(20_000_000, ['front'], live)
+    assert fresh.expected == set()

@@ -55,6 +55,7 @@ class InputKind(Enum):
 
 CAMERA_OF = {InputKind.WINDOW: Camera.FRONT, InputKind.FLOW_FRONT: Camera.FRONT,
              InputKind.PAD: Camera.DOWN, InputKind.FLOW_DOWN: Camera.DOWN}
+FLOW_OF = {Camera.FRONT: InputKind.FLOW_FRONT, Camera.DOWN: InputKind.FLOW_DOWN}
 
 
 @dataclass(frozen=True)

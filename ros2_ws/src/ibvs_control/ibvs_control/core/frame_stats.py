@@ -69,10 +69,15 @@ class FrameStats:
             while stamps and stamps[0] <= newest_ns - RATE_WINDOW_NS:
                 stamps.popleft()
 
-    def values(self, newest_ns: int, stride: int, camera: str) -> dict[str, str]:
-        """Return what /diagnostics shows, as key -> string."""
+    def values(self, newest_ns: int, stride: int, camera: str,
+               flow_stride: int = 1) -> dict[str, str]:
+        """Return what /diagnostics shows, as key -> string.
+
+        ``flow_stride``: the mode camera's flow is computed on every ``flow_stride``-th frame
+        of the grid and held between (the rate governor sheds it).
+        """
         delivery = {c: self.delivery_ms(c) for c in sorted(self._delivery_ns)}
-        out = {'camera': camera, 'frame_stride': str(stride),
+        out = {'camera': camera, 'frame_stride': str(stride), 'flow_stride': str(flow_stride),
                'control_rate_hz': f'{self.rate_hz(newest_ns):.1f}',
                'frames_skipped_last_s': str(self.skipped_recently(newest_ns)),
                'frames_complete': str(self.complete), 'frames_skipped': str(self.skipped),

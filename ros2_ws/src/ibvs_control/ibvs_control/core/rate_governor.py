@@ -1,5 +1,10 @@
 """The control rate the graph can hold: every frame, or every 2nd, 4th... (ROS-free).
 
+The steps, cheapest loss first (:func:`ladder`): every frame; every frame with the
+translational flows computed on every ``flow_shed_stride``-th frame of the grid and held
+between (a flow at half rate costs the flight least: docs/design.md "Time"); then every 2nd,
+4th... frame with every product on each.
+
 A computer that cannot compute every camera frame in time skips frames (a product late or
 lost: the frame is skipped, never flown on stale data). Skipped at random, the products of
 one image rarely all come, and the control rate collapses. :class:`RateGovernor` watches the
@@ -25,6 +30,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -39,6 +45,12 @@ class GovernorConfig:
     max_frame_stride: int = param(
         4, 'frames: the largest stride the governor uses (4: 12.5 Hz of a 50 Hz camera), '
         '1 = every frame always', 1, MAX_STRIDE)
+    flow_shed_stride: int = param(
+        2, 'frames of the grid: the first step of an overload computes the translational '
+        'flows on every this many grid frames only and holds each flow over the frames between '
+        '(the control rate stays; ~30 % of the perception work per frame saved); the next '
+        'steps double the frame stride; 1 = off (an overload doubles the stride at once)',
+        1, MAX_STRIDE)
     stride_window_frames: int = param(
         10, 'frames: the recent frames of the mode\'s camera the governor looks at', 2, 100)
     stride_up_skipped: int = param(
@@ -89,12 +101,36 @@ class GovernorConfig:
             raise ValueError('stride_down_hold_max_s must be >= stride_down_hold_s')
 
 
+class Level(NamedTuple):
+    """One step of the governor: the frame stride and the flows' stride within its grid."""
+
+    stride: int
+    flow_stride: int = 1
+
+
+def ladder(config: GovernorConfig) -> tuple[Level, ...]:
+    """Return the governor's steps, cheapest loss first (module doc).
+
+    Every frame; then, unless ``flow_shed_stride`` is 1, every frame with the flows on every
+    ``flow_shed_stride``-th one; then strides 2, 4, ... up to ``max_frame_stride``.
+    """
+    levels = [Level(1)]
+    if config.flow_shed_stride > 1:
+        levels.append(Level(1, config.flow_shed_stride))
+    stride = 2
+    while stride <= config.max_frame_stride:
+        levels.append(Level(stride))
+        stride *= 2
+    return tuple(levels)
+
+
 class RateGovernor:
-    """Choose the frame stride from which frames of the mode's camera were skipped."""
+    """Choose the step (frame stride, flow stride) from which frames were skipped."""
 
     def __init__(self, config: GovernorConfig) -> None:
         self.config = config
-        self.stride = 1
+        self.levels = ladder(config)
+        self.level = 0                  # index in self.levels
         self.changes = 0
         self.reason = ''                # why the stride last changed, for the log
         self._recent: deque[bool] = deque(maxlen=config.stride_window_frames)
@@ -109,9 +145,19 @@ class RateGovernor:
         self._try_from = float('-inf')  # the first stamp a try of a smaller stride is judged on
         self._camera: object = None     # the camera of the frames seen last (a handover)
 
+    @property
+    def stride(self) -> int:
+        """Return the frame stride of the current step (1: every camera frame)."""
+        return self.levels[self.level].stride
+
+    @property
+    def flow_stride(self) -> int:
+        """Return the flows' stride within the frame grid of the current step (1: each)."""
+        return self.levels[self.level].flow_stride
+
     def observe(self, t: float, complete: bool, lag_s: float | None = None,
-                period_s: float | None = None, camera: object = None) -> int | None:
-        """Take one frame of the current grid (stamp t); return the new stride if it changed.
+                period_s: float | None = None, camera: object = None) -> Level | None:
+        """Take one frame of the current grid (stamp t); return the new step if it changed.
 
         ``lag_s``: for a complete frame, the time from its stamp to its completion (s, ROS
         clock: camera delivery and the graph's processing); ``period_s``: the camera's frame
@@ -138,12 +184,12 @@ class RateGovernor:
         if self._probing and (skipped >= cfg.stride_try_skipped or lagging):
             self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
             self.reason = 'the try fell behind' if lagging else 'frames were skipped'
-            return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
-        if self._overloaded(skipped) and self.stride < cfg.max_frame_stride:
+            return self._change(t, self.level + 1, probing=False)
+        if self._overloaded(skipped) and self.level + 1 < len(self.levels):
             if self._trying:        # the smaller stride did not hold: wait longer next time
                 self._hold_s = min(2.0 * self._hold_s, cfg.stride_down_hold_max_s)
             self.reason = 'frames were skipped'
-            return self._change(t, min(2 * self.stride, cfg.max_frame_stride), probing=False)
+            return self._change(t, self.level + 1, probing=False)
         if self._probing and t - self._try_from >= cfg.stride_try_s:
             self._probing = False   # probation passed: the overload rules judge the try now
         if self._trying and t - self._t_change >= self._hold_s:
@@ -151,10 +197,10 @@ class RateGovernor:
             self._hold_s = cfg.stride_down_hold_s
         if complete and lag_s is not None and not self._probing:
             self._lags.append(float(lag_s))
-        if self.stride > 1 and skipped == 0 and t - self._t_change >= self._hold_s:
+        if self.level > 0 and skipped == 0 and t - self._t_change >= self._hold_s:
             self._lag_before = float(np.median(self._lags)) if self._lags else None
             self.reason = 'none skipped: a try'
-            return self._change(t, self.stride // 2, probing=True)
+            return self._change(t, self.level - 1, probing=True)
         return None
 
     def handover(self, t: float) -> None:
@@ -195,31 +241,49 @@ class RateGovernor:
             in_a_row += 1
         return skipped >= cfg.stride_up_skipped or in_a_row >= cfg.stride_up_in_a_row
 
-    def _change(self, t: float, stride: int, probing: bool) -> int:
-        self.stride, self._t_change, self._probing, self._trying = stride, t, probing, probing
+    def _change(self, t: float, level: int, probing: bool) -> Level:
+        level = min(max(int(level), 0), len(self.levels) - 1)
+        self.level, self._t_change, self._probing, self._trying = level, t, probing, probing
         self._lag_first = None
         self._try_from = t + self.config.stride_down_lead_s if probing else float('-inf')
         self._recent.clear()
         self._lags.clear()
         self.changes += 1
-        return stride
+        return self.levels[level]
+
+
+def _after_lead(ref_ns: int, lead_ns: int, step_ns: int) -> int:
+    """Return the first frame ``k step_ns`` after ``ref_ns`` at least ``lead_ns`` later."""
+    return int(ref_ns) + -(-int(lead_ns) // int(step_ns)) * int(step_ns)
 
 
 class SupervisorGrids:
-    """The frames of each camera the supervisor expects: the grid, with a lead for finer ones.
+    """The frames of each camera the supervisor expects, and those its flows are computed on.
 
-    A larger stride is expected at once (the nodes just stop computing frames the supervisor
-    no longer waits for); a smaller one only ``lead_ns`` after the decision, once the nodes
-    have it.
+    The frame grid: a larger stride is expected at once (the nodes just stop computing frames
+    the supervisor no longer waits for); a smaller one only ``lead_ns`` after the decision,
+    once the nodes have it. The flow grid (the optical-flow nodes compute only its frames):
+    the frame grid itself, or, while the governor sheds the flows (``flow_stride`` > 1),
+    every ``flow_stride``-th frame of it, starting at the grid frame after the decision (a
+    frame between two of its frames holds the flow of the one before: :meth:`flow_source_ns`).
+    It changes only when its own stride does, with the same lead for a smaller one; when the
+    frame stride grows to the flow grid's, the frame grid takes the flow grid's frames, so
+    that no frame is left with a flow one frame older.
     """
 
     def __init__(self, periods_ns: dict) -> None:
         self._grid = {cam: FrameGrid(p) for cam, p in periods_ns.items()}
+        self._flow = dict(self._grid)
         self._before: dict = {}         # camera -> (grid until from_ns, from_ns)
+        self._flow_before: dict = {}    # camera -> (flow grid until from_ns, from_ns)
 
     def stride(self, camera) -> int:
         """Return the camera's current stride."""
         return self._grid[camera].stride
+
+    def flow_stride(self, camera) -> int:
+        """Return the flows' stride within the camera's frame grid (1: a flow every frame)."""
+        return self._flow[camera].stride // self._grid[camera].stride
 
     def period_ns(self, camera) -> int:
         """Return the camera's frame period (ns)."""
@@ -229,6 +293,10 @@ class SupervisorGrids:
         """Return the stamp of the camera's reference frame (a frame on its grid)."""
         return self._grid[camera].ref_ns
 
+    def flow_grid(self, camera) -> FrameGrid:
+        """Return the camera's flow grid (its stride in camera frames and reference frame)."""
+        return self._flow[camera]
+
     def on_grid(self, camera, stamp_ns: int) -> bool:
         """Whether the supervisor expects the frame of ``stamp_ns`` of ``camera``."""
         before = self._before.get(camera)
@@ -236,26 +304,57 @@ class SupervisorGrids:
             return before[0].on_grid(stamp_ns)
         return self._grid[camera].on_grid(stamp_ns)
 
-    def set_stride(self, camera, stride: int, ref_ns: int, lead_ns: int) -> None:
-        """Use ``stride`` from the frame ``ref_ns`` on (a smaller one from ``lead_ns`` later).
+    def flow_source_ns(self, camera, stamp_ns: int) -> int:
+        """Return the stamp of the flow frame a frame of ``stamp_ns`` takes its flows from.
+
+        The frame itself when it is on the flow grid, else the newest flow-grid frame before
+        it (a nominal stamp: a camera's stamps jitter, match it within half a period).
+        """
+        before = self._flow_before.get(camera)
+        grid = before[0] if before is not None and stamp_ns < before[1] else \
+            self._flow[camera]
+        return int(stamp_ns) - (grid.index(stamp_ns) % grid.stride) * grid.period_ns
+
+    def set_stride(self, camera, stride: int, ref_ns: int, lead_ns: int,
+                   flow_stride: int = 1) -> None:
+        """Use ``stride`` (and flows on every ``flow_stride``-th frame of it) from ``ref_ns`` on.
 
         A smaller stride's reference is its first frame at least ``lead_ns`` after ``ref_ns``
         (:meth:`ref_ns`, published on ibvs/frame_grid): the perception nodes keep the old grid
         until that frame too, instead of computing frames the supervisor does not expect yet
-        (on a slow computer they cost the try its margin).
+        (on a slow computer they cost the try its margin). The same holds for the flow grid.
         """
-        old = self._grid[camera]
-        self._before.pop(camera, None)
-        if stride < old.stride:
-            step = int(stride) * old.period_ns
-            ref_ns = int(ref_ns) + -(-int(lead_ns) // step) * step
-            self._before[camera] = (old, ref_ns)
-        self._grid[camera] = old.with_stride(stride, ref_ns)
+        old, old_flow = self._grid[camera], self._flow[camera]
+        period = old.period_ns
+        if stride != old.stride:
+            self._before.pop(camera, None)
+            if stride < old.stride:
+                ref_ns_grid = _after_lead(ref_ns, lead_ns, int(stride) * period)
+                self._before[camera] = (old, ref_ns_grid)
+            elif stride == old_flow.stride:     # the frames the flows were computed on
+                ref_ns_grid = self.flow_source_ns(camera, ref_ns)
+            else:
+                ref_ns_grid = int(ref_ns)
+            self._grid[camera] = old.with_stride(stride, ref_ns_grid)
+        flow_every = int(stride) * int(flow_stride)
+        if flow_every == old_flow.stride:
+            return
+        self._flow_before.pop(camera, None)
+        if flow_every < old_flow.stride:
+            flow_ref = _after_lead(ref_ns, lead_ns, flow_every * period)
+            self._flow_before[camera] = (old_flow, flow_ref)
+        elif flow_stride > 1:
+            flow_ref = int(ref_ns) + int(stride) * period   # the next frame of the grid
+        else:
+            flow_ref = self._grid[camera].ref_ns
+        self._flow[camera] = old_flow.with_stride(flow_every, flow_ref)
 
     def reset(self) -> None:
         """Every frame again (the clock stepped back: old references mean nothing)."""
         self._grid = {cam: FrameGrid(g.period_ns) for cam, g in self._grid.items()}
+        self._flow = dict(self._grid)
         self._before.clear()
+        self._flow_before.clear()
 
 
 class SupersededFrames:

@@ -7,7 +7,10 @@ kind of product by stamp and releases a frame when the products its mode needs
 shows this frame's will never come, or at its deadline (``frame_deadline_s`` after its first
 product). A frame released without a needed product is skipped, never flown. A product
 stamped well before the newest of its kind means the clock stepped back: everything is
-dropped and the assembler starts again. The rules, and why (late cameras, a busy computer,
+dropped and the assembler starts again. A frame may take a product of another stamp where
+the node says so at its opening (``held``: while the rate governor sheds the flows, a frame
+between two flow frames takes the flow of the one before it: a product at its declared
+rate, never an older one). The rules, and why (late cameras, a busy computer,
 camera handover, clock steps): docs/design.md "Time".
 """
 from __future__ import annotations
@@ -36,7 +39,8 @@ class Frame:
     uses them at all uses them only after the frame: see :class:`FrameAssembler`);
     ``missing`` the needed ones that had not arrived at release (``expired``: released by its
     deadline; ``passed``: released before it because a newer product of a missing kind came,
-    so this frame's never will); a frame with a missing product is skipped.
+    so this frame's never will); a frame with a missing product is skipped. ``held``: kind ->
+    the stamp of the product taken from another frame (see :meth:`FrameAssembler.open`).
     """
 
     stamp_ns: int
@@ -46,6 +50,7 @@ class Frame:
     expired: bool = False
     extras: dict = field(default_factory=dict)
     passed: bool = False
+    held: dict = field(default_factory=dict)
 
     def get(self, kind: InputKind) -> Any:
         """Return the value of a product of this frame, or None."""
@@ -62,6 +67,7 @@ class _Pending:
     stamp_ns: int
     tag: Any
     deadline_ns: int
+    held: dict = field(default_factory=dict)   # kind -> (lo_ns, hi_ns) of its product
 
 
 class FrameAssembler:
@@ -161,18 +167,22 @@ class FrameAssembler:
         """Whether the frame of ``stamp_ns`` was released without a product it needed."""
         return int(stamp_ns) in self._skipped
 
-    def open(self, stamp_ns: int, tag: Any, now_ns: int) -> bool:
+    def open(self, stamp_ns: int, tag: Any, now_ns: int, held: dict | None = None) -> bool:
         """Open the frame of ``stamp_ns``; False if it is open, released, or older than one.
 
         Its deadline is ``frame_deadline_s`` from ``now_ns`` (its first product's arrival),
-        and never before ``stamp + frame_deadline_s``.
+        and never before ``stamp + frame_deadline_s``. ``held``: kind -> (lo_ns, hi_ns): the
+        frame takes that product from the newest stamp within lo ... hi (<= its own) instead
+        of its own stamp; it is missing until one arrives, and can no longer come once a
+        product of the kind newer than hi_ns did.
         """
         stamp_ns = int(stamp_ns)
         if (self.released_through_ns is not None and stamp_ns <= self.released_through_ns) \
                 or self.is_pending(stamp_ns):
             return False
         deadline_ns = max(int(now_ns), stamp_ns) + self.deadline_ns
-        bisect.insort(self._pending, _Pending(stamp_ns, tag, deadline_ns),
+        held = {k: (int(lo), int(hi)) for k, (lo, hi) in (held or {}).items()}
+        bisect.insort(self._pending, _Pending(stamp_ns, tag, deadline_ns, held),
                       key=lambda p: p.stamp_ns)
         return True
 
@@ -188,11 +198,13 @@ class FrameAssembler:
         while self._pending:
             p = self._pending[0]
             needed = self.needed(p.tag)
+            sources = {k: self._source(k, p) for k in needed}
             missing = tuple(k for k in EVALUATION_ORDER
-                            if k in needed and not self.has(k, p.stamp_ns))
+                            if k in needed and sources[k] is None)
             expired = bool(missing) and int(now_ns) >= p.deadline_ns
             passed = bool(missing) and not expired and any(
-                self._newest_ns.get(k, p.stamp_ns) > p.stamp_ns for k in missing)
+                self._newest_ns.get(k, p.stamp_ns) > p.held.get(k, (0, p.stamp_ns))[1]
+                for k in missing)
             if missing and not (expired or passed):
                 break
             self._pending.pop(0)
@@ -202,12 +214,22 @@ class FrameAssembler:
             if missing:
                 self._skipped.append(p.stamp_ns)
             present = {k: self._inputs[k][p.stamp_ns] for k in EVALUATION_ORDER
-                       if p.stamp_ns in self._inputs[k]}
-            out.append(Frame(p.stamp_ns, p.tag,
-                             {k: v for k, v in present.items() if k in needed}, missing,
-                             expired, {k: v for k, v in present.items() if k not in needed},
-                             passed))
+                       if p.stamp_ns in self._inputs[k] and k not in p.held}
+            inputs = {k: (self._inputs[k][sources[k]] if k in p.held else present[k])
+                      for k in EVALUATION_ORDER if k in needed and sources[k] is not None}
+            out.append(Frame(p.stamp_ns, p.tag, inputs, missing, expired,
+                             {k: v for k, v in present.items() if k not in needed}, passed,
+                             {k: sources[k] for k in p.held
+                              if k in needed and sources[k] is not None}))
         return out
+
+    def _source(self, kind: InputKind, p: _Pending) -> int | None:
+        """Return the stamp of the product of ``kind`` frame ``p`` takes, or None (none yet)."""
+        if kind not in p.held:
+            return p.stamp_ns if p.stamp_ns in self._inputs[kind] else None
+        lo, hi = p.held[kind]
+        found = [s for s in self._inputs[kind] if lo <= s <= min(hi, p.stamp_ns)]
+        return max(found) if found else None
 
     def next_deadline_ns(self) -> int | None:
         """Deadline of the oldest pending frame (the next one that can expire), or None."""

@@ -156,11 +156,14 @@ class GraphProducts:
     mode's camera went out); a missing one is given up until it is published again
     (docs/sim.md "Loop, pacing and events"). A camera's image off the graph's frame grid
     (``ibvs/frame_grid``: the rate governor computes every 2nd or 4th frame) is owed
-    nothing: no status, no product, no answer.
+    nothing: no status, no product, no answer; nor is a flow (``flow_topics``) off its
+    camera's flow grid (the governor sheds the flows).
     """
 
-    def __init__(self, products: dict, used_in: dict | None = None) -> None:
+    def __init__(self, products: dict, used_in: dict | None = None,
+                 flow_topics: Collection[str] = ()) -> None:
         self.products = dict(products)
+        self.flow_topics = frozenset(flow_topics)
         self.used_in = {t: frozenset(int(m) for m in modes)
                         for t, modes in (used_in or {}).items()}
         self.newest_ns: dict[str, int] = {}
@@ -172,16 +175,24 @@ class GraphProducts:
         self.statuses: list[tuple[int, int]] = []     # (stamp ns, mode), newest last
         self.grids: dict[str, GridFollower] = {}      # camera -> the graph's frame grid
 
-    def note_grid(self, camera: str, period_ns: int, stride: int, ref_ns: int) -> None:
-        """Take the graph's frame grid of ``camera`` (``period_ns``: its frame period)."""
-        follower = self.grids.get(camera)
+    def note_grid(self, camera: str, period_ns: int, stride: int, ref_ns: int,
+                  flow: bool = False) -> None:
+        """Take the graph's frame grid of ``camera`` (``period_ns``: its frame period).
+
+        ``flow``: the camera's flow grid (the frames its flow is computed on).
+        """
+        key = (camera, bool(flow))
+        follower = self.grids.get(key)
         if follower is None or follower.grid.period_ns != int(period_ns):
-            follower = self.grids[camera] = GridFollower(int(period_ns))
+            follower = self.grids[key] = GridFollower(int(period_ns))
         follower.update(int(stride), int(ref_ns))
 
-    def on_grid(self, camera: str, stamp_ns: int) -> bool:
-        """Whether the graph computes the frame of ``camera`` stamped ``stamp_ns``."""
-        follower = self.grids.get(camera)
+    def on_grid(self, camera: str, stamp_ns: int, flow: bool = False) -> bool:
+        """Whether the graph computes the frame of ``camera`` stamped ``stamp_ns``.
+
+        ``flow``: whether it computes that frame's flow (its flow grid, else its frame grid).
+        """
+        follower = self.grids.get((camera, bool(flow))) or self.grids.get((camera, False))
         return follower is None or follower.on_grid_at(int(stamp_ns))
 
     def expect(self, frame_ns: int, cameras: Collection[str], publishers: dict,
@@ -194,9 +205,10 @@ class GraphProducts:
         """
         self.frame_ns = int(frame_ns)
         self.stamps_ns = {c: int((stamps_ns or {}).get(c, frame_ns)) for c in cameras}
-        computed = {c for c, stamp in self.stamps_ns.items() if self.on_grid(c, stamp)}
         self.expected = {t for t, cam in self.products.items()
-                         if cam in computed and publishers.get(t, 0) > 0
+                         if cam in self.stamps_ns
+                         and self.on_grid(cam, self.stamps_ns[cam], t in self.flow_topics)
+                         and publishers.get(t, 0) > 0
                          and t not in self.given_up}
         self.status_expected = status and bool(self.used_in) \
             and publishers.get(STATUS_TOPIC, 0) > 0 and STATUS_TOPIC not in self.given_up \
@@ -275,4 +287,6 @@ class GraphProducts:
 def graph_products() -> GraphProducts:
     """Return the products of this project's graph: by camera, mode-gated (PRODUCT_KINDS)."""
     return GraphProducts(dict(PRODUCT_CAMERAS),
-                         {t: modes_using(k) for t, k in PRODUCT_KINDS.items()})
+                         {t: modes_using(k) for t, k in PRODUCT_KINDS.items()},
+                         {t for t, k in PRODUCT_KINDS.items()
+                          if k in (InputKind.FLOW_FRONT, InputKind.FLOW_DOWN)})
