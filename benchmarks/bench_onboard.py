@@ -333,11 +333,12 @@ def cpu_ticks(pids: dict) -> dict:
 def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
              latency_ms: float = 0.0, jitter_ms: float = 0.0, cpu: str = 'full',
              link: str = 'udp', layout: str = 'composed', seed: int = 0, run: int = 0,
-             callback_cpu: bool = False) -> dict:
+             callback_cpu: bool = False, params: tuple = ()) -> dict:
     """One replay of the flight through a fresh onboard graph; return its figures.
 
     The nodes' logs go to ``results/bench_onboard/<case>_r<run>/``. ``callback_cpu``: the
     composed graph runs under callback_cpu.py (its callbacks' thread CPU, by mode).
+    ``params``: 'name:=value' parameters for every node of the containers (an A/B).
     """
     from ibvs_bringup.runner import ProcessRunner
     from ibvs_harness.run_scenario import write_vehicle_at_rates
@@ -381,7 +382,9 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
         argv = pin + [sys.executable, *launcher, '-m', 'ibvs_bringup.composed', '--mavlink-url',
                       graph_url]
         # the ROS arguments last: an option after --ros-args would be read as one of them
-        ros_args = [] if vehicle is None else ['--ros-args', '-p', f'vehicle_file:={vehicle}']
+        ros_args = ([] if vehicle is None else ['-p', f'vehicle_file:={vehicle}']) \
+            + [a for param in params for a in ('-p', param)]
+        ros_args = ['--ros-args', *ros_args] if ros_args else []
         if layout in ('composed', 'composed-single'):
             runner.start('composed', argv + (['--single-executor']
                                              if layout == 'composed-single' else []) + ros_args)
@@ -603,9 +606,16 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--callback-cpu', action='store_true',
                    help='the composed graph under callback_cpu.py: each mode\'s thread CPU per '
                    'frame, by node and callback')
+    p.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
+                   help='a parameter for every node of the containers (composed and grouped '
+                   'layouts), e.g. flow_shed_stride:=1 for the governor without its flow step')
     p.add_argument('--smoke', action='store_true',
                    help='4 s of the flight, the first case only (CI: the command still runs)')
     args = p.parse_args(argv)
+    if args.param and args.layout == 'processes':
+        p.error('--param is for the containers (composed, composed-single, grouped)')
+    if any(':=' not in a for a in args.param):
+        p.error('--param takes NAME:=VALUE')
     if args.callback_cpu and args.layout not in ('composed', 'composed-single'):
         p.error('--callback-cpu measures one composed process (--layout composed or '
                 'composed-single)')
@@ -642,7 +652,7 @@ def run_cases(cases: list, args, flights: dict, frames: dict) -> None:
                 print(f'{len(flights[rate]["r"])} frames at {rate:g} Hz ready '
                       f'({time.monotonic() - t0:.1f} s)')
             report(run_once(name, flights[rate], frames[rate], layout=args.layout, run=run,
-                            callback_cpu=args.callback_cpu, **kw))
+                            callback_cpu=args.callback_cpu, params=tuple(args.param), **kw))
 
 
 if __name__ == '__main__':
