@@ -256,7 +256,8 @@ class ModeSupervisorNode(Node):
         """Open the frame of a product of the mode's camera (if on the grid and not done)."""
         level = (self._governor.stride, self._governor.flow_stride)
         if (self._grids.stride(camera), self._grids.flow_stride(camera)) != level:
-            self._grids.set_stride(camera, level[0], stamp_ns, self._lead_ns, level[1])
+            self._grids.set_stride(camera, level[0], stamp_ns, self._lead_ns, level[1],
+                                   first_frame=True)
             self._publish_grid()                     # the mode's camera changed
         if not self._grids.on_grid(camera, stamp_ns):
             self._stats.off_grid_dropped += 1        # a frame the graph does not compute now

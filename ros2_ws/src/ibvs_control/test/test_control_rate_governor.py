@@ -375,3 +375,13 @@ def test_shedding_starts_at_the_next_frame_and_a_larger_stride_takes_the_flow_fr
     grids.reset()
     assert grids.flow_stride('front') == 1
     assert grids.flow_source_ns('front', 730 * MS) == 730 * MS
+
+
+def test_at_a_handover_the_new_cameras_first_frame_is_a_flow_frame():
+    # the flows shed when WINDOW hands over to the down camera: its first frame has no flow
+    # frame before it (the floor flow was not published in WINDOW), so it computes its own
+    P = 20 * MS
+    grids = SupervisorGrids({'down': P})
+    grids.set_stride('down', 1, 500 * MS, 100 * MS, flow_stride=2, first_frame=True)
+    assert [grids.flow_source_ns('down', s * MS) for s in (500, 520, 540)] == [
+        500 * MS, 500 * MS, 540 * MS]

@@ -316,13 +316,16 @@ class SupervisorGrids:
         return int(stamp_ns) - (grid.index(stamp_ns) % grid.stride) * grid.period_ns
 
     def set_stride(self, camera, stride: int, ref_ns: int, lead_ns: int,
-                   flow_stride: int = 1) -> None:
+                   flow_stride: int = 1, first_frame: bool = False) -> None:
         """Use ``stride`` (and flows on every ``flow_stride``-th frame of it) from ``ref_ns`` on.
 
         A smaller stride's reference is its first frame at least ``lead_ns`` after ``ref_ns``
         (:meth:`ref_ns`, published on ibvs/frame_grid): the perception nodes keep the old grid
         until that frame too, instead of computing frames the supervisor does not expect yet
         (on a slow computer they cost the try its margin). The same holds for the flow grid.
+        Shed flows start at the grid frame after ``ref_ns`` (a decision on a frame already
+        evaluated), or at ``ref_ns`` itself with ``first_frame`` (the mode's camera changed:
+        the new camera's first frame has no flow frame before it to hold).
         """
         old, old_flow = self._grid[camera], self._flow[camera]
         period = old.period_ns
@@ -344,7 +347,7 @@ class SupervisorGrids:
             flow_ref = _after_lead(ref_ns, lead_ns, flow_every * period)
             self._flow_before[camera] = (old_flow, flow_ref)
         elif flow_stride > 1:
-            flow_ref = int(ref_ns) + int(stride) * period   # the next frame of the grid
+            flow_ref = int(ref_ns) + (0 if first_frame else int(stride) * period)
         else:
             flow_ref = self._grid[camera].ref_ns
         self._flow[camera] = old_flow.with_stride(flow_every, flow_ref)
