@@ -369,7 +369,9 @@ class ModeSupervisorNode(Node):
         the trackers lost across the gaps). Counted within one mode, camera and grid only; the
         first of a gap is not given to the governor (a node one image behind skips one), nor a
         frame no node reported skipping (``ibvs/frames_superseded``): the camera never
-        delivered it (a dropout is no want of CPU; ``frames_undelivered``).
+        delivered it (a dropout is no want of CPU; ``frames_undelivered``). At every frame,
+        when the governor's next step sheds the flows, the first of a gap counts too
+        (``RateGovernor.counts_lone_skips``).
         """
         key = (self._core.mode, camera, self._grids.stride(camera), self._grids.ref_ns(camera))
         last = self._last_opened if self._last_opened and self._last_opened[0] == key else None
@@ -380,7 +382,8 @@ class ModeSupervisorNode(Node):
         missed = (stamp_ns - last[1] + step // 2) // step - 1
         self._stats.missed += max(missed, 0)
         # a lone missed frame (a node skipped one image for the next) costs that frame, as a
-        # lone skipped one does; each further one in the gap counts as skipped
+        # lone skipped one does (unless the next step sheds the flows); each further one in
+        # the gap counts as skipped
         if missed <= 0:
             return
         for msg in take_waiting(self._superseded_sub):     # reports queued behind this product
@@ -388,7 +391,8 @@ class ModeSupervisorNode(Node):
         tolerance_ns = self._grids.period_ns(camera) // 2
         self._stats.undelivered += missed - self._superseded.count_in_gap(
             camera, last[1], step, missed, tolerance_ns)
-        for k in range(2, min(missed, self._governor.config.stride_window_frames) + 1):
+        first = 1 if self._governor.counts_lone_skips else 2   # lone ones: to shed the flows
+        for k in range(first, min(missed, self._governor.config.stride_window_frames) + 1):
             if not self._superseded.reported(camera, last[1] + k * step, tolerance_ns):
                 continue                # never delivered: not the computer's doing
             if self._governor_at(camera, last[1] + k * step, complete=False):

@@ -322,6 +322,31 @@ def test_supervisor_counts_grid_frames_no_product_came_for_and_lowers_the_rate(c
     assert sup._stats.missed == missed and sup._grids.stride(Camera.FRONT) == 2
 
 
+@pytest.mark.parametrize('reported', [True, False])
+def test_supervisor_sheds_the_flows_on_lone_frames_a_node_superseded(ctx, reported):
+    """Every 2nd front frame lost one at a time: short of CPU when a node reported it.
+
+    A lone missed frame costs only that frame for the stride rules, but at every frame the
+    next step only sheds the flows: the supervisor counts the lone frames the detector
+    reported superseding, and the governor sheds (ibvs/frame_grid: flow stride 2, every frame
+    still expected). Unreported (the camera never delivered them), they change nothing.
+    """
+    _, executor, _ = ctx
+    sup, feed, _ = supervisor_with_grids(ctx, f'_lone_{int(reported)}')
+    xi = np.array([-2.0, 0.0, -1.6])
+    for k in range(0, 40, 2):                        # 1 frame missed in each gap
+        n = len(feed.statuses)
+        if k and reported:
+            feed.skipped(1.0 + 0.02 * (k - 1))
+        feed.frame(1.0 + 0.02 * k, xi)
+        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+        if sup._grids.flow_stride(Camera.FRONT) > 1:
+            break
+    shed = (sup._grids.stride(Camera.FRONT), sup._grids.flow_stride(Camera.FRONT))
+    assert shed == ((1, 2) if reported else (1, 1))
+    assert sup._stats.missed >= 3
+
+
 def test_supervisor_keeps_the_rate_through_frames_the_camera_never_delivered(ctx):
     """A camera dropout is no want of CPU: the same gaps, unreported, leave the stride at 1.
 

@@ -385,3 +385,11 @@ def test_at_a_handover_the_new_cameras_first_frame_is_a_flow_frame():
     grids.set_stride('down', 1, 500 * MS, 100 * MS, flow_stride=2, first_frame=True)
     assert [grids.flow_source_ns('down', s * MS) for s in (500, 520, 540)] == [
         500 * MS, 500 * MS, 540 * MS]
+
+
+def test_lone_skips_count_only_while_the_next_step_sheds_the_flows():
+    gov = RateGovernor(rate_governor.GovernorConfig(**NO_LEAD))
+    assert gov.counts_lone_skips                        # every frame: the next step sheds
+    run(gov, 0.0, 3, False)
+    assert gov.flow_stride == 2 and not gov.counts_lone_skips     # the next: stride 2
+    assert not RateGovernor(GovernorConfig()).counts_lone_skips   # no flow step

@@ -155,6 +155,18 @@ class RateGovernor:
         """Return the flows' stride within the frame grid of the current step (1: each)."""
         return self.levels[self.level].flow_stride
 
+    @property
+    def counts_lone_skips(self) -> bool:
+        """Whether a lone frame a node skipped for a newer one should count (see below).
+
+        At every frame, when the next step only sheds the flows: a node that supersedes one
+        image now and then (a third of a core: a third of the frames lost one by one, never
+        three in a row) is short of CPU, and shedding costs the flight nothing measurable,
+        where doubling the stride halves every product. Above it a lone skip costs that frame
+        only, as before.
+        """
+        return self.level == 0 and len(self.levels) > 1 and self.levels[1].flow_stride > 1
+
     def observe(self, t: float, complete: bool, lag_s: float | None = None,
                 period_s: float | None = None, camera: object = None) -> Level | None:
         """Take one frame of the current grid (stamp t); return the new step if it changed.
