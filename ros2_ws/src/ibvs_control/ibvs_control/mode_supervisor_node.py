@@ -195,7 +195,7 @@ class ModeSupervisorNode(Node):
         """
         source_ns = self._grids.flow_source_ns(camera, stamp_ns)
         half_ns = self._grids.period_ns(camera) // 2
-        if abs(source_ns - stamp_ns) <= half_ns:
+        if abs(source_ns - stamp_ns) <= half_ns or FLOW_OF[camera] not in self._needed(camera):
             return {}
         return {FLOW_OF[camera]: (source_ns - half_ns, source_ns + half_ns)}
 
