@@ -64,3 +64,20 @@ def test_a_follower_keeps_the_old_grid_before_a_smaller_strides_reference():
         False, True, False, True, True]
     f.update(4, 12 * period)
     assert [f.on_grid_at(k * period) for k in (9, 12, 13, 16)] == [False, True, False, True]
+
+
+def test_the_grid_and_held_flow_messages_round_trip_and_refuse_bad_values():
+    from diagnostic_msgs.msg import KeyValue
+    from ibvs_common.node_common import (frame_grid_msg, grid_from_msg, held_from_status,
+                                         held_key, supervisor_status_msg)
+    msg = frame_grid_msg({'front': (1, 100, 2, 120), 'down': (2, 40)}, 0)
+    assert grid_from_msg(msg, 'front') == (1, 100)
+    assert grid_from_msg(msg, 'front', flow=True) == (2, 120)
+    assert grid_from_msg(msg, 'down', flow=True) == (2, 40)     # no flow grid: the frame grid
+    assert grid_from_msg(msg, 'side') is None
+    status = supervisor_status_msg(140, 1, 'WINDOW', b'\x00', {held_key('flow_front'): 120},
+                                   'front')
+    assert held_from_status(status) == ({'flow_front': 120}, '')
+    status.status[0].values.append(KeyValue(key=held_key('flow_down'), value='12.5'))
+    held, err = held_from_status(status)
+    assert held == {} and 'flow_down_from_ns' in err and 'not an integer' in err

@@ -270,6 +270,13 @@ def test_supervisor_after_a_clock_step_back_idle_goes_on_and_flight_fails_safe(c
     assert mode_from_status(feed.statuses[-1])[0] == int(round(t * 1e9))
 
 
+def frame_to_status(executor, feed, t, xi, **kw):
+    """Publish one frame's products (Feeder.frame) and spin until a new supervisor status."""
+    n = len(feed.statuses)
+    feed.frame(t, xi, **kw)
+    assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+
+
 def supervisor_with_grids(ctx, suffix):
     """A mode supervisor on sim time, its Feeder and the ibvs/frame_grid messages it sends."""
     context, executor, nodes = ctx
@@ -402,9 +409,7 @@ def handover_strides(ctx, suffix, grace_s):
 
     def step(**kw):
         nonlocal t
-        n = len(feed.statuses)
-        feed.frame(t, xi, **kw)
-        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+        frame_to_status(executor, feed, t, xi, **kw)
         t += dt
 
     for _ in range(3):
@@ -465,9 +470,7 @@ def test_shed_flows_are_held_by_the_supervisor_and_the_controller_alike(ctx):
 
     def step(**kw):
         nonlocal t
-        n = len(feed.statuses)
-        feed.frame(t, xi, **kw)
-        assert spin_until(executor, lambda: len(feed.statuses) > n, 2.0)
+        frame_to_status(executor, feed, t, xi, **kw)
         t += dt
 
     for _ in range(3):
