@@ -35,12 +35,20 @@ cores, one busy process on each: ``--layout grouped`` (a container per camera an
 for control) or ``processes`` spread the nodes over them), and the autopilot link over UDP
 or a serial cable (two pseudo-terminals at 921600 baud, ibvs_common.testing.SerialCable).
 
+``--share F`` adds a case with the graph on F of a core: pinned beside one or two busy
+processes, at the nice levels whose CFS weights split the core F : 1 - F. With ``--at-speed S`` the
+share is of a core whose speed reference loop takes S s: before each run the loop is timed
+and F scaled by it (``--share 0.5 --at-speed 0.095``: half a core of this machine at an
+ordinary hour, whatever the hour; a core 2-4 x slower, as a Raspberry Pi 5's, is
+``--share 1 / k`` of this one at its fastest).
+
 ``--callback-cpu`` runs the composed graph under callback_cpu.py and prints, for each mode,
 the thread CPU per camera frame of every node's callbacks (its largest ones named): where a
 frame's CPU goes, without the GIL waits that a sampling profiler counts as busy.
 
 Run: ``make bench``, or ``AMENT_PREFIX_PATH=$PWD/.venv .venv/bin/python
-benchmarks/bench_onboard.py [--case NAME] [--repeats N] [--callback-cpu] [--smoke]``. Needs a
+benchmarks/bench_onboard.py [--case NAME] [--share F [--at-speed S]] [--repeats N]
+[--callback-cpu] [--smoke]``. Needs a
 quiet machine for meaningful figures (the load average and the speed reference are printed).
 """
 from __future__ import annotations
@@ -85,13 +93,20 @@ CASES = (
     ('a sixth of a core', {'latency_ms': 30.0, 'cpu': 'sixth'}),
     ('two cores shared', {'latency_ms': 30.0, 'cpu': 'shared'}),
 )
+# --share F: the graph on F of a core, late cameras as the other CPU cases
+SHARE_CASE = {'latency_ms': 30.0, 'cpu': 'share'}
 # the cores of the competing busy processes, per CPU case ('shared': one on each core, the
 # graph and the harness on both: a 2-core companion computer that also runs other work)
 BUSY = {'full': (), 'one': (), 'half': (GRAPH_CORE,), 'third': (GRAPH_CORE,) * 2,
-        'sixth': (GRAPH_CORE,) * 5,
+        'sixth': (GRAPH_CORE,) * 5, 'share': (),
         'shared': (HARNESS_CORE, GRAPH_CORE)}
 # the graph on GRAPH_CORE, the harness on HARNESS_CORE
-PINNED = ('one', 'half', 'third', 'sixth')
+PINNED = ('one', 'half', 'third', 'sixth', 'share')
+# CFS's weight of each nice level 0..19 (the kernel's sched_prio_to_weight: ~1.25 x a level)
+NICE_WEIGHT = (1024, 820, 655, 526, 423, 335, 272, 215, 172, 137, 110, 87, 70, 56, 45, 36, 29,
+               23, 18, 15)
+MAX_NICE = 19                    # --share: the highest nice level used
+SHARE_OVER, SHARE_UNDER = 0.005, 0.01   # --share: the split's tolerance above and below
 
 
 # --- the flight ------------------------------------------------------------------------------
@@ -199,9 +214,47 @@ def stand_in(url: str, flight: dict, start_mono, stop, results) -> None:
     results.put((got, sys_minus_mono_ns + int(mono0 * 1e9)))
 
 
-def busy_loop(core: int, stop) -> None:
+def nice_levels(share: float) -> tuple[int, tuple, float]:
+    """Return (graph's nice, busy processes' nices, the graph's share) for ``share`` of a core.
+
+    Always-runnable tasks on one core get CPU in proportion to their CFS weights (one per
+    nice level, ``NICE_WEIGHT``): the graph at nice g beside busy processes at nices b_i gets
+    w(g) / (w(g) + sum w(b_i)). One or two busy processes split a core in steps of about
+    0.01. Returns, of the splits within [share - 0.01, share + 0.005], the one with the
+    lowest nice levels, then the fewest busy processes (the nearest split if none is). Levels
+    are only raised (no privileges needed). As in the half and third cases, the graph counts
+    as one task: its threads mostly run one at a time under the GIL.
+    """
+    if not 0.0 < share < 1.0:
+        raise ValueError(f'a share of a core is in (0, 1), not {share}')
+    levels = range(MAX_NICE + 1)
+    splits = [(g, (b,)) for g in levels for b in levels] \
+        + [(g, (b1, b2)) for g in levels for b1 in levels for b2 in levels if b1 <= b2]
+    shares = [(NICE_WEIGHT[g] / (NICE_WEIGHT[g] + sum(NICE_WEIGHT[b] for b in busy)), g, busy)
+              for g, busy in splits]
+    close = [(max(g, *busy), len(busy), got, g, busy) for got, g, busy in shares
+             if share - SHARE_UNDER <= got <= share + SHARE_OVER]
+    if close:
+        _, _, got, g, busy = min(close)
+    else:
+        got, g, busy = min(shares, key=lambda x: abs(x[0] - share))
+    return g, busy, got
+
+
+def emulated_share(share: float, at_speed_s: float | None, loop_s: float) -> float:
+    """Return the share of this core now that stands for ``share`` of a core at ``at_speed_s``.
+
+    ``at_speed_s``: the speed reference's Python loop time (s) of the core to emulate, e.g.
+    0.095 for this machine at an ordinary hour; ``loop_s``: the loop time measured now. A
+    core k x slower than this one now is 1/k of it. ``None``: ``share`` as it is.
+    """
+    return share if at_speed_s is None else share * loop_s / at_speed_s
+
+
+def busy_loop(core: int, stop, nice: int = 0) -> None:
     """Spin on ``core`` until told to stop: a competing process (a camera driver, a recorder)."""
     os.sched_setaffinity(0, {core})
+    os.nice(nice)
     x = 0
     while not stop.is_set():
         for _ in range(100_000):
@@ -333,12 +386,14 @@ def cpu_ticks(pids: dict) -> dict:
 def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
              latency_ms: float = 0.0, jitter_ms: float = 0.0, cpu: str = 'full',
              link: str = 'udp', layout: str = 'composed', seed: int = 0, run: int = 0,
-             callback_cpu: bool = False, params: tuple = ()) -> dict:
+             callback_cpu: bool = False, params: tuple = (), nices: tuple = (0, ())) -> dict:
     """One replay of the flight through a fresh onboard graph; return its figures.
 
     The nodes' logs go to ``results/bench_onboard/<case>_r<run>/``. ``callback_cpu``: the
     composed graph runs under callback_cpu.py (its callbacks' thread CPU, by mode).
     ``params``: 'name:=value' parameters for every node of the containers (an A/B).
+    ``nices``: the graph's nice level and those of busy processes added on its core
+    (``nice_levels``).
     """
     from ibvs_bringup.runner import ProcessRunner
     from ibvs_harness.run_scenario import write_vehicle_at_rates
@@ -356,17 +411,20 @@ def run_once(name: str, flight: dict, frames: dict, rate_hz: float = 50.0,
     ap = ctx.Process(target=stand_in, args=(ap_url, flight, start_mono, stop, results))
     ap.start()
     load_stop = ctx.Event()
-    loads = [ctx.Process(target=busy_loop, args=(core, load_stop)) for core in BUSY[cpu]]
+    loads = [ctx.Process(target=busy_loop, args=(core, load_stop)) for core in BUSY[cpu]] \
+        + [ctx.Process(target=busy_loop, args=(GRAPH_CORE, load_stop, b)) for b in nices[1]]
     for p in loads:
         p.start()
-    pin = ['taskset', '-c', str(GRAPH_CORE)] if cpu in PINNED else []
+    pin = (['taskset', '-c', str(GRAPH_CORE)] if cpu in PINNED else []) \
+        + (['nice', '-n', str(nices[0])] if nices[0] else [])
     case_dir = os.path.join(CACHE_DIR, f"{name.replace(' ', '_')}_r{run}")
     runner = ProcessRunner(log_dir=case_dir)
     os.sched_setaffinity(0, {HARNESS_CORE} if cpu in PINNED else ALL_CORES)
     rep = Replayer()
     rng = np.random.default_rng(seed)
     period_ns = int(round(1e9 / rate_hz))
-    out = {'name': name, 'rate_hz': rate_hz, 'latency_ms': latency_ms, 'cpu': cpu, 'link': link}
+    out = {'name': name, 'rate_hz': rate_hz, 'latency_ms': latency_ms, 'cpu': cpu, 'link': link,
+           'nices': nices}
     delivered = {}
     try:
         # the graph configured for its cameras' rate, as a user sets vehicle.yaml's rate_hz
@@ -609,9 +667,22 @@ def main(argv: list | None = None) -> int:
     p.add_argument('--param', action='append', default=[], metavar='NAME:=VALUE',
                    help='a parameter for every node of the containers (composed and grouped '
                    'layouts), e.g. flow_shed_stride:=1 for the governor without its flow step')
+    p.add_argument('--share', type=float, action='append', default=[], metavar='F',
+                   help='a case with the graph on F of a core (0 < F < 1): pinned beside one '
+                   'or two busy processes, their nice levels set for that share; runs only '
+                   'these cases unless --case is given too')
+    p.add_argument('--at-speed', type=float, metavar='S',
+                   help='with --share: F of a core whose speed reference\'s Python loop takes '
+                   'S s (e.g. 0.095, this machine at an ordinary hour), scaled by the loop '
+                   'measured before each run, so that a run judges the same computer at any '
+                   'hour')
     p.add_argument('--smoke', action='store_true',
                    help='4 s of the flight, the first case only (CI: the command still runs)')
     args = p.parse_args(argv)
+    if any(not 0.0 < f < 1.0 for f in args.share):
+        p.error('--share takes a fraction of a core in (0, 1)')
+    if args.at_speed is not None and (not args.share or args.at_speed <= 0.0):
+        p.error('--at-speed takes a positive loop time (s), with --share')
     if args.param and args.layout == 'processes':
         p.error('--param is for the containers (composed, composed-single, grouped)')
     if any(':=' not in a for a in args.param):
@@ -626,7 +697,9 @@ def main(argv: list | None = None) -> int:
     isolate_dds()                # a DDS domain of its own: no other graph on this machine
     use_dds_profile_here()                           # the graph's shared-memory profile
     import rclpy
-    cases = [(n, kw) for n, kw in CASES if not args.case or n in args.case]
+    cases = [(n, kw) for n, kw in CASES if n in args.case or not (args.case or args.share)]
+    cases += [(share_case_name(f, args.at_speed), dict(SHARE_CASE, share=f))
+              for f in args.share]
     if args.smoke:
         cases = cases[:1]
     print(f'load average {os.getloadavg()[0]:.2f}; speed reference: {speed_text(GRAPH_CORE)}')
@@ -651,8 +724,37 @@ def run_cases(cases: list, args, flights: dict, frames: dict) -> None:
                 frames[rate] = render(flights[rate], rate, args.smoke)
                 print(f'{len(flights[rate]["r"])} frames at {rate:g} Hz ready '
                       f'({time.monotonic() - t0:.1f} s)')
+            kw = dict(kw)
+            if 'share' in kw:
+                kw.update(share_settings(kw.pop('share'), args.at_speed))
             report(run_once(name, flights[rate], frames[rate], layout=args.layout, run=run,
                             callback_cpu=args.callback_cpu, params=tuple(args.param), **kw))
+
+
+def share_case_name(share: float, at_speed_s: float | None) -> str:
+    """Return a --share case's printed name."""
+    return f'{share:g} of a core' + (f' at {at_speed_s:g} s' if at_speed_s else '')
+
+
+def share_settings(share: float, at_speed_s: float | None) -> dict:
+    """Return run_once's CPU arguments for ``share`` of a core (at a speed); print them.
+
+    A core to emulate that is faster than this one now (a share above the whole core) gets
+    the whole core, said so: the figures then stand for a slower computer than asked.
+    """
+    loop_s = speed_reference(GRAPH_CORE)[0] if at_speed_s else None
+    here = emulated_share(share, at_speed_s, loop_s)
+    told = f'{share:g} of a core' + (f' at {at_speed_s:g} s: this core runs the loop in '
+                                     f'{loop_s:.3f} s now, so {here:.3f} of it' if at_speed_s
+                                     else '')
+    if here >= 1.0:
+        print(f'{told}; more than this core: the graph gets all of it (a slower computer '
+              'than asked)')
+        return {'cpu': 'one'}
+    g, busy, got = nice_levels(here)
+    print(f'{told}; the graph at nice {g} beside busy processes at nice '
+          f'{", ".join(map(str, busy))}: {got:.3f}')
+    return {'cpu': 'share', 'nices': (g, busy)}
 
 
 if __name__ == '__main__':

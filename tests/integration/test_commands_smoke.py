@@ -22,7 +22,8 @@ BENCH_ARGS = {'bench_perception.py': ['--frames', '5'], 'bench_sim.py': ['--fram
               'bench_window_robustness.py': ['--smoke'], 'bench_idle_cpu.py': ['--smoke'],
               'bench_pad_groups.py': ['--poses', '2'], 'bench_lockstep.py': ['--smoke'],
               'bench_mavlink_receive.py': ['--smoke'],
-              'bench_onboard.py': ['--smoke', '--callback-cpu'],
+              'bench_onboard.py': ['--smoke', '--callback-cpu', '--share', '0.5',
+                                   '--at-speed', '0.095'],
               'bench_instructions.py': ['--smoke']}
 
 
