@@ -10,10 +10,12 @@ from ibvs_common.core import frames
 from ibvs_common.core.config import load_pad_layout, load_vehicle
 from ibvs_sim.core.world import load_world
 from ibvs_common.core.attitude_buffer import AttitudeBuffer, AttitudeBufferConfig
-from ibvs_perception.core.flow import (FlowConfig, FlowEstimator, inside_spherical_polygon,
+from ibvs_perception.core.flow import (flow_residuals, FlowConfig, FlowEstimator,
+                                       inside_spherical_polygon,
                                        joint_grid_start, LK_MOTION_MARGIN, mid_bearings,
-                                       pyramid_levels_for, second_plane_ratio, solve_flow_c,
-                                       solve_translational_flow, wall_normal_from_corners)
+                                       pyramid_levels_for, second_plane_ratio, solve_flow_axis,
+                                       solve_flow_c, solve_translational_flow,
+                                       wall_normal_from_corners)
 from ibvs_perception.core.image import ImageFormatError, image_to_mono8
 from ibvs_perception.core.window import WindowDetector, WindowDetectorConfig
 from ibvs_sim.core.render import SceneRenderer
@@ -48,6 +50,46 @@ def test_closed_form_flow_recovered_from_exact_bearings():
     p1 = P1 / np.linalg.norm(P1, axis=1, keepdims=True)
     phi = solve_translational_flow(p0, p1, dt, eta, np.ones(200))
     np.testing.assert_allclose(phi, v / d, rtol=2e-3, atol=1e-5)
+
+
+@pytest.mark.parametrize('angle', [0.0, 1e-3, -2e-3])
+def test_flow_and_a_rotation_about_the_optical_axis_recovered_from_exact_bearings(angle):
+    """Wall points (the front camera's view, axis a = e1) seen after a translation v dt and
+    a turn of the camera by ``angle`` about a (Rodrigues): phi = v/d, and omega = -angle/dt,
+    the bearings turning the other way about a (right-handed), as the sign test shows."""
+    rng = np.random.default_rng(4)
+    a, d, v, dt = frames.e1, 2.3, np.array([0.05, 0.1, -0.05]), 0.02
+    S = np.column_stack([np.full(300, d), rng.uniform(-2, 2, 300), rng.uniform(-1.5, 1.5, 300)])
+    p0 = S / np.linalg.norm(S, axis=1, keepdims=True)
+    # the camera turned by R_turn: a world point's bearing is R_turn^T (X - c)
+    P1 = (S - v * dt) @ frames.exp_so3(angle * a)
+    p1 = P1 / np.linalg.norm(P1, axis=1, keepdims=True)
+    p_mid = mid_bearings(p0, p1)
+    phi, omega = solve_flow_axis(p_mid, (p1 - p0) / dt, p_mid @ a, np.ones(300), a)
+    np.testing.assert_allclose(phi, v / d, rtol=1e-3, atol=1e-4)
+    assert omega == pytest.approx(-angle / dt, abs=1e-4)
+    # the sign: a bearing on the +y side, turned anticlockwise about +x (omega > 0) moves +z
+    p_y = np.array([[0.0, 1.0, 0.0]])
+    assert np.cross(a, p_y)[0] @ frames.e3 > 0
+
+
+def test_without_the_axis_rotation_a_camera_turn_is_left_in_the_residuals():
+    """A turn of 2 mrad about the optical axis, no translation: the one-plane model alone
+    leaves ~0.4-0.5 px at the image edges (the inlier gate is 0.5 px; flow.py's doc), the
+    model with the rotation nothing."""
+    rng = np.random.default_rng(4)
+    a, d, dt, f_px = frames.e1, 2.3, 0.02, 367.0
+    S = np.column_stack([np.full(300, d), rng.uniform(-2, 2, 300), rng.uniform(-1.5, 1.5, 300)])
+    p0 = S / np.linalg.norm(S, axis=1, keepdims=True)
+    P1 = S @ frames.exp_so3(2e-3 * a)
+    p1 = P1 / np.linalg.norm(P1, axis=1, keepdims=True)
+    phi = solve_translational_flow(p0, p1, dt, a, np.ones(300))
+    without = f_px * flow_residuals(p0, p1, dt, a, phi)
+    p_mid = mid_bearings(p0, p1)
+    phi_a, omega = solve_flow_axis(p_mid, (p1 - p0) / dt, p_mid @ a, np.ones(300), a)
+    with_axis = f_px * flow_residuals(p0, p1 - dt * omega * np.cross(a, p_mid), dt, a, phi_a)
+    assert np.percentile(without, 90) > 0.4
+    assert np.max(with_axis) < 0.01
 
 
 def test_two_plane_model_recovers_the_wall_flow_and_the_distance_ratio():
@@ -86,6 +128,59 @@ def test_two_plane_model_recovers_the_wall_flow_and_the_distance_ratio():
     phi_w = solve_flow_c(pm, pd, pm @ frames.e1, np.ones(300))
     assert second_plane_ratio(pm, pd, pm @ frames.e1, np.maximum(pm @ frames.e3, 0.0), phi_w,
                               dt, threshold) == 0.0
+
+
+def gyro_like_error(rng, n, std_rad=(1.1e-3, 0.62e-3, 0.23e-3)):
+    """Attitude errors (n, 3) rotation vectors in {B}: a random walk whose step over a frame
+    has PX4 SIH's imu/data gyro error over 20 ms (roll, pitch, yaw; docs/px4_sih.md)."""
+    return np.cumsum(rng.normal(size=(n, 3)) * np.asarray(std_rad), axis=0)
+
+
+def test_the_front_flow_at_a_hover_start_survives_a_real_gyros_attitude_error(scene):
+    """The vehicle nearly still at the start (2.1-2.5 m from the wall, <= 0.2 m/s), each
+    image's attitude off by a gyro-like error between frames (1.1 mrad over 20 ms about the
+    front camera's axis): with the rotation about the optical axis fitted, at most 2 of the
+    74 frames have no flow (1 measured: a still start estimates over 5-frame baselines, where
+    the error across the view adds up) and the others are within 0.05 1/s of v/d (that error
+    biases phi as a sideways translation would); without it, 4 x as many (10 measured; PX4
+    SIH's "front_flow stale" at the start, docs/px4_sih.md)."""
+    world, vehicle, renderers = scene
+    cam, renderer = vehicle.cameras['front'], renderers['front']
+    counts = {}
+    for fit in (True, False):
+        nan, errors = 0, []
+        for seed in (0, 1):
+            rng = np.random.default_rng(seed)
+            v = rng.normal(size=3)
+            v *= rng.uniform(0.0, 0.2) / np.linalg.norm(v)
+            xi0 = np.asarray(world.initial_position_I, float) + rng.uniform(-0.2, 0.2, 3)
+            estimator = FlowEstimator(FlowConfig(fit_axis_rotation=fit), cam.model, cam.R_BC)
+            detector = WindowDetector(WindowDetectorConfig())
+            error_B = gyro_like_error(rng, 40)
+            for k in range(40):
+                t = k * DT
+                R = frames.rot_from_euler_zyx(np.radians(1) * np.sin(3 * t + seed),
+                                              np.radians(1) * np.sin(2.3 * t),
+                                              world.initial_yaw + np.radians(1) * np.sin(1.7 * t))
+                img = renderer.render(R, xi0 + v * t)
+                img = np.clip(img + rng.normal(0.0, 1.5, img.shape), 0, 255).astype(np.uint8)
+                R_est = R @ frames.exp_so3(error_B[k])
+                window = detector.process(img, cam.model).detection
+                assert window is not None
+                eta, exclude = wall_normal_from_corners(window.bearings_C, R_est, cam.R_BC)
+                result = estimator.process(img, t, R_est, eta, exclude, frames.e3)
+                if k < 3:
+                    continue
+                if result.phi_I is None:
+                    nan += 1
+                    continue
+                t_mid = t - estimator.last_baseline_frames * DT / 2.0
+                errors.append(np.linalg.norm(
+                    result.phi_I - v / (world.wall_x - (xi0[0] + v[0] * t_mid))))
+        counts[fit] = nan
+        if fit:
+            assert np.percentile(errors, 95) < 0.05, np.percentile(errors, 95)
+    assert counts[True] <= 2 and counts[False] >= 4 * max(counts[True], 1), counts
 
 
 def test_rendered_front_flow_with_the_floor_in_view(scene):
@@ -369,7 +464,9 @@ def test_a_translation_is_predicted_by_each_tracks_own_motion(scene):
     """0.5 m/s at 1.2 m over the floor, slow yaw: ~3 px a frame that the rotation does not
     predict; each track's last motion does (to a fraction of a px), so the search drops to
     the base level except just after new features (no motion yet), and phi is the same as
-    without the prediction to 1e-3 relative (and within 5 % of v / d)."""
+    without the prediction to 2e-3 relative (and within 5 % of v / d). The tracks of the two
+    searches differ by their convergence (~0.01 px); with the rotation about the optical axis
+    fitted too (one more unknown), phi moves with them 1.6e-3 at most (1e-3 without)."""
     _, vehicle, renderers = scene
     cam = vehicle.cameras['down']
     v = np.array([0.4, 0.3, 0.0])
@@ -391,7 +488,7 @@ def test_a_translation_is_predicted_by_each_tracks_own_motion(scene):
             assert levels.count(0) >= 8 and estimator.retracks == 0
     for a, b in zip(phis[True][2:], phis[False][2:]):
         assert a is not None and b is not None
-        assert np.linalg.norm(a - b) <= 1e-3 * np.linalg.norm(b)
+        assert np.linalg.norm(a - b) <= 2e-3 * np.linalg.norm(b)
         assert np.linalg.norm(a - v / 1.2) <= 0.05 * np.linalg.norm(v / 1.2)
 
 

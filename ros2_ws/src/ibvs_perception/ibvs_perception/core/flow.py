@@ -20,6 +20,15 @@ The point is on the second plane exactly when s eta_2^T p > eta^T p: the assignm
 geometric, not a residual test. phi and s are fitted alternately (phi by least squares with
 c fixed, s by least squares over the points that the first plane does not explain).
 
+The IMU's attitude error between two images is not zero (a real gyro's noise: ~1 mrad over
+20 ms about the front camera's axis on PX4 SIH). About an axis across the view it moves
+every point alike, as a sideways translation does, and the fit absorbs it as a small phi
+error; about the optical axis a it turns the image, which no translation explains, and
+above ~0.5 px at the image corners it took most tracks out of the inlier gate. With
+``fit_axis_rotation`` the model carries that rotation, a rate omega about a fitted with phi:
+
+    p_dot = -c(p) pi_p phi + omega (a x p).
+
 Pipeline per image (docs/perception.md "Translational optical flow" has it in full):
 pyramidal Lucas-Kanade of the tracked features from the previous image, each started where the
 IMU's rotation moves it (``lk_predict``), on as few pyramid levels as the motion left asks for
@@ -86,6 +95,10 @@ class FlowConfig:
         25.0, 'grey levels (of 255), largest LK mean absolute patch error', 0.0)
     border_px: float = param(8.0, 'px, tracks closer to the image border are dropped', 0.0)
     inlier_threshold_px: float = param(0.5, 'px over one frame, residual of an inlier track', 0.0)
+    fit_axis_rotation: bool = param(
+        True,
+        'fit a rotation about the optical axis with phi: the attitude error between the two '
+        'images about the camera axis (gyro noise), which no translation explains (module doc)')
     huber_iterations: int = param(4, 'IRLS (Huber) iterations before the inlier gate', 0, 1000)
     two_plane_iterations: int = param(
         2,
@@ -130,6 +143,7 @@ class FlowResult:
     inlier_ratio: float         # inliers / usable tracks, [0, 1]
     n_inliers: int
     n_tracks: int
+    axis_rate: float = 0.0      # rad/s, the fitted rotation about the optical axis (module doc)
 
 
 def wall_normal_from_corners(corner_bearings_C: np.ndarray, R_IB: np.ndarray,
@@ -175,6 +189,34 @@ def solve_flow_c(p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray,
     if not np.all(np.isfinite(M)) or np.linalg.cond(M) > _MAX_CONDITION:
         return None
     return np.linalg.solve(M, b)
+
+
+def solve_flow_axis(p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray, weights: np.ndarray,
+                    axis_I: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Weighted least squares (phi, omega) of p_dot = -c_i pi_p phi + omega (a x p) (module doc).
+
+    ``axis_I``: the camera's optical axis a, unit, in {I}; omega in rad/s, positive turning the
+    bearings anticlockwise about a (right-handed). Returns None for a degenerate set.
+    """
+    # A_i = [-c_i pi_i, t_i] with t_i = a x p_i (orthogonal to p_i, so pi_i t_i = t_i)
+    t = np.cross(axis_I[None, :], p_mid)
+    pi_y = p_dot - p_mid * np.sum(p_mid * p_dot, axis=1, keepdims=True)
+    wc = weights * c
+    M = np.zeros((4, 4))
+    M[:3, :3] = (wc * c).sum() * np.eye(3) - (p_mid * (wc * c)[:, None]).T @ p_mid
+    M[:3, 3] = M[3, :3] = -(wc[:, None] * t).sum(axis=0)
+    M[3, 3] = float(np.sum(weights * np.sum(t * t, axis=1)))
+    b = np.concatenate([-(wc[:, None] * pi_y).sum(axis=0),
+                        [float(np.sum(weights * np.sum(t * p_dot, axis=1)))]])
+    if not np.all(np.isfinite(M)) or np.linalg.cond(M) > _MAX_CONDITION:
+        return None
+    x = np.linalg.solve(M, b)
+    return x[:3], float(x[3])
+
+
+def axis_rotation_flow(p_mid: np.ndarray, axis_I: np.ndarray, omega: float) -> np.ndarray:
+    """Return the bearing rates (N, 3) of a rotation at ``omega`` rad/s about ``axis_I``."""
+    return omega * np.cross(axis_I[None, :], p_mid)
 
 
 def residuals_c(p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray, phi: np.ndarray,
@@ -362,9 +404,10 @@ class FlowEstimator:
         else:
             p_I = self._bearings_I(self._points, R_IB)
             if eta_I is not None and self._history and len(self._points):
+                axis_I = R_IB @ self.R_BC[:, 2] if cfg.fit_axis_rotation else None
                 result = self._estimate_over_baseline(
                     stamp_s, p_I, np.asarray(eta_I, dtype=float), exclude_I,
-                    None if eta2_I is None else np.asarray(eta2_I, dtype=float))
+                    None if eta2_I is None else np.asarray(eta2_I, dtype=float), axis_I)
         self._frame_count += 1
         if len(self._points) < cfg.min_tracks \
                 or self._frame_count % cfg.replenish_every_n_frames == 0:
@@ -384,9 +427,12 @@ class FlowEstimator:
         return bearings_C_to_I(self.camera.pixels_to_bearings(points_px), R_IB, self.R_BC)
 
     def _estimate_over_baseline(self, stamp_s: float, p1_all: np.ndarray, eta_I: np.ndarray,
-                                exclude_I: np.ndarray | None,
-                                eta2_I: np.ndarray | None) -> FlowResult:
-        """Estimate from the previous frame, or from further back when the motion is slow."""
+                                exclude_I: np.ndarray | None, eta2_I: np.ndarray | None,
+                                axis_I: np.ndarray | None) -> FlowResult:
+        """Estimate from the previous frame, or from further back when the motion is slow.
+
+        ``axis_I``: the optical axis in {I} now, to fit a rotation about it (None: not fitted).
+        """
         cfg = self.config
         baselines = []
         for back in range(1, len(self._history) + 1):       # previous frame first
@@ -408,7 +454,7 @@ class FlowEstimator:
             return FlowResult(None, 0.0, 0, 0)
         dt, p0, p1 = baselines[-1]
         self.last_baseline_frames = len(baselines)
-        return self._estimate(p0, p1, dt, eta_I, exclude_I, eta2_I)
+        return self._estimate(p0, p1, dt, eta_I, exclude_I, eta2_I, axis_I)
 
     def _predicted(self, stamp_s: float, R_IB: np.ndarray | None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -506,8 +552,12 @@ class FlowEstimator:
         return cur, ok
 
     def _estimate(self, p0: np.ndarray, p1: np.ndarray, dt: float, eta_I: np.ndarray,
-                  exclude_I: np.ndarray | None, eta2_I: np.ndarray | None) -> FlowResult:
-        """Phi from the tracks' bearings p0 -> p1 in {I}, dt apart (module doc)."""
+                  exclude_I: np.ndarray | None, eta2_I: np.ndarray | None,
+                  axis_I: np.ndarray | None = None) -> FlowResult:
+        """Phi from the tracks' bearings p0 -> p1 in {I}, dt apart (module doc).
+
+        ``axis_I``: the optical axis in {I}; a rotation about it is fitted with phi (None: not).
+        """
         cfg = self.config
         on_plane = (p0 @ eta_I > cfg.min_cos_plane) & (p1 @ eta_I > cfg.min_cos_plane)
         if eta2_I is not None:       # a point may lie on either plane
@@ -525,39 +575,58 @@ class FlowEstimator:
         s = 0.0 if c2 is None else joint_grid_start(p_mid, p_dot, c1, c2, dt, threshold)
         c = c1 if c2 is None else np.maximum(c1, s * c2)
         for _ in range(1 + (cfg.two_plane_iterations if c2 is not None else 0)):
-            phi, weights = self._irls(p_mid, p_dot, c, dt, threshold)
+            phi, omega, weights = self._irls(p_mid, p_dot, c, dt, threshold, axis_I)
             if phi is None:
                 return FlowResult(None, 0.0, 0, n)
             if c2 is None or s == 0.0:      # plane 2 not in view: the one-plane fit
                 break
-            s = second_plane_ratio(p_mid, p_dot, c1, c2, phi, dt, threshold)
+            s = second_plane_ratio(p_mid, self._derotated(p_mid, p_dot, axis_I, omega), c1, c2,
+                                   phi, dt, threshold)
             c = np.maximum(c1, s * c2)
-        inliers = residuals_c(p_mid, p_dot, c, phi, dt) <= threshold
+        inliers = residuals_c(p_mid, self._derotated(p_mid, p_dot, axis_I, omega), c, phi,
+                              dt) <= threshold
         n_in = int(inliers.sum())
         ratio = n_in / n
         if n_in < cfg.min_inliers or ratio < cfg.min_inlier_ratio:
-            return FlowResult(None, ratio, n_in, n)
+            return FlowResult(None, ratio, n_in, n, omega)
         # the final phi from plane 1's own inliers: it does not inherit an error of s
         on_1 = inliers if c2 is None else inliers & (c1 >= s * c2)
         if int(on_1.sum()) < cfg.min_inliers:
-            return FlowResult(None, ratio, n_in, n)
-        phi = solve_flow_c(p_mid[on_1], p_dot[on_1], c1[on_1], np.ones(int(on_1.sum())))
+            return FlowResult(None, ratio, n_in, n, omega)
+        phi, omega = self._solve(p_mid[on_1], p_dot[on_1], c1[on_1], np.ones(int(on_1.sum())),
+                                 axis_I)
         if phi is None or not np.all(np.isfinite(phi)):
-            return FlowResult(None, ratio, n_in, n)
-        return FlowResult(phi, ratio, n_in, n)
+            return FlowResult(None, ratio, n_in, n, omega)
+        return FlowResult(phi, ratio, n_in, n, omega)
+
+    @staticmethod
+    def _solve(p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray, weights: np.ndarray,
+               axis_I: np.ndarray | None) -> tuple[np.ndarray | None, float]:
+        """(phi, omega) of the model c, with a rotation about ``axis_I`` when given (else 0)."""
+        if axis_I is None:
+            return solve_flow_c(p_mid, p_dot, c, weights), 0.0
+        solved = solve_flow_axis(p_mid, p_dot, c, weights, axis_I)
+        return (None, 0.0) if solved is None else solved
+
+    @staticmethod
+    def _derotated(p_mid: np.ndarray, p_dot: np.ndarray, axis_I: np.ndarray | None,
+                   omega: float) -> np.ndarray:
+        """Return the bearing rates without the fitted rotation about the optical axis."""
+        return p_dot if axis_I is None else p_dot - axis_rotation_flow(p_mid, axis_I, omega)
 
     def _irls(self, p_mid: np.ndarray, p_dot: np.ndarray, c: np.ndarray, dt: float,
-              threshold: float) -> tuple[np.ndarray | None, np.ndarray]:
-        """Huber-reweighted least squares phi for the model c: (phi or None, last weights)."""
+              threshold: float, axis_I: np.ndarray | None = None
+              ) -> tuple[np.ndarray | None, float, np.ndarray]:
+        """Huber-reweighted least squares: (phi or None, omega, last weights) for the model c."""
         weights = np.ones(len(p_mid))
-        phi = None
+        phi, omega = None, 0.0
         for _ in range(self.config.huber_iterations):
-            phi = solve_flow_c(p_mid, p_dot, c, weights)
+            phi, omega = self._solve(p_mid, p_dot, c, weights, axis_I)
             if phi is None:
-                return None, weights
-            r = residuals_c(p_mid, p_dot, c, phi, dt)
+                return None, 0.0, weights
+            r = residuals_c(p_mid, self._derotated(p_mid, p_dot, axis_I, omega), c, phi, dt)
             weights = np.minimum(1.0, threshold / np.maximum(r, 1e-15))
-        return phi, weights
+        return phi, omega, weights
 
     def _replenish(self, gray: np.ndarray) -> None:
         """Add features (goodFeaturesToTrack) only in grid cells that hold too few tracks."""
