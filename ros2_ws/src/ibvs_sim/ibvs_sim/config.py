@@ -43,12 +43,12 @@ def _fault_window(values: list, name: str) -> tuple[float, float]:
     return fault_windows(f'parameter {name}', values)[0]
 
 
-def _accel_noise(values: list) -> tuple[float, float, float]:
-    """Return the accelerometer noise std per body axis (m/s^2), each finite in [0, 5]."""
+def _axis_stds(values: list, name: str, unit: str, most: float) -> tuple[float, float, float]:
+    """Return a noise std per body axis (FRD x, y, z) of parameter ``name``, each in [0, most]."""
     std = tuple(float(v) for v in values)
-    if len(std) != 3 or not all(math.isfinite(v) and 0.0 <= v <= 5.0 for v in std):
-        raise ValueError('parameter accel_noise_std_mps2 needs 3 stds (m/s^2, FRD x, y, z), '
-                         f'each in [0, 5], got {list(values)}')
+    if len(std) != 3 or not all(math.isfinite(v) and 0.0 <= v <= most for v in std):
+        raise ValueError(f'parameter {name} needs 3 stds ({unit}, FRD x, y, z), '
+                         f'each in [0, {most:g}], got {list(values)}')
     return std
 
 
@@ -142,6 +142,10 @@ class SimNodeConfig:
         [0.28, 0.95, 0.80], "m/s^2, std per body axis (FRD x, y, z) of the white noise on each "
         "HIGHRES_IMU accelerometer sample: PX4 SIH's as the bridge receives it (SIH's 0.5, 1.7, "
         "1.4 through PX4's IMU filter; the sim had 0.05 before 2026-12-05), each within [0, 5]")
+    gyro_noise_std_radps: list = param(
+        [0.083, 0.040, 0.017], 'rad/s, std per body axis (FRD x, y, z) of the white noise on each '
+        "ATTITUDE_QUATERNION and HIGHRES_IMU rate sample: PX4 SIH's imu/data against its truth "
+        'in flight (the sim had 0.005 before 2026-12-05), each within [0, 1]')
     fault_front_camera_off_s: list = param([0.0, 0.0], 'no front images in' + _FAULTS)
     fault_down_camera_off_s: list = param([0.0, 0.0], 'no down images in' + _FAULTS)
     fault_front_camera_freeze_s: list = param(
@@ -290,7 +294,10 @@ class SimNodeConfig:
                 float(x) for x in self.attitude_estimate_offset_rad),
             attitude_noise_std=float(self.attitude_noise_std_rad),
             attitude_noise_tau_s=float(self.attitude_noise_tau_s),
-            accel_noise_std=_accel_noise(self.accel_noise_std_mps2),
+            accel_noise_std=_axis_stds(self.accel_noise_std_mps2, 'accel_noise_std_mps2',
+                                       'm/s^2', 5.0),
+            gyro_noise_std=_axis_stds(self.gyro_noise_std_radps, 'gyro_noise_std_radps',
+                                      'rad/s', 1.0),
             radio=radio)
 
     def radio(self) -> PilotSwitchRadio | None:

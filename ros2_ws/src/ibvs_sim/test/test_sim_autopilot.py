@@ -480,6 +480,30 @@ def test_telemetry_noise_and_fields():
         r.close()
 
 
+def test_the_gyro_noise_is_per_body_axis():
+    """gyro_noise_std (FRD x, y, z): PX4 SIH's imu/data sizes, on both rate streams."""
+    std = (0.083, 0.040, 0.017)
+    r = make_rig(state_fn=lambda t: hover_state(t, omega=(0.1, -0.2, 0.3)), gyro_noise_std=std)
+    try:
+        r.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_HIGHRES_IMU, 4000)
+        r.command(CMD_SET_MESSAGE_INTERVAL, MSG_ID_ATTITUDE_QUATERNION, 4000)
+        msgs = []
+        for i in range(2000):
+            r.poll(0.001)
+            if i % 10 == 0:
+                msgs += r.drain()
+        imu = np.array([[m.xgyro, m.ygyro, m.zgyro] for m in msgs
+                        if m.get_type() == 'HIGHRES_IMU'])
+        att = np.array([[m.rollspeed, m.pitchspeed, m.yawspeed] for m in msgs
+                        if m.get_type() == 'ATTITUDE_QUATERNION'])
+        for rates in (imu, att):
+            assert len(rates) > 400
+            np.testing.assert_allclose(rates.std(axis=0), std, rtol=0.15)
+            np.testing.assert_allclose(rates.mean(axis=0), [0.1, -0.2, 0.3], atol=0.015)
+    finally:
+        r.close()
+
+
 def test_a_static_estimate_offset_is_reported_as_that_rotation_and_checked():
     """attitude_estimate_offset_rad (roll, pitch) is R_err = exp((roll, pitch, 0)^): reported.
 

@@ -352,3 +352,14 @@ def test_the_accelerometer_noise_parameter_reaches_the_autopilot_and_is_checked(
     for bad in ([0.1, 0.1], [0.1, -0.1, 0.1], [0.1, float('nan'), 0.1], [0.1, 0.1, 6.0]):
         with pytest.raises(ValueError, match='accel_noise_std_mps2'):
             SimNodeConfig(accel_noise_std_mps2=bad).autopilot_config(vehicle, 0.0)
+
+
+def test_the_gyro_noise_parameter_reaches_the_autopilot_and_is_checked(configs):
+    """gyro_noise_std_radps: 3 stds (FRD), PX4 SIH's by default; a wrong one is refused."""
+    vehicle = configs[2]
+    assert SimNodeConfig().autopilot_config(vehicle, 0.0).gyro_noise_std == (0.083, 0.040, 0.017)
+    cfg = SimNodeConfig(gyro_noise_std_radps=[0.0, 0.01, 0.02])
+    assert cfg.autopilot_config(vehicle, 0.0).gyro_noise_std == (0.0, 0.01, 0.02)
+    for bad in ([0.1, 0.1], [0.1, -0.1, 0.1], [0.1, float('inf'), 0.1], [0.1, 0.1, 1.5]):
+        with pytest.raises(ValueError, match='gyro_noise_std_radps'):
+            SimNodeConfig(gyro_noise_std_radps=bad).autopilot_config(vehicle, 0.0)

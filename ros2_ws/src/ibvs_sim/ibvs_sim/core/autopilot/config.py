@@ -52,7 +52,10 @@ class AutopilotConfig:
     status_telemetry_hz: float = 5.0        # EXTENDED_SYS_STATE, SYS_STATUS (as PX4 SITL)
     telemetry_max_hz: float = 250.0
     timesync_request_hz: float = 10.0       # own TIMESYNC requests, sim time (PX4: ~10 Hz)
-    gyro_noise_std: float = 0.005           # rad/s, white, per axis
+    # rad/s, white, per body axis (FRD x, y, z) of each ATTITUDE_QUATERNION and HIGHRES_IMU
+    # rate sample (the sim node's gyro_noise_std_radps; PX4 SIH's imu/data against its truth
+    # in flight: 0.083, 0.040, 0.017)
+    gyro_noise_std: tuple = (0.005, 0.005, 0.005)
     # m/s^2, white, per body axis (FRD x, y, z) of each HIGHRES_IMU sample (the sim node's
     # accel_noise_std_mps2; PX4 SIH's as the bridge receives it: 0.28, 0.95, 0.80)
     accel_noise_std: tuple = (0.05, 0.05, 0.05)

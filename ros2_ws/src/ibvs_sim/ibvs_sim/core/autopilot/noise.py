@@ -1,7 +1,7 @@
 """Sensor noise of the sim autopilot's telemetry, a function of sim time only.
 
-Gyro (``gyro_noise_std``, rad/s) and accelerometer (``accel_noise_std``, m/s², one std per body
-axis) white Gaussian per axis. The attitude estimate's error is a small body rotation
+Gyro (``gyro_noise_std``, rad/s) and accelerometer (``accel_noise_std``, m/s²), one std per body
+axis, white Gaussian per axis. The attitude estimate's error is a small body rotation
 ``R_err``: the autopilot's estimate is ``R_IB R_err`` (R_IB the truth, FRD -> NED). It is a
 static offset (``attitude_estimate_offset_rad``: roll and pitch, a body rotation vector (x, y,
 0), e.g. the tilt b/g that an accelerometer bias b leaves in an estimator levelling on it; PX4
@@ -89,7 +89,7 @@ class SensorNoise:
         """Return the FRD rates (rad/s) plus gyro noise, as ATTITUDE_QUATERNION sends them."""
         return np.asarray(Omega_B, dtype=float) + self.rng_at(
             NoiseStream.ATTITUDE_RATES, int(round(t * US_PER_S))).normal(
-            0.0, self.config.gyro_noise_std, 3)
+            0.0, np.asarray(self.config.gyro_noise_std, dtype=float), 3)
 
     def noisy_imu(self, accel_B_specific: np.ndarray, Omega_B: np.ndarray,
                   t: float) -> tuple[np.ndarray, np.ndarray]:
@@ -98,5 +98,6 @@ class SensorNoise:
         rng = self.rng_at(NoiseStream.HIGHRES_IMU, int(round(t * US_PER_S)))
         acc = np.asarray(accel_B_specific, dtype=float) + rng.normal(
             0.0, np.asarray(c.accel_noise_std, dtype=float), 3)
-        gyro = np.asarray(Omega_B, dtype=float) + rng.normal(0.0, c.gyro_noise_std, 3)
+        gyro = np.asarray(Omega_B, dtype=float) + rng.normal(
+            0.0, np.asarray(c.gyro_noise_std, dtype=float), 3)
         return acc, gyro
