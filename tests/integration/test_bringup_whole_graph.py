@@ -527,9 +527,9 @@ def test_late_cameras_30_ms_with_5_ms_jitter_started_from_the_radio(tmp_path):
 
     In lockstep the sim publishes each frame when sim time reaches its delivery and waits for
     the graph then, so the controller is 30 ms late in the simulated world, physics running on
-    meanwhile. Measured 2026-12-05 (the sim's gyro with PX4 SIH's noise; the same camera
-    options through run_scenario): modes at 1.0, 3.74, 7.16, 12.66 s, clearance 0.1259 m,
-    landing error 0.007 m (the reference: 7.18, 12.66 s, 0.1221 m, 0.015 m).
+    meanwhile. Measured 2026-12-05 (the same camera options through run_scenario, without
+    the pilot switch): modes at 1.0, 3.76, 7.18, 12.78 s, clearance 0.0884 m, landing error
+    0.035 m (the reference: 7.20, 12.80 s, 0.0877 m, 0.038 m).
     """
     summary = run_scenario(tmp_path, 'late-cameras', '--camera-latency', '30',
                            '--camera-jitter', '5', '--pilot-switch', '--no-bag', '--no-plots')
@@ -554,8 +554,8 @@ def test_late_cameras_30_ms_with_5_ms_jitter_started_from_the_radio(tmp_path):
 def test_cameras_at_30_hz(tmp_path):
     """Both cameras at 30 Hz (stamps on the 2 ms grid, 34 / 32 ms apart), the graph told so.
 
-    Measured 2026-12-05 (the sim's gyro with PX4 SIH's noise): modes at 1.0, 3.766, 7.366,
-    13.434 s, clearance 0.0786 m, landing error 0.043 m, 466 frames in 15.5 s of sim time.
+    Measured 2026-12-05: modes at 1.0, 3.766, 7.20, 12.934 s, clearance 0.0918 m, landing
+    error 0.033 m, 458 frames in 15.2 s of sim time.
     """
     summary = run_scenario(tmp_path, 'cameras-30hz', '--camera-rate', '30', '--no-bag',
                            '--no-plots')

@@ -355,9 +355,9 @@ def test_the_accelerometer_noise_parameter_reaches_the_autopilot_and_is_checked(
 
 
 def test_the_gyro_noise_parameter_reaches_the_autopilot_and_is_checked(configs):
-    """gyro_noise_std_radps: 3 stds (FRD), PX4 SIH's by default; a wrong one is refused."""
+    """gyro_noise_std_radps: 3 stds (FRD), 0.005 by default; a wrong one is refused."""
     vehicle = configs[2]
-    assert SimNodeConfig().autopilot_config(vehicle, 0.0).gyro_noise_std == (0.083, 0.040, 0.017)
+    assert SimNodeConfig().autopilot_config(vehicle, 0.0).gyro_noise_std == (0.005, 0.005, 0.005)
     cfg = SimNodeConfig(gyro_noise_std_radps=[0.0, 0.01, 0.02])
     assert cfg.autopilot_config(vehicle, 0.0).gyro_noise_std == (0.0, 0.01, 0.02)
     for bad in ([0.1, 0.1], [0.1, -0.1, 0.1], [0.1, float('inf'), 0.1], [0.1, 0.1, 1.5]):
