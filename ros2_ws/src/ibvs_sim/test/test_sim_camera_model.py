@@ -343,23 +343,18 @@ def test_the_node_parameters_make_each_cameras_timing_with_the_true_offsets(conf
         SimNodeConfig(camera_exposure_s=0.05).camera_timing(vehicle)
 
 
-def test_the_accelerometer_noise_parameter_reaches_the_autopilot_and_is_checked(configs):
-    """accel_noise_std_mps2: 3 stds (FRD), PX4 SIH's by default; a wrong one is refused."""
+@pytest.mark.parametrize('name, field, default, most', [
+    ('accel_noise_std_mps2', 'accel_noise_std', (0.28, 0.95, 0.80), 5.0),
+    ('gyro_noise_std_radps', 'gyro_noise_std', (0.005, 0.005, 0.005), 1.0)])
+def test_a_noise_parameter_reaches_the_autopilot_and_is_checked(configs, name, field, default,
+                                                                most):
+    """accel_noise_std_mps2 (PX4 SIH's by default), gyro_noise_std_radps (0.005 by default):
+    3 stds (FRD); a wrong one is refused."""
     vehicle = configs[2]
-    assert SimNodeConfig().autopilot_config(vehicle, 0.0).accel_noise_std == (0.28, 0.95, 0.80)
-    cfg = SimNodeConfig(accel_noise_std_mps2=[0.0, 0.1, 0.2])
-    assert cfg.autopilot_config(vehicle, 0.0).accel_noise_std == (0.0, 0.1, 0.2)
-    for bad in ([0.1, 0.1], [0.1, -0.1, 0.1], [0.1, float('nan'), 0.1], [0.1, 0.1, 6.0]):
-        with pytest.raises(ValueError, match='accel_noise_std_mps2'):
-            SimNodeConfig(accel_noise_std_mps2=bad).autopilot_config(vehicle, 0.0)
-
-
-def test_the_gyro_noise_parameter_reaches_the_autopilot_and_is_checked(configs):
-    """gyro_noise_std_radps: 3 stds (FRD), 0.005 by default; a wrong one is refused."""
-    vehicle = configs[2]
-    assert SimNodeConfig().autopilot_config(vehicle, 0.0).gyro_noise_std == (0.005, 0.005, 0.005)
-    cfg = SimNodeConfig(gyro_noise_std_radps=[0.0, 0.01, 0.02])
-    assert cfg.autopilot_config(vehicle, 0.0).gyro_noise_std == (0.0, 0.01, 0.02)
-    for bad in ([0.1, 0.1], [0.1, -0.1, 0.1], [0.1, float('inf'), 0.1], [0.1, 0.1, 1.5]):
-        with pytest.raises(ValueError, match='gyro_noise_std_radps'):
-            SimNodeConfig(gyro_noise_std_radps=bad).autopilot_config(vehicle, 0.0)
+    assert getattr(SimNodeConfig().autopilot_config(vehicle, 0.0), field) == default
+    cfg = SimNodeConfig(**{name: [0.0, 0.1, 0.2]})
+    assert getattr(cfg.autopilot_config(vehicle, 0.0), field) == (0.0, 0.1, 0.2)
+    for bad in ([0.1, 0.1], [0.1, -0.1, 0.1], [0.1, float('nan'), 0.1], [0.1, float('inf'), 0.1],
+                [0.1, 0.1, most + 0.5]):
+        with pytest.raises(ValueError, match=name):
+            SimNodeConfig(**{name: bad}).autopilot_config(vehicle, 0.0)
